@@ -1,0 +1,1 @@
+"""trifuse application edge: sources, files on disk, the server and the CLI."""

@@ -1,0 +1,1 @@
+"""Producers of time-stamped frame sets: simulated, replayed and live sensor heads."""

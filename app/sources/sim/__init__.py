@@ -1,0 +1,1 @@
+"""A simulated sensor head with exact ground truth (ray-cast in numpy)."""

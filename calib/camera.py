@@ -1,0 +1,206 @@
+"""Pinhole camera intrinsics with OpenCV's distortion model, vectorised in numpy.
+
+Frames follow OpenCV: +x right, +y down, +z forward; the centre of the top-left pixel is
+(0, 0). Distortion coefficients follow OpenCV's order ``k1 k2 p1 p2 [k3 [k4 k5 k6]]``:
+
+    r2 = x^2 + y^2
+    radial = (1 + k1 r2 + k2 r2^2 + k3 r2^3) / (1 + k4 r2 + k5 r2^2 + k6 r2^3)
+    xd = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
+    yd = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
+    u = fx xd + cx,   v = fy yd + cy
+
+``project`` and ``unproject`` are exact inverses (Newton iteration, not OpenCV's
+fixed-point ``undistortPoints``) wherever the model is invertible; elsewhere the result
+is NaN, never a wrong ray.
+"""
+
+from __future__ import annotations
+
+import numbers
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+import numpy.typing as npt
+
+DISTORTION_LENGTHS = (4, 5, 8)
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Focal lengths and principal point in pixels, distortion in OpenCV's order.
+
+    Hashable and comparable (plain floats and a tuple). ``K`` is the (3, 3) camera matrix.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: tuple[float, ...] = field(default=(0.0, 0.0, 0.0, 0.0, 0.0))
+
+    def __post_init__(self) -> None:
+        for name in ("fx", "fy", "cx", "cy"):
+            value = getattr(self, name)
+            if not isinstance(value, numbers.Real) or isinstance(value, bool):
+                raise ValueError(f"{name}: expected a number, got {value!r}")
+            if not np.isfinite(value):
+                raise ValueError(f"{name}: expected a finite number, got {value!r}")
+            object.__setattr__(self, name, float(value))
+        if self.fx <= 0 or self.fy <= 0:
+            raise ValueError(f"focal length must be positive, got fx={self.fx}, fy={self.fy}")
+        dist = tuple(float(d) for d in self.distortion)
+        if len(dist) not in DISTORTION_LENGTHS:
+            raise ValueError(
+                f"distortion: expected {', '.join(map(str, DISTORTION_LENGTHS))} coefficients "
+                f"(k1 k2 p1 p2 [k3 [k4 k5 k6]]), got {len(dist)}"
+            )
+        if not all(np.isfinite(dist)):
+            raise ValueError(f"distortion: expected finite numbers, got {list(dist)}")
+        object.__setattr__(self, "distortion", dist)
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) float64 camera matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @cached_property
+    def _coeffs(self) -> np.ndarray:
+        """The 8 coefficients k1 k2 p1 p2 k3 k4 k5 k6, zero-padded."""
+        c = np.zeros(8)
+        c[: len(self.distortion)] = self.distortion
+        return c
+
+    @property
+    def dist(self) -> np.ndarray:
+        """Distortion coefficients as a float64 array, for OpenCV calls."""
+        return np.asarray(self.distortion, dtype=np.float64)
+
+    def scaled(self, factor: float) -> Intrinsics:
+        """Intrinsics of the same camera with the image resampled by ``factor``.
+
+        Pixel centres stay consistent: ``u' = factor * (u + 0.5) - 0.5``.
+        """
+        return Intrinsics(
+            self.fx * factor,
+            self.fy * factor,
+            factor * (self.cx + 0.5) - 0.5,
+            factor * (self.cy + 0.5) - 0.5,
+            self.distortion,
+        )
+
+    # -- distortion in normalised coordinates ------------------------------------------
+
+    def distort(self, xy: np.ndarray) -> np.ndarray:
+        """Apply distortion to normalised coordinates ``(..., 2)`` -> ``(..., 2)``."""
+        xd, _ = self._distort_with_jacobian(xy, jacobian=False)
+        return xd
+
+    def _distort_with_jacobian(
+        self, xy: np.ndarray, jacobian: bool = True
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        k1, k2, p1, p2, k3, k4, k5, k6 = self._coeffs
+        x = xy[..., 0]
+        y = xy[..., 1]
+        r2 = x * x + y * y
+        num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        rad = num / den
+        out = np.empty(xy.shape, dtype=np.float64)
+        out[..., 0] = x * rad + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        out[..., 1] = y * rad + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        if not jacobian:
+            return out, None
+        dnum = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+        dden = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
+        drad = (dnum * den - num * dden) / (den * den)  # d rad / d r2
+        J = np.empty((*xy.shape[:-1], 2, 2), dtype=np.float64)
+        J[..., 0, 0] = rad + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x
+        J[..., 0, 1] = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
+        J[..., 1, 0] = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
+        J[..., 1, 1] = rad + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x
+        return out, J
+
+    def _radial_and_slope(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Radial factor and ``d(r * radial) / dr`` at normalised points ``(..., 2)``."""
+        k1, k2, _p1, _p2, k3, k4, k5, k6 = self._coeffs
+        r2 = xy[..., 0] ** 2 + xy[..., 1] ** 2
+        num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        dnum = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+        dden = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
+        rad = num / den
+        return rad, rad + 2.0 * r2 * (dnum * den - num * dden) / (den * den)
+
+    def undistort(self, xy_d: np.ndarray, max_iter: int = 30, tol: float = 1e-13) -> np.ndarray:
+        """Invert ``distort`` by Newton's method; ``(..., 2)`` -> ``(..., 2)``.
+
+        Points where the model is not invertible (or the iteration does not converge
+        to ``tol``) come back as NaN.
+        """
+        xy_d = np.asarray(xy_d, dtype=np.float64)
+        if not any(self.distortion):
+            return xy_d.copy()
+        xy = xy_d.copy()
+        for _ in range(max_iter):
+            f, J = self._distort_with_jacobian(xy)
+            r = f - xy_d
+            if np.nanmax(np.abs(r), initial=0.0) < tol:
+                break
+            a, b, c, d = J[..., 0, 0], J[..., 0, 1], J[..., 1, 0], J[..., 1, 1]
+            det = a * d - b * c
+            with np.errstate(divide="ignore", invalid="ignore"):
+                xy[..., 0] -= (d * r[..., 0] - b * r[..., 1]) / det
+                xy[..., 1] -= (-c * r[..., 0] + a * r[..., 1]) / det
+        f, J = self._distort_with_jacobian(xy)
+        det = J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]
+        # Beyond the fold of the radial model the solution is a wrong ray: require the
+        # radial factor and the derivative of the distorted radius to stay positive.
+        rad, drad_dr = self._radial_and_slope(xy)
+        bad = ~(np.max(np.abs(f - xy_d), axis=-1) < 1e-9) | ~(det > 0)
+        bad |= ~(rad > 0) | ~(drad_dr > 0)
+        xy[bad] = np.nan
+        return xy
+
+    # -- pixels <-> points / rays -------------------------------------------------------
+
+    def project(self, points: npt.ArrayLike) -> np.ndarray:
+        """Project camera-frame points ``(..., 3)`` in metres to pixels ``(..., 2)``.
+
+        Points with z <= 0 (behind or on the camera plane) or NaN project to NaN.
+        """
+        P = np.asarray(points, dtype=np.float64)
+        if P.shape[-1] != 3:
+            raise ValueError(f"points: expected shape (..., 3), got {P.shape}")
+        z = P[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xy = P[..., :2] / np.where(z > 0, z, np.nan)[..., None]
+        uv = self.distort(xy)
+        uv[..., 0] = uv[..., 0] * self.fx + self.cx
+        uv[..., 1] = uv[..., 1] * self.fy + self.cy
+        return uv
+
+    def normalized(self, pixels: npt.ArrayLike) -> np.ndarray:
+        """Undistorted normalised coordinates ``(..., 2)`` of pixels ``(..., 2)``."""
+        uv = np.asarray(pixels, dtype=np.float64)
+        if uv.shape[-1] != 2:
+            raise ValueError(f"pixels: expected shape (..., 2), got {uv.shape}")
+        xy_d = np.empty(uv.shape, dtype=np.float64)
+        xy_d[..., 0] = (uv[..., 0] - self.cx) / self.fx
+        xy_d[..., 1] = (uv[..., 1] - self.cy) / self.fy
+        return self.undistort(xy_d)
+
+    def unproject(self, pixels: npt.ArrayLike) -> np.ndarray:
+        """Unit rays ``(..., 3)`` (camera frame, z > 0) through pixels ``(..., 2)``."""
+        xy = self.normalized(pixels)
+        rays = np.empty((*xy.shape[:-1], 3), dtype=np.float64)
+        rays[..., :2] = xy
+        rays[..., 2] = 1.0
+        rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+        return rays
+
+
+def pixel_grid(width: int, height: int) -> np.ndarray:
+    """Pixel centres ``(height, width, 2)`` as (u, v) float64, u along columns."""
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    return np.stack([u, v], axis=-1)

@@ -1,0 +1,312 @@
+"""The rig: named sensors with intrinsics and poses, and the rig file (``trifuse-rig/1``).
+
+The rig frame is the frame of the reference sensor (the TOF camera on the default head).
+Each sensor stores ``T_rig_sensor``, its pose in the rig frame (4x4, metres); any pair
+is derived with ``rig.T(dst, src)``.
+
+This module parses and produces the rig file's *text* (YAML); reading and writing files is
+the app's job (``app.rigfile``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Literal, get_args
+
+import numpy as np
+import yaml
+
+from calib.camera import DISTORTION_LENGTHS, Intrinsics
+from calib.errors import RigError
+from calib.transforms import invert, rigidity_problem
+
+Modality = Literal["color", "thermal", "tof"]
+MODALITIES: tuple[str, ...] = get_args(Modality)
+RIG_FORMAT = "trifuse-rig/1"
+
+_TOP_KEYS = {"format", "reference", "eyes", "sensors"}
+_SENSOR_REQUIRED = ("modality", "image_size", "intrinsics", "distortion", "T_rig_sensor")
+_SENSOR_OPTIONAL = ("uncertainty", "range_correction", "radiometry")
+_INTRINSIC_KEYS = ("fx", "fy", "cx", "cy")
+
+
+@dataclass
+class Sensor:
+    """One imager of the head.
+
+    Attributes:
+        name: sensor id, e.g. ``ccd_left``.
+        modality: ``color``, ``thermal`` or ``tof``.
+        image_size: (width, height) in pixels.
+        intrinsics: focal lengths, principal point (pixels) and distortion.
+        T_rig_sensor: (4, 4) float64 pose of the sensor in the rig frame, metres.
+        uncertainty, range_correction, radiometry: optional blocks written by the
+            calibrations that produce them (plain YAML-compatible mappings).
+    """
+
+    name: str
+    modality: Modality
+    image_size: tuple[int, int]
+    intrinsics: Intrinsics
+    T_rig_sensor: np.ndarray
+    uncertainty: dict[str, Any] | None = None
+    range_correction: dict[str, Any] | None = None
+    radiometry: dict[str, Any] | None = None
+
+    @property
+    def width(self) -> int:
+        return self.image_size[0]
+
+    @property
+    def height(self) -> int:
+        return self.image_size[1]
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Sensor):
+            return NotImplemented
+        return (
+            self.name == other.name
+            and self.modality == other.modality
+            and self.image_size == other.image_size
+            and self.intrinsics == other.intrinsics
+            and np.array_equal(self.T_rig_sensor, other.T_rig_sensor)
+            and self.uncertainty == other.uncertainty
+            and self.range_correction == other.range_correction
+            and self.radiometry == other.radiometry
+        )
+
+
+@dataclass(frozen=True)
+class Eye:
+    """One eye of the stereo display: a colour camera and a thermal imager."""
+
+    color: str
+    thermal: str
+
+
+@dataclass
+class Rig:
+    """A set of named sensors, the reference sensor and the eye pairs."""
+
+    sensors: dict[str, Sensor]
+    reference: str
+    eyes: dict[str, Eye] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.reference not in self.sensors:
+            raise RigError(
+                f"reference: sensor {self.reference!r} is not in the rig "
+                f"(sensors: {sorted(self.sensors)})"
+            )
+        for eye_name, eye in self.eyes.items():
+            for role, wanted in (("color", "color"), ("thermal", "thermal")):
+                sid = getattr(eye, role)
+                if sid not in self.sensors:
+                    raise RigError(f"eyes.{eye_name}.{role}: unknown sensor {sid!r}")
+                if self.sensors[sid].modality != wanted:
+                    raise RigError(
+                        f"eyes.{eye_name}.{role}: sensor {sid!r} has modality "
+                        f"{self.sensors[sid].modality!r}, expected {wanted!r}"
+                    )
+
+    def __getitem__(self, name: str) -> Sensor:
+        try:
+            return self.sensors[name]
+        except KeyError:
+            raise KeyError(f"no sensor {name!r} in the rig (sensors: {sorted(self.sensors)})")
+
+    def __contains__(self, name: object) -> bool:
+        return name in self.sensors
+
+    @property
+    def names(self) -> list[str]:
+        """Sensor names in file order."""
+        return list(self.sensors)
+
+    def by_modality(self, modality: str) -> list[str]:
+        """Names of the sensors of one modality, in file order."""
+        return [n for n, s in self.sensors.items() if s.modality == modality]
+
+    def T(self, dst: str, src: str) -> np.ndarray:
+        """``T_dst_src`` (4, 4): maps points from sensor ``src``'s frame into ``dst``'s."""
+        return invert(self[dst].T_rig_sensor) @ self[src].T_rig_sensor
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Rig):
+            return NotImplemented
+        return (
+            self.reference == other.reference
+            and self.eyes == other.eyes
+            and list(self.sensors) == list(other.sensors)
+            and all(self.sensors[k] == other.sensors[k] for k in self.sensors)
+        )
+
+
+# -- parsing ---------------------------------------------------------------------------
+
+
+def _where(sensor: str | None, fieldname: str) -> str:
+    return f"sensor {sensor!r}: field {fieldname!r}" if sensor else f"field {fieldname!r}"
+
+
+def _mapping(value: Any, where: str) -> Mapping[str, Any]:
+    if not isinstance(value, Mapping):
+        raise RigError(f"{where}: expected a mapping, got {type(value).__name__}")
+    return value
+
+
+def _number(value: Any, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise RigError(f"{where}: expected a number, got {value!r}")
+    if not np.isfinite(value):
+        raise RigError(f"{where}: expected a finite number, got {value!r}")
+    return float(value)
+
+
+def _check_keys(data: Mapping[str, Any], required: tuple[str, ...], optional: tuple[str, ...],
+                where: str) -> None:
+    missing = [k for k in required if k not in data]
+    if missing:
+        raise RigError(f"{where}: missing key(s) {missing}")
+    unknown = sorted(set(data) - set(required) - set(optional), key=str)
+    if unknown:
+        raise RigError(
+            f"{where}: unknown key(s) {unknown} (allowed: {list(required) + list(optional)})"
+        )
+
+
+def _plain(value: Any, where: str) -> Any:
+    """Check that an optional block holds only plain YAML values (maps, lists, numbers)."""
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v, f"{where}.{k}") for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v, f"{where}[]") for v in value]
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    raise RigError(f"{where}: unsupported value {value!r}")
+
+
+def sensor_from_dict(name: str, data: Any) -> Sensor:
+    """Build a :class:`Sensor` from its rig-file mapping; raise RigError naming the field."""
+    d = _mapping(data, f"sensor {name!r}")
+    _check_keys(d, _SENSOR_REQUIRED, _SENSOR_OPTIONAL, f"sensor {name!r}")
+
+    modality = d["modality"]
+    if modality not in MODALITIES:
+        raise RigError(f"{_where(name, 'modality')}: expected one of {list(MODALITIES)}, "
+                       f"got {modality!r}")
+
+    size = d["image_size"]
+    if (
+        not isinstance(size, list | tuple)
+        or len(size) != 2
+        or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)
+    ):
+        raise RigError(f"{_where(name, 'image_size')}: expected [width, height] as two positive "
+                       f"integers, got {size!r}")
+
+    intr = _mapping(d["intrinsics"], _where(name, "intrinsics"))
+    _check_keys(intr, _INTRINSIC_KEYS, (), _where(name, "intrinsics"))
+    vals = {k: _number(intr[k], _where(name, f"intrinsics.{k}")) for k in _INTRINSIC_KEYS}
+    for k in ("fx", "fy"):
+        if vals[k] <= 0:
+            raise RigError(f"{_where(name, f'intrinsics.{k}')}: focal length must be positive, "
+                           f"got {vals[k]}")
+
+    dist = d["distortion"]
+    if not isinstance(dist, list | tuple) or len(dist) not in DISTORTION_LENGTHS:
+        raise RigError(f"{_where(name, 'distortion')}: expected a list of 4, 5 or 8 numbers "
+                       f"(k1 k2 p1 p2 [k3 [k4 k5 k6]]), got {dist!r}")
+    dist_vals = tuple(_number(c, _where(name, "distortion")) for c in dist)
+    intrinsics = Intrinsics(vals["fx"], vals["fy"], vals["cx"], vals["cy"], dist_vals)
+
+    T_raw = d["T_rig_sensor"]
+    if not (isinstance(T_raw, list | tuple) and len(T_raw) == 4
+            and all(isinstance(row, list | tuple) and len(row) == 4 for row in T_raw)):
+        raise RigError(f"{_where(name, 'T_rig_sensor')}: expected a 4x4 list of numbers, "
+                       f"got {T_raw!r}")
+    T = np.array([[_number(x, _where(name, "T_rig_sensor")) for x in row] for row in T_raw])
+    problem = rigidity_problem(T)
+    if problem is not None:
+        raise RigError(f"{_where(name, 'T_rig_sensor')}: not a rigid transform: {problem}")
+
+    extras = {
+        k: _plain(_mapping(d[k], _where(name, k)), _where(name, k)) if d.get(k) is not None
+        else None
+        for k in _SENSOR_OPTIONAL
+    }
+    return Sensor(name, modality, (size[0], size[1]), intrinsics, T, **extras)
+
+
+def rig_from_dict(data: Any) -> Rig:
+    """Build a :class:`Rig` from the parsed rig file; raise RigError on any defect."""
+    d = _mapping(data, "rig file")
+    _check_keys(d, ("format", "reference", "sensors"), ("eyes",), "rig file")
+    if d["format"] != RIG_FORMAT:
+        raise RigError(f"field 'format': expected {RIG_FORMAT!r}, got {d['format']!r}")
+    sensors_raw = _mapping(d["sensors"], "field 'sensors'")
+    if not sensors_raw:
+        raise RigError("field 'sensors': the rig has no sensors")
+    sensors = {str(n): sensor_from_dict(str(n), s) for n, s in sensors_raw.items()}
+
+    reference = d["reference"]
+    if not isinstance(reference, str):
+        raise RigError(f"field 'reference': expected a sensor name, got {reference!r}")
+    if reference not in sensors:
+        raise RigError(f"field 'reference': sensor {reference!r} is not in the rig "
+                       f"(sensors: {sorted(sensors)})")
+    if not np.allclose(sensors[reference].T_rig_sensor, np.eye(4), atol=1e-9):
+        raise RigError(f"{_where(reference, 'T_rig_sensor')}: the reference sensor defines the "
+                       "rig frame, so its pose must be the identity")
+
+    eyes: dict[str, Eye] = {}
+    eyes_raw = d.get("eyes")
+    eyes_raw = {} if eyes_raw is None else _mapping(eyes_raw, "field 'eyes'")
+    for eye_name, eye_raw in eyes_raw.items():
+        e = _mapping(eye_raw, f"field 'eyes.{eye_name}'")
+        _check_keys(e, ("color", "thermal"), (), f"field 'eyes.{eye_name}'")
+        eyes[str(eye_name)] = Eye(str(e["color"]), str(e["thermal"]))
+    return Rig(sensors=sensors, reference=str(reference), eyes=eyes)
+
+
+def _floats(a: np.ndarray) -> list[Any]:
+    return np.asarray(a, dtype=np.float64).tolist()
+
+
+def rig_to_dict(rig: Rig) -> dict[str, Any]:
+    """The rig as plain data in rig-file layout (inverse of :func:`rig_from_dict`)."""
+    sensors: dict[str, Any] = {}
+    for name, s in rig.sensors.items():
+        i = s.intrinsics
+        entry: dict[str, Any] = {
+            "modality": s.modality,
+            "image_size": [int(s.image_size[0]), int(s.image_size[1])],
+            "intrinsics": {"fx": i.fx, "fy": i.fy, "cx": i.cx, "cy": i.cy},
+            "distortion": [float(c) for c in i.distortion],
+            "T_rig_sensor": _floats(s.T_rig_sensor),
+        }
+        for k in _SENSOR_OPTIONAL:
+            if getattr(s, k) is not None:
+                entry[k] = getattr(s, k)
+        sensors[name] = entry
+    return {
+        "format": RIG_FORMAT,
+        "reference": rig.reference,
+        "eyes": {n: {"color": e.color, "thermal": e.thermal} for n, e in rig.eyes.items()},
+        "sensors": sensors,
+    }
+
+
+def rig_from_yaml(text: str) -> Rig:
+    """Parse rig-file text; raise RigError for YAML errors and invalid content."""
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise RigError(f"rig file is not valid YAML: {exc}") from None
+    return rig_from_dict(data)
+
+
+def rig_to_yaml(rig: Rig) -> str:
+    """Rig-file text of ``rig``; floats are written with full precision (exact round trip)."""
+    return yaml.safe_dump(rig_to_dict(rig), sort_keys=False, default_flow_style=None, width=100)

@@ -1,0 +1,123 @@
+"""Rigid transforms as 4x4 float64 arrays named ``T_dst_src``.
+
+``T_dst_src`` maps points from frame ``src`` into frame ``dst``; transforms compose by
+adjacent frames, ``T_a_c = T_a_b @ T_b_c``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+RIGID_TOL = 1e-6
+
+
+def rigidity_problem(T: npt.ArrayLike, tol: float = RIGID_TOL) -> str | None:
+    """Return why ``T`` is not a rigid 4x4 transform, or None if it is.
+
+    Args:
+        T: candidate transform, anything convertible to a float array.
+        tol: tolerance on orthonormality, determinant and the last row.
+    """
+    try:
+        A = np.asarray(T, dtype=np.float64)
+    except (TypeError, ValueError):
+        return "expected a 4x4 array of numbers"
+    if A.shape != (4, 4):
+        return f"expected shape (4, 4), got {A.shape}"
+    if not np.all(np.isfinite(A)):
+        return "contains NaN or infinity"
+    if not np.allclose(A[3], [0.0, 0.0, 0.0, 1.0], atol=tol):
+        return f"last row must be [0, 0, 0, 1], got {A[3].tolist()}"
+    R = A[:3, :3]
+    ortho = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if ortho > tol:
+        return f"rotation block is not orthonormal (max |R^T R - I| = {ortho:.3g})"
+    det = float(np.linalg.det(R))
+    if det < 0:
+        return f"rotation block is a reflection (det = {det:.6f})"
+    return None
+
+
+def check_rigid(T: npt.ArrayLike, name: str = "T") -> np.ndarray:
+    """Return ``T`` as a (4, 4) float64 array, or raise ValueError naming ``name``."""
+    problem = rigidity_problem(T)
+    if problem is not None:
+        raise ValueError(f"{name}: not a rigid transform: {problem}")
+    return np.array(T, dtype=np.float64)
+
+
+def make_T(R: npt.ArrayLike, t: npt.ArrayLike) -> np.ndarray:
+    """Build a (4, 4) transform from a (3, 3) rotation and a (3,) translation in metres."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, dtype=np.float64)
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def invert(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid (4, 4) transform: ``T_src_dst`` from ``T_dst_src``."""
+    R = T[:3, :3]
+    return make_T(R.T, -R.T @ T[:3, 3])
+
+
+def transform_points(T_dst_src: np.ndarray, points_src: np.ndarray) -> np.ndarray:
+    """Map points ``(..., 3)`` in frame src into frame dst; NaN stays NaN."""
+    P = np.asarray(points_src, dtype=np.float64)
+    return P @ T_dst_src[:3, :3].T + T_dst_src[:3, 3]
+
+
+def rotation_from_rvec(rvec: npt.ArrayLike) -> np.ndarray:
+    """(3, 3) rotation matrix from an axis-angle vector (radians), Rodrigues' formula."""
+    r = np.asarray(rvec, dtype=np.float64).reshape(3)
+    theta = float(np.linalg.norm(r))
+    if theta < 1e-15:
+        return np.eye(3)
+    k = r / theta
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
+
+
+def rvec_from_rotation(R: np.ndarray) -> np.ndarray:
+    """Axis-angle vector (3,) in radians of a (3, 3) rotation matrix.
+
+    The angle comes from ``atan2`` of the skew and symmetric parts, which stays accurate
+    near 0 and near a half turn (``arccos`` of the trace does not).
+    """
+    R = np.asarray(R, dtype=np.float64)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])  # 2 sin(t) k
+    s = float(np.linalg.norm(w)) / 2.0
+    c = (float(np.trace(R)) - 1.0) / 2.0
+    theta = float(np.arctan2(s, c))
+    if s == 0.0 and c > 0:
+        return np.zeros(3)
+    if c > -0.9:
+        return w * (theta / (2.0 * s))
+    # Near a half turn: (R + R^T) / 2 - cos(t) I = (1 - cos(t)) k k^T.
+    B = (R + R.T) / 2.0 - c * np.eye(3)
+    i = int(np.argmax(np.diag(B)))
+    k = B[:, i] / np.sqrt(B[i, i] * (1.0 - c))
+    k /= np.linalg.norm(k)
+    if k @ w < 0:
+        k = -k
+    return k * theta
+
+
+def rotation_from_euler_deg(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """(3, 3) rotation ``Rz(yaw) @ Ry(pitch) @ Rx(roll)``, angles in degrees."""
+    rx, ry, rz = np.radians([roll, pitch, yaw])
+    Rx = np.array([[1, 0, 0], [0, np.cos(rx), -np.sin(rx)], [0, np.sin(rx), np.cos(rx)]])
+    Ry = np.array([[np.cos(ry), 0, np.sin(ry)], [0, 1, 0], [-np.sin(ry), 0, np.cos(ry)]])
+    Rz = np.array([[np.cos(rz), -np.sin(rz), 0], [np.sin(rz), np.cos(rz), 0], [0, 0, 1]])
+    return Rz @ Ry @ Rx
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a rotation matrix in degrees (e.g. of ``R_est.T @ R_true``)."""
+    return float(np.degrees(np.linalg.norm(rvec_from_rotation(R))))
+
+
+def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """(rotation error in degrees, translation error in metres) between two transforms."""
+    dR = T_est[:3, :3].T @ T_true[:3, :3]
+    return rotation_angle_deg(dR), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))

@@ -1,0 +1,257 @@
+"""The fusion geometry (DESIGN.md, "The geometry of the fusion"), vectorised in numpy.
+
+A TOF pixel (u, v) with measured *radial* distance d (metres along the ray, not z):
+
+1. undistort (u, v) with the TOF intrinsics to normalised (x, y); the unit ray is
+   ``r = (x, y, 1) / sqrt(x^2 + y^2 + 1)`` in the TOF frame: :func:`tof_rays`;
+2. the point is ``P = d * r`` (TOF frame, metres): :func:`tof_points`;
+3. into a sensor: ``P' = R P + t`` with ``[R | t] = rig.T(sensor, tof)``: ``transform_points``;
+4. perspective projection with the sensor's intrinsics and distortion: :func:`project_to_sensor`.
+
+:func:`tof_to_sensor_pixels` runs the whole chain. Frames follow OpenCV (+x right, +y down,
++z forward); pixel centres are at integer coordinates. Invalid values are NaN throughout:
+NaN in, NaN out, never a point at the origin or a pixel at (0, 0).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+import numpy.typing as npt
+
+from calib.camera import Intrinsics, pixel_grid
+from calib.rig import Rig
+from calib.transforms import transform_points
+
+__all__ = [
+    "in_image",
+    "monotonic_radius",
+    "project_to_sensor",
+    "tof_points",
+    "tof_rays",
+    "tof_sensor_name",
+    "tof_to_sensor_pixels",
+    "transform_points",
+]
+
+# Normalised radii scanned for the fold of the distortion: step 1e-3 up to 2 (63 degrees off
+# axis), then geometric up to 1e4 (within 0.006 degrees of 90).
+_FOLD_SCAN = np.concatenate([np.linspace(0.0, 2.0, 2001), np.geomspace(2.0, 1e4, 2001)[1:]])
+
+
+def _positive_int(value: object, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value <= 0:
+        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+    return int(value)
+
+
+def _check_last_dim(a: np.ndarray, n: int, name: str) -> None:
+    if a.ndim < 1 or a.shape[-1] != n:
+        raise ValueError(f"{name}: expected shape (..., {n}), got {a.shape}")
+
+
+@lru_cache(maxsize=64)
+def monotonic_radius(intrinsics: Intrinsics) -> float:
+    """Normalised radius up to which the radial distortion is one-to-one.
+
+    The distorted radius ``r_d = r * radial(r^2)`` (DESIGN.md's model) must grow with
+    ``r`` and ``radial`` must stay positive; beyond the first fold the polynomial maps
+    points back into the image (wrong pixels) and its inverse is not the camera's ray.
+    Found on a grid (:data:`_FOLD_SCAN`), conservatively: the last sample before the fold.
+    The tangential terms (p1, p2) are ignored. ``inf`` if there is no fold.
+
+    Args:
+        intrinsics: the camera (cached per value; ``Intrinsics`` is hashable).
+
+    Returns:
+        The radius ``sqrt(x^2 + y^2)`` in normalised coordinates (x = X/Z, y = Y/Z).
+    """
+    c = np.zeros(8)
+    c[: len(intrinsics.distortion)] = intrinsics.distortion
+    k1, k2, _, _, k3, k4, k5, k6 = c
+    r = _FOLD_SCAN
+    r2 = r * r
+    with np.errstate(all="ignore"):
+        radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+        good = (radial > 0.0) & np.isfinite(radial)
+        good[1:] &= np.diff(r * radial) > 0.0
+    if good.all():
+        return float("inf")
+    first_bad = int(np.argmin(good))
+    return float(r[max(first_bad - 2, 0)])
+
+
+def _beyond_fold(intrinsics: Intrinsics, xy: np.ndarray) -> np.ndarray:
+    """(...) True where normalised coordinates ``xy`` (..., 2) lie beyond the fold."""
+    if not any(intrinsics.distortion):
+        return np.zeros(xy.shape[:-1], dtype=bool)
+    r_max = monotonic_radius(intrinsics)
+    with np.errstate(invalid="ignore"):
+        return np.hypot(xy[..., 0], xy[..., 1]) > r_max
+
+
+def tof_rays(intrinsics: Intrinsics, width: int, height: int) -> np.ndarray:
+    """Unit rays through every pixel centre of the TOF image (step 1).
+
+    Args:
+        intrinsics: the TOF camera's intrinsics and distortion.
+        width, height: TOF image size in pixels.
+
+    Returns:
+        (height, width, 3) float64 unit vectors in the TOF frame (z > 0); ``rays[v, u]`` is
+        the ray through pixel (u, v). NaN where the distortion model cannot be inverted
+        within its one-to-one zone (see :func:`monotonic_radius`).
+    """
+    w = _positive_int(width, "width")
+    h = _positive_int(height, "height")
+    rays = intrinsics.unproject(pixel_grid(w, h))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rays[_beyond_fold(intrinsics, rays[..., :2] / rays[..., 2:3])] = np.nan
+    return rays
+
+
+def tof_points(
+    distance_m: npt.ArrayLike,
+    rays: npt.ArrayLike,
+    min_range_m: float = 0.1,
+    max_range_m: float = 10.0,
+) -> np.ndarray:
+    """TOF-frame points ``P = d * r`` from radial distances along unit rays (step 2).
+
+    The TOF measures the distance along the ray (radial), not the z coordinate, so
+    ``|P| = d``.
+
+    Args:
+        distance_m: (H, W) radial distances in metres (any float dtype).
+        rays: (H, W, 3) unit rays in the TOF frame, e.g. from :func:`tof_rays`.
+        min_range_m, max_range_m: the valid range, inclusive, in metres.
+
+    Returns:
+        (H, W, 3) float64 points in the TOF frame, metres. Distances that are NaN,
+        infinite, zero or negative, below ``min_range_m`` or beyond ``max_range_m`` (and
+        NaN rays) give NaN points.
+    """
+    d = np.asarray(distance_m, dtype=np.float64)
+    r = np.asarray(rays, dtype=np.float64)
+    _check_last_dim(r, 3, "rays")
+    if d.shape != r.shape[:-1]:
+        raise ValueError(
+            f"distance_m: expected shape {r.shape[:-1]} to match rays {r.shape}, got {d.shape}"
+        )
+    if not (np.isfinite(min_range_m) and np.isfinite(max_range_m)) or not (
+        0.0 <= min_range_m < max_range_m
+    ):
+        raise ValueError(
+            "range: expected finite 0 <= min_range_m < max_range_m, "
+            f"got min_range_m={min_range_m}, max_range_m={max_range_m}"
+        )
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(d) & (d > 0.0) & (d >= min_range_m) & (d <= max_range_m)
+    points = d[..., None] * r
+    points[~valid] = np.nan
+    return points
+
+
+def tof_sensor_name(rig: Rig, tof: str | None = None) -> str:
+    """The name of the TOF sensor: ``tof`` if given (it must be in the rig), else the
+    rig's only sensor of modality ``"tof"``.
+
+    Raises:
+        KeyError: ``tof`` is not a sensor of the rig.
+        ValueError: ``tof`` is None and the rig has no or several TOF sensors.
+    """
+    if tof is not None:
+        rig[tof]  # raises KeyError naming it
+        return tof
+    names = rig.by_modality("tof")
+    if len(names) != 1:
+        raise ValueError(
+            f"tof: expected exactly one sensor of modality 'tof' in the rig, got {names}; "
+            "name the TOF sensor explicitly"
+        )
+    return names[0]
+
+
+def project_to_sensor(
+    points_tof: npt.ArrayLike, rig: Rig, sensor: str, tof: str | None = None
+) -> np.ndarray:
+    """Pixel coordinates in ``sensor`` of points in the TOF frame (steps 3 and 4).
+
+    Args:
+        points_tof: (..., 3) points in the TOF frame, metres; NaN allowed.
+        rig: the calibrated rig.
+        sensor: name of the target sensor.
+        tof: name of the TOF sensor; default the rig's only sensor of modality "tof".
+
+    Returns:
+        (..., 2) float64 pixel coordinates (u, v) in ``sensor``, with its distortion.
+        NaN for NaN points, for points on or behind the sensor's image plane (z <= 0),
+        and for points beyond the fold of the sensor's distortion model (where the
+        polynomial would map them back into the image, see :func:`monotonic_radius`).
+        Points outside the image are *not* NaN: see :func:`in_image`.
+    """
+    P = np.asarray(points_tof, dtype=np.float64)
+    _check_last_dim(P, 3, "points_tof")
+    intr = rig[sensor].intrinsics
+    P_sensor = transform_points(rig.T(sensor, tof_sensor_name(rig, tof)), P)
+    uv = intr.project(P_sensor)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv[_beyond_fold(intr, P_sensor[..., :2] / P_sensor[..., 2:3])] = np.nan
+    return uv
+
+
+def tof_to_sensor_pixels(
+    distance_m: npt.ArrayLike,
+    rig: Rig,
+    sensor: str,
+    tof: str | None = None,
+    rays: npt.ArrayLike | None = None,
+    *,
+    min_range_m: float = 0.1,
+    max_range_m: float = 10.0,
+) -> np.ndarray:
+    """Where every TOF pixel lands in ``sensor``: the whole chain, steps 1-4.
+
+    Args:
+        distance_m: (H, W) radial distances in metres from the TOF sensor.
+        rig: the calibrated rig.
+        sensor: name of the target sensor.
+        tof: name of the TOF sensor; default the rig's only sensor of modality "tof".
+        rays: (H, W, 3) precomputed :func:`tof_rays`; computed from the TOF sensor's
+            intrinsics and image size if None (then (H, W) must be that image size).
+        min_range_m, max_range_m: the valid distance range, see :func:`tof_points`.
+
+    Returns:
+        (H, W, 2) float64 pixel coordinates in ``sensor``; NaN where the distance is
+        invalid or the point does not project (see :func:`project_to_sensor`).
+    """
+    tof_name = tof_sensor_name(rig, tof)
+    if rays is None:
+        s = rig[tof_name]
+        rays = tof_rays(s.intrinsics, s.width, s.height)
+    points = tof_points(distance_m, rays, min_range_m=min_range_m, max_range_m=max_range_m)
+    return project_to_sensor(points, rig, sensor, tof_name)
+
+
+def in_image(pixels: npt.ArrayLike, width: int, height: int) -> np.ndarray:
+    """Which pixel coordinates fall inside a ``width`` x ``height`` image.
+
+    Pixel centres are at integers, so inside means ``-0.5 <= u < width - 0.5`` and
+    ``-0.5 <= v < height - 0.5``; rounding an inside coordinate gives a valid index.
+
+    Args:
+        pixels: (..., 2) pixel coordinates (u, v); NaN is outside.
+        width, height: image size in pixels.
+
+    Returns:
+        (...) bool array.
+    """
+    uv = np.asarray(pixels, dtype=np.float64)
+    _check_last_dim(uv, 2, "pixels")
+    w = _positive_int(width, "width")
+    h = _positive_int(height, "height")
+    u = uv[..., 0]
+    v = uv[..., 1]
+    with np.errstate(invalid="ignore"):
+        return (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5)

@@ -1,0 +1,223 @@
+"""Intrinsics: project/unproject round trips, agreement with OpenCV, validation, scaling."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from calib.camera import Intrinsics, pixel_grid
+
+# Deterministic property tests: same examples every run.
+PROPERTY = settings(derandomize=True, database=None, deadline=None, max_examples=150)
+
+# Distortion ranges "like the default head's" (tof, ccd and thermal sit inside them).
+K1 = (-0.25, 0.1)
+K2 = (-0.05, 0.15)
+P12 = (-1e-3, 1e-3)
+K3 = (-0.01, 0.01)
+K456 = (-0.01, 0.01)
+# Inside this normalised radius every distortion above is monotonic (d r_d / d r > 0.5),
+# i.e. the field of view of a real lens with such coefficients (about +-35 degrees).
+R_MAX = 0.7
+# ... and r_d(R_MAX) > 0.59 for all of them, so distorted radii below this are invertible.
+RD_MAX = 0.55
+
+
+def _floats(lo: float, hi: float) -> st.SearchStrategy[float]:
+    return st.floats(lo, hi, allow_nan=False, allow_infinity=False)
+
+
+@st.composite
+def intrinsics(draw: st.DrawFn, n_coeffs: int | None = None) -> Intrinsics:
+    n = draw(st.sampled_from((4, 5, 8))) if n_coeffs is None else n_coeffs
+    fx = draw(_floats(100.0, 2000.0))
+    fy = fx * draw(_floats(0.95, 1.05))
+    cx = draw(_floats(0.3, 0.7)) * 2.0 * fx * R_MAX
+    cy = draw(_floats(0.3, 0.7)) * 2.0 * fy * R_MAX
+    dist = [draw(_floats(*K1)), draw(_floats(*K2)), draw(_floats(*P12)), draw(_floats(*P12))]
+    if n >= 5:
+        dist.append(draw(_floats(*K3)))
+    if n == 8:
+        dist += [draw(_floats(*K456)) for _ in range(3)]
+    return Intrinsics(fx, fy, cx, cy, tuple(dist))
+
+
+@st.composite
+def points_in_fov(draw: st.DrawFn) -> np.ndarray:
+    """(N, 3) points in front of the camera whose normalised radius is at most R_MAX."""
+    n = draw(st.integers(1, 20))
+    rows = []
+    for _ in range(n):
+        r = draw(_floats(0.0, R_MAX))
+        phi = draw(_floats(0.0, 2.0 * math.pi))
+        z = draw(_floats(0.05, 50.0))
+        rows.append([r * math.cos(phi) * z, r * math.sin(phi) * z, z])
+    return np.array(rows)
+
+
+@st.composite
+def pixels_in_fov(draw: st.DrawFn, intr: Intrinsics) -> np.ndarray:
+    """(N, 2) pixels whose distorted normalised radius is at most RD_MAX."""
+    n = draw(st.integers(1, 20))
+    rows = []
+    for _ in range(n):
+        r = draw(_floats(0.0, RD_MAX))
+        phi = draw(_floats(0.0, 2.0 * math.pi))
+        rows.append([intr.fx * r * math.cos(phi) + intr.cx, intr.fy * r * math.sin(phi) + intr.cy])
+    return np.array(rows)
+
+
+def cv2_project(intr: Intrinsics, points: np.ndarray) -> np.ndarray:
+    """OpenCV's projection of camera-frame points, reshaped from (N, 1, 2) to (N, 2)."""
+    uv, _ = cv2.projectPoints(points.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), intr.K, intr.dist)
+    return uv.reshape(-1, 2)
+
+
+# -- round trips -----------------------------------------------------------------------
+
+
+@PROPERTY
+@given(intr=intrinsics(), points=points_in_fov())
+def test_unproject_of_project_is_the_unit_ray(intr: Intrinsics, points: np.ndarray) -> None:
+    rays = intr.unproject(intr.project(points))
+    expected = points / np.linalg.norm(points, axis=1, keepdims=True)
+    np.testing.assert_allclose(rays, expected, rtol=0, atol=1e-9)
+
+
+@PROPERTY
+@given(data=st.data(), intr=intrinsics())
+def test_project_of_unproject_is_the_pixel(data: st.DataObject, intr: Intrinsics) -> None:
+    uv = data.draw(pixels_in_fov(intr))
+    rays = intr.unproject(uv)
+    assert np.all(np.isfinite(rays))
+    assert np.all(rays[:, 2] > 0)
+    np.testing.assert_allclose(np.linalg.norm(rays, axis=1), 1.0, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(intr.project(rays), uv, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("n_coeffs", [4, 5, 8])
+@PROPERTY
+@given(data=st.data(), points=points_in_fov())
+def test_project_agrees_with_opencv(n_coeffs: int, data: st.DataObject, points: np.ndarray) -> None:
+    intr = data.draw(intrinsics(n_coeffs))
+    assert len(intr.distortion) == n_coeffs
+    np.testing.assert_allclose(intr.project(points), cv2_project(intr, points), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("n_coeffs", [4, 5, 8])
+@PROPERTY
+@given(data=st.data(), points=points_in_fov())
+def test_round_trip_per_coefficient_count(
+    n_coeffs: int, data: st.DataObject, points: np.ndarray
+) -> None:
+    intr = data.draw(intrinsics(n_coeffs))
+    rays = intr.unproject(intr.project(points))
+    expected = points / np.linalg.norm(points, axis=1, keepdims=True)
+    np.testing.assert_allclose(rays, expected, rtol=0, atol=1e-9)
+
+
+def test_project_keeps_leading_shape() -> None:
+    intr = Intrinsics(500.0, 500.0, 320.0, 240.0, (-0.1, 0.01, 0.0, 0.0, 0.0))
+    grid = pixel_grid(4, 3)
+    assert grid.shape == (3, 4, 2)
+    np.testing.assert_array_equal(grid[2, 3], [3.0, 2.0])
+    rays = intr.unproject(grid)
+    assert rays.shape == (3, 4, 3)
+    np.testing.assert_allclose(intr.project(rays), grid, rtol=0, atol=1e-6)
+
+
+def test_principal_point_is_the_optical_axis() -> None:
+    intr = Intrinsics(800.0, 810.0, 319.5, 239.5, (-0.2, 0.1, 1e-3, -1e-3, 0.01))
+    np.testing.assert_array_equal(intr.project([0.0, 0.0, 3.0]), [319.5, 239.5])
+    np.testing.assert_allclose(intr.unproject([319.5, 239.5]), [0.0, 0.0, 1.0], atol=1e-15)
+
+
+# -- points that do not project ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("z", [0.0, -1e-9, -1.0, -100.0])
+def test_points_on_or_behind_the_camera_are_nan(z: float) -> None:
+    intr = Intrinsics(500.0, 500.0, 320.0, 240.0, (-0.1, 0.01, 0.0, 0.0, 0.0))
+    uv = intr.project([[0.1, -0.2, z], [0.0, 0.0, 1.0]])
+    assert np.all(np.isnan(uv[0]))
+    assert np.all(np.isfinite(uv[1]))
+
+
+def test_nan_points_project_to_nan() -> None:
+    intr = Intrinsics(500.0, 500.0, 320.0, 240.0)
+    uv = intr.project([[np.nan, 0.0, 1.0], [0.0, 0.0, np.nan]])
+    assert np.all(np.isnan(uv))
+
+
+def test_project_rejects_wrong_last_dimension() -> None:
+    intr = Intrinsics(500.0, 500.0, 320.0, 240.0)
+    with pytest.raises(ValueError, match=r"points: expected shape \(\.\.\., 3\), got \(4, 2\)"):
+        intr.project(np.zeros((4, 2)))
+    with pytest.raises(ValueError, match=r"pixels: expected shape \(\.\.\., 2\), got \(4, 3\)"):
+        intr.unproject(np.zeros((4, 3)))
+
+
+# -- validation ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"fx": -500.0}, "focal length must be positive"),
+        ({"fy": -1.0}, "focal length must be positive"),
+        ({"fx": 0.0}, "focal length must be positive"),
+        ({"fx": float("nan")}, "fx: expected a finite number"),
+        ({"cy": float("inf")}, "cy: expected a finite number"),
+        ({"cx": "320"}, "cx: expected a number"),
+        ({"fx": True}, "fx: expected a number"),
+        ({"distortion": (0.1, 0.0, 0.0)}, "distortion: expected 4, 5, 8 coefficients.*got 3"),
+        ({"distortion": (0.0,) * 6}, "distortion: expected 4, 5, 8 coefficients.*got 6"),
+        ({"distortion": (0.0,) * 9}, "distortion: expected 4, 5, 8 coefficients.*got 9"),
+        ({"distortion": ()}, "distortion: expected 4, 5, 8 coefficients.*got 0"),
+        ({"distortion": (0.1, float("nan"), 0.0, 0.0)}, "distortion: expected finite numbers"),
+    ],
+)
+def test_intrinsics_validation(kwargs: dict, match: str) -> None:
+    args = {"fx": 500.0, "fy": 500.0, "cx": 320.0, "cy": 240.0, **kwargs}
+    with pytest.raises(ValueError, match=match):
+        Intrinsics(**args)
+
+
+def test_intrinsics_are_hashable_and_comparable() -> None:
+    a = Intrinsics(500, 501, 320, 240, [0.1, 0.0, 0.0, 0.0])
+    b = Intrinsics(500.0, 501.0, 320.0, 240.0, (0.1, 0.0, 0.0, 0.0))
+    assert a == b
+    assert hash(a) == hash(b)
+    assert isinstance(a.fx, float)
+    assert a.distortion == (0.1, 0.0, 0.0, 0.0)
+    np.testing.assert_array_equal(a.K, [[500.0, 0.0, 320.0], [0.0, 501.0, 240.0], [0, 0, 1]])
+
+
+# -- scaling -----------------------------------------------------------------------------
+
+
+@PROPERTY
+@given(intr=intrinsics(), points=points_in_fov(), factor=_floats(0.1, 4.0))
+def test_scaled_moves_pixel_centres_consistently(
+    intr: Intrinsics, points: np.ndarray, factor: float
+) -> None:
+    uv = intr.project(points)
+    uv_scaled = intr.scaled(factor).project(points)
+    # The scaled camera sees the same point at factor * (u + 0.5) - 0.5; both sides are
+    # O(factor * 3000 px), so a few ulp of that is well below 1e-9 px.
+    np.testing.assert_allclose(uv_scaled, factor * (uv + 0.5) - 0.5, rtol=0, atol=1e-9)
+
+
+def test_scaled_by_two_and_half() -> None:
+    intr = Intrinsics(500.0, 400.0, 319.5, 239.5, (-0.1, 0.01, 0.0, 0.0, 0.0))
+    half = intr.scaled(0.5)
+    assert (half.fx, half.fy, half.cx, half.cy) == (250.0, 200.0, 159.5, 119.5)
+    assert half.distortion == intr.distortion
+    assert intr.scaled(2.0).scaled(0.5) == intr
+    with pytest.raises(ValueError, match="focal length must be positive"):
+        intr.scaled(-1.0)
