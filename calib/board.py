@@ -4,8 +4,9 @@ Board frame: origin at the first inner corner, +x along a row of corners (``cols
 down the columns (``rows``), +z into the board (away from a camera that sees its front),
 metres. Corners are ordered row-major: index ``r * cols + c`` is at
 ``(c * square, r * square, 0)``. The square diagonally up-left of corner (0, 0) is black
-(cold in thermal, dark in TOF amplitude); with an odd number of squares on one side and an
-even number on the other the colours fix the ordering under a half turn.
+(on the heated board: high emissivity, so hot in thermal; dark in TOF amplitude). With
+an odd number of squares on one side and an even number on the other, the colours fix
+the ordering under a half turn.
 """
 
 from __future__ import annotations
@@ -31,8 +32,9 @@ class Board:
             if not isinstance(v, int) or isinstance(v, bool) or v < 2:
                 raise ValueError(f"board {name}: expected an integer >= 2, got {v!r}")
         if not (isinstance(self.square_size_m, int | float) and self.square_size_m > 0):
-            raise ValueError(f"board square_size_m: expected a positive number, "
-                             f"got {self.square_size_m!r}")
+            raise ValueError(
+                f"board square_size_m: expected a positive number, got {self.square_size_m!r}"
+            )
         object.__setattr__(self, "square_size_m", float(self.square_size_m))
 
     @property
@@ -69,8 +71,11 @@ class Board:
         return ((i + j) % 2) == 0
 
     def to_dict(self) -> dict[str, Any]:
-        return {"pattern": "checkerboard", "inner_corners": [self.cols, self.rows],
-                "square_size_m": self.square_size_m}
+        return {
+            "pattern": "checkerboard",
+            "inner_corners": [self.cols, self.rows],
+            "square_size_m": self.square_size_m,
+        }
 
 
 def board_from_dict(data: Any) -> Board:
@@ -85,8 +90,9 @@ def board_from_dict(data: Any) -> Board:
     if missing:
         raise ValueError(f"board: missing key(s) {missing}")
     if data["pattern"] != "checkerboard":
-        raise ValueError(f"board pattern: only 'checkerboard' is supported, "
-                         f"got {data['pattern']!r}")
+        raise ValueError(
+            f"board pattern: only 'checkerboard' is supported, got {data['pattern']!r}"
+        )
     ic = data["inner_corners"]
     if not isinstance(ic, list | tuple) or len(ic) != 2:
         raise ValueError(f"board inner_corners: expected [cols, rows], got {ic!r}")

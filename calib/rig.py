@@ -114,7 +114,8 @@ class Rig:
         try:
             return self.sensors[name]
         except KeyError:
-            raise KeyError(f"no sensor {name!r} in the rig (sensors: {sorted(self.sensors)})")
+            known = sorted(self.sensors)
+            raise KeyError(f"no sensor {name!r} in the rig (sensors: {known})") from None
 
     def __contains__(self, name: object) -> bool:
         return name in self.sensors
@@ -164,8 +165,9 @@ def _number(value: Any, where: str) -> float:
     return float(value)
 
 
-def _check_keys(data: Mapping[str, Any], required: tuple[str, ...], optional: tuple[str, ...],
-                where: str) -> None:
+def _check_keys(
+    data: Mapping[str, Any], required: tuple[str, ...], optional: tuple[str, ...], where: str
+) -> None:
     missing = [k for k in required if k not in data]
     if missing:
         raise RigError(f"{where}: missing key(s) {missing}")
@@ -194,8 +196,9 @@ def sensor_from_dict(name: str, data: Any) -> Sensor:
 
     modality = d["modality"]
     if modality not in MODALITIES:
-        raise RigError(f"{_where(name, 'modality')}: expected one of {list(MODALITIES)}, "
-                       f"got {modality!r}")
+        raise RigError(
+            f"{_where(name, 'modality')}: expected one of {list(MODALITIES)}, got {modality!r}"
+        )
 
     size = d["image_size"]
     if (
@@ -203,36 +206,46 @@ def sensor_from_dict(name: str, data: Any) -> Sensor:
         or len(size) != 2
         or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)
     ):
-        raise RigError(f"{_where(name, 'image_size')}: expected [width, height] as two positive "
-                       f"integers, got {size!r}")
+        raise RigError(
+            f"{_where(name, 'image_size')}: expected [width, height] as two positive "
+            f"integers, got {size!r}"
+        )
 
     intr = _mapping(d["intrinsics"], _where(name, "intrinsics"))
     _check_keys(intr, _INTRINSIC_KEYS, (), _where(name, "intrinsics"))
     vals = {k: _number(intr[k], _where(name, f"intrinsics.{k}")) for k in _INTRINSIC_KEYS}
     for k in ("fx", "fy"):
         if vals[k] <= 0:
-            raise RigError(f"{_where(name, f'intrinsics.{k}')}: focal length must be positive, "
-                           f"got {vals[k]}")
+            raise RigError(
+                f"{_where(name, f'intrinsics.{k}')}: focal length must be positive, got {vals[k]}"
+            )
 
     dist = d["distortion"]
     if not isinstance(dist, list | tuple) or len(dist) not in DISTORTION_LENGTHS:
-        raise RigError(f"{_where(name, 'distortion')}: expected a list of 4, 5 or 8 numbers "
-                       f"(k1 k2 p1 p2 [k3 [k4 k5 k6]]), got {dist!r}")
+        raise RigError(
+            f"{_where(name, 'distortion')}: expected a list of 4, 5 or 8 numbers "
+            f"(k1 k2 p1 p2 [k3 [k4 k5 k6]]), got {dist!r}"
+        )
     dist_vals = tuple(_number(c, _where(name, "distortion")) for c in dist)
     intrinsics = Intrinsics(vals["fx"], vals["fy"], vals["cx"], vals["cy"], dist_vals)
 
     T_raw = d["T_rig_sensor"]
-    if not (isinstance(T_raw, list | tuple) and len(T_raw) == 4
-            and all(isinstance(row, list | tuple) and len(row) == 4 for row in T_raw)):
-        raise RigError(f"{_where(name, 'T_rig_sensor')}: expected a 4x4 list of numbers, "
-                       f"got {T_raw!r}")
+    if not (
+        isinstance(T_raw, list | tuple)
+        and len(T_raw) == 4
+        and all(isinstance(row, list | tuple) and len(row) == 4 for row in T_raw)
+    ):
+        raise RigError(
+            f"{_where(name, 'T_rig_sensor')}: expected a 4x4 list of numbers, got {T_raw!r}"
+        )
     T = np.array([[_number(x, _where(name, "T_rig_sensor")) for x in row] for row in T_raw])
     problem = rigidity_problem(T)
     if problem is not None:
         raise RigError(f"{_where(name, 'T_rig_sensor')}: not a rigid transform: {problem}")
 
     extras = {
-        k: _plain(_mapping(d[k], _where(name, k)), _where(name, k)) if d.get(k) is not None
+        k: _plain(_mapping(d[k], _where(name, k)), _where(name, k))
+        if d.get(k) is not None
         else None
         for k in _SENSOR_OPTIONAL
     }
@@ -254,11 +267,15 @@ def rig_from_dict(data: Any) -> Rig:
     if not isinstance(reference, str):
         raise RigError(f"field 'reference': expected a sensor name, got {reference!r}")
     if reference not in sensors:
-        raise RigError(f"field 'reference': sensor {reference!r} is not in the rig "
-                       f"(sensors: {sorted(sensors)})")
+        raise RigError(
+            f"field 'reference': sensor {reference!r} is not in the rig "
+            f"(sensors: {sorted(sensors)})"
+        )
     if not np.allclose(sensors[reference].T_rig_sensor, np.eye(4), atol=1e-9):
-        raise RigError(f"{_where(reference, 'T_rig_sensor')}: the reference sensor defines the "
-                       "rig frame, so its pose must be the identity")
+        raise RigError(
+            f"{_where(reference, 'T_rig_sensor')}: the reference sensor defines the "
+            "rig frame, so its pose must be the identity"
+        )
 
     eyes: dict[str, Eye] = {}
     eyes_raw = d.get("eyes")

@@ -191,7 +191,8 @@ MALFORMED = [
     case(
         "distortion-3",
         _set("sensors", "thermal_right", "distortion", value=[0.1, 0.0, 0.0]),
-        F.format("thermal_right", "distortion") + r"expected a list of 4, 5 or 8 numbers .*got \[0\.1",
+        F.format("thermal_right", "distortion")
+        + r"expected a list of 4, 5 or 8 numbers .*got \[0\.1",
     ),
     case(
         "distortion-not-list",

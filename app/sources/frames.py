@@ -41,8 +41,9 @@ class FrameSet:
         try:
             return self.frames[sensor]
         except KeyError:
-            raise KeyError(f"frame set has no frame of {sensor!r} "
-                           f"(has: {sorted(self.frames)})") from None
+            raise KeyError(
+                f"frame set has no frame of {sensor!r} (has: {sorted(self.frames)})"
+            ) from None
 
     def __contains__(self, sensor: object) -> bool:
         return sensor in self.frames

@@ -74,13 +74,16 @@ class _RayGrid:
     def __init__(self, sensor: Sensor) -> None:
         w, h = sensor.image_size
         intr = sensor.intrinsics
-        u, v = np.meshgrid(np.arange(-1, w + 1, dtype=np.float64),
-                           np.arange(-1, h + 1, dtype=np.float64))
+        u, v = np.meshgrid(
+            np.arange(-1, w + 1, dtype=np.float64), np.arange(-1, h + 1, dtype=np.float64)
+        )
         # Normalised undistorted coordinates with a one-pixel margin (for interpolation).
         self.xy = intr.normalized(np.stack([u, v], axis=-1)).astype(np.float32)
         if np.isnan(self.xy).any():
-            raise ValueError(f"sensor {sensor.name!r}: distortion is not invertible inside the "
-                             "image; cannot render it")
+            raise ValueError(
+                f"sensor {sensor.name!r}: distortion is not invertible inside the "
+                "image; cannot render it"
+            )
         xy = self.xy[1:-1, 1:-1]
         d = np.empty((h, w, 3), dtype=np.float32)
         d[..., :2] = xy
@@ -96,8 +99,13 @@ class _RayGrid:
         maps = np.zeros((2, rows * 1024), dtype=np.float32)
         maps[0, :n] = u + 1.0
         maps[1, :n] = v + 1.0
-        xy = cv2.remap(self.xy, maps[0].reshape(rows, 1024), maps[1].reshape(rows, 1024),
-                       cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, 2)[:n]
+        xy = cv2.remap(
+            self.xy,
+            maps[0].reshape(rows, 1024),
+            maps[1].reshape(rows, 1024),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        ).reshape(-1, 2)[:n]
         d = np.empty((len(xy), 3), dtype=np.float32)
         d[:, :2] = xy
         d[:, 2] = 1.0
@@ -105,8 +113,9 @@ class _RayGrid:
         return d
 
 
-def _screen_boxes(scene: Scene, sensor: Sensor, T_sensor_world: np.ndarray
-                  ) -> list[tuple[int, int, int, int] | None]:
+def _screen_boxes(
+    scene: Scene, sensor: Sensor, T_sensor_world: np.ndarray
+) -> list[tuple[int, int, int, int] | None]:
     """Per solid, the pixel rectangle (u0, u1, v0, v1) it can cover, or None if unseen."""
     w, h = sensor.image_size
     corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
@@ -181,8 +190,15 @@ class Renderer:
 
     # -- shading: per-sample quantities of each modality ---------------------------------
 
-    def _shade(self, scene: Scene, modality: str, origin: np.ndarray, dirs: np.ndarray,
-               t: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _shade(
+        self,
+        scene: Scene,
+        modality: str,
+        origin: np.ndarray,
+        dirs: np.ndarray,
+        t: np.ndarray,
+        ids: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Per-sample values (N, C) and edge keys (N,) for flat arrays of samples.
 
         Channels: colour linear RGB (3); thermal radiance proxy T^4 (1);
@@ -217,8 +233,12 @@ class Renderer:
                 out[sel, 0] = eps * temp**4 + (1.0 - eps) * scene.ambient_k**4
             else:
                 dist = t[sel].astype(np.float64)
-                amp = self.model.tof_amplitude_scale * mat.nir(st) * cos / np.maximum(
-                    dist * dist, 1e-6)
+                amp = (
+                    self.model.tof_amplitude_scale
+                    * mat.nir(st)
+                    * cos
+                    / np.maximum(dist * dist, 1e-6)
+                )
                 out[sel, 0] = amp * dist
                 out[sel, 1] = amp
         return out, keys
@@ -234,8 +254,9 @@ class Renderer:
         boxes = _screen_boxes(scene, sensor, T_sensor_world)
         dirs = apply_affine(R, grid.dirs)
         t, ids = self._trace_grid(scene, origin, dirs, boxes)
-        values, keys = self._shade(scene, sensor.modality, origin, dirs.reshape(-1, 3),
-                                   t.ravel(), ids.ravel())
+        values, keys = self._shade(
+            scene, sensor.modality, origin, dirs.reshape(-1, 3), t.ravel(), ids.ravel()
+        )
         values = values.reshape(h, w, -1)
         keys = keys.reshape(h, w)
 
@@ -254,16 +275,17 @@ class Renderer:
             ou, ov = (a.ravel() for a in np.meshgrid(offs, offs))
             per_chunk = max(1, _CHUNK // (ns * ns))
             for start in range(0, len(eu), per_chunk):
-                pu = eu[start:start + per_chunk]
-                pv = ev[start:start + per_chunk]
+                pu = eu[start : start + per_chunk]
+                pv = ev[start : start + per_chunk]
                 su = (pu[:, None] + ou[None, :]).ravel()
                 sv = (pv[:, None] + ov[None, :]).ravel()
                 sd = apply_affine(R, grid.sub_dirs(su, sv))
                 st_, sid = self._trace_list(scene, origin, sd, su, sv, boxes, (0, w, 0, h))
                 sval, _ = self._shade(scene, sensor.modality, origin, sd, st_, sid)
                 values[pv, pu] = sval.reshape(len(pu), ns * ns, -1).mean(axis=1)
-        truth = SensorTruth(range_m=np.where(np.isfinite(t), t, np.nan).astype(np.float32),
-                            solid=ids)
+        truth = SensorTruth(
+            range_m=np.where(np.isfinite(t), t, np.nan).astype(np.float32), solid=ids
+        )
         return values, truth
 
     # -- per-modality sensor models ------------------------------------------------------
@@ -283,8 +305,9 @@ class Renderer:
         m = self.model
         temp = np.power(values[..., 0], 0.25).astype(np.float32)
         if m.thermal_blur_sigma_px > 0:
-            temp = cv2.GaussianBlur(temp, (0, 0), m.thermal_blur_sigma_px,
-                                    borderType=cv2.BORDER_REPLICATE)
+            temp = cv2.GaussianBlur(
+                temp, (0, 0), m.thermal_blur_sigma_px, borderType=cv2.BORDER_REPLICATE
+            )
         gain = m.thermal_gain.get(sensor.name, 1.0)
         offset = m.thermal_offset_k.get(sensor.name, 0.0)
         temp = gain * temp + offset
@@ -302,14 +325,18 @@ class Renderer:
         invalid = ~(truth.range_m <= m.tof_max_range_m) | ~(amp >= m.tof_min_amplitude)
         measured[invalid] = np.nan
         amp_noisy = amp + np.sqrt(np.maximum(amp, 0.0)) * rng.standard_normal(amp.shape)
-        return (np.clip(amp_noisy, 0.0, 65535.0).astype(np.float32),
-                measured.astype(np.float32))
+        return (np.clip(amp_noisy, 0.0, 65535.0).astype(np.float32), measured.astype(np.float32))
 
     # -- public -------------------------------------------------------------------------
 
-    def render(self, scene: Scene, T_world_rig: np.ndarray, stamp_ns: int,
-               rng: np.random.Generator, sensors: list[str] | None = None
-               ) -> tuple[FrameSet, dict[str, SensorTruth]]:
+    def render(
+        self,
+        scene: Scene,
+        T_world_rig: np.ndarray,
+        stamp_ns: int,
+        rng: np.random.Generator,
+        sensors: list[str] | None = None,
+    ) -> tuple[FrameSet, dict[str, SensorTruth]]:
         """Render the named sensors (default: all) with the rig at ``T_world_rig``.
 
         Returns the frame set (images as a real head would deliver them) and the exact

@@ -41,11 +41,18 @@ def _quad(name: str, centre, rpy_deg, half_w: float, half_h: float, mat: Materia
     return Quad(name, mat, T, (-half_w, half_w, -half_h, half_h))
 
 
-def _room(x: float, y_floor: float, y_ceil: float, z_front: float, z_back: float,
-          wall_k: float) -> list[Solid]:
+def _room(
+    x: float, y_floor: float, y_ceil: float, z_front: float, z_back: float, wall_k: float
+) -> list[Solid]:
     """Six walls of a box-shaped room; walls warmer towards the ceiling."""
-    wall = Material((0.62, 0.6, 0.55), wall_k, 0.93, 0.55, pattern=(0.45, 0.12),
-                    temperature_gradient_k_per_m=-0.4)
+    wall = Material(
+        (0.62, 0.6, 0.55),
+        wall_k,
+        0.93,
+        0.55,
+        pattern=(0.45, 0.12),
+        temperature_gradient_k_per_m=-0.4,
+    )
     floor = Material((0.38, 0.33, 0.28), wall_k - 1.0, 0.95, 0.35, pattern=(0.6, 0.3))
     ceil = Material((0.85, 0.85, 0.85), wall_k + 0.8, 0.9, 0.7)
     zc, zh = (z_front + z_back) / 2, (z_back - z_front) / 2
@@ -60,23 +67,43 @@ def _room(x: float, y_floor: float, y_ceil: float, z_front: float, z_back: float
     ]
 
 
-def board_solid(T_world_board: np.ndarray, board: Board = CALIBRATION_BOARD,
-                heating_k: float = 22.0) -> Quad:
+def board_solid(
+    T_world_board: np.ndarray, board: Board = CALIBRATION_BOARD, heating_k: float = 22.0
+) -> Quad:
     """The heated board as a quad in its own frame (calib.board), margin included."""
     s, m = board.square_size_m, BOARD_MARGIN_M
     extent = (-s - m, board.cols * s + m, -s - m, board.rows * s + m)
-    mat = BoardMaterial((0.8, 0.8, 0.78), BOARD_PLATE_K, board=board, heating_k=heating_k,
-                        hot_spot_xy_m=(0.3 * board.size_m[0], 0.2 * board.size_m[1]))
+    mat = BoardMaterial(
+        (0.8, 0.8, 0.78),
+        BOARD_PLATE_K,
+        board=board,
+        heating_k=heating_k,
+        hot_spot_xy_m=(0.3 * board.size_m[0], 0.2 * board.size_m[1]),
+    )
     return Quad("board", mat, T_world_board, extent)
 
 
 def lab_background() -> list[Solid]:
     """The calibration lab: walls, a warm radiator and a cold window (thermal clutter)."""
     solids = _room(3.0, 1.2, -1.6, -2.0, 6.0, 294.0)
-    solids.append(Box("radiator", Material((0.9, 0.9, 0.88), 328.0, 0.92, 0.6),
-                      make_T(np.eye(3), (1.6, 0.5, 5.9)), (0.7, 0.35, 0.06)))
-    solids.append(_quad("window", (-1.4, -0.2, 5.98), (0, 0, 0), 0.8, 0.6,
-                        Material((0.55, 0.7, 0.85), 284.0, 0.9, 0.2)))
+    solids.append(
+        Box(
+            "radiator",
+            Material((0.9, 0.9, 0.88), 328.0, 0.92, 0.6),
+            make_T(np.eye(3), (1.6, 0.5, 5.9)),
+            (0.7, 0.35, 0.06),
+        )
+    )
+    solids.append(
+        _quad(
+            "window",
+            (-1.4, -0.2, 5.98),
+            (0, 0, 0),
+            0.8,
+            0.6,
+            Material((0.55, 0.7, 0.85), 284.0, 0.9, 0.2),
+        )
+    )
     return solids
 
 
@@ -97,8 +124,17 @@ class CalibrationView:
     truth: dict[str, SensorTruth]
 
 
-_TARGETS = [(0.16, 0.16), (0.84, 0.84), (0.84, 0.16), (0.16, 0.84), (0.5, 0.5),
-            (0.5, 0.14), (0.86, 0.5), (0.5, 0.86), (0.14, 0.5)]
+_TARGETS = [
+    (0.16, 0.16),
+    (0.84, 0.84),
+    (0.84, 0.16),
+    (0.16, 0.84),
+    (0.5, 0.5),
+    (0.5, 0.14),
+    (0.86, 0.5),
+    (0.5, 0.86),
+    (0.14, 0.5),
+]
 
 
 def _plate_corners(board: Board) -> np.ndarray:
@@ -108,8 +144,9 @@ def _plate_corners(board: Board) -> np.ndarray:
     return np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]], dtype=np.float64)
 
 
-def calibration_poses(views: int, seed: int, rig: Rig,
-                      board: Board = CALIBRATION_BOARD) -> list[np.ndarray]:
+def calibration_poses(
+    views: int, seed: int, rig: Rig, board: Board = CALIBRATION_BOARD
+) -> list[np.ndarray]:
     """Board poses ``T_rig_board`` (4, 4) covering every sensor's image.
 
     View i targets sensor ``i mod n`` and one of nine image positions (corners first);
@@ -121,8 +158,13 @@ def calibration_poses(views: int, seed: int, rig: Rig,
         raise ValueError(f"views: expected at least 1, got {views}")
     rng = np.random.default_rng(seed)
     names = rig.names
-    centre_b = np.array([(board.cols - 1) * board.square_size_m / 2,
-                         (board.rows - 1) * board.square_size_m / 2, 0.0])
+    centre_b = np.array(
+        [
+            (board.cols - 1) * board.square_size_m / 2,
+            (board.rows - 1) * board.square_size_m / 2,
+            0.0,
+        ]
+    )
     corners_b = _plate_corners(board)
     poses = []
     for i in range(views):
@@ -170,8 +212,9 @@ def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 
-def calibration_views(views: int, seed: int, rig: Rig | None = None,
-                      model: HeadModel | None = None) -> Iterator[CalibrationView]:
+def calibration_views(
+    views: int, seed: int, rig: Rig | None = None, model: HeadModel | None = None
+) -> Iterator[CalibrationView]:
     """Render the calibration scenario lazily, one view (all sensors) at a time."""
     rig = rig or default_rig()
     renderer = Renderer(rig, model)
@@ -185,30 +228,63 @@ def calibration_views(views: int, seed: int, rig: Rig | None = None,
 
 
 def inspection_scene() -> Scene:
-    """A room 7 m wide and 9.7 m deep with warm, hot and cold objects at 0.5-8 m."""
+    """A room 7 m wide and 9.7 m deep with warm, hot and cold objects at 0.5-8 m.
+
+    A thin pole 0.6 m in front of the head occludes the room differently for each sensor
+    (parallax and occlusion at their worst); a 37 C person stands at 3 m.
+    """
     solids = _room(3.5, 1.1, -1.6, -1.5, 8.2, 293.5)
     skin = Material((0.76, 0.57, 0.45), 310.15, 0.98, 0.45)
     cloth = Material((0.2, 0.28, 0.5), 306.0, 0.95, 0.4, pattern=(0.12, 0.15))
     solids += [
         Cylinder("person_body", cloth, make_T(np.eye(3), (-0.7, 0.0, 3.0)), 0.2, (-0.45, 1.1)),
         Sphere("person_head", skin, (-0.7, -0.58, 3.0), 0.12),
-        Cylinder("hot_pipe", Material((0.5, 0.5, 0.52), 358.0, 0.9, 0.5),
-                 make_T(rotation_from_euler_deg(0, 0, 90), (0.0, -1.0, 4.5)), 0.06,
-                 (-3.4, 3.4)),
-        Box("near_crate", Material((0.6, 0.42, 0.22), 294.5, 0.92, 0.5, pattern=(0.08, 0.2)),
-            make_T(rotation_from_euler_deg(0, 25, 0), (0.45, 0.85, 0.85)), (0.25, 0.25, 0.25)),
-        Sphere("kettle", Material((0.75, 0.75, 0.78), 341.0, 0.85, 0.6), (0.45, 0.45, 0.85),
-               0.14),
-        Box("table", Material((0.45, 0.3, 0.18), 294.0, 0.92, 0.4, pattern=(0.3, 0.15)),
-            make_T(np.eye(3), (1.3, 0.7, 2.2)), (0.45, 0.4, 0.35)),
-        Box("fridge", Material((0.92, 0.92, 0.95), 279.0, 0.9, 0.7),
-            make_T(rotation_from_euler_deg(0, -10, 0), (2.2, 0.2, 5.6)), (0.4, 0.9, 0.35)),
-        Box("radiator", Material((0.9, 0.9, 0.88), 333.0, 0.92, 0.6),
-            make_T(np.eye(3), (-1.9, 0.45, 8.1)), (0.6, 0.3, 0.06)),
-        Box("cabinet", Material((0.3, 0.45, 0.3), 292.0, 0.93, 0.5, pattern=(0.25, 0.1)),
-            make_T(np.eye(3), (0.9, 0.3, 7.6)), (0.5, 0.8, 0.3)),
-        Sphere("ice_ball", Material((0.85, 0.9, 0.95), 271.0, 0.96, 0.6), (-1.6, 0.85, 1.6),
-               0.25),
+        Cylinder(
+            "hot_pipe",
+            Material((0.5, 0.5, 0.52), 358.0, 0.9, 0.5),
+            make_T(rotation_from_euler_deg(0, 0, 90), (0.0, -1.0, 4.5)),
+            0.06,
+            (-3.4, 3.4),
+        ),
+        Box(
+            "near_crate",
+            Material((0.6, 0.42, 0.22), 294.5, 0.92, 0.5, pattern=(0.08, 0.2)),
+            make_T(rotation_from_euler_deg(0, 25, 0), (0.45, 0.85, 0.85)),
+            (0.25, 0.25, 0.25),
+        ),
+        Sphere("kettle", Material((0.75, 0.75, 0.78), 341.0, 0.85, 0.6), (0.45, 0.45, 0.85), 0.14),
+        Box(
+            "table",
+            Material((0.45, 0.3, 0.18), 294.0, 0.92, 0.4, pattern=(0.3, 0.15)),
+            make_T(np.eye(3), (1.3, 0.7, 2.2)),
+            (0.45, 0.4, 0.35),
+        ),
+        Box(
+            "fridge",
+            Material((0.92, 0.92, 0.95), 279.0, 0.9, 0.7),
+            make_T(rotation_from_euler_deg(0, -10, 0), (2.2, 0.2, 5.6)),
+            (0.4, 0.9, 0.35),
+        ),
+        Box(
+            "radiator",
+            Material((0.9, 0.9, 0.88), 333.0, 0.92, 0.6),
+            make_T(np.eye(3), (-1.9, 0.45, 8.1)),
+            (0.6, 0.3, 0.06),
+        ),
+        Box(
+            "cabinet",
+            Material((0.3, 0.45, 0.3), 292.0, 0.93, 0.5, pattern=(0.25, 0.1)),
+            make_T(np.eye(3), (0.9, 0.3, 7.6)),
+            (0.5, 0.8, 0.3),
+        ),
+        Cylinder(
+            "pole",
+            Material((0.7, 0.15, 0.1), 292.5, 0.95, 0.6),
+            make_T(np.eye(3), (-0.12, 0.0, 0.6)),
+            0.03,
+            (-1.6, 1.1),
+        ),
+        Sphere("ice_ball", Material((0.85, 0.9, 0.95), 271.0, 0.96, 0.6), (-1.6, 0.85, 1.6), 0.25),
     ]
     return Scene(solids, ambient_k=293.5, light_dir_world=(0.2, 1.0, 0.3))
 
@@ -216,8 +292,14 @@ def inspection_scene() -> Scene:
 class InspectionScenario:
     """The inspection room seen by a head that pans slowly (yaw +-20 deg, 30 s period)."""
 
-    def __init__(self, rig: Rig | None = None, model: HeadModel | None = None,
-                 seed: int = 0, pan_deg: float = 20.0, pan_period_s: float = 30.0) -> None:
+    def __init__(
+        self,
+        rig: Rig | None = None,
+        model: HeadModel | None = None,
+        seed: int = 0,
+        pan_deg: float = 20.0,
+        pan_period_s: float = 30.0,
+    ) -> None:
         self.rig = rig or default_rig()
         self.renderer = Renderer(self.rig, model)
         self.scene = inspection_scene()
@@ -230,9 +312,11 @@ class InspectionScenario:
         yaw = self.pan_deg * np.sin(2 * np.pi * t_s / self.pan_period_s)
         return make_T(rotation_from_euler_deg(0.0, yaw, 0.0), (0.0, 0.0, 0.0))
 
-    def render(self, t_s: float, sensors: list[str] | None = None
-               ) -> tuple[FrameSet, dict[str, SensorTruth]]:
+    def render(
+        self, t_s: float, sensors: list[str] | None = None
+    ) -> tuple[FrameSet, dict[str, SensorTruth]]:
         """Frames and exact ground truth at time ``t_s``; noise is seeded by (seed, t)."""
-        rng = np.random.default_rng([self.seed, int(round(t_s * 1e6))])
-        return self.renderer.render(self.scene, self.T_world_rig(t_s), int(round(t_s * 1e9)),
-                                    rng, sensors)
+        rng = np.random.default_rng([self.seed, round(t_s * 1e6)])
+        return self.renderer.render(
+            self.scene, self.T_world_rig(t_s), round(t_s * 1e9), rng, sensors
+        )

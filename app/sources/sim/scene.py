@@ -55,8 +55,11 @@ class Material:
             return rgb.copy()
         period, contrast = self.pattern
         s, t = st[:, 0], st[:, 1]
-        wave = 0.5 + 0.25 * np.sin(2 * np.pi * s / period) + 0.25 * np.sin(
-            2 * np.pi * t / (0.7 * period) + 0.5 * np.sin(2 * np.pi * s / (3.1 * period))
+        wave = (
+            0.5
+            + 0.25 * np.sin(2 * np.pi * s / period)
+            + 0.25
+            * np.sin(2 * np.pi * t / (0.7 * period) + 0.5 * np.sin(2 * np.pi * s / (3.1 * period)))
         )
         return rgb * (1.0 - contrast + 2.0 * contrast * wave)[:, None].astype(np.float32)
 
@@ -95,8 +98,10 @@ class BoardMaterial(Material):
         b = self.board
         x, y = st[:, 0], st[:, 1]
         inside = (
-            (x >= -b.square_size_m) & (x < b.cols * b.square_size_m)
-            & (y >= -b.square_size_m) & (y < b.rows * b.square_size_m)
+            (x >= -b.square_size_m)
+            & (x < b.cols * b.square_size_m)
+            & (y >= -b.square_size_m)
+            & (y < b.rows * b.square_size_m)
         )
         return inside & b.is_black(x, y)
 
@@ -241,8 +246,11 @@ class Box(Solid):
         n_local = np.zeros_like(local)
         n_local[np.arange(len(local)), axis] = np.sign(local[np.arange(len(local)), axis])
         # Surface coordinates: the two in-face axes (horizontal run + vertical).
-        st = np.where(axis[:, None] == 1, local[:, [0, 2]],
-                      np.stack([local[:, 0] + local[:, 2], local[:, 1]], axis=1))
+        st = np.where(
+            axis[:, None] == 1,
+            local[:, [0, 2]],
+            np.stack([local[:, 0] + local[:, 2], local[:, 1]], axis=1),
+        )
         return apply_affine(R, n_local), st
 
     def bounding_sphere(self) -> tuple[np.ndarray, float]:
@@ -299,8 +307,10 @@ class Cylinder(Solid):
 
     def bounding_sphere(self) -> tuple[np.ndarray, float]:
         y0, y1 = self.y_range
-        c = self.T_world_cylinder[:3, :3] @ np.array([0, (y0 + y1) / 2, 0]) + \
-            self.T_world_cylinder[:3, 3]
+        c = (
+            self.T_world_cylinder[:3, :3] @ np.array([0, (y0 + y1) / 2, 0])
+            + self.T_world_cylinder[:3, 3]
+        )
         return c, float(np.hypot(self.radius, (y1 - y0) / 2))
 
 
@@ -324,8 +334,10 @@ class Sphere(Solid):
 
     def surface(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         n = (points - np.asarray(self.centre)) / self.radius
-        st = np.stack([np.arctan2(n[:, 0], n[:, 2]), np.arcsin(np.clip(n[:, 1], -1, 1))],
-                      axis=1) * self.radius
+        st = (
+            np.stack([np.arctan2(n[:, 0], n[:, 2]), np.arcsin(np.clip(n[:, 1], -1, 1))], axis=1)
+            * self.radius
+        )
         return n, st
 
     def bounding_sphere(self) -> tuple[np.ndarray, float]:

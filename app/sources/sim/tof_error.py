@@ -41,7 +41,7 @@ class RangeErrorModel:
 
     width: int = 176
     height: int = 144
-    bias_m: float = 0.024
+    bias_m: float = 0.031
     wiggle: tuple[tuple[float, float, float], ...] = ((0.026, 1.875, 0.6), (0.008, 0.9375, 2.1))
     radial_m: float = 0.028
     border_m: float = 0.07

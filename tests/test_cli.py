@@ -1,0 +1,234 @@
+"""The ``trifuse`` command line (app.cli) and the benchmark registry (app.bench)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from app import bench
+from app.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+COMMANDS = ["simulate", "bench"]
+
+
+def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    code = main(argv)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+# -- help ---------------------------------------------------------------------------------
+
+
+def test_main_help_lists_every_command(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = run(["--help"], capsys)
+    assert code == 0
+    for command in COMMANDS:
+        assert command in out
+    assert "Run 'trifuse COMMAND --help'" in out
+
+
+@pytest.mark.parametrize(
+    ("argv", "mentions"),
+    [
+        (["simulate", "--help"], ["calibration"]),
+        (["simulate", "calibration", "--help"], ["--views", "--out", "--seed", "--rig"]),
+        (["bench", "--help"], ["--only", "--repeat", "render"]),
+    ],
+)
+def test_command_help(
+    argv: list[str], mentions: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, out, _ = run(argv, capsys)
+    assert code == 0
+    for word in mentions:
+        assert word in out
+
+
+def test_console_script_entry_point() -> None:
+    """``python -m app.cli`` is what the ``trifuse`` console script runs."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "app.cli", "--help"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 0
+    assert all(c in proc.stdout for c in COMMANDS)
+
+
+# -- errors: one line on stderr, exit 2, no traceback -------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("argv", "match"),
+    [
+        ([], "expected a command"),
+        (["bogus"], "invalid choice: 'bogus'"),
+        (["simulate"], "expected a command"),
+        (["simulate", "calibration"], "required: --out"),
+        (["simulate", "calibration", "--views", "x", "--out", "o"], "expected a positive integer"),
+        (["simulate", "calibration", "--views", "0", "--out", "o"], "expected a positive integer"),
+        (["simulate", "calibration", "--seed", "-3", "--out", "o"], "expected an integer >= 0"),
+        (["bench", "--repeat", "-1"], "expected a positive integer"),
+        (["bench", "--only", "nope"], "unknown benchmark 'nope'"),
+    ],
+)
+def test_bad_arguments(argv: list[str], match: str, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = run(argv, capsys)
+    assert code == 2
+    assert match in err
+    assert len(err.strip().splitlines()) == 1
+    assert "Traceback" not in err + out
+
+
+def test_bad_arguments_in_a_real_process(tmp_path: Path) -> None:
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "app.cli",
+            "simulate",
+            "calibration",
+            "--views",
+            "many",
+            "--out",
+            str(tmp_path / "o"),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+    assert "--views" in proc.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_bad_rig_file_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rig = tmp_path / "rig.yaml"
+    rig.write_text("format: trifuse-rig/1\nreference: tof\nsensors: {}\n")
+    code, _, err = run(
+        ["simulate", "calibration", "--out", str(tmp_path / "o"), "--rig", str(rig)], capsys
+    )
+    assert code == 2
+    assert err.startswith("trifuse: error: ") and str(rig) in err and "no sensors" in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_refuses_a_non_empty_output_directory(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "precious.png").write_bytes(b"captured by hand")
+    code, _, err = run(["simulate", "calibration", "--views", "1", "--out", str(tmp_path)], capsys)
+    assert code == 2
+    assert "not empty; refusing to write into it" in err
+    assert [p.name for p in tmp_path.iterdir()] == ["precious.png"]
+    assert (tmp_path / "precious.png").read_bytes() == b"captured by hand"
+
+
+def test_refuses_an_output_that_is_a_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    target = tmp_path / "file"
+    target.write_text("x")
+    code, _, err = run(["simulate", "calibration", "--out", str(target)], capsys)
+    assert code == 2 and "is not a directory" in err
+
+
+# -- simulate calibration end to end ------------------------------------------------------
+
+
+def test_simulate_calibration_writes_a_capture(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    scenarios = pytest.importorskip(
+        "app.sources.sim.scenarios",
+        reason="the simulator module app.sources.sim.scenarios is not in this checkout yet",
+    )
+    from app.capture import load_capture, load_ground_truth
+    from app.sources.sim.head import default_rig, nominal_rig
+
+    out = tmp_path / "captures"
+    code, stdout, err = run(
+        ["simulate", "calibration", "--views", "2", "--out", str(out), "--seed", "1"], capsys
+    )
+    assert code == 0, err
+    assert "[1/2] view 0001" in stdout and "[2/2] view 0002" in stdout
+    assert f"to {out}/" in stdout and "load_capture" in stdout
+
+    cap = load_capture(out, verify=True)
+    assert cap.board == scenarios.CALIBRATION_BOARD
+    assert cap.rig == nominal_rig()
+    assert [v.name for v in cap.views] == ["0001", "0002"]
+    five = ["tof", "ccd_left", "ccd_right", "thermal_left", "thermal_right"]
+    for view in cap.views:
+        assert sorted(view.sensors) == sorted(five)
+        assert view.files["tof"].distance is not None
+    frames = cap.views[0].frames()
+    assert frames["ccd_left"].image.shape == (960, 1280, 3)
+    assert frames["thermal_left"].image.shape == (288, 382)
+    assert 250.0 < float(frames["thermal_left"].image.mean()) < 350.0  # kelvin
+    assert frames["tof"].distance_m.shape == (144, 176)
+
+    data = yaml.safe_load((out / "ground_truth.yaml").read_text())
+    assert data["format"] == "trifuse-ground-truth/1"
+    assert sorted(data["views"]) == ["0001", "0002"]
+    gt = load_ground_truth(out)
+    assert gt.rig == default_rig()
+    assert gt.T_rig_board["0001"].shape == (4, 4)
+
+
+# -- bench --------------------------------------------------------------------------------
+
+
+def _fake(repeat: int) -> dict[str, float]:
+    return {"ours_ms": 2.0 * repeat, "theirs_ms": 4.0 * repeat}
+
+
+def test_bench_registry_and_ratios(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setitem(
+        bench.REGISTRY,
+        "fake",
+        bench.Benchmark("fake", "a fake benchmark", _fake, (("ours_ms", "theirs_ms"),), 3),
+    )
+    result = bench.run_benchmark("fake")
+    assert result.repeat == 3 and result.figures == {"ours_ms": 6.0, "theirs_ms": 12.0}
+    assert result.ratios == {"ours_ms / theirs_ms": 0.5}
+    code, out, _ = run(["bench", "--only", "fake", "--repeat", "2"], capsys)
+    assert code == 0
+    assert "ours_ms = 4.000" in out and "ours_ms / theirs_ms = 0.500" in out
+    with pytest.raises(ValueError, match="registered twice"):
+        bench.register("fake", "again")(_fake)
+
+
+def test_median_ms_excludes_warmup() -> None:
+    calls: list[int] = []
+    assert bench.median_ms(calls.append, 3, warmup=1) >= 0.0
+    assert calls == [-1, 0, 1, 2]
+    assert "render" in bench.REGISTRY
+
+
+def test_nominal_rig_applies_to_any_rig() -> None:
+    """``--rig`` derives its starting rig by the rule of ``head.nominal_rig``."""
+    from app.sources.sim.head import default_rig, nominal_rig
+    from calib.rig import Rig
+
+    truth = default_rig()
+    one_eye = Rig({n: truth[n] for n in ("tof", "ccd_left", "thermal_left")}, "tof")
+    start = nominal_rig(one_eye)
+    assert start.names == ["tof", "ccd_left", "thermal_left"]
+    for name in start.names:
+        assert not any(start[name].intrinsics.distortion)
+        np.testing.assert_array_equal(start[name].T_rig_sensor[:3, :3], np.eye(3))
+        assert start[name].intrinsics.fx == round(truth[name].intrinsics.fx)

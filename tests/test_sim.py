@@ -1,0 +1,214 @@
+"""The simulated head renders exact geometry and the sensor errors it claims to inject."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from app.sources.sim.head import default_rig
+from app.sources.sim.render import HeadModel, Renderer
+from app.sources.sim.scenarios import (
+    CALIBRATION_BOARD,
+    InspectionScenario,
+    board_solid,
+    calibration_poses,
+    lab_background,
+)
+from app.sources.sim.scene import Material, Quad, Scene
+from app.sources.sim.tof_error import RangeErrorModel
+from calib.tof import region_map
+from calib.transforms import make_T, rotation_from_euler_deg, transform_points
+from fusion.geometry import tof_points, tof_rays
+
+RIG = default_rig()
+NO_RANGE_ERROR = RangeErrorModel(
+    bias_m=0.0, wiggle=(), radial_m=0.0, border_m=0.0, pixel_sigma_m=0.0, amplitude_m=0.0
+)
+
+
+def _wall_scene(
+    distance_m: float, yaw_deg: float = 20.0, nir: float = 0.5, temperature_k: float = 300.0
+) -> tuple[Scene, np.ndarray]:
+    """A large flat wall facing the head; returns the scene and its pose."""
+    T = make_T(rotation_from_euler_deg(0.0, yaw_deg, 0.0), (0.0, 0.0, distance_m))
+    wall = Quad(
+        "wall", Material((0.5, 0.5, 0.5), temperature_k, 1.0, nir), T, (-20.0, 20.0, -20.0, 20.0)
+    )
+    return Scene([wall], ambient_k=temperature_k), T
+
+
+def _detect(gray: np.ndarray) -> np.ndarray | None:
+    """Classic detector + cornerSubPix with a window from the corner spacing, (N, 2)."""
+    ok, corners = cv2.findChessboardCorners(
+        gray,
+        CALIBRATION_BOARD.pattern_size,
+        flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE,
+    )
+    if not ok:
+        return None
+    c = corners.reshape(-1, 2).astype(np.float32)
+    grid = c.reshape(CALIBRATION_BOARD.rows, CALIBRATION_BOARD.cols, 2)
+    spacing = float(np.min(np.linalg.norm(np.diff(grid, axis=1), axis=-1)))
+    half = int(np.clip(0.4 * spacing, 2, 11))
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
+    return cv2.cornerSubPix(gray, c.reshape(-1, 1, 2), (half, half), (-1, -1), crit).reshape(-1, 2)
+
+
+def test_color_corners_match_ground_truth_projection() -> None:
+    """OpenCV finds the board corners within 0.1 px RMS of the exact projection."""
+    renderer = Renderer(RIG)
+    rng = np.random.default_rng(7)
+    board_pts = CALIBRATION_BOARD.object_points()
+    errors = []
+    # Views 2, 3, 4, 5 of the sequence target the two colour cameras and two other sensors.
+    for T_rig_board in calibration_poses(8, seed=3, rig=RIG)[1:7]:
+        scene = Scene([*lab_background(), board_solid(T_rig_board)])
+        frames, _ = renderer.render(scene, np.eye(4), 0, rng, ["ccd_left", "ccd_right"])
+        for name in ("ccd_left", "ccd_right"):
+            found = _detect(cv2.cvtColor(frames[name].image, cv2.COLOR_RGB2GRAY))
+            if found is None:
+                continue
+            truth = RIG[name].intrinsics.project(
+                transform_points(RIG.T(name, "tof") @ T_rig_board, board_pts)
+            )
+            # Geometry only: pair each detection with the nearest true corner.
+            dist = np.linalg.norm(found[:, None, :] - truth[None, :, :], axis=-1)
+            nearest = dist.argmin(axis=1)
+            assert len(set(nearest.tolist())) == len(truth), "corners matched twice"
+            errors.append(dist[np.arange(len(found)), nearest])
+    assert len(errors) >= 6, f"board detected in only {len(errors)} colour images"
+    rms = float(np.sqrt(np.mean(np.concatenate(errors) ** 2)))
+    assert rms < 0.1, f"corner RMS {rms:.3f} px"
+
+
+def test_tof_points_of_a_plane_lie_on_it_within_the_noise() -> None:
+    model = HeadModel(range_error=NO_RANGE_ERROR)
+    scene, T_world_wall = _wall_scene(2.0)
+    frames, truth = Renderer(RIG, model).render(
+        scene, np.eye(4), 0, np.random.default_rng(1), ["tof"]
+    )
+    tof = frames["tof"]
+    intr = RIG["tof"].intrinsics
+    points = tof_points(tof.distance_m, tof_rays(intr, 176, 144))
+    valid = np.isfinite(points[..., 0])
+    assert valid.mean() > 0.95
+    n = T_world_wall[:3, 2]
+    along = points[valid] @ n - n @ T_world_wall[:3, 3]  # signed distance to the plane
+    rays = tof_rays(intr, 176, 144)[valid]
+    along_ray = along / (rays @ n)  # convert to distance along the ray
+    sigma = model.tof_noise_m * np.sqrt(model.tof_noise_ref / tof.image[valid])
+    z = along_ray / sigma
+    assert abs(float(np.mean(z))) < 0.05  # no bias: 25k samples, 1/sqrt(N) ~ 0.006
+    assert 0.95 < float(np.std(z)) < 1.05
+    # The exact range in the ground truth lies on the plane to float32 precision.
+    exact = tof_points(truth["tof"].range_m, tof_rays(intr, 176, 144))[valid]
+    assert np.max(np.abs(exact @ n - n @ T_world_wall[:3, 3])) < 1e-5
+
+
+def test_injected_range_error_has_the_stated_size() -> None:
+    """About 40 mm RMS in regions 1-3 over 0.6-4 m, worse in the border (region 4)."""
+    model = HeadModel()
+    regions = region_map(176, 144)
+    renderer = Renderer(RIG, model)
+    err = {r: [] for r in (1, 2, 3, 4)}
+    for distance in np.linspace(0.6, 4.0, 12):
+        scene, _ = _wall_scene(float(distance), yaw_deg=0.0)
+        frames, truth = renderer.render(scene, np.eye(4), 0, np.random.default_rng(2), ["tof"])
+        measured = frames["tof"].distance_m
+        # The systematic part follows the model exactly; the rest is the injected noise.
+        expected = model.range_error.error_m(truth["tof"].range_m, frames["tof"].image)
+        residual = measured - truth["tof"].range_m - expected
+        sigma = model.tof_noise_m * np.sqrt(model.tof_noise_ref / frames["tof"].image)
+        ok = np.isfinite(residual)
+        assert np.std(residual[ok] / sigma[ok]) == pytest.approx(1.0, abs=0.05)
+        for r in err:
+            sel = ok & (regions == r)
+            err[r].append((measured - truth["tof"].range_m)[sel])
+    rms = {r: float(np.sqrt(np.mean(np.concatenate(e) ** 2))) for r, e in err.items()}
+    inner = float(np.sqrt(np.mean(np.concatenate(err[1] + err[2] + err[3]) ** 2)))
+    assert 0.035 < inner < 0.048, rms
+    assert rms[1] < rms[3] < rms[4]
+    assert rms[4] > 1.5 * inner
+
+
+def test_tof_invalid_beyond_range_and_at_low_amplitude() -> None:
+    renderer = Renderer(RIG)
+    far, _ = _wall_scene(12.0, yaw_deg=0.0, nir=1.0)
+    frames, _ = renderer.render(far, np.eye(4), 0, np.random.default_rng(3), ["tof"])
+    assert np.isnan(frames["tof"].distance_m).all()
+    dark, _ = _wall_scene(3.0, yaw_deg=0.0, nir=0.001)
+    frames, _ = renderer.render(dark, np.eye(4), 0, np.random.default_rng(3), ["tof"])
+    assert np.isnan(frames["tof"].distance_m).all()
+    empty = Scene(
+        [
+            Quad(
+                "tiny",
+                Material((1, 1, 1), 300.0),
+                make_T(np.eye(3), (0, 0, 2)),
+                (-0.01, 0.01, -0.01, 0.01),
+            )
+        ]
+    )
+    frames, truth = renderer.render(empty, np.eye(4), 0, np.random.default_rng(3), ["tof"])
+    miss = truth["tof"].solid == -1
+    assert miss.mean() > 0.99 and np.isnan(frames["tof"].distance_m[miss]).all()
+
+
+def test_thermal_noise_offset_and_units() -> None:
+    """A uniform 300 K wall: 0.08 K NETD, and the two imagers 1.5 K apart by default."""
+    scene, _ = _wall_scene(3.0, temperature_k=300.0)
+    frames, _ = Renderer(RIG).render(
+        scene, np.eye(4), 0, np.random.default_rng(4), ["thermal_left", "thermal_right"]
+    )
+    left, right = frames["thermal_left"].image, frames["thermal_right"].image
+    assert left.dtype == np.float32 and left.shape == (288, 382)
+    assert np.median(left) == pytest.approx(300.75, abs=0.01)
+    assert np.median(right) == pytest.approx(299.25, abs=0.01)
+    assert float(np.std(left)) == pytest.approx(0.08, rel=0.03)
+
+
+def test_calibration_poses_cover_every_sensor_to_its_corners() -> None:
+    poses = calibration_poses(30, seed=1, rig=RIG)
+    s, m = CALIBRATION_BOARD.square_size_m, 0.04
+    cols, rows = CALIBRATION_BOARD.cols, CALIBRATION_BOARD.rows
+    plate = np.array(
+        [
+            [-s - m, -s - m, 0],
+            [cols * s + m, -s - m, 0],
+            [cols * s + m, rows * s + m, 0],
+            [-s - m, rows * s + m, 0],
+        ]
+    )
+    for name in RIG.names:
+        w, h = RIG[name].image_size
+        reached = set()
+        for T_rig_board in poses:
+            P = transform_points(RIG.T(name, "tof") @ T_rig_board, plate)
+            distance = float(np.linalg.norm(T_rig_board[:3, 3]))
+            assert 0.45 < distance < 4.6
+            tilt = np.degrees(np.arccos(abs((T_rig_board[:3, 2] @ T_rig_board[:3, 3]) / distance)))
+            assert tilt < 60.0
+            uv = RIG[name].intrinsics.project(P)
+            if not (np.isfinite(uv).all() and (uv >= 0).all() and (uv < (w, h)).all()):
+                continue
+            for corner_uv in uv:
+                cu = 0 if corner_uv[0] < 0.15 * w else (2 if corner_uv[0] > 0.85 * w else 1)
+                cv = 0 if corner_uv[1] < 0.15 * h else (2 if corner_uv[1] > 0.85 * h else 1)
+                reached.add((cu, cv))
+        assert {(0, 0), (2, 0), (0, 2), (2, 2)} <= reached, f"{name}: corners {reached}"
+
+
+def test_inspection_scene_has_parallax_range_and_a_person() -> None:
+    scenario = InspectionScenario(seed=0)
+    frames, truth = scenario.render(0.0, ["tof", "thermal_left"])
+    r = truth["tof"].range_m
+    assert np.nanmin(r) < 0.65 and np.nanmax(r) > 7.0
+    names = [s.name for s in scenario.scene.solids]
+    head = truth["thermal_left"].solid == names.index("person_head")
+    assert head.sum() > 50
+    # A 37 C head reads about 310 K (+0.75 K imager offset), away from its blurred rim.
+    inner = cv2.erode(head.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    assert np.median(frames["thermal_left"].image[inner]) == pytest.approx(310.9, abs=0.5)
+    moved = scenario.T_world_rig(7.5)
+    assert np.degrees(np.arccos(moved[0, 0])) == pytest.approx(20.0, abs=0.01)
