@@ -118,25 +118,25 @@ def run_benchmark(name: str, repeat: int | None = None) -> BenchResult:
 
 @register(
     "render",
-    "simulator: one five-sensor calibration view, in a stream and cold (ms)",
+    "simulator: five-sensor frame sets (calibration view, inspection frame, per sensor) (ms)",
     default_repeat=5,
 )
 def _render(repeat: int) -> dict[str, float]:
-    """Two medians over ``repeat`` views of the calibration scenario.
+    """Medians over ``repeat`` renders of the simulated head.
 
-    ``render_ms``: one view in a stream, ``next()`` on one ``calibration_views`` generator
-    (the first view, which sets the renderer up, is the warm-up) -- what
-    ``trifuse simulate calibration`` pays per view. ``first_view_ms``:
-    ``next(calibration_views(1, seed=i))``, a fresh generator each time, so renderer set-up
-    included.
+    ``calibration_view_ms``: one view in a stream of ``calibration_views`` (what
+    ``trifuse simulate calibration`` pays per view, without writing the PNGs);
+    ``inspection_frame_ms``: one five-sensor frame set of the inspection room;
+    ``<sensor>_ms``: one sensor of that room alone; ``setup_ms``: a new renderer's first
+    frame set (ray grids of all sensors, with undistortion, are built then).
     """
-    from app.sources.sim.scenarios import calibration_views
+    from app.sources.sim.scenarios import InspectionScenario, calibration_views
 
     stream = calibration_views(repeat + 1, seed=1000)
-    render_ms = median_ms(lambda _i: next(stream), repeat)
-
-    def cold(i: int) -> None:
-        # Warm-up calls get negative i; seeds stay non-negative and distinct.
-        next(calibration_views(1, seed=2000 + i))
-
-    return {"render_ms": render_ms, "first_view_ms": median_ms(cold, repeat)}
+    figures = {"calibration_view_ms": median_ms(lambda _i: next(stream), repeat)}
+    scenario = InspectionScenario(seed=0)
+    figures["inspection_frame_ms"] = median_ms(lambda i: scenario.render(0.1 * i), repeat)
+    for name in scenario.rig.names:
+        figures[f"{name}_ms"] = median_ms(lambda i, n=name: scenario.render(0.1 * i, [n]), repeat)
+    figures["setup_ms"] = median_ms(lambda i: InspectionScenario(seed=0).render(0.0), repeat)
+    return figures

@@ -316,7 +316,7 @@ class InspectionScenario:
         self, t_s: float, sensors: list[str] | None = None
     ) -> tuple[FrameSet, dict[str, SensorTruth]]:
         """Frames and exact ground truth at time ``t_s``; noise is seeded by (seed, t)."""
-        rng = np.random.default_rng([self.seed, round(t_s * 1e6)])
+        rng = np.random.default_rng([self.seed, round(t_s * 1e6) % 2**63])
         return self.renderer.render(
             self.scene, self.T_world_rig(t_s), round(t_s * 1e9), rng, sensors
         )
