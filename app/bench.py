@@ -140,3 +140,91 @@ def _render(repeat: int) -> dict[str, float]:
         figures[f"{name}_ms"] = median_ms(lambda i, n=name: scenario.render(0.1 * i, [n]), repeat)
     figures["setup_ms"] = median_ms(lambda i: InspectionScenario(seed=0).render(0.0), repeat)
     return figures
+
+
+@register(
+    "calibrate",
+    "rig calibration of 30 simulated views: this engine vs OpenCV calibrateMultiview "
+    "(pose errors against ground truth, run times)",
+    default_repeat=1,
+)
+def _calibrate(repeat: int) -> dict[str, float]:
+    """Calibrate the same simulated captures with both engines and compare to the truth.
+
+    Renders ``trifuse simulate calibration --views 30 --seed 1`` into a temporary capture
+    directory (not timed), detects the board once, then times ``calib.rig_calibration``
+    (``ours_s``, calibration only; ``detect_s`` for the detection of all 150 images) and
+    ``calib.opencv_baseline`` (``opencv_s``) on the same detections, ``repeat`` times each.
+    Errors are the worst over the non-reference sensors: rotation (deg), translation (mm),
+    focal length (%), and the ratio ours / OpenCV of each.
+    """
+    import tempfile
+    import time
+    from pathlib import Path
+
+    import numpy as np
+
+    from app.calibration_run import detect_capture, sensor_specs
+    from app.capture import load_capture, write_board, write_view
+    from app.sources.sim.head import default_rig
+    from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_views
+    from calib.opencv_baseline import calibrate_multiview_opencv
+    from calib.rig_calibration import calibrate_rig
+    from calib.transforms import pose_error
+
+    truth = default_rig()
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp)
+        write_board(out, CALIBRATION_BOARD)
+        for view in calibration_views(30, seed=1, rig=truth):
+            write_view(out, view.name, view.frames, truth)
+        capture = load_capture(out)
+        specs = sensor_specs(capture)
+        t = time.perf_counter()
+        detections = detect_capture(capture)
+        detect_s = time.perf_counter() - t
+
+    obs = detections.observations
+    ours_times, cv_times = [], []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        ours = calibrate_rig(obs, CALIBRATION_BOARD, specs)
+        ours_times.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        cv = calibrate_multiview_opencv(
+            obs, CALIBRATION_BOARD, {s: specs[s].image_size for s in specs}, "tof"
+        )
+        cv_times.append(time.perf_counter() - t)
+
+    def errors(T: dict[str, np.ndarray], intr: dict) -> tuple[float, float, float]:
+        rot, trans, focal = [], [], []
+        for name in truth.names:
+            if name == "tof":
+                continue
+            r, tr = pose_error(T[name], truth[name].T_rig_sensor)
+            rot.append(r)
+            trans.append(tr * 1000)
+        for name in truth.names:
+            f_true = truth[name].intrinsics
+            focal.append(100 * abs(intr[name].fx / f_true.fx - 1))
+        return max(rot), max(trans), max(focal)
+
+    o = errors(
+        {n: s.T_rig_sensor for n, s in ours.sensors.items()},
+        {n: s.intrinsics for n, s in ours.sensors.items()},
+    )
+    c = errors(cv.T_rig_sensor, cv.intrinsics)
+    return {
+        "detect_s": detect_s,
+        "ours_s": float(np.median(ours_times)),
+        "opencv_s": float(np.median(cv_times)),
+        "ours_rot_deg": o[0],
+        "opencv_rot_deg": c[0],
+        "rot_ratio": o[0] / c[0],
+        "ours_trans_mm": o[1],
+        "opencv_trans_mm": c[1],
+        "trans_ratio": o[1] / c[1],
+        "ours_focal_pct": o[2],
+        "opencv_focal_pct": c[2],
+        "focal_ratio": o[2] / c[2],
+    }

@@ -137,6 +137,45 @@ def _cmd_simulate_calibration(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# -- calibrate ----------------------------------------------------------------------------
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from app.calibration_run import calibrate_capture, format_summary, write_report
+    from app.capture import load_capture
+    from app.rigfile import save_rig
+    from calib.rig_calibration import CalibrationOptions
+
+    out, report_path = Path(args.out), Path(args.report) if args.report else None
+    for path in (out, report_path):
+        if path is not None and path.exists():
+            raise UsageError(f"{path}: exists; refusing to overwrite it (choose a new name)")
+    capture = load_capture(args.capture_dir)
+    _out(capture.summary())
+    options = CalibrationOptions(
+        reference=args.reference, refine_intrinsics=not args.fixed_intrinsics
+    )
+    last = [-1]
+
+    def progress(stage: str, fraction: float) -> None:
+        percent = int(100 * fraction)
+        if percent // 10 != last[0] // 10:
+            last[0] = percent
+            _out(f"[{percent:3d}%] {stage}")
+
+    sensors = args.sensors.split(",") if args.sensors else None
+    result, report = calibrate_capture(capture, options, sensors, progress)
+    _out("")
+    _out(format_summary(result, report))
+    save_rig(out, result.rig())
+    _out("")
+    _out(f"rig written to {out}")
+    if report_path is not None:
+        write_report(report_path, report)
+        _out(f"report written to {report_path}")
+    return EXIT_OK
+
+
 # -- bench --------------------------------------------------------------------------------
 
 
@@ -221,6 +260,52 @@ def build_parser() -> argparse.ArgumentParser:
         "built-in head); the starting rig.yaml is then derived from it",
     )
     calib_p.set_defaults(func=_cmd_simulate_calibration)
+
+    # calibrate -------------------------------------------------------------------------
+    cal = commands.add_parser(
+        "calibrate",
+        help="calibrate every sensor's intrinsics and 6-DOF pose from a capture directory",
+        description=(
+            "Detect the checkerboard in every image of CAPTURE_DIR (docs/FORMATS.md), "
+            "calibrate each sensor's intrinsics (Zhang) and then the whole rig jointly "
+            "(every sensor pose, every board pose and the intrinsics, robust loss, outlier "
+            "views and corners flagged and left out), and write the calibrated rig file "
+            "with 1-sigma uncertainties. Prints a summary: RMS per sensor, parameters with "
+            "their uncertainty, coverage of each image, outliers and rejected images."
+        ),
+    )
+    cal.add_argument("capture_dir", metavar="CAPTURE_DIR", help="the capture directory")
+    cal.add_argument(
+        "--out",
+        required=True,
+        metavar="RIG.yaml",
+        help="calibrated rig file to write (must not exist)",
+    )
+    cal.add_argument(
+        "--report",
+        metavar="REPORT.json",
+        help="also write the full report as JSON (must not exist): per sensor "
+        "RMS, views, intrinsics, distortion, pose and sigma; per view and sensor "
+        "the RMS and outlier flag; detections, coverage, outliers",
+    )
+    cal.add_argument(
+        "--reference",
+        metavar="NAME",
+        help="sensor whose frame is the rig frame (default: the TOF camera, "
+        "else the first sensor by name)",
+    )
+    cal.add_argument(
+        "--sensors",
+        metavar="A,B,...",
+        help="calibrate only these sensors (comma-separated; default: all)",
+    )
+    cal.add_argument(
+        "--fixed-intrinsics",
+        action="store_true",
+        help="keep each sensor's Zhang intrinsics in the joint refinement "
+        "(default: refine them with the poses)",
+    )
+    cal.set_defaults(func=_cmd_calibrate)
 
     # bench ---------------------------------------------------------------------------
     bench = commands.add_parser(

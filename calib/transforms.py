@@ -121,3 +121,26 @@ def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     """(rotation error in degrees, translation error in metres) between two transforms."""
     dR = T_est[:3, :3].T @ T_true[:3, :3]
     return rotation_angle_deg(dR), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+
+
+def rotations_from_rvecs(rvecs: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) rotation matrices from (K, 3) axis-angle vectors (radians), vectorised."""
+    r = np.asarray(rvecs, dtype=np.float64).reshape(-1, 3)
+    theta = np.linalg.norm(r, axis=1)
+    small = theta < 1e-12
+    safe = np.where(small, 1.0, theta)
+    k = r / safe[:, None]
+    K = np.zeros((len(r), 3, 3))
+    K[:, 0, 1], K[:, 0, 2] = -k[:, 2], k[:, 1]
+    K[:, 1, 0], K[:, 1, 2] = k[:, 2], -k[:, 0]
+    K[:, 2, 0], K[:, 2, 1] = -k[:, 1], k[:, 0]
+    s = np.where(small, 0.0, np.sin(theta))[:, None, None]
+    c = np.where(small, 0.0, 1.0 - np.cos(theta))[:, None, None]
+    return np.eye(3)[None] + s * K + c * (K @ K)
+
+
+def mean_rotation(Rs: np.ndarray) -> np.ndarray:
+    """Chordal L2 mean of rotations (K, 3, 3): the rotation nearest to their sum."""
+    U, _, Vt = np.linalg.svd(np.sum(Rs, axis=0))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt

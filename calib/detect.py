@@ -1,0 +1,603 @@
+"""Checkerboard corner detection in colour, thermal and TOF amplitude images.
+
+One entry point, :func:`detect_board`: an image of one sensor in, a :class:`Detection` out
+(corners in the original image's pixels, in the board's canonical order, or the reason
+why there are none). Pure: no files, no printing, no state.
+
+Pipeline, per modality:
+
+* **colour** (RGB or grey uint8): OpenCV's sector-based detector
+  (``findChessboardCornersSB``, no flags) on the grey image, then the same with
+  ``CALIB_CB_NORMALIZE_IMAGE``, then the classic detector (``findChessboardCorners``,
+  adaptive threshold + normalisation) as the last resort. Whatever found the board, the
+  corners are refined with ``cornerSubPix`` (half-window 0.4 x the smallest corner
+  spacing, clamped to 2-11 px) on the linearised (gamma ``COLOR_GAMMA``), lightly blurred
+  grey image; the classic detector's corners get one wider pass first.
+* **thermal** (temperatures or raw counts, any real dtype, NaN = no reading): background
+  flattening (the image minus a wide Gaussian blur, which removes uneven heating, the hot
+  spot and the room), a percentile stretch to 8 bit, ``THERMAL_UPSAMPLE`` x cubic
+  upsampling, the same three detectors on both polarities (the classic detector wants
+  dark squares on a bright margin).
+* **TOF amplitude**: flattened log amplitude (amplitude falls as 1/d^2), a percentile
+  stretch, ``TOF_UPSAMPLE`` x cubic upsampling (the squares are 2.5-15 px).
+* **fine stage** (thermal and TOF): the board is found again with the sector-based
+  detector and ``CALIB_CB_ACCURACY`` in a crop of the flattened image (linear in the
+  sensor's signal) around the first corners, upsampled until the corner spacing is about
+  ``FINE_TARGET_SPACING_PX``. If that fails, ``cornerSubPix`` on the upsampled image.
+
+Why these choices (measured on 40 simulated views and the 13 OpenCV sample images,
+opencv-python-headless 5.0.0.93, 2 cores):
+
+* ``findChessboardCornersSB`` on 1280x960: no flags 0.10-0.16 s, found 66/66 simulated
+  boards and 11/13 real; EXHAUSTIVE 0.15 s, 66/66 and 10/13; ACCURACY 0.54 s, 66/66 and
+  13/13; NORMALIZE_IMAGE 0.15 s, 56/66 and 13/13; EXHAUSTIVE|ACCURACY|NORMALIZE 0.70 s,
+  61/66. No flags then NORMALIZE_IMAGE finds all 79 at ~0.1 s typical. ACCURACY's
+  corners (0.055 px mean error) lose to cornerSubPix on the linearised image (0.030 px),
+  so it is not worth its 0.4 s on colour.
+* cornerSubPix on SB corners: colour yes (0.077 -> 0.030 px mean); thermal and TOF no:
+  on their small, upsampled squares it was worse than the SB detector with ACCURACY on
+  an upsampled crop (thermal 0.062 vs 0.034 px, TOF 0.26 vs 0.054 px).
+
+Upsampled coordinates map back with the pixel-centre convention of docs/CONVENTIONS.md:
+``u = (u' + 0.5) / s - 0.5``.
+
+Canonical order (calib/board.py): row-major, corner ``r * cols + c`` is the board point
+``(c * s, r * s, 0)``. The detectors return one of several orderings (the sector-based
+one returns the reverse of the classic one); they are normalised by
+
+1. handedness: the board's +x (along a row) and +y (down a column) must form a
+   right-handed pair in the image (x right, y down) because the camera sees the board's
+   front; otherwise the rows are flipped;
+2. square colours: the interior square between corners (r, c) and (r + 1, c + 1) is black
+   iff r + c is even. On a board with an odd number of inner corners on one side and an
+   even number on the other a half turn swaps the colours, so comparing neighbouring
+   squares decides between the ordering and its half turn. "Black" means dark in colour
+   and TOF amplitude and, on the heated board, hot in thermal (``THERMAL_BLACK_IS_HOT``).
+
+Mirrored images: a board with an even number of inner-corner rows (9 x 6) looks the same
+in a mirror (flipped top to bottom it has the same colours), so a mirrored image cannot
+be told from a real one. It is detected like any other image; the labels are those of the
+board seen in the mirror (corner (r, c) of the mirrored image is the mirror image of
+corner (rows - 1 - r, c) of the original). Do not feed mirrored images to a calibration.
+
+A detection whose corners come closer to the image border than
+``max(BORDER_MIN_PX, BORDER_FRACTION x local corner spacing)`` is rejected: the outer
+squares are then cut off and the detectors' corners there are unreliable.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from calib.board import Board
+
+MODALITIES = ("color", "thermal", "tof")
+
+THERMAL_BLACK_IS_HOT = True
+"""Polarity of the heated board in thermal: the black squares (matte foil, emissivity about
+0.95) read hotter than the white ones (bare aluminium, about 0.12, mirroring the cooler
+room). Pass ``thermal_black_is_hot=False`` for a board that is the other way round
+(e.g. a cooled board, or white squares of a high-emissivity paint on a heated metal)."""
+
+COLOR_GAMMA = 2.2
+"""Colour images are assumed gamma-encoded (sRGB-like); the sub-pixel refinement runs on
+intensities linearised with this exponent. On the simulator (gamma 1/2.2) this halves the
+corner bias (mean RMS 0.057 -> 0.030 px); on the real OpenCV sample images it lowers the
+calibration RMS too (0.196 -> 0.193 px). Use 1.0 for a linear camera."""
+COLOR_REFINE_BLUR_PX = 1.0
+"""Gaussian sigma applied before the colour refinement; sharp, pixel-integrated edges
+otherwise bias ``cornerSubPix`` (measured 0.073 -> 0.057 px mean without linearising)."""
+
+THERMAL_FLATTEN_SIGMA_PX = 25.0
+"""Sigma of the background blur subtracted from thermal images, native pixels."""
+THERMAL_UPSAMPLE = 2
+TOF_FLATTEN_SIGMA_PX = 12.0
+"""Sigma of the background blur subtracted from the TOF log amplitude, native pixels."""
+TOF_UPSAMPLE = 4
+STRETCH_PERCENTILES = (0.5, 99.5)
+
+FINE_TARGET_SPACING_PX = 48.0
+"""Thermal and TOF: after the first detection the board is found again with the accurate
+sector-based detector (CALIB_CB_ACCURACY) in a crop upsampled so that the corner spacing
+is about this many pixels (at most ``FINE_MAX_UPSAMPLE`` x). Measured on the simulator
+this beats cornerSubPix: thermal 0.062 -> 0.034 px, TOF 0.26 -> 0.054 px mean RMS."""
+FINE_MAX_UPSAMPLE = 4
+FINE_MARGIN = 1.6
+"""Crop margin around the outer corners, in corner spacings (the outer squares and a bit
+of the board's margin must be inside)."""
+FINE_MAX_SHIFT = 0.25
+"""The fine corners must lie within this fraction of the spacing of the first ones."""
+
+SUBPIX_WINDOW_FRACTION = 0.4
+"""cornerSubPix half-window as a fraction of the smallest corner spacing: a window wider
+than half the spacing converges to a neighbouring corner (FIELD-NOTES)."""
+SUBPIX_HALF_WINDOW_PX = (2, 11)
+SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
+
+GRID_MAX_BEND = 0.4
+"""Largest second difference of the refined corners along a row or column, as a fraction of
+the local spacing. Measured: good grids at most 0.07 (colour, thermal), 0.12 (real OpenCV
+samples), 0.18 (TOF, 2.5 px squares); corners gone astray 0.9 and more."""
+
+BORDER_MIN_PX = 2.0
+BORDER_FRACTION = 0.5
+
+COLOUR_AGREEMENT = 0.9
+"""Fraction of neighbouring interior-square pairs that must agree on which colour class is
+darker; below it the detection is rejected as ambiguous (never guessed)."""
+COLOUR_MIN_SEPARATION = 2.0
+"""Minimum separation of the two colour classes: |mean| over standard deviation of the
+(signed) differences between neighbouring squares. Measured: at least 5.5 on detected
+boards (TOF; colour 45+, thermal 8.6+, real images 7.6+); noise gives about 0."""
+
+_SB_FLAGS = {
+    "sb": 0,
+    "sb-normalized": cv2.CALIB_CB_NORMALIZE_IMAGE,
+}
+_CLASSIC_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+
+
+@dataclass(eq=False)
+class Detection:
+    """Result of :func:`detect_board` (compared by identity: it holds an array).
+
+    Attributes:
+        corners: (N, 2) float64 pixels in the original image, canonical board order
+            (``r * cols + c``); None if the board was not found or was rejected.
+        reason: why there are no corners (human readable); None when found.
+        method: what found the corners, e.g. ``"sb"``, ``"classic"``,
+            ``"sb-inverted-x2"``; also set for a rejected detection.
+    """
+
+    corners: np.ndarray | None
+    reason: str | None
+    method: str | None
+
+    @property
+    def found(self) -> bool:
+        return self.corners is not None
+
+
+@dataclass
+class _Prepared:
+    """A sensor image made ready for the detectors.
+
+    Attributes:
+        scale: ``detect`` and ``refine`` are ``scale`` x the original size.
+        detect: uint8 image for the detectors, the board's black squares dark.
+        both_polarities: whether to try the inverted ``detect`` image too.
+        refine: float32 image (``scale`` x) for cornerSubPix.
+        darkness: float32 image at the original size in which the board's black squares
+            are low (the colour check samples it).
+        fine: None, or a float32 image at the original size, linear in the sensor's
+            signal, black squares low: the fine stage re-detects the board in an
+            upsampled crop of it.
+    """
+
+    scale: int
+    detect: np.ndarray
+    both_polarities: bool
+    refine: np.ndarray
+    darkness: np.ndarray
+    fine: np.ndarray | None = None
+
+
+class _Rejected(Exception):
+    def __init__(self, reason: str, final: bool) -> None:
+        super().__init__(reason)
+        self.reason = reason
+        self.final = final  # the same board would be rejected whatever found it
+
+
+# -- input checks -----------------------------------------------------------------------
+
+
+def _check_board(board: Board) -> None:
+    if not isinstance(board, Board):
+        raise ValueError(f"board: expected a calib.board.Board, got {type(board).__name__}")
+    if board.cols == board.rows:
+        raise ValueError(
+            f"board {board.cols}x{board.rows}: the pattern is square-symmetric (cols == rows), "
+            "so a quarter turn maps it onto itself and the corner order is ambiguous; use a "
+            "board with an odd number of inner corners on one side and an even number on "
+            "the other (e.g. 9x6)"
+        )
+    if (board.cols + board.rows) % 2 == 0:
+        raise ValueError(
+            f"board {board.cols}x{board.rows}: a half turn maps the pattern onto itself "
+            "(same square colours), so the corner order is ambiguous; use a board with an "
+            "odd number of inner corners on one side and an even number on the other "
+            "(e.g. 9x6)"
+        )
+
+
+def _check_image(image: object, modality: str) -> np.ndarray:
+    if not isinstance(image, np.ndarray):
+        raise ValueError(f"{modality} image: expected a numpy array, got {type(image).__name__}")
+    if modality == "color":
+        ok_shape = image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 3)
+        if not ok_shape or image.dtype != np.uint8:
+            raise ValueError(
+                "color image: expected (H, W, 3) uint8 RGB or (H, W) uint8 grey, got "
+                f"shape {image.shape} {image.dtype}"
+            )
+    elif image.ndim != 2 or image.dtype.kind not in "fiu":
+        what = "temperatures or counts" if modality == "thermal" else "amplitude"
+        raise ValueError(
+            f"{modality} image: expected (H, W) float or integer {what}, got shape "
+            f"{image.shape} {image.dtype}"
+        )
+    if min(image.shape[:2]) < 8:
+        raise ValueError(f"{modality} image: expected at least 8x8 pixels, got shape {image.shape}")
+    return image
+
+
+# -- per-modality preparation -----------------------------------------------------------
+
+
+def _stretch_u8(x: np.ndarray) -> np.ndarray | None:
+    """Percentile stretch of a float image to uint8; None if it has no contrast."""
+    lo, hi = np.percentile(x, STRETCH_PERCENTILES)
+    if not hi - lo > 1e-6 * max(1.0, abs(float(hi)), abs(float(lo))):
+        return None
+    y = (x - lo) * (255.0 / (hi - lo)) + 0.5
+    return np.clip(y, 0, 255).astype(np.uint8)
+
+
+def _finite_filled(image: np.ndarray) -> np.ndarray | None:
+    """float32 copy with non-finite pixels replaced by the median; None if none is finite."""
+    x = image.astype(np.float32)
+    bad = ~np.isfinite(x)
+    if bad.all():
+        return None
+    if bad.any():
+        x[bad] = np.median(x[~bad])
+    return x
+
+
+def _flatten(x: np.ndarray, sigma: float) -> np.ndarray:
+    return x - cv2.GaussianBlur(x, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+
+
+def _upsample(x: np.ndarray, s: int) -> np.ndarray:
+    if s == 1:
+        return x
+    return cv2.resize(x, None, fx=s, fy=s, interpolation=cv2.INTER_CUBIC)
+
+
+def _prepare(image: np.ndarray, modality: str, black_is_hot: bool) -> _Prepared | str:
+    """The prepared image, or the reason there is nothing to detect in."""
+    if modality == "color":
+        grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        if int(grey.max()) - int(grey.min()) < 8:
+            return "the image has no contrast (blank image?)"
+        lin = np.power(grey.astype(np.float32) * np.float32(1.0 / 255.0), COLOR_GAMMA)
+        refine = cv2.GaussianBlur(lin, (0, 0), COLOR_REFINE_BLUR_PX)
+        return _Prepared(1, grey, False, refine, lin)
+
+    x = _finite_filled(image)
+    if x is None:
+        return "the image has no finite pixels"
+    if modality == "thermal":
+        flat = _flatten(x, THERMAL_FLATTEN_SIGMA_PX)
+        dark = -flat if black_is_hot else flat  # black squares low
+        coarse, fine, s = dark, dark, THERMAL_UPSAMPLE
+    else:
+        # Amplitude falls as 1/d^2: detect in the flattened log amplitude; refine and
+        # sample in the flattened linear amplitude (pixel integration is linear in it;
+        # refining in log biased the corners, 0.085 -> 0.054 px mean).
+        coarse = _flatten(np.log(np.maximum(x, 1.0)), TOF_FLATTEN_SIGMA_PX)
+        fine = _flatten(x, TOF_FLATTEN_SIGMA_PX)
+        s = TOF_UPSAMPLE
+    u8 = _stretch_u8(coarse)
+    if u8 is None:
+        return "the image has no contrast (blank image?)"
+    return _Prepared(s, _upsample(u8, s), modality == "thermal", _upsample(fine, s), fine, fine)
+
+
+# -- detectors --------------------------------------------------------------------------
+
+
+def _sb(flags: int) -> Callable[[np.ndarray, Board], np.ndarray | None]:
+    def run(img: np.ndarray, board: Board) -> np.ndarray | None:
+        ok, corners = cv2.findChessboardCornersSB(img, board.pattern_size, flags=flags)
+        return corners if ok else None
+
+    return run
+
+
+def _classic(img: np.ndarray, board: Board) -> np.ndarray | None:
+    ok, corners = cv2.findChessboardCorners(img, board.pattern_size, flags=_CLASSIC_FLAGS)
+    return corners if ok else None
+
+
+_DETECTORS: list[tuple[str, Callable[[np.ndarray, Board], np.ndarray | None]]] = [
+    *((name, _sb(flags)) for name, flags in _SB_FLAGS.items()),
+    ("classic", _classic),
+]
+
+
+# -- geometry of a detected grid ----------------------------------------------------------
+
+
+def _spacing(G: np.ndarray) -> np.ndarray:
+    """Per-corner local spacing (rows, cols): mean distance to its grid neighbours."""
+    dx = np.linalg.norm(np.diff(G, axis=1), axis=2)  # (rows, cols - 1)
+    dy = np.linalg.norm(np.diff(G, axis=0), axis=2)  # (rows - 1, cols)
+    total = np.zeros(G.shape[:2])
+    count = np.zeros(G.shape[:2])
+    total[:, :-1] += dx
+    total[:, 1:] += dx
+    count[:, :-1] += 1
+    count[:, 1:] += 1
+    total[:-1, :] += dy
+    total[1:, :] += dy
+    count[:-1, :] += 1
+    count[1:, :] += 1
+    return total / count
+
+
+def _min_spacing(G: np.ndarray) -> float:
+    dx = np.linalg.norm(np.diff(G, axis=1), axis=2)
+    dy = np.linalg.norm(np.diff(G, axis=0), axis=2)
+    return float(min(dx.min(), dy.min()))
+
+
+def _regular(G: np.ndarray) -> bool:
+    """Every step along a row (column) points the way of the grid's mean row (column) step."""
+    sx = np.diff(G, axis=1)
+    sy = np.diff(G, axis=0)
+    mx = sx.reshape(-1, 2).mean(axis=0)
+    my = sy.reshape(-1, 2).mean(axis=0)
+    return bool(np.all(sx @ mx > 0) and np.all(sy @ my > 0) and _min_spacing(G) > 0.5)
+
+
+def _right_handed(G: np.ndarray) -> bool:
+    """Whether the grid's +x (along a row) and +y (down a column) are right-handed in the
+    image (x right, y down), judged from the mean row and column directions."""
+    ax = (G[:, -1] - G[:, 0]).mean(axis=0)
+    ay = (G[-1, :] - G[0, :]).mean(axis=0)
+    return float(ax[0] * ay[1] - ax[1] * ay[0]) > 0
+
+
+def _subpix(img: np.ndarray, G: np.ndarray, wide_first: bool = False) -> np.ndarray:
+    """cornerSubPix with the half-window from the corner spacing (pixels of ``img``).
+
+    ``wide_first``: start with one pass at 0.45 x the spacing (unclamped) for corners that
+    may be several pixels off (the classic detector's, on tilted boards: up to 12 px
+    measured), so that the clamped window then starts near the corner.
+    """
+    lo, hi = SUBPIX_HALF_WINDOW_PX
+    pts = np.ascontiguousarray(G.reshape(-1, 1, 2), dtype=np.float32)
+    spacing = _min_spacing(G)
+    if wide_first:
+        hw = max(lo, round(0.45 * spacing))
+        cv2.cornerSubPix(img, pts, (hw, hw), (-1, -1), SUBPIX_CRITERIA)
+    hw = int(np.clip(round(SUBPIX_WINDOW_FRACTION * spacing), lo, hi))
+    cv2.cornerSubPix(img, pts, (hw, hw), (-1, -1), SUBPIX_CRITERIA)
+    return pts.reshape(G.shape).astype(np.float64)
+
+
+def _bend(G: np.ndarray) -> float:
+    """Largest second difference along rows and columns, each over the local spacing."""
+    sp = _spacing(G)
+    a = np.linalg.norm(G[:, 2:] - 2 * G[:, 1:-1] + G[:, :-2], axis=2) / sp[:, 1:-1]
+    b = np.linalg.norm(G[2:] - 2 * G[1:-1] + G[:-2], axis=2) / sp[1:-1]
+    return float(max(a.max(initial=0.0), b.max(initial=0.0)))
+
+
+def _same_grid(F: np.ndarray, G: np.ndarray) -> np.ndarray | None:
+    """``F`` re-ordered to correspond to ``G`` (both (rows, cols, 2)), or None if no
+    ordering puts every corner of F within a quarter spacing of G's."""
+    best, best_d = None, np.inf
+    for cand in (F, F[::-1, ::-1], F[::-1, :], F[:, ::-1]):
+        d = float(np.max(np.linalg.norm(cand - G, axis=2)))
+        if d < best_d:
+            best, best_d = cand, d
+    return best if best_d < FINE_MAX_SHIFT * _min_spacing(G) else None
+
+
+def _fine(fine: np.ndarray, G: np.ndarray, board: Board) -> np.ndarray | None:
+    """Re-detect the board with the accurate sector-based detector in an upsampled crop
+    around the grid ``G`` (original pixels); None if that fails or disagrees."""
+    h, w = fine.shape
+    margin = FINE_MARGIN * float(np.median(_spacing(G))) + 2.0
+    x0 = max(0, int(np.floor(G[..., 0].min() - margin)))
+    x1 = min(w, int(np.ceil(G[..., 0].max() + margin)) + 1)
+    y0 = max(0, int(np.floor(G[..., 1].min() - margin)))
+    y1 = min(h, int(np.ceil(G[..., 1].max() + margin)) + 1)
+    u8 = _stretch_u8(fine[y0:y1, x0:x1])
+    if u8 is None:
+        return None
+    s = int(np.clip(np.ceil(FINE_TARGET_SPACING_PX / _min_spacing(G)), 1, FINE_MAX_UPSAMPLE))
+    ok, raw = cv2.findChessboardCornersSB(
+        _upsample(u8, s), board.pattern_size, flags=cv2.CALIB_CB_ACCURACY
+    )
+    if not ok:
+        return None
+    F = (np.asarray(raw, dtype=np.float64).reshape(G.shape) + 0.5) / s - 0.5
+    F += (x0, y0)
+    if not np.all(np.isfinite(F)):
+        return None
+    return _same_grid(F, G)
+
+
+def _sample(img: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``img`` at points (..., 2)."""
+    flat = np.ascontiguousarray(pts.reshape(-1, 1, 2), dtype=np.float32)
+    out = cv2.remap(
+        img, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
+    return out.reshape(pts.shape[:-1]).astype(np.float64)
+
+
+def _square_values(darkness: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """Mean of ``darkness`` inside each interior square, (rows - 1, cols - 1): samples at
+    the square's centre (mean of its 4 corners) and 30% of the way to each corner."""
+    quad = np.stack([G[:-1, :-1], G[:-1, 1:], G[1:, :-1], G[1:, 1:]], axis=0)
+    centre = quad.mean(axis=0)
+    pts = np.concatenate([centre[None], centre[None] + 0.3 * (quad - centre[None])], axis=0)
+    return _sample(darkness, pts).mean(axis=0)
+
+
+def _colour_order(darkness: np.ndarray, G: np.ndarray) -> tuple[bool, float, float]:
+    """Whether the (r + c)-even interior squares are the dark ones, with the agreement
+    (fraction of neighbouring square pairs voting that way) and the separation
+    (|mean| / std of the neighbour differences)."""
+    v = _square_values(darkness, G)
+    r, c = np.indices(v.shape)
+    sign = np.where((r + c) % 2 == 0, 1.0, -1.0)
+    # Odd minus even over horizontal and vertical neighbour pairs: > 0 where the even
+    # square is the darker one.
+    d = np.concatenate(
+        [
+            ((v[:, 1:] - v[:, :-1]) * sign[:, :-1]).ravel(),
+            ((v[1:, :] - v[:-1, :]) * sign[:-1, :]).ravel(),
+        ]
+    )
+    even_dark = float(np.mean(d > 0))
+    even_is_dark = even_dark >= 0.5
+    agreement = even_dark if even_is_dark else 1.0 - even_dark
+    spread = float(np.std(d))
+    separation = abs(float(np.mean(d))) / spread if spread > 0 else float("inf")
+    return even_is_dark, agreement, separation
+
+
+def _border_problem(G: np.ndarray, w: int, h: int) -> str | None:
+    """Why the grid (rows, cols, 2) in original pixels is too close to the border."""
+    corners = G.reshape(-1, 2)
+    # Pixel (u, v) covers [u - 0.5, u + 0.5): the image edges are at -0.5 and W - 0.5.
+    dist = np.stack(
+        [
+            corners[:, 0] + 0.5,
+            w - 0.5 - corners[:, 0],
+            corners[:, 1] + 0.5,
+            h - 0.5 - corners[:, 1],
+        ],
+        axis=1,
+    )
+    need = np.maximum(BORDER_MIN_PX, BORDER_FRACTION * _spacing(G).ravel())
+    slack = dist - need[:, None]
+    if not (slack < 0).any():
+        return None
+    k, side = np.unravel_index(np.argmin(slack), slack.shape)
+    edge = ("left", "right", "top", "bottom")[side]
+    return (
+        f"board touches the image border (corner {k} is {dist[k, side]:.1f} px from the "
+        f"{edge} edge, at least {need[k]:.1f} px needed)"
+    )
+
+
+def _finish(
+    raw: np.ndarray, prep: _Prepared, board: Board, shape: tuple[int, int], classic: bool
+) -> tuple[np.ndarray, str]:
+    """Refined corners (N, 2) in original pixels and canonical order, and the method
+    suffix; raises _Rejected."""
+    rows, cols = board.rows, board.cols
+    pts = np.asarray(raw, dtype=np.float64).reshape(-1, 2)
+    if len(pts) != board.n_corners:
+        raise _Rejected(f"detector returned {len(pts)} corners, expected {board.n_corners}", False)
+    if not np.all(np.isfinite(pts)):
+        raise _Rejected("detector returned non-finite corners", False)
+    G = pts.reshape(rows, cols, 2)
+    if not _regular(G):
+        raise _Rejected("detected corners do not form a regular grid", False)
+    s = prep.scale
+    h, w = shape
+    suffix = ""
+    F = None if prep.fine is None else _fine(prep.fine, (G + 0.5) / s - 0.5, board)
+    if F is None:
+        G = (_subpix(prep.refine, G, wide_first=classic) + 0.5) / s - 0.5
+        if prep.fine is not None:
+            suffix = "+subpix"
+    else:
+        G = F
+    if not np.all(np.isfinite(G)) or not _regular(G) or _bend(G) > GRID_MAX_BEND:
+        raise _Rejected(
+            "the refined corners do not form a smooth grid (a corner went astray)", False
+        )
+    if not _right_handed(G):
+        G = G[::-1]
+
+    even_is_dark, agreement, separation = _colour_order(prep.darkness, G)
+    if agreement < COLOUR_AGREEMENT or separation < COLOUR_MIN_SEPARATION:
+        raise _Rejected(
+            "the square colours are not clearly separated (only "
+            f"{100 * agreement:.0f}% of neighbouring squares agree on which colour is "
+            f"darker, separation {separation:.1f}); cannot tell the board's orientation",
+            False,
+        )
+    if not even_is_dark:
+        G = G[::-1, ::-1]
+    # Final: whatever finds this board finds it at the border (corner numbers canonical).
+    problem = _border_problem(G, w, h)
+    if problem:
+        raise _Rejected(problem, True)
+    return np.ascontiguousarray(G.reshape(-1, 2)), suffix
+
+
+def detect_board(
+    image: np.ndarray,
+    board: Board,
+    modality: str,
+    *,
+    thermal_black_is_hot: bool = THERMAL_BLACK_IS_HOT,
+) -> Detection:
+    """Find the board's inner corners in one sensor image.
+
+    Args:
+        image: colour: (H, W, 3) uint8 RGB or (H, W) uint8 grey; thermal: (H, W)
+            temperatures in kelvin or raw counts (any float or integer dtype, NaN = no
+            reading); tof: (H, W) amplitude (float or integer).
+        board: the checkerboard; it must not be symmetric under a half or quarter turn.
+        modality: ``"color"``, ``"thermal"`` or ``"tof"``.
+        thermal_black_is_hot: polarity of the board in thermal (``THERMAL_BLACK_IS_HOT``).
+
+    Returns:
+        A :class:`Detection`: corners (N, 2) float64 in the original image's pixels
+        (pixel centres at integers), row-major canonical order (corner ``r * cols + c`` is
+        the board point ``(c * s, r * s, 0)``), or None with the reason.
+
+    Raises:
+        ValueError: unknown modality, wrong image shape or dtype, ambiguous board.
+    """
+    if not isinstance(modality, str) or modality not in MODALITIES:
+        raise ValueError(f"modality: expected one of {', '.join(MODALITIES)}, got {modality!r}")
+    _check_board(board)
+    img = _check_image(image, modality)
+    shape = img.shape[:2]
+
+    prep = _prepare(img, modality, thermal_black_is_hot)
+    if isinstance(prep, str):
+        return Detection(None, f"board not found: {prep}", None)
+    first_rejection: Detection | None = None
+    tried: list[str] = []
+    for inverted in (False, True) if prep.both_polarities else (False,):
+        det_img = 255 - prep.detect if inverted else prep.detect
+        for name, finder in _DETECTORS:
+            method = name + ("-inverted" if inverted else "")
+            method += f"-x{prep.scale}" if prep.scale != 1 else ""
+            tried.append(method)
+            raw = finder(det_img, board)
+            if raw is None:
+                continue
+            try:
+                corners, suffix = _finish(raw, prep, board, shape, name == "classic")
+            except _Rejected as rej:
+                if rej.final:
+                    return Detection(None, rej.reason, method)
+                if first_rejection is None:
+                    first_rejection = Detection(None, rej.reason, method)
+                continue
+            return Detection(corners, None, method + suffix)
+    if first_rejection is not None:
+        return first_rejection
+    return Detection(
+        None,
+        f"board ({board.cols}x{board.rows} inner corners) not found (tried {', '.join(tried)})",
+        None,
+    )
