@@ -13,11 +13,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from calib.detect import Detection, detect_board
 
 from app.atomic import atomic_write_text
 from app.capture import Capture, CaptureError
 from calib.coverage import coverage
+from calib.detect import Detection, detect_board
 from calib.errors import CalibrationError
 from calib.rig_calibration import (
     CalibrationOptions,

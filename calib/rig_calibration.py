@@ -586,17 +586,17 @@ def calibrate_rig(
 
     # 3b. Outliers: corners beyond k sigma of their sensor; then views, judged by their
     # remaining corners (a view with many outlier corners is an outlier as a whole).
-    sigma_s = np.array([np.median(err[prob.s_idx == k]) / _RAYLEIGH_MEDIAN
-                        for k in range(len(sensors))])
-    limit = np.maximum(opts.corner_outlier_sigmas * sigma_s[prob.s_idx],
-                       opts.corner_outlier_min_px)
+    sigma_s = np.array(
+        [np.median(err[prob.s_idx == k]) / _RAYLEIGH_MEDIAN for k in range(len(sensors))]
+    )
+    limit = np.maximum(opts.corner_outlier_sigmas * sigma_s[prob.s_idx], opts.corner_outlier_min_px)
     bad_corner = err > limit
     outliers, bad_views = _flag_outliers(prob, err, bad_corner, limit, opts)
     keep = {
         (prob.views[prob.v_idx[m]], sensors[prob.s_idx[m]], int(prob.c_idx[m]))
         for m in range(len(err))
-        if not bad_corner[m] and (prob.views[prob.v_idx[m]], sensors[prob.s_idx[m]])
-        not in bad_views
+        if not bad_corner[m]
+        and (prob.views[prob.v_idx[m]], sensors[prob.s_idx[m]]) not in bad_views
     }
 
     # 3c. Final pass: inliers, each sensor weighted by its own noise level.
@@ -713,9 +713,13 @@ def _parameter_sigma(prob: _Problem, J: np.ndarray, r: np.ndarray) -> np.ndarray
     return np.sqrt(np.clip(var, 0.0, None))
 
 
-def _flag_outliers(prob: _Problem, err: np.ndarray, bad_corner: np.ndarray,
-                   limit: np.ndarray, opts: CalibrationOptions
-                   ) -> tuple[list[Outlier], set[tuple[str, str]]]:
+def _flag_outliers(
+    prob: _Problem,
+    err: np.ndarray,
+    bad_corner: np.ndarray,
+    limit: np.ndarray,
+    opts: CalibrationOptions,
+) -> tuple[list[Outlier], set[tuple[str, str]]]:
     """Outlier views and corners, with the reason for each."""
     outliers: list[Outlier] = []
     bad_views: set[tuple[str, str]] = set()
@@ -728,10 +732,19 @@ def _flag_outliers(prob: _Problem, err: np.ndarray, bad_corner: np.ndarray,
             n_bad = int(bad_corner[sel].sum())
             if n_bad > 0.2 * sel.sum():
                 bad_views.add((v, s))
-                outliers.append(Outlier(v, s, None, float(np.sqrt(np.mean(err[sel] ** 2))), (
-                    f"{n_bad} of {int(sel.sum())} corners are beyond "
-                    f"{opts.corner_outlier_sigmas:g} sigma of {s}'s noise (or "
-                    f"{opts.corner_outlier_min_px:g} px)")))
+                outliers.append(
+                    Outlier(
+                        v,
+                        s,
+                        None,
+                        float(np.sqrt(np.mean(err[sel] ** 2))),
+                        (
+                            f"{n_bad} of {int(sel.sum())} corners are beyond "
+                            f"{opts.corner_outlier_sigmas:g} sigma of {s}'s noise (or "
+                            f"{opts.corner_outlier_min_px:g} px)"
+                        ),
+                    )
+                )
             else:
                 view_rms[(k, vi)] = float(np.sqrt(np.mean(err[sel & ~bad_corner] ** 2)))
         rms = [r for (kk, _), r in view_rms.items() if kk == k]
@@ -741,16 +754,34 @@ def _flag_outliers(prob: _Problem, err: np.ndarray, bad_corner: np.ndarray,
         for (kk, vi), r in view_rms.items():
             if kk == k and r > opts.view_outlier_factor * med and r > opts.view_outlier_min_px:
                 bad_views.add((prob.views[vi], s))
-                outliers.append(Outlier(prob.views[vi], s, None, r, (
-                    f"view RMS {r:.2f} px is {r / med:.1f}x the median {med:.2f} px of "
-                    f"{s}'s views")))
+                outliers.append(
+                    Outlier(
+                        prob.views[vi],
+                        s,
+                        None,
+                        r,
+                        (
+                            f"view RMS {r:.2f} px is {r / med:.1f}x the median {med:.2f} px of "
+                            f"{s}'s views"
+                        ),
+                    )
+                )
     for m in np.flatnonzero(bad_corner):
         v, s = prob.views[prob.v_idx[m]], prob.sensors[prob.s_idx[m]]
         if (v, s) not in bad_views:
-            outliers.append(Outlier(v, s, int(prob.c_idx[m]), float(err[m]), (
-                f"error {err[m]:.2f} px > {limit[m]:.2f} px (the larger of "
-                f"{opts.corner_outlier_sigmas:g} sigma of {s}'s noise and "
-                f"{opts.corner_outlier_min_px:g} px)")))
+            outliers.append(
+                Outlier(
+                    v,
+                    s,
+                    int(prob.c_idx[m]),
+                    float(err[m]),
+                    (
+                        f"error {err[m]:.2f} px > {limit[m]:.2f} px (the larger of "
+                        f"{opts.corner_outlier_sigmas:g} sigma of {s}'s noise and "
+                        f"{opts.corner_outlier_min_px:g} px)"
+                    ),
+                )
+            )
     return outliers, bad_views
 
 
