@@ -6,7 +6,9 @@ metres. Corners are ordered row-major: index ``r * cols + c`` is at
 ``(c * square, r * square, 0)``. The square diagonally up-left of corner (0, 0) is black
 (on the heated board: high emissivity, so hot in thermal; dark in TOF amplitude). With
 an odd number of squares on one side and an even number on the other, the colours fix
-the ordering under a half turn.
+the ordering under a half turn. ``thermal_black_is_hot`` says whether the black squares
+read hot in thermal images (true for a heated board whose black squares are the
+high-emissivity material); the detector needs it to tell the two orderings apart there.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ class Board:
     cols: int
     rows: int
     square_size_m: float
+    thermal_black_is_hot: bool = True
 
     def __post_init__(self) -> None:
         for name in ("cols", "rows"):
@@ -36,6 +39,11 @@ class Board:
                 f"board square_size_m: expected a positive number, got {self.square_size_m!r}"
             )
         object.__setattr__(self, "square_size_m", float(self.square_size_m))
+        if not isinstance(self.thermal_black_is_hot, bool):
+            raise ValueError(
+                f"board thermal_black_is_hot: expected true or false, "
+                f"got {self.thermal_black_is_hot!r}"
+            )
 
     @property
     def pattern_size(self) -> tuple[int, int]:
@@ -71,22 +79,27 @@ class Board:
         return ((i + j) % 2) == 0
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        """``board.yaml`` content (the polarity only when it is not the default)."""
+        out: dict[str, Any] = {
             "pattern": "checkerboard",
             "inner_corners": [self.cols, self.rows],
             "square_size_m": self.square_size_m,
         }
+        if not self.thermal_black_is_hot:
+            out["thermal_black_is_hot"] = False
+        return out
 
 
 def board_from_dict(data: Any) -> Board:
     """Parse ``board.yaml`` content; ValueError names what is wrong."""
     if not isinstance(data, Mapping):
         raise ValueError(f"board: expected a mapping, got {type(data).__name__}")
-    allowed = {"pattern", "inner_corners", "square_size_m"}
+    required = {"pattern", "inner_corners", "square_size_m"}
+    allowed = required | {"thermal_black_is_hot"}
     unknown = sorted(set(data) - allowed, key=str)
     if unknown:
         raise ValueError(f"board: unknown key(s) {unknown} (allowed: {sorted(allowed)})")
-    missing = sorted(allowed - set(data))
+    missing = sorted(required - set(data))
     if missing:
         raise ValueError(f"board: missing key(s) {missing}")
     if data["pattern"] != "checkerboard":
@@ -96,4 +109,4 @@ def board_from_dict(data: Any) -> Board:
     ic = data["inner_corners"]
     if not isinstance(ic, list | tuple) or len(ic) != 2:
         raise ValueError(f"board inner_corners: expected [cols, rows], got {ic!r}")
-    return Board(ic[0], ic[1], data["square_size_m"])
+    return Board(ic[0], ic[1], data["square_size_m"], data.get("thermal_black_is_hot", True))

@@ -212,3 +212,13 @@ def test_never_overwrites(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     out.write_text("precious")
     code, err = _run(["calibrate", str(cap), "--out", str(out)], capsys)
     assert code == 2 and "refusing to overwrite" in err and out.read_text() == "precious"
+
+
+def test_board_thermal_polarity_round_trips() -> None:
+    from calib.board import Board, board_from_dict
+
+    cold = Board(9, 6, 0.06, thermal_black_is_hot=False)
+    assert board_from_dict(cold.to_dict()) == cold
+    assert board_from_dict(Board(9, 6, 0.06).to_dict()).thermal_black_is_hot
+    with pytest.raises(ValueError, match="thermal_black_is_hot"):
+        board_from_dict({**cold.to_dict(), "thermal_black_is_hot": "yes"})
