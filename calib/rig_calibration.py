@@ -367,14 +367,14 @@ class _Problem:
 
 def _intrinsics_per_sensor(
     obs: dict[str, dict[str, np.ndarray]], board: Board, spec: SensorSpec, free_k3: bool
-) -> tuple[Intrinsics, dict[str, np.ndarray], dict[str, float], np.ndarray, float]:
-    """Zhang per sensor: intrinsics, T_sensor_board per view, per-view RMS, std devs, RMS."""
+) -> tuple[Intrinsics, dict[str, np.ndarray], np.ndarray]:
+    """Zhang per sensor: intrinsics, T_sensor_board per view, std devs of the intrinsics."""
     views = sorted(obs)
     obj = [board.object_points().astype(np.float32) for _ in views]
     img = [obs[v].astype(np.float32).reshape(-1, 1, 2) for v in views]
     flags = 0 if free_k3 else cv2.CALIB_FIX_K3
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    rms, K, dist, rvecs, tvecs, std_intr, _std_ext, per_view = cv2.calibrateCameraExtended(
+    _rms, K, dist, rvecs, tvecs, std_intr, *_ = cv2.calibrateCameraExtended(
         obj, img, spec.image_size, None, None, flags=flags, criteria=crit
     )
     d = dist.ravel()[:5]
@@ -383,8 +383,7 @@ def _intrinsics_per_sensor(
         v: make_T(rotation_from_rvec(r.ravel()), t.ravel())
         for v, r, t in zip(views, rvecs, tvecs, strict=True)
     }
-    errs = {v: float(e) for v, e in zip(views, np.ravel(per_view), strict=True)}
-    return intr, T, errs, np.ravel(std_intr), float(rms)
+    return intr, T, np.ravel(std_intr)
 
 
 def _place_sensors(
@@ -505,7 +504,7 @@ def calibrate_rig(
     for k, s in enumerate(candidates):
         report(f"intrinsics of {s}", 0.4 * k / len(candidates))
         free_k3 = specs[s].modality in opts.free_k3_modalities
-        intr[s], T_s_board[s], _, std_zhang[s], _ = _intrinsics_per_sensor(
+        intr[s], T_s_board[s], std_zhang[s] = _intrinsics_per_sensor(
             by_sensor[s], board, specs[s], free_k3
         )
 
