@@ -1,0 +1,338 @@
+"""Parallax-free mapping between two sensors of the rig through TOF depth (the method's
+data fusion, section 4): for every pixel of a *target* sensor (e.g. a colour camera), the
+pixel of a *source* sensor (e.g. a thermal imager) that sees the same 3D point.
+
+On each new TOF frame (:meth:`ViewMapping.update`):
+
+1. the TOF points (method Eq. 1-3) are projected into the target sensor and splatted into a
+   z-buffer at ``1/scale`` of its resolution (the TOF has ~8x fewer pixels per degree than a
+   colour camera: the coarse grid matches what the depth can resolve); small holes are
+   filled from neighbours, the rest gets a fallback depth and is marked;
+2. for each coarse cell, the 3D point (the cell's depth along each pixel's own ray) is
+   projected into the source sensor (Eq. 4), and the source's own z-buffer decides whether
+   the source sees that point or something in front of it (occlusion);
+3. the coarse map is brought to full resolution: bilinear inside surfaces, nearest at depth
+   edges (so foreground and background never blend).
+
+Per frame, :meth:`ViewMapping.warp` is one ``cv2.remap`` of the source image into the
+target's pixels; invisible pixels come out NaN (or a given fill value), never the
+occluder's value.
+
+Frames: ``T_dst_src`` 4x4; depth ``z`` along the target's optical axis, metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from calib.camera import pixel_grid
+from calib.rig import Rig, Sensor
+from fusion.geometry import tof_rays, tof_sensor_name
+
+
+@dataclass(frozen=True)
+class MappingOptions:
+    """Settings of a :class:`ViewMapping`.
+
+    Attributes:
+        scale: the target's z-buffer is ``1/scale`` of its resolution (>= 1).
+        fallback_depth_m: depth used where the TOF has none; None = the median depth of
+            the current TOF frame (the scene's typical distance), else 3 m.
+        occlusion_rel: a source pixel whose z-buffer is nearer than the point by more than
+            ``occlusion_rel * z + occlusion_abs_m`` is occluding it.
+        occlusion_abs_m: see ``occlusion_rel``.
+        edge_rel: neighbouring coarse depths differing by more than this fraction form a
+            depth edge (nearest-neighbour upsampling there).
+        fill_iterations: 3x3 passes that fill z-buffer holes from valid neighbours.
+    """
+
+    scale: int = 4
+    fallback_depth_m: float | None = None
+    occlusion_rel: float = 0.03
+    occlusion_abs_m: float = 0.05
+    edge_rel: float = 0.05
+    fill_iterations: int = 2
+
+
+class DepthView:
+    """A z-buffer of TOF points in one sensor, at ``1/scale`` of its resolution."""
+
+    def __init__(self, rig: Rig, sensor: str, tof: str, scale: int) -> None:
+        if scale < 1:
+            raise ValueError(f"scale: expected an integer >= 1, got {scale}")
+        self.sensor: Sensor = rig[sensor]
+        self.scale = scale
+        w, h = self.sensor.image_size
+        self.shape = (-(-h // scale), -(-w // scale))
+        self.T_sensor_tof = rig.T(sensor, tof).astype(np.float32)
+        tof_s = rig[tof]
+        # Footprint of one TOF pixel in coarse cells: ratio of angular resolutions.
+        spacing = (self.sensor.intrinsics.fx / scale) / tof_s.intrinsics.fx
+        self.radius = max(0, int(np.ceil(spacing / 2.0 - 0.25)))
+        self.z = np.full(self.shape, np.inf, dtype=np.float32)
+
+    def render(self, points_tof: np.ndarray) -> np.ndarray:
+        """Splat valid TOF points (N, 3) into the z-buffer; returns it (inf = empty)."""
+        R, t = self.T_sensor_tof[:3, :3], self.T_sensor_tof[:3, 3]
+        P = points_tof @ R.T + t
+        z = P[:, 2]
+        front = z > 0.05
+        uv = self.sensor.intrinsics.project(P[front]).astype(np.float32)
+        z = z[front]
+        s = self.scale
+        cu = np.floor((uv[:, 0] + 0.5) / s).astype(np.int32)
+        cv = np.floor((uv[:, 1] + 0.5) / s).astype(np.int32)
+        hc, wc = self.shape
+        self.z.fill(np.inf)
+        r = self.radius
+        flat = self.z.ravel()
+        for dv in range(-r, r + 1):
+            for du in range(-r, r + 1):
+                u = cu + du
+                v = cv + dv
+                ok = (u >= 0) & (u < wc) & (v >= 0) & (v < hc)
+                np.minimum.at(flat, v[ok] * wc + u[ok], z[ok])
+        return self.z
+
+
+class ViewMapping:
+    """Where each pixel of ``target`` finds the same 3D point in ``source``.
+
+    Attributes after :meth:`update` (all (H, W) at the target's full resolution):
+        map_x, map_y: float32 source pixel coordinates (-1e4 where not visible);
+        depth_m: float32 depth of each target pixel (fallback included);
+        fallback: bool, depth came from the fallback distance (no TOF depth);
+        visible: bool, the source sees the point (inside its image, not occluded).
+    """
+
+    def __init__(
+        self,
+        rig: Rig,
+        target: str,
+        source: str,
+        tof: str | None = None,
+        options: MappingOptions | None = None,
+    ) -> None:
+        self.options = options or MappingOptions()
+        self.tof = tof_sensor_name(rig, tof)
+        self.target, self.source = rig[target], rig[source]
+        t_s = rig[self.tof]
+        self.tof_rays = tof_rays(t_s.intrinsics, *t_s.image_size).astype(np.float32)
+        s = self.options.scale
+        self.target_depth = DepthView(rig, target, self.tof, s)
+        # The source's z-buffer decides occlusion; its cells as fine as a target cell.
+        src_scale = max(1, round(s * self.source.intrinsics.fx / self.target.intrinsics.fx))
+        self.source_depth = DepthView(rig, source, self.tof, src_scale)
+        w, h = self.target.image_size
+        hc, wc = self.target_depth.shape
+        # Rays of the coarse cells' centre pixels, rotated into the source frame.
+        centres = pixel_grid(wc, hc) * s + (s - 1) / 2.0
+        xy = self.target.intrinsics.normalized(centres)
+        rays = np.concatenate([xy, np.ones((hc, wc, 1))], axis=-1)
+        T_src_tgt = rig.T(source, target)
+        self.rays_src = (rays @ T_src_tgt[:3, :3].T).astype(np.float32)
+        self.t_src_tgt = T_src_tgt[:3, 3].astype(np.float32)
+        self.size = (w, h)
+        self.map_x = np.empty((h, w), np.float32)
+        self.map_y = np.empty((h, w), np.float32)
+        self._near_x = np.empty((h, w), np.float32)
+        self._near_y = np.empty((h, w), np.float32)
+        self._edge_full = np.empty((h, w), np.uint8)
+        self.depth_m = np.empty((h, w), np.float32)
+        self.fallback = np.zeros((h, w), bool)
+        self.visible = np.zeros((h, w), bool)
+        self.ready = False
+
+    # -- per TOF frame --------------------------------------------------------------------
+
+    def points(self, distance_m: np.ndarray, max_range_m: float = 10.0) -> np.ndarray:
+        """Valid TOF points (N, 3) float32 in the TOF frame from a distance image."""
+        d = np.asarray(distance_m, dtype=np.float32)
+        if d.shape != self.tof_rays.shape[:2]:
+            raise ValueError(
+                f"distance_m: expected shape {self.tof_rays.shape[:2]} (the TOF "
+                f"image), got {d.shape}"
+            )
+        ok = np.isfinite(d) & (d > 0.1) & (d <= max_range_m)
+        ok &= ~mixed_pixels(d, self.options.edge_rel)
+        return self.tof_rays[ok] * d[ok, None]
+
+    def update(self, distance_m: np.ndarray) -> None:
+        """Recompute the mapping from a TOF radial distance image (H, W) metres, NaN invalid."""
+        self.update_points(self.points(distance_m))
+
+    def update_points(self, points_tof: np.ndarray) -> None:
+        """Recompute the mapping from valid TOF points (N, 3), TOF frame, metres."""
+        opts = self.options
+        z = self.target_depth.render(points_tof).copy()
+        _fill_holes(z, opts.fill_iterations)
+        missing = ~np.isfinite(z)
+        valid_z = z[~missing]
+        if opts.fallback_depth_m is not None:
+            fallback = opts.fallback_depth_m
+        else:
+            fallback = float(np.median(valid_z)) if valid_z.size else 3.0
+        z[missing] = fallback
+
+        # Coarse 3D points in the source frame, their source pixels, occlusion.
+        Q = self.rays_src * z[..., None] + self.t_src_tgt
+        uv = self.source.intrinsics.project(Q).astype(np.float32)
+        src_z = self.source_depth.render(points_tof)
+        _fill_holes(src_z, opts.fill_iterations)
+        w, h = self.source.image_size
+        s2 = self.source_depth.scale
+        inside = (
+            (uv[..., 0] >= -0.5)
+            & (uv[..., 0] < w - 0.5)
+            & (uv[..., 1] >= -0.5)
+            & (uv[..., 1] < h - 0.5)
+            & (Q[..., 2] > 0)
+        )
+        iu = np.clip(
+            np.floor((np.nan_to_num(uv[..., 0]) + 0.5) / s2), 0, src_z.shape[1] - 1
+        ).astype(np.int32)
+        iv = np.clip(
+            np.floor((np.nan_to_num(uv[..., 1]) + 0.5) / s2), 0, src_z.shape[0] - 1
+        ).astype(np.int32)
+        nearest = src_z[iv, iu]
+        occluded = nearest < Q[..., 2] * (1 - opts.occlusion_rel) - opts.occlusion_abs_m
+        visible = inside & ~occluded
+        coarse_x = np.where(visible, uv[..., 0], -1e4).astype(np.float32)
+        coarse_y = np.where(visible, uv[..., 1], -1e4).astype(np.float32)
+
+        # Depth edges: neighbouring cells differing by more than edge_rel.
+        edge = np.zeros(z.shape, np.uint8)
+        dz_h = np.abs(np.diff(z, axis=1)) > opts.edge_rel * np.minimum(z[:, 1:], z[:, :-1])
+        dz_v = np.abs(np.diff(z, axis=0)) > opts.edge_rel * np.minimum(z[1:], z[:-1])
+        edge[:, 1:] |= dz_h
+        edge[:, :-1] |= dz_h
+        edge[1:] |= dz_v
+        edge[:-1] |= dz_v
+        edge |= ~visible  # never interpolate towards an invisible cell
+
+        self._upsample(coarse_x, coarse_y, edge, z, missing, visible)
+        self.ready = True
+
+    def _upsample(
+        self,
+        cx: np.ndarray,
+        cy: np.ndarray,
+        edge: np.ndarray,
+        z: np.ndarray,
+        missing: np.ndarray,
+        visible: np.ndarray,
+    ) -> None:
+        """Coarse maps and masks to full resolution (bilinear, nearest at edges)."""
+        w, h = self.size
+        s = self.options.scale
+        # Full-res pixel x samples the coarse grid at (x - (s - 1) / 2) / s (cell centres).
+        off = -(s - 1) / (2.0 * s)
+        M = np.array([[1.0 / s, 0.0, off], [0.0, 1.0 / s, off]])
+        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+        cv2.warpAffine(cx, M, (w, h), dst=self.map_x, flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        cv2.warpAffine(cy, M, (w, h), dst=self.map_y, flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        near = cv2.INTER_NEAREST
+        cv2.resize(cx, (w, h), dst=self._near_x, interpolation=near)
+        cv2.resize(cy, (w, h), dst=self._near_y, interpolation=near)
+        cv2.resize(
+            cv2.dilate(edge, np.ones((3, 3), np.uint8)),
+            (w, h),
+            dst=self._edge_full,
+            interpolation=near,
+        )
+        e = self._edge_full.view(bool)
+        np.copyto(self.map_x, self._near_x, where=e)
+        np.copyto(self.map_y, self._near_y, where=e)
+        cv2.resize(z, (w, h), dst=self.depth_m, interpolation=near)
+        cv2.resize(
+            missing.view(np.uint8), (w, h), dst=self.fallback.view(np.uint8), interpolation=near
+        )
+        cv2.resize(
+            visible.view(np.uint8), (w, h), dst=self.visible.view(np.uint8), interpolation=near
+        )
+
+    # -- per frame ------------------------------------------------------------------------
+
+    def warp(
+        self, source_image: np.ndarray, out: np.ndarray | None = None, fill: float = np.nan
+    ) -> np.ndarray:
+        """The source image resampled at the target's pixels (bilinear); ``fill`` where the
+        source does not see the point. Needs :meth:`update` first."""
+        if not self.ready:
+            raise RuntimeError("ViewMapping.warp: no TOF frame yet (call update first)")
+        w, h = self.source.image_size
+        if source_image.shape[:2] != (h, w):
+            raise ValueError(
+                f"source image: expected {w}x{h} ({self.source.name}), got "
+                f"{source_image.shape[1]}x{source_image.shape[0]}"
+            )
+        border = fill if source_image.ndim == 2 else (fill,) * source_image.shape[2]
+        return cv2.remap(
+            source_image,
+            self.map_x,
+            self.map_y,
+            cv2.INTER_LINEAR,
+            dst=out,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=border,
+        )
+
+
+def mixed_pixels(distance_m: np.ndarray, rel: float) -> np.ndarray:
+    """TOF "flying pixels": (H, W) bool where a pixel's distance lies strictly between two
+    neighbours' that differ from it by more than ``rel`` of it (a pixel straddling a depth
+    edge averages the two surfaces and belongs to neither)."""
+    d = np.where(np.isfinite(distance_m), distance_m, np.nan).astype(np.float32)
+    pad = np.pad(d, 1, mode="edge")
+    nb = np.stack([pad[1:-1, :-2], pad[1:-1, 2:], pad[:-2, 1:-1], pad[2:, 1:-1]])
+    t = rel * d
+    with np.errstate(invalid="ignore"):
+        nearer = np.any(nb < d - t, axis=0)
+        farther = np.any(nb > d + t, axis=0)
+    return nearer & farther
+
+
+def _fill_holes(z: np.ndarray, iterations: int) -> None:
+    """Fill empty (inf) cells next to valid ones with the farthest depth around them, in
+    place. Gaps between splats vanish; next to a depth edge an empty cell is background the
+    TOF could not see (disocclusion), so the far side is the right guess. Large holes stay.
+    """
+    kernel = np.ones((3, 3), np.uint8)
+    work = np.empty_like(z)
+    for _ in range(iterations):
+        empty = ~np.isfinite(z)
+        if not empty.any():
+            return
+        np.copyto(work, z)
+        work[empty] = 0.0
+        grown = cv2.dilate(work, kernel, borderType=cv2.BORDER_REPLICATE)
+        np.copyto(z, grown, where=empty & (grown > 0))
+
+
+@dataclass
+class EyeFusion:
+    """Thermal onto colour (and back) for one eye of the rig."""
+
+    forward: ViewMapping  # target colour, source thermal
+    reverse: ViewMapping  # target thermal, source colour
+
+    @classmethod
+    def for_eye(cls, rig: Rig, eye: str, options: MappingOptions | None = None) -> EyeFusion:
+        if eye not in rig.eyes:
+            raise KeyError(f"no eye {eye!r} in the rig (eyes: {sorted(rig.eyes)})")
+        e = rig.eyes[eye]
+        opts = options or MappingOptions()
+        rev = MappingOptions(
+            scale=1,
+            fallback_depth_m=opts.fallback_depth_m,
+            occlusion_rel=opts.occlusion_rel,
+            occlusion_abs_m=opts.occlusion_abs_m,
+            edge_rel=opts.edge_rel,
+        )
+        return cls(
+            ViewMapping(rig, e.color, e.thermal, options=opts),
+            ViewMapping(rig, e.thermal, e.color, options=rev),
+        )
