@@ -13,9 +13,12 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from fusion.precision import PrecisionAnalysis
 
 PROG = "trifuse"
 EXIT_OK = 0
@@ -194,6 +197,298 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# -- analyze ------------------------------------------------------------------------------
+
+
+def _analyze_non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}") from None
+    if not np.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
+    return value
+
+
+def _analyze_positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
+    if not np.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
+def _analyze_pixel(text: str) -> tuple[float, float]:
+    parts = text.split(",")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        u, v = (float(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a TOF pixel as U,V (two numbers, e.g. 87.5,71.5), got {text!r}"
+        ) from None
+    if not (np.isfinite(u) and np.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"expected finite pixel coordinates, got {text!r}")
+    return u, v
+
+
+_ANALYZE_NEVER = "–"  # Table 1's "never reaches the threshold in the range"
+
+
+def _analyze_error_names(analysis: PrecisionAnalysis) -> dict[str, str]:
+    return {
+        "distance_error": f"distance error {analysis.distance_error_m * 1000:g} mm",
+        "tof_pixel_error": f"TOF pixel error {analysis.tof_pixel_error_px:g} px",
+    }
+
+
+def _analyze_cell(value: float | None, range_max_m: float) -> str:
+    if value is None:
+        return _ANALYZE_NEVER
+    if value >= range_max_m:
+        return f"≥{range_max_m:.2f}"
+    return f"{value:.2f}"
+
+
+def _analyze_table(
+    analysis: PrecisionAnalysis, labels: dict[str, str], range_m: tuple[float, float]
+) -> str:
+    """The method's Table 1: radial distance (m) at which the shift reaches the threshold."""
+    lo, hi = range_m
+    errors = _analyze_error_names(analysis)
+    head = ["TOF pixel", "error", "coord", *analysis.sensors]
+    rows: list[list[str]] = []
+    for (u, v), key in zip(analysis.tof_pixels, analysis.distance_error, strict=True):
+        first_column = iter([f"({u:.10g}, {v:.10g})", labels.get(key, "")])
+        for kind, name in errors.items():
+            per_sensor = analysis.results(kind)[key]
+            for coord in ("x", "y"):
+                cells = [_analyze_cell(getattr(r, f"{coord}_m"), hi) for r in per_sensor.values()]
+                rows.append([next(first_column, ""), name if coord == "x" else "", coord, *cells])
+    widths = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
+
+    def line(cells: list[str]) -> str:
+        left = [c.ljust(w) for c, w in zip(cells[:3], widths[:3], strict=True)]
+        right = [c.rjust(max(w, 6)) for c, w in zip(cells[3:], widths[3:], strict=True)]
+        return "  ".join(left + right).rstrip()
+
+    out = [
+        f"Radial distance [m] below which the shift in each sensor exceeds "
+        f"{analysis.threshold_px:g} px (TOF: {analysis.tof}, range {lo:g}-{hi:g} m)",
+        f"{_ANALYZE_NEVER} = never in the range; ≥{hi:.2f} = over the whole range",
+        "",
+        line(head),
+    ]
+    for i, row in enumerate(rows):
+        if i and i % 4 == 0:
+            out.append("")
+        out.append(line(row))
+    return "\n".join(out)
+
+
+# One colour per sensor (RGB; matplotlib's tab10).
+_ANALYZE_COLOURS = [
+    (31, 119, 180),
+    (255, 127, 14),
+    (44, 160, 44),
+    (214, 39, 40),
+    (148, 103, 189),
+    (140, 86, 75),
+    (227, 119, 194),
+    (127, 127, 127),
+]
+
+
+def _analyze_plot(
+    analysis: PrecisionAnalysis, labels: dict[str, str], range_m: tuple[float, float]
+) -> bytes:
+    """PNG of the shift curves: a row per (TOF pixel, error), columns |dx| and |dy|.
+
+    Log scale in pixels (the shifts span 1e-3 to 1e2 px); the threshold is a dashed red line
+    and a dot marks each sensor's threshold distance. Colours are RGB until the encode.
+    """
+    import cv2
+
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    black, grey, light, red = (0, 0, 0), (110, 110, 110), (225, 225, 225), (200, 0, 0)
+    pw, ph = 620, 300  # plot area of one panel
+    ml, mr, mt, mb = 80, 30, 40, 55  # margins of one panel
+    title_h, legend_h = 50, 40
+    sub = 4  # fixed-point bits for sub-pixel polylines
+    errors = _analyze_error_names(analysis)
+    keys = list(analysis.distance_error)
+    panels = [(key, kind) for key in keys for kind in errors]
+    img = np.full(
+        (title_h + legend_h + len(panels) * (mt + ph + mb), 2 * (ml + pw + mr), 3), 255, np.uint8
+    )
+    hi_m = range_m[1]
+    thr = analysis.threshold_px
+
+    def text(s: str, org: tuple[int, int], scale: float = 0.5, colour=black, th: int = 1) -> None:
+        cv2.putText(img, s, org, font, scale, colour, th, cv2.LINE_AA)
+
+    def text_w(s: str, scale: float = 0.5) -> int:
+        return cv2.getTextSize(s, font, scale, 1)[0][0]
+
+    def dashed(y: int, x0: int, x1: int, colour: tuple[int, int, int]) -> None:
+        for xa in range(x0, x1, 12):
+            cv2.line(img, (xa, y), (min(xa + 6, x1), y), colour, 1)
+
+    text(
+        f"Pixel shift in each sensor caused by TOF errors: {errors['distance_error']}, "
+        f"{errors['tof_pixel_error']} (threshold {thr:g} px)",
+        (ml, 32),
+        0.7,
+        black,
+        2,
+    )
+    x, y = ml, title_h + 22
+    # Decreasing line widths, so that coinciding curves (a left/right pair) both show.
+    widths = [2 + max(len(analysis.sensors) - 1 - i, 0) for i in range(len(analysis.sensors))]
+    for i, name in enumerate(analysis.sensors):
+        colour = _ANALYZE_COLOURS[i % len(_ANALYZE_COLOURS)]
+        cv2.line(img, (x, y - 5), (x + 30, y - 5), colour, widths[i], cv2.LINE_AA)
+        text(name, (x + 38, y))
+        x += 38 + text_w(name) + 30
+    dashed(y - 5, x, x + 30, red)
+    text(f"threshold {thr:g} px", (x + 38, y))
+    x += 38 + text_w(f"threshold {thr:g} px") + 30
+    cv2.circle(img, (x + 5, y - 5), 5, grey, -1, cv2.LINE_AA)
+    text("distance where the shift falls to the threshold", (x + 16, y), 0.5, grey)
+
+    steps = [m * 10.0**k for k in range(-3, 4) for m in (1, 2, 5)]
+    step = max([s for s in steps if hi_m / s >= 8], default=steps[0])
+    x_ticks = np.arange(0.0, hi_m + 1e-9, step)
+    for p, (key, kind) in enumerate(panels):
+        per_sensor = analysis.results(kind)[key]
+        top = title_h + legend_h + p * (mt + ph + mb) + mt
+        u, v = analysis.tof_pixels[keys.index(key)]
+        where = f"TOF pixel ({u:.10g}, {v:.10g})" + (f", {labels[key]}" if labels.get(key) else "")
+        values = np.abs(np.concatenate([np.r_[r.dx_px, r.dy_px] for r in per_sensor.values()]))
+        values = values[np.isfinite(values)]
+        y_max = max(float(values.max()) if values.size else 0.0, 2 * thr)
+        dec_hi = int(np.ceil(np.log10(y_max)))
+        dec_lo = int(np.floor(np.log10(thr))) - 2
+        for c, coord in enumerate(("x", "y")):
+            left = c * (ml + pw + mr) + ml
+
+            def to_px(
+                d: np.ndarray,
+                s: np.ndarray,
+                left: int = left,
+                top: int = top,
+                lo: int = dec_lo,
+                hi: int = dec_hi,
+            ) -> np.ndarray:
+                ly = np.log10(np.clip(np.abs(s), 10.0**lo, None))
+                return np.stack(
+                    [left + d / hi_m * pw, top + ph - (ly - lo) / (hi - lo) * ph], axis=-1
+                )
+
+            def py(value: float, to_px=to_px) -> int:
+                return round(float(to_px(np.array(0.0), np.array(value))[1]))
+
+            for dec in range(dec_lo, dec_hi + 1):
+                yy = py(10.0**dec)
+                cv2.line(img, (left, yy), (left + pw, yy), light, 1)
+                cv2.line(img, (left - 6, yy), (left, yy), black, 1)
+                label = f"{10.0**dec:g}"
+                text(label, (left - 12 - text_w(label, 0.45), yy + 5), 0.45)
+                for m in range(2, 10) if dec < dec_hi else ():
+                    cv2.line(img, (left - 3, py(m * 10.0**dec)), (left, py(m * 10.0**dec)), black)
+            for t in x_ticks:
+                xx = left + round(t / hi_m * pw)
+                cv2.line(img, (xx, top), (xx, top + ph), light, 1)
+                cv2.line(img, (xx, top + ph), (xx, top + ph + 5), black, 1)
+                text(f"{t:g}", (xx - text_w(f"{t:g}", 0.45) // 2, top + ph + 22), 0.45)
+            cv2.rectangle(img, (left, top), (left + pw, top + ph), black, 1)
+            xl = "radial distance [m]"
+            text(xl, (left + (pw - text_w(xl)) // 2, top + ph + 44))
+            text(f"|d{coord}| [px]", (left - ml + 4, top - 10))
+            text(f"{errors[kind]} at {where}", (left + 90, top - 10), 0.5, black)
+            dashed(py(thr), left, left + pw, red)
+            for i, r in enumerate(per_sensor.values()):
+                colour = _ANALYZE_COLOURS[i % len(_ANALYZE_COLOURS)]
+                pts = to_px(r.distance_m, r.dx_px if coord == "x" else r.dy_px)
+                good = np.flatnonzero(np.isfinite(pts).all(axis=1))
+                for run in np.split(good, np.flatnonzero(np.diff(good) > 1) + 1):
+                    if run.size > 1:
+                        poly = np.round(pts[run] * (1 << sub)).astype(np.int32)
+                        cv2.polylines(img, [poly], False, colour, widths[i], cv2.LINE_AA, sub)
+                at = r.x_m if coord == "x" else r.y_m
+                if at is not None and at < hi_m:
+                    mx, my = to_px(np.array(at), np.array(thr))
+                    cv2.circle(
+                        img, (round(float(mx)), round(float(my))), 5, colour, -1, cv2.LINE_AA
+                    )
+                    cv2.circle(img, (round(float(mx)), round(float(my))), 5, black, 1, cv2.LINE_AA)
+    ok, buf = cv2.imencode(".png", img[..., ::-1])  # RGB -> BGR at the OpenCV call
+    if not ok:
+        raise RuntimeError("could not encode the plot as PNG")
+    return buf.tobytes()
+
+
+def _cmd_analyze(args: argparse.Namespace) -> int:
+    import json
+
+    from app.atomic import atomic_write_bytes
+    from app.rigfile import load_rig
+    from fusion.precision import (
+        RANGE_MAX_M,
+        RANGE_MIN_M,
+        analyze_precision,
+        sample_distances,
+        tof_pixel_label,
+    )
+
+    plot = Path(args.plot) if args.plot else None
+    if plot is not None and plot.exists():
+        raise UsageError(f"--plot {plot}: exists; refusing to overwrite it (choose a new name)")
+    try:
+        rig = load_rig(args.rig)
+    except ValueError as exc:  # RigError; a YAML error's message spans several lines
+        lines = (line.strip() for line in str(exc).splitlines())
+        raise ValueError(" ".join(line for line in lines if line.strip("^"))) from None
+    if args.tof is not None and args.tof not in rig:
+        raise UsageError(f"--tof: no sensor {args.tof!r} in {args.rig} (sensors: {rig.names})")
+    tofs = rig.by_modality("tof")
+    if args.tof is None and len(tofs) != 1:
+        raise ValueError(
+            f"{args.rig}: expected exactly one sensor of modality 'tof', got {tofs}"
+            + ("; name the TOF sensor with --tof" if tofs else "")
+        )
+    try:
+        distances = sample_distances(RANGE_MIN_M, RANGE_MAX_M, args.step_m)
+    except ValueError as exc:
+        raise UsageError(f"{PROG} analyze: --step-m: {exc}") from None
+    analysis = analyze_precision(
+        rig,
+        tof_pixels=args.tof_pixel,
+        distance_error_m=args.distance_error_mm / 1000.0,
+        tof_pixel_error_px=args.tof_pixel_error,
+        threshold_px=args.threshold_px,
+        distance_m=distances,
+        tof=args.tof,
+    )
+    labels = {
+        key: tof_pixel_label(rig, pixel, analysis.tof)
+        for key, pixel in zip(analysis.distance_error, analysis.tof_pixels, strict=True)
+    }
+    range_m = (float(distances[0]), float(distances[-1]))
+    if args.json:
+        _out(json.dumps(analysis.as_dict(), allow_nan=False, separators=(",", ":")))
+    else:
+        _out(_analyze_table(analysis, labels, range_m))
+    if plot is not None:
+        atomic_write_bytes(plot, _analyze_plot(analysis, labels, range_m), overwrite=False)
+        if not args.json:
+            _out(f"\nplot written to {plot}")
+    return EXIT_OK
+
+
 # -- parser -------------------------------------------------------------------------------
 
 
@@ -327,6 +622,79 @@ def build_parser() -> argparse.ArgumentParser:
         help="timed repeats per benchmark (default: each benchmark's own, typically 10)",
     )
     bench.set_defaults(func=_cmd_bench)
+
+    # analyze -------------------------------------------------------------------------
+    ana = commands.add_parser(
+        "analyze",
+        help="how TOF distance and pixel errors shift the fused pixels (the method's Table 1)",
+        description=(
+            "For TOF pixels (default: the TOF's principal point and the point on its x axis "
+            "at the edge of accuracy region 3) and radial distances 0.1-10 m, compute the "
+            "pixel shift (dx, dy) that a TOF distance error, and a TOF pixel error along x, "
+            "cause in every other sensor of RIG.yaml, and the radial distance below which "
+            "that shift exceeds the threshold. Prints a table like the method's Table 1 "
+            "('–' = the shift never reaches the threshold in the range), or JSON "
+            "(--json), and optionally draws the curves (--plot). Definitions: "
+            "fusion/precision.py."
+        ),
+    )
+    ana.add_argument("rig", metavar="RIG.yaml", help="the rig file")
+    ana.add_argument(
+        "--distance-error-mm",
+        type=_analyze_non_negative,
+        default=41.0,
+        metavar="MM",
+        help="TOF radial distance error in millimetres (default: %(default)g, the method's "
+        "value before range calibration; 15 after)",
+    )
+    ana.add_argument(
+        "--tof-pixel-error",
+        type=_analyze_non_negative,
+        default=0.5,
+        metavar="PX",
+        help="TOF pixel error along the TOF image's x axis, in TOF pixels (default: %(default)g)",
+    )
+    ana.add_argument(
+        "--threshold-px",
+        type=_analyze_positive,
+        default=0.5,
+        metavar="PX",
+        help="shift in a sensor's pixels that matters for the fusion (default: %(default)g)",
+    )
+    ana.add_argument(
+        "--tof-pixel",
+        type=_analyze_pixel,
+        action="append",
+        metavar="U,V",
+        help="TOF pixel to analyse (repeatable; replaces the defaults: the principal point "
+        "and the edge of region 3 on the x axis)",
+    )
+    ana.add_argument(
+        "--step-m",
+        type=_analyze_positive,
+        default=0.01,
+        metavar="M",
+        help="radial distance step of the curves in metres (default: %(default)g, "
+        "991 samples over 0.1-10 m)",
+    )
+    ana.add_argument(
+        "--tof",
+        metavar="NAME",
+        help="the TOF sensor (default: the rig's only sensor of modality tof)",
+    )
+    ana.add_argument(
+        "--json",
+        action="store_true",
+        help="print JSON instead of the table: {distance_error|tof_pixel_error: "
+        "{'U,V': {sensor: {x_m, y_m, curve: {distance_m, dx_px, dy_px}}}}}",
+    )
+    ana.add_argument(
+        "--plot",
+        metavar="OUT.png",
+        help="also draw the curves (|dx|, |dy| against distance, log scale) into this PNG "
+        "(must not exist)",
+    )
+    ana.set_defaults(func=_cmd_analyze)
     return parser
 
 

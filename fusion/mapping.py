@@ -103,9 +103,8 @@ class ViewMapping:
 
     Attributes after :meth:`update` (all (H, W) at the target's full resolution):
         map_x, map_y: float32 source pixel coordinates (-1e4 where not visible);
-        depth_m: float32 depth of each target pixel (fallback included);
         fallback: bool, depth came from the fallback distance (no TOF depth);
-        visible: bool, the source sees the point (inside its image, not occluded).
+    and, computed on request, ``depth_m`` and ``visible`` (properties).
     """
 
     def __init__(
@@ -141,9 +140,7 @@ class ViewMapping:
         self._near_x = np.empty((h, w), np.float32)
         self._near_y = np.empty((h, w), np.float32)
         self._edge_full = np.empty((h, w), np.uint8)
-        self.depth_m = np.empty((h, w), np.float32)
         self.fallback = np.zeros((h, w), bool)
-        self.visible = np.zeros((h, w), bool)
         self.ready = False
 
     # -- per TOF frame --------------------------------------------------------------------
@@ -227,13 +224,10 @@ class ViewMapping:
     ) -> None:
         """Coarse maps and masks to full resolution (bilinear, nearest at edges)."""
         w, h = self.size
-        s = self.options.scale
-        # Full-res pixel x samples the coarse grid at (x - (s - 1) / 2) / s (cell centres).
-        off = -(s - 1) / (2.0 * s)
-        M = np.array([[1.0 / s, 0.0, off], [0.0, 1.0 / s, off]])
-        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-        cv2.warpAffine(cx, M, (w, h), dst=self.map_x, flags=flags, borderMode=cv2.BORDER_REPLICATE)
-        cv2.warpAffine(cy, M, (w, h), dst=self.map_y, flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        # cv2.resize samples the coarse grid at (x + 0.5) / s - 0.5: the cells' centres
+        # (exactly so when the image size is a multiple of the scale, as 1280 x 960 is).
+        cv2.resize(cx, (w, h), dst=self.map_x, interpolation=cv2.INTER_LINEAR)
+        cv2.resize(cy, (w, h), dst=self.map_y, interpolation=cv2.INTER_LINEAR)
         near = cv2.INTER_NEAREST
         cv2.resize(cx, (w, h), dst=self._near_x, interpolation=near)
         cv2.resize(cy, (w, h), dst=self._near_y, interpolation=near)
@@ -246,13 +240,21 @@ class ViewMapping:
         e = self._edge_full.view(bool)
         np.copyto(self.map_x, self._near_x, where=e)
         np.copyto(self.map_y, self._near_y, where=e)
-        cv2.resize(z, (w, h), dst=self.depth_m, interpolation=near)
         cv2.resize(
             missing.view(np.uint8), (w, h), dst=self.fallback.view(np.uint8), interpolation=near
         )
-        cv2.resize(
-            visible.view(np.uint8), (w, h), dst=self.visible.view(np.uint8), interpolation=near
-        )
+        self._coarse_z, self._coarse_visible = z, visible
+
+    @property
+    def depth_m(self) -> np.ndarray:
+        """(H, W) float32 depth of each target pixel, metres (fallback included)."""
+        return cv2.resize(self._coarse_z, self.size, interpolation=cv2.INTER_NEAREST)
+
+    @property
+    def visible(self) -> np.ndarray:
+        """(H, W) bool: the source sees the point (inside its image, not occluded)."""
+        v = self._coarse_visible.view(np.uint8)
+        return cv2.resize(v, self.size, interpolation=cv2.INTER_NEAREST).view(bool)
 
     # -- per frame ------------------------------------------------------------------------
 

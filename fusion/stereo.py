@@ -1,0 +1,111 @@
+"""The operator's fused stereo pair: both eyes' thermal-on-colour pictures, side by side.
+
+Per TOF frame, each eye's mapping is recomputed (:meth:`StereoFusion.update_depth`); per
+frame, each eye's thermal image is warped into its colour camera's pixels, one colour span
+is chosen for both eyes, and both pictures are composed straight into the halves of one
+preallocated side-by-side buffer (left | right) ready for encoding.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from calib.rig import Rig
+from fusion.compose import (
+    Composer,
+    DisplaySettings,
+    anaglyph,
+    resolve_span,
+    stereo_halves,
+)
+from fusion.mapping import EyeFusion, MappingOptions
+
+EYE_ORDER = ("left", "right")
+
+
+class StereoFusion:
+    """Fusion of a rig's two eyes (``left``/``right`` in ``rig.eyes``) into one frame.
+
+    Attributes:
+        span_k: the (low, high) span of the last frame, kelvin, shared by both eyes.
+    """
+
+    def __init__(
+        self, rig: Rig, options: MappingOptions | None = None, eyes: tuple[str, ...] = EYE_ORDER
+    ) -> None:
+        missing = [e for e in eyes if e not in rig.eyes]
+        if missing:
+            raise ValueError(f"rig has no eye(s) {missing} (eyes: {sorted(rig.eyes)})")
+        self.rig = rig
+        self.eyes = eyes
+        self.fusion = {e: EyeFusion.for_eye(rig, e, options) for e in eyes}
+        sizes = {rig[rig.eyes[e].color].image_size for e in eyes}
+        if len(sizes) != 1:
+            raise ValueError(f"the eyes' colour cameras differ in size ({sorted(sizes)})")
+        w, h = sizes.pop()
+        self.size = (w, h)
+        self.composers = {e: Composer(w, h) for e in eyes}
+        self.thermal_on_color = {e: np.empty((h, w), np.float32) for e in eyes}
+        self.frame = np.zeros((h, w * len(eyes), 3), np.uint8)
+        self.span_k: tuple[float, float] | None = None
+        self._reverse_stale = True
+
+    @property
+    def ready(self) -> bool:
+        return all(f.forward.ready for f in self.fusion.values())
+
+    def update_depth(self, distance_m: np.ndarray) -> None:
+        """A new TOF frame: recompute every eye's colour <- thermal mapping."""
+        points = self.fusion[self.eyes[0]].forward.points(distance_m)
+        for f in self.fusion.values():
+            f.forward.update_points(points)
+        self._points = points
+        self._reverse_stale = True
+
+    def compose(
+        self,
+        colors: Mapping[str, np.ndarray],
+        thermals: Mapping[str, np.ndarray],
+        settings: DisplaySettings,
+    ) -> np.ndarray:
+        """The side-by-side frame (H, n_eyes * W, 3) uint8 RGB for one instant.
+
+        Args:
+            colors: eye -> colour image (H, W, 3) uint8 RGB of its colour camera.
+            thermals: eye -> thermal image (h, w) float32 kelvin of its thermal imager.
+            settings: display mode, palette, span ...
+        Returns the internal frame buffer (overwritten by the next call).
+        """
+        if not self.ready:
+            raise RuntimeError("StereoFusion.compose: no TOF frame yet (call update_depth)")
+        for e in self.eyes:
+            self.fusion[e].forward.warp(thermals[e], out=self.thermal_on_color[e])
+        self.span_k = resolve_span(settings, [self.thermal_on_color[e] for e in self.eyes])
+        halves = stereo_halves(self.frame) if len(self.eyes) == 2 else (self.frame,)
+        for e, half in zip(self.eyes, halves, strict=True):
+            self.composers[e].compose(
+                colors[e],
+                self.thermal_on_color[e],
+                self.fusion[e].forward.fallback,
+                settings,
+                self.span_k,
+                out=half,
+            )
+        return self.frame
+
+    def anaglyph(self, out: np.ndarray | None = None) -> np.ndarray:
+        """Red-cyan anaglyph of the last composed pair."""
+        left, right = stereo_halves(self.frame)
+        return anaglyph(left, right, out)
+
+    def color_in_thermal_view(self, eye: str, color: np.ndarray) -> np.ndarray:
+        """The reverse direction: the eye's colour image drawn into its thermal imager's
+        pixels (h, w, 3) uint8, black where the colour camera does not see the point."""
+        f = self.fusion[eye]
+        if self._reverse_stale:
+            for g in self.fusion.values():
+                g.reverse.update_points(self._points)
+            self._reverse_stale = False
+        return f.reverse.warp(color, fill=0)
