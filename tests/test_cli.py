@@ -14,7 +14,7 @@ from app import bench
 from app.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
-COMMANDS = ["simulate", "bench"]
+COMMANDS = ["simulate", "calibrate", "analyze", "bench"]
 
 
 def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:

@@ -1,0 +1,66 @@
+"""The fused stereo pair from the simulated head."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.sources.sim.scenarios import InspectionScenario
+from fusion.accuracy import band_errors, depth_edges, exact_mapping
+from fusion.compose import DisplaySettings
+from fusion.stereo import StereoFusion
+
+
+@pytest.fixture(scope="module")
+def scene():
+    scenario = InspectionScenario(seed=3)
+    frames, truth = scenario.render(3.0)
+    rig = scenario.rig
+    colors = {e: frames[rig.eyes[e].color].image for e in ("left", "right")}
+    thermals = {e: frames[rig.eyes[e].thermal].image for e in ("left", "right")}
+    return scenario, frames, truth, colors, thermals
+
+
+def test_side_by_side_pair_with_one_shared_span(scene) -> None:
+    scenario, frames, _truth, colors, thermals = scene
+    fusion = StereoFusion(scenario.rig)
+    with pytest.raises(RuntimeError, match="no TOF frame"):
+        fusion.compose(colors, thermals, DisplaySettings())
+    fusion.update_depth(frames["tof"].distance_m)
+    out = fusion.compose(colors, thermals, DisplaySettings(mode="color"))
+    assert out.shape == (960, 2560, 3)
+    assert np.array_equal(out[:, :1280], colors["left"])
+    assert np.array_equal(out[:, 1280:], colors["right"])
+    fusion.compose(colors, thermals, DisplaySettings(mode="blend"))
+    lo, hi = fusion.span_k
+    # One span for both eyes: it covers both imagers' readings (1.5 K apart by default).
+    for e in ("left", "right"):
+        t = fusion.thermal_on_color[e]
+        assert np.nanpercentile(t, 50) > lo and np.nanpercentile(t, 50) < hi
+    assert fusion.anaglyph().shape == (960, 1280, 3)
+
+
+def test_reverse_direction_draws_colour_into_the_thermal_view(scene) -> None:
+    scenario, frames, truth, colors, _thermals = scene
+    fusion = StereoFusion(scenario.rig)
+    fusion.update_depth(frames["tof"].distance_m)
+    view = fusion.color_in_thermal_view("left", colors["left"])
+    assert view.shape == (288, 382, 3) and view.dtype == np.uint8
+    # Its mapping agrees with the exact one (colour pixels), away from depth edges.
+    rev = fusion.fusion["left"].reverse
+    exact = exact_mapping(
+        scenario.rig,
+        "thermal_left",
+        "ccd_left",
+        truth["thermal_left"].range_m,
+        truth["ccd_left"].range_m,
+    )
+    mask = ~depth_edges(exact.depth_m, 5) & rev.visible & ~rev.fallback
+    far = [
+        b
+        for b in band_errors(np.stack([rev.map_x, rev.map_y], -1), exact, mask)
+        if b.band_m[0] >= 2.0
+    ]
+    assert sum(b.pixels for b in far) > 20000
+    # The TOF's ~40 mm range error moves a colour pixel by f b dz / z^2 < 0.2 px beyond 2 m.
+    assert all(b.median_px < 0.5 for b in far if b.pixels), far
