@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+import cv2
 import numpy as np
 
 from calib.rig import Rig
@@ -17,6 +18,7 @@ from fusion.compose import (
     Composer,
     DisplaySettings,
     anaglyph,
+    point_colors,
     resolve_span,
     stereo_halves,
 )
@@ -109,3 +111,39 @@ class StereoFusion:
                 g.reverse.update_points(self._points)
             self._reverse_stale = False
         return f.reverse.warp(color, fill=0)
+
+    def point_cloud(self, colors: Mapping[str, np.ndarray], thermals: Mapping[str, np.ndarray],
+                    by: str = "color", span: tuple[float, float] | None = None,
+                    palette: str = "iron", eye: str | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """The last TOF frame's points (N, 3) float32 (TOF frame, metres) and their colours
+        (N, 3) uint8 RGB for the 3D view: ``by`` "color" (sampled from the eye's colour
+        camera), "temperature" (its thermal imager, in ``palette`` over ``span``) or
+        "depth" (radial distance). Points a camera does not see get grey."""
+        if not self.ready:
+            raise RuntimeError("StereoFusion.point_cloud: no TOF frame yet")
+        e = eye or self.eyes[0]
+        pts = self._points
+        if by == "color":
+            sensor = self.rig.eyes[e].color
+            rgb = _sample(self.rig, sensor, self.fusion[e].forward.tof, pts, colors[e], 128)
+            return pts, point_colors(pts, "color", rgb.astype(np.uint8))
+        if by == "temperature":
+            sensor = self.rig.eyes[e].thermal
+            t = _sample(self.rig, sensor, self.fusion[e].forward.tof, pts, thermals[e], np.nan)
+            return pts, point_colors(pts, "temperature", t, span, palette)
+        return pts, point_colors(pts, by, None, span, palette)
+
+
+def _sample(rig: Rig, sensor: str, tof: str, points_tof: np.ndarray, image: np.ndarray,
+            fill: float) -> np.ndarray:
+    """Bilinear samples (N,) or (N, C) of ``image`` where ``points_tof`` project in
+    ``sensor``; ``fill`` outside its image."""
+    T = rig.T(sensor, tof)
+    uv = rig[sensor].intrinsics.project(points_tof @ T[:3, :3].T + T[:3, 3])
+    uv = np.nan_to_num(uv, nan=-1e4).astype(np.float32).reshape(-1, 1, 2)
+    channels = 1 if image.ndim == 2 else image.shape[2]
+    out = cv2.remap(image, uv, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=(fill,) * channels)
+    return out.reshape(len(points_tof), -1).squeeze(-1) if channels == 1 else out.reshape(
+        len(points_tof), channels)

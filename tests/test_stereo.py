@@ -64,3 +64,19 @@ def test_reverse_direction_draws_colour_into_the_thermal_view(scene) -> None:
     assert sum(b.pixels for b in far) > 20000
     # The TOF's ~40 mm range error moves a colour pixel by f b dz / z^2 < 0.2 px beyond 2 m.
     assert all(b.median_px < 0.5 for b in far if b.pixels), far
+
+
+def test_point_cloud_coloured_by_colour_temperature_and_depth(scene) -> None:
+    scenario, frames, _truth, colors, thermals = scene
+    fusion = StereoFusion(scenario.rig)
+    fusion.update_depth(frames["tof"].distance_m)
+    pts, rgb = fusion.point_cloud(colors, thermals, "color")
+    assert pts.shape[1] == 3 and rgb.shape == (len(pts), 3) and rgb.dtype == np.uint8
+    assert np.isfinite(pts).all() and len(pts) > 15000
+    _, hot = fusion.point_cloud(colors, thermals, "temperature", span=(290.0, 360.0),
+                                palette="white_hot")
+    # The hot pipe (358 K) is among the brightest points in white-hot, the walls dark.
+    lum = hot.astype(float).mean(axis=1)
+    assert np.percentile(lum, 99.5) > 200 and np.median(lum) < 80
+    _, by_depth = fusion.point_cloud(colors, thermals, "depth", span=(0.5, 8.0))
+    assert len(np.unique(by_depth, axis=0)) > 50
