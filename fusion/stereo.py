@@ -112,10 +112,15 @@ class StereoFusion:
             self._reverse_stale = False
         return f.reverse.warp(color, fill=0)
 
-    def point_cloud(self, colors: Mapping[str, np.ndarray], thermals: Mapping[str, np.ndarray],
-                    by: str = "color", span: tuple[float, float] | None = None,
-                    palette: str = "iron", eye: str | None = None
-                    ) -> tuple[np.ndarray, np.ndarray]:
+    def point_cloud(
+        self,
+        colors: Mapping[str, np.ndarray],
+        thermals: Mapping[str, np.ndarray],
+        by: str = "color",
+        span: tuple[float, float] | None = None,
+        palette: str = "iron",
+        eye: str | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The last TOF frame's points (N, 3) float32 (TOF frame, metres) and their colours
         (N, 3) uint8 RGB for the 3D view: ``by`` "color" (sampled from the eye's colour
         camera), "temperature" (its thermal imager, in ``palette`` over ``span``) or
@@ -135,15 +140,25 @@ class StereoFusion:
         return pts, point_colors(pts, by, None, span, palette)
 
 
-def _sample(rig: Rig, sensor: str, tof: str, points_tof: np.ndarray, image: np.ndarray,
-            fill: float) -> np.ndarray:
+def _sample(
+    rig: Rig, sensor: str, tof: str, points_tof: np.ndarray, image: np.ndarray, fill: float
+) -> np.ndarray:
     """Bilinear samples (N,) or (N, C) of ``image`` where ``points_tof`` project in
     ``sensor``; ``fill`` outside its image."""
     T = rig.T(sensor, tof)
     uv = rig[sensor].intrinsics.project(points_tof @ T[:3, :3].T + T[:3, 3])
     uv = np.nan_to_num(uv, nan=-1e4).astype(np.float32).reshape(-1, 1, 2)
     channels = 1 if image.ndim == 2 else image.shape[2]
-    out = cv2.remap(image, uv, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                    borderValue=(fill,) * channels)
-    return out.reshape(len(points_tof), -1).squeeze(-1) if channels == 1 else out.reshape(
-        len(points_tof), channels)
+    out = cv2.remap(
+        image,
+        uv,
+        None,
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=(fill,) * channels,
+    )
+    return (
+        out.reshape(len(points_tof), -1).squeeze(-1)
+        if channels == 1
+        else out.reshape(len(points_tof), channels)
+    )

@@ -73,8 +73,9 @@ def test_point_cloud_coloured_by_colour_temperature_and_depth(scene) -> None:
     pts, rgb = fusion.point_cloud(colors, thermals, "color")
     assert pts.shape[1] == 3 and rgb.shape == (len(pts), 3) and rgb.dtype == np.uint8
     assert np.isfinite(pts).all() and len(pts) > 15000
-    _, hot = fusion.point_cloud(colors, thermals, "temperature", span=(290.0, 360.0),
-                                palette="white_hot")
+    _, hot = fusion.point_cloud(
+        colors, thermals, "temperature", span=(290.0, 360.0), palette="white_hot"
+    )
     # The hot pipe (358 K) is among the brightest points in white-hot, the walls dark.
     lum = hot.astype(float).mean(axis=1)
     assert np.percentile(lum, 99.5) > 200 and np.median(lum) < 80
