@@ -32,10 +32,15 @@ class Frame:
 
 @dataclass
 class FrameSet:
-    """Frames of several sensors grouped around one time stamp (nanoseconds)."""
+    """Frames of several sensors grouped around one time stamp (nanoseconds).
+
+    ``missing`` names the expected sensors that have no frame in this set, with the reason
+    (never received, too old): a missing or stale sensor is reported, not waited for.
+    """
 
     stamp_ns: int
     frames: dict[str, Frame] = field(default_factory=dict)
+    missing: dict[str, str] = field(default_factory=dict)
 
     def __getitem__(self, sensor: str) -> Frame:
         try:
