@@ -10,12 +10,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import OPENCV_LEFT_9X6
 
 from app.cli import main
 from app.rigfile import load_rig
 from calib.transforms import pose_error, rvec_from_rotation
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "opencv-left-9x6"
+REAL = OPENCV_LEFT_9X6
 BOARD_9x6 = "pattern: checkerboard\ninner_corners: [9, 6]\nsquare_size_m: 0.025\n"
 
 

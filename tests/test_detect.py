@@ -5,11 +5,11 @@ OpenCV sample images, orientation (rotated and mirrored images), rejections."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from conftest import OPENCV_LEFT_9X6
 
 import calib.detect as detect_mod
 from app.sources.sim.head import default_rig
@@ -22,7 +22,7 @@ RIG = default_rig()
 BOARD = CALIBRATION_BOARD
 N_VIEWS = 8
 SEED = 0
-REAL_DIR = Path("/work/shared/data/opencv-left-9x6")
+REAL_DIR = OPENCV_LEFT_9X6
 
 # RMS bounds (px) of the detected corners against the exact projection, in order.
 #
