@@ -489,6 +489,177 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# -- record -------------------------------------------------------------------------------
+
+
+def _positive_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a number of seconds > 0, got {text!r}"
+        ) from None
+    if not np.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a finite number of seconds > 0, got {text!r}")
+    return value
+
+
+def _jpeg_quality(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer 1..100, got {text!r}") from None
+    if not 1 <= value <= 100:
+        raise argparse.ArgumentTypeError(f"expected an integer 1..100, got {value}")
+    return value
+
+
+def _err(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _record_summary(path: Path, writer: object) -> None:
+    from app.recording import ReplaySource
+
+    with ReplaySource(path, realtime=False) as rec:
+        size_mb = path.stat().st_size / 1e6
+        _out(
+            f"Wrote {writer.frames_written} frames ({rec.duration_s:.3f} s, "  # type: ignore[attr-defined]
+            f"{size_mb:.1f} MB) to {path}:"
+        )
+        for ch in sorted(rec.index.channels.values(), key=lambda c: c.topic):
+            schema = rec.index.schema_of(ch)
+            n = (rec.index.message_counts or {}).get(ch.id, 0)
+            _out(f"  {ch.topic:<28} {schema.name if schema else '-':<28} {n} messages")
+    _out("Open it in Foxglove as it is, or replay it: app.recording.ReplaySource. Format:")
+    _out("docs/FORMATS.md (Recordings).")
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
+    from app.recording import RecordingDamaged, RecordingWriter, ReplaySource
+    from app.rigfile import load_rig
+
+    out = Path(args.out)
+    if out.exists() or out.is_symlink():
+        raise UsageError(f"--out {out}: exists; refusing to overwrite it (choose a new name)")
+    rig = load_rig(args.rig) if args.rig else None
+    source = args.source
+    if source == "sim":
+        from app.recording.simrecord import record_simulation, sim_schedule
+        from app.sources.sim.head import default_rig
+
+        rig = rig or default_rig()
+        duration = 2.0 if args.duration is None else args.duration
+        n = len(sim_schedule(rig, duration))
+        _out(
+            f"Recording {duration:g} s of the simulated head (inspection scenario, seed "
+            f"{args.seed}): {n} instants to render, each sensor at its own rate; rendering "
+            "takes seconds per colour frame, so this is much slower than real time."
+        )
+
+        def progress(i: int, total: int, stamp: int, sensors: list[str], secs: float) -> None:
+            _out(f"[{i}/{total}] t = {stamp / 1e9:.4f} s: {', '.join(sensors)} ({secs:.1f} s)")
+
+        try:
+            writer = record_simulation(
+                out,
+                rig,
+                duration,
+                seed=args.seed,
+                jpeg_quality=args.jpeg_quality,
+                progress=progress,
+            )
+        except KeyboardInterrupt:
+            if out.exists():
+                _err(f"{PROG}: interrupted; what was recorded so far is in {out}")
+            raise
+        _record_summary(out, writer)
+        return EXIT_OK
+    if not source.startswith("replay:") or not source[len("replay:") :]:
+        raise UsageError(
+            f"{PROG} record: --source: expected 'sim' or 'replay:FILE', got {source!r}"
+        )
+    path = Path(source[len("replay:") :])
+    if path.resolve() == out.resolve():
+        raise UsageError(f"{PROG} record: --out must differ from the recording replayed")
+    with ReplaySource(path, realtime=False) as src:
+        rig = rig or src.rig
+        if rig is None:
+            raise ValueError(f"{path}: the recording holds no rig; give one with --rig")
+        end = None if args.duration is None else src.start_ns + round(args.duration * 1e9)
+        _out(f"Re-recording {path} ({src.duration_s:.3f} s, sensors {', '.join(src.sensors)})")
+        damage = None
+        with RecordingWriter(out, rig, jpeg_quality=args.jpeg_quality) as writer:
+            try:
+                for frame in src.frames():
+                    if end is not None and frame.stamp_ns >= end:
+                        break
+                    writer.write(frame)
+                    if writer.frames_written % 100 == 0:
+                        _out(f"  {writer.frames_written} frames")
+            except RecordingDamaged as exc:
+                damage = exc
+    _record_summary(out, writer)
+    if damage is not None:
+        _err(f"{PROG}: warning: {damage}; the frames before it were recorded")
+    return EXIT_OK
+
+
+# -- fuse ---------------------------------------------------------------------------------
+
+
+def _progress_bar(done: int, total: int | None, width: int = 30) -> str:
+    if not total:
+        return f"[{'?' * width}] {done} frames"
+    filled = min(width, round(width * done / total))
+    return f"[{'#' * filled}{'.' * (width - filled)}] {done}/{total} frames"
+
+
+def _cmd_fuse(args: argparse.Namespace) -> int:
+    from app.recording import ReplaySource
+    from app.recording.fuse import VIDEO_NAME, fuse_recording
+    from app.rigfile import load_rig
+    from fusion.compose import DisplaySettings
+
+    out = Path(args.out)
+    _check_output_dir(out)
+    settings = DisplaySettings(mode=args.mode)
+    with ReplaySource(args.recording, realtime=False) as src:
+        rig = load_rig(args.rig) if args.rig else src.rig
+        if rig is None:
+            raise ValueError(f"{args.recording}: the recording holds no rig; give one with --rig")
+        out.mkdir(parents=True, exist_ok=True)
+        tty = sys.stderr.isatty()
+        shown = [-1]
+
+        def progress(done: int, total: int | None) -> None:
+            tenth = (10 * done // total) if total else done // 100
+            if tty:
+                print(f"\r{_progress_bar(done, total)}", end="", file=sys.stderr, flush=True)
+            elif tenth != shown[0]:
+                shown[0] = tenth
+                _err(_progress_bar(done, total))
+
+        _out(
+            f"Fusing {args.recording} ({src.duration_s:.3f} s) in {args.mode} mode "
+            f"({'every frame set' if args.every == 1 else f'one frame set in {args.every}'}) "
+            f"into {out}/"
+        )
+        result = fuse_recording(src, rig, out, settings, args.every, progress)
+        if tty:
+            print(file=sys.stderr)
+    _out(f"Wrote {result.frames} fused frames to {out}/ (000000.jpg ..., frames.csv)")
+    if result.video is not None:
+        _out(f"Video: {result.video} ({result.fps:.2f} frames/s, mp4v)")
+    else:
+        _out(f"No video ({VIDEO_NAME}): {result.video_problem}; the JPEG frames are written")
+    for reason, n in result.skipped.items():
+        _out(f"  skipped {n} frame sets: {reason}")
+    if result.damage is not None:
+        _err(f"{PROG}: warning: {result.damage}; the frames before it were fused")
+    return EXIT_OK
+
+
 # -- parser -------------------------------------------------------------------------------
 
 
@@ -695,6 +866,93 @@ def build_parser() -> argparse.ArgumentParser:
         "(must not exist)",
     )
     ana.set_defaults(func=_cmd_analyze)
+
+    # record --------------------------------------------------------------------------
+    rec = commands.add_parser(
+        "record",
+        help="record the sensor head (simulated) or re-record a recording into an MCAP file",
+        description=(
+            "Record frames into an MCAP file with Foxglove's schemas (docs/FORMATS.md, "
+            "Recordings): colour as JPEG foxglove.CompressedImage on /<sensor>/image, thermal "
+            "as 16UC1 centi-kelvin foxglove.RawImage on /<sensor>/temperature, TOF distance "
+            "(16UC1 mm, 0 = invalid) and amplitude on /tof/distance and /tof/amplitude, "
+            "calibration per sensor, the rig as /tf transforms and as the attachment rig.yaml. "
+            "Foxglove opens it as it is. --source sim renders the simulated head's "
+            "inspection scenario at each sensor's rate (colour 30 Hz, thermal 27 Hz, TOF "
+            "15 Hz time stamps; slow: seconds per colour frame); --source replay:FILE "
+            "re-records a recording (a damaged one up to the damage)."
+        ),
+    )
+    rec.add_argument(
+        "--source",
+        required=True,
+        metavar="SOURCE",
+        help="'sim' (the simulated head) or 'replay:FILE' (a recording)",
+    )
+    rec.add_argument(
+        "--out", required=True, metavar="FILE.mcap", help="recording to write (must not exist)"
+    )
+    rec.add_argument(
+        "--duration",
+        type=_positive_seconds,
+        metavar="S",
+        help="seconds to record (sim default: 2; replay default: all of it)",
+    )
+    rec.add_argument(
+        "--rig",
+        metavar="RIG.yaml",
+        help="rig file: the head to simulate (default: the simulator's built-in head) or "
+        "the rig to store (default: the replayed recording's)",
+    )
+    rec.add_argument(
+        "--seed", type=_seed, default=0, metavar="N", help="simulator noise seed (default: 0)"
+    )
+    rec.add_argument(
+        "--jpeg-quality",
+        type=_jpeg_quality,
+        default=90,
+        metavar="Q",
+        help="JPEG quality of the colour images, 1-100 (default: %(default)s)",
+    )
+    rec.set_defaults(func=_cmd_record)
+
+    # fuse ----------------------------------------------------------------------------
+    fuse = commands.add_parser(
+        "fuse",
+        help="fuse a whole recording offline into JPEG frames and a video",
+        description=(
+            "Replay RECORDING as fast as possible, update the thermal-to-colour mapping of "
+            "both eyes with every TOF frame, compose the side-by-side stereo picture of "
+            "every N-th left-colour frame set, and write the pictures as DIR/000000.jpg ... "
+            "plus DIR/frames.csv (time stamps) and DIR/fused.mp4 (OpenCV mp4v, if that codec "
+            "is available). Progress goes to stderr."
+        ),
+    )
+    fuse.add_argument("recording", metavar="RECORDING", help="the recording (.mcap)")
+    fuse.add_argument(
+        "--rig", metavar="RIG.yaml", help="rig file (default: the rig stored in the recording)"
+    )
+    fuse.add_argument(
+        "--out",
+        required=True,
+        metavar="DIR",
+        help="output directory; must not exist or be empty (nothing is ever overwritten)",
+    )
+    fuse.add_argument(
+        "--mode",
+        default="blend",
+        metavar="MODE",
+        help="display mode (fusion.compose.MODES): color, blend, edges, thermal, threshold, "
+        "isotherm or pip (default: %(default)s)",
+    )
+    fuse.add_argument(
+        "--every",
+        type=_positive_int,
+        default=1,
+        metavar="N",
+        help="compose every N-th colour frame set (default: %(default)s: all)",
+    )
+    fuse.set_defaults(func=_cmd_fuse)
     return parser
 
 

@@ -1,0 +1,21 @@
+"""Recordings: MCAP files with Foxglove's schemas (writing, replaying) and ROS 2 bags.
+
+See docs/FORMATS.md ("Recordings") for the file layout and the topic-map format.
+"""
+
+from app.recording.errors import RecordingDamaged, RecordingError, TopicMapError
+from app.recording.reader import ReplaySource
+from app.recording.ros2 import Ros2BagSource
+from app.recording.topicmap import TopicMap, load_topic_map
+from app.recording.writer import RecordingWriter
+
+__all__ = [
+    "RecordingDamaged",
+    "RecordingError",
+    "RecordingWriter",
+    "ReplaySource",
+    "Ros2BagSource",
+    "TopicMap",
+    "TopicMapError",
+    "load_topic_map",
+]

@@ -1,0 +1,66 @@
+"""The layout of a trifuse recording: topics, frame ids, metadata (docs/FORMATS.md).
+
+One topic per sensor and stream, named ``/<sensor>/<stream>``; every message's frame id is
+the sensor's name, its log time the frame's ``stamp_ns``.
+
+* ``color``: ``/<sensor>/image``, ``foxglove.CompressedImage``, JPEG.
+* ``thermal``: ``/<sensor>/temperature``, ``foxglove.RawImage``, ``16UC1`` centi-kelvin,
+  0 = no reading (or ``32FC1`` kelvin).
+* ``tof_distance``: ``/<sensor>/distance``, ``foxglove.RawImage``, ``16UC1`` millimetres,
+  0 = invalid.
+* ``tof_amplitude``: ``/<sensor>/amplitude``, ``foxglove.RawImage``, ``16UC1``.
+* ``calibration``: ``/<sensor>/calibration``, ``foxglove.CameraCalibration`` (K, D, size).
+* the rig: ``/tf``, ``foxglove.FrameTransform`` ``T_rig_<sensor>`` with parent ``rig``, and
+  the rig file's text as the attachment ``rig.yaml``.
+"""
+
+from __future__ import annotations
+
+import re
+
+RECORDING_FORMAT = "trifuse-recording/1"
+RIG_ATTACHMENT = "rig.yaml"
+"""Name of the attachment holding the rig file's text (media type application/yaml)."""
+METADATA_NAME = "trifuse.recording"
+"""Name of the metadata record (format, writer options)."""
+TF_TOPIC = "/tf"
+RIG_FRAME = "rig"
+"""Parent frame id of the FrameTransforms: the rig frame (= the reference sensor's frame)."""
+
+STREAMS = {
+    "color": "image",
+    "thermal": "temperature",
+    "tof_distance": "distance",
+    "tof_amplitude": "amplitude",
+    "calibration": "calibration",
+}
+KIND_OF_STREAM = {v: k for k, v in STREAMS.items()}
+MODALITY_OF_KIND = {
+    "color": "color",
+    "thermal": "thermal",
+    "tof_distance": "tof",
+    "tof_amplitude": "tof",
+}
+SCHEMA_OF_KIND = {
+    "color": "foxglove.CompressedImage",
+    "thermal": "foxglove.RawImage",
+    "tof_distance": "foxglove.RawImage",
+    "tof_amplitude": "foxglove.RawImage",
+    "calibration": "foxglove.CameraCalibration",
+}
+
+_TOPIC_RE = re.compile(r"^/(?P<sensor>[^/]+)/(?P<stream>[a-z]+)$")
+
+
+def topic_of(sensor: str, kind: str) -> str:
+    """The topic of a sensor's stream, e.g. ``topic_of("tof", "tof_distance")`` ->
+    ``/tof/distance``."""
+    return f"/{sensor}/{STREAMS[kind]}"
+
+
+def parse_topic(topic: str) -> tuple[str, str] | None:
+    """(sensor, kind) of a recording topic, or None for ``/tf`` and foreign topics."""
+    m = _TOPIC_RE.match(topic)
+    if m is None or m["stream"] not in KIND_OF_STREAM:
+        return None
+    return m["sensor"], KIND_OF_STREAM[m["stream"]]

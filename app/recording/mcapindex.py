@@ -1,0 +1,470 @@
+"""A damage-tolerant index of an MCAP file and its messages in log-time order.
+
+The ``mcap`` package reads well-formed files; a recording cut short by a full disk or a
+copy that stopped, or one with flipped bytes, makes it raise somewhere inside its
+iterators, or (a damaged summary) read the wrong bytes. This module finds out where a file
+is damaged and reads everything before that point:
+
+* A file with an intact summary section (its footer is there and the summary's CRC holds)
+  is indexed from the summary: chunk indexes, channels, schemas, attachment and metadata
+  indexes, statistics. Opening costs a few reads, whatever the file's size.
+* Otherwise (truncated file, damaged summary, no summary) the data section is scanned
+  record by record, reading only each chunk's header, never its contents; the scan stops
+  at the first record that runs past the end of the file or makes no sense, and that
+  point is remembered as :attr:`McapIndex.damage`. Channels and schemas inside chunks are
+  then discovered as the chunks are read.
+
+:meth:`McapIndex.messages` yields the messages from a start time in log-time order (chunks
+are merged by their time ranges, as the ``mcap`` reader does), checking every chunk's CRC;
+the first unreadable chunk, or the end of a truncated file, raises :class:`McapDamage`
+after every message before it in time was yielded.
+"""
+
+from __future__ import annotations
+
+import heapq
+import io
+import os
+import struct
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import (
+    Attachment,
+    AttachmentIndex,
+    Channel,
+    Chunk,
+    ChunkIndex,
+    Message,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+)
+from mcap.stream_reader import breakup_chunk
+
+from app.recording.errors import RecordingError
+
+MAGIC = b"\x89MCAP0\r\n"
+_PREFIX = 9  # opcode (1) + record length (8)
+_FOOTER_LENGTH = 20  # summary_start (8) + summary_offset_start (8) + summary_crc (4)
+_FOOTER_SIZE = _PREFIX + _FOOTER_LENGTH
+_KNOWN_OPCODES = {int(op) for op in Opcode}
+_COMPRESSIONS = ("", "zstd", "lz4")
+ATTACHMENT_LIMIT = 64 * 2**20
+"""Attachments larger than this are indexed but not read while scanning."""
+
+
+class McapDamage(Exception):
+    """The file cannot be read past this point (internal; the sources turn it into
+    :class:`~app.recording.errors.RecordingDamaged`)."""
+
+    def __init__(self, reason: str, offset: int | None, stamp_ns: int | None = None) -> None:
+        super().__init__(reason)
+        self.reason = reason
+        self.offset = offset
+        self.stamp_ns = stamp_ns
+
+
+@dataclass(frozen=True)
+class ChunkRef:
+    """Where a chunk (or a message outside chunks) is, and the log times it covers.
+
+    Attributes:
+        offset: byte offset of the record (its opcode).
+        length: the record's content length (after the 9-byte prefix).
+        start_ns, end_ns: log time of its first and last message.
+        message: for a message written outside any chunk, the message itself.
+    """
+
+    offset: int
+    length: int
+    start_ns: int
+    end_ns: int
+    message: Message | None = None
+
+
+@dataclass
+class McapIndex:
+    """What is known about an MCAP file after opening it (see the module docstring).
+
+    Attributes:
+        path: the file.
+        size: its size in bytes.
+        library: the writer's library string from the header ("" if unreadable).
+        profile: the header's profile ("ros2", "" ...).
+        schemas, channels: by id; grows as chunks are read when the file was scanned.
+        chunks: the chunks (and loose messages) sorted by offset.
+        attachments: name -> attachment index (offset, length ...).
+        metadata: name -> key/value strings.
+        message_counts: channel id -> message count, from the statistics (None if scanned).
+        indexed_by: "summary" or "scan".
+        notes: non-fatal problems found while opening (e.g. a damaged summary section).
+        damage: where the scan stopped early (truncation, garbage), else None: the data
+            after it is lost.
+    """
+
+    path: Path
+    size: int
+    library: str = ""
+    profile: str = ""
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
+    chunks: list[ChunkRef] = field(default_factory=list)
+    attachments: dict[str, AttachmentIndex] = field(default_factory=dict)
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    message_counts: dict[int, int] | None = None
+    indexed_by: str = "summary"
+    notes: list[str] = field(default_factory=list)
+    damage: McapDamage | None = None
+    _file: io.BufferedReader | None = field(default=None, repr=False)
+
+    # -- opening --------------------------------------------------------------------------
+
+    @classmethod
+    def open(cls, path: str | Path) -> McapIndex:
+        """Open and index ``path``; RecordingError if it is no MCAP file at all."""
+        path = Path(path)
+        try:
+            f = path.open("rb")
+        except OSError as exc:
+            raise RecordingError(f"{path}: cannot open recording: {exc.strerror}") from None
+        try:
+            size = os.fstat(f.fileno()).st_size
+            head = f.read(len(MAGIC))
+            if head != MAGIC:
+                raise RecordingError(
+                    f"{path}: not an MCAP file (expected the MCAP magic bytes at the start, "
+                    f"got {head!r})"
+                )
+            index = cls(path=path, size=size, _file=f)
+            index._read_header()
+            reason = index._read_summary()
+            if reason is not None:
+                if reason != "no summary":
+                    index.notes.append(f"{reason}; the file was indexed by scanning it instead")
+                index.indexed_by = "scan"
+                index._scan()
+            return index
+        except BaseException:
+            f.close()
+            raise
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    @property
+    def file(self) -> io.BufferedReader:
+        if self._file is None:
+            raise RecordingError(f"{self.path}: the recording is closed")
+        return self._file
+
+    def _read_at(self, offset: int, n: int) -> bytes:
+        f = self.file
+        f.seek(offset)
+        return f.read(n)
+
+    def _record_at(self, offset: int) -> tuple[int, bytes]:
+        """(opcode, content) of the record at ``offset``; McapDamage if it is cut short."""
+        prefix = self._read_at(offset, _PREFIX)
+        if len(prefix) < _PREFIX:
+            raise McapDamage("the file ends inside a record's header: truncated", offset)
+        opcode, length = struct.unpack("<BQ", prefix)
+        if offset + _PREFIX + length > self.size:
+            raise McapDamage(
+                f"a record of {length} bytes runs past the end of the file: truncated or corrupted",
+                offset,
+            )
+        content = self.file.read(length)
+        if len(content) < length:
+            raise McapDamage("the file ends inside a record: truncated", offset)
+        return opcode, content
+
+    def _read_header(self) -> None:
+        try:
+            opcode, content = self._record_at(len(MAGIC))
+            if opcode == Opcode.HEADER:
+                stream = ReadDataStream(io.BytesIO(content))
+                self.profile = stream.read_prefixed_string()
+                self.library = stream.read_prefixed_string()
+        except Exception:  # a damaged header does not stop the rest from being read
+            self.notes.append("the header record is damaged")
+
+    def _read_summary(self) -> str | None:
+        """Index from the summary section; returns why it could not (None: done)."""
+        if self.size < len(MAGIC) * 2 + _FOOTER_SIZE:
+            return "the file is too short to hold a footer (truncated?)"
+        tail = self._read_at(self.size - len(MAGIC) - _FOOTER_SIZE, _FOOTER_SIZE + len(MAGIC))
+        if tail[-len(MAGIC) :] != MAGIC:
+            return "the file does not end with the MCAP magic bytes (truncated?)"
+        opcode, length, summary_start, _summary_offset_start, summary_crc = struct.unpack(
+            "<BQQQI", tail[:_FOOTER_SIZE]
+        )
+        if opcode != Opcode.FOOTER or length != _FOOTER_LENGTH:
+            return "the footer record is damaged"
+        footer_offset = self.size - len(MAGIC) - _FOOTER_SIZE
+        if summary_start == 0:
+            return "no summary"
+        if not len(MAGIC) < summary_start <= footer_offset:
+            return "the footer points outside the file"
+        # The CRC covers the summary section and the footer up to (excluding) the CRC.
+        covered = self._read_at(summary_start, self.size - len(MAGIC) - 4 - summary_start)
+        if summary_crc != 0 and zlib.crc32(covered) != summary_crc:
+            return "the summary section is damaged (CRC mismatch)"
+        try:
+            self._parse_summary(covered[: footer_offset - summary_start])
+        except Exception as exc:
+            self.schemas.clear()
+            self.channels.clear()
+            self.chunks.clear()
+            self.attachments.clear()
+            self.metadata.clear()
+            return f"the summary section cannot be parsed ({exc})"
+        if not self.chunks and self.message_counts and sum(self.message_counts.values()):
+            # messages outside chunks: only a scan finds them
+            self.schemas.clear()
+            self.channels.clear()
+            self.attachments.clear()
+            self.metadata.clear()
+            return "no summary"
+        return None
+
+    def _parse_summary(self, data: bytes) -> None:
+        pos = 0
+        metadata_indexes: list[MetadataIndex] = []
+        while pos < len(data):
+            opcode, length = struct.unpack_from("<BQ", data, pos)
+            content = data[pos + _PREFIX : pos + _PREFIX + length]
+            if len(content) != length:
+                raise ValueError(f"record at summary byte {pos} is cut short")
+            stream = ReadDataStream(io.BytesIO(content))
+            if opcode == Opcode.SCHEMA:
+                s = Schema.read(stream)
+                self.schemas[s.id] = s
+            elif opcode == Opcode.CHANNEL:
+                c = Channel.read(stream)
+                self.channels[c.id] = c
+            elif opcode == Opcode.CHUNK_INDEX:
+                ci = ChunkIndex.read(stream)
+                if ci.chunk_start_offset + ci.chunk_length > self.size:
+                    raise ValueError("a chunk index points past the end of the file")
+                self.chunks.append(
+                    ChunkRef(
+                        ci.chunk_start_offset,
+                        ci.chunk_length - _PREFIX,
+                        ci.message_start_time,
+                        ci.message_end_time,
+                    )
+                )
+            elif opcode == Opcode.ATTACHMENT_INDEX:
+                ai = AttachmentIndex.read(stream)
+                self.attachments.setdefault(ai.name, ai)
+            elif opcode == Opcode.METADATA_INDEX:
+                metadata_indexes.append(MetadataIndex.read(stream))
+            elif opcode == Opcode.STATISTICS:
+                st = Statistics.read(stream)
+                self.message_counts = dict(st.channel_message_counts)
+            pos += _PREFIX + length
+        self.chunks.sort(key=lambda c: c.offset)
+        for mi in metadata_indexes:
+            opcode, content = self._record_at(mi.offset)
+            if opcode != Opcode.METADATA:
+                raise ValueError(f"metadata index points at a record of type {opcode}")
+            md = Metadata.read(ReadDataStream(io.BytesIO(content)))
+            self.metadata.setdefault(md.name, dict(md.metadata))
+
+    def _scan(self) -> None:
+        """Walk the data section's records (chunk headers only) up to the first damage."""
+        pos = len(MAGIC)
+        while True:
+            if pos == self.size:
+                self.damage = McapDamage(
+                    "the file ends without its footer (truncated after a complete record)", pos
+                )
+                return
+            prefix = self._read_at(pos, _PREFIX)
+            if len(prefix) < _PREFIX:
+                self.damage = McapDamage("the file ends inside a record's header: truncated", pos)
+                return
+            opcode, length = struct.unpack("<BQ", prefix)
+            if opcode not in _KNOWN_OPCODES:
+                self.damage = McapDamage(
+                    f"unknown record type 0x{opcode:02x}: the file is corrupted from here on",
+                    pos,
+                )
+                return
+            end = pos + _PREFIX + length
+            if end > self.size:
+                name = Opcode(opcode).name.lower().replace("_", " ")
+                article = "an" if name[0] in "aeiou" else "a"
+                self.damage = McapDamage(
+                    f"the file ends inside {article} {name} record ({self.size - pos - _PREFIX} of "
+                    f"{length} bytes present): truncated",
+                    pos,
+                )
+                return
+            try:
+                stop = self._scan_record(pos, opcode, length)
+            except McapDamage as exc:
+                self.damage = exc
+                return
+            except Exception as exc:
+                name = Opcode(opcode).name.lower()
+                self.damage = McapDamage(f"damaged {name} record ({exc})", pos)
+                return
+            if stop:
+                return
+            pos = end
+
+    def _scan_record(self, pos: int, opcode: int, length: int) -> bool:
+        """Index one record found by the scan; True at the end of the data section."""
+        if opcode in (Opcode.DATA_END, Opcode.FOOTER):
+            return True
+        if opcode == Opcode.CHUNK:
+            head = self.file.read(min(length, 8 + 8 + 8 + 4 + 4))
+            start, end, _size, _crc, clen = struct.unpack("<QQQII", head)
+            compression = self.file.read(min(clen, 16)).decode("utf-8", "replace")
+            if compression not in _COMPRESSIONS or start > end:
+                raise McapDamage(
+                    f"chunk header makes no sense (compression {compression!r}, times "
+                    f"{start}..{end}): corrupted",
+                    pos,
+                )
+            self.chunks.append(ChunkRef(pos, length, start, end))
+            return False
+        if opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE, Opcode.METADATA):
+            content = self.file.read(length)
+            stream = ReadDataStream(io.BytesIO(content))
+            if opcode == Opcode.SCHEMA:
+                s = Schema.read(stream)
+                self.schemas[s.id] = s
+            elif opcode == Opcode.CHANNEL:
+                c = Channel.read(stream)
+                self.channels[c.id] = c
+            elif opcode == Opcode.MESSAGE:
+                m = Message.read(stream, length)
+                self.chunks.append(ChunkRef(pos, length, m.log_time, m.log_time, m))
+            else:
+                md = Metadata.read(stream)
+                self.metadata.setdefault(md.name, dict(md.metadata))
+            return False
+        if opcode == Opcode.ATTACHMENT:
+            head = self.file.read(min(length, 16 + 4))
+            log_time, create_time, name_len = struct.unpack("<QQI", head)
+            name = self.file.read(name_len).decode("utf-8")
+            (mt_len,) = struct.unpack("<I", self.file.read(4))
+            media_type = self.file.read(mt_len).decode("utf-8")
+            (data_size,) = struct.unpack("<Q", self.file.read(8))
+            index = AttachmentIndex(
+                pos, length + _PREFIX, log_time, create_time, data_size, name, media_type
+            )
+            self.attachments.setdefault(name, index)
+            return False
+        return False  # message indexes and anything else in the data section: skipped
+
+    # -- reading --------------------------------------------------------------------------
+
+    @property
+    def start_ns(self) -> int | None:
+        """Log time of the first message, None if there are none."""
+        return min((c.start_ns for c in self.chunks), default=None)
+
+    @property
+    def end_ns(self) -> int | None:
+        """Log time of the last message, None if there are none."""
+        return max((c.end_ns for c in self.chunks), default=None)
+
+    def attachment(self, name: str) -> bytes | None:
+        """The data of the attachment ``name`` (None if absent); McapDamage if its CRC or
+        its record is damaged."""
+        ai = self.attachments.get(name)
+        if ai is None:
+            return None
+        opcode, content = self._record_at(ai.offset)
+        if opcode != Opcode.ATTACHMENT:
+            raise McapDamage(f"attachment {name!r}: no attachment record there", ai.offset)
+        att = Attachment.read(ReadDataStream(io.BytesIO(content)))
+        (crc,) = struct.unpack("<I", content[-4:])
+        if crc != 0 and zlib.crc32(content[:-4]) != crc:
+            raise McapDamage(f"attachment {name!r}: CRC mismatch", ai.offset)
+        return att.data
+
+    def read_chunk(self, ref: ChunkRef) -> list[Message]:
+        """The messages of one chunk (or the loose message); learns its schemas and
+        channels. McapDamage when the chunk cannot be read or fails its CRC."""
+        if ref.message is not None:
+            self._check_channel(ref.message, ref)
+            return [ref.message]
+        opcode, content = self._record_at(ref.offset)
+        if opcode != Opcode.CHUNK or len(content) != ref.length:
+            raise McapDamage("expected a chunk record here: the file is corrupted", ref.offset)
+        try:
+            chunk = Chunk.read(ReadDataStream(io.BytesIO(content)))
+            records = breakup_chunk(chunk, validate_crc=True)
+        except Exception as exc:
+            raise McapDamage(
+                f"chunk of messages at {ref.start_ns / 1e9:.3f}-{ref.end_ns / 1e9:.3f} s "
+                f"(log time) is corrupted ({type(exc).__name__}: {exc})",
+                ref.offset,
+                ref.start_ns,
+            ) from None
+        out = []
+        for r in records:
+            if isinstance(r, Message):
+                self._check_channel(r, ref)
+                out.append(r)
+            elif isinstance(r, Channel):
+                self.channels.setdefault(r.id, r)
+            elif isinstance(r, Schema):
+                self.schemas.setdefault(r.id, r)
+        return out
+
+    def _check_channel(self, message: Message, ref: ChunkRef) -> None:
+        if message.channel_id not in self.channels:
+            raise McapDamage(
+                f"a message refers to channel {message.channel_id}, which the file never "
+                "defines: corrupted",
+                ref.offset,
+                message.log_time,
+            )
+
+    def schema_of(self, channel: Channel) -> Schema | None:
+        return self.schemas.get(channel.schema_id) if channel.schema_id else None
+
+    def messages(self, start_ns: int | None = None) -> Iterator[Message]:
+        """Messages with log time >= ``start_ns`` in log-time order (ties: file order).
+
+        Raises McapDamage at the first unreadable chunk (every message earlier in log time
+        than that chunk's first message was yielded), or at the end when the scan found the
+        file truncated or corrupted.
+        """
+        heap: list[tuple[int, int, int, object]] = []
+        for c in self.chunks:
+            if start_ns is None or c.end_ns >= start_ns:
+                heap.append((c.start_ns, c.offset, -1, c))
+        heapq.heapify(heap)
+        last = None
+        while heap:
+            t, offset, i, item = heapq.heappop(heap)
+            if i < 0:
+                assert isinstance(item, ChunkRef)
+                try:
+                    msgs = self.read_chunk(item)
+                except McapDamage as exc:
+                    exc.stamp_ns = last
+                    raise
+                for k, m in enumerate(msgs):
+                    if start_ns is None or m.log_time >= start_ns:
+                        heapq.heappush(heap, (m.log_time, offset, k, m))
+                continue
+            assert isinstance(item, Message)
+            last = t
+            yield item
+        if self.damage is not None:
+            raise McapDamage(self.damage.reason, self.damage.offset, last)

@@ -1,0 +1,400 @@
+"""The replay machinery shared by recordings and ROS 2 bags.
+
+:class:`MessageReplay` is a :class:`~app.sources.base.FrameSource` over an MCAP file
+(:class:`~app.recording.mcapindex.McapIndex`): messages in log-time order are routed to a
+sensor and a kind (colour, thermal, TOF distance, TOF amplitude) by the subclass, decoded
+into the program's arrays, the two TOF streams paired into one frame, and delivered in real
+time (or as fast as possible) with rate, pause, seek and loop.
+
+Timeline: ``start_ns``, ``end_ns``, ``position_ns`` and :meth:`MessageReplay.seek` use the
+messages' log time, which pacing follows too. A frame's ``stamp_ns`` is its acquisition
+time: for trifuse recordings the same number, for ROS 2 bags the message header's stamp.
+
+Thread use: one thread iterates :meth:`MessageReplay.frames`; :meth:`pause`,
+:meth:`resume`, :meth:`seek` and the ``rate`` setter may be called from any thread and take
+effect before the next frame is delivered.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import numbers
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from mcap.records import Channel, Message
+
+from app.recording.errors import RecordingDamaged, RecordingError
+from app.recording.mcapindex import McapDamage, McapIndex
+from app.sources.base import FrameSource
+from app.sources.frames import Frame
+
+log = logging.getLogger(__name__)
+
+FRAME_KINDS = ("color", "thermal", "tof_distance", "tof_amplitude")
+MAX_LAG_S = 0.25
+"""A real-time replay that falls further behind than this re-anchors its clock (plays on
+from where it is, slower) instead of delivering a burst of late frames."""
+PAIR_WINDOW_NS = 50_000_000
+"""A TOF half (distance or amplitude) whose partner has not come within this log time is
+delivered alone."""
+
+
+@dataclass(frozen=True)
+class Route:
+    """Where one channel's messages go.
+
+    Attributes:
+        sensor: the sensor id.
+        kind: ``color``, ``thermal``, ``tof_distance``, ``tof_amplitude``, or another
+            (non-frame) kind the subclass handles itself (``calibration``, ``camera_info``).
+        decode: message -> (stamp_ns, array); raises on a malformed message.
+    """
+
+    sensor: str
+    kind: str
+    decode: Callable[[Message], tuple[int, np.ndarray]]
+
+
+@dataclass
+class _TofHalf:
+    stamp_ns: int
+    log_ns: int
+    parts: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+class MessageReplay(FrameSource):
+    """Base of :class:`~app.recording.reader.ReplaySource` and
+    :class:`~app.recording.ros2.Ros2BagSource` (see the module docstring).
+
+    Args:
+        path: the MCAP file.
+        rate: playback speed (2.0 = twice as fast); real time only.
+        loop: start again from the beginning at the end.
+        realtime: pace frames by their log times (sleeping); False = as fast as possible.
+        on_damage: ``"raise"`` (default): ``frames()`` raises
+            :class:`~app.recording.errors.RecordingDamaged` at the point of damage, after
+            delivering every frame before it; ``"stop"``: log a warning there and end the
+            stream. Either way :attr:`damage` holds the exception.
+        pair_tolerance_s: TOF distance and amplitude messages whose stamps differ by at
+            most this much form one frame.
+
+    Attributes:
+        sensors: the sensors of the source (the rig's or the topic map's), including any
+            the file has no frames of (``FrameSet.missing`` then reports them).
+        rig: the rig, when the file (or the caller) gives one.
+        damage: the damage met by the last iteration, else None.
+        notes: non-fatal problems found when opening (damaged summary, missing topics).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        rate: float = 1.0,
+        loop: bool = False,
+        realtime: bool = True,
+        on_damage: str = "raise",
+        pair_tolerance_s: float = 0.001,
+    ) -> None:
+        if on_damage not in ("raise", "stop"):
+            raise RecordingError(f"on_damage: expected 'raise' or 'stop', got {on_damage!r}")
+        self.path = Path(path)
+        self._cond = threading.Condition()
+        self._rate = self._check_rate(rate)
+        self.loop = bool(loop)
+        self.realtime = bool(realtime)
+        self.on_damage = on_damage
+        self.pair_tolerance_ns = round(pair_tolerance_s * 1e9)
+        self.damage: RecordingDamaged | None = None
+        self._paused = False
+        self._pending_seek: int | None = None
+        self._anchor: tuple[int, float] | None = None  # (log ns, monotonic s)
+        self._routes: dict[int, Route | None] = {}
+        self._tof_parts: dict[str, set[str]] = {}
+        self.index = McapIndex.open(self.path)
+        self.notes: list[str] = list(self.index.notes)
+        start = self.index.start_ns
+        self._position = 0 if start is None else start
+        self.sensors: list[str] = []
+
+    # -- subclass hooks -------------------------------------------------------------------
+
+    def _route(self, channel: Channel) -> Route | None:
+        """How to handle a channel's messages (None: ignore them)."""
+        raise NotImplementedError
+
+    def _side_message(self, route: Route, message: Message) -> None:
+        """A message of a non-frame kind (calibration, camera info); ignored by default."""
+        return None
+
+    # -- time line ------------------------------------------------------------------------
+
+    @property
+    def start_ns(self) -> int:
+        """Log time of the first message (0 for an empty file)."""
+        s = self.index.start_ns
+        return 0 if s is None else s
+
+    @property
+    def end_ns(self) -> int:
+        """Log time of the last message in the file's index (for a truncated file: the last
+        complete chunk)."""
+        e = self.index.end_ns
+        return 0 if e is None else e
+
+    @property
+    def duration_s(self) -> float:
+        """Seconds from the first to the last message."""
+        return (self.end_ns - self.start_ns) / 1e9
+
+    @property
+    def position_ns(self) -> int:
+        """Log time of the last frame delivered (or where a seek will continue)."""
+        with self._cond:
+            return self._pending_seek if self._pending_seek is not None else self._position
+
+    @property
+    def rate(self) -> float:
+        return self._rate
+
+    @rate.setter
+    def rate(self, value: float) -> None:
+        value = self._check_rate(value)
+        with self._cond:
+            self._rate = value
+            self._anchor = None  # re-anchor at the next frame
+            self._cond.notify_all()
+
+    @staticmethod
+    def _check_rate(value: float) -> float:
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise RecordingError(f"rate: expected a positive number, got {value!r}")
+        if not math.isfinite(value) or value <= 0:
+            raise RecordingError(f"rate: expected a positive finite number, got {value!r}")
+        return float(value)
+
+    @property
+    def paused(self) -> bool:
+        return self._paused
+
+    def pause(self) -> None:
+        """Hold the stream: ``frames()`` blocks before its next frame until :meth:`resume`."""
+        with self._cond:
+            self._paused = True
+            self._cond.notify_all()
+
+    def resume(self) -> None:
+        """Continue after :meth:`pause`, from where it stopped (the pause is not caught up)."""
+        with self._cond:
+            self._paused = False
+            self._anchor = None
+            self._cond.notify_all()
+
+    def seek(self, position: float) -> int:
+        """Continue from ``position``: an ``int`` is a log time in nanoseconds, a ``float``
+        a fraction of the duration (0.0 = start, 1.0 = end). Clamped to the recording;
+        returns the target log time. Takes effect before the next frame (or at the start of
+        the next ``frames()``)."""
+        if isinstance(position, bool) or not isinstance(position, numbers.Real):
+            raise RecordingError(
+                f"seek: expected a log time in ns (int) or a fraction (float), got {position!r}"
+            )
+        if isinstance(position, numbers.Integral):
+            target = int(position)
+        else:
+            f = float(position)
+            if not (math.isfinite(f) and 0.0 <= f <= 1.0):
+                raise RecordingError(
+                    f"seek: a float is a fraction of the duration, expected 0.0..1.0, got {f}"
+                )
+            target = self.start_ns + round(f * (self.end_ns - self.start_ns))
+        target = min(max(target, self.start_ns), self.end_ns)
+        with self._cond:
+            self._pending_seek = target
+            self._cond.notify_all()
+        return target
+
+    # -- iteration ------------------------------------------------------------------------
+
+    def frames(self) -> Iterator[Frame]:
+        """Frames in log-time order from the start (or the pending seek target); see the
+        class docstring for damage, pacing and looping."""
+        self.damage = None
+        with self._cond:
+            start = self._pending_seek if self._pending_seek is not None else self.start_ns
+            self._pending_seek = None
+            self._position = start
+            self._anchor = None
+        delivered = 0
+        pass_delivered = 0
+        pending: dict[str, _TofHalf] = {}
+        cursor = self.index.messages(start)
+        while True:
+            with self._cond:
+                target = self._pending_seek
+                self._pending_seek = None
+            if target is not None:
+                pending.clear()
+                cursor = self.index.messages(target)
+                with self._cond:
+                    self._position = target
+                    self._anchor = (target, time.monotonic())
+                pass_delivered = 1  # a seek counts as progress for the loop guard
+            ready: list[tuple[Frame, int]] = []
+            try:
+                msg = next(cursor)
+            except StopIteration:
+                ready = [self._tof_frame(s, h) for s, h in pending.items()]
+                pending.clear()
+                ready.sort(key=lambda fr: fr[1])
+                for frame, due in ready:
+                    if self._wait(due):
+                        with self._cond:
+                            self._position = max(self._position, due)
+                        delivered += 1
+                        yield frame
+                if self.loop and pass_delivered and self._pending_seek is None:
+                    pass_delivered = 0
+                    cursor = self.index.messages(self.start_ns)
+                    with self._cond:
+                        self._position = self.start_ns
+                        self._anchor = None
+                    continue
+                if self._pending_seek is not None:
+                    continue
+                return
+            except McapDamage as exc:
+                for s, h in sorted(pending.items(), key=lambda kv: kv[1].log_ns):
+                    frame, due = self._tof_frame(s, h)
+                    delivered += 1
+                    yield frame
+                self._damaged(exc.reason, exc.offset, exc.stamp_ns, delivered)
+                return
+            route = self._route_of(msg.channel_id)
+            if route is None:
+                continue
+            if route.kind not in FRAME_KINDS:
+                try:
+                    self._side_message(route, msg)
+                except Exception as exc:
+                    log.warning(
+                        "%s: ignoring a malformed %s message: %s", self.path, route.kind, exc
+                    )
+                continue
+            try:
+                stamp, data = route.decode(msg)
+            except Exception as exc:
+                topic = self.index.channels[msg.channel_id].topic
+                for s, h in sorted(pending.items(), key=lambda kv: kv[1].log_ns):
+                    frame, due = self._tof_frame(s, h)
+                    delivered += 1
+                    yield frame
+                self._damaged(
+                    f"message on {topic} at log time {msg.log_time / 1e9:.6f} s cannot be "
+                    f"decoded ({exc})",
+                    None,
+                    msg.log_time,
+                    delivered,
+                )
+                return
+            ready = self._collect(route, stamp, data, msg.log_time, pending)
+            for frame, due in ready:
+                if not self._wait(due):
+                    break  # a seek came: drop what was decoded before it
+                with self._cond:
+                    self._position = max(self._position, due)
+                delivered += 1
+                pass_delivered += 1
+                yield frame
+
+    def _route_of(self, channel_id: int) -> Route | None:
+        if channel_id not in self._routes:
+            channel = self.index.channels[channel_id]
+            self._routes[channel_id] = self._route(channel)
+        return self._routes[channel_id]
+
+    def _collect(
+        self,
+        route: Route,
+        stamp: int,
+        data: np.ndarray,
+        log_ns: int,
+        pending: dict[str, _TofHalf],
+    ) -> list[tuple[Frame, int]]:
+        """Frames ready after this message: itself, or a completed (or abandoned) TOF pair."""
+        out: list[tuple[Frame, int]] = []
+        for s in [s for s, h in pending.items() if log_ns - h.log_ns > PAIR_WINDOW_NS]:
+            out.append(self._tof_frame(s, pending.pop(s)))
+        if route.kind in ("color", "thermal"):
+            out.append((Frame(route.sensor, stamp, data), log_ns))
+            return out
+        half = pending.get(route.sensor)
+        if half is not None and (
+            abs(half.stamp_ns - stamp) > self.pair_tolerance_ns or route.kind in half.parts
+        ):
+            out.append(self._tof_frame(route.sensor, pending.pop(route.sensor)))
+            half = None
+        if half is None:
+            half = pending[route.sensor] = _TofHalf(stamp, log_ns)
+        half.parts[route.kind] = data
+        half.log_ns = max(half.log_ns, log_ns)
+        expected = self._tof_parts.get(route.sensor, {"tof_distance", "tof_amplitude"})
+        if expected <= half.parts.keys():
+            out.append(self._tof_frame(route.sensor, pending.pop(route.sensor)))
+        return out
+
+    @staticmethod
+    def _tof_frame(sensor: str, half: _TofHalf) -> tuple[Frame, int]:
+        distance = half.parts.get("tof_distance")
+        amplitude = half.parts.get("tof_amplitude")
+        if amplitude is None:
+            assert distance is not None
+            amplitude = np.full(distance.shape, np.nan, np.float32)
+        return Frame(sensor, half.stamp_ns, amplitude, distance), half.log_ns
+
+    def _wait(self, due_ns: int) -> bool:
+        """Block until a frame of log time ``due_ns`` is due; False if a seek came first."""
+        with self._cond:
+            while True:
+                if self._pending_seek is not None:
+                    return False
+                if self._paused:
+                    self._cond.wait()
+                    continue
+                if not self.realtime:
+                    return True
+                now = time.monotonic()
+                if self._anchor is None:
+                    self._anchor = (due_ns, now)
+                anchor_ns, anchor_s = self._anchor
+                due_s = anchor_s + (due_ns - anchor_ns) / 1e9 / self._rate
+                if now >= due_s:
+                    if now - due_s > MAX_LAG_S:
+                        self._anchor = (due_ns, now)
+                    return True
+                self._cond.wait(due_s - now)
+
+    def _damaged(
+        self, reason: str, offset: int | None, stamp_ns: int | None, delivered: int
+    ) -> None:
+        exc = RecordingDamaged(
+            self.path,
+            reason,
+            offset=offset,
+            stamp_ns=stamp_ns,
+            start_ns=self.start_ns,
+            frames_delivered=delivered,
+        )
+        self.damage = exc
+        if self.on_damage == "raise":
+            raise exc
+        log.warning("%s", exc)
+
+    def close(self) -> None:
+        self.index.close()

@@ -1,0 +1,450 @@
+"""Writing recordings: frames of a sensor head into an MCAP file that Foxglove opens as is.
+
+The layout (topics, schemas, encodings) is in :mod:`app.recording.layout` and
+docs/FORMATS.md ("Recordings"). Writing goes through foxglove-sdk (one private
+``foxglove.Context`` per writer, so writers never share channels) into a temporary file in
+the target's directory; :meth:`RecordingWriter.close` finishes the MCAP (summary, indexes),
+fsyncs it and links it to its name, refusing to replace a file that exists by then.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import numbers
+import os
+import tempfile
+import time
+from pathlib import Path
+from types import TracebackType
+
+import cv2
+import foxglove
+import numpy as np
+from foxglove.channels import (
+    CameraCalibrationChannel,
+    CompressedImageChannel,
+    FrameTransformChannel,
+    RawImageChannel,
+)
+from foxglove.mcap import MCAPCompression, MCAPWriteOptions
+from foxglove.messages import (
+    CameraCalibration,
+    CompressedImage,
+    FrameTransform,
+    Quaternion,
+    RawImage,
+    Timestamp,
+    Vector3,
+)
+
+from app.atomic import fsync_dir, umask
+from app.capture import encode_amplitude, encode_distance, encode_thermal
+from app.recording.errors import RecordingError
+from app.recording.layout import (
+    METADATA_NAME,
+    RECORDING_FORMAT,
+    RIG_ATTACHMENT,
+    RIG_FRAME,
+    TF_TOPIC,
+    topic_of,
+)
+from app.sources.frames import Frame, FrameSet
+from calib.rig import Rig, Sensor, rig_to_yaml
+
+THERMAL_ENCODINGS = ("16UC1", "32FC1")
+COMPRESSIONS = {"zstd": MCAPCompression.Zstd, "lz4": MCAPCompression.Lz4, "none": None}
+_MAX_STAMP_NS = 2**63 - 1
+
+
+def quaternion_from_rotation(R: np.ndarray) -> tuple[float, float, float, float]:
+    """(x, y, z, w) unit quaternion of a (3, 3) rotation matrix, w >= 0."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
+    if w < 0:
+        x, y, z, w = -x, -y, -z, -w
+    return float(x), float(y), float(z), float(w)
+
+
+def distortion_model(distortion: tuple[float, ...]) -> tuple[str, list[float]]:
+    """ROS/Foxglove distortion model name and coefficients for OpenCV's ``k1 k2 p1 p2 [k3
+    [k4 k5 k6]]``: ``plumb_bob`` (5, a 4-coefficient model padded with k3 = 0) or
+    ``rational_polynomial`` (8)."""
+    d = [float(c) for c in distortion]
+    if len(d) == 8:
+        return "rational_polynomial", d
+    return "plumb_bob", (d + [0.0] * 5)[:5]
+
+
+def _timestamp(stamp_ns: int) -> Timestamp:
+    return Timestamp(stamp_ns // 1_000_000_000, stamp_ns % 1_000_000_000)
+
+
+def _stamp(value: object, sensor: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise RecordingError(
+            f"frame of {sensor!r}: stamp_ns: expected an integer number of nanoseconds, "
+            f"got {value!r}"
+        )
+    stamp = int(value)
+    if not 0 <= stamp <= _MAX_STAMP_NS:
+        raise RecordingError(
+            f"frame of {sensor!r}: stamp_ns: expected 0 <= stamp_ns < 2**63, got {stamp}"
+        )
+    return stamp
+
+
+class RecordingWriter:
+    """Writes frames of a rig's sensors into a new MCAP recording at ``path``.
+
+    Args:
+        path: the recording to create; it must not exist (FileExistsError), now or when
+            the writer closes.
+        rig: the rig the frames belong to; stored in the file (attachment ``rig.yaml``,
+            and as ``foxglove.CameraCalibration`` per sensor and ``foxglove.FrameTransform``
+            per sensor on ``/tf``).
+        jpeg_quality: JPEG quality of the colour images, 1..100.
+        thermal_encoding: ``"16UC1"`` (centi-kelvin, 0.01 K steps, 0 = no reading) or
+            ``"32FC1"`` (float kelvin, NaN = no reading).
+        compression: MCAP chunk compression, ``"zstd"``, ``"lz4"`` or ``"none"``.
+        calibration_period_s: the calibration and transforms are written at the first
+            frame's time and again at least this often (recording time), so that a player
+            that seeks finds them.
+        chunk_size: target uncompressed size of an MCAP chunk in bytes (the unit of
+            compression, indexing and of what a truncated file loses at its end).
+
+    Frames are checked against the rig (sensor known, image size, dtype); a frame whose
+    sensor and ``stamp_ns`` equal the last one written for that sensor is skipped (a frame
+    set repeats the slower sensors' frames). Use as a context manager: leaving the block
+    normally or by KeyboardInterrupt closes the recording (what was written is kept); any
+    other exception aborts it (no file appears).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        rig: Rig,
+        *,
+        jpeg_quality: int = 90,
+        thermal_encoding: str = "16UC1",
+        compression: str = "zstd",
+        calibration_period_s: float = 1.0,
+        chunk_size: int = 1 << 20,
+    ) -> None:
+        self.path = Path(path)
+        if not isinstance(rig, Rig):
+            raise RecordingError(f"rig: expected a calib.rig.Rig, got {type(rig).__name__}")
+        if (
+            isinstance(jpeg_quality, bool)
+            or not isinstance(jpeg_quality, numbers.Integral)
+            or not 1 <= jpeg_quality <= 100
+        ):
+            raise RecordingError(f"jpeg_quality: expected an integer 1..100, got {jpeg_quality!r}")
+        if thermal_encoding not in THERMAL_ENCODINGS:
+            raise RecordingError(
+                f"thermal_encoding: expected one of {THERMAL_ENCODINGS}, got {thermal_encoding!r}"
+            )
+        if compression not in COMPRESSIONS:
+            raise RecordingError(
+                f"compression: expected one of {sorted(COMPRESSIONS)}, got {compression!r}"
+            )
+        if not np.isfinite(calibration_period_s) or calibration_period_s <= 0:
+            raise RecordingError(
+                f"calibration_period_s: expected a positive number, got {calibration_period_s!r}"
+            )
+        if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1024:
+            raise RecordingError(f"chunk_size: expected an integer >= 1024, got {chunk_size!r}")
+        if self.path.exists():
+            raise FileExistsError(
+                f"{self.path}: exists; refusing to overwrite a recording (choose a new name)"
+            )
+        self.rig = rig
+        self.jpeg_quality = int(jpeg_quality)
+        self.thermal_encoding = thermal_encoding
+        self.calibration_period_ns = round(calibration_period_s * 1e9)
+        self.frames_written = 0
+        self.duplicates_skipped = 0
+        self.first_ns: int | None = None
+        self.last_ns: int | None = None
+        self._last_stamp: dict[str, int] = {}
+        self._next_calibration_ns: int | None = None
+        self._closed = False
+
+        parent = self.path.parent
+        parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".partial", dir=parent)
+        self.temp_path = Path(tmp)
+        try:
+            os.fchmod(fd, 0o666 & ~umask())
+            os.close(fd)
+            self._ctx = foxglove.Context()
+            options = MCAPWriteOptions(compression=COMPRESSIONS[compression], chunk_size=chunk_size)
+            self._mcap = foxglove.open_mcap(
+                self.temp_path, allow_overwrite=True, context=self._ctx, writer_options=options
+            )
+            now = time.time_ns()
+            self._mcap.attach(
+                log_time=now,
+                create_time=now,
+                name=RIG_ATTACHMENT,
+                media_type="application/yaml",
+                data=rig_to_yaml(rig).encode("utf-8"),
+            )
+            self._mcap.write_metadata(
+                METADATA_NAME,
+                {
+                    "format": RECORDING_FORMAT,
+                    "rig": RIG_ATTACHMENT,
+                    "reference": rig.reference,
+                    "sensors": ",".join(rig.names),
+                    "jpeg_quality": str(self.jpeg_quality),
+                    "thermal_encoding": thermal_encoding,
+                },
+            )
+            self._channels: dict[tuple[str, str], object] = {}
+            for name, s in rig.sensors.items():
+                self._make_channels(name, s)
+            self._tf = FrameTransformChannel(TF_TOPIC, context=self._ctx)
+        except BaseException:
+            self._closed = True
+            self.temp_path.unlink(missing_ok=True)
+            raise
+
+    def _make_channels(self, name: str, s: Sensor) -> None:
+        def meta(kind: str, unit: str) -> dict[str, str]:
+            return {"trifuse.sensor": name, "trifuse.kind": kind, "trifuse.unit": unit}
+
+        ctx = self._ctx
+        kinds: list[tuple[str, type, str]]
+        if s.modality == "color":
+            kinds = [("color", CompressedImageChannel, "rgb")]
+        elif s.modality == "thermal":
+            unit = "centikelvin" if self.thermal_encoding == "16UC1" else "kelvin"
+            kinds = [("thermal", RawImageChannel, unit)]
+        else:
+            kinds = [
+                ("tof_distance", RawImageChannel, "millimetre"),
+                ("tof_amplitude", RawImageChannel, "amplitude"),
+            ]
+        for kind, cls, unit in kinds:
+            self._channels[(name, kind)] = cls(
+                topic_of(name, kind), context=ctx, metadata=meta(kind, unit)
+            )
+        self._channels[(name, "calibration")] = CameraCalibrationChannel(
+            topic_of(name, "calibration"), context=ctx, metadata=meta("calibration", "pixel")
+        )
+
+    # -- writing --------------------------------------------------------------------------
+
+    def write_set(self, frame_set: FrameSet) -> int:
+        """Write the frames of a set (in time order); returns how many were new."""
+        frames = sorted(frame_set.frames.values(), key=lambda f: f.stamp_ns)
+        return sum(self.write(f) for f in frames)
+
+    def write(self, frame: Frame) -> bool:
+        """Write one frame; False if it repeats the sensor's last frame (skipped).
+
+        Raises RecordingError for a frame the rig does not describe (unknown sensor, wrong
+        size or type) and RuntimeError after :meth:`close`.
+        """
+        if self._closed:
+            raise RuntimeError(f"{self.path}: the recording is closed")
+        if not isinstance(frame, Frame):
+            raise RecordingError(f"expected a Frame, got {type(frame).__name__}")
+        sensor = frame.sensor
+        if sensor not in self.rig:
+            raise RecordingError(
+                f"frame of {sensor!r}: the sensor is not in the recording's rig "
+                f"(sensors: {self.rig.names})"
+            )
+        stamp = _stamp(frame.stamp_ns, sensor)
+        if self._last_stamp.get(sensor) == stamp:
+            self.duplicates_skipped += 1
+            return False
+        s = self.rig[sensor]
+        messages = self._encode(frame, s, stamp)  # checks everything before writing anything
+        if self._next_calibration_ns is None or stamp >= self._next_calibration_ns:
+            self._write_calibration(stamp)
+        for channel, msg in messages:
+            channel.log(msg, log_time=stamp)  # type: ignore[attr-defined]
+        self._last_stamp[sensor] = stamp
+        self.frames_written += 1
+        self.first_ns = stamp if self.first_ns is None else min(self.first_ns, stamp)
+        self.last_ns = stamp if self.last_ns is None else max(self.last_ns, stamp)
+        return True
+
+    def _check_plane(self, a: object, s: Sensor, what: str) -> np.ndarray:
+        w, h = s.image_size
+        if not isinstance(a, np.ndarray) or a.shape != (h, w):
+            got = a.shape if isinstance(a, np.ndarray) else type(a).__name__
+            raise RecordingError(
+                f"frame of {s.name!r}: {what}: expected an array of shape ({h}, {w}) "
+                f"(the rig's {w}x{h}), got {got}"
+            )
+        if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+            raise RecordingError(
+                f"frame of {s.name!r}: {what}: expected numbers, got dtype {a.dtype}"
+            )
+        return a
+
+    def _encode(self, frame: Frame, s: Sensor, stamp: int) -> list[tuple[object, object]]:
+        name = s.name
+        ts = _timestamp(stamp)
+        w, h = s.image_size
+        if s.modality == "color":
+            img = frame.image
+            if (
+                not isinstance(img, np.ndarray)
+                or img.dtype != np.uint8
+                or img.shape not in ((h, w, 3), (h, w))
+            ):
+                got = (
+                    f"{img.dtype} {img.shape}"
+                    if isinstance(img, np.ndarray)
+                    else type(img).__name__
+                )
+                raise RecordingError(
+                    f"frame of {name!r}: expected a colour image uint8 ({h}, {w}, 3) RGB, got {got}"
+                )
+            bgr = cv2.cvtColor(img, cv2.COLOR_RGB2BGR) if img.ndim == 3 else img
+            ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
+            if not ok:
+                raise RecordingError(f"frame of {name!r}: OpenCV could not encode it as JPEG")
+            msg = CompressedImage(timestamp=ts, frame_id=name, data=buf.tobytes(), format="jpeg")
+            return [(self._channels[(name, "color")], msg)]
+        if frame.distance_m is not None and s.modality != "tof":
+            raise RecordingError(f"frame of {name!r}: a {s.modality} frame has no distance_m")
+        image = self._check_plane(frame.image, s, "image")
+        if s.modality == "thermal":
+            if self.thermal_encoding == "16UC1":
+                raw = _raw(ts, name, encode_thermal(image), "16UC1")
+            else:
+                raw = _raw(ts, name, image.astype("<f4"), "32FC1")
+            return [(self._channels[(name, "thermal")], raw)]
+        out: list[tuple[object, object]] = []
+        if frame.distance_m is not None:
+            distance = self._check_plane(frame.distance_m, s, "distance_m")
+            out.append(
+                (self._channels[(name, "tof_distance")], _raw(ts, name, encode_distance(distance)))
+            )
+        out.append(
+            (self._channels[(name, "tof_amplitude")], _raw(ts, name, encode_amplitude(image)))
+        )
+        return out
+
+    def _write_calibration(self, stamp: int) -> None:
+        ts = _timestamp(stamp)
+        for name, s in self.rig.sensors.items():
+            i = s.intrinsics
+            model, d = distortion_model(i.distortion)
+            K = [float(v) for v in i.K.ravel()]
+            P = [i.fx, 0.0, i.cx, 0.0, 0.0, i.fy, i.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+            cal = CameraCalibration(
+                timestamp=ts,
+                frame_id=name,
+                width=int(s.image_size[0]),
+                height=int(s.image_size[1]),
+                distortion_model=model,
+                D=d,
+                K=K,
+                R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                P=P,
+            )
+            self._channels[(name, "calibration")].log(cal, log_time=stamp)  # type: ignore[attr-defined]
+            T = s.T_rig_sensor
+            x, y, z, w = quaternion_from_rotation(T[:3, :3])
+            tf = FrameTransform(
+                timestamp=ts,
+                parent_frame_id=RIG_FRAME,
+                child_frame_id=name,
+                translation=Vector3(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
+                rotation=Quaternion(x=x, y=y, z=z, w=w),
+            )
+            self._tf.log(tf, log_time=stamp)
+        self._next_calibration_ns = stamp + self.calibration_period_ns
+
+    # -- finishing ------------------------------------------------------------------------
+
+    def close(self) -> Path:
+        """Finish the file and give it its name; returns the path. Idempotent.
+
+        FileExistsError if a file of that name appeared meanwhile (the temporary file is
+        removed; nothing is overwritten).
+        """
+        if self._closed:
+            return self.path
+        self._closed = True
+        try:
+            self._mcap.close()
+            self._close_channels()
+            fd = os.open(self.temp_path, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+            try:
+                os.link(self.temp_path, self.path)
+            except FileExistsError:
+                raise FileExistsError(
+                    f"{self.path}: appeared while recording; refusing to overwrite it "
+                    "(the recording was discarded)"
+                ) from None
+            fsync_dir(self.path.parent)
+        finally:
+            self.temp_path.unlink(missing_ok=True)
+        return self.path
+
+    def abort(self) -> None:
+        """Stop writing and remove the temporary file (no recording appears)."""
+        if self._closed:
+            return
+        self._closed = True
+        with contextlib.suppress(Exception):
+            self._mcap.close()
+        self._close_channels()
+        self.temp_path.unlink(missing_ok=True)
+
+    def _close_channels(self) -> None:
+        for channel in [*self._channels.values(), self._tf]:
+            with contextlib.suppress(Exception):
+                channel.close()  # type: ignore[attr-defined]
+
+    def __enter__(self) -> RecordingWriter:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if exc_type is None or issubclass(exc_type, KeyboardInterrupt):
+            self.close()
+        else:
+            self.abort()
+
+    def __del__(self) -> None:
+        # An unclosed writer leaves no half-written temporary file behind.
+        if not getattr(self, "_closed", True):
+            with contextlib.suppress(Exception):
+                self.abort()
+
+
+def _raw(ts: Timestamp, frame_id: str, plane: np.ndarray, encoding: str = "16UC1") -> RawImage:
+    """A RawImage of a (H, W) uint16 (little-endian) or float32 plane."""
+    h, w = plane.shape
+    if encoding == "16UC1":
+        data = np.ascontiguousarray(plane, dtype="<u2")
+        step = 2 * w
+    else:
+        data = np.ascontiguousarray(plane, dtype="<f4")
+        step = 4 * w
+    return RawImage(
+        timestamp=ts,
+        frame_id=frame_id,
+        width=w,
+        height=h,
+        encoding=encoding,
+        step=step,
+        data=data.tobytes(),
+    )

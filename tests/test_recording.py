@@ -1,0 +1,705 @@
+"""Recordings: MCAP writing with Foxglove's schemas, replay, damage, the record/fuse commands."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+
+from app.capture import encode_amplitude, encode_distance, encode_thermal
+from app.cli import main
+from app.recording import (
+    RecordingDamaged,
+    RecordingError,
+    RecordingWriter,
+    ReplaySource,
+)
+from app.recording.simrecord import head_model_for, sim_schedule
+from app.rigfile import save_rig
+from app.sources.base import frame_sets
+from app.sources.frames import Frame, FrameSet
+from calib.camera import Intrinsics
+from calib.rig import Eye, Rig, Sensor
+from calib.transforms import make_T, rotation_from_euler_deg
+
+RATES_HZ = {"color": 30, "thermal": 27, "tof": 15}
+
+
+def small_rig() -> Rig:
+    """A five-sensor head at a tenth of the real resolutions (fast to encode and render)."""
+    spec = {  # name: modality, size, (fx, fy, cx, cy), translation m, (roll, pitch, yaw) deg
+        "tof": ("tof", (44, 36), (41.4, 41.4, 21.5, 17.5), (0, 0, 0), (0, 0, 0)),
+        "ccd_left": (
+            "color", (128, 96), (133.3, 133.1, 63.6, 47.4), (-0.06, -0.03, 0.002), (0.6, -1.1, 0.3)
+        ),
+        "ccd_right": (
+            "color", (128, 96), (133.6, 133.5, 63.8, 48.2), (0.06, -0.03, 0.002), (-0.4, 1.3, -0.5)
+        ),
+        "thermal_left": (
+            "thermal", (96, 72), (100.5, 100.4, 47.9, 35.7), (-0.055, 0.001, -0.01), (1.2, 1.6, 0)
+        ),
+        "thermal_right": (
+            "thermal", (96, 72), (99.9, 100.0, 47.4, 36.3), (0.055, -0.001, -0.01), (0, -1.8, 0.8)
+        ),
+    }  # fmt: skip
+    sensors = {}
+    for name, (modality, size, (fx, fy, cx, cy), t, rpy) in spec.items():
+        dist = (-0.1, 0.02, 0.0003, -0.0002, 0.0) if modality != "tof" else (0.0,) * 5
+        if name == "thermal_right":
+            dist = (-0.1, 0.02, 0.0003, -0.0002, 0.001, 0.01, -0.002, 0.0005)  # rational
+        T = make_T(rotation_from_euler_deg(*rpy), t)
+        sensors[name] = Sensor(name, modality, size, Intrinsics(fx, fy, cx, cy, dist), T)  # type: ignore[arg-type]
+    eyes = {"left": Eye("ccd_left", "thermal_left"), "right": Eye("ccd_right", "thermal_right")}
+    return Rig(sensors=sensors, reference="tof", eyes=eyes)
+
+
+def synth_frame(rig: Rig, sensor: str, stamp_ns: int, rng: np.random.Generator) -> Frame:
+    """A seeded frame with smooth content and noise, NaN where a sensor has no reading."""
+    s = rig[sensor]
+    w, h = s.image_size
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    phase = stamp_ns / 1e9
+    if s.modality == "color":
+        img = np.empty((h, w, 3), np.uint8)
+        for k in range(3):
+            base = 128 + 80 * np.sin(xx / (9 + 4 * k) + phase) * np.cos(yy / 13 - k)
+            img[..., k] = np.clip(base + rng.normal(0, 2, (h, w)), 0, 255)
+        return Frame(sensor, stamp_ns, img)
+    if s.modality == "thermal":
+        t = 290 + 15 * xx / w + 5 * np.sin(yy / 7 + phase) + rng.normal(0, 0.05, (h, w))
+        t = t.astype(np.float32)
+        t[0, :5] = np.nan
+        return Frame(sensor, stamp_ns, t)
+    dist = (0.5 + 7.5 * (xx + yy) / (w + h) + rng.normal(0, 0.01, (h, w))).astype(np.float32)
+    dist[rng.random((h, w)) < 0.05] = np.nan
+    amp = (rng.random((h, w)) * 20000).astype(np.float32)
+    return Frame(sensor, stamp_ns, amp, dist)
+
+
+def synth_frames(
+    rig: Rig, duration_s: float, seed: int = 0, start_ns: int = 1_000_000_000, skip=()
+) -> list[Frame]:
+    """Frames of every sensor at its own rate over ``duration_s``, in time order."""
+    rng = np.random.default_rng(seed)
+    frames = []
+    for name, s in rig.sensors.items():
+        if name in skip:
+            continue
+        rate = RATES_HZ[s.modality]
+        k = 0
+        while (t := k * 1_000_000_000 // rate) < duration_s * 1e9:
+            frames.append(synth_frame(rig, name, start_ns + t, rng))
+            k += 1
+    order = {n: i for i, n in enumerate(rig.names)}
+    return sorted(frames, key=lambda f: (f.stamp_ns, order[f.sensor]))
+
+
+def write_recording(path: Path, rig: Rig, frames: list[Frame], **kw) -> Path:
+    with RecordingWriter(path, rig, **kw) as w:
+        for f in frames:
+            w.write(f)
+    return path
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return float(10 * np.log10(255.0**2 / mse)) if mse else float("inf")
+
+
+def assert_same_frame(got: Frame, want: Frame) -> None:
+    assert (got.sensor, got.stamp_ns) == (want.sensor, want.stamp_ns)
+    if want.image.ndim == 3:
+        assert got.image.dtype == np.uint8 and got.image.shape == want.image.shape
+        assert psnr(got.image, want.image) > 35.0
+    elif want.distance_m is None:  # thermal: equal to the 0.01 K quantisation
+        assert got.image.dtype == np.float32
+        np.testing.assert_array_equal(encode_thermal(got.image), encode_thermal(want.image))
+        np.testing.assert_array_equal(np.isnan(got.image), np.isnan(want.image))
+    else:
+        assert got.image.dtype == np.float32 and got.distance_m.dtype == np.float32
+        np.testing.assert_array_equal(encode_amplitude(got.image), encode_amplitude(want.image))
+        np.testing.assert_array_equal(
+            encode_distance(got.distance_m), encode_distance(want.distance_m)
+        )
+        np.testing.assert_array_equal(np.isnan(got.distance_m), np.isnan(want.distance_m))
+        assert np.nanmax(np.abs(got.distance_m - want.distance_m)) <= 0.0005 + 1e-6
+
+
+@pytest.fixture(scope="module")
+def rig() -> Rig:
+    return small_rig()
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory, rig) -> tuple[Path, list[Frame]]:
+    frames = synth_frames(rig, 0.4, seed=3)
+    # small chunks (a few frames each), as a full-resolution recording has
+    path = tmp_path_factory.mktemp("rec") / "mission.mcap"
+    write_recording(path, rig, frames, chunk_size=32 * 1024)
+    return path, frames
+
+
+# -- round trip -----------------------------------------------------------------------------
+
+
+def test_round_trip_gives_the_same_frames_and_stamps(recorded, rig):
+    path, frames = recorded
+    with ReplaySource(path, realtime=False) as src:
+        got = list(src.frames())
+        assert src.rig == rig and src.rig_source == "attachment"
+        assert src.sensors == rig.names and src.recorded_sensors
+        assert src.notes == [] and src.damage is None
+        assert src.start_ns == frames[0].stamp_ns
+        assert src.duration_s == pytest.approx((frames[-1].stamp_ns - frames[0].stamp_ns) / 1e9)
+    assert len(got) == len(frames)
+    stamps = [f.stamp_ns for f in got]
+    assert stamps == sorted(stamps)
+    want = {(f.sensor, f.stamp_ns): f for f in frames}
+    assert {(f.sensor, f.stamp_ns) for f in got} == set(want)
+    for f in got:
+        assert_same_frame(f, want[(f.sensor, f.stamp_ns)])
+
+
+def test_real_scenario_frames_round_trip(tmp_path, rig):
+    from app.sources.sim.scenarios import InspectionScenario
+
+    fs, _ = InspectionScenario(rig=rig, model=head_model_for(rig), seed=1).render(0.5)
+    path = tmp_path / "sim.mcap"
+    with RecordingWriter(path, rig) as w:
+        assert w.write_set(fs) == 5
+    with ReplaySource(path, realtime=False) as src:
+        got = {f.sensor: f for f in src.frames()}
+    assert set(got) == set(rig.names)
+    for name, f in got.items():
+        assert_same_frame(f, fs[name])
+
+
+def test_frame_sets_of_a_replay(recorded, rig):
+    path, _ = recorded
+    with ReplaySource(path, realtime=False) as src:
+        sets = list(frame_sets(src, reference="ccd_left"))
+    assert len(sets) == 12  # 0.4 s of 30 Hz
+    assert all(not fs.missing for fs in sets[1:])
+    assert all(fs.frames.keys() == set(rig.names) for fs in sets[1:])
+
+
+def test_rig_rebuilt_from_calibration_messages(recorded, rig, monkeypatch):
+    import app.recording.reader as reader
+
+    monkeypatch.setattr(reader, "RIG_ATTACHMENT", "absent.yaml")
+    path, _ = recorded
+    with ReplaySource(path, realtime=False) as src:
+        got = src.rig
+        assert src.rig_source == "messages"
+    assert got is not None and got.reference == "tof" and got.eyes == rig.eyes
+    assert sorted(got.names) == sorted(rig.names)
+    for name in rig.names:
+        assert got[name].modality == rig[name].modality
+        assert got[name].image_size == rig[name].image_size
+        assert got[name].intrinsics == rig[name].intrinsics
+        np.testing.assert_allclose(got[name].T_rig_sensor, rig[name].T_rig_sensor, atol=1e-12)
+
+
+def test_tof_without_distance_and_32FC1_thermal(tmp_path, rig):
+    rng = np.random.default_rng(1)
+    tof = synth_frame(rig, "tof", 5, rng)
+    th = synth_frame(rig, "thermal_left", 5, rng)
+    path = tmp_path / "r.mcap"
+    with RecordingWriter(path, rig, thermal_encoding="32FC1", compression="lz4") as w:
+        w.write(Frame("tof", 5, tof.image))
+        w.write(th)
+    with ReplaySource(path, realtime=False) as src:
+        got = {f.sensor: f for f in src.frames()}
+    assert got["tof"].distance_m is None
+    np.testing.assert_array_equal(encode_amplitude(got["tof"].image), encode_amplitude(tof.image))
+    np.testing.assert_array_equal(got["thermal_left"].image, th.image)  # float32 exact
+
+
+# -- the file as Foxglove sees it -------------------------------------------------------------
+
+
+def test_file_layout_with_the_plain_mcap_reader(recorded, rig):
+    from scipy.spatial.transform import Rotation
+
+    path, _ = recorded
+
+    with path.open("rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        topics = {ch.topic: summary.schemas[ch.schema_id].name for ch in summary.channels.values()}
+        assert topics["/ccd_left/image"] == "foxglove.CompressedImage"
+        assert topics["/thermal_right/temperature"] == "foxglove.RawImage"
+        assert topics["/tof/distance"] == "foxglove.RawImage"
+        assert topics["/tof/amplitude"] == "foxglove.RawImage"
+        assert topics["/tof/calibration"] == "foxglove.CameraCalibration"
+        assert topics["/tf"] == "foxglove.FrameTransform"
+        assert len(topics) == 2 + 2 + 2 + 5 + 1  # images, calibrations, /tf
+        atts = list(reader.iter_attachments())
+        assert [a.name for a in atts] == ["rig.yaml"]
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+        assert meta["trifuse.recording"]["format"] == "trifuse-recording/1"
+        seen_tf, seen_cal = {}, {}
+        for _schema, channel, message, msg in reader.iter_decoded_messages():
+            stamp = msg.timestamp.seconds * 10**9 + msg.timestamp.nanos
+            assert stamp == message.log_time
+            if channel.topic == "/tf":
+                seen_tf[msg.child_frame_id] = msg
+                continue
+            sensor = channel.topic.split("/")[1]
+            assert msg.frame_id == sensor
+            if channel.topic.endswith("/calibration"):
+                seen_cal[sensor] = msg
+            elif channel.topic.endswith("/image"):
+                assert msg.format == "jpeg" and msg.data[:2] == b"\xff\xd8"
+            else:
+                assert msg.encoding == "16UC1" and msg.step == 2 * msg.width
+    assert set(seen_tf) == set(rig.names) == set(seen_cal)
+    for name, tf in seen_tf.items():
+        assert tf.parent_frame_id == "rig"
+        T = rig[name].T_rig_sensor
+        q = tf.rotation
+        R = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+        np.testing.assert_allclose(R, T[:3, :3], atol=1e-12)
+        t = tf.translation
+        np.testing.assert_allclose([t.x, t.y, t.z], T[:3, 3], atol=1e-15)
+    cal = seen_cal["thermal_left"]
+    assert cal.distortion_model == "plumb_bob" and len(cal.D) == 5
+    assert (cal.width, cal.height) == rig["thermal_left"].image_size
+    np.testing.assert_array_equal(np.reshape(cal.K, (3, 3)), rig["thermal_left"].intrinsics.K)
+    assert seen_cal["thermal_right"].distortion_model == "rational_polynomial"
+
+
+# -- the writer -------------------------------------------------------------------------------
+
+
+def test_writer_is_atomic_and_never_overwrites(tmp_path, rig):
+    path = tmp_path / "a.mcap"
+    frame = synth_frame(rig, "ccd_left", 0, np.random.default_rng(0))
+    w = RecordingWriter(path, rig, jpeg_quality=50)
+    w.write(frame)
+    assert not path.exists() and w.temp_path.parent == tmp_path and w.temp_path.exists()
+    w.close()
+    assert path.exists() and not w.temp_path.exists() and list(tmp_path.iterdir()) == [path]
+    with pytest.raises(FileExistsError, match="refusing to overwrite"):
+        RecordingWriter(path, rig)
+    # a file appearing while recording is not replaced either
+    other = tmp_path / "b.mcap"
+    w = RecordingWriter(other, rig)
+    other.write_bytes(b"someone else's")
+    with pytest.raises(FileExistsError, match="appeared while recording"):
+        w.close()
+    assert other.read_bytes() == b"someone else's"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.mcap", "b.mcap"]
+
+
+def test_writer_abort_and_exceptions_leave_no_file(tmp_path, rig):
+    path = tmp_path / "a.mcap"
+    with pytest.raises(ZeroDivisionError), RecordingWriter(path, rig):
+        1 / 0  # noqa: B018
+    assert list(tmp_path.iterdir()) == []
+    w = RecordingWriter(path, rig)
+    w.abort()
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(KeyboardInterrupt), RecordingWriter(path, rig) as w:
+        w.write(synth_frame(rig, "tof", 7, np.random.default_rng(0)))
+        raise KeyboardInterrupt
+    assert path.exists()  # what was recorded is kept
+
+
+def test_writer_checks_frames(tmp_path, rig):
+    rng = np.random.default_rng(0)
+    with RecordingWriter(tmp_path / "a.mcap", rig) as w:
+        with pytest.raises(
+            RecordingError, match="'nope': the sensor is not in the recording's rig"
+        ):
+            w.write(Frame("nope", 0, np.zeros((2, 2), np.float32)))
+        with pytest.raises(RecordingError, match=r"expected an array of shape \(72, 96\)"):
+            w.write(Frame("thermal_left", 0, np.zeros((10, 10), np.float32)))
+        with pytest.raises(RecordingError, match=r"uint8 \(96, 128, 3\) RGB, got float32"):
+            w.write(Frame("ccd_left", 0, np.zeros((96, 128, 3), np.float32)))
+        with pytest.raises(RecordingError, match="stamp_ns: expected an integer"):
+            w.write(Frame("ccd_left", 0.5, synth_frame(rig, "ccd_left", 0, rng).image))  # type: ignore[arg-type]
+        with pytest.raises(RecordingError, match="has no distance_m"):
+            f = synth_frame(rig, "thermal_left", 0, rng)
+            w.write(Frame("thermal_left", 0, f.image, f.image))
+        assert w.frames_written == 0
+    with pytest.raises(RecordingError, match="jpeg_quality"):
+        RecordingWriter(tmp_path / "b.mcap", rig, jpeg_quality=0)
+
+
+def test_write_set_skips_repeated_frames(tmp_path, rig):
+    rng = np.random.default_rng(0)
+    slow = synth_frame(rig, "tof", 0, rng)
+    path = tmp_path / "a.mcap"
+    with RecordingWriter(path, rig) as w:
+        for k in range(3):
+            fs = FrameSet(k * 33_333_333, {"tof": slow})
+            fs.frames["ccd_left"] = synth_frame(rig, "ccd_left", k * 33_333_333, rng)
+            w.write_set(fs)
+        assert (w.frames_written, w.duplicates_skipped) == (4, 2)
+    with ReplaySource(path, realtime=False) as src:
+        assert [f.sensor for f in src.frames()].count("tof") == 1
+
+
+# -- damage -----------------------------------------------------------------------------------
+
+
+def _replay_all(path: Path, **kw) -> tuple[list[Frame], RecordingDamaged | None]:
+    got: list[Frame] = []
+    with ReplaySource(path, realtime=False, **kw) as src:
+        try:
+            for f in src.frames():
+                got.append(f)
+        except RecordingDamaged as exc:
+            assert exc is src.damage
+            return got, exc
+    return got, None
+
+
+def _check_prefix(got: list[Frame], frames: list[Frame]) -> None:
+    """Every delivered frame is an original one, in order, with nothing skipped before it."""
+    want = {(f.sensor, f.stamp_ns): f for f in frames}
+    for f in got:
+        assert_same_frame(f, want[(f.sensor, f.stamp_ns)])
+    stamps = [f.stamp_ns for f in got]
+    assert stamps == sorted(stamps)
+    if got:
+        last = got[-1].stamp_ns
+        # everything strictly before the last delivered instant was delivered
+        earlier = {(f.sensor, f.stamp_ns) for f in frames if f.stamp_ns < last}
+        assert earlier <= {(f.sensor, f.stamp_ns) for f in got}
+
+
+@pytest.mark.parametrize("fraction", [0.004, 0.05, 0.3, 0.5, 0.77, 0.95])
+def test_truncated_recording_replays_up_to_the_cut(recorded, tmp_path, fraction):
+    path, frames = recorded
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * fraction)])
+    got, damage = _replay_all(cut)
+    assert damage is not None, "a truncated recording must say so"
+    assert "truncated" in str(damage) and str(cut) in str(damage)
+    assert damage.frames_delivered == len(got) < len(frames)
+    _check_prefix(got, frames)
+    if fraction >= 0.3:
+        assert len(got) > len(frames) * (fraction - 0.25)
+
+
+def test_recording_cut_after_its_data_plays_completely(recorded, tmp_path):
+    path, frames = recorded
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[:-100])  # inside the summary: every message is still there
+    got, damage = _replay_all(cut)
+    assert damage is None and len(got) == len(frames)
+    with ReplaySource(cut) as src:
+        assert src.index.indexed_by == "scan"
+        assert any("truncated" in n for n in src.notes)
+
+
+def test_truncated_recording_can_stop_with_a_warning(recorded, tmp_path, caplog):
+    path, frames = recorded
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[: len(path.read_bytes()) // 2])
+    with (
+        caplog.at_level(logging.WARNING),
+        ReplaySource(cut, realtime=False, on_damage="stop") as src,
+    ):
+        got = list(src.frames())
+        assert isinstance(src.damage, RecordingDamaged)
+        assert src.rig is not None  # the rig attachment is at the start
+    assert 0 < len(got) < len(frames)
+    assert "recording damaged" in caplog.text
+
+
+@pytest.mark.parametrize("fraction", [0.2, 0.45, 0.7, 0.9])
+def test_corrupted_chunk_replays_up_to_the_damage(recorded, tmp_path, fraction):
+    path, frames = recorded
+    with ReplaySource(path) as src:
+        chunks = src.index.chunks
+    chunk = chunks[int(len(chunks) * fraction)]
+    data = bytearray(path.read_bytes())
+    i = chunk.offset + 9 + chunk.length // 2  # inside the chunk's compressed messages
+    data[i : i + 3] = bytes(b ^ 0x5A for b in data[i : i + 3])
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    got, damage = _replay_all(bad)
+    assert damage is not None and "corrupted" in damage.reason
+    assert damage.offset == chunk.offset and f"at byte {chunk.offset}" in str(damage)
+    _check_prefix(got, frames)
+    assert {(f.sensor, f.stamp_ns) for f in frames if f.stamp_ns < chunk.start_ns} <= {
+        (f.sensor, f.stamp_ns) for f in got
+    }
+    assert len(got) < len(frames)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_flipped_bytes_anywhere_never_give_wrong_frames(recorded, tmp_path, seed):
+    path, frames = recorded
+    data = bytearray(path.read_bytes())
+    rng = np.random.default_rng(seed)
+    i = int(rng.integers(8, len(data) - 8))
+    data[i] ^= 0xFF
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    try:
+        got, damage = _replay_all(bad)
+    except RecordingError as exc:  # the header itself: not a recording any more
+        assert i < 16, exc
+        return
+    _check_prefix(got, frames)
+    if damage is None:  # the flip hit bytes no frame depends on
+        assert len(got) == len(frames)
+
+
+def test_damaged_summary_is_rebuilt_by_scanning(recorded, tmp_path):
+    path, frames = recorded
+    data = bytearray(path.read_bytes())
+    data[-60] ^= 0xFF  # inside the summary section
+    bad = tmp_path / "summary.mcap"
+    bad.write_bytes(bytes(data))
+    with ReplaySource(bad, realtime=False) as src:
+        assert src.index.indexed_by == "scan"
+        assert any("summary" in n for n in src.notes)
+        got = list(src.frames())
+    assert len(got) == len(frames)
+
+
+def test_not_a_recording(tmp_path):
+    p = tmp_path / "x.mcap"
+    p.write_bytes(b"hello, world, this is no mcap")
+    with pytest.raises(RecordingError, match="not an MCAP file"):
+        ReplaySource(p)
+    with pytest.raises(RecordingError, match="cannot open"):
+        ReplaySource(tmp_path / "missing.mcap")
+
+
+def test_recording_missing_a_sensor_plays_the_others(tmp_path, rig):
+    frames = synth_frames(rig, 0.2, seed=5, skip=("thermal_right",))
+    path = write_recording(tmp_path / "m.mcap", rig, frames)
+    with ReplaySource(path, realtime=False) as src:
+        assert "thermal_right" in src.sensors and "thermal_right" not in src.recorded_sensors
+        assert any("thermal_right" in n for n in src.notes)
+        sets = list(frame_sets(src, reference="ccd_left"))
+    assert len(sets) == 6
+    for fs in sets:
+        assert "thermal_right" in fs.missing and "thermal_right" not in fs.frames
+        assert "thermal_left" in fs.frames or fs is sets[0]
+
+
+# -- rate, pause, seek, loop --------------------------------------------------------------------
+
+
+def test_seek_by_fraction_and_stamp(recorded):
+    path, frames = recorded
+    with ReplaySource(path, realtime=False) as src:
+        mid = src.seek(0.5)
+        assert mid == src.start_ns + (src.end_ns - src.start_ns) // 2
+        assert src.position_ns == mid
+        got = list(src.frames())
+        assert got[0].stamp_ns >= mid and len(got) < len(frames)
+        assert {(f.sensor, f.stamp_ns) for f in got} == {
+            (f.sensor, f.stamp_ns) for f in frames if f.stamp_ns >= mid
+        }
+        # seeking while iterating: back to the start
+        it = src.frames()
+        first = [next(it) for _ in range(10)]
+        assert src.position_ns == first[-1].stamp_ns
+        src.seek(src.start_ns)
+        again = [next(it) for _ in range(10)]
+        assert [(f.sensor, f.stamp_ns) for f in again] == [(f.sensor, f.stamp_ns) for f in first]
+        assert src.seek(10**18) == src.end_ns and src.seek(0) == src.start_ns
+        with pytest.raises(RecordingError, match="fraction"):
+            src.seek(1.5)
+        with pytest.raises(RecordingError, match="seek"):
+            src.seek("middle")  # type: ignore[arg-type]
+
+
+def test_loop_starts_again(recorded):
+    path, frames = recorded
+    with ReplaySource(path, realtime=False, loop=True) as src:
+        it = src.frames()
+        got = [next(it) for _ in range(2 * len(frames) + 5)]
+    keys = [(f.sensor, f.stamp_ns) for f in got]
+    n = len(frames)
+    assert keys[:n] == keys[n : 2 * n] and keys[2 * n :] == keys[:5]
+
+
+def test_rate_is_checked(recorded):
+    path, _ = recorded
+    with ReplaySource(path) as src:
+        for bad in (0, -1, float("nan"), float("inf"), True):
+            with pytest.raises(RecordingError, match="rate"):
+                src.rate = bad
+        src.rate = 0.5
+        assert src.rate == 0.5
+
+
+def _paced(path: Path, rate: float) -> float:
+    with ReplaySource(path, rate=rate) as src:
+        t0 = time.monotonic()
+        n = sum(1 for _ in src.frames())
+        assert n > 0
+        return time.monotonic() - t0
+
+
+def test_realtime_pacing_follows_the_rate(tmp_path, rig):
+    rng = np.random.default_rng(0)
+    # a light recording: 0.6 s of the TOF at 15 Hz
+    frames = [synth_frame(rig, "tof", k * 1_000_000_000 // 15, rng) for k in range(10)]
+    path = write_recording(tmp_path / "tof.mcap", rig, frames)
+    span = (frames[-1].stamp_ns - frames[0].stamp_ns) / 1e9  # 0.6 s
+    t1 = _paced(path, 1.0)
+    t2 = _paced(path, 2.0)
+    assert span * 0.9 <= t1 <= span + 0.5
+    assert span / 2 * 0.9 <= t2 <= span / 2 + 0.4
+    assert 0.3 <= t2 / t1 <= 0.75
+
+
+def test_pause_and_resume(tmp_path, rig):
+    rng = np.random.default_rng(0)
+    frames = [synth_frame(rig, "tof", k * 20_000_000, rng) for k in range(20)]  # 0.4 s
+    path = write_recording(tmp_path / "tof.mcap", rig, frames)
+    got: list[Frame] = []
+    with ReplaySource(path, rate=1.0) as src:
+        worker = threading.Thread(target=lambda: got.extend(src.frames()))
+        worker.start()
+        deadline = time.monotonic() + 5
+        while len(got) < 3 and time.monotonic() < deadline:
+            time.sleep(0.005)
+        src.pause()
+        assert src.paused
+        time.sleep(0.05)
+        held = len(got)
+        time.sleep(0.4)  # longer than the rest of the recording
+        assert len(got) == held < len(frames)
+        pos = src.position_ns
+        assert pos == got[-1].stamp_ns
+        src.resume()
+        worker.join(5)
+        assert not worker.is_alive()
+    assert [f.stamp_ns for f in got] == [f.stamp_ns for f in frames]
+
+
+# -- the commands -----------------------------------------------------------------------------
+
+
+def test_sim_schedule_renders_each_instant_once(rig):
+    sched = sim_schedule(rig, 0.2)
+    stamps = [s for s, _ in sched]
+    assert stamps == sorted(set(stamps))
+    per_sensor = {n: sum(n in sensors for _, sensors in sched) for n in rig.names}
+    assert per_sensor == {
+        "tof": 3,
+        "ccd_left": 6,
+        "ccd_right": 6,
+        "thermal_left": 6,  # 0, 1/27 ... 5/27 < 0.2
+        "thermal_right": 6,
+    }
+    # colour and TOF share instants exactly
+    assert dict(sched)[1_000_000_000 // 15] == ["tof", "ccd_left", "ccd_right"]
+
+
+def test_record_sim_and_fuse_commands(tmp_path, rig, capsys):
+    rig_path = save_rig(tmp_path / "rig.yaml", rig)
+    out = tmp_path / "mission.mcap"
+    code = main(
+        [
+            "record",
+            "--source",
+            "sim",
+            "--out",
+            str(out),
+            "--duration",
+            "0.07",
+            "--rig",
+            str(rig_path),
+        ]
+    )
+    printed = capsys.readouterr()
+    assert code == 0, printed.err
+    assert "[1/" in printed.out and "Wrote" in printed.out
+    with out.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    schemas = {summary.schemas[c.schema_id].name for c in summary.channels.values()}
+    assert schemas == {
+        "foxglove.CompressedImage",
+        "foxglove.RawImage",
+        "foxglove.CameraCalibration",
+        "foxglove.FrameTransform",
+    }
+    topics = {c.topic for c in summary.channels.values()}
+    assert {
+        "/ccd_left/image",
+        "/thermal_left/temperature",
+        "/tof/distance",
+        "/tof/amplitude",
+    } <= topics
+    counts = {
+        c.topic: summary.statistics.channel_message_counts[c.id] for c in summary.channels.values()
+    }
+    assert counts["/ccd_left/image"] == 3 and counts["/tof/distance"] == 2
+    assert counts["/thermal_right/temperature"] == 2
+
+    # refuses to overwrite; bad sources are one line and exit 2
+    assert main(["record", "--source", "sim", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "exists; refusing to overwrite" in err and err.count("\n") == 1
+    assert main(["record", "--source", "camera", "--out", str(tmp_path / "x.mcap")]) == 2
+    assert "expected 'sim' or 'replay:FILE'" in capsys.readouterr().err
+
+    # re-record
+    again = tmp_path / "again.mcap"
+    assert main(["record", "--source", f"replay:{out}", "--out", str(again)]) == 0
+    with ReplaySource(again, realtime=False) as src:
+        assert src.rig == rig and len(list(src.frames())) == 3 + 3 + 2 + 2 + 2
+    capsys.readouterr()
+
+    # fuse
+    fused = tmp_path / "fused"
+    code = main(["fuse", str(out), "--rig", str(rig_path), "--out", str(fused), "--mode", "blend"])
+    printed = capsys.readouterr()
+    assert code == 0, printed.err
+    jpgs = sorted(p.name for p in fused.glob("*.jpg"))
+    assert jpgs == ["000000.jpg", "000001.jpg", "000002.jpg"]
+    assert "3/3 frames" in printed.err and "[####" in printed.err
+    import cv2
+
+    img = cv2.imread(str(fused / "000000.jpg"))
+    assert img.shape == (96, 2 * 128, 3)
+    assert (fused / "frames.csv").read_text().count("\n") == 4
+    if (fused / "fused.mp4").exists():
+        assert "Video:" in printed.out
+        cap = cv2.VideoCapture(str(fused / "fused.mp4"))
+        assert cap.isOpened() and int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 3
+    else:
+        assert "No video" in printed.out
+    # a non-empty DIR is refused; --every
+    assert main(["fuse", str(out), "--out", str(fused)]) == 2
+    assert "not empty" in capsys.readouterr().err
+    fused2 = tmp_path / "fused2"
+    assert main(["fuse", str(out), "--out", str(fused2), "--every", "2", "--mode", "edges"]) == 0
+    assert len(list(fused2.glob("*.jpg"))) == 2
+
+
+def test_fuse_a_damaged_recording_says_so(recorded, tmp_path, capsys):
+    path, _ = recorded
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[: int(path.stat().st_size * 0.6)])
+    code = main(["fuse", str(cut), "--out", str(tmp_path / "f"), "--every", "3"])
+    printed = capsys.readouterr()
+    assert code == 0, printed.err
+    assert "warning:" in printed.err and "truncated" in printed.err
+    assert 0 < len(list((tmp_path / "f").glob("*.jpg"))) < 4
+
+
+def test_recording_benchmark_is_registered():
+    from app.bench import REGISTRY
+
+    assert "recording" in REGISTRY
