@@ -575,30 +575,50 @@ def _cmd_record(args: argparse.Namespace) -> int:
             raise
         _record_summary(out, writer)
         return EXIT_OK
-    if not source.startswith("replay:") or not source[len("replay:") :]:
+    kind, _, arg = source.partition(":")
+    if kind not in ("replay", "live") or not arg:
         raise UsageError(
-            f"{PROG} record: --source: expected 'sim' or 'replay:FILE', got {source!r}"
+            f"{PROG} record: --source: expected 'sim', 'replay:FILE' or 'live:CONFIG', "
+            f"got {source!r}"
         )
-    path = Path(source[len("replay:") :])
-    if path.resolve() == out.resolve():
-        raise UsageError(f"{PROG} record: --out must differ from the recording replayed")
-    with ReplaySource(path, realtime=False) as src:
+    path = Path(arg)
+    if kind == "replay":
+        if path.resolve() == out.resolve():
+            raise UsageError(f"{PROG} record: --out must differ from the recording replayed")
+        src = ReplaySource(path, realtime=False)
         rig = rig or src.rig
         if rig is None:
+            src.close()
             raise ValueError(f"{path}: the recording holds no rig; give one with --rig")
-        end = None if args.duration is None else src.start_ns + round(args.duration * 1e9)
         _out(f"Re-recording {path} ({src.duration_s:.3f} s, sensors {', '.join(src.sensors)})")
-        damage = None
-        with RecordingWriter(out, rig, jpeg_quality=args.jpeg_quality) as writer:
-            try:
-                for frame in src.frames():
-                    if end is not None and frame.stamp_ns >= end:
-                        break
-                    writer.write(frame)
-                    if writer.frames_written % 100 == 0:
-                        _out(f"  {writer.frames_written} frames")
-            except RecordingDamaged as exc:
-                damage = exc
+        end_ns = None if args.duration is None else src.start_ns + round(args.duration * 1e9)
+    else:
+        from app.sources.camera import CameraSource
+
+        if rig is None:
+            raise UsageError(
+                f"{PROG} record: --source live:CONFIG needs --rig RIG.yaml "
+                "(cameras do not know their calibration)"
+            )
+        src = CameraSource(path, rig=rig)
+        end_ns = None
+        if args.duration is not None:
+            end_ns = time.time_ns() + round(args.duration * 1e9)
+        _out(
+            f"Recording {', '.join(src.sensors)} from {path}"
+            + (f" for {args.duration:g} s" if args.duration else " until Ctrl-C")
+        )
+    damage = None
+    with src, RecordingWriter(out, rig, jpeg_quality=args.jpeg_quality) as writer:
+        try:
+            for frame in src.frames():
+                if end_ns is not None and frame.stamp_ns >= end_ns:
+                    break
+                writer.write(frame)
+                if writer.frames_written % 100 == 0:
+                    _out(f"  {writer.frames_written} frames")
+        except RecordingDamaged as exc:
+            damage = exc
     _record_summary(out, writer)
     if damage is not None:
         _err(f"{PROG}: warning: {damage}; the frames before it were recorded")
@@ -887,7 +907,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--source",
         required=True,
         metavar="SOURCE",
-        help="'sim' (the simulated head) or 'replay:FILE' (a recording)",
+        help="'sim' (the simulated head), 'replay:FILE' (a recording) or 'live:CONFIG' "
+        "(OpenCV cameras, docs/FORMATS.md 'Live camera configuration'; needs --rig)",
     )
     rec.add_argument(
         "--out", required=True, metavar="FILE.mcap", help="recording to write (must not exist)"

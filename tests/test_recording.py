@@ -7,6 +7,7 @@ import threading
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from mcap.reader import make_reader
@@ -703,3 +704,58 @@ def test_recording_benchmark_is_registered():
     from app.bench import REGISTRY
 
     assert "recording" in REGISTRY
+
+
+def test_record_live_cameras_from_a_config(tmp_path):
+    """`trifuse record --source live:CONFIG`: OpenCV devices (here a video file and a
+    16-bit PNG sequence) recorded for a duration, then replayed."""
+    from app.cli import main as cli_main
+    from app.rigfile import save_rig
+    from app.sources.sim.head import default_rig
+    from calib.rig import Rig
+
+    full = default_rig()
+    rig = Rig({n: full[n] for n in ("tof", "ccd_left", "thermal_left")}, "tof")
+    save_rig(tmp_path / "rig.yaml", rig)
+    writer = cv2.VideoWriter(
+        str(tmp_path / "ccd.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 30, (1280, 960)
+    )
+    assert writer.isOpened()
+    for k in range(20):
+        writer.write(np.full((960, 1280, 3), 10 * k, np.uint8))
+    writer.release()
+    (tmp_path / "th").mkdir()
+    for k in range(10):
+        cv2.imwrite(
+            str(tmp_path / "th" / f"f_{k:03d}.png"), np.full((288, 382), 30000 + k, np.uint16)
+        )
+    (tmp_path / "cams.yaml").write_text(
+        "format: trifuse-cameras/1\n"
+        "sensors:\n"
+        "  ccd_left: {device: ccd.avi, max_rate_hz: 30, loop: true}\n"
+        "  thermal_left: {device: th/f_%03d.png, max_rate_hz: 27, loop: true}\n"
+    )
+    out = tmp_path / "live.mcap"
+    assert (
+        cli_main(
+            [
+                "record",
+                "--source",
+                f"live:{tmp_path / 'cams.yaml'}",
+                "--rig",
+                str(tmp_path / "rig.yaml"),
+                "--duration",
+                "1.0",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    with ReplaySource(out, realtime=False) as src:
+        frames = list(src.frames())
+    sensors = {f.sensor for f in frames}
+    assert sensors == {"ccd_left", "thermal_left"}
+    thermal = [f for f in frames if f.sensor == "thermal_left"]
+    assert 300.0 <= float(thermal[0].image[0, 0]) <= 300.1  # 30000..30009 centi-kelvin
+    assert len([f for f in frames if f.sensor == "ccd_left"]) >= 10
