@@ -179,6 +179,25 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# -- serve --------------------------------------------------------------------------------
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    from app.server.serve import open_source, serve
+
+    if args.host not in ("127.0.0.1", "localhost", "::1"):
+        raise UsageError(
+            f"{PROG} serve: --host {args.host}: the console has no authentication yet, so it "
+            "only binds to loopback (127.0.0.1); reach it remotely through an SSH tunnel"
+        )
+    chosen = [x for x in (args.replay, args.live, args.push or None) if x]
+    if len(chosen) > 1:
+        raise UsageError(f"{PROG} serve: choose one of --replay, --live, --push")
+    source, rig, description = open_source(args.replay, args.live, args.push, args.rig)
+    serve(source, rig, description, args.host, args.port)
+    return EXIT_OK
+
+
 # -- bench --------------------------------------------------------------------------------
 
 
@@ -792,6 +811,42 @@ def build_parser() -> argparse.ArgumentParser:
         "(default: refine them with the poses)",
     )
     cal.set_defaults(func=_cmd_calibrate)
+
+    # serve ---------------------------------------------------------------------------
+    srv = commands.add_parser(
+        "serve",
+        help="start the console: fused stereo viewer, 3D scene, stream (one URL)",
+        description=(
+            "Start the console on one port: the operator's fused stereo viewer at /, the "
+            "stream (/stream WebSocket, /stream.mjpg), the Viser 3D console at /console/ "
+            "(rig frames, sensor frustums, live TOF point cloud) and the API under /api/ "
+            "(OpenAPI at /docs). Without a source option it runs on the simulated head."
+        ),
+    )
+    srv.add_argument("--replay", metavar="FILE", help="replay a recording (looping)")
+    srv.add_argument(
+        "--live",
+        metavar="CONFIG",
+        help="OpenCV cameras (docs/FORMATS.md 'Live camera configuration'; needs --rig)",
+    )
+    srv.add_argument(
+        "--push",
+        action="store_true",
+        help="take frames pushed by an on-robot driver at /ingest "
+        "(docs/FORMATS.md 'Push ingest protocol')",
+    )
+    srv.add_argument(
+        "--rig",
+        metavar="RIG.yaml",
+        help="the calibrated rig (default: the recording's or the simulated head's)",
+    )
+    srv.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to bind (default: %(default)s; loopback only for now)",
+    )
+    srv.add_argument("--port", type=_positive_int, default=8000, help="port (default: %(default)s)")
+    srv.set_defaults(func=_cmd_serve)
 
     # bench ---------------------------------------------------------------------------
     bench = commands.add_parser(

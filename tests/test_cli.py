@@ -14,7 +14,7 @@ from app import bench
 from app.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
-COMMANDS = ["simulate", "calibrate", "analyze", "bench"]
+COMMANDS = ["simulate", "calibrate", "analyze", "record", "fuse", "serve", "bench"]
 
 
 def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
@@ -233,3 +233,14 @@ def test_nominal_rig_applies_to_any_rig() -> None:
         np.testing.assert_array_equal(start[name].T_rig_sensor[:3, :3], np.eye(3))
         mean_f = (truth[name].intrinsics.fx + truth[name].intrinsics.fy) / 2
         assert start[name].intrinsics.fx == start[name].intrinsics.fy == round(mean_f)
+
+
+def test_serve_refuses_a_public_address_and_conflicting_sources(capsys) -> None:
+    from app.cli import main as cli_main
+
+    assert cli_main(["serve", "--host", "0.0.0.0"]) == 2
+    assert "only binds to loopback" in capsys.readouterr().err
+    assert cli_main(["serve", "--replay", "a.mcap", "--push"]) == 2
+    assert "choose one of" in capsys.readouterr().err
+    assert cli_main(["serve", "--live", "cams.yaml"]) == 2
+    assert "--live needs --rig" in capsys.readouterr().err

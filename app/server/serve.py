@@ -1,0 +1,89 @@
+"""``trifuse serve``: a source, the fusion pipeline, Viser on loopback, FastAPI on one
+public port (127.0.0.1 by default)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+from pathlib import Path
+
+import uvicorn
+import viser
+
+from app.rigfile import load_rig
+from app.server.app import create_app
+from app.server.pipeline import FusionPipeline
+from app.server.scene3d import SceneUpdater, add_rig
+from app.server.stream import FrameHub
+from app.sources.base import FrameSource
+from calib.rig import Rig
+
+
+def open_source(
+    replay: str | None, live: str | None, push: bool, rig_path: str | None
+) -> tuple[FrameSource, Rig, str]:
+    """The source the console shows, its rig, and a one-line description."""
+    rig = load_rig(rig_path) if rig_path else None
+    if replay:
+        from app.recording import ReplaySource
+
+        src = ReplaySource(Path(replay), loop=True, realtime=True)
+        rig = rig or src.rig
+        if rig is None:
+            src.close()
+            raise ValueError(f"{replay}: the recording holds no rig; give one with --rig")
+        return src, rig, f"replay of {replay} (looping)"
+    if live:
+        from app.sources.camera import CameraSource
+
+        if rig is None:
+            raise ValueError("--live needs --rig RIG.yaml (cameras do not know their calibration)")
+        return CameraSource(Path(live), rig=rig), rig, f"live cameras of {live}"
+    if push:
+        from app.sources.push import PushSource
+        from app.sources.sim.head import default_rig
+
+        rig = rig or default_rig()
+        return PushSource(rig), rig, "frames pushed to /ingest"
+    from app.sources.simulated import SimulatedHeadSource
+
+    src = SimulatedHeadSource(realtime=True)
+    return src, rig or src.rig, "the simulated head (inspection room)"
+
+
+def serve(
+    source: FrameSource, rig: Rig, description: str, host: str = "127.0.0.1", port: int = 8000
+) -> None:
+    """Run the console until interrupted."""
+    hub = FrameHub()
+    pipeline = FusionPipeline(source, rig, hub).start()
+    with contextlib.redirect_stdout(io.StringIO()):  # Viser's banner shows its inner port
+        server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    add_rig(server, rig)
+    scene = SceneUpdater(server, pipeline).start()
+    app = create_app(hub, server.get_port(), pipeline)
+    ws_max = None
+    from app.sources.push import PushSource, make_push_router, uvicorn_ws_max_size
+
+    if isinstance(source, PushSource):
+        app.include_router(make_push_router(source))
+        ws_max = uvicorn_ws_max_size(source)
+    shown = "127.0.0.1" if host in ("0.0.0.0", "::") else host
+    print(
+        f"trifuse console on {description}: http://{shown}:{port}/  "
+        f"(3D console /console/, API /docs)",
+        flush=True,
+    )
+    config = uvicorn.Config(
+        app,
+        host=host,
+        port=port,
+        log_level="warning",
+        **({"ws_max_size": ws_max} if ws_max else {}),
+    )
+    try:
+        uvicorn.Server(config).run()
+    finally:
+        scene.stop()
+        pipeline.stop()
+        server.stop()
