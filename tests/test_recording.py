@@ -653,7 +653,7 @@ def test_record_sim_and_fuse_commands(tmp_path, rig, capsys):
     err = capsys.readouterr().err
     assert "exists; refusing to overwrite" in err and err.count("\n") == 1
     assert main(["record", "--source", "camera", "--out", str(tmp_path / "x.mcap")]) == 2
-    assert "expected 'sim' or 'replay:FILE'" in capsys.readouterr().err
+    assert "expected 'sim', 'replay:FILE' or 'live:CONFIG'" in capsys.readouterr().err
 
     # re-record
     again = tmp_path / "again.mcap"

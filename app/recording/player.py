@@ -22,6 +22,7 @@ import math
 import numbers
 import threading
 import time
+from abc import abstractmethod
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -125,9 +126,9 @@ class MessageReplay(FrameSource):
 
     # -- subclass hooks -------------------------------------------------------------------
 
+    @abstractmethod
     def _route(self, channel: Channel) -> Route | None:
         """How to handle a channel's messages (None: ignore them)."""
-        raise NotImplementedError
 
     def _side_message(self, route: Route, message: Message) -> None:
         """A message of a non-frame kind (calibration, camera info); ignored by default."""
