@@ -55,6 +55,11 @@ class StereoFusion:
         self._reverse_stale = True
 
     @property
+    def points(self) -> np.ndarray:
+        """The last TOF frame's valid points (N, 3) float32, TOF frame, metres."""
+        return self._points
+
+    @property
     def ready(self) -> bool:
         return all(f.forward.ready for f in self.fusion.values())
 
@@ -131,16 +136,16 @@ class StereoFusion:
         pts = self._points
         if by == "color":
             sensor = self.rig.eyes[e].color
-            rgb = _sample(self.rig, sensor, self.fusion[e].forward.tof, pts, colors[e], 128)
+            rgb = sample_image(self.rig, sensor, self.fusion[e].forward.tof, pts, colors[e], 128)
             return pts, point_colors(pts, "color", rgb.astype(np.uint8))
         if by == "temperature":
             sensor = self.rig.eyes[e].thermal
-            t = _sample(self.rig, sensor, self.fusion[e].forward.tof, pts, thermals[e], np.nan)
+            t = sample_image(self.rig, sensor, self.fusion[e].forward.tof, pts, thermals[e], np.nan)
             return pts, point_colors(pts, "temperature", t, span, palette)
         return pts, point_colors(pts, by, None, span, palette)
 
 
-def _sample(
+def sample_image(
     rig: Rig, sensor: str, tof: str, points_tof: np.ndarray, image: np.ndarray, fill: float
 ) -> np.ndarray:
     """Bilinear samples (N,) or (N, C) of ``image`` where ``points_tof`` project in

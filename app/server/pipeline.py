@@ -56,6 +56,11 @@ class FusionPipeline:
         sensors = [left.color, right.color, left.thermal, right.thermal, self.tof]
         self.assembler = FrameSetAssembler(sensors, reference=left.color, tolerance_s=tolerance_s)
         self.status = PipelineStatus()
+        # Manual balance of the thermal imagers: kelvin added to each imager's readings.
+        self.thermal_offset_k: dict[str, float] = {left.thermal: 0.0, right.thermal: 0.0}
+        self._offset_buf = {
+            s: np.empty(rig[s].image_size[::-1], np.float32) for s in self.thermal_offset_k
+        }
         self.latest_set: FrameSet | None = None
         self._last_tof_ns: int | None = None
         self._stop = threading.Event()
@@ -118,6 +123,13 @@ class FusionPipeline:
                 return self._encode(np.hstack([colors["left"], colors["right"]]), fs, "color")
         frame = self.fusion.compose(colors, thermals, settings)
         return self._encode(frame, fs, settings.mode)
+
+    def _balanced(self, sensor: str, image: np.ndarray) -> np.ndarray:
+        """The imager's temperatures plus its manual offset (into a preallocated buffer)."""
+        offset = self.thermal_offset_k.get(sensor, 0.0)
+        if offset == 0.0:
+            return image
+        return np.add(image, np.float32(offset), out=self._offset_buf[sensor])
 
     def _encode(self, rgb: np.ndarray, fs: FrameSet, mode: str) -> bool:
         bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)

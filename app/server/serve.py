@@ -12,6 +12,7 @@ import viser
 
 from app.rigfile import load_rig
 from app.server.app import create_app
+from app.server.panels import Panels
 from app.server.pipeline import FusionPipeline
 from app.server.scene3d import SceneUpdater, add_rig
 from app.server.stream import FrameHub
@@ -61,6 +62,7 @@ def serve(
         server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     add_rig(server, rig)
     scene = SceneUpdater(server, pipeline).start()
+    panels = Panels(server, pipeline).start()
     app = create_app(hub, server.get_port(), pipeline)
     ws_max = None
     from app.sources.push import PushSource, make_push_router, uvicorn_ws_max_size
@@ -84,6 +86,7 @@ def serve(
     try:
         uvicorn.Server(config).run()
     finally:
+        panels.stop()
         scene.stop()
         pipeline.stop()
         server.stop()
