@@ -8,6 +8,7 @@ from fastapi import FastAPI
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
+from app.server.api import make_api_router
 from app.server.pipeline import FusionPipeline
 from app.server.stream import FrameHub, make_stream_router
 from app.server.viser_bridge import make_viser_router
@@ -25,6 +26,8 @@ def create_app(
     if viser_port is not None:
         app.include_router(make_viser_router(viser_port))
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    if pipeline is not None:
+        app.include_router(make_api_router(pipeline))
 
     @app.get("/", include_in_schema=False)
     async def _viewer() -> FileResponse:

@@ -1,0 +1,57 @@
+"""The REST API: typed settings, validation with 422, the same state as the panels."""
+
+from __future__ import annotations
+
+import pytest
+from fastapi.testclient import TestClient
+
+from app.server.app import create_app
+from app.server.pipeline import FusionPipeline
+from app.server.stream import FrameHub
+from app.sources.base import FrameSource
+from app.sources.sim.head import default_rig
+
+
+class _NoFrames(FrameSource):
+    def __init__(self) -> None:
+        self.sensors = []
+
+    def frames(self):
+        return iter(())
+
+
+@pytest.fixture()
+def client_and_pipeline():
+    rig = default_rig()
+    pipeline = FusionPipeline(_NoFrames(), rig, FrameHub())
+    return TestClient(create_app(FrameHub(), None, pipeline)), pipeline
+
+
+def test_fusion_settings_round_trip_and_validation(client_and_pipeline) -> None:
+    client, pipeline = client_and_pipeline
+    s = client.get("/api/fusion").json()
+    assert s["mode"] == "blend"
+    s.update(mode="isotherm", palette="lava", isotherm_k=[305.0, 312.0])
+    assert client.put("/api/fusion", json=s).status_code == 200
+    assert pipeline.settings.mode == "isotherm" and pipeline.settings.palette == "lava"
+    bad = {**s, "opacity": 3.0}
+    r = client.put("/api/fusion", json=bad)
+    assert r.status_code == 422 and "opacity" in r.text
+    assert pipeline.settings.opacity == pytest.approx(0.6)  # unchanged
+    r = client.put("/api/fusion", json={**s, "isotherm_k": [312.0, 305.0]})
+    assert r.status_code == 422 and pipeline.settings.isotherm_k == (305.0, 312.0)
+
+
+def test_thermal_balance_and_rig(client_and_pipeline) -> None:
+    client, pipeline = client_and_pipeline
+    r = client.put(
+        "/api/thermal", json={"span_k": [290.0, 320.0], "offset_k": {"thermal_left": -0.75}}
+    )
+    assert r.status_code == 200
+    assert pipeline.settings.span_k == (290.0, 320.0)
+    assert pipeline.thermal_offset_k["thermal_left"] == -0.75
+    r = client.put("/api/thermal", json={"offset_k": {"ccd_left": 1.0}})
+    assert r.status_code == 422 and "ccd_left" in r.text
+    rig = client.get("/api/rig").json()
+    assert rig["format"] == "trifuse-rig/1" and rig["reference"] == "tof"
+    assert "/api/fusion" in client.get("/openapi.json").json()["paths"]
