@@ -9,13 +9,13 @@ over points both imagers see (the same TOF point sampled in each).
 from __future__ import annotations
 
 import dataclasses
-import threading
 
 import cv2
 import numpy as np
 import viser
 
 from app.preview import to_display
+from app.server.periodic import Periodic
 from app.server.pipeline import FusionPipeline
 from fusion.palettes import PALETTE_NAMES
 from fusion.stereo import sample_image
@@ -24,13 +24,14 @@ MODES = ("blend", "edges", "thermal", "threshold", "isotherm", "pip", "color")
 C_TO_K = 273.15
 
 
-class Panels:
+class Panels(Periodic):
     """Builds the panels and refreshes the feeds and the left-right difference."""
 
     def __init__(
         self, server: viser.ViserServer, pipeline: FusionPipeline, feed_hz: float = 2.0
     ) -> None:
-        self.server, self.pipeline, self.period = server, pipeline, 1.0 / feed_hz
+        super().__init__("panels", 1.0 / feed_hz)
+        self.server, self.pipeline = server, pipeline
         gui = server.gui
         s = pipeline.settings
         with gui.add_folder("Fusion"):
@@ -78,8 +79,6 @@ class Panels:
             *self.offsets.values(),
         ):
             handle.on_update(lambda _event: self.apply())
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="panels", daemon=True)
 
     def apply(self) -> None:
         """Settings from the controls; a bad combination is shown, the old one kept."""
@@ -105,27 +104,18 @@ class Panels:
         for name, handle in self.offsets.items():
             self.pipeline.thermal_offset_k[name] = float(handle.value)
 
-    def start(self) -> Panels:
-        self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(2.0)
-
-    def _run(self) -> None:
-        while not self._stop.wait(self.period):
-            fs = self.pipeline.latest_set
-            if fs is None:
-                continue
-            for name, frame in fs.frames.items():
-                if name in self.feeds:
-                    img = to_display(frame.image)
-                    h, w = img.shape[:2]
-                    self.feeds[name].image = cv2.resize(
-                        img, (240, round(240 * h / w)), interpolation=cv2.INTER_AREA
-                    )
-            self.difference.content = self._difference(fs)
+    def tick(self) -> None:
+        fs = self.pipeline.latest_set
+        if fs is None:
+            return
+        for name, frame in fs.frames.items():
+            if name in self.feeds:
+                img = to_display(frame.image)
+                h, w = img.shape[:2]
+                self.feeds[name].image = cv2.resize(
+                    img, (240, round(240 * h / w)), interpolation=cv2.INTER_AREA
+                )
+        self.difference.content = self._difference(fs)
 
     def _difference(self, fs) -> str:
         """Median left - right temperature over TOF points both thermal imagers see."""

@@ -3,11 +3,10 @@ point cloud, updated from the fusion pipeline a few times a second."""
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import viser
 
+from app.server.periodic import Periodic
 from app.server.pipeline import FusionPipeline
 from calib.rig import Rig
 from calib.transforms import rvec_from_rotation
@@ -62,43 +61,33 @@ def add_rig(server: viser.ViserServer, rig: Rig, name: str = "/rig") -> None:
         server.scene.add_label(f"{node}/label", s.name)
 
 
-class SceneUpdater:
+class SceneUpdater(Periodic):
     """Pushes the pipeline's TOF point cloud (coloured by the colour camera) to Viser."""
 
     def __init__(
         self, server: viser.ViserServer, pipeline: FusionPipeline, rate_hz: float = 5.0
     ) -> None:
-        self.server, self.pipeline, self.period = server, pipeline, 1.0 / rate_hz
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="scene3d", daemon=True)
+        super().__init__("scene3d", 1.0 / rate_hz)
+        self.server, self.pipeline = server, pipeline
 
-    def start(self) -> SceneUpdater:
-        self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(2.0)
-
-    def _run(self) -> None:
+    def tick(self) -> None:
         fusion = self.pipeline.fusion
-        while not self._stop.wait(self.period):
-            fs = self.pipeline.latest_set
-            if fs is None or not fusion.ready:
-                continue
-            eyes = self.pipeline.rig.eyes
-            if not all(eyes[e].color in fs.frames for e in ("left", "right")):
-                continue
-            colors = {e: fs.frames[eyes[e].color].image for e in ("left", "right")}
-            try:
-                points, rgb = fusion.point_cloud(colors, {}, "color")
-            except (KeyError, ValueError, RuntimeError):
-                continue
-            with self.server.atomic():
-                self.server.scene.add_point_cloud(
-                    "/rig/tof_points",
-                    points=points,
-                    colors=rgb,
-                    point_size=0.01,
-                    precision="float32",
-                )
+        fs = self.pipeline.latest_set
+        if fs is None or not fusion.ready:
+            return
+        eyes = self.pipeline.rig.eyes
+        if not all(eyes[e].color in fs.frames for e in ("left", "right")):
+            return
+        colors = {e: fs.frames[eyes[e].color].image for e in ("left", "right")}
+        try:
+            points, rgb = fusion.point_cloud(colors, {}, "color")
+        except (KeyError, ValueError, RuntimeError):
+            return
+        with self.server.atomic():
+            self.server.scene.add_point_cloud(
+                "/rig/tof_points",
+                points=points,
+                colors=rgb,
+                point_size=0.01,
+                precision="float32",
+            )
