@@ -235,6 +235,18 @@ class McapIndex:
             return "no summary"
         return None
 
+    def _register(self, opcode: int, stream: ReadDataStream) -> bool:
+        """Keep a schema or channel record; False for any other kind of record."""
+        if opcode == Opcode.SCHEMA:
+            schema = Schema.read(stream)
+            self.schemas[schema.id] = schema
+        elif opcode == Opcode.CHANNEL:
+            channel = Channel.read(stream)
+            self.channels[channel.id] = channel
+        else:
+            return False
+        return True
+
     def _parse_summary(self, data: bytes) -> None:
         pos = 0
         metadata_indexes: list[MetadataIndex] = []
@@ -244,12 +256,8 @@ class McapIndex:
             if len(content) != length:
                 raise ValueError(f"record at summary byte {pos} is cut short")
             stream = ReadDataStream(io.BytesIO(content))
-            if opcode == Opcode.SCHEMA:
-                s = Schema.read(stream)
-                self.schemas[s.id] = s
-            elif opcode == Opcode.CHANNEL:
-                c = Channel.read(stream)
-                self.channels[c.id] = c
+            if self._register(opcode, stream):
+                pass
             elif opcode == Opcode.CHUNK_INDEX:
                 ci = ChunkIndex.read(stream)
                 if ci.chunk_start_offset + ci.chunk_length > self.size:
@@ -341,12 +349,8 @@ class McapIndex:
         if opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE, Opcode.METADATA):
             content = self.file.read(length)
             stream = ReadDataStream(io.BytesIO(content))
-            if opcode == Opcode.SCHEMA:
-                s = Schema.read(stream)
-                self.schemas[s.id] = s
-            elif opcode == Opcode.CHANNEL:
-                c = Channel.read(stream)
-                self.channels[c.id] = c
+            if self._register(opcode, stream):
+                pass
             elif opcode == Opcode.MESSAGE:
                 m = Message.read(stream, length)
                 self.chunks.append(ChunkRef(pos, length, m.log_time, m.log_time, m))

@@ -63,6 +63,7 @@ class FusionPipeline:
         }
         self.latest_set: FrameSet | None = None
         self._last_tof_ns: int | None = None
+        self._bgr: np.ndarray | None = None  # the encoder's input, reused every frame
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="fusion", daemon=True)
 
@@ -132,7 +133,9 @@ class FusionPipeline:
         return np.add(image, np.float32(offset), out=self._offset_buf[sensor])
 
     def _encode(self, rgb: np.ndarray, fs: FrameSet, mode: str) -> bool:
-        bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+        if self._bgr is None or self._bgr.shape != rgb.shape:
+            self._bgr = np.empty_like(rgb)
+        bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR, dst=self._bgr)
         ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
         if not ok:
             return False
