@@ -763,6 +763,12 @@ def load_board(capture_dir: str | Path) -> Board:
             f"{path}: missing; a capture directory needs board.yaml describing the checkerboard, "
             "e.g. '{pattern: checkerboard, inner_corners: [9, 6], square_size_m: 0.025}'"
         )
+    return load_board_file(path)
+
+
+def load_board_file(path: str | Path) -> Board:
+    """Read a board file (``board.yaml`` layout); CaptureError names the path and the defect."""
+    path = Path(path)
     data = _read_yaml(path, "board")
     try:
         return board_from_dict(data)

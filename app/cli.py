@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, NoReturn
 import numpy as np
 
 if TYPE_CHECKING:
+    from calib.board import Board
     from fusion.precision import PrecisionAnalysis
 
 PROG = "trifuse"
@@ -182,6 +183,17 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 # -- serve --------------------------------------------------------------------------------
 
 
+def _load_board_arg(path: str | None) -> Board:
+    """The board of ``--board`` (a board.yaml), else the simulated head's board."""
+    if path is None:
+        from app.sources.sim.scenarios import CALIBRATION_BOARD
+
+        return CALIBRATION_BOARD
+    from app.capture import load_board_file
+
+    return load_board_file(path)
+
+
 def _cmd_serve(args: argparse.Namespace) -> int:
     from app.server.serve import open_source, serve
 
@@ -193,8 +205,11 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     chosen = [x for x in (args.replay, args.live, args.push or None) if x]
     if len(chosen) > 1:
         raise UsageError(f"{PROG} serve: choose one of --replay, --live, --push")
-    source, rig, description = open_source(args.replay, args.live, args.push, args.rig)
-    serve(source, rig, description, args.host, args.port)
+    if args.scenario != "inspection" and chosen:
+        raise UsageError(f"{PROG} serve: --scenario is for the simulated head only")
+    board = _load_board_arg(args.board)
+    opened = open_source(args.replay, args.live, args.push, args.rig, args.scenario)
+    serve(opened, board, args.host, args.port)
     return EXIT_OK
 
 
@@ -839,6 +854,19 @@ def build_parser() -> argparse.ArgumentParser:
         "--rig",
         metavar="RIG.yaml",
         help="the calibrated rig (default: the recording's or the simulated head's)",
+    )
+    srv.add_argument(
+        "--scenario",
+        choices=("inspection", "calibration"),
+        default="inspection",
+        help="what the simulated head sees: the inspection room, or the heated board "
+        "held at 30 poses for a calibration session (default: %(default)s)",
+    )
+    srv.add_argument(
+        "--board",
+        metavar="BOARD.yaml",
+        help="the calibration checkerboard (docs/FORMATS.md; default: the simulated "
+        "head's 9 x 6 inner corners, 60 mm squares)",
     )
     srv.add_argument(
         "--host",

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+from dataclasses import dataclass
 from pathlib import Path
 
 import uvicorn
@@ -12,17 +13,36 @@ import viser
 
 from app.rigfile import load_rig
 from app.server.app import create_app
+from app.server.board_watch import BoardWatch
+from app.server.context import ConsoleContext
 from app.server.panels import Panels
 from app.server.pipeline import FusionPipeline
 from app.server.scene3d import SceneUpdater, add_rig
 from app.server.stream import FrameHub
 from app.sources.base import FrameSource
+from calib.board import Board
 from calib.rig import Rig
+
+SCENARIOS = ("inspection", "calibration")
+
+
+@dataclass
+class OpenedSource:
+    """A source for the console, the rig to fuse with, and what to tell the operator."""
+
+    source: FrameSource
+    rig: Rig
+    description: str
+    ground_truth_rig: Rig | None = None
 
 
 def open_source(
-    replay: str | None, live: str | None, push: bool, rig_path: str | None
-) -> tuple[FrameSource, Rig, str]:
+    replay: str | None,
+    live: str | None,
+    push: bool,
+    rig_path: str | None,
+    scenario: str = "inspection",
+) -> OpenedSource:
     """The source the console shows, its rig, and a one-line description."""
     rig = load_rig(rig_path) if rig_path else None
     if replay:
@@ -33,36 +53,66 @@ def open_source(
         if rig is None:
             src.close()
             raise ValueError(f"{replay}: the recording holds no rig; give one with --rig")
-        return src, rig, f"replay of {replay} (looping)"
+        return OpenedSource(src, rig, f"replay of {replay} (looping)")
     if live:
         from app.sources.camera import CameraSource
 
         if rig is None:
             raise ValueError("--live needs --rig RIG.yaml (cameras do not know their calibration)")
-        return CameraSource(Path(live), rig=rig), rig, f"live cameras of {live}"
+        return OpenedSource(CameraSource(Path(live), rig=rig), rig, f"live cameras of {live}")
     if push:
         from app.sources.push import PushSource
         from app.sources.sim.head import default_rig
 
         rig = rig or default_rig()
-        return PushSource(rig), rig, "frames pushed to /ingest"
+        return OpenedSource(PushSource(rig), rig, "frames pushed to /ingest")
     from app.sources.simulated import SimulatedHeadSource
 
-    src = SimulatedHeadSource(realtime=True)
-    return src, rig or src.rig, "the simulated head (inspection room)"
+    if scenario == "calibration":
+        from app.sources.sim.scenarios import CalibrationScenario
+
+        cal = CalibrationScenario()
+        src = SimulatedHeadSource(
+            cal, realtime=True, render_hz=1.0 / cal.hold_s, loop_s=cal.loop_s, start_ns=None
+        )
+        what = f"the simulated head (calibration: {cal.n_poses} board poses, looping)"
+    elif scenario == "inspection":
+        src = SimulatedHeadSource(realtime=True, start_ns=None)
+        what = "the simulated head (inspection room)"
+    else:
+        raise ValueError(f"scenario: expected one of {', '.join(SCENARIOS)}, got {scenario!r}")
+    return OpenedSource(src, rig or src.rig, what, ground_truth_rig=src.rig)
 
 
 def serve(
-    source: FrameSource, rig: Rig, description: str, host: str = "127.0.0.1", port: int = 8000
+    opened: OpenedSource,
+    board: Board,
+    host: str = "127.0.0.1",
+    port: int = 8000,
 ) -> None:
     """Run the console until interrupted."""
+    source, rig = opened.source, opened.rig
     hub = FrameHub()
     pipeline = FusionPipeline(source, rig, hub).start()
     with contextlib.redirect_stdout(io.StringIO()):  # Viser's banner shows its inner port
         server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    watch = BoardWatch(lambda: pipeline.latest_set, rig, board)
+    ctx = ConsoleContext(
+        server=server,
+        source=source,
+        description=opened.description,
+        hub=hub,
+        pipeline=pipeline,
+        board=board,
+        board_watch=watch,
+        ground_truth_rig=opened.ground_truth_rig,
+    )
     add_rig(server, rig)
-    scene = SceneUpdater(server, pipeline).start()
-    panels = Panels(server, pipeline).start()
+    parts = [
+        watch.start(),
+        SceneUpdater(server, pipeline).start(),
+        Panels(server, pipeline).start(),
+    ]
     app = create_app(hub, server.get_port(), pipeline)
     ws_max = None
     from app.sources.push import PushSource, make_push_router, uvicorn_ws_max_size
@@ -72,7 +122,7 @@ def serve(
         ws_max = uvicorn_ws_max_size(source)
     shown = "127.0.0.1" if host in ("0.0.0.0", "::") else host
     print(
-        f"trifuse console on {description}: http://{shown}:{port}/  "
+        f"trifuse console on {opened.description}: http://{shown}:{port}/  "
         f"(3D console /console/, API /docs)",
         flush=True,
     )
@@ -86,7 +136,8 @@ def serve(
     try:
         uvicorn.Server(config).run()
     finally:
-        panels.stop()
-        scene.stop()
+        for part in reversed(parts):
+            part.stop()
         pipeline.stop()
         server.stop()
+    del ctx

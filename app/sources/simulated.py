@@ -59,7 +59,9 @@ class Scenario(Protocol):
 
     ``render(t_s, sensors)`` returns the frames and per-sensor ground truth at scenario time
     ``t_s``; optionally ``T_world_rig(t_s)`` (the head pose, used to share renderings
-    between equal poses and returned by :meth:`SimulatedHeadSource.truth_at`) and
+    between equal poses and returned by :meth:`SimulatedHeadSource.truth_at`),
+    ``scene_key(t_s)`` (a hashable; times with equal keys share one rendering, overriding
+    the head pose, for scenes where something other than the head moves) and
     ``pan_period_s`` (the default loop length).
     """
 
@@ -195,10 +197,14 @@ class SimulatedHeadSource(FrameSource):
         self._pose_t: list[float] = []  # representative scenario time of each pose
         self._pose_T: list[np.ndarray | None] = []
         pose_fn = getattr(scenario, "T_world_rig", None)
-        seen: dict[tuple[float, ...], int] = {}
+        key_fn = getattr(scenario, "scene_key", None)
+        seen: dict[Any, int] = {}
         for t in self._sample_t:
             T = None if pose_fn is None else np.asarray(pose_fn(t), dtype=np.float64)
-            key = None if T is None else tuple(np.round(T, 9).ravel().tolist())
+            if key_fn is not None:
+                key = key_fn(t)
+            else:
+                key = None if T is None else tuple(np.round(T, 9).ravel().tolist())
             match = seen.get(key) if key is not None else None
             if match is None:
                 match = len(self._pose_t)

@@ -320,3 +320,57 @@ class InspectionScenario:
         return self.renderer.render(
             self.scene, self.T_world_rig(t_s), round(t_s * 1e9), rng, sensors
         )
+
+
+class CalibrationScenario:
+    """The calibration session as a live scene: the head stands still and the heated board
+    is held at each of ``n_poses`` poses (:func:`calibration_poses`) for ``hold_s`` seconds,
+    then jumps to the next; the sequence loops every ``loop_s`` seconds.
+
+    For :class:`~app.sources.simulated.SimulatedHeadSource` use ``render_hz = 1 / hold_s``
+    and ``loop_s = loop_s``: one rendering per board pose (``scene_key`` tells the source
+    which times show the same scene).
+    """
+
+    def __init__(
+        self,
+        rig: Rig | None = None,
+        model: HeadModel | None = None,
+        n_poses: int = 30,
+        hold_s: float = 3.0,
+        seed: int = 1,
+    ) -> None:
+        if not hold_s > 0:
+            raise ValueError(f"hold_s: expected a positive number of seconds, got {hold_s}")
+        self.rig = rig or default_rig()
+        self.renderer = Renderer(self.rig, model)
+        self.board = CALIBRATION_BOARD
+        self.poses = calibration_poses(n_poses, seed, self.rig, self.board)
+        self.background = lab_background()
+        self.n_poses, self.hold_s, self.seed = n_poses, float(hold_s), seed
+        self.loop_s = n_poses * self.hold_s
+
+    def pose_index(self, t_s: float) -> int:
+        """Which board pose is held at scenario time ``t_s`` (seconds)."""
+        return int(np.floor(t_s / self.hold_s)) % self.n_poses
+
+    def scene_key(self, t_s: float) -> int:
+        """Times with equal keys show the same scene (the same board pose)."""
+        return self.pose_index(t_s)
+
+    def T_world_rig(self, t_s: float) -> np.ndarray:
+        """The head does not move: the world frame is the rig frame."""
+        return np.eye(4)
+
+    def T_rig_board(self, t_s: float) -> np.ndarray:
+        """(4, 4) exact board pose in the rig frame at ``t_s``, metres."""
+        return self.poses[self.pose_index(t_s)]
+
+    def render(
+        self, t_s: float, sensors: list[str] | None = None
+    ) -> tuple[FrameSet, dict[str, SensorTruth]]:
+        """Frames and exact ground truth at ``t_s``; noise is seeded by (seed, pose)."""
+        i = self.pose_index(t_s)
+        rng = np.random.default_rng([self.seed, 2, i])
+        scene = Scene([*self.background, board_solid(self.poses[i])])
+        return self.renderer.render(scene, np.eye(4), round(t_s * 1e9), rng, sensors)
