@@ -209,7 +209,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         raise UsageError(f"{PROG} serve: --scenario is for the simulated head only")
     board = _load_board_arg(args.board)
     opened = open_source(args.replay, args.live, args.push, args.rig, args.scenario)
-    serve(opened, board, args.host, args.port)
+    serve(opened, board, Path(args.workdir), args.host, args.port)
     return EXIT_OK
 
 
@@ -861,6 +861,13 @@ def build_parser() -> argparse.ArgumentParser:
         default="inspection",
         help="what the simulated head sees: the inspection room, or the heated board "
         "held at 30 poses for a calibration session (default: %(default)s)",
+    )
+    srv.add_argument(
+        "--workdir",
+        metavar="DIR",
+        default="trifuse-work",
+        help="where the calibration session keeps its captures and saved rig versions "
+        "(created if needed; reopened as it was on restart; default: ./%(default)s)",
     )
     srv.add_argument(
         "--board",

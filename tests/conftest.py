@@ -5,6 +5,8 @@ import os
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
@@ -13,3 +15,26 @@ if str(ROOT) not in sys.path:
 # TRIFUSE_SHARED_DIR points elsewhere.
 SHARED_DIR = Path(os.environ.get("TRIFUSE_SHARED_DIR", ROOT.parent / "shared"))
 OPENCV_LEFT_9X6 = SHARED_DIR / "data" / "opencv-left-9x6"
+
+
+@pytest.fixture(scope="session")
+def console(tmp_path_factory: pytest.TempPathFactory):
+    """`trifuse serve` on the simulated inspection room, on a free loopback port, with a
+    fresh work directory; shared by every browser test."""
+    from tests.browser_support import console_running
+
+    workdir = tmp_path_factory.mktemp("console-work")
+    with console_running(["--workdir", str(workdir)]) as url:
+        yield url
+
+
+@pytest.fixture(scope="session")
+def browser():
+    """Debian's chromium, headless, driven by Playwright."""
+    from tests.browser_support import CHROMIUM, FLAGS
+
+    sync_api = pytest.importorskip("playwright.sync_api")
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
+        yield b
+        b.close()

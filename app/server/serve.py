@@ -87,10 +87,11 @@ def open_source(
 def serve(
     opened: OpenedSource,
     board: Board,
+    workdir: Path,
     host: str = "127.0.0.1",
     port: int = 8000,
 ) -> None:
-    """Run the console until interrupted."""
+    """Run the console until interrupted; the calibration session lives in ``workdir``."""
     source, rig = opened.source, opened.rig
     hub = FrameHub()
     pipeline = FusionPipeline(source, rig, hub).start()
