@@ -43,6 +43,15 @@ class DetectionRun:
     rejected: dict[str, dict[str, str]]
     methods: dict[str, dict[str, str]]
 
+    def only(self, sensors: list[str]) -> DetectionRun:
+        """The same run restricted to ``sensors`` (views left without any are dropped)."""
+
+        def keep(part: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+            out = {v: {s: x for s, x in per.items() if s in sensors} for v, per in part.items()}
+            return {v: per for v, per in out.items() if per}
+
+        return DetectionRun(keep(self.observations), keep(self.rejected), keep(self.methods))
+
 
 def sensor_specs(capture: Capture) -> dict[str, SensorSpec]:
     """Modality and image size of every sensor of the capture.
@@ -106,8 +115,10 @@ def calibrate_capture(
     options: CalibrationOptions | None = None,
     sensors: list[str] | None = None,
     progress: Progress | None = None,
+    detections: DetectionRun | None = None,
 ) -> tuple[CalibrationResult, dict[str, Any]]:
-    """Detect, calibrate and build the report of a capture directory."""
+    """Detect (unless ``detections`` of every view are given), calibrate and build the
+    report of a capture directory."""
     specs = sensor_specs(capture)
     if sensors is not None:
         unknown = sorted(set(sensors) - set(specs))
@@ -126,7 +137,10 @@ def calibrate_capture(
             return None
         return lambda what, frac: progress(what, offset + span * frac)
 
-    detections = detect_capture(capture, sensors, progress=stage(0.0, 0.6))
+    if detections is None:
+        detections = detect_capture(capture, sensors, progress=stage(0.0, 0.6))
+    elif sensors is not None:
+        detections = detections.only(sensors)
     if not detections.observations:
         reasons = Counter(r for per in detections.rejected.values() for r in per.values())
         common = "; ".join(f"{n}x {r}" for r, n in reasons.most_common(3))

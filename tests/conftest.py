@@ -38,3 +38,11 @@ def browser():
         b = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
         yield b
         b.close()
+
+
+@pytest.fixture(scope="session")
+def calibration_frame_sets():
+    """Twelve simulated views of the calibration board (seed 1), all five sensors."""
+    from app.sources.sim.scenarios import calibration_views
+
+    return [v.frames for v in calibration_views(12, seed=1)]

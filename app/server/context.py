@@ -42,6 +42,11 @@ class ConsoleContext:
     ground_truth_rig: Rig | None = None
     rig_choices: Callable[[], dict[str, Rig]] = field(default=lambda: {})
 
+    def use_rig(self, rig: Rig) -> None:
+        """Fuse with, detect with and show ``rig`` from now on (ValueError: wrong sensors)."""
+        self.pipeline.set_rig(rig)
+        self.board_watch.rig = rig
+
     def rigs(self) -> dict[str, Rig]:
         """``{"in use": ..., "ground truth": ... (simulated head), **rig_choices()}``."""
         out = {"in use": self.pipeline.rig}

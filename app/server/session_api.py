@@ -1,0 +1,209 @@
+"""REST routes of the calibration session: captures, calibration runs, saved rig versions.
+
+``/api/captures`` (list, take, delete), ``/api/calibrate`` (start, status, result) and
+``/api/rigs`` (list versions, save, get one, use one). Typed models; a request that cannot
+be done now gets 409 with the reason, an unknown view or version 404.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, Literal
+
+from fastapi import APIRouter, HTTPException
+from pydantic import BaseModel
+
+from app.calib_session import CalibrationJob, CalibrationSession, RigVersion, SessionError, ViewInfo
+from app.sources.frames import FrameSet
+from calib.errors import RigError
+from calib.rig import Rig, rig_to_dict
+
+
+class SensorDetection(BaseModel):
+    """Whether the board was found in one sensor's image of a view (None: still searching)."""
+
+    found: bool | None
+    reason: str | None = None
+
+
+class View(BaseModel):
+    name: str
+    sensors: dict[str, SensorDetection]
+
+
+class SensorCoverage(BaseModel):
+    """ROS-style coverage bars (0-1) and the image regions never reached."""
+
+    x: float
+    y: float
+    size: float
+    skew: float
+    views: int
+    good_enough: bool
+    empty_regions: list[str]
+
+
+class Captures(BaseModel):
+    directory: str
+    views: list[View]
+    coverage: dict[str, SensorCoverage]
+
+
+class Job(BaseModel):
+    """The calibration run: state, what it does now and how far it is (0-1)."""
+
+    state: Literal["idle", "running", "done", "failed"]
+    stage: str
+    progress: float
+    views: list[str]
+    error: str | None
+    rms_px: float | None
+    seconds: float | None
+    saved_as: str | None
+
+
+class Version(BaseModel):
+    name: str
+    path: str
+    saved: str
+    rms_px: float | None
+    views: int | None
+
+
+def view_model(v: ViewInfo) -> View:
+    return View(
+        name=v.name,
+        sensors={
+            s: SensorDetection(
+                found=v.found(s),
+                reason=v.detections[s].reason if s in v.detections else None,
+            )
+            for s in v.sensors
+        },
+    )
+
+
+def job_model(job: CalibrationJob) -> Job:
+    end = job.finished
+    return Job(
+        state=job.state,
+        stage=job.stage,
+        progress=job.progress,
+        views=job.views,
+        error=job.error,
+        rms_px=job.result.rms_px if job.result is not None else None,
+        seconds=(end - job.started) if end is not None and job.started is not None else None,
+        saved_as=job.saved_as,
+    )
+
+
+def version_model(v: RigVersion) -> Version:
+    return Version(name=v.name, path=str(v.path), saved=v.saved, rms_px=v.rms_px, views=v.views)
+
+
+def make_session_router(
+    session: CalibrationSession,
+    latest: Callable[[], FrameSet | None],
+    use_rig: Callable[[Rig], None],
+) -> APIRouter:
+    """Routes over ``session``; ``latest()`` gives the frame set a capture takes and
+    ``use_rig(rig)`` makes the console fuse with a saved rig (ValueError if it cannot)."""
+    router = APIRouter(prefix="/api")
+
+    @router.get("/captures")
+    def list_captures() -> Captures:
+        """The captured views (per sensor: board found or not) and every sensor's coverage."""
+        cov = session.coverage()
+        return Captures(
+            directory=str(session.captures),
+            views=[view_model(v) for v in session.views()],
+            coverage={
+                s: SensorCoverage(
+                    x=c.x,
+                    y=c.y,
+                    size=c.size,
+                    skew=c.skew,
+                    views=c.n_views,
+                    good_enough=c.good_enough,
+                    empty_regions=c.empty_regions,
+                )
+                for s, c in cov.items()
+            },
+        )
+
+    @router.post("/captures", status_code=201)
+    def take_capture() -> View:
+        """Capture the newest frames as a new view (written to disk before the reply)."""
+        frames = latest()
+        if frames is None:
+            raise HTTPException(409, "no frames yet: the source has not delivered any")
+        try:
+            return view_model(session.take(frames))
+        except SessionError as exc:
+            raise HTTPException(409, str(exc)) from None
+
+    @router.delete("/captures/{name}")
+    def delete_capture(name: str) -> dict[str, str]:
+        """Move a view out of the capture (into the work directory's ``deleted/``)."""
+        try:
+            moved = session.delete(name)
+        except KeyError as exc:
+            raise HTTPException(404, exc.args[0]) from None
+        except SessionError as exc:
+            raise HTTPException(409, str(exc)) from None
+        return {"deleted": name, "moved_to": str(moved)}
+
+    @router.post("/calibrate", status_code=202)
+    def start_calibration() -> Job:
+        """Calibrate every captured view in the background; poll ``GET /api/calibrate``."""
+        try:
+            return job_model(session.start_calibration())
+        except SessionError as exc:
+            raise HTTPException(409, str(exc)) from None
+
+    @router.get("/calibrate")
+    def calibration_status() -> Job:
+        return job_model(session.job)
+
+    @router.get("/calibrate/result")
+    def calibration_result() -> dict[str, Any]:
+        """The finished calibration's report (``report.json`` layout, docs/FORMATS.md)."""
+        job = session.job
+        if job.state != "done" or job.report is None:
+            raise HTTPException(404, f"no finished calibration (state: {job.state})")
+        return job.report
+
+    @router.get("/rigs")
+    def list_versions() -> list[Version]:
+        """Saved rig versions, oldest first."""
+        return [version_model(v) for v in session.versions()]
+
+    @router.post("/rigs", status_code=201)
+    def save_version() -> Version:
+        """Save the finished calibration as a new rig version (never overwrites one)."""
+        try:
+            return version_model(session.save())
+        except SessionError as exc:
+            raise HTTPException(409, str(exc)) from None
+
+    @router.get("/rigs/{name}")
+    def get_version(name: str) -> dict[str, Any]:
+        try:
+            return rig_to_dict(session.load_version(name))
+        except KeyError as exc:
+            raise HTTPException(404, exc.args[0]) from None
+        except RigError as exc:
+            raise HTTPException(409, str(exc)) from None
+
+    @router.post("/rigs/{name}/use")
+    def use_version(name: str) -> dict[str, str]:
+        """Fuse with a saved rig from the next frame on."""
+        try:
+            use_rig(session.load_version(name))
+        except KeyError as exc:
+            raise HTTPException(404, exc.args[0]) from None
+        except (RigError, ValueError) as exc:
+            raise HTTPException(409, str(exc)) from None
+        return {"in_use": name}
+
+    return router

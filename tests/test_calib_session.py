@@ -1,0 +1,141 @@
+"""The calibration session on disk: take, search, delete, novelty, calibrate, save, reopen."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+
+from app.calib_session import CalibrationSession, SessionError
+from app.capture import load_capture
+from app.rigfile import load_rig
+from app.sources.frames import FrameSet
+from app.sources.sim.head import default_rig
+from app.sources.sim.scenarios import CALIBRATION_BOARD
+from calib.board import Board
+from calib.detect import Detection
+from calib.transforms import pose_error
+
+N_VIEWS = 12
+
+
+@pytest.fixture
+def views(calibration_frame_sets) -> list[FrameSet]:
+    """Twelve simulated views of the board (seed 1, conftest.py), every sensor's frames."""
+    return calibration_frame_sets
+
+
+def wait_searched(session: CalibrationSession) -> None:
+    """Until every view of the session has been searched for the board (30 s at most)."""
+    for _ in range(600):
+        if all(v.searched for v in session.views()):
+            return
+        time.sleep(0.05)
+    raise AssertionError("views were not searched in 30 s")
+
+
+def test_take_writes_each_view_at_once_and_finds_the_board(tmp_path, views) -> None:
+    rig = default_rig()
+    session = CalibrationSession(tmp_path, rig, CALIBRATION_BOARD)
+    info = session.take(views[0])
+    # On disk before the search ends: a complete view of the capture directory.
+    capture = load_capture(tmp_path / "captures")
+    assert [v.name for v in capture.views] == ["0001"] == [info.name]
+    assert capture.views[0].sensors == rig.names
+    assert capture.board == CALIBRATION_BOARD
+    wait_searched(session)
+    found = {s: session.view("0001").found(s) for s in rig.names}
+    assert all(found.values()), found
+    session.close()
+
+
+def test_novelty_decides_auto_capture(tmp_path, views) -> None:
+    rig = default_rig()
+    session = CalibrationSession(tmp_path, rig, CALIBRATION_BOARD)
+    session.take(views[0])
+    wait_searched(session)
+    same = session.view("0001").detections
+    assert session.worth_taking(same, steady=True) is None  # the same pose again
+    assert session.worth_taking(same, steady=False) is None
+    # A board at another place of the image is new for that sensor.
+    moved = {s: Detection(d.corners * 0.5, None, d.method) for s, d in same.items()}
+    why = session.worth_taking(moved, steady=True)
+    assert why is not None and "ccd_left" in why
+    assert session.worth_taking(moved, steady=False) is None
+    session.close()
+
+
+def test_delete_moves_the_view_aside_and_numbers_go_on(tmp_path, views) -> None:
+    session = CalibrationSession(tmp_path, default_rig(), CALIBRATION_BOARD)
+    for fs in views[:3]:
+        session.take(fs)
+    kept = session.delete("0002")
+    assert kept.parent == tmp_path / "deleted" and (kept / "ccd_left.png").is_file()
+    assert [v.name for v in session.views()] == ["0001", "0003"]
+    assert session.take(views[3]).name == "0004"  # never reuses a deleted view's name
+    with pytest.raises(KeyError, match="no view '0002'"):
+        session.delete("0002")
+    session.close()
+
+
+def test_refuses_what_cannot_be_done(tmp_path, views) -> None:
+    rig = default_rig()
+    session = CalibrationSession(tmp_path, rig, CALIBRATION_BOARD)
+    with pytest.raises(SessionError, match="at least 3 per sensor"):
+        session.start_calibration()
+    with pytest.raises(SessionError, match="run a calibration first"):
+        session.save()
+    with pytest.raises(SessionError, match="nothing to capture"):
+        session.take(FrameSet(0, {}))
+    session.close()
+    with pytest.raises(SessionError, match="another --workdir"):
+        CalibrationSession(tmp_path, rig, Board(cols=7, rows=5, square_size_m=0.03))
+
+
+def test_calibrate_save_and_reopen(tmp_path, views) -> None:
+    """A session calibrates its views, saves numbered rig versions, and a new session on
+    the same directory (a restarted console) finds every view and version."""
+    truth = default_rig()
+    session = CalibrationSession(tmp_path, truth, CALIBRATION_BOARD)
+    for fs in views:
+        session.take(fs)
+    job = session.start_calibration()
+    with pytest.raises(SessionError, match="running already"):
+        session.start_calibration()
+    job = session.wait(300)
+    assert job.state == "done", job.error
+    assert job.progress == 1.0 and job.views == [f"{i:04d}" for i in range(1, N_VIEWS + 1)]
+    first = session.save()
+    assert first.name == "rig-0001" and first.path.is_file()
+    with pytest.raises(SessionError, match="saved already"):
+        session.save()
+    report = json.loads((tmp_path / "rigs" / "rig-0001.report.json").read_text())
+    assert report["rms_px"] == pytest.approx(first.rms_px) and report["rms_px"] < 0.3
+    rig = load_rig(first.path)
+    for name in truth.names:  # 12 views: a rough but sound calibration
+        rot_deg, trans_m = pose_error(rig[name].T_rig_sensor, truth[name].T_rig_sensor)
+        assert rot_deg < 0.3 and trans_m < 0.005, (name, rot_deg, trans_m)
+
+    session.delete("0005")  # drop a view, calibrate again: a second version
+    assert session.start_calibration() is not None
+    assert session.wait(300).state == "done"
+    assert "0005" not in session.job.views
+    second = session.save()
+    assert second.name == "rig-0002"
+    assert load_rig(first.path)[truth.names[0]] == rig[truth.names[0]]  # first one kept
+    session.close()
+
+    reopened = CalibrationSession(tmp_path, truth, CALIBRATION_BOARD)
+    assert [v.name for v in reopened.views()] == [
+        f"{i:04d}" for i in range(1, N_VIEWS + 1) if i != 5
+    ]
+    assert [v.name for v in reopened.versions()] == ["rig-0001", "rig-0002"]
+    wait_searched(reopened)
+    assert all(reopened.view("0001").found(s) for s in truth.names)
+    assert np.allclose(
+        reopened.load_version("rig-0002")["ccd_left"].T_rig_sensor,
+        load_rig(second.path)["ccd_left"].T_rig_sensor,
+    )
+    reopened.close()
