@@ -1,93 +1,592 @@
-"""The Viser 3D scene: the rig's frames, every sensor's frustum at its pose, and the TOF
-point cloud, updated from the fusion pipeline a few times a second."""
+"""The console's Viser 3D scene, built from the :class:`~app.server.context.ConsoleContext`.
+
+What it shows, all in the rig frame (OpenCV axes: +x right, +y down, +z forward, metres;
+the scene's "up" is therefore -y):
+
+- every sensor of the displayed rig: its frame at ``T_rig_sensor`` and its frustum
+  (vertical FOV from ``fy``, aspect W/H) textured with the sensor's newest image,
+  downscaled to at most :data:`TEXTURE_MAX_W` pixels wide (colour as is, thermal in the
+  pipeline's palette over its span, TOF amplitude stretched grey), at ``texture_hz``;
+- the TOF point cloud of the newest depth frame, coloured by the colour camera, by
+  temperature (the thermal imager, in the pipeline's palette over its span) or by radial
+  distance, at ``rate_hz``;
+- the checkerboard at its live estimated pose ``T_rig_board`` (hidden while not seen);
+- in the "3D scene" GUI folder: which rig to display ("in use", "ground truth", saved
+  versions; the list is re-read every ``choices_period_s``), the cloud's colouring, the
+  point size, the frustums' size and whether they show images, and per sensor the
+  displayed rig's pose difference to the rig in use (rotation deg, translation mm).
+
+The point cloud and the board are measured with the rig in use; they hang under the node
+``/live``, placed so that the TOF camera of the displayed rig carries them (for two rigs
+whose reference is the TOF camera, ``/live`` is the identity).
+
+One thread (:class:`Periodic`) does all the pushing; GUI callbacks (Viser's thread) and
+the tick share a lock. Every step of a tick is guarded: a missing sensor, NaN depth or a
+bad rig shows nothing for that part and the error in the folder, and the thread goes on.
+"""
 
 from __future__ import annotations
 
+import threading
+import time
+from collections.abc import Callable
+
+import cv2
 import numpy as np
 import viser
+import viser.transforms as vtf
 
+from app.preview import to_display
+from app.server.context import ConsoleContext
 from app.server.periodic import Periodic
-from app.server.pipeline import FusionPipeline
-from calib.rig import Rig
-from calib.transforms import rvec_from_rotation
+from calib.board import Board
+from calib.rig import Rig, Sensor
+from calib.transforms import invert, pose_error
+from fusion.compose import auto_span, resolve_span
+from fusion.palettes import PALETTE_NAMES, apply_palette
 
 FRUSTUM_COLORS = {"color": (40, 120, 240), "thermal": (240, 90, 30), "tof": (40, 200, 90)}
+FRUSTUM_SIZE_M = 0.05
+"""Default frustum depth: at 5 cm the five textured frustums of the head barely overlap."""
+TEXTURE_MAX_W = 320
+"""Frustum textures are downscaled to at most this width (pixels) before JPEG encoding."""
+TEXTURE_JPEG_QUALITY = 75
+CLOUD_MODES: tuple[str, ...] = ("color", "temperature", "depth")
+DEPTH_PALETTE = "rainbow" if "rainbow" in PALETTE_NAMES else PALETTE_NAMES[0]
+NAN_GREY = (128, 128, 128)
+IN_USE = "in use"
+BOARD_PX_PER_SQUARE = 16
+BOARD_PLATE_BEHIND_M = 0.003
+"""The board's checker plate is drawn this far behind the board plane (+z of the board
+frame, away from the cameras) so the cloud's points on the board stay visible."""
+BOARD_OUTLINE_RGB = (255, 220, 0)
+C_TO_K = 273.15
 
 
-def _wxyz(R: np.ndarray) -> tuple[float, float, float, float]:
-    """Quaternion (w, x, y, z) of a rotation matrix."""
-    r = rvec_from_rotation(R)
-    angle = float(np.linalg.norm(r))
-    if angle < 1e-12:
-        return (1.0, 0.0, 0.0, 0.0)
-    axis = r / angle
-    s = np.sin(angle / 2)
-    return (float(np.cos(angle / 2)), *(float(a * s) for a in axis))
+def wxyz_of(T: np.ndarray) -> np.ndarray:
+    """Quaternion (4,) ``(w, x, y, z)`` of the rotation of a (4, 4) or (3, 3) transform."""
+    return vtf.SO3.from_matrix(np.asarray(T, dtype=np.float64)[:3, :3]).wxyz
 
 
-def add_rig(server: viser.ViserServer, rig: Rig, name: str = "/rig") -> None:
-    """Each sensor's frame and frustum at ``T_rig_sensor`` (vertical FOV, aspect W/H).
+def vertical_fov_rad(sensor: Sensor) -> float:
+    """The sensor's vertical field of view in radians (pinhole, from ``fy`` and height)."""
+    return float(2.0 * np.arctan2(sensor.height / 2.0, sensor.intrinsics.fy))
 
-    The scene uses the rig's frames (OpenCV: +y down, +z forward), so "up" is -y; every
-    viewer starts behind and above the head, looking forward.
+
+def _downscale(image: np.ndarray, max_width: int) -> np.ndarray:
+    h, w = image.shape[:2]
+    if w <= max_width:
+        return image
+    size = (max_width, max(1, round(h * max_width / w)))
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
+
+def _grey_stretch(image: np.ndarray) -> np.ndarray:
+    """(H, W) numbers -> (H, W, 3) uint8 grey, 1st..99th percentile stretched, NaN black."""
+    a = image.astype(np.float32, copy=False)
+    finite = np.isfinite(a)
+    if not finite.any():
+        return np.zeros((*a.shape, 3), np.uint8)
+    lo, hi = (float(v) for v in np.percentile(a[finite], [1, 99]))
+    scale = 255.0 / max(hi - lo, 1e-6)
+    grey = np.clip((np.nan_to_num(a, nan=lo) - lo) * scale, 0, 255).astype(np.uint8)
+    grey[~finite] = 0
+    return cv2.cvtColor(grey, cv2.COLOR_GRAY2RGB)
+
+
+def sensor_texture(
+    image: np.ndarray,
+    modality: str,
+    max_width: int = TEXTURE_MAX_W,
+    span_k: tuple[float, float] | None = None,
+    palette: str = "iron",
+) -> np.ndarray:
+    """A sensor image as a frustum texture: (h, w, 3) uint8 RGB with ``w <= max_width``.
+
+    Args:
+        image: colour (H, W, 3) uint8 RGB; thermal (H, W) float kelvin; TOF amplitude
+            (H, W) float (any unit).
+        modality: ``color``, ``thermal`` or ``tof`` (the logarithm of the amplitude is
+            stretched grey, 1st to 99th percentile).
+        span_k: thermal only: (low, high) kelvin of ``palette``; None: :func:`to_display`'s
+            own percentile stretch.
+    Raises:
+        ValueError: an image whose shape does not fit its modality.
     """
-    server.scene.set_up_direction("-y")
+    a = np.asarray(image)
+    if a.ndim == 3 and a.shape[2] == 3 and modality == "color":
+        return np.ascontiguousarray(_downscale(a, max_width).astype(np.uint8, copy=False))
+    if a.ndim != 2:
+        raise ValueError(f"{modality} image: expected (H, W), got shape {a.shape}")
+    small = _downscale(a.astype(np.float32, copy=False), max_width)
+    if modality == "thermal":
+        if span_k is not None:
+            return apply_palette(small, span_k, palette, nan_color=(0, 0, 0))
+        return np.ascontiguousarray(to_display(small))
+    # TOF amplitude falls off with the square of the distance (and spans four decades):
+    # its logarithm shows the far walls as well as the near objects
+    return _grey_stretch(np.log1p(np.maximum(small, 0.0)))
 
-    @server.on_client_connect
-    def _start_view(client: viser.ClientHandle) -> None:
-        client.camera.up_direction = (0.0, -1.0, 0.0)
-        client.camera.position = (0.0, -0.6, -1.5)
-        client.camera.look_at = (0.0, 0.0, 2.5)
 
-    server.scene.add_frame(name, axes_length=0.05, axes_radius=0.002)
-    for s in rig.sensors.values():
-        T = s.T_rig_sensor
-        node = f"{name}/{s.name}"
-        server.scene.add_frame(
-            node,
-            wxyz=_wxyz(T[:3, :3]),
-            position=tuple(T[:3, 3]),
-            axes_length=0.03,
-            axes_radius=0.0015,
-        )
-        fov = 2 * np.arctan2(s.height / 2.0, s.intrinsics.fy)
-        server.scene.add_camera_frustum(
+def board_checker_image(board: Board, px_per_square: int = BOARD_PX_PER_SQUARE) -> np.ndarray:
+    """The board's checkered area as (rows+1, cols+1) squares of ``px_per_square`` pixels,
+    (H, W, 3) uint8 RGB; pixel row 0 is the board's -y edge, column 0 its -x edge, and the
+    black squares are where :meth:`Board.is_black` says."""
+    nx, ny = board.squares
+    i = np.arange(nx * px_per_square) // px_per_square - 1  # square index along x
+    j = np.arange(ny * px_per_square) // px_per_square - 1  # along y
+    black = ((i[None, :] + j[:, None]) % 2) == 0
+    grey = np.where(black, 20, 235).astype(np.uint8)
+    return np.repeat(grey[..., None], 3, axis=2)
+
+
+def board_outline(board: Board) -> np.ndarray:
+    """The checkered area's edges as line segments (4, 2, 3) in the board frame, metres."""
+    sq = board.square_size_m
+    x0, y0 = -sq, -sq
+    x1, y1 = board.cols * sq, board.rows * sq
+    c = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+    return np.stack([c, np.roll(c, -1, axis=0)], axis=1)
+
+
+def rig_difference_markdown(shown_label: str, shown: Rig, in_use: Rig) -> str:
+    """Markdown: per sensor of ``shown``, rotation (deg), translation (mm) and focal length
+    (px) of ``shown`` minus ``in_use`` (sensors absent from either rig are listed as such)."""
+    if shown_label == IN_USE:
+        return "Showing the rig in use."
+    lines = [
+        f"**{shown_label}** vs **{IN_USE}**",
+        "",
+        "| sensor | rot (deg) | trans (mm) | Δfx (px) |",
+        "| --- | ---: | ---: | ---: |",
+    ]
+    for name, s in shown.sensors.items():
+        if name not in in_use.sensors:
+            lines.append(f"| {name} | not in use | | |")
+            continue
+        u = in_use.sensors[name]
+        rot_deg, trans_m = pose_error(s.T_rig_sensor, u.T_rig_sensor)
+        dfx = s.intrinsics.fx - u.intrinsics.fx
+        lines.append(f"| {name} | {rot_deg:.3f} | {trans_m * 1000:.1f} | {dfx:+.1f} |")
+    for name in in_use.sensors:
+        if name not in shown.sensors:
+            lines.append(f"| {name} | not in this rig | | |")
+    return "\n".join(lines)
+
+
+class _SensorNodes:
+    """One sensor's scene nodes: frame (pose), frustum (textured), label (above the
+    frustum's far edge, so that the labels of neighbouring sensors do not pile up)."""
+
+    def __init__(self, server: viser.ViserServer, root: str, sensor: Sensor, size_m: float) -> None:
+        node = f"{root}/{sensor.name}"
+        self.frame = server.scene.add_frame(node, axes_length=0.015, axes_radius=0.0008)
+        self.frustum = server.scene.add_camera_frustum(
             f"{node}/frustum",
-            fov=float(fov),
-            aspect=s.width / s.height,
-            scale=0.08,
-            color=FRUSTUM_COLORS[s.modality],
+            fov=vertical_fov_rad(sensor),
+            aspect=sensor.width / sensor.height,
+            scale=size_m,
+            thickness=0.001,
+            color=FRUSTUM_COLORS.get(sensor.modality, (200, 200, 200)),
+            format="jpeg",
+            jpeg_quality=TEXTURE_JPEG_QUALITY,
         )
-        server.scene.add_label(f"{node}/label", s.name)
+        self.label = server.scene.add_label(f"{node}/label", sensor.name)
+        self.modality = sensor.modality
+        self.size_m = size_m
+        self.shown_frame: object = None  # the Frame whose image the texture shows
+
+    def resize(self, size_m: float) -> None:
+        """Frustum depth ``size_m`` metres; the label stays on its top edge."""
+        self.size_m = size_m
+        self.frustum.scale = size_m
+        half_h = np.tan(self.frustum.fov / 2.0) * size_m
+        self.label.position = (0.0, -half_h, size_m)
+
+    def place(self, sensor: Sensor) -> None:
+        """Move to ``sensor.T_rig_sensor`` and take its FOV, aspect and modality."""
+        T = sensor.T_rig_sensor
+        self.frame.wxyz = wxyz_of(T)
+        self.frame.position = np.asarray(T[:3, 3], dtype=np.float64)
+        self.frustum.fov = vertical_fov_rad(sensor)
+        self.frustum.aspect = sensor.width / sensor.height
+        self.frustum.color = FRUSTUM_COLORS.get(sensor.modality, (200, 200, 200))
+        self.modality = sensor.modality
+        self.resize(self.size_m)
+        self.frame.visible = True
+
+    def hide(self) -> None:
+        self.frame.visible = False
 
 
-class SceneUpdater(Periodic):
-    """Pushes the pipeline's TOF point cloud (coloured by the colour camera) to Viser."""
+class Scene3D(Periodic):
+    """The 3D scene and its "3D scene" GUI folder; :meth:`start` runs the updates.
+
+    Args:
+        ctx: the console's shared objects (server, pipeline, board, board watch, rigs).
+        rate_hz: ticks per second: point cloud and board pose at most this often.
+        texture_hz: frustum texture updates per second (each pushes ~5 small JPEGs).
+        choices_period_s: how often ``ctx.rigs()`` is re-read for the rig dropdown.
+    """
 
     def __init__(
-        self, server: viser.ViserServer, pipeline: FusionPipeline, rate_hz: float = 5.0
+        self,
+        ctx: ConsoleContext,
+        rate_hz: float = 4.0,
+        texture_hz: float = 2.0,
+        choices_period_s: float = 2.0,
     ) -> None:
         super().__init__("scene3d", 1.0 / rate_hz)
-        self.server, self.pipeline = server, pipeline
+        self.ctx = ctx
+        self.server = server = ctx.server
+        self.texture_period_s = 1.0 / texture_hz
+        self.choices_period_s = choices_period_s
+        self._lock = threading.RLock()
+        self._next_texture = 0.0
+        self._next_choices = 0.0
+        self.errors: dict[str, str] = {}
+        self.cloud_span: tuple[float, float] | None = None
+        self._cloud_key: tuple | None = None
+        self._sighting: object = None
 
-    def tick(self) -> None:
-        fusion = self.pipeline.fusion
-        fs = self.pipeline.latest_set
-        if fs is None or not fusion.ready:
-            return
-        eyes = self.pipeline.rig.eyes
-        if not all(eyes[e].color in fs.frames for e in ("left", "right")):
-            return
-        colors = {e: fs.frames[eyes[e].color].image for e in ("left", "right")}
+        server.scene.set_up_direction("-y")
+
+        @server.on_client_connect
+        def _start_view(client: viser.ClientHandle) -> None:
+            client.camera.up_direction = (0.0, -1.0, 0.0)
+            client.camera.position = (0.0, -0.6, -1.5)
+            client.camera.look_at = (0.0, 0.0, 2.5)
+
         try:
-            points, rgb = fusion.point_cloud(colors, {}, "color")
-        except (KeyError, ValueError, RuntimeError):
+            self._rigs: dict[str, Rig] = self._read_rigs()
+        except Exception as exc:  # a bad saved rig must not stop the console
+            self._rigs = {}
+            self.errors["rigs"] = f"{type(exc).__name__}: {exc}"
+        self._rigs = self._rigs or {IN_USE: ctx.pipeline.rig}
+        self.shown_label = IN_USE if IN_USE in self._rigs else next(iter(self._rigs))
+        self.shown_rig: Rig = self._rigs[self.shown_label]
+
+        gui = server.gui
+        with gui.add_folder("3D scene"):
+            self.rig_choice = gui.add_dropdown(
+                "Rig shown", tuple(self._rigs), initial_value=self.shown_label
+            )
+            self.cloud_mode = gui.add_dropdown("Cloud colour", CLOUD_MODES, initial_value="color")
+            self.point_size = gui.add_slider("Point size (mm)", 1.0, 30.0, 1.0, 8.0)
+            self.textures_on = gui.add_checkbox("Live images on frustums", True)
+            self.frustum_size = gui.add_slider("Frustum size (m)", 0.02, 1.0, 0.01, FRUSTUM_SIZE_M)
+            self.cloud_md = gui.add_markdown("Cloud: waiting for a TOF frame")
+            self.board_md = gui.add_markdown("Board: not detected")
+            self.rig_md = gui.add_markdown("")
+            self.error_md = gui.add_markdown("")
+
+        server.scene.add_frame("/rig", axes_length=0.05, axes_radius=0.002)
+        self.nodes: dict[str, _SensorNodes] = {}
+        self.live = server.scene.add_frame("/live", show_axes=False)
+        self.cloud = server.scene.add_point_cloud(
+            "/live/tof_points",
+            points=np.zeros((1, 3), np.float32),
+            colors=np.zeros((1, 3), np.uint8),
+            point_size=self.point_size.value / 1000.0,
+            precision="float32",
+            visible=False,
+        )
+        self.board_node = self._add_board(ctx.board)
+        self._show_rig(self.shown_label)
+
+        self.rig_choice.on_update(lambda _e: self._guard("rig", self._on_rig_choice))
+        self.cloud_mode.on_update(lambda _e: self._guard("cloud", self.update_cloud))
+        self.point_size.on_update(lambda _e: self._guard("cloud", self._on_point_size))
+        self.textures_on.on_update(lambda _e: self._guard("textures", self._on_textures))
+        self.frustum_size.on_update(lambda _e: self._guard("rig", self._on_frustum_size))
+
+    # -- building ----------------------------------------------------------------------
+
+    def _add_board(self, board: Board) -> viser.FrameHandle:
+        """The board frame node (origin at the first inner corner) with its checker plate
+        and outline; hidden until a sighting gives its pose."""
+        scene = self.server.scene
+        node = scene.add_frame("/live/board", axes_length=0.05, axes_radius=0.002, visible=False)
+        w, h = board.size_m
+        sq = board.square_size_m
+        center = (-sq + w / 2.0, -sq + h / 2.0, BOARD_PLATE_BEHIND_M)
+        scene.add_image(
+            "/live/board/plate",
+            board_checker_image(board),
+            render_width=w,
+            render_height=h,
+            format="png",
+            position=center,
+        )
+        scene.add_line_segments(
+            "/live/board/outline", board_outline(board), BOARD_OUTLINE_RGB, thickness=0.004
+        )
+        return node
+
+    def _nodes_for(self, sensor: Sensor) -> _SensorNodes:
+        nodes = self.nodes.get(sensor.name)
+        if nodes is None:
+            size_m = float(self.frustum_size.value)
+            nodes = self.nodes[sensor.name] = _SensorNodes(self.server, "/rig", sensor, size_m)
+        return nodes
+
+    # -- helpers -----------------------------------------------------------------------
+
+    def _guard(self, part: str, fn: Callable[[], None]) -> None:
+        """Run one part of an update under the lock; an exception is shown, not raised."""
+        with self._lock:
+            try:
+                fn()
+            except Exception as exc:  # the scene must outlive any bad frame
+                self.errors[part] = f"{type(exc).__name__}: {exc}"
+            else:
+                self.errors.pop(part, None)
+            text = "\n\n".join(f"**{k}:** {v}" for k, v in sorted(self.errors.items()))
+            if self.error_md.content != text:
+                self.error_md.content = text
+
+    def _read_rigs(self) -> dict[str, Rig]:
+        return dict(self.ctx.rigs())
+
+    @property
+    def in_use(self) -> Rig:
+        return self._rigs.get(IN_USE, self.ctx.pipeline.rig)
+
+    def _tof_name(self) -> str:
+        return getattr(self.ctx.pipeline, "tof", None) or self.in_use.reference
+
+    # -- rig ---------------------------------------------------------------------------
+
+    def _on_frustum_size(self) -> None:
+        for nodes in self.nodes.values():
+            nodes.resize(float(self.frustum_size.value))
+
+    def _on_rig_choice(self) -> None:
+        self._show_rig(self.rig_choice.value)
+
+    def _show_rig(self, label: str) -> None:
+        """Move frames and frustums to the rig ``label``; the live nodes follow its TOF."""
+        rig = self._rigs.get(label)
+        if rig is None:
+            return
+        self.shown_label, self.shown_rig = label, rig
+        for sensor in rig.sensors.values():
+            self._nodes_for(sensor).place(sensor)
+        for name, nodes in self.nodes.items():
+            if name not in rig.sensors:
+                nodes.hide()
+        tof = self._tof_name()
+        T_shown_use = np.eye(4)
+        if tof in rig and tof in self.in_use:
+            T_shown_use = rig[tof].T_rig_sensor @ invert(self.in_use[tof].T_rig_sensor)
+        self.live.wxyz = wxyz_of(T_shown_use)
+        self.live.position = T_shown_use[:3, 3].copy()
+        self.rig_md.content = rig_difference_markdown(label, rig, self.in_use)
+
+    def refresh_rigs(self) -> None:
+        """Re-read ``ctx.rigs()``: new labels join the dropdown, a vanished selection falls
+        back to "in use", a changed displayed rig (or rig in use) is redrawn."""
+        rigs = self._read_rigs()
+        if not rigs:
+            return
+        old = self._rigs
+        self._rigs = rigs
+        labels = tuple(rigs)
+        if tuple(self.rig_choice.options) != labels:
+            self.rig_choice.options = labels  # may reset the value (-> _show_rig)
+        label = self.rig_choice.value
+        if label not in rigs:
+            label = IN_USE if IN_USE in rigs else labels[0]
+        changed = old.get(label) != rigs[label] or old.get(IN_USE) != rigs.get(IN_USE)
+        if changed or label != self.shown_label:
+            self._show_rig(label)
+
+    # -- cloud -------------------------------------------------------------------------
+
+    def _on_point_size(self) -> None:
+        self.cloud.point_size = float(self.point_size.value) / 1000.0
+
+    def _temperature_span(self, thermal_images: list[np.ndarray]) -> tuple[float, float] | None:
+        """The pipeline's span: fixed in its settings, else the last fused frame's span,
+        else the automatic span over ``thermal_images``."""
+        p = self.ctx.pipeline
+        if p.settings.span_k is not None:
+            return p.settings.span_k
+        span = getattr(p.fusion, "span_k", None)
+        if span is not None:
+            return span
+        return resolve_span(p.settings, thermal_images) if thermal_images else None
+
+    def _thermal_k(self, fs: object, sensor: str) -> np.ndarray | None:
+        """The imager's temperatures (H, W) kelvin plus its manual offset, or None."""
+        frame = fs.frames.get(sensor)  # type: ignore[attr-defined]
+        if frame is None:
+            return None
+        offsets = getattr(self.ctx.pipeline, "thermal_offset_k", {})
+        offset = float(offsets.get(sensor, 0.0))
+        image = np.asarray(frame.image, dtype=np.float32)
+        return image + np.float32(offset) if offset else image
+
+    def update_cloud(self) -> None:
+        """Push the newest TOF points (in the in-use rig's TOF frame, metres) coloured by
+        the chosen mode; hidden while there is no depth. Skips unchanged inputs."""
+        p = self.ctx.pipeline
+        fusion, fs = p.fusion, p.latest_set
+        if fs is None or not fusion.ready:
+            self.cloud.visible = False
+            self.cloud_md.content = "Cloud: waiting for a TOF frame"
+            return
+        mode = self.cloud_mode.value
+        points = fusion.points
+        key = (fs, points, mode, p.settings)
+        if self._cloud_key is not None and all(
+            a is b for a, b in zip(key, self._cloud_key, strict=True)
+        ):
+            return
+        eye_name = fusion.eyes[0]
+        eye = p.rig.eyes[eye_name]
+        n = len(points)
+        legend = ""
+        if mode == "color":
+            frame = fs.frames.get(eye.color)
+            if frame is None:
+                pts, rgb = points, np.full((n, 3), NAN_GREY, np.uint8)
+                legend = f"colour camera {eye.color} missing"
+            else:
+                pts, rgb = fusion.point_cloud({eye_name: frame.image}, {}, "color")
+                legend = f"from {eye.color}"
+            self.cloud_span = None
+        elif mode == "temperature":
+            thermals = {
+                e: t
+                for e in fusion.eyes
+                if (t := self._thermal_k(fs, p.rig.eyes[e].thermal)) is not None
+            }
+            span = self._temperature_span(list(thermals.values()))
+            if eye_name not in thermals or span is None:
+                pts, rgb = points, np.full((n, 3), NAN_GREY, np.uint8)
+                legend = f"thermal imager {eye.thermal} missing"
+            else:
+                palette = p.settings.palette
+                pts, rgb = fusion.point_cloud(
+                    {}, {eye_name: thermals[eye_name]}, "temperature", span, palette
+                )
+                legend = (
+                    f"from {eye.thermal}, {span[0] - C_TO_K:.1f} to {span[1] - C_TO_K:.1f} °C"
+                    f" ({palette})"
+                )
+            self.cloud_span = span
+        else:
+            r = np.linalg.norm(np.asarray(points, dtype=np.float64), axis=1)
+            span = auto_span(r, step=1, min_span_k=0.01, default=(0.0, 1.0))
+            pts, rgb = fusion.point_cloud({}, {}, "depth", span, DEPTH_PALETTE)
+            legend = f"radial distance {span[0]:.2f} to {span[1]:.2f} m ({DEPTH_PALETTE})"
+            self.cloud_span = span
+        pts = np.asarray(pts, dtype=np.float32)
+        finite = np.isfinite(pts).all(axis=1)
+        if not finite.all():
+            pts, rgb = pts[finite], rgb[finite]
+        if len(pts) == 0:
+            self.cloud.visible = False
+            self.cloud_md.content = "Cloud: no valid depth in the last TOF frame"
+            self._cloud_key = key
             return
         with self.server.atomic():
-            self.server.scene.add_point_cloud(
-                "/rig/tof_points",
-                points=points,
-                colors=rgb,
-                point_size=0.01,
-                precision="float32",
-            )
+            self.cloud.points = pts
+            self.cloud.colors = np.ascontiguousarray(rgb, dtype=np.uint8)
+            self.cloud.visible = True
+        self.cloud_md.content = f"Cloud: {len(pts):,} points, {mode}: {legend}"
+        self._cloud_key = key
+
+    # -- textures ----------------------------------------------------------------------
+
+    def _on_textures(self) -> None:
+        if not self.textures_on.value:
+            for nodes in self.nodes.values():
+                nodes.frustum.image = None
+                nodes.shown_frame = None
+        else:
+            self.update_textures()
+
+    def update_textures(self) -> None:
+        """Each displayed sensor's frustum shows its newest image (<= TEXTURE_MAX_W px
+        wide); a sensor without a frame in the newest set shows no image."""
+        if not self.textures_on.value:
+            return
+        p = self.ctx.pipeline
+        fs = p.latest_set
+        frames = fs.frames if fs is not None else {}
+        span = None
+        try:
+            thermals = [
+                np.asarray(f.image)
+                for n, f in frames.items()
+                if n in self.shown_rig and self.shown_rig[n].modality == "thermal"
+            ]
+            span = self._temperature_span(thermals)
+        except (ValueError, KeyError, AttributeError):
+            span = None
+        palette = getattr(p.settings, "palette", "iron")
+        for name, nodes in self.nodes.items():
+            frame = frames.get(name)
+            if frame is None or name not in self.shown_rig:
+                if nodes.shown_frame is not None:
+                    nodes.frustum.image = None
+                    nodes.shown_frame = None
+                continue
+            if frame is nodes.shown_frame:
+                continue
+            try:
+                tex = sensor_texture(frame.image, nodes.modality, TEXTURE_MAX_W, span, palette)
+            except (ValueError, cv2.error) as exc:
+                self.errors[f"texture {name}"] = str(exc)
+                nodes.frustum.image = None
+                nodes.shown_frame = None
+                continue
+            self.errors.pop(f"texture {name}", None)
+            nodes.frustum.image = tex
+            nodes.shown_frame = frame
+
+    # -- board -------------------------------------------------------------------------
+
+    def update_board(self) -> None:
+        """The board at the newest sighting's ``T_rig_board`` (rig in use), hidden when
+        the sighting has no pose."""
+        latest = getattr(self.ctx.board_watch, "latest", None)
+        if latest is self._sighting:
+            return
+        self._sighting = latest
+        T = None if latest is None else latest.T_rig_board
+        if T is None or np.shape(T) != (4, 4) or not np.isfinite(T).all():
+            self.board_node.visible = False
+            self.board_md.content = "Board: not detected"
+            return
+        T = np.asarray(T, dtype=np.float64)
+        self.board_node.wxyz = wxyz_of(T)
+        self.board_node.position = T[:3, 3].copy()
+        self.board_node.visible = True
+        seen = ", ".join(getattr(latest, "found", []) or [])
+        dist = float(np.linalg.norm(T[:3, 3]))
+        text = f"Board: {dist:.2f} m away, pose from {getattr(latest, 'pose_sensor', '?')}"
+        if seen:
+            text += f"; seen by {seen}"
+        newest = self.ctx.pipeline.latest_set
+        frames = getattr(latest, "frames", None)
+        if newest is not None and frames is not None:
+            lag_s = (newest.stamp_ns - frames.stamp_ns) / 1e9
+            if lag_s > 0.5:  # detection is slower than the board may move
+                text += f" (in frames {lag_s:.1f} s older than the cloud)"
+        self.board_md.content = text
+
+    # -- the loop ----------------------------------------------------------------------
+
+    def tick(self) -> None:
+        now = time.monotonic()
+        if now >= self._next_choices:
+            self._next_choices = now + self.choices_period_s
+            self._guard("rigs", self.refresh_rigs)
+        self._guard("board", self.update_board)
+        self._guard("cloud", self.update_cloud)
+        if now >= self._next_texture:
+            self._next_texture = now + self.texture_period_s
+            self._guard("textures", self.update_textures)

@@ -17,7 +17,7 @@ from app.server.board_watch import BoardWatch
 from app.server.context import ConsoleContext
 from app.server.panels import Panels
 from app.server.pipeline import FusionPipeline
-from app.server.scene3d import SceneUpdater, add_rig
+from app.server.scene3d import Scene3D
 from app.server.stream import FrameHub
 from app.sources.base import FrameSource
 from calib.board import Board
@@ -108,10 +108,9 @@ def serve(
         board_watch=watch,
         ground_truth_rig=opened.ground_truth_rig,
     )
-    add_rig(server, rig)
     parts = [
         watch.start(),
-        SceneUpdater(server, pipeline).start(),
+        Scene3D(ctx).start(),
         Panels(server, pipeline).start(),
     ]
     app = create_app(hub, server.get_port(), pipeline)
