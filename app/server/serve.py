@@ -17,6 +17,7 @@ from app.server.board_watch import BoardWatch
 from app.server.context import ConsoleContext
 from app.server.panels import Panels
 from app.server.pipeline import FusionPipeline
+from app.server.precision_panel import PrecisionPanel
 from app.server.scene3d import Scene3D
 from app.server.stream import FrameHub
 from app.sources.base import FrameSource
@@ -111,7 +112,8 @@ def serve(
     parts = [
         watch.start(),
         Scene3D(ctx).start(),
-        Panels(server, pipeline).start(),
+        Panels(ctx).start(),
+        PrecisionPanel(ctx).start(),
     ]
     app = create_app(hub, server.get_port(), pipeline)
     ws_max = None

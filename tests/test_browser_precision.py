@@ -1,0 +1,52 @@
+"""The Precision panel in a real browser (Debian's chromium driven by Playwright): the
+method's Table 1 for the console's rig and its curves drawn by uPlot. Fixtures ``console``
+and ``browser`` are in conftest.py."""
+
+from __future__ import annotations
+
+from app.cli import _analyze_cell
+from app.sources.sim.head import default_rig
+from fusion.precision import analyze_precision
+from tests.browser_support import needs_chromium
+
+pytestmark = needs_chromium
+
+
+def test_precision_panel_shows_table_1_and_its_curves(console, browser) -> None:
+    page = browser.new_page(viewport={"width": 800, "height": 900})
+    page.goto(console + "/console/")
+    page.wait_for_function(
+        "() => !document.body.innerText.includes('Connecting...')", timeout=60000
+    )
+    page.get_by_text("Precision", exact=True).first.click()  # folded by default
+    page.wait_for_function("() => document.body.innerText.includes('TOF pixel (')", timeout=60000)
+    text = page.evaluate("() => document.body.innerText")
+    assert "principal point" in text and "region 3 edge" in text
+    # the console fuses with the simulated head's rig: its numbers, as `trifuse analyze`
+    ref = analyze_precision(default_rig())
+    key = next(iter(ref.distance_error))
+    row = [_analyze_cell(r.x_m, 10.0) for r in ref.distance_error[key].values()]
+    lines = [" ".join(t.split()) for t in text.splitlines()]
+    assert any(line.startswith("41 mm") and " ".join(row) in line for line in lines), row
+    # two uPlot charts (|dx| and |dy|) with their canvases, drawn at a usable size
+    page.wait_for_function(
+        "() => document.querySelectorAll('.uplot canvas').length >= 2", timeout=60000
+    )
+    size = page.evaluate(
+        "() => { const c = document.querySelector('.uplot canvas');"
+        " const r = c.getBoundingClientRect(); return [r.width, r.height]; }"
+    )
+    assert size[0] > 150 and size[1] > 100, size
+    text = page.evaluate("() => document.body.innerText")
+    assert "threshold 0.5 px" in text and "col L 41 mm" in text  # the legend
+    # the curves are drawn: pixels of the colour cameras' orange (col R) on the canvas
+    orange = page.evaluate(
+        """() => { const c = document.querySelector('.uplot canvas');
+        const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+        let n = 0;
+        for (let i = 0; i < d.length; i += 4)
+          if (d[i] > 200 && d[i + 1] > 90 && d[i + 1] < 160 && d[i + 2] < 60 && d[i + 3] > 200) n++;
+        return n; }"""
+    )
+    assert orange > 50, orange
+    page.close()
