@@ -19,6 +19,8 @@ import statistics
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 BenchFn = Callable[[int], dict[str, float]]
 
@@ -548,4 +550,258 @@ def _recording(repeat: int) -> dict[str, float]:
     figures["jpeg_decode_ms"] = median_ms(
         lambda _i: cv2.imdecode(np.asarray(jpg), cv2.IMREAD_COLOR_RGB), repeat
     )
+    return figures
+
+
+# -- the console stream, end to end in a browser -------------------------------------------
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+)
+
+# Injected into the viewer page before its own script: per drawn frame, the time it was
+# drawn, the latency from the frame's source time stamp (``stamp_ns``: when the simulated
+# head released its left colour image) and from the server's send time (``sent_ns``, what
+# the viewer's overlay shows), and the bytes received over the stream's WebSocket.
+_VIEWER_PROBE = """
+(() => {
+  const rec = { frames: [], bytes: 0, meta: null };
+  window.__trifuseBench = rec;
+  const Native = window.WebSocket;
+  window.WebSocket = class extends Native {
+    constructor(...args) {
+      super(...args);
+      this.addEventListener("message", (ev) => {
+        if (typeof ev.data !== "string") { rec.bytes += ev.data.size; return; }
+        rec.meta = JSON.parse(ev.data);
+        rec.bytes += ev.data.length;
+      });
+    }
+  };
+  const draw = CanvasRenderingContext2D.prototype.drawImage;
+  CanvasRenderingContext2D.prototype.drawImage = function (...args) {
+    const out = draw.apply(this, args);
+    const m = rec.meta, now = Date.now();
+    if (m) rec.frames.push([performance.now(), now - m.stamp_ns / 1e6, now - m.sent_ns / 1e6]);
+    return out;
+  };
+})();
+"""
+
+
+def _inspection_pose_count(render_hz: float = 2.0) -> int:
+    """Distinct head poses the console's simulated head renders (its cache, as
+    ``SimulatedHeadSource`` counts them: one pan period sampled at ``render_hz``)."""
+    import numpy as np
+
+    from app.sources.sim.scenarios import InspectionScenario
+
+    scenario = InspectionScenario(seed=0)
+    k = max(1, round(scenario.pan_period_s * render_hz))
+    poses = {tuple(np.round(scenario.T_world_rig(i / render_hz), 9).ravel()) for i in range(k)}
+    return len(poses)
+
+
+class _Console:
+    """``trifuse serve`` on the simulated inspection room in a subprocess, with its own
+    work directory and ``XDG_CACHE_HOME`` (so the disk cache of rendered poses is
+    ``cache_home/trifuse/sim``), and one viewer page in headless Chromium."""
+
+    def __init__(self, browser: Any, cache_home: Path, workdir: Path) -> None:
+        import os
+        import socket
+        import subprocess
+        import sys
+
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            port = sock.getsockname()[1]
+        env = {**os.environ, "XDG_CACHE_HOME": str(cache_home)}
+        env.pop("TRIFUSE_SIM_CACHE", None)
+        self.t_start = time.monotonic()
+        self.proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-c",
+                "import sys; from app.cli import main; sys.exit(main(sys.argv[1:]))",
+                "serve",
+                "--port",
+                str(port),
+                "--workdir",
+                str(workdir),
+            ],
+            cwd=Path(__file__).resolve().parents[1],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        line = self.proc.stdout.readline() if self.proc.stdout else ""
+        if f"http://127.0.0.1:{port}/" not in line:
+            self.close()
+            raise RuntimeError(f"trifuse serve did not start: {line}")
+        self.url = f"http://127.0.0.1:{port}"
+        self.page = browser.new_page()
+        self.page.add_init_script(_VIEWER_PROBE)
+        self.page.goto(self.url + "/")
+
+    def first_frame_s(self, timeout_s: float = 300.0) -> float:
+        """Seconds from starting the server to the viewer's first drawn frame."""
+        self.page.wait_for_function(
+            "() => window.__trifuseBench && window.__trifuseBench.frames.length > 0",
+            timeout=timeout_s * 1e3,
+        )
+        return time.monotonic() - self.t_start
+
+    def window(self, seconds: float) -> dict[str, float]:
+        """The viewer over the next ``seconds``: frames drawn per second, median latencies
+        (ms), megabytes per second received, and the viewer's own fps figure."""
+        import statistics
+
+        js = "() => [window.__trifuseBench.frames.length, window.__trifuseBench.bytes]"
+        n0, b0 = self.page.evaluate(js)
+        t0 = time.monotonic()
+        viewer_fps = []
+        while time.monotonic() - t0 < seconds:
+            self.page.wait_for_timeout(1000)
+            viewer_fps.append(self.page.evaluate("() => window.trifuseStats.fps"))
+        dt = time.monotonic() - t0
+        n1, b1 = self.page.evaluate(js)
+        frames = self.page.evaluate(f"() => window.__trifuseBench.frames.slice({n0}, {n1})")
+        return {
+            "fps": (n1 - n0) / dt,
+            "viewer_fps": statistics.median(viewer_fps) if viewer_fps else 0.0,
+            "latency_ms": statistics.median(f[1] for f in frames) if frames else float("nan"),
+            "send_latency_ms": statistics.median(f[2] for f in frames) if frames else float("nan"),
+            "mb_per_s": (b1 - b0) / dt / 1e6,
+        }
+
+    def close(self) -> None:
+        import subprocess
+
+        page = getattr(self, "page", None)
+        if page is not None:
+            page.close()
+        self.proc.terminate()
+        try:
+            self.proc.wait(15)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(5)
+
+
+def _phase(console: _Console, windows: list[dict[str, float]], prefix: str) -> dict[str, float]:
+    import statistics
+
+    out = {}
+    for key in ("fps", "viewer_fps", "latency_ms", "send_latency_ms", "mb_per_s"):
+        values = [w[key] for w in windows if w[key] == w[key]]  # NaN: no frame
+        out[f"{prefix}_{key}"] = statistics.median(values) if values else float("nan")
+    out[f"{prefix}_min_fps"] = min((w["fps"] for w in windows), default=float("nan"))
+    return out
+
+
+@register(
+    "stream",
+    "the console's fused stream on the simulated head, end to end in headless Chromium: "
+    "frames/s at the viewer, latency, bandwidth; while the pose cache fills, once it is "
+    "full, and after a restart (minutes)",
+    baselines=(("warm_frame_interval_ms", "compose_encode_ms"),),
+    default_repeat=10,
+)
+def _stream(repeat: int) -> dict[str, float]:
+    """``trifuse serve`` (default: the inspection room, with everything the console runs:
+    3D scene, panels, live board detection) and its viewer page in headless Chromium
+    (``/usr/bin/chromium``, Playwright), all on this machine.
+
+    Three phases, each reported as medians over windows of ``WINDOW_S`` seconds:
+
+    - ``fill_*``: a fresh disk cache (a temporary ``XDG_CACHE_HOME``), from the viewer's
+      first frame until every head pose is rendered (at most 240 s);
+    - ``warm_*``: then ``repeat`` windows on the same console;
+    - ``restart_*``: a second console on the now full disk cache, ``repeat`` windows from
+      its first frame; ``restart_first_frame_s``: start to first frame drawn (the first
+      console's: ``fill_first_frame_s``).
+
+    Per window: ``fps`` frames drawn by the viewer per second (``min_fps``: the worst
+    window), ``viewer_fps`` what the viewer's own overlay (``window.trifuseStats``)
+    showed, ``latency_ms`` from the frame leaving the source (its time stamp; the
+    simulated head's clock is the host's) to the viewer drawing it, ``send_latency_ms``
+    from the server publishing it, ``mb_per_s`` megabytes received per second.
+
+    Baseline, same run, before the consoles: ``compose_encode_ms``, the pipeline's own
+    work per frame when every frame is new (blend of both eyes, RGB to BGR, JPEG q80 of
+    the 2560 x 960 pair), and ``warm_frame_interval_ms`` (1000 / ``warm_fps``) against it.
+    """
+    import os
+    import tempfile
+
+    import cv2
+    import numpy as np
+
+    from app.sources.sim.scenarios import InspectionScenario
+    from fusion.compose import DisplaySettings
+    from fusion.stereo import StereoFusion
+
+    if not os.path.exists(CHROMIUM):
+        raise RuntimeError(f"the stream benchmark needs Debian's chromium at {CHROMIUM}")
+    from playwright.sync_api import sync_playwright
+
+    window_s = 3.0
+    figures: dict[str, float] = {}
+
+    scenario = InspectionScenario(seed=0)
+    frames, _ = scenario.render(3.0)
+    rig = scenario.rig
+    colors = {e: frames[rig.eyes[e].color].image for e in ("left", "right")}
+    thermals = {e: frames[rig.eyes[e].thermal].image for e in ("left", "right")}
+    fusion = StereoFusion(rig)
+    fusion.update_depth(frames["tof"].distance_m)
+    blend = DisplaySettings(mode="blend")
+    bgr = np.empty((*fusion.frame.shape[:2], 3), np.uint8)
+
+    def compose_encode(_i: int) -> None:
+        rgb = fusion.compose(colors, thermals, blend)
+        cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR, dst=bgr)
+        cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 80])
+
+    figures["compose_encode_ms"] = median_ms(compose_encode, max(repeat, 20))
+    poses = _inspection_pose_count()
+
+    with tempfile.TemporaryDirectory(prefix="trifuse-bench-stream-") as tmp, sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=list(CHROMIUM_FLAGS))
+        try:
+            cache = Path(tmp) / "cache"
+            console = _Console(browser, cache, Path(tmp) / "work1")
+            try:
+                figures["fill_first_frame_s"] = console.first_frame_s()
+                t_fill = time.monotonic()
+                fill = []
+                while len(list(cache.glob("trifuse/sim/*/pose-*.npz"))) < poses:
+                    if time.monotonic() - t_fill > 240:
+                        break
+                    fill.append(console.window(window_s))
+                figures["fill_s"] = time.monotonic() - t_fill
+                figures.update(_phase(console, fill, "fill"))
+                warm = [console.window(window_s) for _ in range(repeat)]
+                figures.update(_phase(console, warm, "warm"))
+            finally:
+                console.close()
+            console = _Console(browser, cache, Path(tmp) / "work2")
+            try:
+                figures["restart_first_frame_s"] = console.first_frame_s()
+                restart = [console.window(window_s) for _ in range(repeat)]
+                figures.update(_phase(console, restart, "restart"))
+            finally:
+                console.close()
+        finally:
+            browser.close()
+    figures["warm_frame_interval_ms"] = 1e3 / figures["warm_fps"] if figures["warm_fps"] else 0
     return figures
