@@ -165,6 +165,7 @@ class FusionPipeline:
         self.tolerance_s = tolerance_s
         self.status = PipelineStatus()
         self.latest_set: FrameSet | None = None
+        self._pending_rig: Rig | None = None
         self._init_rig(rig)
         # Manual balance of the thermal imagers: kelvin added to each imager's readings.
         self.thermal_offset_k: dict[str, float] = {rig.eyes[e].thermal: 0.0 for e in EYES}
@@ -194,6 +195,21 @@ class FusionPipeline:
         self._last_distance: np.ndarray | None = None
         self._depth_version = 0  # counts mapping updates: part of what a picture is made of
         self._made_of: tuple | None = None  # what the previous picture was made of
+
+    def set_rig(self, rig: Rig) -> None:
+        """Fuse with ``rig`` from the next frame set on (e.g. a new calibration).
+
+        Raises ValueError (and keeps the current rig) unless ``rig`` has the same sensors
+        (names, modalities, image sizes) and eyes as the current one.
+        """
+        mine = {n: (s.modality, s.image_size) for n, s in self.rig.sensors.items()}
+        theirs = {n: (s.modality, s.image_size) for n, s in rig.sensors.items()}
+        if mine != theirs or rig.eyes != self.rig.eyes:
+            raise ValueError(
+                f"the rig's sensors {theirs} and eyes {sorted(rig.eyes)} must match the "
+                f"console's {mine} and {sorted(self.rig.eyes)}"
+            )
+        self._pending_rig = rig  # swapped in by the fusion thread, which owns that state
 
     def start(self) -> FusionPipeline:
         self._encoder.start()
@@ -226,6 +242,9 @@ class FusionPipeline:
 
     def _publish(self, fs: FrameSet) -> bool:
         """Fuse one frame set and hand it to the encoder; False if it makes no picture."""
+        rig, self._pending_rig = self._pending_rig, None
+        if rig is not None:
+            self._init_rig(rig)
         self.latest_set = fs
         self.status.missing = dict(fs.missing)
         self.status.last_stamp_ns = fs.stamp_ns

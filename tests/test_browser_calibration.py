@@ -1,0 +1,128 @@
+"""A whole calibration session driven from the browser, then a kill and a restart.
+
+The console runs on the simulated head's calibration scenario (the heated board held at
+30 poses, 3 s each). In Chromium: Capture writes a view to disk at once; Auto-capture takes
+the steady, novel poses; Run calibration; Save rig. The saved rig must meet the calibration
+issue's accuracy against the simulator's ground truth. Then the server is killed (SIGKILL)
+in the middle of a second calibration and started again on the same work directory: every
+captured view and the saved rig are still there, and the console lists them.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import signal
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+
+from app.capture import load_capture
+from app.rigfile import load_rig
+from app.sources.sim.head import default_rig
+from calib.transforms import pose_error
+from tests.browser_support import needs_chromium, start_console
+
+pytestmark = needs_chromium
+
+MIN_VIEWS = 24  # of the scenario's 30 poses
+
+
+def _get(url: str) -> dict | list:
+    with urllib.request.urlopen(url, timeout=10) as r:
+        return json.loads(r.read())
+
+
+def _post(url: str) -> tuple[int, dict]:
+    req = urllib.request.Request(url, method="POST")
+    with urllib.request.urlopen(req, timeout=10) as r:
+        return r.status, json.loads(r.read())
+
+
+def _views_on_disk(workdir: Path) -> list[str]:
+    return [v.name for v in load_capture(workdir / "captures").views]
+
+
+def _views_shown(page) -> int:
+    m = re.search(r"(\d+) views", page.evaluate("() => document.body.innerText"))
+    return int(m.group(1)) if m else 0
+
+
+def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path) -> None:
+    workdir = tmp_path / "work"
+    args = ["--scenario", "calibration", "--workdir", str(workdir)]
+    proc, url = start_console(args)
+    try:
+        page = browser.new_page(viewport={"width": 900, "height": 1200})
+        page.goto(url + "/console/")
+        page.wait_for_function(
+            "() => !document.body.innerText.includes('Connecting...')", timeout=60000
+        )
+        page.wait_for_function("() => document.body.innerText.includes('Board (')", timeout=120000)
+        # One click, one view on disk, before anything else happens.
+        page.get_by_role("button", name="Capture", exact=True).click()
+        page.wait_for_function("() => document.body.innerText.includes('Captured view 0001')")
+        assert _views_on_disk(workdir) == ["0001"]
+
+        page.get_by_label("Auto-capture").check()
+        page.wait_for_function(
+            f"() => {{ const m = document.body.innerText.match(/(\\d+) views/);"
+            f" return m && +m[1] >= {MIN_VIEWS}; }}",
+            timeout=400000,
+            polling=2000,
+        )
+        page.get_by_label("Auto-capture").uncheck()
+        shown = _views_shown(page)
+        assert len(_views_on_disk(workdir)) >= shown >= MIN_VIEWS
+
+        page.get_by_role("button", name="Run calibration").click()
+        page.wait_for_function(
+            "() => /Calibrated \\d+ views|Calibration failed/.test(document.body.innerText)",
+            timeout=400000,
+            polling=1000,
+        )
+        text = page.evaluate("() => document.body.innerText")
+        assert "Calibration failed" not in text, text
+        page.get_by_role("button", name="Save rig").click()
+        page.wait_for_function("() => document.body.innerText.includes('Saved rig-0001')")
+        page.screenshot(path=str(tmp_path / "calibration-panel.png"), full_page=True)
+        page.close()
+
+        saved = workdir / "rigs" / "rig-0001.yaml"
+        rig, truth = load_rig(saved), default_rig()
+        report = json.loads((workdir / "rigs" / "rig-0001.report.json").read_text())
+        assert len(report["views"]) >= MIN_VIEWS
+        # The calibration issue's accuracy (focal 0.3 % / TOF 1 %; pose 0.1 deg and 1 mm).
+        for name in truth.names:
+            focal = abs(rig[name].intrinsics.fx / truth[name].intrinsics.fx - 1)
+            assert focal < (0.01 if truth[name].modality == "tof" else 0.003), (name, focal)
+            rot_deg, trans_m = pose_error(rig[name].T_rig_sensor, truth[name].T_rig_sensor)
+            assert rot_deg < 0.1 and trans_m < 0.001, (name, rot_deg, trans_m)
+
+        # A second calibration, killed half-way.
+        views_before = _views_on_disk(workdir)
+        saved_bytes = saved.read_bytes()
+        assert _post(url + "/api/calibrate")[0] == 202
+        assert _get(url + "/api/calibrate")["state"] == "running"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+
+    assert _views_on_disk(workdir) == views_before
+    assert saved.read_bytes() == saved_bytes
+    proc, url = start_console(args)
+    try:
+        listing = _get(url + "/api/captures")
+        assert [v["name"] for v in listing["views"]] == views_before
+        assert [v["name"] for v in _get(url + "/api/rigs")] == ["rig-0001"]
+        assert np.allclose(
+            np.array(_get(url + "/api/rigs/rig-0001")["sensors"]["ccd_right"]["T_rig_sensor"]),
+            rig["ccd_right"].T_rig_sensor,
+        )
+    finally:
+        proc.terminate()
+        proc.wait(10)
