@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -28,7 +29,7 @@ from app.sources.sim.scene import (
     Solid,
     Sphere,
 )
-from calib.rig import Rig
+from calib.rig import Rig, rig_to_yaml
 from calib.transforms import make_T, rotation_from_euler_deg
 
 CALIBRATION_BOARD = Board(cols=9, rows=6, square_size_m=0.06)
@@ -344,11 +345,17 @@ class CalibrationScenario:
             raise ValueError(f"hold_s: expected a positive number of seconds, got {hold_s}")
         self.rig = rig or default_rig()
         self.renderer = Renderer(self.rig, model)
+        self.model = model
         self.board = CALIBRATION_BOARD
         self.poses = calibration_poses(n_poses, seed, self.rig, self.board)
         self.background = lab_background()
         self.n_poses, self.hold_s, self.seed = n_poses, float(hold_s), seed
         self.loop_s = n_poses * self.hold_s
+
+    def cache_key(self) -> str:
+        """What identifies this scenario's pictures (for the simulated head's disk cache)."""
+        rig = hashlib.sha256(rig_to_yaml(self.rig).encode()).hexdigest()[:16]
+        return f"poses={self.n_poses} hold={self.hold_s} seed={self.seed} rig={rig} {self.model!r}"
 
     def pose_index(self, t_s: float) -> int:
         """Which board pose is held at scenario time ``t_s`` (seconds)."""
