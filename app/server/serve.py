@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import contextlib
 import io
+import signal
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +21,8 @@ from app.server.panels import Panels
 from app.server.pipeline import FusionPipeline
 from app.server.precision_panel import PrecisionPanel
 from app.server.scene3d import Scene3D
+from app.server.source_control import SourceControl, SourceTap
+from app.server.source_panel import SourcePanel
 from app.server.stream import FrameHub
 from app.sources.base import FrameSource
 from calib.board import Board
@@ -85,6 +89,10 @@ def open_source(
     return OpenedSource(src, rig or src.rig, what, ground_truth_rig=src.rig)
 
 
+def _exit_on_sigterm(signum: int, _frame: object) -> None:
+    raise SystemExit(128 + signum)
+
+
 def serve(
     opened: OpenedSource,
     board: Board,
@@ -95,7 +103,8 @@ def serve(
     """Run the console until interrupted; the calibration session lives in ``workdir``."""
     source, rig = opened.source, opened.rig
     hub = FrameHub()
-    pipeline = FusionPipeline(source, rig, hub).start()
+    tap = SourceTap(source)  # per-sensor rates and recording (source_control.py)
+    pipeline = FusionPipeline(tap, rig, hub).start()
     with contextlib.redirect_stdout(io.StringIO()):  # Viser's banner shows its inner port
         server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     watch = BoardWatch(lambda: pipeline.latest_set, rig, board)
@@ -109,13 +118,16 @@ def serve(
         board_watch=watch,
         ground_truth_rig=opened.ground_truth_rig,
     )
+    control = SourceControl(pipeline, hub, opened.description, workdir)
     parts = [
+        SourcePanel(ctx, control).start(),  # first: the Source panel tops the GUI
         watch.start(),
         Scene3D(ctx).start(),
         Panels(ctx).start(),
         PrecisionPanel(ctx).start(),
     ]
-    app = create_app(hub, server.get_port(), pipeline)
+    parts.append(control)  # stopped first: a running recording is finished and kept
+    app = create_app(hub, server.get_port(), pipeline, control)
     ws_max = None
     from app.sources.push import PushSource, make_push_router, uvicorn_ws_max_size
 
@@ -135,6 +147,10 @@ def serve(
         log_level="warning",
         **({"ws_max_size": ws_max} if ws_max else {}),
     )
+    if threading.current_thread() is threading.main_thread():
+        # uvicorn re-raises a SIGTERM after its shutdown; by default that would end the
+        # process before the clean-up below (a recording would be left unfinished)
+        signal.signal(signal.SIGTERM, _exit_on_sigterm)
     try:
         uvicorn.Server(config).run()
     finally:
