@@ -13,14 +13,17 @@ from pathlib import Path
 import uvicorn
 import viser
 
+from app.calib_session import CalibrationSession
 from app.rigfile import load_rig
 from app.server.app import create_app
 from app.server.board_watch import BoardWatch
+from app.server.calibration_panel import CalibrationPanel
 from app.server.context import ConsoleContext
 from app.server.panels import Panels
 from app.server.pipeline import FusionPipeline
 from app.server.precision_panel import PrecisionPanel
 from app.server.scene3d import Scene3D
+from app.server.session_api import make_session_router
 from app.server.source_control import SourceControl, SourceTap
 from app.server.source_panel import SourcePanel
 from app.server.stream import FrameHub
@@ -102,6 +105,11 @@ def serve(
 ) -> None:
     """Run the console until interrupted; the calibration session lives in ``workdir``."""
     source, rig = opened.source, opened.rig
+    try:  # first: a work directory of another board or rig is refused before anything runs
+        session = CalibrationSession(workdir, rig, board)
+    except BaseException:
+        source.close()
+        raise
     hub = FrameHub()
     tap = SourceTap(source)  # per-sensor rates and recording (source_control.py)
     pipeline = FusionPipeline(tap, rig, hub).start()
@@ -121,6 +129,7 @@ def serve(
     control = SourceControl(pipeline, hub, opened.description, workdir)
     parts = [
         SourcePanel(ctx, control).start(),  # first: the Source panel tops the GUI
+        CalibrationPanel(ctx, session).start(),
         watch.start(),
         Scene3D(ctx).start(),
         Panels(ctx).start(),
@@ -128,6 +137,7 @@ def serve(
     ]
     parts.append(control)  # stopped first: a running recording is finished and kept
     app = create_app(hub, server.get_port(), pipeline, control)
+    app.include_router(make_session_router(session, lambda: pipeline.latest_set, ctx.use_rig))
     ws_max = None
     from app.sources.push import PushSource, make_push_router, uvicorn_ws_max_size
 
@@ -157,5 +167,5 @@ def serve(
         for part in reversed(parts):
             part.stop()
         pipeline.stop()
+        session.close()
         server.stop()
-    del ctx
