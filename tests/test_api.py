@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 from fastapi.testclient import TestClient
 
@@ -55,3 +57,18 @@ def test_thermal_balance_and_rig(client_and_pipeline) -> None:
     rig = client.get("/api/rig").json()
     assert rig["format"] == "trifuse-rig/1" and rig["reference"] == "tof"
     assert "/api/fusion" in client.get("/openapi.json").json()["paths"]
+
+
+def test_non_finite_numbers_get_422_not_500(client_and_pipeline) -> None:
+    client, pipeline = client_and_pipeline
+    s = client.get("/api/fusion").json()
+    body = json.dumps({**s, "opacity": float("nan")})  # Python's json writes NaN
+    r = client.put("/api/fusion", content=body, headers={"content-type": "application/json"})
+    assert r.status_code == 422 and "opacity" in r.text
+    assert pipeline.settings.opacity == pytest.approx(0.6)
+    r = client.put(
+        "/api/thermal",
+        content='{"span_k": [Infinity, 300.0]}',
+        headers={"content-type": "application/json"},
+    )
+    assert r.status_code == 422 and "span_k" in r.text and pipeline.settings.span_k is None

@@ -11,7 +11,7 @@ import dataclasses
 from typing import Any, Literal
 
 from fastapi import APIRouter, HTTPException
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from app.server.pipeline import FusionPipeline
 from calib.rig import rig_to_dict
@@ -19,6 +19,8 @@ from calib.rig import rig_to_dict
 
 class FusionSettings(BaseModel):
     """Display settings of the fused picture (temperatures in kelvin)."""
+
+    model_config = ConfigDict(allow_inf_nan=False)
 
     mode: Literal["blend", "edges", "thermal", "threshold", "isotherm", "pip", "color"]
     palette: Literal["iron", "rainbow", "white_hot", "black_hot", "arctic", "lava"]
@@ -32,6 +34,8 @@ class FusionSettings(BaseModel):
 
 class ThermalBalance(BaseModel):
     """The shared colour span (None: automatic over both eyes) and each imager's offset."""
+
+    model_config = ConfigDict(allow_inf_nan=False)
 
     span_k: tuple[float, float] | None = None
     offset_k: dict[str, float] = Field(default_factory=dict)

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
+from typing import Any
 
-from fastapi import FastAPI
-from fastapi.responses import FileResponse
+from fastapi import FastAPI, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
 from app.server.api import make_api_router
@@ -18,6 +22,23 @@ from app.server.viser_bridge import make_viser_router
 STATIC = Path(__file__).resolve().parents[2] / "static"
 
 
+def _json_safe(value: Any) -> Any:
+    """``value`` with non-finite floats as strings (``"nan"``): JSON has no NaN."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return repr(value)
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+async def _invalid_request(_request: Request, exc: RequestValidationError) -> JSONResponse:
+    """422 naming what was wrong, also when the body held NaN or Infinity (FastAPI's own
+    handler echoes the input and fails to encode those: a 500)."""
+    return JSONResponse({"detail": _json_safe(jsonable_encoder(exc.errors()))}, status_code=422)
+
+
 def create_app(
     hub: FrameHub,
     viser_port: int | None = None,
@@ -28,6 +49,7 @@ def create_app(
     ``/api/status`` and the source and recording controls (``source_control``; default:
     one over ``pipeline`` without recording), ``/docs`` (OpenAPI)."""
     app = FastAPI(title="trifuse", summary="Calibration and fused stereo telepresence")
+    app.add_exception_handler(RequestValidationError, _invalid_request)
     app.include_router(make_stream_router(hub))
     if viser_port is not None:
         app.include_router(make_viser_router(viser_port))

@@ -9,15 +9,9 @@ receives (docs/FORMATS.md, "Console REST API"). Bad values get a 422 naming the 
 from __future__ import annotations
 
 import dataclasses
-import math
-from collections.abc import Callable, Coroutine
-from typing import Any, Literal
+from typing import Literal
 
-from fastapi import APIRouter, HTTPException, Request, Response
-from fastapi.encoders import jsonable_encoder
-from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
-from fastapi.routing import APIRoute
+from fastapi import APIRouter, HTTPException
 from pydantic import BaseModel, ConfigDict, Field
 
 from app.server.pipeline import FusionPipeline
@@ -97,34 +91,6 @@ class RateRequest(BaseModel):
     )
 
 
-def _json_safe(value: Any) -> Any:
-    """``value`` with non-finite floats as strings (``"nan"``): JSON has no NaN."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return repr(value)
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    return value
-
-
-class _SafeValidationRoute(APIRoute):
-    """Answers a body that fails validation with 422 even when it held NaN or Infinity
-    (FastAPI's own handler echoes the input and fails to encode them: a 500)."""
-
-    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
-        handler = super().get_route_handler()
-
-        async def route(request: Request) -> Response:
-            try:
-                return await handler(request)
-            except RequestValidationError as exc:
-                detail = _json_safe(jsonable_encoder(exc.errors()))
-                return JSONResponse({"detail": detail}, status_code=422)
-
-        return route
-
-
 def _source(state: SourceState) -> SourceInfo:
     return SourceInfo(**dataclasses.asdict(state))
 
@@ -142,7 +108,7 @@ def make_source_router(
     controls answer 409."""
     if control is None and pipeline is not None:
         control = SourceControl(pipeline, hub)
-    router = APIRouter(prefix="/api", tags=["source"], route_class=_SafeValidationRoute)
+    router = APIRouter(prefix="/api", tags=["source"])
 
     def need() -> SourceControl:
         if control is None:
