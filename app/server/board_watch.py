@@ -82,11 +82,17 @@ def sighting(
     previous: BoardSighting | None = None,
     pool: ThreadPoolExecutor | None = None,
 ) -> BoardSighting:
-    """Detect the board in every frame of ``frames`` (sensors of ``rig`` only)."""
+    """Detect the board in every frame of ``frames`` (sensors of ``rig`` only); an image
+    that is the very object the previous sighting searched (a source repeating a frame)
+    keeps its detection."""
     names = [s for s in frames.frames if s in rig]
 
     def detect(name: str) -> Detection:
         frame = frames.frames[name]
+        if previous is not None and name in previous.detections:
+            seen = previous.frames.frames.get(name)
+            if seen is not None and seen.image is frame.image:  # the very same image again
+                return previous.detections[name]
         try:
             return detect_board(frame.image, board, rig[name].modality)
         except ValueError as exc:  # a malformed frame: say so, keep watching

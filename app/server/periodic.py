@@ -20,7 +20,8 @@ class Periodic(ABC):
 
     def stop(self, timeout_s: float = 2.0) -> None:
         self._stop.set()
-        self._thread.join(timeout_s)
+        if self._thread.ident is not None:  # started
+            self._thread.join(timeout_s)
 
     def _run(self) -> None:
         while not self._stop.wait(self.period_s):
