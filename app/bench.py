@@ -648,9 +648,23 @@ class _Console:
             self.close()
             raise RuntimeError(f"trifuse serve did not start: {line}")
         self.url = f"http://127.0.0.1:{port}"
-        self.page = browser.new_page()
-        self.page.add_init_script(_VIEWER_PROBE)
-        self.page.goto(self.url + "/")
+        deadline = time.monotonic() + 60
+        while True:  # the line comes before the server listens
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    self.close()
+                    raise RuntimeError(f"trifuse serve does not listen on port {port}") from None
+                time.sleep(0.1)
+        try:
+            self.page = browser.new_page()
+            self.page.add_init_script(_VIEWER_PROBE)
+            self.page.goto(self.url + "/")
+        except BaseException:
+            self.close()
+            raise
 
     def first_frame_s(self, timeout_s: float = 300.0) -> float:
         """Seconds from starting the server to the viewer's first drawn frame."""
@@ -689,6 +703,9 @@ class _Console:
         page = getattr(self, "page", None)
         if page is not None:
             page.close()
+            self.page = None
+        if self.proc.poll() is not None:
+            return
         self.proc.terminate()
         try:
             self.proc.wait(15)
@@ -724,7 +741,8 @@ def _stream(repeat: int) -> dict[str, float]:
     Three phases, each reported as medians over windows of ``WINDOW_S`` seconds:
 
     - ``fill_*``: a fresh disk cache (a temporary ``XDG_CACHE_HOME``), from the viewer's
-      first frame until every head pose is rendered (at most 240 s);
+      first frame until every head pose is rendered (``fill_poses_rendered`` of ``poses``;
+      at most 300 s, ``fill_s``);
     - ``warm_*``: then ``repeat`` windows on the same console;
     - ``restart_*``: a second console on the now full disk cache, ``repeat`` windows from
       its first frame; ``restart_first_frame_s``: start to first frame drawn (the first
@@ -756,6 +774,7 @@ def _stream(repeat: int) -> dict[str, float]:
 
     window_s = 3.0
     figures: dict[str, float] = {}
+    fill_max_s = 300.0
 
     scenario = InspectionScenario(seed=0)
     frames, _ = scenario.render(3.0)
@@ -784,11 +803,15 @@ def _stream(repeat: int) -> dict[str, float]:
                 figures["fill_first_frame_s"] = console.first_frame_s()
                 t_fill = time.monotonic()
                 fill = []
-                while len(list(cache.glob("trifuse/sim/*/pose-*.npz"))) < poses:
-                    if time.monotonic() - t_fill > 240:
-                        break
+
+                def rendered() -> int:
+                    return len(list(cache.glob("trifuse/sim/*/pose-*.npz")))
+
+                while rendered() < poses and time.monotonic() - t_fill < fill_max_s:
                     fill.append(console.window(window_s))
                 figures["fill_s"] = time.monotonic() - t_fill
+                figures["fill_poses_rendered"] = rendered()
+                figures["poses"] = poses
                 figures.update(_phase(console, fill, "fill"))
                 warm = [console.window(window_s) for _ in range(repeat)]
                 figures.update(_phase(console, warm, "warm"))

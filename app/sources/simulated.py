@@ -34,12 +34,13 @@ Render process: for the default scenario (or with ``render_process=True``) the p
 rendered in a separate process (``multiprocessing``, ``spawn``), not in a thread of this
 one: rendering is numpy work that holds the GIL much of the time, and a render thread
 delayed every other thread of a console (a 2 ms sleep overshot by 2 ms median, 6 ms p90)
-and took a core from it while the cache filled. The process renders the first pose at
-normal priority (nothing can be shown before it), then lowers its priority
+and took a core from it while the cache filled. The process renders at lower priority
 (:data:`RENDER_NICE`), so the stream and the viewer come first and rendering takes what
-CPU is left. It starts with the first pose that is not on disk (about 1 s of start-up) and
-ends with the source. Like any ``spawn`` child it imports the parent's ``__main__``: a
-script that makes a source must guard its top level with ``if __name__ == "__main__":``.
+CPU is left. The first pose, which the stream waits for, is still rendered in this process
+(two threads, as before: no waiting for a new interpreter); the process starts after it,
+for the first pose that is not on disk (about 1 s of start-up), and ends with the source.
+Like any ``spawn`` child it imports the parent's ``__main__``: a script that makes a
+source must guard its top level with ``if __name__ == "__main__":``.
 
 Disk cache: rendered poses are also kept on disk, one ``.npz`` file per pose (about 8.4
 MB uncompressed for the default head), so a restarted console has every pose at once
@@ -644,7 +645,8 @@ class SimulatedHeadSource(FrameSource):
     def _run(self) -> None:
         try:
             t0 = time.perf_counter()
-            self._obtain(self._sample_pose[0], workers=2)
+            # The first pose in this process: no waiting for the render process to start.
+            self._obtain(self._sample_pose[0], workers=2, in_process=True)
             self.first_pose_s = time.perf_counter() - t0
             while not self._stop.is_set():
                 pose = self._next_pose()
@@ -683,9 +685,10 @@ class SimulatedHeadSource(FrameSource):
             return None
         return self.cache_dir / f"pose-{round(self._pose_t[pose] * 1e6)}us.npz"
 
-    def _obtain(self, pose: int, workers: int) -> bool:
+    def _obtain(self, pose: int, workers: int, in_process: bool = False) -> bool:
         """Put ``pose`` in the cache: from the disk cache if it is there (False), else
-        rendered (True; written to the disk cache too)."""
+        rendered (True; written to the disk cache too), in the render process unless
+        ``in_process`` or there is none."""
         path = self._pose_path(pose)
         if path is not None:
             frames = _load_pose(path, self.rig, self.sensors)
@@ -693,7 +696,7 @@ class SimulatedHeadSource(FrameSource):
                 self._store(pose, frames, None)
                 return False
         t_s = self._pose_t[pose]
-        if not self.render_process:
+        if in_process or not self.render_process:
             out = _render_frames(self.scenario, self.rig, self.sensors, t_s, workers, self._stop)
             if self._stop.is_set() or len(out) != len(self.sensors):
                 return True
