@@ -860,7 +860,7 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("inspection", "calibration"),
         default="inspection",
         help="what the simulated head sees: the inspection room, or the heated board "
-        "held at 30 poses for a calibration session (default: %(default)s)",
+        "held at 40 poses for a calibration session (default: %(default)s)",
     )
     srv.add_argument(
         "--workdir",

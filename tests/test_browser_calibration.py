@@ -1,7 +1,7 @@
 """A whole calibration session driven from the browser, then a kill and a restart.
 
 The console runs on the simulated head's calibration scenario (the heated board held at
-30 poses, 3 s each). In Chromium: Capture writes a view to disk at once; Auto-capture takes
+40 poses, 3 s each). In Chromium: Capture writes a view to disk at once; Auto-capture takes
 the steady, novel poses; Run calibration; Save rig. The saved rig must meet the calibration
 issue's accuracy against the simulator's ground truth. Then the server is killed (SIGKILL)
 in the middle of a second calibration and started again on the same work directory: every
@@ -26,7 +26,7 @@ from tests.browser_support import needs_chromium, start_console
 
 pytestmark = needs_chromium
 
-MIN_VIEWS = 24  # of the scenario's 30 poses
+MIN_VIEWS = 30  # of the scenario's 40 poses (ROS novelty keeps about 36)
 
 
 def _get(url: str) -> dict | list:
@@ -69,7 +69,7 @@ def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path)
         page.wait_for_function(
             f"() => {{ const m = document.body.innerText.match(/(\\d+) views/);"
             f" return m && +m[1] >= {MIN_VIEWS}; }}",
-            timeout=400000,
+            timeout=900000,  # on a loaded machine the board search lags behind
             polling=2000,
         )
         page.get_by_label("Auto-capture").uncheck()
@@ -79,7 +79,7 @@ def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path)
         page.get_by_role("button", name="Run calibration").click()
         page.wait_for_function(
             "() => /Calibrated \\d+ views|Calibration failed/.test(document.body.innerText)",
-            timeout=400000,
+            timeout=600000,
             polling=1000,
         )
         text = page.evaluate("() => document.body.innerText")

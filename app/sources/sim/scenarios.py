@@ -337,7 +337,7 @@ class CalibrationScenario:
         self,
         rig: Rig | None = None,
         model: HeadModel | None = None,
-        n_poses: int = 30,
+        n_poses: int = 40,
         hold_s: float = 3.0,
         seed: int = 1,
     ) -> None:
