@@ -20,11 +20,13 @@ Start-up: the first pose is rendered as soon as the source is made, in two threa
 are available once it is done. Measured on the reference machine (2 cores, otherwise
 idle): 3.9-4.5 s for the five sensors of the default head with a fresh scenario (ray grids
 included), 1.2-2.5 s when the scenario has rendered before (grids cached); under other
-load up to about twice that. Every further pose takes about 1.7-2 s in one background
-thread; the default cache (60 samples over a 30 s pan, 31 distinct poses since the pan
-swings back) holds about 8.4 MB of images per pose, about 260 MB in all, and is complete
-after about a minute. Delivered rates: exactly 30/27/15 frames per simulated second;
-with ``realtime`` and a consumer that keeps up, 30.0/27.0/15.3 Hz measured over 3 s.
+load up to about twice that. Every further pose takes about 1.7-2 s of CPU in the
+background (see "Render process"); the default cache (60 samples over a 30 s pan, 31
+distinct poses since the pan swings back) holds about 8.4 MB of images per pose, about
+260 MB in all, and is complete after about a minute on an idle machine (about 3-5
+minutes beside a console with a viewer: rendering takes the CPU left over). Delivered
+rates: exactly 30/27/15 frames per simulated second; with ``realtime`` and a consumer
+that keeps up, 30.0/27.0/15.3 Hz measured over 3 s.
 
 The cached images are shared by every frame that shows the pose and are read-only
 (``flags.writeable`` is False): copy before modifying. A consumer may rely on this: equal
