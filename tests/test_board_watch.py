@@ -53,3 +53,30 @@ def test_watch_calls_back_with_each_new_frame_set(calibration_frame_sets) -> Non
     watch.tick()
     assert len(seen) == 1
     watch.stop()
+
+
+def test_without_a_board_the_watch_searches_less_often() -> None:
+    rig = default_rig()
+
+    def blank() -> FrameSet:
+        frames = {}
+        for n, s in rig.sensors.items():
+            w, h = s.image_size
+            shape = (h, w, 3) if s.modality == "color" else (h, w)
+            dtype = np.uint8 if s.modality == "color" else np.float32
+            frames[n] = Frame(n, 0, np.full(shape, 100, dtype))
+        return FrameSet(0, frames)
+
+    latest = {"fs": blank()}
+    seen = []
+    watch = BoardWatch(
+        lambda: latest["fs"], rig, CALIBRATION_BOARD, on_sighting=seen.append, idle_period_s=60
+    )
+    watch.tick()
+    assert len(seen) == 1 and not seen[0].found
+    latest["fs"] = blank()  # new frames, but no board lately: wait for the idle period
+    watch.tick()
+    assert len(seen) == 1
+    watch.idle_period_s = 0.0
+    watch.tick()
+    assert len(seen) == 2

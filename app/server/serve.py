@@ -155,6 +155,7 @@ def serve(
         host=host,
         port=port,
         log_level="warning",
+        ws_per_message_deflate=False,  # JPEG does not deflate; it cost 13 ms a frame
         **({"ws_max_size": ws_max} if ws_max else {}),
     )
     if threading.current_thread() is threading.main_thread():
