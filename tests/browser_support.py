@@ -2,7 +2,7 @@
 
 Browser tests skip, with the reason, where /usr/bin/chromium is not installed; ``.ci/run``
 installs it, so CI always runs them. The fixtures ``console`` (the console on the
-simulated inspection room, one per test session) and ``browser`` live in conftest.py.
+simulated inspection room, one per test module) and ``browser`` live in conftest.py.
 """
 
 from __future__ import annotations

@@ -17,10 +17,11 @@ SHARED_DIR = Path(os.environ.get("TRIFUSE_SHARED_DIR", ROOT.parent / "shared"))
 OPENCV_LEFT_9X6 = SHARED_DIR / "data" / "opencv-left-9x6"
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def console(tmp_path_factory: pytest.TempPathFactory):
     """`trifuse serve` on the simulated inspection room, on a free loopback port, with a
-    fresh work directory; shared by every browser test."""
+    fresh work directory; one per test module, so that no idle console shares the CPU
+    with another module's own (the calibration session test starts its own)."""
     from tests.browser_support import console_running
 
     workdir = tmp_path_factory.mktemp("console-work")
