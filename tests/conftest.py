@@ -29,9 +29,11 @@ def console(tmp_path_factory: pytest.TempPathFactory):
         yield url
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser():
-    """Debian's chromium, headless, driven by Playwright."""
+    """Debian's chromium, headless, driven by Playwright; one per module, because the
+    Playwright sync API keeps an event loop running in the main thread while it lives
+    (``asyncio.run`` in later tests would fail)."""
     from tests.browser_support import CHROMIUM, FLAGS
 
     sync_api = pytest.importorskip("playwright.sync_api")
