@@ -43,6 +43,7 @@ from app.capture import (
     ViewExistsError,
     load_board,
     load_capture,
+    load_view,
     write_board,
     write_rig,
     write_view,
@@ -267,21 +268,18 @@ class CalibrationSession:
     def _search(self, name: str) -> None:
         """Search the view's images as written for the board (in a worker thread)."""
         try:
-            view = load_capture(self.captures).view(name)
+            view = load_view(self.captures, name, self.rig)
             found: dict[str, Detection] = {}
             params: dict[str, tuple[float, float, float, float]] = {}
             for sensor in view.sensors:
-                s = self.rig[sensor] if sensor in self.rig else None
+                s = self.rig[sensor]
                 try:
-                    image = view.frame(sensor).image
-                    modality = s.modality if s else view.files[sensor].modality
-                    det = detect_board(image, self.board, modality)
+                    det = detect_board(view.frame(sensor).image, self.board, s.modality)
                 except (CaptureError, ValueError) as exc:
                     det = Detection(None, f"cannot search this image: {exc}", None)
                 found[sensor] = det
                 if det.found:
-                    size = s.image_size if s else (image.shape[1], image.shape[0])
-                    params[sensor] = view_params(det.corners, self.board, size)
+                    params[sensor] = view_params(det.corners, self.board, s.image_size)
         except (CaptureError, KeyError, OSError) as exc:  # deleted meanwhile, or unreadable
             with self._lock:
                 info = self._views.get(name)

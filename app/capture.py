@@ -849,6 +849,16 @@ def _scan_view(
     return CaptureView(path.name, path, files, thermal_encoding)
 
 
+def load_view(capture_dir: str | Path, name: str, rig: Rig) -> CaptureView:
+    """Index one view folder of a capture whose sensors ``rig`` names, without scanning
+    the other views (CaptureError names the path and the defect)."""
+    path = Path(capture_dir) / name
+    if not path.is_dir():
+        raise CaptureError(f"{path}: no such view folder")
+    modalities: dict[str, Modality] = {n: s.modality for n, s in rig.sensors.items()}
+    return _scan_view(path, rig, modalities, "centikelvin")
+
+
 def load_capture(
     capture_dir: str | Path,
     *,

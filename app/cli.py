@@ -17,6 +17,8 @@ from typing import TYPE_CHECKING, NoReturn
 
 import numpy as np
 
+from app.report_format import NEVER, limit_distance_cell, sensor_colour
+
 if TYPE_CHECKING:
     from calib.board import Board
     from fusion.precision import PrecisionAnalysis
@@ -269,22 +271,11 @@ def _analyze_pixel(text: str) -> tuple[float, float]:
     return u, v
 
 
-_ANALYZE_NEVER = "–"  # Table 1's "never reaches the threshold in the range"
-
-
 def _analyze_error_names(analysis: PrecisionAnalysis) -> dict[str, str]:
     return {
         "distance_error": f"distance error {analysis.distance_error_m * 1000:g} mm",
         "tof_pixel_error": f"TOF pixel error {analysis.tof_pixel_error_px:g} px",
     }
-
-
-def _analyze_cell(value: float | None, range_max_m: float) -> str:
-    if value is None:
-        return _ANALYZE_NEVER
-    if value >= range_max_m:
-        return f"≥{range_max_m:.2f}"
-    return f"{value:.2f}"
 
 
 def _analyze_table(
@@ -300,7 +291,9 @@ def _analyze_table(
         for kind, name in errors.items():
             per_sensor = analysis.results(kind)[key]
             for coord in ("x", "y"):
-                cells = [_analyze_cell(getattr(r, f"{coord}_m"), hi) for r in per_sensor.values()]
+                cells = [
+                    limit_distance_cell(getattr(r, f"{coord}_m"), hi) for r in per_sensor.values()
+                ]
                 rows.append([next(first_column, ""), name if coord == "x" else "", coord, *cells])
     widths = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
 
@@ -312,7 +305,7 @@ def _analyze_table(
     out = [
         f"Radial distance [m] below which the shift in each sensor exceeds "
         f"{analysis.threshold_px:g} px (TOF: {analysis.tof}, range {lo:g}-{hi:g} m)",
-        f"{_ANALYZE_NEVER} = never in the range; ≥{hi:.2f} = over the whole range",
+        f"{NEVER} = never in the range; ≥{hi:.2f} = over the whole range",
         "",
         line(head),
     ]
@@ -321,19 +314,6 @@ def _analyze_table(
             out.append("")
         out.append(line(row))
     return "\n".join(out)
-
-
-# One colour per sensor (RGB; matplotlib's tab10).
-_ANALYZE_COLOURS = [
-    (31, 119, 180),
-    (255, 127, 14),
-    (44, 160, 44),
-    (214, 39, 40),
-    (148, 103, 189),
-    (140, 86, 75),
-    (227, 119, 194),
-    (127, 127, 127),
-]
 
 
 def _analyze_plot(
@@ -383,7 +363,7 @@ def _analyze_plot(
     # Decreasing line widths, so that coinciding curves (a left/right pair) both show.
     widths = [2 + max(len(analysis.sensors) - 1 - i, 0) for i in range(len(analysis.sensors))]
     for i, name in enumerate(analysis.sensors):
-        colour = _ANALYZE_COLOURS[i % len(_ANALYZE_COLOURS)]
+        colour = sensor_colour(i)
         cv2.line(img, (x, y - 5), (x + 30, y - 5), colour, widths[i], cv2.LINE_AA)
         text(name, (x + 38, y))
         x += 38 + text_w(name) + 30
@@ -445,7 +425,7 @@ def _analyze_plot(
             text(f"{errors[kind]} at {where}", (left + 90, top - 10), 0.5, black)
             dashed(py(thr), left, left + pw, red)
             for i, r in enumerate(per_sensor.values()):
-                colour = _ANALYZE_COLOURS[i % len(_ANALYZE_COLOURS)]
+                colour = sensor_colour(i)
                 pts = to_px(r.distance_m, r.dx_px if coord == "x" else r.dy_px)
                 good = np.flatnonzero(np.isfinite(pts).all(axis=1))
                 for run in np.split(good, np.flatnonzero(np.diff(good) > 1) + 1):

@@ -18,16 +18,9 @@ from pathlib import Path
 
 import pytest
 
-CHROMIUM = "/usr/bin/chromium"
-FLAGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
+from app.bench import CHROMIUM, CHROMIUM_FLAGS
+
+FLAGS = list(CHROMIUM_FLAGS)
 ROOT = Path(__file__).resolve().parents[1]
 
 needs_chromium = pytest.mark.skipif(

@@ -4,7 +4,7 @@ and ``browser`` are in conftest.py."""
 
 from __future__ import annotations
 
-from app.cli import _analyze_cell
+from app.report_format import limit_distance_cell
 from app.sources.sim.head import default_rig
 from fusion.precision import analyze_precision
 from tests.browser_support import needs_chromium
@@ -25,7 +25,7 @@ def test_precision_panel_shows_table_1_and_its_curves(console, browser) -> None:
     # the console fuses with the simulated head's rig: its numbers, as `trifuse analyze`
     ref = analyze_precision(default_rig())
     key = next(iter(ref.distance_error))
-    row = [_analyze_cell(r.x_m, 10.0) for r in ref.distance_error[key].values()]
+    row = [limit_distance_cell(r.x_m, 10.0) for r in ref.distance_error[key].values()]
     lines = [" ".join(t.split()) for t in text.splitlines()]
     assert any(line.startswith("41 mm") and " ".join(row) in line for line in lines), row
     # two uPlot charts (|dx| and |dy|) with their canvases, drawn at a usable size

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import viser
 
-from app.cli import _analyze_cell
+from app.report_format import limit_distance_cell
 from app.server import panels as panels_mod
 from app.server.board_watch import BoardSighting
 from app.server.panels import (
@@ -85,7 +85,8 @@ def _expected_rows(rig: Rig) -> dict[tuple[str, str, str], list[str]]:
         ):
             for coord in ("x", "y"):
                 out[(key, error, coord)] = [
-                    _analyze_cell(getattr(results[s], f"{coord}_m"), 10.0) for s in before.sensors
+                    limit_distance_cell(getattr(results[s], f"{coord}_m"), 10.0)
+                    for s in before.sensors
                 ]
     return out
 

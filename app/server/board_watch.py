@@ -102,11 +102,14 @@ def sighting(
 
     found = list(pool.map(detect, names)) if pool is not None else [detect(n) for n in names]
     detections = dict(zip(names, found, strict=True))
-    pose, pose_sensor = None, None
-    for modality in POSE_PREFERENCE:
-        for name, det in detections.items():
-            if det.found and rig[name].modality == modality and pose is None:
-                pose, pose_sensor = board_pose(rig, name, det.corners, board), name
+    trusted = [
+        name
+        for modality in POSE_PREFERENCE
+        for name, det in detections.items()
+        if det.found and rig[name].modality == modality
+    ]
+    pose_sensor = trusted[0] if trusted else None
+    pose = board_pose(rig, pose_sensor, detections[pose_sensor].corners, board) if trusted else None
     moved = [
         float(np.max(np.linalg.norm(det.corners - previous.detections[name].corners, axis=1)))
         for name, det in detections.items()

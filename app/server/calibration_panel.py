@@ -16,14 +16,15 @@ import numpy as np
 import viser.uplot as uplot
 
 from app.calib_session import CalibrationSession, SessionError, ViewInfo
+from app.report_format import sensor_colour
 from app.server.board_watch import BoardSighting
 from app.server.context import ConsoleContext
 from app.server.periodic import Periodic
 from calib.coverage import PARAM_NAMES
 from calib.errors import RigError
+from calib.rig import Rig
 from calib.transforms import pose_error
 
-SENSOR_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b")
 NONE = "(none)"
 
 
@@ -127,6 +128,7 @@ class CalibrationPanel(Periodic):
         self._shown_job: object = None
         session.on_change.append(self._mark_dirty)
         ctx.board_watch.on_sighting = self._on_sighting
+        self._saved_rigs: dict[str, Rig] = {}
         ctx.rig_choices = self._rig_choices
 
     # -- actions --------------------------------------------------------------------------
@@ -190,13 +192,16 @@ class CalibrationPanel(Periodic):
             return
         self.message.content = f"Auto-captured view {view.name} ({why})."
 
-    def _rig_choices(self) -> dict:
+    def _rig_choices(self) -> dict[str, Rig]:
+        """Saved versions by label; each file is read once (versions are never rewritten)."""
         out = {}
         for v in self.session.versions():
-            try:
-                out[v.label] = self.session.load_version(v.name)
-            except RigError:
-                continue
+            if v.name not in self._saved_rigs:
+                try:
+                    self._saved_rigs[v.name] = self.session.load_version(v.name)
+                except RigError:
+                    continue
+            out[v.label] = self._saved_rigs[v.name]
         return out
 
     def _mark_dirty(self) -> None:
@@ -240,7 +245,7 @@ class CalibrationPanel(Periodic):
             *(
                 uplot.Series(
                     label=s,
-                    stroke=SENSOR_COLORS[i % len(SENSOR_COLORS)],
+                    stroke="rgb({}, {}, {})".format(*sensor_colour(i)),
                     width=1.5,
                     points={"show": True, "size": 5},
                 )

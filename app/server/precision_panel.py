@@ -23,7 +23,7 @@ import numpy as np
 import viser
 import viser.uplot
 
-from app.cli import _ANALYZE_COLOURS, _analyze_cell
+from app.report_format import limit_distance_cell, sensor_colour
 from app.server.context import ConsoleContext
 from app.server.periodic import Periodic
 from calib.rig import Rig
@@ -135,7 +135,9 @@ def table_markdown(result: PrecisionResult) -> str:
         lines = [head, rule]
         for name, results in rows_of:
             for coord in COORDS:
-                cells = [_analyze_cell(getattr(r, f"{coord}_m"), hi) for r in results[key].values()]
+                cells = [
+                    limit_distance_cell(getattr(r, f"{coord}_m"), hi) for r in results[key].values()
+                ]
                 first = name if coord == "x" else ""
                 lines.append(f"| {first} | {coord} | " + " | ".join(cells) + " |")
         out.append("\n".join(lines))
@@ -149,7 +151,7 @@ def table_markdown(result: PrecisionResult) -> str:
 
 
 def _colour(i: int, alpha: float = 1.0) -> str:
-    r, g, b = _ANALYZE_COLOURS[i % len(_ANALYZE_COLOURS)]
+    r, g, b = sensor_colour(i)
     return f"rgba({r}, {g}, {b}, {alpha:g})"
 
 
