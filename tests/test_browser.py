@@ -3,6 +3,8 @@ the Thermal panel. Fixtures ``console`` and ``browser`` are in conftest.py."""
 
 from __future__ import annotations
 
+import re
+
 from tests.browser_support import needs_chromium
 
 pytestmark = needs_chromium
@@ -37,7 +39,11 @@ def test_console_balances_the_thermal_imagers(console, browser) -> None:
     page.wait_for_function("() => document.body.innerText.includes('shared points')", timeout=60000)
     text = page.evaluate("() => document.body.innerText")
     line = next(t for t in text.splitlines() if t.startswith("Left - right"))
-    assert "+1.5" in line, line  # the simulated imagers are +0.75 K and -0.75 K off
+    # The simulated imagers are +0.75 K and -0.75 K off. The median over shared points
+    # reads 1.49-1.51 K depending on the head pose shown (points sample blurred edges
+    # differently); the NETD noise of the median itself is about 0.001 K.
+    d = float(re.search(r"Left - right: \*?\*?([+-]\d+\.\d+) K", line).group(1))
+    assert abs(d - 1.50) <= 0.03, line
     box = page.get_by_label("Offset thermal_left (K)")
     box.fill("-1.5")
     box.press("Enter")
