@@ -9,6 +9,7 @@ exit 1 the same way. No traceback reaches the user for either.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -179,6 +180,69 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     if report_path is not None:
         write_report(report_path, report)
         _out(f"report written to {report_path}")
+    return EXIT_OK
+
+
+# -- calibrate-range ----------------------------------------------------------------------
+
+
+def numbered_backup(path: Path) -> Path:
+    """``path.~N~`` with the first N not taken (GNU cp's numbered backups)."""
+    n = 1
+    while True:
+        candidate = path.with_name(f"{path.name}.~{n}~")
+        if not candidate.exists():
+            return candidate
+        n += 1
+
+
+def _cmd_calibrate_range(args: argparse.Namespace) -> int:
+    from app.calibration_run import write_report
+    from app.capture import load_capture
+    from app.range_run import (
+        build_range_report,
+        calibrate_range,
+        format_range_summary,
+        region_chart,
+        with_range_correction,
+        write_png,
+    )
+    from app.rigfile import load_rig, save_rig
+    from calib.range_calibration import FitOptions
+
+    rig_path, out = Path(args.rig), Path(args.out)
+    same = out.exists() and rig_path.exists() and out.resolve() == rig_path.resolve()
+    for path in (out if not same else None, *(Path(p) for p in (args.report, args.plot) if p)):
+        if path is not None and path.exists():
+            raise UsageError(f"{path}: exists; refusing to overwrite it (choose a new name)")
+    rig = load_rig(rig_path)
+    capture = load_capture(args.capture_dir)
+    _out(capture.summary())
+    last = [-1]
+
+    def progress(stage: str, fraction: float) -> None:
+        percent = int(100 * fraction)
+        if percent // 10 != last[0] // 10:
+            last[0] = percent
+            _out(f"[{percent:3d}%] {stage}")
+
+    options = FitOptions(offset_step_px=args.offset_step)
+    run = calibrate_range(capture, rig, args.holdout_every, options, progress)
+    _out("")
+    _out(format_range_summary(run))
+    _out("")
+    if same:
+        backup = numbered_backup(out)
+        os.link(out, backup)  # the rig as it was stays, under a new name
+        _out(f"previous rig kept as {backup}")
+    save_rig(out, with_range_correction(rig, run), overwrite=same)
+    _out(f"rig with range_correction written to {out}")
+    if args.report:
+        write_report(Path(args.report), build_range_report(run, capture))
+        _out(f"report written to {args.report}")
+    if args.plot:
+        write_png(args.plot, region_chart(run.holdout, "RMS distance error, held-out views"))
+        _out(f"chart written to {args.plot}")
     return EXIT_OK
 
 
@@ -806,6 +870,58 @@ def build_parser() -> argparse.ArgumentParser:
         "(default: refine them with the poses)",
     )
     cal.set_defaults(func=_cmd_calibrate)
+
+    # calibrate-range -----------------------------------------------------------------
+    cr = commands.add_parser(
+        "calibrate-range",
+        help="calibrate the TOF camera's distance error from a capture directory",
+        description=(
+            "Fit the TOF range correction (distance-dependent wiggling, per-pixel offset, "
+            "amplitude term; robust) from the TOF distance images of CAPTURE_DIR: each "
+            "view's board pose comes from every sensor's corners and RIG.yaml, every TOF "
+            "pixel on the board gets the distance where its ray meets the board. Every N-th "
+            "view is held out of the fit to validate it; prints the RMS error before and "
+            "after per accuracy region (1: centre 11x11, 2, 3, 4: border, not trusted), and "
+            "writes the rig with the correction (range_correction of the TOF)."
+        ),
+    )
+    cr.add_argument("capture_dir", metavar="CAPTURE_DIR", help="the capture directory")
+    cr.add_argument("--rig", required=True, metavar="RIG.yaml", help="the calibrated rig")
+    cr.add_argument(
+        "--out",
+        required=True,
+        metavar="RIG.yaml",
+        help="rig file to write: a new file, or the --rig file itself (its previous "
+        "content is then kept as RIG.yaml.~N~)",
+    )
+    cr.add_argument(
+        "--report",
+        metavar="RANGE.json",
+        help="also write the report as JSON (must not exist): per region and per view "
+        "errors before and after, views used, held out and skipped",
+    )
+    cr.add_argument(
+        "--plot",
+        metavar="RANGE.png",
+        help="also write a bar chart of the RMS error per region, before and after "
+        "(held-out views; must not exist)",
+    )
+    cr.add_argument(
+        "--holdout-every",
+        type=_positive_int,
+        default=4,
+        metavar="N",
+        help="hold every N-th usable view out of the fit to validate it (N >= 2; "
+        "default: %(default)s)",
+    )
+    cr.add_argument(
+        "--offset-step",
+        type=_positive_int,
+        default=8,
+        metavar="PX",
+        help="spacing of the per-pixel offset nodes in TOF pixels (default: %(default)s)",
+    )
+    cr.set_defaults(func=_cmd_calibrate_range)
 
     # serve ---------------------------------------------------------------------------
     srv = commands.add_parser(

@@ -249,7 +249,24 @@ def sensor_from_dict(name: str, data: Any) -> Sensor:
         else None
         for k in _SENSOR_OPTIONAL
     }
+    _check_calibration_blocks(name, modality, (size[0], size[1]), extras)
     return Sensor(name, modality, (size[0], size[1]), intrinsics, T, **extras)
+
+
+def _check_calibration_blocks(
+    name: str, modality: str, size: tuple[int, int], extras: Mapping[str, Any]
+) -> None:
+    """The range correction (TOF) and radiometry (thermal) blocks parse as their models."""
+    from calib.range_correction import RangeCorrection
+
+    block = extras.get("range_correction")
+    if block is not None:
+        if modality != "tof":
+            raise RigError(f"{_where(name, 'range_correction')}: only a TOF camera has one")
+        try:
+            RangeCorrection.from_dict(block, size)
+        except ValueError as exc:
+            raise RigError(f"sensor {name!r}: {exc}") from None
 
 
 def rig_from_dict(data: Any) -> Rig:

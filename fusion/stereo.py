@@ -13,6 +13,7 @@ from collections.abc import Mapping
 import cv2
 import numpy as np
 
+from calib.range_correction import RangeCorrection
 from calib.rig import Rig
 from fusion.compose import (
     Composer,
@@ -53,6 +54,10 @@ class StereoFusion:
         self.frame = np.zeros((h, w * len(eyes), 3), np.uint8)
         self.span_k: tuple[float, float] | None = None
         self._reverse_stale = True
+        tof = rig[self.fusion[eyes[0]].forward.tof]
+        self.range_correction = RangeCorrection.of(tof)
+        self._corrected = np.empty(tof.image_size[::-1], np.float32)
+        self.distance_m: np.ndarray | None = None
 
     @property
     def points(self) -> np.ndarray:
@@ -63,8 +68,19 @@ class StereoFusion:
     def ready(self) -> bool:
         return all(f.forward.ready for f in self.fusion.values())
 
-    def update_depth(self, distance_m: np.ndarray) -> None:
-        """A new TOF frame: recompute every eye's colour <- thermal mapping."""
+    def update_depth(self, distance_m: np.ndarray, amplitude: np.ndarray | None = None) -> None:
+        """A new TOF frame: recompute every eye's colour <- thermal mapping.
+
+        Args:
+            distance_m: (H, W) radial distances of the TOF, metres, NaN invalid.
+            amplitude: (H, W) its amplitude image, for the amplitude term of the rig's
+                range correction (without it, that term is left out).
+        The rig's range correction (``range_correction`` of the TOF), if it has one, is
+        applied first; :attr:`distance_m` is the corrected image.
+        """
+        if self.range_correction is not None:
+            distance_m = self.range_correction.apply(distance_m, amplitude, out=self._corrected)
+        self.distance_m = distance_m
         points = self.fusion[self.eyes[0]].forward.points(distance_m)
         for f in self.fusion.values():
             f.forward.update_points(points)

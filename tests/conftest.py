@@ -49,3 +49,30 @@ def calibration_frame_sets():
     from app.sources.sim.scenarios import calibration_views
 
     return [v.frames for v in calibration_views(12, seed=1)]
+
+
+@pytest.fixture(scope="session")
+def simulated(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """``trifuse simulate calibration --views 30 --seed 1`` then ``trifuse calibrate``:
+    the capture directory, the calibrated rig (and its path), the ground-truth rig and the
+    report. Shared by the calibration and range calibration tests."""
+    import json
+
+    from app.cli import main
+    from app.rigfile import load_rig
+
+    root = tmp_path_factory.mktemp("sim")
+    capture = root / "captures"
+    argv = ["simulate", "calibration", "--views", "30", "--out", str(capture), "--seed", "1"]
+    assert main(argv) == 0
+    rig_path, report_path = root / "rig.yaml", root / "report.json"
+    assert (
+        main(["calibrate", str(capture), "--out", str(rig_path), "--report", str(report_path)]) == 0
+    )
+    return {
+        "capture": capture,
+        "rig": load_rig(rig_path),
+        "rig_path": rig_path,
+        "truth": load_rig(capture / "ground_truth_rig.yaml"),
+        "report": json.loads(report_path.read_text()),
+    }

@@ -13,32 +13,10 @@ import pytest
 from conftest import OPENCV_LEFT_9X6
 
 from app.cli import main
-from app.rigfile import load_rig
 from calib.transforms import pose_error, rvec_from_rotation
 
 REAL = OPENCV_LEFT_9X6
 BOARD_9x6 = "pattern: checkerboard\ninner_corners: [9, 6]\nsquare_size_m: 0.025\n"
-
-
-@pytest.fixture(scope="module")
-def simulated(tmp_path_factory: pytest.TempPathFactory) -> dict:
-    """``trifuse simulate calibration --views 30 --seed 1`` then ``trifuse calibrate``."""
-    root = tmp_path_factory.mktemp("sim")
-    capture = root / "captures"
-    assert (
-        main(["simulate", "calibration", "--views", "30", "--out", str(capture), "--seed", "1"])
-        == 0
-    )
-    rig_path, report_path = root / "rig.yaml", root / "report.json"
-    assert (
-        main(["calibrate", str(capture), "--out", str(rig_path), "--report", str(report_path)]) == 0
-    )
-    return {
-        "capture": capture,
-        "rig": load_rig(rig_path),
-        "truth": load_rig(capture / "ground_truth_rig.yaml"),
-        "report": json.loads(report_path.read_text()),
-    }
 
 
 # Targets of the issue: focal length (relative) and pose (deg, m) per modality.

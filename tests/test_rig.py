@@ -36,11 +36,18 @@ def test_yaml_round_trip_is_exact() -> None:
 
 def test_round_trip_keeps_optional_blocks() -> None:
     d = copy.deepcopy(BASE)
-    d["sensors"]["tof"]["range_correction"] = {"offset_m": 0.012, "coeffs": [1.0, -2.5e-3]}
+    nodes = [[0.001 * (r - c) for c in range(23)] for r in range(19)]
+    block = {
+        "model": "trifuse-range/1",
+        "distance": {"start_m": 0.5, "step_m": 0.25, "coeffs_m": [0.03, 0.02, 0.01, 0.02, 0.03]},
+        "offset": {"step_px": 8, "nodes_m": nodes},
+        "amplitude": {"ref": 1500.0, "log_range": [-1.0, 1.0], "coeffs_m": [0.004, -0.001]},
+    }
+    d["sensors"]["tof"]["range_correction"] = block
     d["sensors"]["thermal_left"]["radiometry"] = {"gain": 1.02, "offset_k": -0.3}
     d["sensors"]["ccd_left"]["uncertainty"] = {"fx": 0.4, "T_rig_sensor": {"t_m": [1e-4] * 3}}
     rig = rig_from_dict(d)
-    assert rig["tof"].range_correction == {"offset_m": 0.012, "coeffs": [1.0, -2.5e-3]}
+    assert rig["tof"].range_correction == block
     assert rig_from_yaml(rig_to_yaml(rig)) == rig
     assert rig != default_rig()
 

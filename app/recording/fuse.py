@@ -113,7 +113,7 @@ def fuse_recording(
         for i, fs in enumerate(frame_sets(source, sensors, reference=ref)):
             result.sets += 1
             if tof in fs and fs[tof].stamp_ns != last_tof and fs[tof].distance_m is not None:
-                fusion.update_depth(fs[tof].distance_m)
+                fusion.update_depth(fs[tof].distance_m, fs[tof].image)
                 last_tof = fs[tof].stamp_ns
                 result.tof_updates += 1
             if i % every:

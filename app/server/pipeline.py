@@ -251,7 +251,7 @@ class FusionPipeline:
         tof = fs.frames.get(self.tof)
         if tof is not None and tof.stamp_ns != self._last_tof_ns and tof.distance_m is not None:
             if not _unchanged(tof.distance_m, self._last_distance):
-                self.fusion.update_depth(tof.distance_m)
+                self.fusion.update_depth(tof.distance_m, tof.image)
                 self._depth_version += 1
             self._last_tof_ns = tof.stamp_ns
             self._last_distance = tof.distance_m
