@@ -48,6 +48,7 @@ from app.capture import (
     write_rig,
     write_view,
 )
+from app.range_run import RangeRun, build_range_report, calibrate_range, with_range_correction
 from app.rigfile import load_rig
 from app.sources.frames import FrameSet
 from calib.board import Board
@@ -149,6 +150,30 @@ class CalibrationJob:
     saved_as: str | None = None
 
 
+@dataclass
+class RangeJob:
+    """The session's TOF range calibration run (one at a time).
+
+    Attributes:
+        state, stage, progress, views, error, started, finished, saved_as: as
+            :class:`CalibrationJob`'s.
+        rig: the rig the board poses come from (and that the correction is added to).
+        run: the fit and its validation when done; report: ``range.json`` content.
+    """
+
+    state: JobState = "idle"
+    stage: str = ""
+    progress: float = 0.0
+    views: list[str] = field(default_factory=list)
+    error: str | None = None
+    rig: Rig | None = None
+    run: RangeRun | None = None
+    report: dict[str, Any] | None = None
+    started: float | None = None
+    finished: float | None = None
+    saved_as: str | None = None
+
+
 class CalibrationSession:
     """Views, detections, coverage, calibration runs and saved rigs of one work directory.
 
@@ -187,6 +212,7 @@ class CalibrationSession:
         self._views: dict[str, ViewInfo] = {}
         self._pool = ThreadPoolExecutor(max(1, workers), thread_name_prefix="view-detect")
         self.job = CalibrationJob()
+        self.range_job = RangeJob()
         self._job_thread: threading.Thread | None = None
         self.on_change: list[Callable[[], None]] = []
         for view in load_capture(self.captures).views:
@@ -462,7 +488,16 @@ class CalibrationSession:
                 raise SessionError("nothing to save: run a calibration first")
             if job.saved_as is not None:
                 raise SessionError(f"this calibration is saved already, as {job.saved_as}")
-            text = rig_to_yaml(job.result.rig())
+            version = self.save_rig(job.result.rig(), job.report or {})
+            job.saved_as = version.name
+        self._changed()
+        return version
+
+    def save_rig(self, rig: Rig, report: dict[str, Any]) -> RigVersion:
+        """Write ``rig`` as the next rig version ``rigs/rig-NNNN.yaml``, its report beside
+        it (``rig-NNNN.report.json``); existing versions are never replaced."""
+        text = rig_to_yaml(rig)
+        with self._lock:
             self.rigs_dir.mkdir(parents=True, exist_ok=True)
             for _attempt in range(100):
                 numbers = [
@@ -475,7 +510,7 @@ class CalibrationSession:
                 try:
                     atomic_write_text(
                         self.rigs_dir / f"{name}.report.json",
-                        json.dumps(job.report, indent=1) + "\n",
+                        json.dumps(report, indent=1) + "\n",
                         overwrite=False,
                     )
                     atomic_write_text(path, text, overwrite=False)
@@ -484,6 +519,79 @@ class CalibrationSession:
                     continue
             else:  # pragma: no cover
                 raise SessionError(f"{self.rigs_dir}: could not find a free version name")
-            job.saved_as = name
         self._changed()
         return next(v for v in self.versions() if v.name == name)
+
+    # -- range calibration ----------------------------------------------------------------
+
+    def start_range_calibration(self, rig: Rig, holdout_every: int = 4) -> RangeJob:
+        """Calibrate the TOF's distances on the current views with ``rig`` (a calibrated
+        rig: the board poses come from it) in a background thread; returns the new job."""
+        with self._lock:
+            if self.range_job.state == "running":
+                raise SessionError("a range calibration is running already; wait for it to end")
+            names = sorted(self._views)
+            if len(names) < holdout_every + 3:
+                raise SessionError(
+                    f"{len(names)} view(s) captured; a range calibration needs at least "
+                    f"{holdout_every + 3} views with the board in the TOF's image (3 to fit, "
+                    "1 held out to check), 20 or more for a good one"
+                )
+            self.range_job = job = RangeJob("running", "starting", 0.0, names, rig=rig)
+            job.started = time.time()
+        threading.Thread(
+            target=self._range, args=(job, holdout_every), name="range-calibration", daemon=True
+        ).start()
+        self._changed()
+        return job
+
+    def _range(self, job: RangeJob, holdout_every: int) -> None:
+        def progress(stage: str, fraction: float) -> None:
+            job.stage, job.progress = stage, max(job.progress, min(1.0, fraction))
+            self._changed()
+
+        try:
+            for name in job.views:
+                while not self.view(name).searched:
+                    progress(f"searching view {name} for the board", 0.0)
+                    time.sleep(0.1)
+            capture = load_capture(self.captures)
+            capture.views = [v for v in capture.views if v.name in job.views]
+            run = calibrate_range(
+                capture,
+                job.rig,
+                holdout_every,
+                progress=progress,
+                detections=self._detection_run(job.views),
+            )
+        except (CaptureError, KeyError, ValueError) as exc:
+            job.error, job.state = str(exc), "failed"
+        except Exception as exc:  # a defect: say so, keep the console running
+            job.error, job.state = f"{type(exc).__name__}: {exc}", "failed"
+        else:
+            job.run, job.report, job.state = run, build_range_report(run, capture), "done"
+            job.stage, job.progress = "done", 1.0
+        job.finished = time.time()
+        self._changed()
+
+    def wait_range(self, timeout_s: float | None = None) -> RangeJob:
+        """Block until the running range calibration ends (or the timeout)."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while self.range_job.state == "running":
+            if deadline is not None and time.monotonic() > deadline:
+                break
+            time.sleep(0.05)
+        return self.range_job
+
+    def save_range(self) -> RigVersion:
+        """Write the job's rig with its range correction as a new rig version."""
+        with self._lock:
+            job = self.range_job
+            if job.state != "done" or job.run is None or job.rig is None:
+                raise SessionError("nothing to save: run a range calibration first")
+            if job.saved_as is not None:
+                raise SessionError(f"this range calibration is saved already, as {job.saved_as}")
+            version = self.save_rig(with_range_correction(job.rig, job.run), job.report or {})
+            job.saved_as = version.name
+        self._changed()
+        return version

@@ -19,6 +19,8 @@ import yaml
 
 from calib.camera import DISTORTION_LENGTHS, Intrinsics
 from calib.errors import RigError
+from calib.radiometry import Radiometry
+from calib.range_correction import RangeCorrection
 from calib.transforms import invert, rigidity_problem
 
 Modality = Literal["color", "thermal", "tof"]
@@ -257,14 +259,20 @@ def _check_calibration_blocks(
     name: str, modality: str, size: tuple[int, int], extras: Mapping[str, Any]
 ) -> None:
     """The range correction (TOF) and radiometry (thermal) blocks parse as their models."""
-    from calib.range_correction import RangeCorrection
-
     block = extras.get("range_correction")
     if block is not None:
         if modality != "tof":
             raise RigError(f"{_where(name, 'range_correction')}: only a TOF camera has one")
         try:
             RangeCorrection.from_dict(block, size)
+        except ValueError as exc:
+            raise RigError(f"sensor {name!r}: {exc}") from None
+    block = extras.get("radiometry")
+    if block is not None:
+        if modality != "thermal":
+            raise RigError(f"{_where(name, 'radiometry')}: only a thermal imager has one")
+        try:
+            Radiometry.from_dict(block, "radiometry")
         except ValueError as exc:
             raise RigError(f"sensor {name!r}: {exc}") from None
 

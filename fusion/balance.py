@@ -23,12 +23,14 @@ centres at integer coordinates. Temperatures in kelvin, float32 images (H, W).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
+from calib.radiometry import Radiometry
 from calib.rig import Rig
 from fusion.geometry import in_image, project_to_sensor
 from fusion.mapping import DepthView, MappingOptions
@@ -38,9 +40,11 @@ __all__ = [
     "REJECTION_REASONS",
     "BalanceEstimate",
     "BalanceFilter",
+    "BalanceMeasurement",
     "SharedTemperatures",
     "balance_terms",
     "estimate_balance",
+    "measure_balance",
     "shared_temperatures",
 ]
 
@@ -579,3 +583,52 @@ class BalanceFilter:
             reference_k=blend(prev.reference_k, estimate.reference_k),
         )
         return self._state
+
+
+# -- one frame set ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class BalanceMeasurement:
+    """What one frame set says about the balance.
+
+    Attributes:
+        estimate: the fit on calibrated, unbalanced temperatures (refused with the reason
+            when too few points are shared).
+        difference_k: median ``left - right`` over the shared points as displayed (full
+            radiometry: calibration, balance and trims), NaN without shared points.
+        shared: the shared points found.
+    """
+
+    estimate: BalanceEstimate
+    difference_k: float
+    shared: SharedTemperatures
+
+
+def measure_balance(
+    rig: Rig,
+    tof: str,
+    points_tof: npt.ArrayLike,
+    left: str,
+    right: str,
+    raw_left: np.ndarray,
+    raw_right: np.ndarray,
+    radiometry: Mapping[str, Radiometry],
+    **estimate_options: float,
+) -> BalanceMeasurement:
+    """The balance of one frame set: the imagers' raw images (H, W), their radiometry, and
+    the TOF points (N, 3) of the same instant (TOF frame, metres)."""
+    cal = {s: radiometry.get(s, Radiometry()) for s in (left, right)}
+    t_l = cal[left].calibration.apply(raw_left)
+    t_r = cal[right].calibration.apply(raw_right)
+    shared = shared_temperatures(rig, tof, points_tof, left, right, t_l, t_r)
+    estimate = estimate_balance(shared.t_left, shared.t_right, **estimate_options)
+    if shared.n_points:
+        # the rest of the chain (balance, trim) on the calibrated samples
+        rest = {s: replace(r, gain=1.0, offset_k=0.0) for s, r in cal.items()}
+        shown_l = rest[left].apply(shared.t_left)
+        shown_r = rest[right].apply(shared.t_right)
+        difference = float(np.median(shown_l - shown_r))
+    else:
+        difference = math.nan
+    return BalanceMeasurement(estimate, difference, shared)

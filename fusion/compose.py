@@ -178,6 +178,8 @@ class DisplaySettings:
         pip_center: (x, y) centre of the ``pip`` rectangle as fractions of width and height.
         pip_size: (width, height) of the rectangle as fractions in (0, 1] (one number: both).
         mark_fallback: hatch the painted pixels whose depth came from the fallback.
+        span_smoothing_s: time constant (seconds, >= 0) of the automatic span's smoothing
+            over frame time, so that colours do not flicker; 0 = none.
 
     Numbers in lists are normalised to tuples of floats, so settings compare and hash.
     """
@@ -197,6 +199,7 @@ class DisplaySettings:
     pip_center: tuple[float, float] = (0.5, 0.5)
     pip_size: tuple[float, float] | float = (0.5, 0.5)
     mark_fallback: bool = True
+    span_smoothing_s: float = 1.0
 
     def __post_init__(self) -> None:
         def put(name: str, value: object) -> None:
@@ -248,6 +251,10 @@ class DisplaySettings:
         if not isinstance(self.mark_fallback, bool | np.bool_):
             raise ValueError(f"mark_fallback: expected True or False, got {self.mark_fallback!r}")
         put("mark_fallback", bool(self.mark_fallback))
+        smoothing = _real(self.span_smoothing_s, "span_smoothing_s")
+        if not 0.0 <= smoothing <= 60.0:
+            raise ValueError(f"span_smoothing_s: expected seconds in [0, 60], got {smoothing}")
+        put("span_smoothing_s", smoothing)
 
 
 def pip_box(settings: DisplaySettings, width: int, height: int) -> tuple[int, int, int, int]:

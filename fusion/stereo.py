@@ -24,8 +24,11 @@ from fusion.compose import (
     stereo_halves,
 )
 from fusion.mapping import EyeFusion, MappingOptions
+from fusion.span import SpanSmoother
 
 EYE_ORDER = ("left", "right")
+SPAN_SETTLED_K = 0.02
+"""A smoothed span within this of its target is settled (far below one palette step)."""
 
 
 class StereoFusion:
@@ -53,6 +56,8 @@ class StereoFusion:
         self.thermal_on_color = {e: np.empty((h, w), np.float32) for e in eyes}
         self.frame = np.zeros((h, w * len(eyes), 3), np.uint8)
         self.span_k: tuple[float, float] | None = None
+        self.span_smoother = SpanSmoother()
+        self._span_target: tuple[float, float] | None = None
         self._reverse_stale = True
         tof = rig[self.fusion[eyes[0]].forward.tof]
         self.range_correction = RangeCorrection.of(tof)
@@ -92,6 +97,7 @@ class StereoFusion:
         colors: Mapping[str, np.ndarray],
         thermals: Mapping[str, np.ndarray],
         settings: DisplaySettings,
+        stamp_ns: int | None = None,
     ) -> np.ndarray:
         """The side-by-side frame (H, n_eyes * W, 3) uint8 RGB for one instant.
 
@@ -99,13 +105,22 @@ class StereoFusion:
             colors: eye -> colour image (H, W, 3) uint8 RGB of its colour camera.
             thermals: eye -> thermal image (h, w) float32 kelvin of its thermal imager.
             settings: display mode, palette, span ...
+            stamp_ns: the frame's time: with it, an automatic span is smoothed over time
+                (``settings.span_smoothing_s``); without it, each frame gets its own.
         Returns the internal frame buffer (overwritten by the next call).
         """
         if not self.ready:
             raise RuntimeError("StereoFusion.compose: no TOF frame yet (call update_depth)")
         for e in self.eyes:
             self.fusion[e].forward.warp(thermals[e], out=self.thermal_on_color[e])
-        self.span_k = resolve_span(settings, [self.thermal_on_color[e] for e in self.eyes])
+        span = resolve_span(settings, [self.thermal_on_color[e] for e in self.eyes])
+        self._span_target = span
+        if settings.span_k is None and stamp_ns is not None:
+            self.span_smoother.time_constant_s = settings.span_smoothing_s
+            span = self.span_smoother.update(span, stamp_ns)
+        else:
+            self.span_smoother.reset()
+        self.span_k = span
         halves = stereo_halves(self.frame) if len(self.eyes) == 2 else (self.frame,)
         for e, half in zip(self.eyes, halves, strict=True):
             self.composers[e].compose(
@@ -117,6 +132,14 @@ class StereoFusion:
                 out=half,
             )
         return self.frame
+
+    @property
+    def span_settled(self) -> bool:
+        """Whether the span shown is the last frame's own (not still gliding towards it)."""
+        target, span = self._span_target, self.span_k
+        if target is None or span is None:
+            return True
+        return max(abs(target[0] - span[0]), abs(target[1] - span[1])) < SPAN_SETTLED_K
 
     def anaglyph(self, out: np.ndarray | None = None) -> np.ndarray:
         """Red-cyan anaglyph of the last composed pair."""

@@ -51,7 +51,9 @@ def test_thermal_balance_and_rig(client_and_pipeline) -> None:
     )
     assert r.status_code == 200
     assert pipeline.settings.span_k == (290.0, 320.0)
-    assert pipeline.thermal_offset_k["thermal_left"] == -0.75
+    assert pipeline.radiometry["thermal_left"].manual_offset_k == -0.75
+    assert r.json()["offset_k"]["thermal_left"] == -0.75
+    assert r.json()["radiometry"]["thermal_left"]["balance_offset_k"] == 0.0
     r = client.put("/api/thermal", json={"offset_k": {"ccd_left": 1.0}})
     assert r.status_code == 422 and "ccd_left" in r.text
     rig = client.get("/api/rig").json()

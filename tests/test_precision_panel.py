@@ -31,6 +31,7 @@ from app.sources.frames import Frame, FrameSet
 from app.sources.sim.head import default_rig
 from calib.board import Board
 from calib.detect import Detection
+from calib.radiometry import Radiometry
 from calib.rig import Rig
 from fusion.compose import DisplaySettings
 from fusion.precision import analyze_precision
@@ -267,11 +268,16 @@ def _panels(server: viser.ViserServer, sighting: BoardSighting | None) -> Panels
     pipeline = SimpleNamespace(
         rig=rig,
         settings=DisplaySettings(),
-        thermal_offset_k={"thermal_left": 0.0, "thermal_right": 0.0},
+        radiometry={"thermal_left": Radiometry(), "thermal_right": Radiometry()},
         latest_set=None,
     )
     ctx = SimpleNamespace(
-        server=server, pipeline=pipeline, board=BOARD, board_watch=_Watch(sighting)
+        server=server,
+        pipeline=pipeline,
+        board=BOARD,
+        board_watch=_Watch(sighting),
+        balancer=None,
+        save_rig=None,
     )
     return Panels(ctx)
 

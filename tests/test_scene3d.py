@@ -28,6 +28,7 @@ from app.server.scene3d import (
 from app.sources.frames import Frame, FrameSet
 from app.sources.sim.head import default_rig
 from calib.board import Board
+from calib.radiometry import Radiometry
 from calib.rig import Rig
 from calib.transforms import make_T, rotation_from_euler_deg
 from fusion.compose import DisplaySettings
@@ -92,7 +93,7 @@ def scene(fusion_rig) -> Iterator[tuple[Scene3D, SimpleNamespace, dict[str, Rig]
         tof="tof",
         latest_set=synthetic_set(rig, ramp_distance(rig)),
         settings=DisplaySettings(span_k=SPAN_K, palette="iron"),
-        thermal_offset_k={"thermal_left": 0.0, "thermal_right": 0.0},
+        radiometry={"thermal_left": Radiometry(), "thermal_right": Radiometry()},
     )
     extra: dict[str, Rig] = {}
     with contextlib.redirect_stdout(io.StringIO()):
@@ -174,7 +175,7 @@ def test_temperature_mode_uses_the_last_fused_span_and_the_offsets(scene) -> Non
     s, pipeline, _ = scene
     pipeline.settings = DisplaySettings(span_k=None, palette="rainbow")
     pipeline.fusion.span_k = (300.0, 310.0)  # what the last fused frame used
-    pipeline.thermal_offset_k["thermal_left"] = 5.0
+    pipeline.radiometry["thermal_left"] = Radiometry(manual_offset_k=5.0)
     s.cloud_mode.value = "temperature"
     colors = np.asarray(s.cloud.colors)
     want = tuple(palette_colors(np.array([LEFT_K + 5.0]), (300.0, 310.0), "rainbow")[0])

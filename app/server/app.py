@@ -17,6 +17,7 @@ from app.server.pipeline import FusionPipeline
 from app.server.source_api import make_source_router
 from app.server.source_control import SourceControl
 from app.server.stream import FrameHub, make_stream_router
+from app.server.thermal_balance import ThermalBalancer
 from app.server.viser_bridge import make_viser_router
 
 STATIC = Path(__file__).resolve().parents[2] / "static"
@@ -44,6 +45,7 @@ def create_app(
     viser_port: int | None = None,
     pipeline: FusionPipeline | None = None,
     source_control: SourceControl | None = None,
+    balancer: ThermalBalancer | None = None,
 ) -> FastAPI:
     """The app: ``/`` viewer, ``/stream`` + ``/stream.mjpg``, ``/console/`` (Viser),
     ``/api/status`` and the source and recording controls (``source_control``; default:
@@ -55,7 +57,7 @@ def create_app(
         app.include_router(make_viser_router(viser_port))
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     if pipeline is not None:
-        app.include_router(make_api_router(pipeline))
+        app.include_router(make_api_router(pipeline, balancer))
     # /api/status, /api/source/*, /api/recording/* (source_api.py)
     app.include_router(make_source_router(hub, pipeline, source_control))
 

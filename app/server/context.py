@@ -7,9 +7,11 @@ from dataclasses import dataclass, field
 
 import viser
 
+from app.calib_session import RigVersion
 from app.server.board_watch import BoardWatch
 from app.server.pipeline import FusionPipeline
 from app.server.stream import FrameHub
+from app.server.thermal_balance import ThermalBalancer
 from app.sources.base import FrameSource
 from calib.board import Board
 from calib.rig import Rig
@@ -30,6 +32,8 @@ class ConsoleContext:
         ground_truth_rig: the simulated head's exact rig (None for real sources).
         rig_choices: rigs an operator may display, by label (``"in use"``, ``"ground
             truth"``, saved versions ...); the calibration session extends it.
+        balancer: the thermal balance estimation (None: not running).
+        save_rig: writes a rig (and its report) as the session's next rig version.
     """
 
     server: viser.ViserServer
@@ -41,6 +45,8 @@ class ConsoleContext:
     board_watch: BoardWatch
     ground_truth_rig: Rig | None = None
     rig_choices: Callable[[], dict[str, Rig]] = field(default=lambda: {})
+    balancer: ThermalBalancer | None = None
+    save_rig: Callable[[Rig, dict], RigVersion] | None = None
 
     def use_rig(self, rig: Rig) -> None:
         """Fuse with, detect with and show ``rig`` from now on (ValueError: wrong sensors)."""

@@ -22,10 +22,12 @@ from app.preview import to_display
 from app.server.board_watch import BoardSighting
 from app.server.context import ConsoleContext
 from app.server.periodic import Periodic
+from app.server.pipeline import FusionPipeline
+from app.server.thermal_balance import BalanceStatus
 from app.sources.frames import Frame, FrameSet
 from calib.detect import Detection
 from fusion.palettes import PALETTE_NAMES
-from fusion.stereo import sample_image
+from fusion.span import level_from_span, span_from_level
 
 MODES = ("blend", "edges", "thermal", "threshold", "isotherm", "pip", "color")
 C_TO_K = 273.15
@@ -169,7 +171,6 @@ class Panels(Periodic):
         s = pipeline.settings
         with gui.add_folder("Fusion"):
             self.mode = gui.add_dropdown("Mode", MODES, initial_value=s.mode)
-            self.palette = gui.add_dropdown("Palette", PALETTE_NAMES, initial_value=s.palette)
             self.opacity = gui.add_slider("Opacity", 0.0, 1.0, 0.05, s.opacity)
             self.edges = gui.add_slider("Edge strength", 0.0, 10.0, 0.5, s.edge_strength)
             self.thr_lo = gui.add_number("Threshold low (°C)", 40.0, step=0.5)
@@ -181,14 +182,36 @@ class Panels(Periodic):
             self.iso_hi = gui.add_number("Isotherm high (°C)", 40.0, step=0.5)
             self.mark = gui.add_checkbox("Mark fallback depth", s.mark_fallback)
         with gui.add_folder("Thermal"):
-            self.auto = gui.add_checkbox("Auto span (both eyes)", s.span_k is None)
-            self.span_lo = gui.add_number("Span low (°C)", 15.0, step=0.5)
-            self.span_hi = gui.add_number("Span high (°C)", 45.0, step=0.5)
+            self.palette = gui.add_dropdown("Palette", PALETTE_NAMES, initial_value=s.palette)
+            self.auto = gui.add_checkbox(
+                "Auto span (both eyes)",
+                s.span_k is None,
+                hint="Percentiles over both imagers, smoothed over time",
+            )
+            self.level = gui.add_number("Level (°C)", 30.0, step=0.5)
+            self.span = gui.add_number("Span (K)", 30.0, min=0.5, step=0.5)
+            self.smoothing = gui.add_slider(
+                "Span smoothing (s)", 0.0, 10.0, 0.5, s.span_smoothing_s
+            )
             self.offsets = {
-                name: gui.add_number(f"Offset {name} (K)", 0.0, step=0.05)
-                for name in pipeline.thermal_offset_k
+                name: gui.add_number(f"Offset {name} (K)", r.manual_offset_k, step=0.05)
+                for name, r in pipeline.radiometry.items()
             }
+            self.auto_balance = gui.add_checkbox(
+                "Auto-balance",
+                False,
+                hint="Estimate the left-right offset from points both imagers see, "
+                "filtered over time, and apply it",
+            )
+            imagers = tuple(pipeline.radiometry)
+            self.balance_ref = gui.add_dropdown("Balance onto", (SPLIT, *imagers))
+            self.balance_now = gui.add_button("Balance now")
+            self.balance_reset = gui.add_button("Reset balance")
+            self.balance_md = gui.add_markdown("Balance: not estimated yet")
             self.difference = gui.add_markdown("Left - right: waiting for frames")
+            self.save_radiometry = gui.add_button(
+                "Save as rig version", hint="The rig in use with this radiometry, as rigs/rig-NNNN"
+            )
             self.error = gui.add_markdown("")
         with gui.add_folder("Feeds", expand_by_default=False):
             blank = np.zeros((90, 120, 3), np.uint8)
@@ -210,16 +233,22 @@ class Panels(Periodic):
             self.iso_hi,
             self.mark,
             self.auto,
-            self.span_lo,
-            self.span_hi,
+            self.level,
+            self.span,
+            self.smoothing,
             *self.offsets.values(),
+            self.auto_balance,
+            self.balance_ref,
         ):
             handle.on_update(lambda _event: self.apply())
+        self.balance_now.on_click(lambda _e: self._act(self._balance_now))
+        self.balance_reset.on_click(lambda _e: self._act(self._reset_balance))
+        self.save_radiometry.on_click(lambda _e: self._act(self._save_radiometry))
 
     def apply(self) -> None:
         """Settings from the controls; a bad combination is shown, the old one kept."""
-        lo, hi = self.span_lo.value + C_TO_K, self.span_hi.value + C_TO_K
         try:
+            span = span_from_level(self.level.value + C_TO_K, float(self.span.value))
             settings = dataclasses.replace(
                 self.pipeline.settings,
                 mode=self.mode.value,
@@ -230,15 +259,59 @@ class Panels(Periodic):
                 threshold_direction=self.thr_dir.value,
                 isotherm_k=(self.iso_lo.value + C_TO_K, self.iso_hi.value + C_TO_K),
                 mark_fallback=bool(self.mark.value),
-                span_k=None if self.auto.value else (lo, hi),
+                span_k=None if self.auto.value else span,
+                span_smoothing_s=float(self.smoothing.value),
             )
+            for name, handle in self.offsets.items():
+                self.pipeline.set_manual_offset(name, float(handle.value))
         except ValueError as exc:
             self.error.content = f"**Not applied:** {exc}"
             return
         self.error.content = ""
         self.pipeline.settings = settings
-        for name, handle in self.offsets.items():
-            self.pipeline.thermal_offset_k[name] = float(handle.value)
+        balancer = self.ctx.balancer
+        if balancer is not None:
+            ref = self.balance_ref.value
+            balancer.reference = None if ref == SPLIT else ref
+            balancer.set_auto(bool(self.auto_balance.value))
+
+    def _follow_auto_span(self) -> None:
+        """While the span is automatic, Level and Span show it (so that switching to
+        manual starts from the colours on screen)."""
+        span = self.pipeline.fusion.span_k if self.auto.value else None
+        if span is None:
+            return
+        level, width = level_from_span(*span)
+        level_c = round(level - C_TO_K, 1)
+        if abs(self.level.value - level_c) > 0.05 or abs(self.span.value - round(width, 1)) > 0.05:
+            self.level.value, self.span.value = level_c, round(width, 1)
+
+    def _act(self, action) -> None:
+        """Run a button's action; its refusal is shown, never raised into Viser."""
+        try:
+            self.error.content = action() or ""
+        except (KeyError, ValueError, OSError) as exc:
+            self.error.content = f"**Not done:** {exc.args[0] if exc.args else exc}"
+
+    def _balance_now(self) -> str:
+        if self.ctx.balancer is None:
+            raise ValueError("no balance estimation in this console")
+        state = self.ctx.balancer.apply_filtered()
+        return f"Balanced: left - right was {state.offset_k:+.2f} K."
+
+    def _reset_balance(self) -> str:
+        if self.ctx.balancer is not None:
+            self.ctx.balancer.reset_balance()
+        self.auto_balance.value = False
+        return "Balance reset."
+
+    def _save_radiometry(self) -> str:
+        if self.ctx.save_rig is None:
+            raise ValueError("no calibration session to save into")
+        version = self.ctx.save_rig(
+            self.pipeline.rig_with_radiometry(), {"radiometry": radiometry_report(self.pipeline)}
+        )
+        return f"Saved the radiometry with the rig in use as **{version.name}**."
 
     def tick(self) -> None:
         fs = self.pipeline.latest_set
@@ -252,7 +325,12 @@ class Panels(Periodic):
         else:
             if self.feeds_error.content:
                 self.feeds_error.content = ""
-        self.difference.content = self._difference(fs)
+        self._follow_auto_span()
+        balancer = self.ctx.balancer
+        if balancer is not None:
+            status = balancer.status
+            self.difference.content = status.difference_text()
+            self.balance_md.content = balance_text(status, balancer.auto, self.pipeline)
 
     def update_feeds(self, newest: FrameSet, sighting: BoardSighting | None) -> None:
         """Each feed: the sighting's frame with its corners or reason when the sighting is
@@ -280,20 +358,32 @@ class Panels(Periodic):
             handle.image = feed_image(frame, detection, self.ctx.board.cols)
             self._shown[name] = (frame, detection)
 
-    def _difference(self, fs) -> str:
-        """Median left - right temperature over TOF points both thermal imagers see."""
-        rig, fusion = self.pipeline.rig, self.pipeline.fusion
-        left, right = rig.eyes["left"].thermal, rig.eyes["right"].thermal
-        if not fusion.ready or left not in fs.frames or right not in fs.frames:
-            return "Left - right: needs both thermal imagers and a TOF frame"
-        tof = self.pipeline.tof
-        pts = fusion.points
-        t_l = sample_image(rig, left, tof, pts, fs.frames[left].image, np.nan)
-        t_r = sample_image(rig, right, tof, pts, fs.frames[right].image, np.nan)
-        t_l = t_l + self.pipeline.thermal_offset_k.get(left, 0.0)
-        t_r = t_r + self.pipeline.thermal_offset_k.get(right, 0.0)
-        both = np.isfinite(t_l) & np.isfinite(t_r)
-        if both.sum() < 100:
-            return f"Left - right: only {int(both.sum())} shared points"
-        d = float(np.median(t_l[both] - t_r[both]))
-        return f"Left - right: **{d:+.2f} K** over {int(both.sum())} shared points"
+
+SPLIT = "both (split evenly)"
+
+
+def balance_text(status: BalanceStatus, auto: bool, pipeline: FusionPipeline) -> str:
+    """The balance state, markdown: what is applied, what the newest frames say and why a
+    refused estimate changed nothing."""
+    applied = ", ".join(
+        f"{name} {r.balance_offset_k:+.2f} K"
+        + (f" x{r.balance_gain:.3f}" if r.balance_gain != 1 else "")
+        for name, r in pipeline.radiometry.items()
+    )
+    lines = [f"Balance applied: {applied} ({'automatic' if auto else 'manual'})"]
+    e, f = status.estimate, status.filtered
+    if status.waiting:
+        lines.append(f"Estimate: {status.waiting}")
+    elif e is not None and not e.ok:
+        lines.append(f"Estimate refused, balance unchanged: {e.reason}")
+    elif f is not None:
+        gain = f"gain {f.gain:.3f}" if f.gain_fitted else "offset only"
+        lines.append(
+            f"Estimate (filtered): left - right {f.offset_k:+.2f} K, {gain}, "
+            f"{f.n_inliers} points, scatter {f.mad_k:.2f} K"
+        )
+    return "  \n".join(lines)
+
+
+def radiometry_report(pipeline: FusionPipeline) -> dict[str, dict[str, float]]:
+    return {name: r.to_dict() for name, r in pipeline.radiometry.items()}

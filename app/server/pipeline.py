@@ -12,7 +12,8 @@ cannot take). A frame set that misses a sensor still produces a picture from wha
 Repeated inputs are not fused again. A source may hand out the very same read-only array
 for several frames (the simulated head shows each rendered pose for many frames). When
 both colour images, both thermal images, the depth behind the mapping, the display
-settings and the thermal offsets are all what the previous picture was made of, its JPEG
+settings and the imagers' radiometry are all what the previous picture was made of (and
+an automatic span has settled), its JPEG
 is published again with the new frame's metadata (time stamp, missing sensors): the
 stream's time stamps advance at the source's rate while no pixel is computed twice. Only
 arrays with ``flags.writeable`` False count as unchanged, so a source that refills its
@@ -22,6 +23,7 @@ previous one (same read-only object) does not recompute the mapping.
 
 from __future__ import annotations
 
+import dataclasses
 import queue
 import threading
 import time
@@ -34,7 +36,8 @@ import numpy as np
 from app.server.stream import FrameHub
 from app.sources.base import FrameSetAssembler, FrameSource
 from app.sources.frames import FrameSet
-from calib.rig import Rig
+from calib.radiometry import Radiometry
+from calib.rig import Rig, Sensor
 from fusion.compose import DisplaySettings
 from fusion.stereo import StereoFusion
 
@@ -166,9 +169,8 @@ class FusionPipeline:
         self.status = PipelineStatus()
         self.latest_set: FrameSet | None = None
         self._pending_rig: Rig | None = None
+        self.radiometry: dict[str, Radiometry] = {}
         self._init_rig(rig)
-        # Manual balance of the thermal imagers: kelvin added to each imager's readings.
-        self.thermal_offset_k: dict[str, float] = {rig.eyes[e].thermal: 0.0 for e in EYES}
         self._stop = threading.Event()
         self._encoder = _StreamEncoder(hub, self.status, self._stop)
         self._thread = threading.Thread(target=self._run, name="fusion", daemon=True)
@@ -186,6 +188,11 @@ class FusionPipeline:
         )
         thermals = (left.thermal, right.thermal)
         self._offset_buf = {s: np.empty(rig[s].image_size[::-1], np.float32) for s in thermals}
+        # A rig's own radiometry replaces the imager's current one; without it, the live
+        # balance and trims stay (e.g. a new geometric calibration keeps the balance).
+        self.radiometry = {
+            s: radiometry_of(rig[s]) or self.radiometry.get(s, Radiometry()) for s in thermals
+        }
         self._no_thermal = {
             e: np.full(rig[rig.eyes[e].thermal].image_size[::-1], np.nan, np.float32) for e in EYES
         }
@@ -269,11 +276,11 @@ class FusionPipeline:
             path, settings, thermals = "color", DisplaySettings(mode="color"), self._no_thermal
         else:
             path = "fused"
-        offsets = tuple(sorted(self.thermal_offset_k.items()))
+        radiometry = tuple(sorted(self.radiometry.items()))
         made_of = (
             path,
             settings,
-            offsets,
+            radiometry,
             self._depth_version,
             *(colors[e] for e in EYES),
             *(thermals[e] for e in EYES),
@@ -282,6 +289,7 @@ class FusionPipeline:
         if (
             previous is not None
             and previous[:4] == made_of[:4]
+            and self.fusion.span_settled
             and all(_unchanged(a, b) for a, b in zip(made_of[4:], previous[4:], strict=True))
         ):
             return self._encoder.submit(_Job(self._meta(fs, path, settings), None))
@@ -291,8 +299,8 @@ class FusionPipeline:
         elif path == "color":
             rgb = self.fusion.compose(colors, thermals, settings)
         else:
-            balanced = {e: self._balanced(eyes[e].thermal, thermals[e]) for e in EYES}
-            rgb = self.fusion.compose(colors, balanced, settings)
+            kelvin = {e: self.kelvin(eyes[e].thermal, thermals[e]) for e in EYES}
+            rgb = self.fusion.compose(colors, kelvin, settings, fs.stamp_ns)
         bgr = self._encoder.buffer(rgb.shape)
         if bgr is None:
             return False
@@ -313,9 +321,43 @@ class FusionPipeline:
             "missing": sorted(fs.missing),
         }
 
-    def _balanced(self, sensor: str, image: np.ndarray) -> np.ndarray:
-        """The imager's temperatures plus its manual offset (into a preallocated buffer)."""
-        offset = self.thermal_offset_k.get(sensor, 0.0)
-        if offset == 0.0:
+    def kelvin(self, sensor: str, image: np.ndarray) -> np.ndarray:
+        """The imager's readings through its radiometry (calibration, balance, trim), in a
+        preallocated buffer (the image itself when the radiometry is the identity)."""
+        r = self.radiometry.get(sensor)
+        if r is None or r.identity:
             return image
-        return np.add(image, np.float32(offset), out=self._offset_buf[sensor])
+        return r.apply(image, out=self._offset_buf[sensor])
+
+    def set_manual_offset(self, sensor: str, offset_k: float) -> None:
+        """The operator's trim of one imager, kelvin (from the next frame on)."""
+        self._check_imager(sensor)
+        self.radiometry = {**self.radiometry, sensor: self.radiometry[sensor].with_manual(offset_k)}
+
+    def set_balance(self, terms: dict[str, tuple[float, float]]) -> None:
+        """The automatic balance: imager -> (balance_gain, balance_offset_k)."""
+        for sensor in terms:
+            self._check_imager(sensor)
+        new = dict(self.radiometry)
+        for sensor, (gain, offset) in terms.items():
+            new[sensor] = new[sensor].with_balance(gain, offset)
+        self.radiometry = new
+
+    def _check_imager(self, sensor: str) -> None:
+        if sensor not in self.radiometry:
+            raise KeyError(
+                f"{sensor!r} is not a thermal imager of an eye (imagers: {sorted(self.radiometry)})"
+            )
+
+    def rig_with_radiometry(self) -> Rig:
+        """A copy of the rig in use whose thermal imagers carry their current radiometry."""
+        sensors = dict(self.rig.sensors)
+        for name, r in self.radiometry.items():
+            sensors[name] = dataclasses.replace(sensors[name], radiometry=r.to_dict())
+        return dataclasses.replace(self.rig, sensors=sensors)
+
+
+def radiometry_of(sensor: Sensor) -> Radiometry | None:
+    """The radiometry stored with a thermal imager in the rig file, or None."""
+    block = sensor.radiometry
+    return None if block is None else Radiometry.from_dict(block, f"{sensor.name}.radiometry")

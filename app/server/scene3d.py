@@ -418,14 +418,14 @@ class Scene3D(Periodic):
         return resolve_span(p.settings, thermal_images) if thermal_images else None
 
     def _thermal_k(self, fs: object, sensor: str) -> np.ndarray | None:
-        """The imager's temperatures (H, W) kelvin plus its manual offset, or None."""
+        """The imager's temperatures (H, W) kelvin through its radiometry (calibration,
+        balance, trim) as the fused picture shows them, or None."""
         frame = fs.frames.get(sensor)  # type: ignore[attr-defined]
         if frame is None:
             return None
-        offsets = getattr(self.ctx.pipeline, "thermal_offset_k", {})
-        offset = float(offsets.get(sensor, 0.0))
+        r = self.ctx.pipeline.radiometry.get(sensor)
         image = np.asarray(frame.image, dtype=np.float32)
-        return image + np.float32(offset) if offset else image
+        return image if r is None else r.apply(image)
 
     def update_cloud(self) -> None:
         """Push the newest TOF points (in the in-use rig's TOF frame, metres) coloured by

@@ -22,11 +22,13 @@ from app.server.context import ConsoleContext
 from app.server.panels import Panels
 from app.server.pipeline import FusionPipeline
 from app.server.precision_panel import PrecisionPanel
+from app.server.range_panel import RangePanel
 from app.server.scene3d import Scene3D
 from app.server.session_api import make_session_router
 from app.server.source_control import SourceControl, SourceTap
 from app.server.source_panel import SourcePanel
 from app.server.stream import FrameHub
+from app.server.thermal_balance import ThermalBalancer
 from app.sources.base import FrameSource
 from calib.board import Board
 from calib.rig import Rig
@@ -116,6 +118,7 @@ def serve(
     with contextlib.redirect_stdout(io.StringIO()):  # Viser's banner shows its inner port
         server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     watch = BoardWatch(lambda: pipeline.latest_set, rig, board)
+    balancer = ThermalBalancer(pipeline)
     ctx = ConsoleContext(
         server=server,
         source=source,
@@ -125,6 +128,8 @@ def serve(
         board=board,
         board_watch=watch,
         ground_truth_rig=opened.ground_truth_rig,
+        balancer=balancer,
+        save_rig=session.save_rig,
     )
     control = SourceControl(pipeline, hub, opened.description, workdir)
     parts = [
@@ -132,12 +137,22 @@ def serve(
         CalibrationPanel(ctx, session).start(),
         watch.start(),
         Scene3D(ctx).start(),
+        RangePanel(ctx, session).start(),
         Panels(ctx).start(),
+        balancer.start(),
         PrecisionPanel(ctx).start(),
     ]
     parts.append(control)  # stopped first: a running recording is finished and kept
-    app = create_app(hub, server.get_port(), pipeline, control)
-    app.include_router(make_session_router(session, lambda: pipeline.latest_set, ctx.use_rig))
+    app = create_app(hub, server.get_port(), pipeline, control, balancer)
+    app.include_router(
+        make_session_router(
+            session,
+            lambda: pipeline.latest_set,
+            ctx.use_rig,
+            lambda: pipeline.rig,
+            pipeline.rig_with_radiometry,
+        )
+    )
     ws_max = None
     from app.sources.push import PushSource, make_push_router, uvicorn_ws_max_size
 

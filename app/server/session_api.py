@@ -1,7 +1,9 @@
 """REST routes of the calibration session: captures, calibration runs, saved rig versions.
 
-``/api/captures`` (list, take, delete), ``/api/calibrate`` (start, status, result) and
-``/api/rigs`` (list versions, save, get one, use one). Typed models; a request that cannot
+``/api/captures`` (list, take, delete), ``/api/calibrate`` (start, status, result),
+``/api/range`` (the TOF range calibration: start, status, result, save) and ``/api/rigs``
+(list versions, save, get one, use one; ``/api/thermal/save``: the rig in use with the
+imagers' current radiometry). Typed models; a request that cannot
 be done now gets 409 with the reason, an unknown view or version 404.
 """
 
@@ -11,9 +13,16 @@ from collections.abc import Callable
 from typing import Any, Literal
 
 from fastapi import APIRouter, HTTPException
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
-from app.calib_session import CalibrationJob, CalibrationSession, RigVersion, SessionError, ViewInfo
+from app.calib_session import (
+    CalibrationJob,
+    CalibrationSession,
+    RangeJob,
+    RigVersion,
+    SessionError,
+    ViewInfo,
+)
 from app.sources.frames import FrameSet
 from calib.errors import RigError
 from calib.rig import Rig, rig_to_dict
@@ -97,6 +106,35 @@ def job_model(job: CalibrationJob) -> Job:
     )
 
 
+class RangeStatus(BaseModel):
+    """The range calibration run; ``holdout`` and ``fit``: per accuracy region (1-4, then
+    0 = regions 1-3) the RMS distance error before and after, millimetres."""
+
+    state: Literal["idle", "running", "done", "failed"]
+    stage: str
+    progress: float
+    views: list[str]
+    error: str | None
+    holdout: list[dict[str, Any]] | None
+    saved_as: str | None
+
+
+class RangeStart(BaseModel):
+    holdout_every: int = Field(default=4, ge=2, le=50)
+
+
+def range_model(job: RangeJob) -> RangeStatus:
+    return RangeStatus(
+        state=job.state,
+        stage=job.stage,
+        progress=job.progress,
+        views=job.views,
+        error=job.error,
+        holdout=[e.to_dict() for e in job.run.holdout] if job.run is not None else None,
+        saved_as=job.saved_as,
+    )
+
+
 def version_model(v: RigVersion) -> Version:
     return Version(name=v.name, path=str(v.path), saved=v.saved, rms_px=v.rms_px, views=v.views)
 
@@ -105,9 +143,13 @@ def make_session_router(
     session: CalibrationSession,
     latest: Callable[[], FrameSet | None],
     use_rig: Callable[[Rig], None],
+    rig_in_use: Callable[[], Rig] | None = None,
+    rig_with_radiometry: Callable[[], Rig] | None = None,
 ) -> APIRouter:
-    """Routes over ``session``; ``latest()`` gives the frame set a capture takes and
-    ``use_rig(rig)`` makes the console fuse with a saved rig (ValueError if it cannot)."""
+    """Routes over ``session``; ``latest()`` gives the frame set a capture takes,
+    ``use_rig(rig)`` makes the console fuse with a saved rig (ValueError if it cannot),
+    ``rig_in_use()`` is the rig a range calibration starts from and
+    ``rig_with_radiometry()`` the rig in use with the imagers' current radiometry."""
     router = APIRouter(prefix="/api")
 
     @router.get("/captures")
@@ -172,6 +214,49 @@ def make_session_router(
         if job.state != "done" or job.report is None:
             raise HTTPException(404, f"no finished calibration (state: {job.state})")
         return job.report
+
+    @router.post("/range", status_code=202)
+    def start_range(body: RangeStart | None = None) -> RangeStatus:
+        """Calibrate the TOF's distances on the captured views with the rig in use (its
+        board poses); poll ``GET /api/range``."""
+        if rig_in_use is None:
+            raise HTTPException(409, "no rig to calibrate the range with")
+        try:
+            job = session.start_range_calibration(
+                rig_in_use(), (body or RangeStart()).holdout_every
+            )
+        except SessionError as exc:
+            raise HTTPException(409, str(exc)) from None
+        return range_model(job)
+
+    @router.get("/range")
+    def range_status() -> RangeStatus:
+        return range_model(session.range_job)
+
+    @router.get("/range/result")
+    def range_result() -> dict[str, Any]:
+        """The finished range calibration's report (``range.json`` layout)."""
+        job = session.range_job
+        if job.state != "done" or job.report is None:
+            raise HTTPException(404, f"no finished range calibration (state: {job.state})")
+        return job.report
+
+    @router.post("/range/save", status_code=201)
+    def save_range() -> Version:
+        """Save the rig with the fitted range correction as a new rig version."""
+        try:
+            return version_model(session.save_range())
+        except SessionError as exc:
+            raise HTTPException(409, str(exc)) from None
+
+    @router.post("/thermal/save", status_code=201)
+    def save_radiometry() -> Version:
+        """Save the rig in use with the imagers' current radiometry as a new rig version."""
+        if rig_with_radiometry is None:
+            raise HTTPException(409, "no rig to save")
+        rig = rig_with_radiometry()
+        report = {"radiometry": {n: s.radiometry for n, s in rig.sensors.items() if s.radiometry}}
+        return version_model(session.save_rig(rig, report))
 
     @router.get("/rigs")
     def list_versions() -> list[Version]:
