@@ -22,6 +22,7 @@ from app.report_format import NEVER, limit_distance_cell, sensor_colour
 
 if TYPE_CHECKING:
     from calib.board import Board
+    from calib.rig import Rig
     from fusion.precision import PrecisionAnalysis
 
 PROG = "trifuse"
@@ -196,6 +197,33 @@ def numbered_backup(path: Path) -> Path:
         n += 1
 
 
+def _same_file(a: Path, b: Path | None) -> bool:
+    return b is not None and a.exists() and b.exists() and a.resolve() == b.resolve()
+
+
+def _check_rig_out(out: Path, rig_path: Path | None, *others: str | None) -> None:
+    """``--out`` may be the ``--rig`` file itself (kept as a numbered backup); any other
+    existing output is refused."""
+    paths = [] if _same_file(out, rig_path) else [out]
+    for path in [*paths, *(Path(p) for p in others if p)]:
+        if path.exists():
+            raise UsageError(f"{path}: exists; refusing to overwrite it (choose a new name)")
+
+
+def _write_rig_out(out: Path, rig_path: Path | None, rig: Rig, what: str) -> None:
+    """Write the updated rig; when it replaces ``rig_path``, the old file stays as
+    ``RIG.yaml.~N~`` first."""
+    from app.rigfile import save_rig
+
+    same = _same_file(out, rig_path)
+    if same:
+        backup = numbered_backup(out)
+        os.link(out, backup)  # the rig as it was stays, under a new name
+        _out(f"previous rig kept as {backup}")
+    save_rig(out, rig, overwrite=same)
+    _out(f"rig with {what} written to {out}")
+
+
 def _cmd_calibrate_range(args: argparse.Namespace) -> int:
     from app.calibration_run import write_report
     from app.capture import load_capture
@@ -207,14 +235,11 @@ def _cmd_calibrate_range(args: argparse.Namespace) -> int:
         with_range_correction,
         write_png,
     )
-    from app.rigfile import load_rig, save_rig
+    from app.rigfile import load_rig
     from calib.range_calibration import FitOptions
 
     rig_path, out = Path(args.rig), Path(args.out)
-    same = out.exists() and rig_path.exists() and out.resolve() == rig_path.resolve()
-    for path in (out if not same else None, *(Path(p) for p in (args.report, args.plot) if p)):
-        if path is not None and path.exists():
-            raise UsageError(f"{path}: exists; refusing to overwrite it (choose a new name)")
+    _check_rig_out(out, rig_path, args.report, args.plot)
     rig = load_rig(rig_path)
     capture = load_capture(args.capture_dir)
     _out(capture.summary())
@@ -231,18 +256,40 @@ def _cmd_calibrate_range(args: argparse.Namespace) -> int:
     _out("")
     _out(format_range_summary(run))
     _out("")
-    if same:
-        backup = numbered_backup(out)
-        os.link(out, backup)  # the rig as it was stays, under a new name
-        _out(f"previous rig kept as {backup}")
-    save_rig(out, with_range_correction(rig, run), overwrite=same)
-    _out(f"rig with range_correction written to {out}")
+    _write_rig_out(out, rig_path, with_range_correction(rig, run), "range_correction")
     if args.report:
         write_report(Path(args.report), build_range_report(run, capture))
         _out(f"report written to {args.report}")
     if args.plot:
         write_png(args.plot, region_chart(run.holdout, "RMS distance error, held-out views"))
         _out(f"chart written to {args.plot}")
+    return EXIT_OK
+
+
+# -- balance-thermal ----------------------------------------------------------------------
+
+
+def _cmd_balance_thermal(args: argparse.Namespace) -> int:
+    from app.recording import ReplaySource
+    from app.rigfile import load_rig
+    from app.thermal_run import balance_source, format_thermal_summary, with_balance
+
+    out = Path(args.out)
+    rig_path = Path(args.rig) if args.rig else None
+    _check_rig_out(out, rig_path)
+    with ReplaySource(args.recording, realtime=False) as src:
+        rig = load_rig(rig_path) if rig_path else src.rig
+        if rig is None:
+            raise ValueError(f"{args.recording}: the recording holds no rig; give one with --rig")
+        imagers = [rig.eyes[e].thermal for e in ("left", "right")]
+        if args.reference is not None and args.reference not in imagers:
+            raise UsageError(f"--reference: expected one of {imagers}, got {args.reference!r}")
+        _out(f"Balancing {' and '.join(imagers)} over {args.recording} ({src.duration_s:.1f} s)")
+        run = balance_source(src, rig, args.every, reference=args.reference)
+    _out(format_thermal_summary(run, rig))
+    if run.estimate is None:
+        return EXIT_FAILURE
+    _write_rig_out(out, rig_path, with_balance(rig, run.terms), "radiometry")
     return EXIT_OK
 
 
@@ -922,6 +969,42 @@ def build_parser() -> argparse.ArgumentParser:
         help="spacing of the per-pixel offset nodes in TOF pixels (default: %(default)s)",
     )
     cr.set_defaults(func=_cmd_calibrate_range)
+
+    # balance-thermal -----------------------------------------------------------------
+    bt = commands.add_parser(
+        "balance-thermal",
+        help="balance the two thermal imagers from a recording (points both see)",
+        description=(
+            "Replay RECORDING and, on every frame set, compare the two thermal imagers' "
+            "readings of the TOF points both see (not occluded, off thermal edges); fit "
+            "left = gain x right + offset robustly (the gain only when the scene's "
+            "temperatures span enough), filter it over time, and write the rig with each "
+            "imager's balance in its radiometry block (split evenly, or onto --reference). "
+            "Refuses, leaving the rig unchanged, when the imagers share too few points."
+        ),
+    )
+    bt.add_argument("recording", metavar="RECORDING", help="the recording (.mcap)")
+    bt.add_argument("--rig", metavar="RIG.yaml", help="the rig (default: the recording's)")
+    bt.add_argument(
+        "--out",
+        required=True,
+        metavar="RIG.yaml",
+        help="rig file to write: a new file, or the --rig file itself (its previous "
+        "content is then kept as RIG.yaml.~N~)",
+    )
+    bt.add_argument(
+        "--reference",
+        metavar="NAME",
+        help="the imager left unchanged (default: split the correction evenly)",
+    )
+    bt.add_argument(
+        "--every",
+        type=_positive_int,
+        default=1,
+        metavar="N",
+        help="use every N-th frame set (default: %(default)s: all)",
+    )
+    bt.set_defaults(func=_cmd_balance_thermal)
 
     # serve ---------------------------------------------------------------------------
     srv = commands.add_parser(

@@ -2,8 +2,9 @@
 
 The recording is replayed as fast as possible and grouped into frame sets around the left
 eye's colour frames (:func:`app.sources.base.frame_sets`). Each new TOF frame updates both
-eyes' mappings (:meth:`fusion.stereo.StereoFusion.update_depth`); every ``every``-th set
-with both eyes' colour and thermal frames is composed into the side-by-side picture, which
+eyes' mappings (:meth:`fusion.stereo.StereoFusion.update_depth`, with the rig's range
+correction); every ``every``-th set with both eyes' colour and thermal frames (through the
+rig's radiometry) is composed into the side-by-side picture, which
 is written as ``DIR/NNNNNN.jpg`` and appended to ``DIR/fused.mp4`` (OpenCV ``mp4v``, when
 that codec is at hand). ``DIR/frames.csv`` lists each picture's time stamps.
 """
@@ -23,6 +24,7 @@ from app.atomic import atomic_write_bytes, atomic_write_text
 from app.recording.errors import RecordingDamaged
 from app.recording.player import MessageReplay
 from app.sources.base import frame_sets
+from calib.radiometry import Radiometry
 from calib.rig import Rig
 from fusion.compose import DisplaySettings
 from fusion.stereo import EYE_ORDER, StereoFusion
@@ -91,6 +93,8 @@ def fuse_recording(
     fusion = StereoFusion(rig)
     eyes = {e: rig.eyes[e] for e in EYE_ORDER}
     tof = _tof_sensor(rig)
+    radiometry = {e.thermal: Radiometry.of(rig[e.thermal]) or Radiometry() for e in eyes.values()}
+    kelvin = {n: np.empty(rig[e.thermal].image_size[::-1], np.float32) for n, e in eyes.items()}
     ref = eyes[EYE_ORDER[0]].color
     sensors = [ref] + [s for e in eyes.values() for s in (e.color, e.thermal) if s != ref] + [tof]
     source.realtime = False
@@ -132,8 +136,11 @@ def fuse_recording(
                     _check_size(fs[eye.color].image, rig, eye.color)
                     _check_size(fs[eye.thermal].image, rig, eye.thermal)
                 colors = {e: fs[eye.color].image for e, eye in eyes.items()}
-                thermals = {e: fs[eye.thermal].image for e, eye in eyes.items()}
-                picture = fusion.compose(colors, thermals, settings)
+                thermals = {
+                    e: radiometry[eye.thermal].apply(fs[eye.thermal].image, out=kelvin[e])
+                    for e, eye in eyes.items()
+                }
+                picture = fusion.compose(colors, thermals, settings, fs.stamp_ns)
                 cv2.cvtColor(picture, cv2.COLOR_RGB2BGR, dst=bgr)
                 ok, jpg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
                 if not ok:

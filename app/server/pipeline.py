@@ -37,7 +37,7 @@ from app.server.stream import FrameHub
 from app.sources.base import FrameSetAssembler, FrameSource
 from app.sources.frames import FrameSet
 from calib.radiometry import Radiometry
-from calib.rig import Rig, Sensor
+from calib.rig import Rig
 from fusion.compose import DisplaySettings
 from fusion.stereo import StereoFusion
 
@@ -191,7 +191,7 @@ class FusionPipeline:
         # A rig's own radiometry replaces the imager's current one; without it, the live
         # balance and trims stay (e.g. a new geometric calibration keeps the balance).
         self.radiometry = {
-            s: radiometry_of(rig[s]) or self.radiometry.get(s, Radiometry()) for s in thermals
+            s: Radiometry.of(rig[s]) or self.radiometry.get(s, Radiometry()) for s in thermals
         }
         self._no_thermal = {
             e: np.full(rig[rig.eyes[e].thermal].image_size[::-1], np.nan, np.float32) for e in EYES
@@ -355,9 +355,3 @@ class FusionPipeline:
         for name, r in self.radiometry.items():
             sensors[name] = dataclasses.replace(sensors[name], radiometry=r.to_dict())
         return dataclasses.replace(self.rig, sensors=sensors)
-
-
-def radiometry_of(sensor: Sensor) -> Radiometry | None:
-    """The radiometry stored with a thermal imager in the rig file, or None."""
-    block = sensor.radiometry
-    return None if block is None else Radiometry.from_dict(block, f"{sensor.name}.radiometry")

@@ -78,6 +78,7 @@ class ThermalBalancer(Periodic):
         """Turn automatic balancing on (from a fresh estimate) or off (the balance stays)."""
         if on and not self.auto:
             self.filter.reset()
+            self._seen = None  # measure the frames on screen again, even if unchanged
         self.auto = bool(on)
 
     def apply_filtered(self) -> BalanceEstimate:
