@@ -336,8 +336,10 @@ def _fuse(repeat: int) -> dict[str, float]:
     compose both eyes into the side-by-side buffer, with the depth mapping as it is (a TOF
     frame arrives less often than a colour frame). ``tof_update_ms``: recomputing both eyes'
     mappings from a new TOF frame. ``blend_tof_every_frame_ms``: blend with a new TOF frame
-    for every stereo frame (the worst case). ``homography_ms``: the naive fusion, one fixed
-    homography per eye (3 m) through the same warp and blend: the baseline, and
+    for every stereo frame (the worst case). ``range_correction_ms``: the TOF range
+    correction of one TOF frame (before its mapping update). ``homography_ms``: the naive
+    fusion, one fixed homography per eye (3 m) through the same warp and blend: the
+    baseline, and
     ``blend_ratio`` / ``blend_tof_every_frame_ratio`` against it.
     """
     import cv2
@@ -379,6 +381,27 @@ def _fuse(repeat: int) -> dict[str, float]:
         fusion.compose(colors, thermals, settings["blend"])
 
     figures["blend_tof_every_frame_ms"] = median_ms(every_frame, repeat)
+
+    # The TOF range correction (rig file ``range_correction``) on each TOF frame.
+    from calib.range_correction import RangeCorrection, offset_grid_shape
+
+    w_t, h_t = rig["tof"].image_size
+    correction = RangeCorrection(
+        image_size=(w_t, h_t),
+        distance_start_m=0.5,
+        distance_step_m=0.15,
+        distance_coeffs_m=np.linspace(0.03, -0.01, 40),
+        offset_step_px=8,
+        offset_nodes_m=np.full(offset_grid_shape(w_t, h_t, 8), 0.002),
+        amplitude_ref=1500.0,
+        amplitude_log_range=(-1.5, 1.5),
+        amplitude_coeffs_m=(0.004, -0.001),
+    )
+    amplitude = frames["tof"].image
+    out = np.empty_like(distance)
+    figures["range_correction_ms"] = median_ms(
+        lambda _i: correction.apply(distance, amplitude, out=out), repeat
+    )
 
     # Baseline: a fixed homography per eye, warped and blended the same way.
     w, h = fusion.size

@@ -41,7 +41,7 @@ def test_range_panel_runs_saves_and_uses_the_correction(simulated, browser, tmp_
         text = page.evaluate("() => document.body.innerText")
         row = next(line for line in text.splitlines() if line.startswith("1-3"))
         before, after, ratio = (
-            float(x) for x in re.search(r"([\d.]+) mm\s+([\d.]+) mm\s+([\d.]+)x", row).groups()
+            float(x) for x in re.search(r"([\d.]+)\s+([\d.]+)\s+([\d.]+)x", row).groups()
         )
         # the bound: regions 1-3 at least 2.5x better on held-out views
         assert ratio >= 2.5 and before > 25.0, row

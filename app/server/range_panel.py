@@ -24,20 +24,20 @@ def region_table(holdout: list[RegionError], fit: list[RegionError]) -> str:
     """Markdown table: per region, pixels and RMS error before / after on held-out views
     (and after on the fitted views)."""
     lines = [
-        "| region | pixels | before | after | ratio | after (fit) |",
+        "| region | pixels | before | after | ratio | fitted |",
         "|:--|--:|--:|--:|--:|--:|",
     ]
     for h, f in zip(holdout, fit, strict=True):
-        label = "1-3" if h.region == 0 else str(h.region) + (" (border)" if h.region == 4 else "")
+        label = "1-3" if h.region == 0 else str(h.region)
         if not h.pixels:
             lines.append(f"| {label} | 0 | – | – | – | – |")
             continue
-        after_fit = f"{f.after_rms_mm:.1f} mm" if math.isfinite(f.after_rms_mm) else "–"
+        after_fit = f"{f.after_rms_mm:.1f}" if math.isfinite(f.after_rms_mm) else "–"
         lines.append(
-            f"| {label} | {h.pixels} | {h.before_rms_mm:.1f} mm | **{h.after_rms_mm:.1f} mm** "
+            f"| {label} | {h.pixels} | {h.before_rms_mm:.1f} | **{h.after_rms_mm:.1f}** "
             f"| {h.ratio:.1f}x | {after_fit} |"
         )
-    return "\n".join(lines)
+    return "\n".join(lines) + "\n\nRMS error in mm; *fitted*: after, on the views fitted."
 
 
 class RangePanel(Periodic):
