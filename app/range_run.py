@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +35,7 @@ from calib.range_calibration import (
 )
 from calib.range_correction import RangeCorrection
 from calib.rig import Rig
+from fusion.geometry import tof_sensor_name
 
 Progress = Callable[[str, float], None]
 REPORT_FORMAT = "trifuse-range-report/1"
@@ -66,17 +68,6 @@ class RangeRun:
     seconds: float = 0.0
     notes: list[str] = field(default_factory=list)
 
-    def trusted(self, errors: list[RegionError] | None = None) -> RegionError:
-        """Regions 1-3 together (held-out views unless ``errors`` is given)."""
-        return next(e for e in (errors or self.holdout) if e.region == 0)
-
-
-def tof_of(rig: Rig) -> str:
-    tofs = rig.by_modality("tof")
-    if len(tofs) != 1:
-        raise ValueError(f"the rig must have one TOF camera for a range calibration, has {tofs}")
-    return tofs[0]
-
 
 def calibrate_range(
     capture: Capture,
@@ -98,12 +89,10 @@ def calibrate_range(
 
     Raises ValueError (with the reason) when too few views or pixels remain.
     """
-    import time
-
     t0 = time.perf_counter()
     if holdout_every < 2:
         raise ValueError(f"holdout_every: expected an integer >= 2, got {holdout_every}")
-    tof = tof_of(rig)
+    tof = tof_sensor_name(rig)
     missing = sorted(set(capture.sensors) - set(rig.names))
     if tof not in capture.sensors:
         raise ValueError(f"{capture.path}: no images of the TOF camera {tof!r}")
@@ -119,7 +108,7 @@ def calibrate_range(
     samples: dict[str, RangeSamples] = {}
     skipped: dict[str, str] = {}
     pose_rms: dict[str, dict[str, float]] = {}
-    views = [v for v in capture.views]
+    views = list(capture.views)
     for k, view in enumerate(views):
         if progress:
             progress(
@@ -172,18 +161,15 @@ def calibrate_range(
         )
     if progress:
         progress("fitting", 0.92)
-    model = fit_range_correction(
-        RangeSamples.concat([samples[n] for n in fit_views]), image_size, options
-    )
-    fit_errors = region_errors(
-        RangeSamples.concat([samples[n] for n in fit_views]), model, image_size
-    )
+    fitted = RangeSamples.concat([samples[n] for n in fit_views])
+    model = fit_range_correction(fitted, image_size, options)
+    fit_errors = region_errors(fitted, model, image_size)
     holdout = region_errors(
         RangeSamples.concat([samples[n] for n in holdout_views]), model, image_size
     )
     per_view = {}
     for n in names:
-        total = next(e for e in region_errors(samples[n], model, image_size) if e.region == 0)
+        total = _trusted(region_errors(samples[n], model, image_size))
         per_view[n] = {
             "set": "holdout" if n in holdout_views else "fit",
             "pixels": len(samples[n]),

@@ -317,4 +317,4 @@ def test_a_rig_without_a_tof_is_a_clear_error(simulated: dict, tmp_path: Path, c
     rig_path = save_rig(tmp_path / "no-tof.yaml", rig_from_dict(d))
     argv = ["calibrate-range", str(simulated["capture"]), "--rig", str(rig_path)]
     assert main([*argv, "--out", str(tmp_path / "out.yaml")]) == 2
-    assert "one TOF camera" in capsys.readouterr().err
+    assert "exactly one sensor of modality 'tof'" in capsys.readouterr().err
