@@ -77,7 +77,7 @@ def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path)
         shown = _views_shown(page)
         assert len(_views_on_disk(workdir)) >= shown >= MIN_VIEWS
 
-        page.get_by_role("button", name="Run calibration").click()
+        page.get_by_role("button", name="Run calibration", exact=True).click()
         page.wait_for_function(
             "() => /Calibrated \\d+ views|Calibration failed/.test(document.body.innerText)",
             timeout=600000,
@@ -85,7 +85,7 @@ def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path)
         )
         text = page.evaluate("() => document.body.innerText")
         assert "Calibration failed" not in text, text
-        page.get_by_role("button", name="Save rig").click()
+        page.get_by_role("button", name="Save rig", exact=True).click()
         page.wait_for_function("() => document.body.innerText.includes('Saved rig-0001')")
         page.screenshot(path=str(tmp_path / "calibration-panel.png"), full_page=True)
         page.close()
