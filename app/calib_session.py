@@ -574,15 +574,6 @@ class CalibrationSession:
         job.finished = time.time()
         self._changed()
 
-    def wait_range(self, timeout_s: float | None = None) -> RangeJob:
-        """Block until the running range calibration ends (or the timeout)."""
-        deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        while self.range_job.state == "running":
-            if deadline is not None and time.monotonic() > deadline:
-                break
-            time.sleep(0.05)
-        return self.range_job
-
     def save_range(self) -> RigVersion:
         """Write the job's rig with its range correction as a new rig version."""
         with self._lock:
@@ -595,3 +586,8 @@ class CalibrationSession:
             job.saved_as = version.name
         self._changed()
         return version
+
+
+def radiometry_report(rig: Rig) -> dict[str, Any]:
+    """The report saved beside a rig version that records the imagers' radiometry."""
+    return {"radiometry": {n: s.radiometry for n, s in rig.sensors.items() if s.radiometry}}

@@ -18,6 +18,7 @@ import re
 import cv2
 import numpy as np
 
+from app.calib_session import radiometry_report
 from app.preview import to_display
 from app.server.board_watch import BoardSighting
 from app.server.context import ConsoleContext
@@ -308,9 +309,8 @@ class Panels(Periodic):
     def _save_radiometry(self) -> str:
         if self.ctx.save_rig is None:
             raise ValueError("no calibration session to save into")
-        version = self.ctx.save_rig(
-            self.pipeline.rig_with_radiometry(), {"radiometry": radiometry_report(self.pipeline)}
-        )
+        rig = self.pipeline.rig_with_radiometry()
+        version = self.ctx.save_rig(rig, radiometry_report(rig))
         return f"Saved the radiometry with the rig in use as **{version.name}**."
 
     def tick(self) -> None:
@@ -383,7 +383,3 @@ def balance_text(status: BalanceStatus, auto: bool, pipeline: FusionPipeline) ->
             f"{f.n_inliers} points, scatter {f.mad_k:.2f} K"
         )
     return "  \n".join(lines)
-
-
-def radiometry_report(pipeline: FusionPipeline) -> dict[str, dict[str, float]]:
-    return {name: r.to_dict() for name, r in pipeline.radiometry.items()}

@@ -22,6 +22,7 @@ from app.calib_session import (
     RigVersion,
     SessionError,
     ViewInfo,
+    radiometry_report,
 )
 from app.sources.frames import FrameSet
 from calib.errors import RigError
@@ -255,8 +256,7 @@ def make_session_router(
         if rig_with_radiometry is None:
             raise HTTPException(409, "no rig to save")
         rig = rig_with_radiometry()
-        report = {"radiometry": {n: s.radiometry for n, s in rig.sensors.items() if s.radiometry}}
-        return version_model(session.save_rig(rig, report))
+        return version_model(session.save_rig(rig, radiometry_report(rig)))
 
     @router.get("/rigs")
     def list_versions() -> list[Version]:
