@@ -667,7 +667,8 @@ class _Console:
             text=True,
         )
         line = self.proc.stdout.readline() if self.proc.stdout else ""
-        if f"http://127.0.0.1:{port}/" not in line:
+        signin = next((w for w in line.split() if w.startswith(f"http://127.0.0.1:{port}/")), "")
+        if not signin:
             self.close()
             raise RuntimeError(f"trifuse serve did not start: {line}")
         self.url = f"http://127.0.0.1:{port}"
@@ -684,7 +685,7 @@ class _Console:
         try:
             self.page = browser.new_page()
             self.page.add_init_script(_VIEWER_PROBE)
-            self.page.goto(self.url + "/")
+            self.page.goto(signin)  # the printed URL, with the token
         except BaseException:
             self.close()
             raise

@@ -15,12 +15,15 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
+from urllib.parse import urlsplit
 
 import numpy as np
 
 from app.report_format import NEVER, limit_distance_cell, sensor_colour
 
 if TYPE_CHECKING:
+    from app.server.auth import AuthConfig
+    from app.server.serve import TLSFiles
     from calib.board import Board
     from calib.rig import Rig
     from fusion.precision import PrecisionAnalysis
@@ -307,14 +310,66 @@ def _load_board_arg(path: str | None) -> Board:
     return load_board_file(path)
 
 
+def _serve_auth(args: argparse.Namespace) -> AuthConfig:
+    """The console's authentication from ``--token`` / ``TRIFUSE_TOKEN`` / ``--no-token``,
+    ``--host``, ``--allow-origin`` and TLS; UsageError for an unsafe or unusable choice."""
+    from app.server.auth import TOKEN_ENV, AuthConfig, check_token, is_loopback, new_token
+
+    given = args.token if args.token is not None else os.environ.get(TOKEN_ENV)
+    if args.no_token:
+        if args.token is not None:
+            raise UsageError(f"{PROG} serve: --token and --no-token exclude each other")
+        if not is_loopback(args.host):
+            raise UsageError(
+                f"{PROG} serve: --host {args.host} --no-token: refusing to serve without a "
+                "token on a non-loopback address (anyone on the network could watch the "
+                "cameras and change the calibration); drop --no-token to use a token"
+            )
+        token = None
+    else:
+        try:
+            token = check_token(given) if given is not None else new_token()
+        except ValueError as e:
+            where = "--token" if args.token is not None else TOKEN_ENV
+            raise UsageError(f"{PROG} serve: {where}: {e}") from None
+    origins = set()
+    for origin in args.allow_origin:
+        parts = urlsplit(origin)
+        if parts.scheme not in ("http", "https") or not parts.netloc or parts.path.strip("/"):
+            raise UsageError(
+                f"{PROG} serve: --allow-origin {origin!r}: expected scheme://host[:port], "
+                "e.g. https://headset.local:8443"
+            )
+        origins.add(f"{parts.scheme}://{parts.netloc}".lower())
+    return AuthConfig(token, args.port, args.certfile is not None, frozenset(origins))
+
+
+def _serve_tls(args: argparse.Namespace) -> TLSFiles | None:
+    """``--certfile``/``--keyfile`` checked by loading them, or None."""
+    from app.server.serve import TLSFiles
+
+    if (args.certfile is None) != (args.keyfile is None):
+        raise UsageError(f"{PROG} serve: --certfile and --keyfile go together")
+    if args.certfile is None:
+        return None
+    import ssl
+
+    try:
+        ssl.create_default_context(ssl.Purpose.CLIENT_AUTH).load_cert_chain(
+            args.certfile, args.keyfile
+        )
+    except (OSError, ssl.SSLError) as e:
+        raise UsageError(
+            f"{PROG} serve: cannot use --certfile {args.certfile} --keyfile {args.keyfile}: {e}"
+        ) from None
+    return TLSFiles(Path(args.certfile), Path(args.keyfile))
+
+
 def _cmd_serve(args: argparse.Namespace) -> int:
     from app.server.serve import open_source, serve
 
-    if args.host not in ("127.0.0.1", "localhost", "::1"):
-        raise UsageError(
-            f"{PROG} serve: --host {args.host}: the console has no authentication yet, so it "
-            "only binds to loopback (127.0.0.1); reach it remotely through an SSH tunnel"
-        )
+    auth = _serve_auth(args)
+    tls = _serve_tls(args)
     chosen = [x for x in (args.replay, args.live, args.push or None) if x]
     if len(chosen) > 1:
         raise UsageError(f"{PROG} serve: choose one of --replay, --live, --push")
@@ -322,7 +377,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         raise UsageError(f"{PROG} serve: --scenario is for the simulated head only")
     board = _load_board_arg(args.board)
     opened = open_source(args.replay, args.live, args.push, args.rig, args.scenario)
-    serve(opened, board, Path(args.workdir), args.host, args.port)
+    serve(opened, board, Path(args.workdir), auth, args.host, tls)
     return EXIT_OK
 
 
@@ -1057,9 +1112,32 @@ def build_parser() -> argparse.ArgumentParser:
     srv.add_argument(
         "--host",
         default="127.0.0.1",
-        help="address to bind (default: %(default)s; loopback only for now)",
+        help="address to bind (default: %(default)s; e.g. 0.0.0.0 for every interface, "
+        "which needs a token)",
     )
     srv.add_argument("--port", type=_positive_int, default=8000, help="port (default: %(default)s)")
+    srv.add_argument(
+        "--token",
+        help="the secret that opens the console (at least 16 characters; default: "
+        "$TRIFUSE_TOKEN, else a random one); printed in the console's URL, "
+        "exchanged by the browser for a session cookie; scripts send "
+        "'Authorization: token TOKEN'. Prefer TRIFUSE_TOKEN: arguments show in ps",
+    )
+    srv.add_argument(
+        "--no-token",
+        action="store_true",
+        help="no authentication: only on a loopback --host, for a single-user machine",
+    )
+    srv.add_argument(
+        "--allow-origin",
+        action="append",
+        default=[],
+        metavar="URL",
+        help="another origin (scheme://host[:port]) allowed to open WebSockets and send "
+        "changes, besides the console's own (repeatable)",
+    )
+    srv.add_argument("--certfile", metavar="PEM", help="TLS certificate (chain): serve HTTPS/WSS")
+    srv.add_argument("--keyfile", metavar="PEM", help="the certificate's private key")
     srv.set_defaults(func=_cmd_serve)
 
     # bench ---------------------------------------------------------------------------

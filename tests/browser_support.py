@@ -8,13 +8,18 @@ simulated inspection room, one per test module) and ``browser`` live in conftest
 from __future__ import annotations
 
 import contextlib
+import json
 import os
+import re
 import socket
 import subprocess
 import sys
 import time
+import urllib.request
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -34,9 +39,38 @@ def free_port() -> int:
         return sock.getsockname()[1]
 
 
-def start_console(args: Sequence[str], port: int | None = None) -> tuple[subprocess.Popen, str]:
-    """Start ``trifuse serve ARGS`` on a free loopback port; returns (process, base URL)
-    once the port accepts connections."""
+@dataclass(frozen=True)
+class Console:
+    """A running console: its base URL and the token it printed."""
+
+    url: str
+    token: str
+
+    def signin(self, path: str = "/") -> str:
+        """What an operator opens: ``path`` with the token (the browser exchanges it for a
+        session cookie and is sent on to ``path``)."""
+        return f"{self.url}{path}?token={self.token}"
+
+    def request(self, path: str, method: str = "GET", body: Any = None) -> tuple[int, Any]:
+        """A REST call as a script makes it (``Authorization: token``): (status, JSON)."""
+        data = None if body is None else json.dumps(body).encode()
+        req = urllib.request.Request(self.url + path, data=data, method=method)
+        req.add_header("Authorization", f"token {self.token}")
+        if data is not None:
+            req.add_header("Content-Type", "application/json")
+        with urllib.request.urlopen(req, timeout=10) as r:
+            return r.status, json.loads(r.read())
+
+    def get(self, path: str) -> Any:
+        return self.request(path)[1]
+
+    def post(self, path: str, body: Any = None) -> tuple[int, Any]:
+        return self.request(path, "POST", body)
+
+
+def start_console(args: Sequence[str], port: int | None = None) -> tuple[subprocess.Popen, Console]:
+    """Start ``trifuse serve ARGS`` on a free loopback port (with its own random token);
+    returns the process and the console once the port accepts connections."""
     port = port or free_port()
     proc = subprocess.Popen(
         [
@@ -54,7 +88,8 @@ def start_console(args: Sequence[str], port: int | None = None) -> tuple[subproc
         text=True,
     )
     line = proc.stdout.readline()
-    if f"http://127.0.0.1:{port}/" not in line:
+    m = re.search(rf"http://127\.0\.0\.1:{port}/\?token=(\S+)", line)
+    if m is None:
         proc.kill()
         raise RuntimeError(f"trifuse serve did not start: {line}{proc.stdout.read()}")
     for _ in range(100):
@@ -63,15 +98,15 @@ def start_console(args: Sequence[str], port: int | None = None) -> tuple[subproc
             break
         except OSError:
             time.sleep(0.1)
-    return proc, f"http://127.0.0.1:{port}"
+    return proc, Console(f"http://127.0.0.1:{port}", m.group(1))
 
 
 @contextlib.contextmanager
-def console_running(args: Sequence[str]) -> Iterator[str]:
-    """``trifuse serve ARGS`` for the duration of the block; yields its base URL."""
-    proc, url = start_console(args)
+def console_running(args: Sequence[str]) -> Iterator[Console]:
+    """``trifuse serve ARGS`` for the duration of the block; yields the console."""
+    proc, console = start_console(args)
     try:
-        yield url
+        yield console
     finally:
         proc.terminate()
         try:

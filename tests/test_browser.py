@@ -12,7 +12,7 @@ pytestmark = needs_chromium
 
 def test_viewer_shows_moving_fused_frames(console, browser) -> None:
     page = browser.new_page(viewport={"width": 1280, "height": 540})
-    page.goto(console + "/")
+    page.goto(console.signin("/"))
     page.wait_for_function("() => window.trifuseStats && window.trifuseStats.meta", timeout=60000)
     first = page.evaluate("() => window.trifuseStats.meta.seq")
     page.wait_for_timeout(3000)
@@ -32,7 +32,7 @@ def test_console_balances_the_thermal_imagers(console, browser) -> None:
     """The 3D console loads through /console/; the Thermal panel shows the imagers' 1.5 K
     disagreement over shared points, and a manual offset removes it."""
     page = browser.new_page(viewport={"width": 800, "height": 900})
-    page.goto(console + "/console/")
+    page.goto(console.signin("/console/"))
     page.wait_for_function(
         "() => !document.body.innerText.includes('Connecting...')", timeout=60000
     )

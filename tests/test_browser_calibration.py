@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import re
 import signal
-import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -30,17 +29,6 @@ pytestmark = needs_chromium
 MIN_VIEWS = 30  # of the scenario's 40 poses (ROS novelty keeps about 36)
 
 
-def _get(url: str) -> dict | list:
-    with urllib.request.urlopen(url, timeout=10) as r:
-        return json.loads(r.read())
-
-
-def _post(url: str) -> tuple[int, dict]:
-    req = urllib.request.Request(url, method="POST")
-    with urllib.request.urlopen(req, timeout=10) as r:
-        return r.status, json.loads(r.read())
-
-
 def _views_on_disk(workdir: Path) -> list[str]:
     return [v.name for v in load_capture(workdir / "captures").views]
 
@@ -53,10 +41,10 @@ def _views_shown(page) -> int:
 def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path) -> None:
     workdir = tmp_path / "work"
     args = ["--scenario", "calibration", "--workdir", str(workdir)]
-    proc, url = start_console(args)
+    proc, console = start_console(args)
     try:
         page = browser.new_page(viewport={"width": 900, "height": 1200})
-        page.goto(url + "/console/")
+        page.goto(console.signin("/console/"))
         page.wait_for_function(
             "() => !document.body.innerText.includes('Connecting...')", timeout=60000
         )
@@ -109,8 +97,8 @@ def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path)
         # A second calibration, killed half-way.
         views_before = _views_on_disk(workdir)
         saved_bytes = saved.read_bytes()
-        assert _post(url + "/api/calibrate")[0] == 202
-        assert _get(url + "/api/calibrate")["state"] == "running"
+        assert console.post("/api/calibrate")[0] == 202
+        assert console.get("/api/calibrate")["state"] == "running"
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)
     finally:
@@ -120,13 +108,13 @@ def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path)
 
     assert _views_on_disk(workdir) == views_before
     assert saved.read_bytes() == saved_bytes
-    proc, url = start_console(args)
+    proc, console = start_console(args)
     try:
-        listing = _get(url + "/api/captures")
+        listing = console.get("/api/captures")
         assert [v["name"] for v in listing["views"]] == views_before
-        assert [v["name"] for v in _get(url + "/api/rigs")] == ["rig-0001"]
+        assert [v["name"] for v in console.get("/api/rigs")] == ["rig-0001"]
         assert np.allclose(
-            np.array(_get(url + "/api/rigs/rig-0001")["sensors"]["ccd_right"]["T_rig_sensor"]),
+            np.array(console.get("/api/rigs/rig-0001")["sensors"]["ccd_right"]["T_rig_sensor"]),
             rig["ccd_right"].T_rig_sensor,
         )
     finally:

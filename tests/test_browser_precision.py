@@ -14,7 +14,7 @@ pytestmark = needs_chromium
 
 def test_precision_panel_shows_table_1_and_its_curves(console, browser) -> None:
     page = browser.new_page(viewport={"width": 800, "height": 900})
-    page.goto(console + "/console/")
+    page.goto(console.signin("/console/"))
     page.wait_for_function(
         "() => !document.body.innerText.includes('Connecting...')", timeout=60000
     )

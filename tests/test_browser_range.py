@@ -8,27 +8,20 @@ the held-out views; the rig with the correction is saved as a version and put to
 
 from __future__ import annotations
 
-import json
 import re
 import shutil
-import urllib.request
 
 from tests.browser_support import console_running, needs_chromium
 
 pytestmark = needs_chromium
 
 
-def _get(url: str):
-    with urllib.request.urlopen(url, timeout=10) as r:
-        return json.loads(r.read())
-
-
 def test_range_panel_runs_saves_and_uses_the_correction(simulated, browser, tmp_path) -> None:
     workdir = tmp_path / "work"
     shutil.copytree(simulated["capture"], workdir / "captures")
-    with console_running(["--scenario", "calibration", "--workdir", str(workdir)]) as url:
+    with console_running(["--scenario", "calibration", "--workdir", str(workdir)]) as console:
         page = browser.new_page(viewport={"width": 900, "height": 1400})
-        page.goto(url + "/console/")
+        page.goto(console.signin("/console/"))
         page.wait_for_function(
             "() => document.body.innerText.includes('Range calibration')", timeout=60000
         )
@@ -45,7 +38,7 @@ def test_range_panel_runs_saves_and_uses_the_correction(simulated, browser, tmp_
         )
         # the bound: regions 1-3 at least 2.5x better on held-out views
         assert ratio >= 2.5 and before > 25.0, row
-        status = _get(url + "/api/range")
+        status = console.get("/api/range")
         trusted = next(r for r in status["holdout"] if r["region"] == 0)
         assert abs(trusted["after_rms_mm"] - after) <= 0.05  # the panel shows 0.1 mm
 
@@ -53,15 +46,15 @@ def test_range_panel_runs_saves_and_uses_the_correction(simulated, browser, tmp_
         page.wait_for_function(
             "() => document.body.innerText.includes('Saved rig-')", timeout=20000
         )
-        name = _get(url + "/api/range")["saved_as"]
-        assert "range_correction" in _get(url + f"/api/rigs/{name}")["sensors"]["tof"]
+        name = console.get("/api/range")["saved_as"]
+        assert "range_correction" in console.get(f"/api/rigs/{name}")["sensors"]["tof"]
         page.get_by_role("button", name="Use the saved rig").click()
         page.wait_for_function(
             "() => document.body.innerText.includes('TOF distances corrected')", timeout=20000
         )
         for _ in range(50):  # the pipeline swaps rigs at its next frame set
-            if "range_correction" in _get(url + "/api/rig")["sensors"]["tof"]:
+            if "range_correction" in console.get("/api/rig")["sensors"]["tof"]:
                 break
             page.wait_for_timeout(200)
-        assert "range_correction" in _get(url + "/api/rig")["sensors"]["tof"]
+        assert "range_correction" in console.get("/api/rig")["sensors"]["tof"]
         page.close()

@@ -27,7 +27,7 @@ def test_scene_folder_switches_colouring_and_rig(console, browser) -> None:
     page = browser.new_page(viewport={"width": 800, "height": 600})
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
-    page.goto(console + "/console/")
+    page.goto(console.signin("/console/"))
     page.wait_for_function(
         "() => !document.body.innerText.includes('Connecting...')", timeout=60000
     )

@@ -6,9 +6,7 @@ A screenshot of the panel goes to /tmp/shots/source.png (for a person to look at
 
 from __future__ import annotations
 
-import json
 import time
-import urllib.request
 from pathlib import Path
 
 from app.recording import ReplaySource
@@ -32,15 +30,10 @@ _FOLDER_BOX = """() => {
 }"""
 
 
-def _status(console: str) -> dict:
-    with urllib.request.urlopen(console + "/api/status", timeout=10) as r:
-        return json.load(r)
-
-
 def test_record_and_stop_from_the_source_panel(console, browser) -> None:
     page = browser.new_page(viewport={"width": 800, "height": 900})
     try:
-        page.goto(console + "/console/")
+        page.goto(console.signin("/console/"))
         page.wait_for_function(
             "() => !document.body.innerText.includes('Connecting...')", timeout=60000
         )
@@ -56,8 +49,8 @@ def test_record_and_stop_from_the_source_panel(console, browser) -> None:
         stop = page.get_by_role("button", name="Stop recording", exact=True)
         stop.wait_for(timeout=15000)
         deadline = time.monotonic() + 60
-        while _status(console)["recording"]["frames_written"] < 5:
-            assert time.monotonic() < deadline, _status(console)["recording"]
+        while console.get("/api/status")["recording"]["frames_written"] < 5:
+            assert time.monotonic() < deadline, console.get("/api/status")["recording"]
             time.sleep(0.2)
         page.wait_for_function(
             "() => document.body.innerText.includes('Recording') "
@@ -73,7 +66,7 @@ def test_record_and_stop_from_the_source_panel(console, browser) -> None:
         page.wait_for_function(
             "() => /Saved recordings\\//.test(document.body.innerText)", timeout=60000
         )
-        rec = _status(console)["recording"]
+        rec = console.get("/api/status")["recording"]
         assert not rec["active"] and rec["error"] is None, rec
         files = [Path(f) for f in rec["files"]]
         assert files and all(f.parent.name == "recordings" and f.exists() for f in files), rec

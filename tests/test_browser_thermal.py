@@ -4,9 +4,7 @@ radiometry as a rig version. Fixtures ``console`` and ``browser`` are in conftes
 
 from __future__ import annotations
 
-import json
 import re
-import urllib.request
 
 import yaml
 
@@ -22,14 +20,9 @@ def _difference(page) -> float:
     return float(DIFFERENCE.search(text).group(1))
 
 
-def _get(url: str) -> dict:
-    with urllib.request.urlopen(url, timeout=10) as r:
-        return json.loads(r.read())
-
-
 def test_auto_balance_brings_the_imagers_together(console, browser) -> None:
     page = browser.new_page(viewport={"width": 800, "height": 1200})
-    page.goto(console + "/console/")
+    page.goto(console.signin("/console/"))
     page.wait_for_function("() => document.body.innerText.includes('shared points')", timeout=60000)
     # the simulated imagers are +0.75 K and -0.75 K off (test_browser.py says why +-0.03)
     assert abs(_difference(page) - 1.50) <= 0.03
@@ -41,7 +34,7 @@ def test_auto_balance_brings_the_imagers_together(console, browser) -> None:
     )
     assert abs(_difference(page)) < 0.2  # the bound on the median difference
     page.wait_for_function("() => document.body.innerText.includes('(automatic)')", timeout=10000)
-    state = _get(console + "/api/thermal")
+    state = console.get("/api/thermal")
     assert state["balance"]["auto"] is True
     left = state["radiometry"]["thermal_left"]["balance_offset_k"]
     right = state["radiometry"]["thermal_right"]["balance_offset_k"]
@@ -52,7 +45,7 @@ def test_auto_balance_brings_the_imagers_together(console, browser) -> None:
     page.wait_for_function(
         "() => document.body.innerText.includes('Saved the radiometry')", timeout=20000
     )
-    versions = _get(console + "/api/rigs")
+    versions = console.get("/api/rigs")
     saved = yaml.safe_load(open(versions[-1]["path"]).read())
     for name, half in (("thermal_left", -0.75), ("thermal_right", 0.75)):
         assert abs(saved["sensors"][name]["radiometry"]["balance_offset_k"] - half) <= 0.03

@@ -17,11 +17,12 @@ import cv2
 import numpy as np
 import pytest
 import uvicorn
-from fastapi import Depends, FastAPI, WebSocket, WebSocketException
+from fastapi import FastAPI
 from websockets.exceptions import ConnectionClosedError, InvalidStatus
 from websockets.sync.client import connect
 
 from app.drivers import push_sim
+from app.server.auth import AuthConfig, AuthMiddleware
 from app.sources.frames import Frame
 from app.sources.push import (
     MAGIC,
@@ -346,15 +347,17 @@ def test_frames_iterator_and_close(source):
             source.accept(b"")
 
 
-def test_authentication_hook_refuses_connection(source):
-    def require_token(websocket: WebSocket) -> None:
-        if websocket.query_params.get("token") != "s3cret":
-            raise WebSocketException(code=1008, reason="bad token")
-
-    with console(source, dependencies=[Depends(require_token)]) as url:
-        with pytest.raises(InvalidStatus), connect(url, proxy=None):
-            pass
-        with PushClient(url + "?token=s3cret", RIG) as client:
+def test_console_token_guards_the_ingest(source):
+    app = FastAPI()
+    app.add_middleware(AuthMiddleware, config=AuthConfig("s3cret-0123456789abcdef", 1))
+    app.include_router(make_push_router(source))
+    with serve(app, ws_max_size=uvicorn_ws_max_size(source)) as port:
+        url = f"ws://127.0.0.1:{port}/ingest"
+        for token in (None, "wrong-0123456789abcdef"):
+            with pytest.raises(InvalidStatus) as refused:
+                PushClient(url, RIG, token=token)
+            assert refused.value.response.status_code == 403
+        with PushClient(url, RIG, token="s3cret-0123456789abcdef") as client:
             frame = Frame("tof", 1, np.ones((144, 176), np.float32), None)
             assert client.send(frame, ack=True)["ok"]
 

@@ -1,6 +1,6 @@
 """Example driver: push the simulated head to a console over the push ingest protocol.
 
-    python -m app.drivers.push_sim --url ws://127.0.0.1:8000/ingest [--rate 1.0]
+    TRIFUSE_TOKEN=... python -m app.drivers.push_sim --url ws://127.0.0.1:8000/ingest [--rate 1.0]
 
 Renders the inspection scenario with :class:`~app.sources.simulated.SimulatedHeadSource`
 paced in real time (``--rate`` simulated seconds per second), encodes every frame
@@ -9,18 +9,21 @@ sends it; when the connection drops it reconnects every ``--retry`` seconds, the
 keeps moving meanwhile and only the newest frames are sent afterwards. Prints the first
 frame of each sensor, then one line per second of what was sent; error replies of the
 console go to stderr. Time stamps are the host clock when streaming starts plus the
-simulated time.
+simulated time. The console's token comes from ``--token`` or ``TRIFUSE_TOKEN``; a console
+that refuses it ends the driver with exit status 2.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from collections.abc import Sequence
 
-from websockets.exceptions import InvalidURI, WebSocketException
+from websockets.exceptions import InvalidStatus, InvalidURI, WebSocketException
 
+from app.server.auth import TOKEN_ENV
 from app.sources.push import PushClient
 from app.sources.simulated import SimulatedHeadSource
 
@@ -44,6 +47,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--url",
         default="ws://127.0.0.1:8000/ingest",
         help="the console's ingest WebSocket URL (default: %(default)s)",
+    )
+    p.add_argument(
+        "--token",
+        default=os.environ.get(TOKEN_ENV),
+        help=f"the console's token (default: ${TOKEN_ENV}); none for a --no-token console",
     )
     p.add_argument(
         "--rate",
@@ -119,7 +127,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             try:
                 if client is None:
                     client = PushClient(
-                        args.url, source.rig, encode_options=options, on_error=on_error
+                        args.url,
+                        source.rig,
+                        encode_options=options,
+                        on_error=on_error,
+                        token=args.token,
                     )
                     say(f"connected to {args.url}")
                 counts: dict[str, int] = {}
@@ -153,6 +165,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                 return 0  # the stream ended (source closed)
             except InvalidURI as exc:
                 print(f"push_sim: --url: {exc}", file=sys.stderr)
+                return 2
+            except InvalidStatus as exc:
+                if exc.response.status_code not in (401, 403):
+                    raise
+                what = "wrong --token" if args.token else "no --token (or TRIFUSE_TOKEN) given"
+                print(
+                    f"push_sim: {args.url} refused the connection "
+                    f"(HTTP {exc.response.status_code}): {what}",
+                    file=sys.stderr,
+                )
                 return 2
             except (OSError, WebSocketException) as exc:  # refused, timed out, closed
                 print(

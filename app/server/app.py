@@ -13,6 +13,7 @@ from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
 from app.server.api import make_api_router
+from app.server.auth import AuthConfig, AuthMiddleware
 from app.server.pipeline import FusionPipeline
 from app.server.source_api import make_source_router
 from app.server.source_control import SourceControl
@@ -46,11 +47,16 @@ def create_app(
     pipeline: FusionPipeline | None = None,
     source_control: SourceControl | None = None,
     balancer: ThermalBalancer | None = None,
+    auth: AuthConfig | None = None,
 ) -> FastAPI:
     """The app: ``/`` viewer, ``/stream`` + ``/stream.mjpg``, ``/console/`` (Viser),
     ``/api/status`` and the source and recording controls (``source_control``; default:
-    one over ``pipeline`` without recording), ``/docs`` (OpenAPI)."""
+    one over ``pipeline`` without recording), ``/docs`` (OpenAPI). With ``auth`` every
+    request and WebSocket, also of routers added later, is authenticated (auth.py); ``trifuse
+    serve`` always passes one."""
     app = FastAPI(title="trifuse", summary="Calibration and fused stereo telepresence")
+    if auth is not None:
+        app.add_middleware(AuthMiddleware, config=auth)
     app.add_exception_handler(RequestValidationError, _invalid_request)
     app.include_router(make_stream_router(hub))
     if viser_port is not None:

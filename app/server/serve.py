@@ -16,6 +16,7 @@ import viser
 from app.calib_session import CalibrationSession
 from app.rigfile import load_rig
 from app.server.app import create_app
+from app.server.auth import AuthConfig
 from app.server.board_watch import BoardWatch
 from app.server.calibration_panel import CalibrationPanel
 from app.server.context import ConsoleContext
@@ -98,14 +99,35 @@ def _exit_on_sigterm(signum: int, _frame: object) -> None:
     raise SystemExit(128 + signum)
 
 
+@dataclass(frozen=True)
+class TLSFiles:
+    """A PEM certificate (chain) and its private key, for HTTPS (a headset's WebXR needs a
+    secure context)."""
+
+    certfile: Path
+    keyfile: Path
+
+
+def console_url(host: str, port: int, auth: AuthConfig, path: str = "/") -> str:
+    """The URL to open: scheme, a host a browser can reach, the token when there is one."""
+    shown = "127.0.0.1" if host in ("0.0.0.0", "::") else host
+    shown = f"[{shown}]" if ":" in shown else shown
+    scheme = "https" if auth.secure else "http"
+    query = f"?token={auth.token}" if auth.token else ""
+    return f"{scheme}://{shown}:{port}{path}{query}"
+
+
 def serve(
     opened: OpenedSource,
     board: Board,
     workdir: Path,
+    auth: AuthConfig,
     host: str = "127.0.0.1",
-    port: int = 8000,
+    tls: TLSFiles | None = None,
 ) -> None:
-    """Run the console until interrupted; the calibration session lives in ``workdir``."""
+    """Run the console until interrupted; the calibration session lives in ``workdir``.
+    ``auth`` (auth.py) guards every route and WebSocket; its port is the one served."""
+    port = auth.port
     source, rig = opened.source, opened.rig
     try:  # first: a work directory of another board or rig is refused before anything runs
         session = CalibrationSession(workdir, rig, board)
@@ -143,7 +165,7 @@ def serve(
         PrecisionPanel(ctx).start(),
     ]
     parts.append(control)  # stopped first: a running recording is finished and kept
-    app = create_app(hub, server.get_port(), pipeline, control, balancer)
+    app = create_app(hub, server.get_port(), pipeline, control, balancer, auth)
     app.include_router(
         make_session_router(
             session,
@@ -159,12 +181,13 @@ def serve(
     if isinstance(source, PushSource):
         app.include_router(make_push_router(source))
         ws_max = uvicorn_ws_max_size(source)
-    shown = "127.0.0.1" if host in ("0.0.0.0", "::") else host
     print(
-        f"trifuse console on {opened.description}: http://{shown}:{port}/  "
+        f"trifuse console on {opened.description}: {console_url(host, port, auth)}  "
         f"(3D console /console/, API /docs)",
         flush=True,
     )
+    if auth.token is None:
+        print("no token: anyone on this machine can use the console (--no-token)", flush=True)
     config = uvicorn.Config(
         app,
         host=host,
@@ -172,6 +195,7 @@ def serve(
         log_level="warning",
         ws_per_message_deflate=False,  # JPEG does not deflate; it cost 13 ms a frame
         **({"ws_max_size": ws_max} if ws_max else {}),
+        **({"ssl_certfile": tls.certfile, "ssl_keyfile": tls.keyfile} if tls else {}),
     )
     if threading.current_thread() is threading.main_thread():
         # uvicorn re-raises a SIGTERM after its shutdown; by default that would end the

@@ -774,6 +774,14 @@ def _parse_reply(text: str | bytes) -> dict[str, Any]:
     return reply if isinstance(reply, dict) else {"ok": False, "error": f"reply {reply!r}"}
 
 
+def _with_token(headers: Mapping[str, str] | None, token: str | None) -> dict[str, str]:
+    """``headers`` plus the console's ``Authorization`` header when there is a token."""
+    out = dict(headers or {})
+    if token:
+        out["Authorization"] = f"token {token}"
+    return out
+
+
 class PushClient:
     """A blocking push client (``websockets.sync``): connect, send frames, read replies.
 
@@ -783,7 +791,8 @@ class PushClient:
         encode_options: passed to :func:`encode_frame` (``color_encoding``,
             ``jpeg_quality``, ``value_encoding``).
         open_timeout_s: connection timeout.
-        additional_headers: e.g. an ``Authorization`` header for the console.
+        additional_headers: more HTTP headers for the connection.
+        token: the console's token (sent as ``Authorization: token ...``).
 
     Error replies to messages sent without ``ack`` arrive later; they are collected in
     :attr:`errors` (checked on every send, never blocking) and handed to ``on_error``.
@@ -798,6 +807,7 @@ class PushClient:
         open_timeout_s: float = 10.0,
         additional_headers: Mapping[str, str] | None = None,
         on_error: Any = None,
+        token: str | None = None,
     ) -> None:
         from websockets.sync.client import connect
 
@@ -814,7 +824,7 @@ class PushClient:
             compression=None,  # JPEG/PNG payloads do not compress
             proxy=None,
             max_size=1 << 20,
-            additional_headers=dict(additional_headers or {}),
+            additional_headers=_with_token(additional_headers, token),
         )
 
     def _note(self, reply: dict[str, Any]) -> None:
@@ -886,12 +896,13 @@ class AsyncPushClient:
         encode_options: Mapping[str, Any] | None = None,
         open_timeout_s: float = 10.0,
         additional_headers: Mapping[str, str] | None = None,
+        token: str | None = None,
     ) -> None:
         self.url = url
         self.modalities = _modality_lookup(modalities)
         self.encode_options = dict(encode_options or {})
         self.open_timeout_s = open_timeout_s
-        self.additional_headers = dict(additional_headers or {})
+        self.additional_headers = _with_token(additional_headers, token)
         self.errors: list[dict[str, Any]] = []
         self.sent = 0
         self._ws: Any = None

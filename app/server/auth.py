@@ -1,0 +1,333 @@
+"""Who may use the console: a token, a session cookie, and Origin checks (docs/SECURITY.md).
+
+Modelled on Jupyter's token authentication. ``trifuse serve`` starts with a random token
+(or the one given with ``--token`` / ``TRIFUSE_TOKEN``) and prints the console's URL with
+it (``/?token=...``). A browser that opens that URL gets a session cookie (``HttpOnly``,
+``SameSite=Strict``, ``Secure`` under TLS) and is redirected to the same page without the
+token, so the token stays out of the address bar, the history and ``Referer`` headers.
+Scripts send ``Authorization: token <token>`` (or ``Bearer``). Every route, the stream, the
+push ingest and the relayed Viser WebSocket go through :class:`AuthMiddleware`; only
+``/login`` (a form that takes the token) is open.
+
+Origin checks: a WebSocket upgrade, and any request that may change state (not GET, HEAD
+or OPTIONS), that carries an ``Origin`` header must come from the console's own origin or
+one given with ``--allow-origin``; otherwise 403, even with a valid cookie (cross-site
+WebSocket hijacking, CSRF). Without a token (``--no-token``, loopback only) the ``Host``
+header must name a loopback address too (DNS rebinding).
+
+Tokens and cookies are compared in constant time (:func:`hmac.compare_digest`).
+"""
+
+from __future__ import annotations
+
+import hmac
+import html
+import json
+import secrets
+from collections.abc import Awaitable, Callable, Iterable, MutableMapping
+from dataclasses import dataclass, field
+from http.cookies import SimpleCookie
+from typing import Any
+from urllib.parse import parse_qsl, quote, urlencode, urlsplit
+
+Scope = MutableMapping[str, Any]
+Message = MutableMapping[str, Any]
+Receive = Callable[[], Awaitable[Message]]
+Send = Callable[[Message], Awaitable[None]]
+ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
+
+TOKEN_ENV = "TRIFUSE_TOKEN"
+"""Environment variable holding the token (safer than ``--token``: not shown by ``ps``)."""
+MIN_TOKEN_CHARS = 16
+LOOPBACK_HOSTS = frozenset({"127.0.0.1", "localhost", "::1"})
+LOGIN_PATH = "/login"
+MAX_LOGIN_BODY = 4096
+SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+SECURITY_HEADERS = (
+    (b"x-content-type-options", b"nosniff"),
+    (b"referrer-policy", b"no-referrer"),
+    (b"x-frame-options", b"DENY"),
+    (b"content-security-policy", b"frame-ancestors 'none'"),
+)
+
+
+def new_token() -> str:
+    """A random token: 32 bytes, URL-safe base64 (43 characters)."""
+    return secrets.token_urlsafe(32)
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` (an address or name, IPv6 with or without brackets) is loopback."""
+    host = host.strip().lower().removeprefix("[").removesuffix("]")
+    return host in LOOPBACK_HOSTS or host.startswith("127.")
+
+
+def check_token(token: str) -> str:
+    """``token`` if it is usable, else ValueError saying why."""
+    if len(token) < MIN_TOKEN_CHARS:
+        raise ValueError(
+            f"the token must have at least {MIN_TOKEN_CHARS} characters (got {len(token)}); "
+            "leave it out and a random one is generated"
+        )
+    if not token.isascii() or not token.isprintable() or any(c in token for c in " ;,\"'"):
+        raise ValueError("the token must be printable ASCII without spaces, quotes, ';' or ','")
+    return token
+
+
+@dataclass(frozen=True)
+class AuthConfig:
+    """How the console authenticates.
+
+    Attributes:
+        token: the secret; ``None`` means no authentication (loopback only, asked for
+            with ``--no-token``).
+        port: the public port; it names the cookie (cookies ignore ports, so two consoles
+            on one host would otherwise overwrite each other's).
+        secure: the server speaks TLS: the cookie is ``Secure``.
+        allowed_origins: origins (``scheme://host[:port]``) besides the console's own that
+            may open WebSockets and send state-changing requests.
+    """
+
+    token: str | None
+    port: int
+    secure: bool = False
+    allowed_origins: frozenset[str] = frozenset()
+    session: str = field(default_factory=new_token, repr=False)
+    """The session cookie's value: random per server process (restarts sign everyone out)."""
+
+    @property
+    def cookie_name(self) -> str:
+        return f"trifuse-session-{self.port}"
+
+    def set_cookie(self) -> bytes:
+        attrs = "; Path=/; HttpOnly; SameSite=Strict" + ("; Secure" if self.secure else "")
+        return f"{self.cookie_name}={self.session}{attrs}".encode("latin-1")
+
+    def token_ok(self, given: str | None) -> bool:
+        """Constant-time comparison of a presented token."""
+        if self.token is None or not given:
+            return False
+        return hmac.compare_digest(given.encode("utf-8"), self.token.encode("utf-8"))
+
+    def cookie_ok(self, given: str | None) -> bool:
+        if not given:
+            return False
+        return hmac.compare_digest(given.encode("utf-8"), self.session.encode("utf-8"))
+
+
+def _headers(scope: Scope) -> dict[str, str]:
+    """Request headers, lower-case names; the last of repeated ones (Cookie: joined)."""
+    out: dict[str, str] = {}
+    for raw_name, raw_value in scope.get("headers", ()):
+        name = raw_name.decode("latin-1").lower()
+        value = raw_value.decode("latin-1")
+        out[name] = f"{out[name]}; {value}" if name == "cookie" and name in out else value
+    return out
+
+
+def _cookie(headers: dict[str, str], name: str) -> str | None:
+    jar = SimpleCookie()
+    try:
+        jar.load(headers.get("cookie", ""))
+    except Exception:  # http.cookies raises CookieError and others on junk: no cookie
+        return None
+    morsel = jar.get(name)
+    return morsel.value if morsel is not None else None
+
+
+def _authorization_token(headers: dict[str, str]) -> str | None:
+    scheme, _, value = headers.get("authorization", "").partition(" ")
+    return value.strip() if scheme.lower() in ("token", "bearer") else None
+
+
+def _own_origin(scope: Scope, headers: dict[str, str]) -> str:
+    scheme = {"ws": "http", "wss": "https"}.get(scope.get("scheme", "http"), scope.get("scheme"))
+    return f"{scheme}://{headers.get('host', '')}".lower()
+
+
+def _host_name(host_header: str) -> str:
+    """The host part of a ``Host`` header (without the port)."""
+    return urlsplit(f"//{host_header}").hostname or ""
+
+
+def _login_page(message: str, next_path: str) -> bytes:
+    return f"""<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>trifuse: sign in</title>
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<style>body{{font:16px system-ui,sans-serif;background:#111;color:#ddd;margin:3em auto;
+max-width:36em;padding:0 1em}}input{{font:inherit;width:100%;margin:.5em 0;padding:.4em}}
+button{{font:inherit;padding:.4em 1.2em}}p.msg{{color:#f96}}</style></head>
+<body><h1>trifuse console</h1>
+<p class="msg">{html.escape(message)}</p>
+<p>Open the URL that <code>trifuse serve</code> printed (it ends with
+<code>?token=...</code>), or paste its token here.</p>
+<form method="post" action="{LOGIN_PATH}">
+<input type="hidden" name="next" value="{html.escape(next_path, quote=True)}">
+<label>Token <input type="password" name="token" autocomplete="current-password"
+autofocus></label>
+<button type="submit">Sign in</button></form></body></html>""".encode()
+
+
+def _safe_next(path: str) -> str:
+    """A local path to go to after signing in (never another site)."""
+    if not path.startswith("/") or path.startswith("//") or "\\" in path:
+        return "/"
+    return path
+
+
+class AuthMiddleware:
+    """ASGI middleware: Origin checks and authentication of every HTTP request and
+    WebSocket (see the module docstring); adds security headers to every answer."""
+
+    def __init__(self, app: ASGIApp, config: AuthConfig) -> None:
+        self.app = app
+        self.config = config
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        kind = scope["type"]
+        if kind not in ("http", "websocket"):
+            await self.app(scope, receive, send)
+            return
+        headers = _headers(scope)
+        refusal = self._origin_refusal(scope, headers)
+        if refusal:
+            await self._deny(scope, send, 403, refusal)
+            return
+        cfg = self.config
+        if kind == "http" and scope["path"] == LOGIN_PATH and cfg.token is not None:
+            await self._login(scope, receive, send)
+            return
+        if cfg.token is None or cfg.cookie_ok(_cookie(headers, cfg.cookie_name)):
+            await self.app(scope, receive, _with_headers(send))
+            return
+        if cfg.token_ok(_authorization_token(headers)):
+            await self.app(scope, receive, _with_headers(send))
+            return
+        query = parse_qsl(scope.get("query_string", b"").decode("latin-1"), True)
+        if cfg.token_ok(dict(query).get("token")):
+            if kind == "http" and scope["method"] == "GET" and _navigation(headers):
+                # a browser opened the token URL: cookie, then the same page without it
+                rest = urlencode([(k, v) for k, v in query if k != "token"])
+                await _redirect(send, scope["path"] + (f"?{rest}" if rest else ""), cfg)
+                return
+            await self.app(scope, receive, _with_headers(send, cfg.set_cookie()))
+            return
+        what = "a token or a session cookie" if kind == "http" else "a session"
+        await self._deny(scope, send, 401, f"authentication required: {what}")
+
+    def _origin_refusal(self, scope: Scope, headers: dict[str, str]) -> str | None:
+        """Why the request is refused for where it comes from, or None."""
+        if self.config.token is None:
+            host = _host_name(headers.get("host", ""))
+            if host and not is_loopback(host):
+                return (
+                    f"host {host!r} is not loopback; this console runs without a token and "
+                    "answers loopback names only"
+                )
+        origin = headers.get("origin")
+        unsafe = scope["type"] == "websocket" or scope.get("method") not in SAFE_METHODS
+        if origin is None or not unsafe:
+            return None
+        origin = origin.lower().rstrip("/")
+        if origin == _own_origin(scope, headers) or origin in self.config.allowed_origins:
+            return None
+        return f"origin {origin!r} is not allowed (cross-site request)"
+
+    async def _deny(self, scope: Scope, send: Send, status: int, message: str) -> None:
+        if scope["type"] == "websocket":
+            # closing before accepting: the server answers the upgrade with 403
+            await send({"type": "websocket.close", "code": 1008, "reason": message[:120]})
+            return
+        headers = _headers(scope)
+        if status == 401 and _navigation(headers):
+            path = scope["path"]
+            qs = scope.get("query_string", b"").decode("latin-1")
+            next_path = path + (f"?{qs}" if qs and "token=" not in qs else "")
+            body = _login_page("Sign in to use this console.", next_path)
+            await _respond(send, status, body, b"text/html; charset=utf-8")
+            return
+        hint = (
+            " (open the URL printed by trifuse serve, or send 'Authorization: token <token>')"
+            if status == 401
+            else ""
+        )
+        body = json.dumps({"detail": message + hint}).encode()
+        extra = [(b"www-authenticate", b"Token")] if status == 401 else []
+        await _respond(send, status, body, b"application/json", extra)
+
+    async def _login(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """``GET /login``: the form; ``POST /login`` (``token``, ``next``): cookie and
+        redirect, or the form again with 401."""
+        if scope["method"] != "POST":
+            await _respond(send, 200, _login_page("", "/"), b"text/html; charset=utf-8")
+            return
+        body = b""
+        while True:
+            message = await receive()
+            body += message.get("body", b"")
+            if len(body) > MAX_LOGIN_BODY:
+                too_large = b'{"detail": "login form too large"}'
+                await _respond(send, 413, too_large, b"application/json")
+                return
+            if not message.get("more_body"):
+                break
+        form = dict(parse_qsl(body.decode("utf-8", "replace"), keep_blank_values=True))
+        next_path = _safe_next(form.get("next", "/"))
+        if self.config.token_ok(form.get("token")):
+            await _redirect(send, next_path, self.config)
+            return
+        page = _login_page("Wrong token.", next_path)
+        await _respond(send, 401, page, b"text/html; charset=utf-8")
+
+
+def _navigation(headers: dict[str, str]) -> bool:
+    """Whether a browser is loading a page (rather than a script fetching data)."""
+    mode = headers.get("sec-fetch-mode")
+    if mode is not None:
+        return mode == "navigate"
+    return "text/html" in headers.get("accept", "")
+
+
+def _with_headers(send: Send, cookie: bytes | None = None) -> Send:
+    """``send`` adding the security headers (and a Set-Cookie) to an HTTP answer."""
+
+    async def wrapped(message: Message) -> None:
+        if message["type"] == "http.response.start":
+            extra = list(SECURITY_HEADERS)
+            if cookie is not None:
+                extra.append((b"set-cookie", cookie))
+            message = {**message, "headers": [*message.get("headers", ()), *extra]}
+        await send(message)
+
+    return wrapped
+
+
+async def _respond(
+    send: Send,
+    status: int,
+    body: bytes,
+    content_type: bytes,
+    extra: Iterable[tuple[bytes, bytes]] = (),
+) -> None:
+    headers = [
+        (b"content-type", content_type),
+        (b"content-length", str(len(body)).encode()),
+        (b"cache-control", b"no-store"),
+        *SECURITY_HEADERS,
+        *extra,
+    ]
+    await send({"type": "http.response.start", "status": status, "headers": headers})
+    await send({"type": "http.response.body", "body": body})
+
+
+async def _redirect(send: Send, location: str, config: AuthConfig) -> None:
+    await _respond(
+        send,
+        303,
+        b"",
+        b"text/plain",
+        [
+            (b"location", quote(location, safe="/?&=%:+,;@!$'()*~-._").encode("ascii")),
+            (b"set-cookie", config.set_cookie()),
+        ],
+    )

@@ -1,0 +1,339 @@
+"""Authentication and Origin checks of the console (app/server/auth.py, ``trifuse serve``).
+
+The app under test is built as ``trifuse serve`` builds it (every router, the push ingest
+and the Viser relay), so a route added later without protection fails here.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import ssl
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from fastapi import FastAPI
+from fastapi.testclient import TestClient
+from starlette.websockets import WebSocketDisconnect
+
+from app.calib_session import CalibrationSession
+from app.cli import main
+from app.server.app import create_app
+from app.server.auth import AuthConfig, check_token, is_loopback
+from app.server.pipeline import FusionPipeline
+from app.server.session_api import make_session_router
+from app.server.stream import FrameHub
+from app.sources.push import PushSource, make_push_router
+from app.sources.sim.head import default_rig
+from app.sources.sim.scenarios import CALIBRATION_BOARD
+from tests.browser_support import ROOT, free_port
+from tests.test_api import _NoFrames
+
+TOKEN = "test-token-0123456789abcdef"
+HOST = "testserver"  # TestClient's Host header; its origin is http://testserver
+OWN = "http://testserver"
+FOREIGN = "https://evil.example"
+AUTH = {"Authorization": f"token {TOKEN}"}
+
+
+def console_app(tmp_path: Path, token: str | None = TOKEN, **auth_kw) -> FastAPI:
+    """The console's app with every router ``trifuse serve`` adds."""
+    rig = default_rig()
+    pipeline = FusionPipeline(_NoFrames(), rig, FrameHub())
+    auth = AuthConfig(token, 8000, **auth_kw)
+    app = create_app(FrameHub(), free_port(), pipeline, auth=auth)
+    session = CalibrationSession(tmp_path / "work", rig, CALIBRATION_BOARD)
+    app.include_router(make_session_router(session, lambda: None, lambda _rig: None))
+    app.include_router(make_push_router(PushSource(rig)))
+    return app
+
+
+@pytest.fixture
+def client(tmp_path) -> Iterator[TestClient]:
+    with TestClient(console_app(tmp_path), follow_redirects=False) as c:
+        yield c
+
+
+HIDDEN = [("GET", p) for p in ("/", "/console", "/console/", "/static/viewer.js", "/docs")]
+"""Routes left out of the OpenAPI schema."""
+WEBSOCKETS = ("/stream", "/ingest", "/console", "/console/")
+
+
+def _requests(app: FastAPI) -> list[tuple[str, str]]:
+    """(method, path) of every HTTP route (path parameters filled in)."""
+    out = [*HIDDEN, ("GET", "/openapi.json")]
+    for path, ops in app.openapi()["paths"].items():
+        out += [(m.upper(), re.sub(r"\{[^}]+\}", "x", path)) for m in ops]
+    return out
+
+
+def test_every_route_and_websocket_needs_the_token(client) -> None:
+    requests = _requests(client.app)
+    paths = {p for _, p in requests}
+    assert {"/", "/api/status", "/api/captures", "/console/", "/docs", "/stream.mjpg"} <= paths
+    assert {("POST", "/api/rigs/x/use"), ("PUT", "/api/fusion")} <= set(requests)
+    assert len(requests) >= 35  # 37 when this was written
+    for method, path in requests:
+        r = client.request(method, path)
+        assert r.status_code == 401, (method, path, r.status_code)
+        assert "authentication required" in r.json()["detail"]
+        r = client.request(method, path, headers={"Authorization": "token wrong-token-0123456"})
+        assert r.status_code == 401, (method, path)
+    for path in WEBSOCKETS:
+        with pytest.raises(WebSocketDisconnect) as refused:
+            with client.websocket_connect(path):
+                pass
+        assert refused.value.code == 1008, path
+
+
+def test_token_header_query_and_cookie(client) -> None:
+    for scheme in ("token", "Bearer"):
+        r = client.get("/api/status", headers={"Authorization": f"{scheme} {TOKEN}"})
+        assert r.status_code == 200 and "viewers" in r.json()
+        assert r.headers["x-frame-options"] == "DENY"
+        assert r.headers["referrer-policy"] == "no-referrer"
+    # a script may put the token in the query; it gets a cookie along
+    r = client.get(f"/api/status?token={TOKEN}")
+    assert r.status_code == 200
+    assert "trifuse-session-8000" in r.headers["set-cookie"]
+    client.cookies.clear()
+
+
+def test_browser_exchanges_the_token_for_a_cookie(client) -> None:
+    page = {"Accept": "text/html", "Sec-Fetch-Mode": "navigate"}
+    r = client.get("/console/", headers=page)
+    assert r.status_code == 401 and "paste its token" in r.text  # the sign-in page
+    r = client.get(f"/console/?token={TOKEN}&x=1", headers=page)
+    assert r.status_code == 303
+    assert r.headers["location"] == "/console/?x=1"  # the token leaves the address bar
+    cookie = r.headers["set-cookie"]
+    for attr in ("HttpOnly", "SameSite=Strict", "Path=/"):
+        assert attr in cookie
+    assert "Secure" not in cookie and TOKEN not in cookie
+    assert client.get("/console/", headers=page).status_code == 200
+    assert client.get("/api/status").status_code == 200
+    assert client.post("/api/source/pause").status_code in (200, 409)
+    with client.websocket_connect("/stream") as ws:  # the viewer's stream, same origin
+        ws.close()
+    client.cookies.clear()
+    client.cookies.set("trifuse-session-8000", "forged-cookie-value")
+    assert client.get("/api/status").status_code == 401
+
+
+def test_login_form(client) -> None:
+    assert "Sign in" in client.get("/login").text
+    r = client.post("/login", data={"token": "wrong-token-0123456", "next": "/console/"})
+    assert r.status_code == 401 and "Wrong token" in r.text
+    assert "set-cookie" not in r.headers
+    r = client.post("/login", data={"token": TOKEN, "next": "//evil.example/"})
+    assert r.status_code == 303 and r.headers["location"] == "/"  # never off-site
+    r = client.post("/login", data={"token": TOKEN, "next": "/console/"})
+    assert r.status_code == 303 and r.headers["location"] == "/console/"
+    assert client.get("/api/status").status_code == 200
+    r = client.post("/login", content=b"token=" + b"x" * 10000)
+    assert r.status_code == 413
+
+
+def test_foreign_origin_is_refused_even_when_signed_in(client) -> None:
+    auth = {"Authorization": f"token {TOKEN}"}
+    for path in ("/stream", "/ingest", "/console/"):
+        with pytest.raises(WebSocketDisconnect) as refused:
+            with client.websocket_connect(path, headers={**auth, "Origin": FOREIGN}):
+                pass
+        assert refused.value.code == 1008
+    with client.websocket_connect("/stream", headers={**auth, "Origin": OWN}) as ws:
+        assert isinstance(ws.receive, object)
+    # cross-site request forgery: a change from another site, with the victim's cookie
+    client.get(f"/api/status?token={TOKEN}")
+    r = client.post("/api/source/pause", headers={"Origin": FOREIGN})
+    assert r.status_code == 403 and "not allowed" in r.json()["detail"]
+    r = client.put("/api/thermal", json={"offset_k": {}}, headers={"Origin": FOREIGN})
+    assert r.status_code == 403
+    assert client.get("/api/status", headers={"Origin": FOREIGN}).status_code == 200  # reading
+
+
+def test_allowed_origin(tmp_path) -> None:
+    app = console_app(tmp_path, allowed_origins=frozenset({"https://headset.local:8443"}))
+    with TestClient(app) as c:
+        headers = {"Authorization": f"token {TOKEN}", "Origin": "https://headset.local:8443"}
+        with c.websocket_connect("/stream", headers=headers):
+            pass
+        with pytest.raises(WebSocketDisconnect):
+            with c.websocket_connect("/stream", headers={**headers, "Origin": FOREIGN}):
+                pass
+
+
+def test_without_a_token_only_loopback_names_and_own_origin(tmp_path) -> None:
+    with TestClient(console_app(tmp_path, token=None), base_url="http://127.0.0.1:8000") as c:
+        assert c.get("/api/status").status_code == 200
+        assert c.get("/login").status_code == 404  # nothing to sign in to
+        # DNS rebinding: a site whose name resolves to 127.0.0.1
+        r = c.get("/api/status", headers={"Host": "evil.example:8000"})
+        assert r.status_code == 403 and "not loopback" in r.json()["detail"]
+        r = c.post("/api/source/pause", headers={"Origin": FOREIGN})
+        assert r.status_code == 403
+        with pytest.raises(WebSocketDisconnect):
+            with c.websocket_connect("/stream", headers={"Origin": FOREIGN}):
+                pass
+
+
+def test_token_rules() -> None:
+    assert check_token(TOKEN) == TOKEN
+    for bad in (
+        "short",
+        "has space 0123456789",
+        "x" * 15,
+        "quote'0123456789abc",
+        "ünïcode-0123456789",
+    ):
+        with pytest.raises(ValueError, match="token"):
+            check_token(bad)
+    assert is_loopback("127.0.0.1") and is_loopback("[::1]") and is_loopback("localhost")
+    assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.2")
+
+
+# -- trifuse serve ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--host", "0.0.0.0", "--no-token"], "refusing to serve without a token"),
+        (["--host", "192.168.7.7", "--no-token"], "non-loopback"),
+        (["--token", "short"], "at least 16 characters"),
+        (["--token", TOKEN, "--no-token"], "exclude each other"),
+        (["--certfile", "cert.pem"], "go together"),
+        (["--certfile", "missing.pem", "--keyfile", "missing.pem"], "cannot use"),
+        (["--allow-origin", "evil.example"], "scheme://host"),
+    ],
+)
+def test_serve_refuses_unsafe_or_broken_settings(args, message, tmp_path, capsys) -> None:
+    assert main(["serve", "--workdir", str(tmp_path / "w"), *args]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "w").exists()  # refused before anything was created
+
+
+def test_serve_refuses_a_short_token_from_the_environment(tmp_path, capsys, monkeypatch) -> None:
+    monkeypatch.setenv("TRIFUSE_TOKEN", "short")
+    assert main(["serve", "--workdir", str(tmp_path / "w")]) == 2
+    assert "TRIFUSE_TOKEN: the token must have at least 16" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def certificate(tmp_path_factory) -> tuple[Path, Path]:
+    """A self-signed certificate for 127.0.0.1 (openssl; .ci/run installs it)."""
+    if shutil.which("openssl") is None:
+        pytest.skip("the TLS test needs the openssl command")
+    d = tmp_path_factory.mktemp("tls")
+    cert, key = d / "cert.pem", d / "key.pem"
+    subprocess.run(
+        [
+            *("openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2"),
+            *("-subj", "/CN=127.0.0.1", "-addext", "subjectAltName=IP:127.0.0.1"),
+            *("-keyout", str(key), "-out", str(cert)),
+        ],
+        check=True,
+        capture_output=True,
+    )
+    return cert, key
+
+
+def test_serve_over_tls_with_a_token_from_the_environment(certificate, tmp_path) -> None:
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    cert, key = certificate
+    port = free_port()
+    env = {**os.environ, "TRIFUSE_TOKEN": TOKEN}
+    proc = subprocess.Popen(
+        [
+            *(sys.executable, "-c", "import sys; from app.cli import main; sys.exit(main())"),
+            *("serve", "--port", str(port), "--workdir", str(tmp_path / "w")),
+            *("--certfile", str(cert), "--keyfile", str(key)),
+        ],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    tls = ssl.create_default_context(cafile=str(cert))
+    base = f"https://127.0.0.1:{port}"
+    try:
+        line = proc.stdout.readline()
+        assert f"{base}/?token={TOKEN}" in line, line
+        for _ in range(100):  # the line comes before the server listens
+            try:
+                urllib.request.urlopen(base + "/login", context=tls, timeout=2).close()
+                break
+            except (urllib.error.URLError, ConnectionError):
+                time.sleep(0.1)
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            urllib.request.urlopen(base + "/api/status", context=tls, timeout=5)
+        assert refused.value.code == 401
+        req = urllib.request.Request(
+            base + "/api/status", headers={"Authorization": f"token {TOKEN}"}
+        )
+        with urllib.request.urlopen(req, context=tls, timeout=5) as r:
+            assert "viewers" in json.loads(r.read())
+        # the browser's exchange: a Secure cookie
+        nav = urllib.request.Request(f"{base}/?token={TOKEN}", headers={"Accept": "text/html"})
+        opener = urllib.request.build_opener(
+            urllib.request.HTTPSHandler(context=tls), _NoRedirect()
+        )
+        with pytest.raises(urllib.error.HTTPError) as redirect:
+            opener.open(nav, timeout=5)
+        assert redirect.value.code == 303
+        assert "Secure" in redirect.value.headers["set-cookie"]
+        wss = f"wss://127.0.0.1:{port}/stream"
+        with pytest.raises(InvalidStatus) as hijack:
+            connect(wss, ssl=tls, additional_headers={**AUTH, "Origin": FOREIGN}, proxy=None)
+        assert hijack.value.response.status_code == 403
+        with connect(wss, ssl=tls, additional_headers=AUTH, proxy=None) as ws:
+            meta = json.loads(ws.recv(timeout=60))
+            assert "seq" in meta
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+
+
+class _NoRedirect(urllib.request.HTTPRedirectHandler):
+    def redirect_request(self, *args, **kwargs):
+        return None
+
+
+def test_push_driver_without_the_token_stops_with_a_message(tmp_path, capsys) -> None:
+    import threading
+
+    import uvicorn
+
+    from app.drivers import push_sim
+
+    app = console_app(tmp_path)
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        while not server.started:
+            thread.join(0.05)
+        url = f"ws://127.0.0.1:{port}/ingest"
+        args = ["--url", url, "--sensors", "tof", "--frames", "1", "--quiet"]
+        assert push_sim.main([*args, "--token", "wrong-token-0123456"]) == 2
+        assert "wrong --token" in capsys.readouterr().err
+        assert push_sim.main([*args, "--token", TOKEN]) == 0
+    finally:
+        server.should_exit = True
+        thread.join(10)
