@@ -99,7 +99,7 @@ def test_token_header_query_and_cookie(client) -> None:
         r = client.get("/api/status", headers={"Authorization": f"{scheme} {TOKEN}"})
         assert r.status_code == 200 and "viewers" in r.json()
         assert r.headers["x-frame-options"] == "DENY"
-        assert r.headers["referrer-policy"] == "no-referrer"
+        assert r.headers["referrer-policy"] == "same-origin"
     # a script may put the token in the query; it gets a cookie along
     r = client.get(f"/api/status?token={TOKEN}")
     assert r.status_code == 200

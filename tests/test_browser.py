@@ -51,3 +51,27 @@ def test_console_balances_the_thermal_imagers(console, browser) -> None:
         "() => /Left - right: [+-]0\\.0\\d K/.test(document.body.innerText)", timeout=20000
     )
     page.close()
+
+
+def test_sign_in_form_and_token_url(console, browser) -> None:
+    """Without a session every page is the sign-in form; a wrong token is refused, the right
+    one signs in (a real browser's form post: its Origin header must pass the check); the
+    printed URL signs in and drops the token from the address bar."""
+    context = browser.new_context(viewport={"width": 800, "height": 500})
+    page = context.new_page()
+    assert page.goto(console.url + "/console/").status == 401
+    page.fill("input[name=token]", "wrong-token-0123456789")
+    page.click("button")
+    assert "Wrong token" in page.content() and not context.cookies()
+    page.fill("input[name=token]", console.token)
+    page.click("button")
+    page.wait_for_url(console.url + "/console/")
+    page.wait_for_function("() => !document.body.innerText.includes('Connecting...')")
+    assert [c["httpOnly"] for c in context.cookies()] == [True]
+    context.close()
+    context = browser.new_context(viewport={"width": 800, "height": 500})
+    page = context.new_page()
+    page.goto(console.signin("/"))
+    assert page.url == console.url + "/"  # the token left the address bar
+    page.wait_for_function("() => window.trifuseStats && window.trifuseStats.meta", timeout=60000)
+    context.close()

@@ -36,6 +36,7 @@ import json
 import math
 import struct
 import threading
+import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -498,6 +499,8 @@ class PushSource(FrameSource):
         self._rejected = 0
         self._connections = 0
         self._last_error = ""
+        # per known sensor: [rejected, since_accepted, last_error, last_rejected_s, accepted_s]
+        self._by_sensor: dict[str, list[Any]] = {s: [0, 0, "", None, None] for s in self.sensors}
 
     # -- decoding -----------------------------------------------------------------------
 
@@ -604,11 +607,22 @@ class PushSource(FrameSource):
                     )
                 last_stamps[frame.sensor] = frame.stamp_ns
         except PushError as exc:
+            sensor = _identify(data).get("sensor")
             with self._lock:
                 self._rejected += 1
                 self._last_error = str(exc)
+                entry = self._by_sensor.get(sensor) if isinstance(sensor, str) else None
+                if entry is not None:  # counted per sensor only for this console's sensors
+                    entry[0] += 1
+                    entry[1] += 1
+                    entry[2] = str(exc)
+                    entry[3] = time.monotonic()
             raise
         replaced = self._slots.put(frame)
+        with self._lock:
+            entry = self._by_sensor[frame.sensor]
+            entry[1] = 0
+            entry[4] = time.monotonic()
         return header, frame, replaced
 
     # -- the stream ---------------------------------------------------------------------
@@ -628,13 +642,26 @@ class PushSource(FrameSource):
 
     def stats(self) -> dict[str, Any]:
         """``sensors`` (per sensor received/delivered/dropped/last stamp), ``rejected``
-        messages, open ``connections`` and the ``last_error``."""
+        messages, open ``connections``, the ``last_error``, and ``rejected_by_sensor``: per
+        sensor of this console, messages ``rejected``, rejected ``since_accepted`` (its
+        last accepted frame), its ``last_error`` and the ``time.monotonic()`` seconds of
+        the ``last_rejected_s`` and ``last_accepted_s`` messages (None before any)."""
         with self._lock:
             return {
                 "sensors": self._slots.stats(),
                 "rejected": self._rejected,
                 "connections": self._connections,
                 "last_error": self._last_error,
+                "rejected_by_sensor": {
+                    s: {
+                        "rejected": e[0],
+                        "since_accepted": e[1],
+                        "last_error": e[2],
+                        "last_rejected_s": e[3],
+                        "last_accepted_s": e[4],
+                    }
+                    for s, e in self._by_sensor.items()
+                },
             }
 
     def _connection(self, delta: int) -> None:
@@ -663,13 +690,9 @@ def make_push_router(
     source: PushSource,
     *,
     path: str = INGEST_PATH,
-    dependencies: Sequence[Any] | None = None,
 ) -> APIRouter:
-    """A FastAPI router with the push ingest WebSocket endpoint at ``path``.
-
-    ``dependencies`` (e.g. ``[Depends(check_token)]``) run before the connection is
-    accepted: the console's authentication and Origin checks go there; a dependency
-    refuses a connection by raising ``fastapi.WebSocketException(code=1008)``.
+    """A FastAPI router with the push ingest WebSocket endpoint at ``path``. The console's
+    authentication and Origin checks (app/server/auth.py) guard it like every route.
 
     Each binary message is decoded in a worker thread (the event loop stays free) and its
     frame stored in the source; messages of one connection are handled in order. A bad
@@ -680,7 +703,7 @@ def make_push_router(
     from fastapi import APIRouter, WebSocket, WebSocketDisconnect
     from starlette.concurrency import run_in_threadpool
 
-    router = APIRouter(dependencies=list(dependencies or []))
+    router = APIRouter()
 
     async def ingest(websocket: WebSocket) -> None:
         await websocket.accept()
