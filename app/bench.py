@@ -852,3 +852,16 @@ def _stream(repeat: int) -> dict[str, float]:
             browser.close()
     figures["warm_frame_interval_ms"] = 1e3 / figures["warm_fps"] if figures["warm_fps"] else 0
     return figures
+
+
+# -- the stream soak (app/bench_soak.py) ---------------------------------------------------
+# Not in REGISTRY: it runs for minutes, has its own options and passes or fails.
+
+
+def run_soak_command(soak_s: float, viewers: int) -> int:
+    """``trifuse bench --soak``: ``viewers`` fast viewers plus slow readers on a console for
+    ``soak_s`` seconds (app/bench_soak.py); prints the table, returns the exit code (1 if
+    a criterion fails)."""
+    from app.bench_soak import SoakConfig, run_soak_cli
+
+    return run_soak_cli(SoakConfig(soak_s=soak_s, viewers=viewers))

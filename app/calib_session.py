@@ -12,7 +12,13 @@ Layout of the session's work directory (docs/FORMATS.md "Calibration session")::
 
 Every view is written the moment it is taken (atomically: a view appears complete or not
 at all, see :func:`app.capture.write_view`), so a crash or a kill loses nothing that was
-taken; a restarted session finds the views and saved rigs where they were. The board is
+taken; a restarted session finds the views and saved rigs where they were. What a crash
+can leave behind is never taken for data: temporary files of interrupted writes
+(``.<name>.<random>.tmp``) are removed when the session opens again; a view whose staging
+folder (``captures/.<view>.<random>.partial``) was not renamed into place was never
+acknowledged and is not listed, but is kept (it may hold images) and named in
+:attr:`CalibrationSession.interrupted` and a log line; a rig version is its ``.yaml`` (written
+after its report), so a report without it is ignored and its number is not reused. The board is
 searched in each view's images *as written* (decoded from disk), so a calibration from
 the console and ``trifuse calibrate <workdir>/captures`` see the same corners.
 
@@ -25,6 +31,7 @@ far by more than :data:`~calib.coverage.NOVELTY_THRESHOLD` (L1 distance).
 from __future__ import annotations
 
 import json
+import logging
 import re
 import threading
 import time
@@ -34,7 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from app.atomic import atomic_write_text, fsync_dir
+from app.atomic import atomic_write_text, fsync_dir, make_dirs, remove_temporaries
 from app.calibration_run import DetectionRun, calibrate_capture
 from app.capture import (
     BOARD_FILE,
@@ -63,6 +70,10 @@ RIGS = "rigs"
 DELETED = "deleted"
 _VIEW_RE = re.compile(r"^\d{4,}$")
 _VERSION_RE = re.compile(r"^rig-(\d{4,})\.yaml$")
+_VERSION_FILE_RE = re.compile(r"^rig-(\d{4,})\.")  # the rig or its report: number taken
+_STAGING_RE = re.compile(r"^\.\d{4,}\..+\.partial$")  # app.capture.write_view's staging
+
+log = logging.getLogger(__name__)
 
 
 class SessionError(ValueError):
@@ -193,6 +204,8 @@ class CalibrationSession:
         self.captures = self.workdir / CAPTURES
         self.rigs_dir = self.workdir / RIGS
         self.board, self.rig = board, rig
+        self.interrupted = self._tidy_after_crash()
+        """Staging folders of views a crash interrupted (kept, never listed as views)."""
         if (self.captures / BOARD_FILE).exists():
             existing = load_board(self.captures)
             if existing != board:
@@ -220,6 +233,26 @@ class CalibrationSession:
             self._pool.submit(self._search, view.name)
 
     # -- set-up ---------------------------------------------------------------------------
+
+    def _tidy_after_crash(self) -> list[Path]:
+        """Remove temporary files of interrupted writes; report interrupted views."""
+        staging = (
+            sorted(p for p in self.captures.iterdir() if _STAGING_RE.match(p.name) and p.is_dir())
+            if self.captures.is_dir()
+            else []
+        )
+        removed = remove_temporaries(self.captures) + remove_temporaries(self.rigs_dir)
+        for folder in staging:
+            removed += remove_temporaries(folder)
+        if removed:
+            log.info("removed %d temporary file(s) of interrupted writes", len(removed))
+        for folder in staging:
+            log.warning(
+                "%s: a view whose writing was interrupted (not part of the capture; kept "
+                "as it is: its images may be incomplete; remove it when it is not needed)",
+                folder,
+            )
+        return staging
 
     def _check_starting_rig(self, existing: Rig) -> None:
         mine = {n: (s.modality, s.image_size) for n, s in self.rig.sensors.items()}
@@ -253,7 +286,8 @@ class CalibrationSession:
                 raise KeyError(f"no view {name!r} (views: {sorted(self._views)})") from None
 
     def _next_name(self) -> str:
-        """One more than the highest view number taken, in the capture or deleted."""
+        """One more than the highest view number taken, in the capture, deleted or by a view
+        a crash interrupted."""
         used = [
             int(p.name.split("-")[0])
             for root in (self.captures, self.workdir / DELETED)
@@ -261,6 +295,7 @@ class CalibrationSession:
             for p in root.iterdir()
             if _VIEW_RE.match(p.name.split("-")[0])
         ]
+        used += [int(p.name.split(".")[1]) for p in self.interrupted]  # not reused either
         return f"{max([0, *used]) + 1:04d}"
 
     def take(self, frames: FrameSet) -> ViewInfo:
@@ -326,7 +361,7 @@ class CalibrationSession:
             if self.job.state == "running" and name in self.job.views:
                 raise SessionError(f"view {name} is being calibrated; wait for the run to end")
             trash = self.workdir / DELETED
-            trash.mkdir(parents=True, exist_ok=True)
+            make_dirs(trash)
             target = trash / f"{name}-{time.strftime('%Y%m%dT%H%M%S')}"
             k = 1
             while target.exists():
@@ -498,12 +533,12 @@ class CalibrationSession:
         it (``rig-NNNN.report.json``); existing versions are never replaced."""
         text = rig_to_yaml(rig)
         with self._lock:
-            self.rigs_dir.mkdir(parents=True, exist_ok=True)
+            make_dirs(self.rigs_dir)
             for _attempt in range(100):
-                numbers = [
+                numbers = [  # a report left alone by a crash takes its number too
                     int(m.group(1))
                     for p in self.rigs_dir.iterdir()
-                    if (m := _VERSION_RE.match(p.name))
+                    if (m := _VERSION_FILE_RE.match(p.name))
                 ]
                 name = f"rig-{max([0, *numbers]) + 1:04d}"
                 path = self.rigs_dir / f"{name}.yaml"

@@ -40,12 +40,13 @@ import cv2
 import numpy as np
 import yaml
 
-from app.atomic import atomic_write_bytes, fsync_dir, umask
+from app.atomic import atomic_write_bytes, fsync_dir, make_dirs, umask
 from app.rigfile import load_rig, save_rig
 from app.sources.frames import Frame, FrameSet
 from calib.board import Board, board_from_dict
 from calib.rig import Modality, Rig, rig_to_yaml
 from calib.transforms import rigidity_problem
+from calib.yaml_text import YamlError, parse_yaml
 
 BOARD_FILE = "board.yaml"
 RIG_FILE = "rig.yaml"
@@ -245,7 +246,7 @@ def write_board(capture_dir: str | Path, board: Board) -> Path:
     Writing the same board again is a no-op; a different existing board raises CaptureError.
     """
     capture_dir = Path(capture_dir)
-    capture_dir.mkdir(parents=True, exist_ok=True)
+    make_dirs(capture_dir)
     text = yaml.safe_dump(board.to_dict(), sort_keys=False, default_flow_style=None)
     return _write_same_or_fail(capture_dir / BOARD_FILE, text, "board")
 
@@ -256,7 +257,7 @@ def write_rig(capture_dir: str | Path, rig: Rig) -> Path:
     Writing the same rig again is a no-op; a different existing rig raises CaptureError.
     """
     capture_dir = Path(capture_dir)
-    capture_dir.mkdir(parents=True, exist_ok=True)
+    make_dirs(capture_dir)
     return _write_same_or_fail(capture_dir / RIG_FILE, rig_to_yaml(rig), "rig")
 
 
@@ -305,7 +306,7 @@ def write_view(capture_dir: str | Path, view_name: str, frames: FrameSet, rig: R
             _encode_frame(frame, sensor, s.modality, s.image_size, f"view {view_name!r}")
         )
 
-    capture_dir.mkdir(parents=True, exist_ok=True)
+    make_dirs(capture_dir)
     staging = Path(tempfile.mkdtemp(prefix=f".{view_name}.", suffix=".partial", dir=capture_dir))
     try:
         staging.chmod(0o777 & ~umask())
@@ -395,7 +396,7 @@ def load_ground_truth(capture_dir: str | Path) -> GroundTruth:
         raise CaptureError(f"{path}: expected a mapping, got {type(data).__name__}")
     expected = {"format", "rig", "board", "views"}
     if set(data) != expected:
-        raise CaptureError(f"{path}: expected keys {sorted(expected)}, got {sorted(data)}")
+        raise CaptureError(f"{path}: expected keys {sorted(expected)}, got {sorted(data, key=str)}")
     if data["format"] != GROUND_TRUTH_FORMAT:
         raise CaptureError(
             f"{path}: field 'format': expected {GROUND_TRUTH_FORMAT!r}, got {data['format']!r}"
@@ -529,7 +530,12 @@ def _decode(info: ImageFile) -> np.ndarray:
         data = np.fromfile(info.path, dtype=np.uint8)
     except OSError as exc:
         raise CaptureError(f"{info.path}: cannot read image: {exc.strerror}") from None
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    try:
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    except cv2.error as exc:  # e.g. a header claiming more pixels than OpenCV decodes
+        raise CaptureError(
+            f"{info.path}: OpenCV refuses to decode a {info.width}x{info.height} image ({exc.err})"
+        ) from None
     if image is None:
         raise CaptureError(f"{info.path}: corrupt or unreadable image (OpenCV cannot decode it)")
     if image.shape[:2] != (info.height, info.width):
@@ -749,9 +755,13 @@ def _read_yaml(path: Path, what: str) -> Any:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise CaptureError(f"{path}: cannot read {what} file: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise CaptureError(
+            f"{path}: {what} file is not UTF-8 text: {exc.reason} at byte {exc.start}"
+        ) from None
     try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
+        return parse_yaml(text)
+    except YamlError as exc:
         raise CaptureError(f"{path}: {what} file is not valid YAML: {exc}") from None
 
 
@@ -810,7 +820,10 @@ def _scan_view(
                 )
             modality = rig[sensor].modality
         else:
-            modality = modality_from_name(sensor)
+            try:
+                modality = modality_from_name(sensor)
+            except CaptureError as exc:
+                raise CaptureError(f"{images.get(sensor) or distances[sensor]}: {exc}") from None
         if sensor not in images:
             raise CaptureError(
                 f"{distances[sensor]}: a distance image needs its amplitude image "

@@ -385,7 +385,14 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from app.bench import REGISTRY, run_benchmark
+    from app.bench import REGISTRY, run_benchmark, run_soak_command
+
+    if args.soak:
+        if args.only or args.repeat:
+            raise UsageError(f"{PROG} bench: --soak runs alone (no --only, --repeat)")
+        return run_soak_command(args.soak_seconds or 600.0, args.viewers or 10)
+    if args.soak_seconds or args.viewers:
+        raise UsageError(f"{PROG} bench: --soak-seconds and --viewers go with --soak")
 
     names = [args.only] if args.only else list(REGISTRY)
     if args.only and args.only not in REGISTRY:
@@ -1158,6 +1165,25 @@ def build_parser() -> argparse.ArgumentParser:
         type=_positive_int,
         metavar="N",
         help="timed repeats per benchmark (default: each benchmark's own, typically 10)",
+    )
+    bench.add_argument(
+        "--soak",
+        action="store_true",
+        help="instead: the stream soak (BENCHMARKS.md 'Stream soak'): a console, a 1-viewer "
+        "baseline, then --viewers viewers plus slow readers for --soak-seconds; frame "
+        "rates and the server's memory; exit 1 if a criterion fails",
+    )
+    bench.add_argument(
+        "--soak-seconds",
+        type=_positive_int,
+        metavar="S",
+        help="length of the soak phase (default: 600)",
+    )
+    bench.add_argument(
+        "--viewers",
+        type=_positive_int,
+        metavar="N",
+        help="fast viewers during the soak, besides the slow readers (default: 10)",
     )
     bench.set_defaults(func=_cmd_bench)
 

@@ -16,6 +16,12 @@ def load_rig(path: str | Path) -> Rig:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise RigError(f"{path}: cannot read rig file: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise RigError(
+            f"{path}: rig file is not UTF-8 text: {exc.reason} at byte {exc.start}"
+        ) from None
+    except ValueError as exc:  # a path the OS cannot take (a NUL byte)
+        raise RigError(f"{path}: cannot read rig file: {exc}") from None
     try:
         return rig_from_yaml(text)
     except RigError as exc:

@@ -13,6 +13,7 @@ high-emissivity material); the detector needs it to tell the two orderings apart
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -34,10 +35,15 @@ class Board:
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 2:
                 raise ValueError(f"board {name}: expected an integer >= 2, got {v!r}")
-        if not (isinstance(self.square_size_m, int | float) and self.square_size_m > 0):
-            raise ValueError(
-                f"board square_size_m: expected a positive number, got {self.square_size_m!r}"
-            )
+        size = self.square_size_m
+        valid = isinstance(size, int | float) and not isinstance(size, bool)
+        if valid:
+            try:
+                valid = math.isfinite(float(size)) and size > 0
+            except OverflowError:  # an integer beyond float's range
+                valid = False
+        if not valid:
+            raise ValueError(f"board square_size_m: expected a positive number, got {size!r}")
         object.__setattr__(self, "square_size_m", float(self.square_size_m))
         if not isinstance(self.thermal_black_is_hot, bool):
             raise ValueError(

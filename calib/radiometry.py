@@ -47,7 +47,10 @@ def _check_field(name: str, value: Any, where: str) -> float:
     """``value`` as a float, or ValueError naming ``where.name``."""
     if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
         raise ValueError(f"{where}.{name}: expected a number, got {value!r}")
-    v = float(value)
+    try:
+        v = float(value)
+    except OverflowError:  # an integer beyond float's range
+        v = math.inf
     if not math.isfinite(v):
         raise ValueError(f"{where}.{name}: expected a finite number, got {value!r}")
     if name in _POSITIVE and v <= 0.0:

@@ -76,8 +76,9 @@ def bilinear_weights(u: np.ndarray, v: np.ndarray, step: int, shape: tuple[int, 
 
 
 def offset_grid_shape(width: int, height: int, step: int) -> tuple[int, int]:
-    """(rows, cols) of offset nodes covering pixel centres 0..W-1, 0..H-1 every ``step``."""
-    return (max(2, math.ceil((height - 1) / step) + 1), max(2, math.ceil((width - 1) / step) + 1))
+    """(rows, cols) of offset nodes covering pixel centres 0..W-1, 0..H-1 every ``step``
+    (integer arithmetic: exact, and no overflow for absurd sizes read from a file)."""
+    return (max(2, -(-(height - 1) // step) + 1), max(2, -(-(width - 1) // step) + 1))
 
 
 def amplitude_log(amplitude: np.ndarray, ref: float, log_range: tuple[float, float]) -> np.ndarray:
@@ -338,9 +339,15 @@ def _keys(
 
 
 def _num(value: Any, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+    if isinstance(value, bool) or not isinstance(value, int | float):
         raise ValueError(f"{where}: expected a finite number, got {value!r}")
-    return float(value)
+    try:
+        number = float(value)
+    except OverflowError:  # an integer beyond float's range
+        number = math.inf
+    if not math.isfinite(number):
+        raise ValueError(f"{where}: expected a finite number, got {value!r}")
+    return number
 
 
 def _list(value: Any, where: str) -> list[Any]:

@@ -10,6 +10,8 @@ the app's job (``app.rigfile``).
 
 from __future__ import annotations
 
+import math
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal, get_args
@@ -22,6 +24,7 @@ from calib.errors import RigError
 from calib.radiometry import Radiometry
 from calib.range_correction import RangeCorrection
 from calib.transforms import invert, rigidity_problem
+from calib.yaml_text import YamlError, parse_yaml
 
 Modality = Literal["color", "thermal", "tof"]
 MODALITIES: tuple[str, ...] = get_args(Modality)
@@ -31,6 +34,8 @@ _TOP_KEYS = {"format", "reference", "eyes", "sensors"}
 _SENSOR_REQUIRED = ("modality", "image_size", "intrinsics", "distortion", "T_rig_sensor")
 _SENSOR_OPTIONAL = ("uncertainty", "range_correction", "radiometry")
 _INTRINSIC_KEYS = ("fx", "fy", "cx", "cy")
+_SENSOR_NAME_RE = re.compile(r"[A-Za-z0-9._-]+")
+"""Sensor names are file names too (capture directories name images after them)."""
 
 
 @dataclass
@@ -162,9 +167,13 @@ def _mapping(value: Any, where: str) -> Mapping[str, Any]:
 def _number(value: Any, where: str) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise RigError(f"{where}: expected a number, got {value!r}")
-    if not np.isfinite(value):
+    try:
+        number = float(value)
+    except OverflowError:  # an integer beyond float's range
+        number = math.inf
+    if not math.isfinite(number):
         raise RigError(f"{where}: expected a finite number, got {value!r}")
-    return float(value)
+    return number
 
 
 def _check_keys(
@@ -286,7 +295,17 @@ def rig_from_dict(data: Any) -> Rig:
     sensors_raw = _mapping(d["sensors"], "field 'sensors'")
     if not sensors_raw:
         raise RigError("field 'sensors': the rig has no sensors")
-    sensors = {str(n): sensor_from_dict(str(n), s) for n, s in sensors_raw.items()}
+    sensors: dict[str, Sensor] = {}
+    for n, s in sensors_raw.items():
+        name = str(n)
+        if not _SENSOR_NAME_RE.fullmatch(name) or name.endswith("_distance"):
+            raise RigError(
+                f"field 'sensors': sensor name {name!r}: expected letters, digits, '.', '_' or "
+                "'-' (it names image files), not ending in '_distance'"
+            )
+        if name in sensors:
+            raise RigError(f"field 'sensors': sensor {name!r} is listed twice")
+        sensors[name] = sensor_from_dict(name, s)
 
     reference = d["reference"]
     if not isinstance(reference, str):
@@ -343,8 +362,8 @@ def rig_to_dict(rig: Rig) -> dict[str, Any]:
 def rig_from_yaml(text: str) -> Rig:
     """Parse rig-file text; raise RigError for YAML errors and invalid content."""
     try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
+        data = parse_yaml(text)
+    except YamlError as exc:
         raise RigError(f"rig file is not valid YAML: {exc}") from None
     return rig_from_dict(data)
 

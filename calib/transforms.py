@@ -23,6 +23,8 @@ def rigidity_problem(T: npt.ArrayLike, tol: float = RIGID_TOL) -> str | None:
         A = np.asarray(T, dtype=np.float64)
     except (TypeError, ValueError):
         return "expected a 4x4 array of numbers"
+    except OverflowError:  # an integer beyond float's range
+        return "contains a number too large for a float"
     if A.shape != (4, 4):
         return f"expected shape (4, 4), got {A.shape}"
     if not np.all(np.isfinite(A)):
@@ -30,8 +32,9 @@ def rigidity_problem(T: npt.ArrayLike, tol: float = RIGID_TOL) -> str | None:
     if not np.allclose(A[3], [0.0, 0.0, 0.0, 1.0], atol=tol):
         return f"last row must be [0, 0, 0, 1], got {A[3].tolist()}"
     R = A[:3, :3]
-    ortho = float(np.max(np.abs(R.T @ R - np.eye(3))))
-    if ortho > tol:
+    with np.errstate(over="ignore", invalid="ignore"):  # entries near 1e308 overflow
+        ortho = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if not ortho <= tol:  # NaN too
         return f"rotation block is not orthonormal (max |R^T R - I| = {ortho:.3g})"
     det = float(np.linalg.det(R))
     if det < 0:

@@ -1,7 +1,8 @@
 // The operator's stereo viewer: fused side-by-side frames from /stream (a JSON text message
 // with the frame's metadata, then the JPEG as a binary message, acknowledged once drawn so
 // the server always sends the newest frame), MJPEG as a fallback, an
-// overlay of frame rate, latency and the colour span, full screen, and WebXR.
+// overlay of frame rate, latency, the colour span and the sensors that are not ok (the
+// metadata's `health`), full screen, and WebXR.
 "use strict";
 const canvas = document.getElementById("view");
 const ctx = canvas.getContext("2d");
@@ -59,8 +60,10 @@ setInterval(() => {
   stats.frames = 0; stats.t0 = now;
   const m = stats.meta || {};
   const span = m.span_k ? `${(m.span_k[0] - 273.15).toFixed(1)}–${(m.span_k[1] - 273.15).toFixed(1)} °C` : "–";
+  // sensors that are not ok (silent, no frame yet, failing), one line each, from the frame's metadata
+  const health = Object.values(m.health || {}).map((line) => `\n⚠ ${line}`).join("");
   overlay.textContent = `${stats.mode}  ${stats.fps.toFixed(1)} fps  latency ${median(stats.latencyMs).toFixed(0)} ms\n` +
-    `mode ${m.mode || "–"}  span ${span}`;
+    `mode ${m.mode || "–"}  span ${span}` + health;
 }, 1000);
 
 document.getElementById("fullscreen").onclick = () => {

@@ -87,11 +87,16 @@ def start_console(args: Sequence[str], port: int | None = None) -> tuple[subproc
         stderr=subprocess.STDOUT,
         text=True,
     )
-    line = proc.stdout.readline()
-    m = re.search(rf"http://127\.0\.0\.1:{port}/\?token=(\S+)", line)
+    said = ""  # warnings (e.g. about an interrupted capture) may come before the URL
+    for _ in range(50):
+        line = proc.stdout.readline()
+        said += line
+        m = re.search(rf"http://127\.0\.0\.1:{port}/\?token=(\S+)", line)
+        if m is not None or not line:
+            break
     if m is None:
         proc.kill()
-        raise RuntimeError(f"trifuse serve did not start: {line}{proc.stdout.read()}")
+        raise RuntimeError(f"trifuse serve did not start: {said}{proc.stdout.read()}")
     for _ in range(100):
         try:
             socket.create_connection(("127.0.0.1", port), timeout=0.2).close()

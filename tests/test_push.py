@@ -436,3 +436,13 @@ def test_driver_pushes_and_reconnects(source, capsys):
     assert {f.sensor for f in got} <= {"tof", "thermal_left"}
     assert source.stats()["sensors"]["tof"]["received"] >= 5
     assert source.stats()["rejected"] == 0
+
+
+def test_scale_that_overflows_float32_is_rejected(source):
+    counts = encode_part("image", np.full((288, 382), 30000, np.uint16), "raw16").data
+    for bad in (1e308, -1e31):
+        part = Part("image", "raw16", 382, 288, counts, scale=bad)
+        with pytest.raises(PushError, match="magnitude at most 1e"):
+            source.accept(encode_message("thermal_left", 1, [part]))
+    ok = Part("image", "raw16", 382, 288, counts, scale=0.01)
+    assert source.accept(encode_message("thermal_left", 1, [ok]))

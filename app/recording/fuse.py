@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from app.atomic import atomic_write_bytes, atomic_write_text
+from app.atomic import atomic_write_bytes, atomic_write_text, fsync_dir
 from app.recording.errors import RecordingDamaged
 from app.recording.player import MessageReplay
 from app.sources.base import frame_sets
@@ -160,7 +160,10 @@ def fuse_recording(
     atomic_write_text(out_dir / "frames.csv", "\n".join(rows) + "\n", overwrite=False)
     if video is not None:
         if result.frames:
+            with video_tmp.open("rb") as f:  # durable before it gets its name
+                os.fsync(f.fileno())
             os.replace(video_tmp, out_dir / VIDEO_NAME)
+            fsync_dir(out_dir)
             result.video = out_dir / VIDEO_NAME
         else:
             video_tmp.unlink(missing_ok=True)

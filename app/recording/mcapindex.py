@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from mcap.data_stream import ReadDataStream
+from mcap.exceptions import EndOfFile
 from mcap.opcode import Opcode
 from mcap.records import (
     Attachment,
@@ -55,6 +56,7 @@ _FOOTER_LENGTH = 20  # summary_start (8) + summary_offset_start (8) + summary_cr
 _FOOTER_SIZE = _PREFIX + _FOOTER_LENGTH
 _KNOWN_OPCODES = {int(op) for op in Opcode}
 _COMPRESSIONS = ("", "zstd", "lz4")
+_UNFINISHED = 2**64 - 1  # the record length a streaming writer puts first, then fixes
 ATTACHMENT_LIMIT = 64 * 2**20
 """Attachments larger than this are indexed but not read while scanning."""
 
@@ -311,11 +313,18 @@ class McapIndex:
             if end > self.size:
                 name = Opcode(opcode).name.lower().replace("_", " ")
                 article = "an" if name[0] in "aeiou" else "a"
-                self.damage = McapDamage(
-                    f"the file ends inside {article} {name} record ({self.size - pos - _PREFIX} of "
-                    f"{length} bytes present): truncated",
-                    pos,
-                )
+                if length == _UNFINISHED:  # a writer's placeholder until the record is done
+                    what = (
+                        f"{article} {name} record that was still being written "
+                        f"({self.size - pos - _PREFIX} bytes of it present): the recording "
+                        "was not finished (truncated: its writer stopped or was killed)"
+                    )
+                else:
+                    what = (
+                        f"{article} {name} record ({self.size - pos - _PREFIX} of "
+                        f"{length} bytes present): truncated"
+                    )
+                self.damage = McapDamage(f"the file ends inside {what}", pos)
                 return
             try:
                 stop = self._scan_record(pos, opcode, length)
@@ -393,10 +402,17 @@ class McapIndex:
         opcode, content = self._record_at(ai.offset)
         if opcode != Opcode.ATTACHMENT:
             raise McapDamage(f"attachment {name!r}: no attachment record there", ai.offset)
-        att = Attachment.read(ReadDataStream(io.BytesIO(content)))
+        if len(content) < 4:
+            raise McapDamage(f"attachment {name!r}: the record is cut short", ai.offset)
         (crc,) = struct.unpack("<I", content[-4:])
         if crc != 0 and zlib.crc32(content[:-4]) != crc:
             raise McapDamage(f"attachment {name!r}: CRC mismatch", ai.offset)
+        try:  # without a CRC, damage shows only here
+            att = Attachment.read(ReadDataStream(io.BytesIO(content)))
+        except (EndOfFile, struct.error, UnicodeDecodeError) as exc:
+            raise McapDamage(
+                f"attachment {name!r}: the record is damaged ({type(exc).__name__})", ai.offset
+            ) from None
         return att.data
 
     def read_chunk(self, ref: ChunkRef) -> list[Message]:

@@ -28,9 +28,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from app.recording.errors import TopicMapError
+from calib.yaml_text import YamlError, parse_yaml
 
 TOPIC_MAP_FORMAT = "trifuse-topic-map/1"
 KINDS = ("color", "thermal", "tof_distance", "tof_amplitude", "camera_info")
@@ -89,9 +88,15 @@ class TopicMap:
 
 
 def _number(value: Any, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+    if isinstance(value, bool) or not isinstance(value, int | float):
         raise TopicMapError(f"{where}: expected a finite number, got {value!r}")
-    return float(value)
+    try:
+        number = float(value)
+    except OverflowError:  # an integer beyond float's range
+        number = math.inf
+    if not math.isfinite(number):
+        raise TopicMapError(f"{where}: expected a finite number, got {value!r}")
+    return number
 
 
 def topic_map_from_dict(data: Any, where: str = "topic map") -> TopicMap:
@@ -158,10 +163,9 @@ def topic_map_from_dict(data: Any, where: str = "topic map") -> TopicMap:
 
 def topic_map_from_yaml(text: str, where: str = "topic map") -> TopicMap:
     try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        first = " ".join(str(exc).split())
-        raise TopicMapError(f"{where}: not valid YAML: {first}") from None
+        data = parse_yaml(text)
+    except YamlError as exc:
+        raise TopicMapError(f"{where}: not valid YAML: {exc}") from None
     return topic_map_from_dict(data, where)
 
 
@@ -172,4 +176,8 @@ def load_topic_map(path: str | Path) -> TopicMap:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise TopicMapError(f"{path}: cannot read topic map: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise TopicMapError(
+            f"{path}: topic map is not UTF-8 text: {exc.reason} at byte {exc.start}"
+        ) from None
     return topic_map_from_yaml(text, str(path))

@@ -5,13 +5,20 @@ docs/FORMATS.md ("Recordings"). Writing goes through foxglove-sdk (one private
 ``foxglove.Context`` per writer, so writers never share channels) into a temporary file in
 the target's directory; :meth:`RecordingWriter.close` finishes the MCAP (summary, indexes),
 fsyncs it and links it to its name, refusing to replace a file that exists by then.
+
+While it is written, the temporary file ``.<name>.<random>.partial`` is locked (``flock``);
+if the program is killed, the lock goes with it and :func:`recover_interrupted` (called when
+the console starts) finds the file and keeps it under a visible name: an MCAP cut short
+reads up to its last complete chunk (:mod:`app.recording.mcapindex`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import numbers
 import os
+import re
 import tempfile
 import time
 from pathlib import Path
@@ -37,7 +44,7 @@ from foxglove.messages import (
     Vector3,
 )
 
-from app.atomic import fsync_dir, umask
+from app.atomic import fsync_dir, make_dirs, umask
 from app.capture import encode_amplitude, encode_distance, encode_thermal
 from app.recording.errors import RecordingError
 from app.recording.layout import (
@@ -48,6 +55,7 @@ from app.recording.layout import (
     TF_TOPIC,
     topic_of,
 )
+from app.recording.mcapindex import McapIndex
 from app.sources.frames import Frame, FrameSet
 from calib.rig import Rig, Sensor, rig_to_yaml
 
@@ -171,12 +179,14 @@ class RecordingWriter:
         self._closed = False
 
         parent = self.path.parent
-        parent.mkdir(parents=True, exist_ok=True)
+        make_dirs(parent)
         fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".partial", dir=parent)
         self.temp_path = Path(tmp)
+        self._lock_fd: int | None = fd  # held open and locked while the file is written
         try:
+            with contextlib.suppress(OSError):  # a file system without locks: unlocked
+                fcntl.flock(fd, fcntl.LOCK_EX)
             os.fchmod(fd, 0o666 & ~umask())
-            os.close(fd)
             self._ctx = foxglove.Context()
             options = MCAPWriteOptions(compression=COMPRESSIONS[compression], chunk_size=chunk_size)
             self._mcap = foxglove.open_mcap(
@@ -208,7 +218,13 @@ class RecordingWriter:
         except BaseException:
             self._closed = True
             self.temp_path.unlink(missing_ok=True)
+            self._unlock()
             raise
+
+    def _unlock(self) -> None:
+        fd, self._lock_fd = self._lock_fd, None
+        if fd is not None:
+            os.close(fd)
 
     def _make_channels(self, name: str, s: Sensor) -> None:
         def meta(kind: str, unit: str) -> dict[str, str]:
@@ -392,6 +408,7 @@ class RecordingWriter:
             fsync_dir(self.path.parent)
         finally:
             self.temp_path.unlink(missing_ok=True)
+            self._unlock()
         return self.path
 
     def abort(self) -> None:
@@ -403,6 +420,7 @@ class RecordingWriter:
             self._mcap.close()
         self._close_channels()
         self.temp_path.unlink(missing_ok=True)
+        self._unlock()
 
     def _close_channels(self) -> None:
         for channel in [*self._channels.values(), self._tf]:
@@ -448,3 +466,86 @@ def _raw(ts: Timestamp, frame_id: str, plane: np.ndarray, encoding: str = "16UC1
         step=step,
         data=data.tobytes(),
     )
+
+
+_PARTIAL_RE = re.compile(r"^\.(?P<name>.+\.mcap)\.[a-z0-9_]{8}\.partial$")
+INTERRUPTED_SUFFIX = ".partial.mcap"
+"""``<name>.partial.mcap``: a recording that was being written when the program died."""
+
+
+def recover_interrupted(directory: str | Path) -> list[tuple[str, Path]]:
+    """Give the recordings whose writer died (killed, crashed) a visible name.
+
+    Returns (the name the recording was to have, where it is now) for each one kept.
+
+    A temporary file ``.<name>.mcap.<random>.partial`` that no living writer holds (its lock
+    is free) is what a recording had written when its program died. It is never deleted:
+
+    * a finished file (footer and summary intact: the writer died while naming it) becomes
+      ``<name>.mcap`` (or is dropped if it is ``<name>.mcap`` already, as a second link);
+    * a file cut short becomes ``<name>.partial.mcap`` (``-2``, ``-3`` ... if taken); it
+      reads up to its last complete chunk (:class:`~app.recording.ReplaySource` reports the
+      damage where it ends);
+    * an empty file (nothing was written) is removed once it is a minute old.
+
+    Files being written (locked) are left alone. Names are never reused: each file is
+    hard-linked to its new name, which fails rather than replacing a file.
+    """
+    directory = Path(directory)
+    try:
+        entries = sorted(directory.iterdir())
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    out: list[tuple[str, Path]] = []
+    for temp in entries:
+        m = _PARTIAL_RE.match(temp.name)
+        if m is None or not temp.is_file() or temp.is_symlink():
+            continue
+        try:
+            fd = os.open(temp, os.O_RDONLY)
+        except FileNotFoundError:
+            continue
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                continue  # a writer is alive (or the file system cannot tell: leave it)
+            final = directory / m["name"]
+            st = os.fstat(fd)
+            if st.st_size == 0:  # nothing written (a writer may be starting: wait a minute)
+                if time.time() - st.st_mtime > 60:
+                    temp.unlink(missing_ok=True)
+                continue
+            if final.exists() and os.path.samefile(final, temp):
+                temp.unlink(missing_ok=True)  # finished and named; this is a second link
+                continue
+            candidates = [final] if _finished(temp) else []
+            stem = m["name"][: -len(".mcap")]
+            candidates += [
+                directory / f"{stem}{'' if k == 1 else f'-{k}'}{INTERRUPTED_SUFFIX}"
+                for k in range(1, 1000)
+            ]
+            for target in candidates:
+                try:
+                    os.link(temp, target)
+                except FileExistsError:
+                    continue
+                temp.unlink()
+                fsync_dir(directory)
+                out.append((m["name"], target))
+                break
+        finally:
+            os.close(fd)
+    return out
+
+
+def _finished(path: Path) -> bool:
+    """Whether an MCAP file is complete (its summary section and footer are intact)."""
+    try:
+        index = McapIndex.open(path)
+    except Exception:
+        return False
+    try:
+        return index.indexed_by == "summary" and index.damage is None
+    finally:
+        index.close()

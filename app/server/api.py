@@ -11,9 +11,10 @@ import dataclasses
 import math
 from typing import Any, Literal
 
-from fastapi import APIRouter, HTTPException
+from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, ConfigDict, Field
 
+from app.server.limits import require_json
 from app.server.pipeline import FusionPipeline
 from app.server.thermal_balance import ThermalBalancer
 from calib.rig import rig_to_dict
@@ -23,7 +24,7 @@ from fusion.balance import BalanceEstimate
 class FusionSettings(BaseModel):
     """Display settings of the fused picture (temperatures in kelvin)."""
 
-    model_config = ConfigDict(allow_inf_nan=False)
+    model_config = ConfigDict(allow_inf_nan=False, extra="forbid")
 
     mode: Literal["blend", "edges", "thermal", "threshold", "isotherm", "pip", "color"]
     palette: Literal["iron", "rainbow", "white_hot", "black_hot", "arctic", "lava"]
@@ -72,9 +73,10 @@ class BalanceState(BaseModel):
 class ThermalSettings(BaseModel):
     """The shared colour span (None: automatic over both eyes, smoothed over
     ``span_smoothing_s``), each imager's manual offset (kelvin) and, when given, automatic
-    balancing on or off and the imager it balances onto (None: split evenly)."""
+    balancing on or off and the imager it balances onto (None: split evenly). Unknown keys
+    get a 422 (a misspelt ``span_k`` would otherwise set the span to automatic)."""
 
-    model_config = ConfigDict(allow_inf_nan=False)
+    model_config = ConfigDict(allow_inf_nan=False, extra="forbid")
 
     span_k: tuple[float, float] | None = None
     span_smoothing_s: float | None = Field(default=None, ge=0.0, le=60.0)
@@ -132,7 +134,7 @@ def make_api_router(pipeline: FusionPipeline, balancer: ThermalBalancer | None =
             mark_fallback=s.mark_fallback,
         )
 
-    @router.put("/fusion")
+    @router.put("/fusion", dependencies=[Depends(require_json)])
     def put_fusion(body: FusionSettings) -> FusionSettings:
         try:
             pipeline.settings = dataclasses.replace(pipeline.settings, **body.model_dump())
@@ -165,7 +167,7 @@ def make_api_router(pipeline: FusionPipeline, balancer: ThermalBalancer | None =
         """Span, smoothing, each imager's radiometry and the live balance."""
         return thermal()
 
-    @router.put("/thermal")
+    @router.put("/thermal", dependencies=[Depends(require_json)])
     def put_thermal(body: ThermalSettings) -> Thermal:
         """Set the span (None: automatic), manual offsets and automatic balancing."""
         imagers = sorted(pipeline.radiometry)

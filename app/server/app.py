@@ -14,6 +14,7 @@ from fastapi.staticfiles import StaticFiles
 
 from app.server.api import make_api_router
 from app.server.auth import AuthConfig, AuthMiddleware
+from app.server.limits import add_body_limit
 from app.server.pipeline import FusionPipeline
 from app.server.source_api import make_source_router
 from app.server.source_control import SourceControl
@@ -38,7 +39,10 @@ def _json_safe(value: Any) -> Any:
 async def _invalid_request(_request: Request, exc: RequestValidationError) -> JSONResponse:
     """422 naming what was wrong, also when the body held NaN or Infinity (FastAPI's own
     handler echoes the input and fails to encode those: a 500)."""
-    return JSONResponse({"detail": _json_safe(jsonable_encoder(exc.errors()))}, status_code=422)
+    errors = jsonable_encoder(  # undecodable bytes echoed from the body must not fail here
+        exc.errors(), custom_encoder={bytes: lambda b: b.decode("utf-8", "replace")}
+    )
+    return JSONResponse({"detail": _json_safe(errors)}, status_code=422)
 
 
 def create_app(
@@ -55,7 +59,8 @@ def create_app(
     request and WebSocket, also of routers added later, is authenticated (auth.py); ``trifuse
     serve`` always passes one."""
     app = FastAPI(title="trifuse", summary="Calibration and fused stereo telepresence")
-    if auth is not None:
+    add_body_limit(app)  # 413 over 1 MiB (limits.py)
+    if auth is not None:  # added last: the outermost, nothing is read before it passes
         app.add_middleware(AuthMiddleware, config=auth)
     app.add_exception_handler(RequestValidationError, _invalid_request)
     app.include_router(make_stream_router(hub))

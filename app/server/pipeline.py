@@ -6,8 +6,14 @@ Two background threads. The fusion thread: a :class:`FrameSource` ->
 thread: JPEG -> :class:`FrameHub`. OpenCV releases the GIL while it encodes, so the fusion
 of frame N+1 overlaps the encoding of frame N; two BGR buffers pass between the threads,
 and the fusion thread waits when both are taken (the source drops what a late consumer
-cannot take). A frame set that misses a sensor still produces a picture from what it has
-(colour only while the thermal imagers are missing; the last depth while the TOF is).
+cannot take). A frame set that misses a sensor still produces a picture from what it has:
+an eye whose thermal imager is missing shows its colour image; an eye whose colour camera
+is gone (:data:`COLOR_GONE_S`) shows the thermal picture on black; the last depth while
+the TOF is missing.
+When the left colour camera (which opens the frame sets) stops, the right one opens them
+(:class:`FrameSetAssembler` ``fallback``). Each frame's metadata carries ``missing`` and,
+when :attr:`FusionPipeline.sensor_notes` is set, ``health``: a line per sensor that is not
+ok (``{"thermal_right": "silent for 12 s"}``, :mod:`app.server.sensor_health`).
 
 Repeated inputs are not fused again. A source may hand out the very same read-only array
 for several frames (the simulated head shows each rendered pose for many frames). When
@@ -27,6 +33,7 @@ import dataclasses
 import queue
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -42,6 +49,9 @@ from fusion.compose import DisplaySettings
 from fusion.stereo import StereoFusion
 
 EYES = ("left", "right")
+COLOR_GONE_S = 0.5
+"""A colour camera missing from a frame set for less than this (seconds of frame time since
+it was last in one) skips the picture; for longer, its eye is drawn on black."""
 
 
 @dataclass
@@ -168,6 +178,10 @@ class FusionPipeline:
         self.tolerance_s = tolerance_s
         self.status = PipelineStatus()
         self.latest_set: FrameSet | None = None
+        self.sensor_notes: Callable[[], dict[str, str]] | None = None
+        """Sensor -> a line for each sensor that is not ok, put in each frame's metadata
+        (``health``); set by the console (``SourceControl``). Called in the fusion thread:
+        it must be quick (cached)."""
         self._pending_rig: Rig | None = None
         self.radiometry: dict[str, Radiometry] = {}
         self._init_rig(rig)
@@ -184,7 +198,7 @@ class FusionPipeline:
         self.tof = self.fusion.fusion["left"].forward.tof
         sensors = [left.color, right.color, left.thermal, right.thermal, self.tof]
         self.assembler = FrameSetAssembler(
-            sensors, reference=left.color, tolerance_s=self.tolerance_s
+            sensors, reference=left.color, tolerance_s=self.tolerance_s, fallback=right.color
         )
         thermals = (left.thermal, right.thermal)
         self._offset_buf = {s: np.empty(rig[s].image_size[::-1], np.float32) for s in thermals}
@@ -196,11 +210,15 @@ class FusionPipeline:
         self._no_thermal = {
             e: np.full(rig[rig.eyes[e].thermal].image_size[::-1], np.nan, np.float32) for e in EYES
         }
-        for a in self._no_thermal.values():
+        self._no_color = {
+            e: np.zeros((*rig[rig.eyes[e].color].image_size[::-1], 3), np.uint8) for e in EYES
+        }
+        for a in (*self._no_thermal.values(), *self._no_color.values()):
             a.flags.writeable = False
         self._last_tof_ns: int | None = None
         self._last_distance: np.ndarray | None = None
         self._depth_version = 0  # counts mapping updates: part of what a picture is made of
+        self._color_seen: dict[str, int] = {}  # eye -> stamp of the last set with its colour
         self._made_of: tuple | None = None  # what the previous picture was made of
 
     def set_rig(self, rig: Rig) -> None:
@@ -264,18 +282,26 @@ class FusionPipeline:
             self._last_distance = tof.distance_m
         eyes = self.rig.eyes
         colors = {e: fs.frames[eyes[e].color].image for e in EYES if eyes[e].color in fs.frames}
-        if len(colors) < 2:
+        if not colors:
             return False
+        for e in EYES:
+            seen = self._color_seen.setdefault(e, fs.stamp_ns)  # not yet: since the first set
+            if e in colors:
+                self._color_seen[e] = fs.stamp_ns
+            elif abs(fs.stamp_ns - seen) <= COLOR_GONE_S * 1e9:
+                return False  # a late frame: wait for the next set rather than flash black
+        colors = {e: colors.get(e, self._no_color[e]) for e in EYES}  # a dead camera: black
         thermals = {
             e: fs.frames[eyes[e].thermal].image for e in EYES if eyes[e].thermal in fs.frames
         }
         settings = self.settings
         if not self.fusion.ready:
             path = "raw"
-        elif len(thermals) < 2:
+        elif not thermals:
             path, settings, thermals = "color", DisplaySettings(mode="color"), self._no_thermal
         else:
-            path = "fused"
+            path = "fused"  # an eye without its thermal imager shows its colour image
+            thermals = {e: thermals.get(e, self._no_thermal[e]) for e in EYES}
         radiometry = tuple(sorted(self.radiometry.items()))
         made_of = (
             path,
@@ -299,7 +325,12 @@ class FusionPipeline:
         elif path == "color":
             rgb = self.fusion.compose(colors, thermals, settings)
         else:
-            kelvin = {e: self.kelvin(eyes[e].thermal, thermals[e]) for e in EYES}
+            kelvin = {
+                e: thermals[e]
+                if thermals[e] is self._no_thermal[e]
+                else self.kelvin(eyes[e].thermal, thermals[e])
+                for e in EYES
+            }
             rgb = self.fusion.compose(colors, kelvin, settings, fs.stamp_ns)
         bgr = self._encoder.buffer(rgb.shape)
         if bgr is None:
@@ -314,12 +345,19 @@ class FusionPipeline:
     def _meta(self, fs: FrameSet, path: str, settings: DisplaySettings) -> dict[str, Any]:
         """What the viewer overlays with the frame (JSON-able)."""
         span = self.fusion.span_k
-        return {
+        meta = {
             "stamp_ns": fs.stamp_ns,
             "mode": "color" if path == "raw" else settings.mode,
             "span_k": list(span) if span else None,
             "missing": sorted(fs.missing),
         }
+        notes = self.sensor_notes
+        if notes is not None:
+            try:
+                meta["health"] = dict(notes())
+            except Exception as exc:  # the picture goes out whatever the report does
+                meta["health"] = {"console": f"health unavailable: {type(exc).__name__}: {exc}"}
+        return meta
 
     def kelvin(self, sensor: str, image: np.ndarray) -> np.ndarray:
         """The imager's readings through its radiometry (calibration, balance, trim), in a

@@ -4,16 +4,19 @@
 ``/api/range`` (the TOF range calibration: start, status, result, save) and ``/api/rigs``
 (list versions, save, get one, use one; ``/api/thermal/save``: the rig in use with the
 imagers' current radiometry). Typed models; a request that cannot
-be done now gets 409 with the reason, an unknown view or version 404.
+be done now gets 409 with the reason, an unknown view or version 404 (also any name not of
+the form of a view, ``0001``, or of a version, ``rig-0001``: such a name never reaches
+the file system).
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from typing import Any, Literal
 
-from fastapi import APIRouter, HTTPException
-from pydantic import BaseModel, Field
+from fastapi import APIRouter, Depends, HTTPException
+from pydantic import BaseModel, ConfigDict, Field
 
 from app.calib_session import (
     CalibrationJob,
@@ -24,9 +27,23 @@ from app.calib_session import (
     ViewInfo,
     radiometry_report,
 )
+from app.server.limits import require_json
 from app.sources.frames import FrameSet
 from calib.errors import RigError
 from calib.rig import Rig, rig_to_dict
+
+# What a view's and a saved version's name look like (ASCII digits; a name of more digits
+# than a file name can hold is no name of this session either).
+_VIEW_NAME = re.compile(r"[0-9]{4,20}")
+_VERSION_NAME = re.compile(r"rig-[0-9]{4,20}")
+
+
+def _checked(name: str, pattern: re.Pattern[str], what: str, example: str) -> str:
+    """``name`` if it has the form of a view's or version's name, else 404 saying so."""
+    if not pattern.fullmatch(name):
+        shown = name if len(name) <= 60 else name[:50] + "..."
+        raise HTTPException(404, f"no {what} {shown!r}: names are like {example!r}")
+    return name
 
 
 class SensorDetection(BaseModel):
@@ -57,6 +74,10 @@ class Captures(BaseModel):
     directory: str
     views: list[View]
     coverage: dict[str, SensorCoverage]
+    interrupted: list[str] = Field(
+        default_factory=list,
+        description="staging folders of views a crash interrupted: kept, never used as views",
+    )
 
 
 class Job(BaseModel):
@@ -121,6 +142,8 @@ class RangeStatus(BaseModel):
 
 
 class RangeStart(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
     holdout_every: int = Field(default=4, ge=2, le=50)
 
 
@@ -160,6 +183,7 @@ def make_session_router(
         return Captures(
             directory=str(session.captures),
             views=[view_model(v) for v in session.views()],
+            interrupted=[p.name for p in session.interrupted],
             coverage={
                 s: SensorCoverage(
                     x=c.x,
@@ -188,6 +212,7 @@ def make_session_router(
     @router.delete("/captures/{name}")
     def delete_capture(name: str) -> dict[str, str]:
         """Move a view out of the capture (into the work directory's ``deleted/``)."""
+        _checked(name, _VIEW_NAME, "view", "0001")
         try:
             moved = session.delete(name)
         except KeyError as exc:
@@ -216,7 +241,7 @@ def make_session_router(
             raise HTTPException(404, f"no finished calibration (state: {job.state})")
         return job.report
 
-    @router.post("/range", status_code=202)
+    @router.post("/range", status_code=202, dependencies=[Depends(require_json)])
     def start_range(body: RangeStart | None = None) -> RangeStatus:
         """Calibrate the TOF's distances on the captured views with the rig in use (its
         board poses); poll ``GET /api/range``."""
@@ -273,6 +298,7 @@ def make_session_router(
 
     @router.get("/rigs/{name}")
     def get_version(name: str) -> dict[str, Any]:
+        _checked(name, _VERSION_NAME, "saved rig", "rig-0001")
         try:
             return rig_to_dict(session.load_version(name))
         except KeyError as exc:
@@ -283,6 +309,7 @@ def make_session_router(
     @router.post("/rigs/{name}/use")
     def use_version(name: str) -> dict[str, str]:
         """Fuse with a saved rig from the next frame on."""
+        _checked(name, _VERSION_NAME, "saved rig", "rig-0001")
         try:
             use_rig(session.load_version(name))
         except KeyError as exc:

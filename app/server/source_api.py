@@ -11,9 +11,10 @@ from __future__ import annotations
 import dataclasses
 from typing import Literal
 
-from fastapi import APIRouter, HTTPException
+from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, ConfigDict, Field
 
+from app.server.limits import require_json
 from app.server.pipeline import FusionPipeline
 from app.server.source_control import (
     RATE_MAX,
@@ -56,7 +57,26 @@ class RecordingInfo(BaseModel):
     files: list[str] = Field(
         default_factory=list, description="finished files (a new one when replay time goes back)"
     )
+    interrupted: list[str] = Field(
+        default_factory=list,
+        description="recordings a crash interrupted, kept as *.partial.mcap (readable up to "
+        "their last complete chunk)",
+    )
     error: str | None = None
+
+
+class SensorInfo(BaseModel):
+    """One sensor's health (app/server/sensor_health.py)."""
+
+    state: Literal["ok", "silent", "never", "failing"] = Field(
+        description="ok; silent: no frame for max(1 s, 5 frame periods); never: no frame yet; "
+        "failing: frames arrive but are rejected or garbage"
+    )
+    reason: str = Field("", description="why, for a person")
+    last_frame_age_s: float | None = Field(
+        None, description="seconds since its last good frame (null: none yet)"
+    )
+    rate_hz: float = Field(0.0, description="frames per second it delivers (usable or not)")
 
 
 class Status(BaseModel):
@@ -73,6 +93,9 @@ class Status(BaseModel):
         default_factory=dict, description="frames per second each sensor delivers"
     )
     recording: RecordingInfo | None = None
+    sensors: dict[str, SensorInfo] = Field(
+        default_factory=dict, description="each sensor's health: state, reason, age, rate"
+    )
 
 
 class SeekRequest(BaseModel):
@@ -138,6 +161,7 @@ def make_source_router(
             source=_source(control.source_state()),
             rates_hz=control.rates_hz(),
             recording=_recording(control.recording_state()),
+            sensors={n: SensorInfo(**h.as_dict()) for n, h in control.sensor_health().items()},
         )
 
     @router.post("/source/pause")
@@ -150,12 +174,12 @@ def make_source_router(
         """Continue a paused replay from where it stopped."""
         return _source(call(need().resume))
 
-    @router.post("/source/seek")
+    @router.post("/source/seek", dependencies=[Depends(require_json)])
     def seek(body: SeekRequest) -> SourceInfo:
         """Continue the replay from ``position_s`` (422 outside 0..duration_s)."""
         return _source(call(need().seek, body.position_s))
 
-    @router.put("/source/rate")
+    @router.put("/source/rate", dependencies=[Depends(require_json)])
     def rate(body: RateRequest) -> SourceInfo:
         """Replay speed, 0.25..4 times real time."""
         return _source(call(need().set_rate, body.rate))

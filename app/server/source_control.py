@@ -2,14 +2,17 @@
 controls the Source panel and the REST API share.
 
 - :class:`SourceTap` wraps the opened :class:`FrameSource`: the fusion pipeline iterates it
-  as it would the source. It measures each sensor's delivered frame rate and hands every
-  frame to the :class:`Recorder` while one is recording.
+  as it would the source. It measures each sensor's delivered frame rate, hands every
+  frame to the :class:`Recorder` while one is recording, and checks each frame
+  (:class:`~app.server.sensor_health.HealthMonitor`): garbage frames (wrong size, no finite
+  pixel, implausible values) are withheld from fusion, which carries on without them.
 - :class:`Recorder` writes those frames to a new MCAP recording (``app.recording.
   RecordingWriter``, docs/FORMATS.md "Recordings") in a background thread fed by a bounded
   queue. The pipeline never waits for the disk: when the queue is full the frame is dropped
   and counted. Stopping writes what is queued, finishes the file and gives it its name.
 - :class:`SourceControl` is what the panel and the routes call: the state of the source,
-  replay controls (pause, resume, seek, rate) and recording start/stop.
+  each sensor's health (:meth:`SourceControl.sensor_health`), replay controls (pause,
+  resume, seek, rate) and recording start/stop.
 
 Recordings go to ``<workdir>/recordings/<YYYYmmdd-HHMMSS>.mcap`` (local time of the start;
 ``-2``, ``-3`` ... appended when the name is taken). Nothing is ever overwritten: a name is
@@ -17,6 +20,12 @@ reserved by an empty hidden file ``.<name>.reserved`` while it is being written,
 writer refuses a name that exists. When the source's time goes back (a replay that loops
 or is seeked backwards), the recording continues in a new file, so that each file's
 frames stay in time order.
+
+A recording the console was writing when it was killed is kept: when the console starts
+again, :func:`app.recording.writer.recover_interrupted` names it
+``recordings/<YYYYmmdd-HHMMSS>.partial.mcap`` (readable up to its last complete chunk), its
+stale reservation is removed, and the recording state says so (``interrupted``, ``error``;
+the Source panel shows it) until the next recording starts.
 """
 
 from __future__ import annotations
@@ -36,8 +45,15 @@ from pathlib import Path
 from typing import Literal
 
 from app.recording.errors import RecordingError
-from app.recording.writer import RecordingWriter
+from app.recording.writer import RecordingWriter, recover_interrupted
 from app.server.pipeline import FusionPipeline
+from app.server.sensor_health import (
+    HealthMonitor,
+    Rejections,
+    SensorHealth,
+    expected_of,
+    push_rejections,
+)
 from app.server.stream import FrameHub
 from app.sources.base import FrameSource
 from app.sources.frames import Frame
@@ -52,6 +68,8 @@ RATE_WINDOW_S = 2.0
 """Delivered frame rates are counted over this much of the recent past (seconds)."""
 STALE_S = 3.0
 """No frame for this long (seconds): the fused rate is reported as 0 (paused, stalled)."""
+HEALTH_CACHE_S = 0.5
+"""The health lines put in the stream's metadata are recomputed at most this often (s)."""
 RECORDINGS = "recordings"
 """The folder of the work directory that console recordings go to."""
 
@@ -128,6 +146,8 @@ class RecordingState:
     stopping: bool = False
     files: list[str] = field(default_factory=list)
     error: str | None = None
+    interrupted: list[str] = field(default_factory=list)
+    """Recordings a killed console left unfinished, kept under a new name at start-up."""
 
 
 _STOP = object()
@@ -300,6 +320,28 @@ class Recorder:
         self._session: _Session | None = None
         self._stopping: _Session | None = None  # finishing its file(s)
         self.last: RecordingState | None = None
+        self.interrupted: list[Path] = self._recover()
+
+    def _recover(self) -> list[Path]:
+        """Keep what recordings interrupted by a crash wrote (see the module doc)."""
+        try:
+            kept = recover_interrupted(self.directory)
+        except OSError as exc:
+            log.error("%s: could not look for interrupted recordings: %s", self.directory, exc)
+            return []
+        with contextlib.suppress(OSError):
+            for reservation in self.directory.glob(".*.mcap.reserved"):
+                if (self.directory / reservation.name[1 : -len(".reserved")]).exists():
+                    reservation.unlink(missing_ok=True)  # finished and named, then killed
+        for name, path in kept:
+            (self.directory / f".{name}.reserved").unlink(missing_ok=True)  # its writer died
+            cut = path.name != name
+            log.warning(
+                "%s: the console stopped while writing this recording; kept%s",
+                path,
+                " (cut off: it reads up to its last complete chunk)" if cut else " (complete)",
+            )
+        return [path for _name, path in kept]
 
     @property
     def active(self) -> bool:
@@ -365,6 +407,13 @@ class Recorder:
             return state
         if self.last is not None:
             return dataclasses.replace(self.last, files=list(self.last.files))
+        if self.interrupted:
+            names = ", ".join(f"{RECORDINGS}/{p.name}" for p in self.interrupted)
+            return RecordingState(
+                available=True,
+                interrupted=[str(p) for p in self.interrupted],
+                error=f"the console stopped while recording; what was written is kept: {names}",
+            )
         return RecordingState(available=True)
 
     def close(self) -> None:
@@ -382,8 +431,12 @@ class SourceTap(FrameSource):
 
     Attributes:
         inner: the wrapped source (its ``close`` is called by this one's).
-        meter: delivered frame rates per sensor.
-        recorder: the recorder frames are offered to (None: no recording).
+        meter: delivered frame rates per sensor (every frame, usable or not).
+        recorder: the recorder frames are offered to (None: no recording); it gets every
+            frame as received.
+        health: checks each frame; garbage frames are not passed on (the consumer sees the
+            sensor missing). Judged against the source's rig until :class:`SourceControl`
+            gives it the pipeline's.
     """
 
     def __init__(self, inner: FrameSource, recorder: Recorder | None = None) -> None:
@@ -392,14 +445,18 @@ class SourceTap(FrameSource):
         self.rig = inner.rig
         self.meter = RateMeter()
         self.recorder = recorder
+        self.health = HealthMonitor(self.sensors, expected_of(inner.rig, self.sensors))
 
     def frames(self) -> Iterator[Frame]:
-        meter = self.meter
+        meter, health = self.meter, self.health
         for frame in self.inner.frames():
-            meter.tick(frame.sensor)
+            now = time.monotonic()
+            meter.tick(frame.sensor, now)
             recorder = self.recorder
             if recorder is not None:
                 recorder.offer(frame)
+            if health.observe(frame, now) is not None:
+                continue  # garbage: shown in the sensor's health, not fused
             yield frame
 
     def close(self) -> None:
@@ -478,6 +535,10 @@ class SourceControl:
         if workdir is not None and self.tap is not None:
             self.recorder = self.tap.recorder or Recorder(Path(workdir) / RECORDINGS)
             self.tap.recorder = self.recorder
+        self._notes: tuple[float, dict[str, str]] | None = None
+        if self.tap is not None:
+            self.tap.health.set_rig(pipeline.rig)  # frames must fit what fusion expects
+            pipeline.sensor_notes = self.health_notes
 
     # -- state --------------------------------------------------------------------------
 
@@ -517,6 +578,40 @@ class SourceControl:
         if self.tap is not None and (last is None or time.monotonic() - last > STALE_S):
             return 0.0
         return float(self.pipeline.status.fps)
+
+    def sensor_health(self, now_s: float | None = None) -> dict[str, SensorHealth]:
+        """Each sensor's health (:mod:`app.server.sensor_health`): the frames the tap saw,
+        the push ingest's rejections, camera readers' states; empty without a tap."""
+        if self.tap is None:
+            return {}
+        src = self.source
+        rejections: dict[str, Rejections] = {}
+        devices: dict[str, tuple[str, str]] = {}
+        if self.kind == "push":
+            rejections = push_rejections(src.stats())  # type: ignore[attr-defined]
+        status = getattr(src, "status", None)
+        if self.kind == "live" and callable(status):
+            with contextlib.suppress(Exception):
+                for name, d in status().items():
+                    devices[name] = (str(getattr(d, "state", "")), str(getattr(d, "reason", "")))
+        return self.tap.health.report(
+            now_s,
+            rates_hz=self.rates_hz(),
+            paused=self.paused,
+            rejections=rejections,
+            devices=devices,
+        )
+
+    def health_notes(self) -> dict[str, str]:
+        """``{sensor: line}`` for the sensors that are not ok (recomputed at most every
+        :data:`HEALTH_CACHE_S`; the pipeline puts it in each frame's metadata)."""
+        now = time.monotonic()
+        cached = self._notes
+        if cached is not None and now - cached[0] < HEALTH_CACHE_S:
+            return cached[1]
+        notes = {s: h.line() for s, h in self.sensor_health(now).items() if not h.ok}
+        self._notes = (now, notes)
+        return notes
 
     def recording_state(self) -> RecordingState:
         if self.recorder is None:

@@ -1,7 +1,8 @@
 """The console's Source panel (Viser GUI): what is playing, replay controls, recording.
 
-Shows the source's description, each sensor's delivered frame rate, the fused frame rate,
-missing sensors and errors. For a replay: a play/pause button, a position slider that
+Shows the source's description, each sensor's delivered frame rate, one line per sensor
+that is not ok (silent, no frame yet, failing: :mod:`app.server.sensor_health`), the fused
+frame rate, missing sensors and errors. For a replay: a play/pause button, a position slider that
 follows the replay (and leaves the operator's hand alone while it drags) and a speed
 slider (0.25x-4x). For every source: Record / Stop recording, which records the frames the
 console receives to ``<workdir>/recordings/<time>.mcap`` (see
@@ -18,6 +19,7 @@ import viser
 
 from app.server.context import ConsoleContext
 from app.server.periodic import Periodic
+from app.server.sensor_health import SensorHealth
 from app.server.source_control import (
     RATE_MAX,
     RATE_MIN,
@@ -74,6 +76,12 @@ def recording_text(r: RecordingState) -> str:
     if r.error:
         text += f"  \n**Error:** {r.error}"
     return text
+
+
+def health_text(health: dict[str, SensorHealth]) -> str:
+    """One markdown line per sensor that is not ok (e.g. ``thermal_right: silent for
+    12 s``); '' when all are."""
+    return "  \n".join(f"⚠ {h.line()}" for h in health.values() if not h.ok)
 
 
 class SourcePanel(Periodic):
@@ -209,6 +217,9 @@ class SourcePanel(Periodic):
         lines = ["| sensor | Hz |", "| :--- | ---: |"]
         lines += [f"| {name} | {hz:.1f} |" for name, hz in rates.items()]
         text = "\n".join(lines) if rates else "No per-sensor rates (the source is not tapped)"
+        sick = health_text(c.sensor_health())
+        if sick:
+            text += "\n\n" + sick
         fused = "paused" if c.paused else f"{c.fused_fps():.1f} fps"
         text += f"\n\nFused: **{fused}**, {status.frames_out} frames"
         if status.missing:

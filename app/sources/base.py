@@ -7,7 +7,8 @@ head, a recording being replayed, cameras, frames pushed by an on-robot driver).
 the fastest, a colour camera at 30 Hz) opens a frame set, which takes for every other
 sensor its frame nearest in time within ``tolerance_s``. A sensor without such a frame is
 reported in ``FrameSet.missing`` with the reason (never seen, or how old its latest frame
-is) and never blocks the others.
+is) and never blocks the others. When the reference sensor itself stops, a *fallback*
+sensor (the other colour camera) opens the sets until it comes back.
 """
 
 from __future__ import annotations
@@ -57,7 +58,17 @@ class FrameSetAssembler:
         tolerance_s: the largest time difference between the reference frame and another
             sensor's frame in the same set.
         history: frames kept per sensor to search for the nearest one.
+        fallback: the sensor whose frames open the sets while the reference is silent: its
+            frames do once more than ``fallback_after_s`` (in frame time) and more than
+            :attr:`FALLBACK_FRAMES` of its frames have passed since the reference's latest
+            frame (or since the first frame of any sensor, if the reference never came).
+            None: without the reference no set is made.
+        fallback_after_s: see ``fallback``.
     """
+
+    FALLBACK_FRAMES = 3
+    """Fallback frames since the reference's last one before the fallback opens sets (a
+    seek or a late reference frame does not switch)."""
 
     def __init__(
         self,
@@ -65,6 +76,8 @@ class FrameSetAssembler:
         reference: str | None = None,
         tolerance_s: float = 0.05,
         history: int = 8,
+        fallback: str | None = None,
+        fallback_after_s: float = 0.5,
     ) -> None:
         self.sensors = list(sensors)
         if not self.sensors:
@@ -74,22 +87,41 @@ class FrameSetAssembler:
             raise ValueError(f"reference: {self.reference!r} is not one of {self.sensors}")
         if tolerance_s <= 0:
             raise ValueError(f"tolerance_s: expected a positive number, got {tolerance_s}")
+        if fallback is not None and (fallback not in self.sensors or fallback == self.reference):
+            raise ValueError(
+                f"fallback: {fallback!r} is not one of {self.sensors} other than the reference"
+            )
         self.tolerance_ns = int(tolerance_s * 1e9)
+        self.fallback = fallback
+        self.fallback_after_ns = int(fallback_after_s * 1e9)
         self._recent: dict[str, deque[Frame]] = {s: deque(maxlen=history) for s in self.sensors}
         self._pending: deque[Frame] = deque()
+        self._last_ref_ns: int | None = None  # the reference's latest stamp (or the first frame's)
+        self._since_ref = 0  # fallback frames since then
 
     def push(self, frame: Frame) -> list[FrameSet]:
         """Add one frame; returns the frame sets that are complete now (possibly none).
 
         A reference frame's set is emitted once every other sensor has a frame at or after
         its time, or once the reference's *next* frame arrives (late sensors are then
-        reported missing): sets are never held back by a dead sensor.
+        reported missing): sets are never held back by a dead sensor. While the reference
+        is silent, the ``fallback`` sensor's frames open the sets instead.
         """
         if frame.sensor not in self._recent:
             return []  # a sensor this consumer does not use
         self._recent[frame.sensor].append(frame)
+        if self._last_ref_ns is None:
+            self._last_ref_ns = frame.stamp_ns
         if frame.sensor == self.reference:
+            self._last_ref_ns, self._since_ref = frame.stamp_ns, 0
             self._pending.append(frame)
+        elif frame.sensor == self.fallback:
+            self._since_ref += 1
+            if (
+                self._since_ref > self.FALLBACK_FRAMES
+                and frame.stamp_ns - self._last_ref_ns > self.fallback_after_ns
+            ):
+                self._pending.append(frame)
         out = []
         while self._pending:
             ref = self._pending[0]
@@ -116,7 +148,7 @@ class FrameSetAssembler:
     def _assemble(self, ref: Frame) -> FrameSet:
         fs = FrameSet(ref.stamp_ns, {ref.sensor: ref})
         for s in self.sensors:
-            if s == self.reference:
+            if s == ref.sensor:
                 continue
             recent = self._recent[s]
             if not recent:

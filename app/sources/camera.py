@@ -45,12 +45,12 @@ from typing import Any
 
 import cv2
 import numpy as np
-import yaml
 
 from app.sources.base import FrameSource
 from app.sources.frames import Frame
 from app.sources.slots import NewestFrameSlots
 from calib.rig import Rig
+from calib.yaml_text import YamlError, parse_yaml
 
 CAMERA_CONFIG_FORMAT = "trifuse-cameras/1"
 
@@ -143,7 +143,7 @@ class CameraConfig:
             raise CameraError(
                 f"{where}: modality: expected 'color' or 'thermal', got {self.modality!r}"
             )
-        if self.backend not in BACKENDS:
+        if not isinstance(self.backend, str) or self.backend not in BACKENDS:
             raise CameraError(
                 f"{where}: backend: expected one of {sorted(BACKENDS)}, got {self.backend!r}"
             )
@@ -189,7 +189,12 @@ class CameraConfig:
 
 
 def _finite(v: Any) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        return False
+    try:
+        return math.isfinite(v)
+    except OverflowError:  # an integer beyond float's range
+        return False
 
 
 def _positive(v: Any) -> bool:
@@ -216,7 +221,7 @@ def cameras_config_from_dict(
     """
     if not isinstance(data, Mapping):
         raise CameraError(f"{where}: expected a mapping, got {type(data).__name__}")
-    unknown = sorted(set(data) - _TOP_KEYS)
+    unknown = sorted(set(data) - _TOP_KEYS, key=str)
     if unknown:
         raise CameraError(f"{where}: unknown keys {unknown} (allowed: {sorted(_TOP_KEYS)})")
     if data.get("format") != CAMERA_CONFIG_FORMAT:
@@ -238,7 +243,7 @@ def cameras_config_from_dict(
             raise CameraError(
                 f"{where}: sensors.{name}: expected a mapping with at least 'device', got {entry!r}"
             )
-        bad = sorted(set(entry) - _SENSOR_KEYS)
+        bad = sorted(set(entry) - _SENSOR_KEYS, key=str)
         if bad:
             raise CameraError(
                 f"{where}: sensors.{name}: unknown keys {bad} (allowed: {sorted(_SENSOR_KEYS)})"
@@ -265,7 +270,7 @@ def cameras_config_from_dict(
                     "name does not tell it"
                 ) from None
         for key in ("fps", "max_rate_hz", "scale", "offset"):
-            if isinstance(kwargs.get(key), int) and not isinstance(kwargs[key], bool):
+            if _finite(kwargs.get(key)):
                 kwargs[key] = float(kwargs[key])
         try:
             configs.append(CameraConfig(sensor=str(name), **kwargs))
@@ -281,9 +286,13 @@ def load_cameras_config(path: str | Path) -> CamerasConfig:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise CameraError(f"{path}: cannot read camera config: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise CameraError(
+            f"{path}: camera config is not UTF-8 text: {exc.reason} at byte {exc.start}"
+        ) from None
     try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
+        data = parse_yaml(text)
+    except YamlError as exc:
         raise CameraError(f"{path}: not valid YAML: {exc}") from None
     cfg = cameras_config_from_dict(data, base_dir=path.parent, where=str(path))
     return CamerasConfig(cfg.sensors, cfg.open_timeout_s, cfg.stall_timeout_s, path)

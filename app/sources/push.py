@@ -60,6 +60,8 @@ DEFAULT_MAX_MESSAGE_BYTES = 16 * 1024 * 1024
 MAX_HEADER_BYTES = 64 * 1024
 DEFAULT_MAX_PIXELS = 1 << 25
 MAX_SIDE_PX = 16384
+MAX_SCALE_OR_OFFSET = 1e30
+"""Largest ``scale``/``offset`` of a 16-bit part (65535 * 1e30 + 1e30 fits a float32)."""
 INGEST_PATH = "/ingest"
 
 ENCODINGS: dict[str, tuple[str, ...]] = {
@@ -320,8 +322,10 @@ def parse_header(
         )
     try:
         header = json.loads(bytes(data[PREFIX.size : PREFIX.size + hlen]).decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except ValueError as exc:  # not UTF-8, not JSON, or an integer of more than 4300 digits
         raise PushError(f"header is not UTF-8 JSON: {exc}") from None
+    except RecursionError:
+        raise PushError("header is not UTF-8 JSON: nested too deeply") from None
     if not isinstance(header, dict):
         raise PushError(f"header: expected a JSON object, got {type(header).__name__}")
     unknown = sorted(set(header) - _HEADER_KEYS)
@@ -379,9 +383,18 @@ def _jpeg_size(data: bytes, what: str) -> tuple[int, int]:
 
 
 def _number(value: Any, what: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+    if isinstance(value, bool) or not isinstance(value, int | float):
         raise PushError(f"{what}: expected a finite number, got {value!r}")
-    return float(value)
+    try:
+        number = float(value)
+    except OverflowError:  # an integer beyond float's range
+        number = math.inf
+    if not math.isfinite(number) or abs(number) > MAX_SCALE_OR_OFFSET:
+        raise PushError(
+            f"{what}: expected a finite number of magnitude at most {MAX_SCALE_OR_OFFSET:g} "
+            f"(16-bit counts * scale + offset must fit a float32), got {value!r}"
+        )
+    return number
 
 
 def decode_part(modality: str, part: Mapping[str, Any], data: bytes, what: str) -> np.ndarray:

@@ -1,0 +1,644 @@
+"""Nothing lost (issue 8): a crash at any moment of a capture, a save or a recording leaves
+the previous state readable and the new one complete or absent.
+
+Two levels:
+
+* Deterministic: a forked child runs one write (an atomic file write, a capture view, a rig
+  version) and dies (``os._exit``, no clean-up runs) at a chosen step; the parent checks
+  what is on disk and what a restart makes of it. A child process writing a recording is
+  SIGKILLed; the partial MCAP is recovered, readable up to its last complete chunk.
+* The console: ``trifuse serve --scenario calibration`` is SIGKILLed at seeded random
+  moments while a client thread captures views, calibrates, saves rig versions and records,
+  then restarted on the same work directory: every acknowledged (2xx) capture and rig
+  version is listed and byte-identical, everything listed loads, the interrupted recording
+  is kept and reported, and the console works on.
+
+No timing is asserted (shared, noisy machine): waits have generous time-outs only.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import app.atomic
+import app.capture
+from app.atomic import atomic_write_bytes, remove_temporaries
+from app.calib_session import CalibrationSession
+from app.capture import load_capture, load_view, write_board, write_rig, write_view
+from app.recording import ReplaySource
+from app.recording.writer import RecordingWriter, recover_interrupted
+from app.rigfile import load_rig
+from app.server.source_control import Recorder
+from app.sources.frames import Frame, FrameSet
+from app.sources.sim.head import default_rig
+from app.sources.sim.scenarios import CALIBRATION_BOARD
+from tests.browser_support import ROOT, free_port
+
+CRASHED = 86  # exit code of a child that "crashed" where the test wanted
+TOKEN = "crash-safety-token-0123456789"
+
+
+# -- deterministic crashes in a forked child ----------------------------------------------
+
+
+def _crash_in_child(action: Callable[[], Any], module: Any, name: str, nth: int = 1) -> None:
+    """Run ``action`` in a forked child that dies (no clean-up, like a SIGKILL) on the
+    ``nth`` call of ``module.name``, before that call does anything."""
+    pid = os.fork()
+    if pid == 0:  # the child: never returns
+        code = 1
+        try:
+            original = getattr(module, name)
+            calls = [0]
+
+            def crash(*args: Any, **kwargs: Any) -> Any:
+                calls[0] += 1
+                if calls[0] == nth:
+                    os._exit(CRASHED)
+                return original(*args, **kwargs)
+
+            setattr(module, name, crash)
+            action()
+            code = 0  # finished without reaching the crash point
+        finally:
+            os._exit(code)
+    deadline = time.monotonic() + 120
+    while True:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            break
+        if time.monotonic() > deadline:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            pytest.fail(f"the child writing with a crash at {name} #{nth} hung")
+        time.sleep(0.02)
+    assert os.waitstatus_to_exitcode(status) == CRASHED, f"{name} #{nth} was never reached"
+
+
+def _temporaries(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.name.endswith(".tmp"))
+
+
+@pytest.mark.parametrize(
+    ("module", "name", "new_is_there"),
+    [
+        (os, "fsync", False),  # data written, not yet durable
+        (os, "replace", False),  # data durable, not yet renamed
+        (app.atomic, "fsync_dir", True),  # renamed, the directory not yet fsynced
+    ],
+)
+def test_atomic_write_crash_leaves_old_or_new(tmp_path, module, name, new_is_there) -> None:
+    path = tmp_path / "rig.yaml"
+    path.write_bytes(b"old: 1\n")
+    new = b"new: 2\n" * 1000
+    _crash_in_child(lambda: atomic_write_bytes(path, new), module, name)
+    assert path.read_bytes() == (new if new_is_there else b"old: 1\n")
+    # a restart removes the temporary file, and the target is as it was
+    removed = remove_temporaries(tmp_path)
+    assert _temporaries(tmp_path) == []
+    assert len(removed) == (0 if new_is_there else 1)
+    assert path.read_bytes() == (new if new_is_there else b"old: 1\n")
+    atomic_write_bytes(path, b"after: 3\n")  # writing works on
+    assert path.read_bytes() == b"after: 3\n"
+
+
+@pytest.mark.parametrize(("name", "new_is_there"), [("link", False), ("unlink", True)])
+def test_new_file_crash_is_complete_or_absent(tmp_path, name, new_is_there) -> None:
+    """``overwrite=False`` (rig versions): hard link into place, then drop the temporary."""
+    path = tmp_path / "rig-0002.yaml"
+    data = b"x" * 100_000
+    _crash_in_child(lambda: atomic_write_bytes(path, data, overwrite=False), os, name)
+    assert (path.read_bytes() == data) if new_is_there else not path.exists()
+    assert len(_temporaries(tmp_path)) == 1  # the temporary (a second link if complete)
+    remove_temporaries(tmp_path)
+    assert _temporaries(tmp_path) == []
+    assert (path.read_bytes() == data) if new_is_there else not path.exists()
+
+
+def _flat_frames(rig, stamp_ns: int = 0, seed: int = 0) -> FrameSet:
+    """A frame set of every sensor with the rig's sizes (no board: nothing to find)."""
+    rng = np.random.default_rng(seed)
+    frames = {}
+    for name, s in rig.sensors.items():
+        w, h = s.image_size
+        if s.modality == "color":
+            image = np.full((h, w, 3), rng.integers(0, 255), np.uint8)
+            frames[name] = Frame(name, stamp_ns, image)
+        elif s.modality == "thermal":
+            frames[name] = Frame(name, stamp_ns, np.full((h, w), 300.0 + seed, np.float32))
+        else:
+            amp = np.full((h, w), 100.0 + seed, np.float32)
+            frames[name] = Frame(name, stamp_ns, amp, np.full((h, w), 1.5, np.float32))
+    return FrameSet(stamp_ns, frames)
+
+
+def _file_hashes(folder: Path) -> dict[str, str]:
+    return {
+        p.name: hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.iterdir())
+        if p.is_file()
+    }
+
+
+@pytest.mark.parametrize(
+    ("module", "name", "nth", "new_is_there"),
+    [
+        (os, "replace", 3, False),  # two images written into the staging folder, third not
+        (os, "rename", 1, False),  # every image written, the folder not renamed into place
+        (app.capture, "fsync_dir", 2, True),  # renamed, the capture directory not fsynced
+    ],
+)
+def test_capture_crash_leaves_views_whole(tmp_path, module, name, nth, new_is_there) -> None:
+    rig = default_rig()
+    captures = tmp_path / "captures"
+    write_board(captures, CALIBRATION_BOARD)
+    write_rig(captures, rig)
+    write_view(captures, "0001", _flat_frames(rig, seed=1), rig)
+    before = _file_hashes(captures / "0001")
+    _crash_in_child(
+        lambda: write_view(captures, "0002", _flat_frames(rig, seed=2), rig), module, name, nth
+    )
+    views = [v.name for v in load_capture(captures, verify=True).views]
+    assert views == (["0001", "0002"] if new_is_there else ["0001"])
+    assert _file_hashes(captures / "0001") == before
+    staging = [p for p in captures.iterdir() if p.name.endswith(".partial")]
+    assert len(staging) == (0 if new_is_there else 1)
+
+    # A restart: the interrupted view is not listed but kept (its images are kept, the
+    # temporary file of the image being written is removed); capturing works on.
+    session = CalibrationSession(tmp_path, rig, CALIBRATION_BOARD, workers=1)
+    try:
+        assert [v.name for v in session.views()] == views
+        assert session.interrupted == staging
+        for folder in staging:
+            assert _temporaries(folder) == []
+            assert len(list(folder.iterdir())) >= (2 if name == "replace" else len(rig.names))
+        taken = session.take(_flat_frames(rig, seed=3))
+        assert taken.name == "0003"  # the interrupted view's number is not used again
+        load_view(captures, taken.name, rig).frames()
+    finally:
+        session.close()
+    assert _file_hashes(captures / "0001") == before
+
+
+def test_rig_save_crash_keeps_versions_and_numbers_go_on(tmp_path) -> None:
+    """The report is written first, the rig file (which makes the version) last: a crash
+    between them leaves a report alone, which is not listed and whose number is not used
+    again (it used to block every later save: 'could not find a free version name')."""
+    rig = default_rig()
+    session = CalibrationSession(tmp_path, rig, CALIBRATION_BOARD, workers=1)
+    first = session.save_rig(rig, {"rms_px": 0.1})
+    rig_bytes, report_bytes = (
+        first.path.read_bytes(),
+        (tmp_path / "rigs" / "rig-0001.report.json").read_bytes(),
+    )
+    session.close()
+    # the second os.link is the rig file's (the first is the report's)
+    _crash_in_child(lambda: session.save_rig(rig, {"rms_px": 0.2}), os, "link", nth=2)
+    rigs = tmp_path / "rigs"
+    assert (rigs / "rig-0002.report.json").is_file() and not (rigs / "rig-0002.yaml").exists()
+
+    again = CalibrationSession(tmp_path, rig, CALIBRATION_BOARD, workers=1)
+    try:
+        assert [v.name for v in again.versions()] == ["rig-0001"]
+        assert _temporaries(rigs) == []
+        saved = again.save_rig(rig, {"rms_px": 0.3})
+        assert saved.name == "rig-0003"
+        assert [v.name for v in again.versions()] == ["rig-0001", "rig-0003"]
+        assert again.versions()[1].rms_px == 0.3
+        assert load_rig(saved.path).names == rig.names
+    finally:
+        again.close()
+    assert first.path.read_bytes() == rig_bytes
+    assert (rigs / "rig-0001.report.json").read_bytes() == report_bytes
+
+
+# -- recordings: a writer killed in the middle ----------------------------------------------
+
+_RECORD_CHILD = """
+import os, signal, sys
+import numpy as np
+from app.recording.writer import RecordingWriter
+from app.sources.frames import Frame
+from app.sources.sim.head import default_rig
+rig = default_rig()
+w, h = rig["thermal_left"].image_size
+rng = np.random.default_rng(5)
+writer = RecordingWriter(sys.argv[1], rig, chunk_size=64 * 1024)
+k = 0
+while writer.temp_path.stat().st_size < 600_000:
+    image = (290 + 20 * rng.random((h, w))).astype(np.float32)
+    writer.write(Frame("thermal_left", 1_000_000_000 + k * 50_000_000, image))
+    k += 1
+print(k, flush=True)
+os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+def _record_and_die(path: Path) -> int:
+    """A child process writes thermal frames to ``path`` and is SIGKILLed mid-recording;
+    returns how many frames it wrote."""
+    done = subprocess.run(
+        [sys.executable, "-c", _RECORD_CHILD, str(path)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == -signal.SIGKILL, done.stderr
+    return int(done.stdout.split()[0])
+
+
+def test_killed_recording_is_kept_readable_and_reported(tmp_path) -> None:
+    recordings = tmp_path / "recordings"
+    written = _record_and_die(recordings / "20260101-120000.mcap")
+    (recordings / ".20260101-120000.mcap.reserved").touch()  # as the console reserves it
+    leftovers = sorted(p.suffix for p in recordings.iterdir())
+    assert leftovers == [".partial", ".reserved"]  # all hidden: .<name>.mcap.<random>.partial
+
+    # Killed after naming a finished recording, before releasing its name: the name is
+    # taken anyway. A reservation without any file may be a recorder starting: kept.
+    (recordings / "20251231-235959.mcap").write_bytes(b"finished")
+    (recordings / ".20251231-235959.mcap.reserved").touch()
+    (recordings / ".20251231-000000.mcap.reserved").touch()
+    # A writer that is alive is never touched.
+    live = RecordingWriter(recordings / "live.mcap", default_rig())
+    recorder = Recorder(recordings)  # what the console does when it starts
+    kept = recordings / "20260101-120000.partial.mcap"
+    assert recorder.interrupted == [kept]
+    assert sorted(p.name for p in recordings.iterdir() if p.name.startswith(".")) == sorted(
+        [".20251231-000000.mcap.reserved", live.temp_path.name]
+    )  # the dead recording's temporary file and reservation are gone, the live one is there
+    assert (recordings / "20251231-235959.mcap").read_bytes() == b"finished"
+    state = recorder.state()
+    assert state.interrupted == [str(kept)] and "20260101-120000.partial.mcap" in state.error
+    live.close()
+    assert (recordings / "live.mcap").is_file()
+
+    # It reads up to its last complete chunk, then says why it ends.
+    with ReplaySource(kept, realtime=False, on_damage="stop") as src:
+        frames = list(src.frames())
+        assert 0 < len(frames) <= written
+        assert src.damage is not None and "not finished" in str(src.damage)
+    with ReplaySource(kept, realtime=False) as src:  # on_damage="raise": a clear error
+        with pytest.raises(Exception, match=r"recording damaged.*not finished"):
+            for _ in src.frames():
+                pass
+    stamps = [f.stamp_ns for f in frames]
+    assert stamps == [1_000_000_000 + k * 50_000_000 for k in range(len(frames))]
+
+    # Started again: nothing more to recover, the kept file stays.
+    assert recover_interrupted(recordings) == []
+    assert kept.is_file()
+
+
+def test_recording_finished_but_not_named_gets_its_name(tmp_path) -> None:
+    rig = default_rig()
+    done = tmp_path / "done.mcap"
+    with RecordingWriter(done, rig) as w:
+        w.write(_flat_frames(rig, 1_000).frames["tof"])
+    os.link(done, tmp_path / ".done.mcap.abcd1234.partial")  # killed before the unlink
+    os.link(done, tmp_path / ".other.mcap.abcd1234.partial")  # killed before the link
+    (tmp_path / ".empty.mcap.abcd1234.partial").touch()  # killed before writing anything
+    old = time.time() - 3600
+    os.utime(tmp_path / ".empty.mcap.abcd1234.partial", (old, old))
+    assert recover_interrupted(tmp_path) == [("other.mcap", tmp_path / "other.mcap")]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["done.mcap", "other.mcap"]
+    with ReplaySource(tmp_path / "other.mcap", realtime=False) as src:
+        assert len(list(src.frames())) == 1 and src.damage is None
+
+
+# -- the console, killed at random moments ----------------------------------------------------
+
+
+class Server:
+    """One run of ``trifuse serve`` (its output appended to ``log``)."""
+
+    def __init__(self, workdir: Path, log: Path) -> None:
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        start = log.stat().st_size if log.exists() else 0
+        self.log = log
+        with log.open("a") as out:
+            self.proc = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-c",
+                    "import sys; from app.cli import main; sys.exit(main(sys.argv[1:]))",
+                    "serve",
+                    "--port",
+                    str(self.port),
+                    "--workdir",
+                    str(workdir),
+                    "--scenario",
+                    "calibration",
+                ],
+                cwd=ROOT,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                env={**os.environ, "TRIFUSE_TOKEN": TOKEN},
+            )
+        deadline = time.monotonic() + 180
+        while True:
+            if self.proc.poll() is not None:
+                pytest.fail(f"trifuse serve ended ({self.proc.returncode}):\n{self.output()}")
+            if time.monotonic() > deadline:
+                self.kill()
+                pytest.fail(f"trifuse serve did not answer:\n{self.output()}")
+            with contextlib.suppress(OSError):
+                if self.call("GET", "/api/status", timeout=5)[0] == 200:
+                    break
+            time.sleep(0.2)
+        self.started_at = start
+
+    def output(self) -> str:
+        return self.log.read_text(errors="replace")
+
+    def this_run(self) -> str:
+        """What this run printed."""
+        with self.log.open("rb") as f:
+            f.seek(self.started_at)
+            return f.read().decode(errors="replace")
+
+    def call(self, method: str, path: str, timeout: float = 300) -> tuple[int, Any]:
+        """(status, JSON) of a REST call; OSError when the server is gone."""
+        req = urllib.request.Request(
+            self.url + path, method=method, data=b"" if method == "POST" else None
+        )
+        req.add_header("Authorization", f"token {TOKEN}")
+        try:
+            with urllib.request.urlopen(req, timeout=timeout) as r:
+                return r.status, json.loads(r.read())
+        except urllib.error.HTTPError as e:
+            return e.code, e.read().decode(errors="replace")
+
+    def get(self, path: str) -> Any:
+        status, body = self.call("GET", path)
+        assert status == 200, (path, status, body)
+        return body
+
+    def kill(self) -> None:
+        self.proc.kill()  # SIGKILL: no clean-up of any kind
+        self.proc.wait(60)
+
+    def stop(self) -> None:
+        self.proc.terminate()
+        try:
+            self.proc.wait(60)
+        except subprocess.TimeoutExpired:
+            self.kill()
+
+
+class Client(threading.Thread):
+    """Captures and saves until the server dies; remembers what was acknowledged (2xx) and
+    the files as they were at that moment. ``calibrate``: first ``"save"`` (calibrate, wait
+    for it, save the rig: the kill may come from then on) or ``"run"`` (start a calibration,
+    go on capturing while it runs: the kill will likely come in the middle of it)."""
+
+    def __init__(
+        self, server: Server, workdir: Path, rng: random.Random, calibrate: str | None = None
+    ):
+        super().__init__(name="crash-client", daemon=True)
+        self.server, self.workdir, self.rng, self.calibrate = server, workdir, rng, calibrate
+        self.views: dict[str, dict[str, str]] = {}
+        self.rigs: dict[str, dict[str, str]] = {}
+        self.calibrated = False
+        self.going = threading.Event()  # set when the kill may come
+        self.error: BaseException | None = None
+
+    def _rig_files(self, body: dict) -> dict[str, str]:
+        rigs = self.workdir / "rigs"
+        return {
+            f: hashlib.sha256((rigs / f).read_bytes()).hexdigest()
+            for f in (f"{body['name']}.yaml", f"{body['name']}.report.json")
+        }
+
+    def run(self) -> None:
+        try:
+            self._run()
+        except OSError:
+            pass  # killed: the connection broke
+        except BaseException as exc:  # reported by the test
+            self.error = exc
+        finally:
+            self.going.set()
+
+    def _run(self) -> None:
+        s = self.server
+        if self.calibrate == "run":
+            status, body = s.call("POST", "/api/calibrate")
+            assert status == 202, body
+        elif self.calibrate == "save":
+            status, body = s.call("POST", "/api/calibrate")
+            assert status == 202, body
+            deadline = time.monotonic() + 600
+            while (job := s.get("/api/calibrate"))["state"] == "running":
+                assert time.monotonic() < deadline, job
+                time.sleep(0.5)
+            assert job["state"] == "done", job
+            self.calibrated = True
+            self.going.set()
+            status, body = s.call("POST", "/api/rigs")
+            assert status == 201, body
+            self.rigs[body["name"]] = self._rig_files(body)
+        deadline = time.monotonic() + 600
+        while not self._capture():  # the source's first frames take a while
+            assert time.monotonic() < deadline, "no frames to capture"
+            time.sleep(0.2)
+        self.going.set()
+        while True:
+            if self.rng.random() < 0.65:
+                self._capture()
+            else:
+                status, body = s.call("POST", "/api/thermal/save")
+                assert status == 201, body
+                self.rigs[body["name"]] = self._rig_files(body)
+
+    def _capture(self) -> bool:
+        status, body = self.server.call("POST", "/api/captures")
+        if status != 201:
+            assert status in (409, 422), (status, body)  # no frames (board) yet
+            return False
+        self.views[body["name"]] = _file_hashes(self.workdir / "captures" / body["name"])
+        return True
+
+
+def _check_after_restart(
+    server: Server,
+    workdir: Path,
+    views: dict[str, dict[str, str]],
+    rigs: dict[str, dict[str, str]],
+    seen: dict[str, dict[str, str]],
+) -> None:
+    """Every acknowledged view and rig version is listed, loads and is as it was; every
+    listed one loads; nothing half-written is listed or left as a temporary file.
+
+    ``seen``: the file hashes of every view and version checked after an earlier restart
+    (a file that is as it was then needs no decoding again)."""
+    captures, rigs_dir = workdir / "captures", workdir / "rigs"
+    listed = [v["name"] for v in server.get("/api/captures")["views"]]
+    missing = sorted(set(views) - set(listed))
+    assert not missing, f"acknowledged views lost: {missing}"
+    capture = load_capture(captures)  # the views on disk are the views listed
+    assert sorted(v.name for v in capture.views) == sorted(listed)
+    for view in capture.views:
+        hashes = _file_hashes(view.path)
+        assert hashes == views.get(view.name, hashes), f"view {view.name} changed"
+        assert hashes == seen.get(view.name, hashes), f"view {view.name} changed"
+        if view.name not in seen:
+            view.frames()  # every image decodes (CaptureError otherwise)
+            seen[view.name] = hashes
+
+    versions = server.get("/api/rigs")
+    names = [v["name"] for v in versions]
+    missing = sorted(set(rigs) - set(names))
+    assert not missing, f"acknowledged rig versions lost: {missing}"
+    assert sorted(names) == sorted(p.name[:-5] for p in rigs_dir.glob("rig-*.yaml"))
+    for v in versions:
+        files = [f"{v['name']}.yaml", f"{v['name']}.report.json"]
+        hashes = {f: hashlib.sha256((rigs_dir / f).read_bytes()).hexdigest() for f in files}
+        assert hashes == rigs.get(v["name"], hashes), f"rig version {v['name']} changed"
+        assert hashes == seen.get(v["name"], hashes), f"rig version {v['name']} changed"
+        if v["name"] not in seen:
+            rig = server.get(f"/api/rigs/{v['name']}")
+            assert set(rig["sensors"]) == set(default_rig().names)
+            assert set(load_rig(v["path"]).names) == set(default_rig().names)
+            json.loads((rigs_dir / files[1]).read_text())
+            seen[v["name"]] = hashes
+    for folder in (captures, rigs_dir):
+        assert _temporaries(folder) == [], "temporary files of interrupted writes remain"
+
+
+def _render_views(folder: Path) -> None:
+    """Three rendered views of the calibration scenario in which every sensor sees the board
+    (poses 0, 2 and 3 of its sequence; pose 1 is outside ccd_right's image)."""
+    from app.sources.sim.scenarios import CalibrationScenario
+
+    scenario = CalibrationScenario()
+    for k, pose in enumerate((0, 2, 3)):
+        frames, _truth = scenario.render(pose * scenario.hold_s + 0.5)
+        write_view(folder, f"{k + 1:04d}", frames, scenario.rig)
+
+
+ROUNDS = 6
+
+
+def test_console_killed_during_captures_saves_and_recording(tmp_path) -> None:
+    workdir = tmp_path / "work"
+    _render_views(workdir / "captures")  # enough views for a quick calibration
+    servers: list[Server] = []
+    try:
+        _kill_and_restart(workdir, tmp_path / "console.log", servers)
+        servers[-1].stop()
+    finally:
+        for server in servers:  # after a failure: no console left running
+            if server.proc.poll() is None:
+                server.kill()
+
+
+def _kill_and_restart(workdir: Path, log: Path, servers: list[Server]) -> None:
+    rng = random.Random(20261122)
+    views: dict[str, dict[str, str]] = {}
+    rigs: dict[str, dict[str, str]] = {}
+    interrupted_views: set[str] = set()
+    seen: dict[str, dict[str, str]] = {}
+
+    def start() -> Server:
+        servers.append(Server(workdir, log))
+        return servers[-1]
+
+    server = start()
+    for round_ in range(ROUNDS):
+        calibrate = {0: "save", 2: "run"}.get(round_)
+        client = Client(server, workdir, random.Random(rng.random()), calibrate)
+        client.start()
+        assert client.going.wait(900), "the client did not get going"
+        time.sleep(rng.uniform(0.0, 1.5) if round_ == 0 else rng.uniform(0.3, 3.0))
+        server.kill()
+        client.join(120)
+        assert not client.is_alive()
+        if client.error is not None:
+            raise client.error
+        if round_ == 0:
+            assert client.calibrated, "the calibration round did not calibrate"
+        views.update(client.views)
+        rigs.update(client.rigs)
+
+        server = start()
+        _check_after_restart(server, workdir, views, rigs, seen)
+        assert server.get("/api/calibrate")["state"] == "idle"  # a killed run is gone
+        staging = {p.name for p in (workdir / "captures").glob(".*.partial")}
+        for name in staging - interrupted_views:  # a capture was cut: it is reported
+            assert name in server.this_run(), server.this_run()
+        interrupted_views |= staging
+    print(
+        f"{ROUNDS} kills: {len(views)} captures and {len(rigs)} rig versions acknowledged, "
+        f"{len(interrupted_views)} captures interrupted"
+    )
+    assert views, "no capture was acknowledged before a kill"
+
+    # Killed while recording: the partial recording is kept, reported and readable.
+    status, body = server.call("POST", "/api/recording/start")
+    assert status == 200 and body["active"], body
+    name = Path(body["path"]).name
+    deadline = time.monotonic() + 300
+    while (state := server.get("/api/recording"))["size_bytes"] < 1_600_000:
+        assert time.monotonic() < deadline, state  # a chunk (1 MiB) is complete then
+        time.sleep(0.2)
+    client = Client(server, workdir, random.Random(rng.random()))
+    client.start()  # captures and saves go on while it records
+    time.sleep(rng.uniform(0.0, 1.0))
+    server.kill()
+    client.join(120)
+    if client.error is not None:
+        raise client.error
+    views.update(client.views)
+    rigs.update(client.rigs)
+
+    server = start()
+    _check_after_restart(server, workdir, views, rigs, seen)
+    recordings = workdir / "recordings"
+    kept = recordings / name.replace(".mcap", ".partial.mcap")
+    assert sorted(p.name for p in recordings.iterdir()) == [kept.name]  # nothing hidden left
+    assert f"{kept}: the console stopped while writing" in server.this_run()
+    state = server.get("/api/recording")
+    assert not state["active"] and kept.name in state["error"], state
+    with ReplaySource(kept, realtime=False, on_damage="stop") as src:
+        assert sum(1 for _ in src.frames()) > 0
+        assert src.damage is not None and "not finished" in str(src.damage)
+
+    # The console works on: a capture, a save, a recording.
+    status, body = server.call("POST", "/api/captures")
+    deadline = time.monotonic() + 120
+    while status != 201:
+        assert time.monotonic() < deadline, body
+        time.sleep(0.3)
+        status, body = server.call("POST", "/api/captures")
+    assert body["name"] in [v["name"] for v in server.get("/api/captures")["views"]]
+    assert server.call("POST", "/api/thermal/save")[0] == 201
+    assert server.call("POST", "/api/recording/start")[0] == 200
+    deadline = time.monotonic() + 120
+    while server.get("/api/recording")["frames_written"] == 0:
+        assert time.monotonic() < deadline
+        time.sleep(0.2)
+    status, state = server.call("POST", "/api/recording/stop", timeout=180)
+    assert status == 200 and not state["active"] and state["error"] is None, state
+    with ReplaySource(state["files"][0], realtime=False) as src:
+        assert sum(1 for _ in src.frames()) > 0 and src.damage is None
