@@ -13,12 +13,13 @@ high-emissivity material); the detector needs it to tell the two orderings apart
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from calib.numbers import finite_float
 
 
 @dataclass(frozen=True)
@@ -36,13 +37,7 @@ class Board:
             if not isinstance(v, int) or isinstance(v, bool) or v < 2:
                 raise ValueError(f"board {name}: expected an integer >= 2, got {v!r}")
         size = self.square_size_m
-        valid = isinstance(size, int | float) and not isinstance(size, bool)
-        if valid:
-            try:
-                valid = math.isfinite(float(size)) and size > 0
-            except OverflowError:  # an integer beyond float's range
-                valid = False
-        if not valid:
+        if not (finite_float(size) or 0.0) > 0.0:
             raise ValueError(f"board square_size_m: expected a positive number, got {size!r}")
         object.__setattr__(self, "square_size_m", float(self.square_size_m))
         if not isinstance(self.thermal_black_is_hot, bool):

@@ -23,13 +23,14 @@ Rig-file block (all keys optional, defaults shown)::
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+
+from calib.numbers import check_finite
 
 __all__ = ["RADIOMETRY_KEYS", "Radiometry"]
 
@@ -45,14 +46,7 @@ _POSITIVE = ("gain", "balance_gain")
 
 def _check_field(name: str, value: Any, where: str) -> float:
     """``value`` as a float, or ValueError naming ``where.name``."""
-    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
-        raise ValueError(f"{where}.{name}: expected a number, got {value!r}")
-    try:
-        v = float(value)
-    except OverflowError:  # an integer beyond float's range
-        v = math.inf
-    if not math.isfinite(v):
-        raise ValueError(f"{where}.{name}: expected a finite number, got {value!r}")
+    v = check_finite(value, f"{where}.{name}")
     if name in _POSITIVE and v <= 0.0:
         raise ValueError(f"{where}.{name}: expected a number > 0, got {value!r}")
     return v

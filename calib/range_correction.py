@@ -25,13 +25,14 @@ Rig file block (``sensors.<tof>.range_correction``, docs/FORMATS.md)::
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
 
 import numpy as np
+
+from calib.numbers import check_finite
 
 MODEL = "trifuse-range/1"
 _LUT_STEP_M = 0.001  # resolution of the distance term's lookup table
@@ -339,15 +340,7 @@ def _keys(
 
 
 def _num(value: Any, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ValueError(f"{where}: expected a finite number, got {value!r}")
-    try:
-        number = float(value)
-    except OverflowError:  # an integer beyond float's range
-        number = math.inf
-    if not math.isfinite(number):
-        raise ValueError(f"{where}: expected a finite number, got {value!r}")
-    return number
+    return check_finite(value, where)
 
 
 def _list(value: Any, where: str) -> list[Any]:

@@ -10,7 +10,6 @@ the app's job (``app.rigfile``).
 
 from __future__ import annotations
 
-import math
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -21,6 +20,7 @@ import yaml
 
 from calib.camera import DISTORTION_LENGTHS, Intrinsics
 from calib.errors import RigError
+from calib.numbers import check_finite
 from calib.radiometry import Radiometry
 from calib.range_correction import RangeCorrection
 from calib.transforms import invert, rigidity_problem
@@ -165,15 +165,7 @@ def _mapping(value: Any, where: str) -> Mapping[str, Any]:
 
 
 def _number(value: Any, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise RigError(f"{where}: expected a number, got {value!r}")
-    try:
-        number = float(value)
-    except OverflowError:  # an integer beyond float's range
-        number = math.inf
-    if not math.isfinite(number):
-        raise RigError(f"{where}: expected a finite number, got {value!r}")
-    return number
+    return check_finite(value, where, RigError)
 
 
 def _check_keys(

@@ -68,9 +68,12 @@ class Console:
         return self.request(path, "POST", body)
 
 
-def start_console(args: Sequence[str], port: int | None = None) -> tuple[subprocess.Popen, Console]:
-    """Start ``trifuse serve ARGS`` on a free loopback port (with its own random token);
-    returns the process and the console once the port accepts connections."""
+def start_console(
+    args: Sequence[str], port: int | None = None, env: dict[str, str] | None = None
+) -> tuple[subprocess.Popen, Console]:
+    """Start ``trifuse serve ARGS`` on a free loopback port (with its own random token
+    unless ``env`` gives one); returns the process and the console (its URL as printed:
+    ``https`` under TLS) once the port accepts connections."""
     port = port or free_port()
     proc = subprocess.Popen(
         [
@@ -83,6 +86,7 @@ def start_console(args: Sequence[str], port: int | None = None) -> tuple[subproc
             *args,
         ],
         cwd=ROOT,
+        env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
@@ -91,7 +95,7 @@ def start_console(args: Sequence[str], port: int | None = None) -> tuple[subproc
     for _ in range(50):
         line = proc.stdout.readline()
         said += line
-        m = re.search(rf"http://127\.0\.0\.1:{port}/\?token=(\S+)", line)
+        m = re.search(rf"(https?://127\.0\.0\.1:{port})/\?token=(\S+)", line)
         if m is not None or not line:
             break
     if m is None:
@@ -103,7 +107,7 @@ def start_console(args: Sequence[str], port: int | None = None) -> tuple[subproc
             break
         except OSError:
             time.sleep(0.1)
-    return proc, Console(f"http://127.0.0.1:{port}", m.group(1))
+    return proc, Console(m.group(1), m.group(2))
 
 
 @contextlib.contextmanager

@@ -12,8 +12,6 @@ import re
 import shutil
 import ssl
 import subprocess
-import sys
-import time
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
@@ -34,7 +32,7 @@ from app.server.stream import FrameHub
 from app.sources.push import PushSource, make_push_router
 from app.sources.sim.head import default_rig
 from app.sources.sim.scenarios import CALIBRATION_BOARD
-from tests.browser_support import ROOT, free_port
+from tests.browser_support import free_port, start_console
 from tests.test_api import _NoFrames
 
 TOKEN = "test-token-0123456789abcdef"
@@ -251,31 +249,13 @@ def test_serve_over_tls_with_a_token_from_the_environment(certificate, tmp_path)
     from websockets.sync.client import connect
 
     cert, key = certificate
-    port = free_port()
-    env = {**os.environ, "TRIFUSE_TOKEN": TOKEN}
-    proc = subprocess.Popen(
-        [
-            *(sys.executable, "-c", "import sys; from app.cli import main; sys.exit(main())"),
-            *("serve", "--port", str(port), "--workdir", str(tmp_path / "w")),
-            *("--certfile", str(cert), "--keyfile", str(key)),
-        ],
-        cwd=ROOT,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
+    args = ["--workdir", str(tmp_path / "w"), "--certfile", str(cert), "--keyfile", str(key)]
+    proc, console = start_console(args, env={**os.environ, "TRIFUSE_TOKEN": TOKEN})
     tls = ssl.create_default_context(cafile=str(cert))
-    base = f"https://127.0.0.1:{port}"
+    base = console.url
+    port = base.rsplit(":", 1)[1]
     try:
-        line = proc.stdout.readline()
-        assert f"{base}/?token={TOKEN}" in line, line
-        for _ in range(100):  # the line comes before the server listens
-            try:
-                urllib.request.urlopen(base + "/login", context=tls, timeout=2).close()
-                break
-            except (urllib.error.URLError, ConnectionError):
-                time.sleep(0.1)
+        assert base.startswith("https://") and console.token == TOKEN
         with pytest.raises(urllib.error.HTTPError) as refused:
             urllib.request.urlopen(base + "/api/status", context=tls, timeout=5)
         assert refused.value.code == 401

@@ -22,13 +22,13 @@ give its modality: ``color`` -> color, ``thermal`` -> thermal, ``tof_distance`` 
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from app.recording.errors import TopicMapError
+from calib.numbers import check_finite
 from calib.yaml_text import YamlError, parse_yaml
 
 TOPIC_MAP_FORMAT = "trifuse-topic-map/1"
@@ -88,15 +88,7 @@ class TopicMap:
 
 
 def _number(value: Any, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise TopicMapError(f"{where}: expected a finite number, got {value!r}")
-    try:
-        number = float(value)
-    except OverflowError:  # an integer beyond float's range
-        number = math.inf
-    if not math.isfinite(number):
-        raise TopicMapError(f"{where}: expected a finite number, got {value!r}")
-    return number
+    return check_finite(value, where, TopicMapError)
 
 
 def topic_map_from_dict(data: Any, where: str = "topic map") -> TopicMap:

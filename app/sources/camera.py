@@ -35,7 +35,6 @@ Configuration (``--live CONFIG``, docs/FORMATS.md "Live camera configuration")::
 from __future__ import annotations
 
 import dataclasses
-import math
 import threading
 import time
 from collections.abc import Iterator, Mapping, Sequence
@@ -49,6 +48,7 @@ import numpy as np
 from app.sources.base import FrameSource
 from app.sources.frames import Frame
 from app.sources.slots import NewestFrameSlots
+from calib.numbers import finite_float
 from calib.rig import Rig
 from calib.yaml_text import YamlError, parse_yaml
 
@@ -189,12 +189,7 @@ class CameraConfig:
 
 
 def _finite(v: Any) -> bool:
-    if isinstance(v, bool) or not isinstance(v, int | float):
-        return False
-    try:
-        return math.isfinite(v)
-    except OverflowError:  # an integer beyond float's range
-        return False
+    return finite_float(v) is not None
 
 
 def _positive(v: Any) -> bool:

@@ -33,7 +33,6 @@ numpy, OpenCV and ``websockets``.
 from __future__ import annotations
 
 import json
-import math
 import struct
 import threading
 import time
@@ -47,6 +46,7 @@ import numpy as np
 from app.sources.base import FrameSource
 from app.sources.frames import Frame
 from app.sources.slots import NewestFrameSlots
+from calib.numbers import check_finite
 from calib.rig import MODALITIES, Rig
 
 if TYPE_CHECKING:
@@ -383,13 +383,8 @@ def _jpeg_size(data: bytes, what: str) -> tuple[int, int]:
 
 
 def _number(value: Any, what: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise PushError(f"{what}: expected a finite number, got {value!r}")
-    try:
-        number = float(value)
-    except OverflowError:  # an integer beyond float's range
-        number = math.inf
-    if not math.isfinite(number) or abs(number) > MAX_SCALE_OR_OFFSET:
+    number = check_finite(value, what, PushError)
+    if abs(number) > MAX_SCALE_OR_OFFSET:
         raise PushError(
             f"{what}: expected a finite number of magnitude at most {MAX_SCALE_OR_OFFSET:g} "
             f"(16-bit counts * scale + offset must fit a float32), got {value!r}"
