@@ -722,20 +722,26 @@ class _Console:
         }
 
     def close(self) -> None:
-        import subprocess
-
         page = getattr(self, "page", None)
         if page is not None:
             page.close()
             self.page = None
-        if self.proc.poll() is not None:
-            return
-        self.proc.terminate()
-        try:
-            self.proc.wait(15)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait(5)
+        stop_process(self.proc)
+
+
+def stop_process(proc: Any) -> None:
+    """End a console subprocess: SIGTERM (it finishes recordings and closes cleanly), then
+    SIGKILL if it has not ended within 15 s."""
+    import subprocess
+
+    if proc.poll() is not None:
+        return
+    proc.terminate()
+    try:
+        proc.wait(15)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(5)
 
 
 def _phase(console: _Console, windows: list[dict[str, float]], prefix: str) -> dict[str, float]:

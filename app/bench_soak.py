@@ -79,6 +79,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from app.bench import stop_process
+
 ROOT = Path(__file__).resolve().parents[1]
 
 MIN_FPS_RATIO = 0.9
@@ -541,14 +543,7 @@ class ConsoleProcess:
             return json.loads(r.read())
 
     def close(self) -> None:
-        if self.proc.poll() is not None:
-            return
-        self.proc.terminate()
-        try:
-            self.proc.wait(15)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait(5)
+        stop_process(self.proc)
 
 
 # -- sampling -----------------------------------------------------------------------------
