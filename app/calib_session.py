@@ -135,16 +135,16 @@ JobState = Literal["idle", "running", "done", "failed"]
 
 
 @dataclass
-class CalibrationJob:
-    """The session's calibration run (one at a time).
+class Job:
+    """A background run of the session (one of each kind at a time).
 
     Attributes:
         state: ``idle`` (never run), ``running``, ``done`` or ``failed``.
         stage: what it is doing now (human readable).
         progress: fraction done, 0-1.
-        views: the views it calibrates.
+        views: the views it works on.
         error: why it failed.
-        result, report: the calibration and its report (``report.json`` content) when done.
+        report: its report when done.
         started, finished: ``time.time()`` seconds.
         saved_as: the rig version it was saved as, if it was.
     """
@@ -154,7 +154,6 @@ class CalibrationJob:
     progress: float = 0.0
     views: list[str] = field(default_factory=list)
     error: str | None = None
-    result: CalibrationResult | None = None
     report: dict[str, Any] | None = None
     started: float | None = None
     finished: float | None = None
@@ -162,27 +161,21 @@ class CalibrationJob:
 
 
 @dataclass
-class RangeJob:
-    """The session's TOF range calibration run (one at a time).
+class CalibrationJob(Job):
+    """The session's calibration run; ``result``: the calibration when done (``report``:
+    the ``report.json`` content)."""
 
-    Attributes:
-        state, stage, progress, views, error, started, finished, saved_as: as
-            :class:`CalibrationJob`'s.
-        rig: the rig the board poses come from (and that the correction is added to).
-        run: the fit and its validation when done; report: ``range.json`` content.
-    """
+    result: CalibrationResult | None = None
 
-    state: JobState = "idle"
-    stage: str = ""
-    progress: float = 0.0
-    views: list[str] = field(default_factory=list)
-    error: str | None = None
+
+@dataclass
+class RangeJob(Job):
+    """The session's TOF range calibration run; ``rig``: the rig the board poses come from
+    (and that the correction is added to); ``run``: the fit and its validation when done
+    (``report``: the ``range.json`` content)."""
+
     rig: Rig | None = None
     run: RangeRun | None = None
-    report: dict[str, Any] | None = None
-    started: float | None = None
-    finished: float | None = None
-    saved_as: str | None = None
 
 
 class CalibrationSession:

@@ -29,6 +29,7 @@ from calib.range_correction import (
     bspline_basis,
     offset_grid_shape,
 )
+from calib.robust import mad_sigma
 from calib.tof import region_map
 
 REGION_NAMES = {
@@ -272,7 +273,7 @@ def fit_range_correction(
         b = Aw.T @ y
         x = np.linalg.solve(N, b)
         r = y - A @ x
-        sigma = 1.4826 * float(np.median(np.abs(r - np.median(r)))) or 1e-6
+        sigma = mad_sigma(r) or 1e-6
         if it < opts.iterations:
             z = r / (opts.tukey_c * sigma)
             weights = np.where(np.abs(z) < 1, (1 - z * z) ** 2, 0.0)

@@ -32,6 +32,7 @@ import numpy.typing as npt
 
 from calib.radiometry import Radiometry
 from calib.rig import Rig
+from calib.robust import MAD_TO_SIGMA, mad_sigma
 from fusion.geometry import in_image, project_to_sensor
 from fusion.mapping import DepthView, MappingOptions
 from fusion.stereo import sample_image
@@ -52,7 +53,6 @@ _MAPPING = MappingOptions()
 # The thermal z-buffers at the imagers' own resolution: a thermal pixel is ~2.4 TOF pixels
 # wide, so DepthView splats each TOF point over 3 x 3 cells and leaves no gaps.
 _ZBUFFER_SCALE = 1
-_MAD_TO_SIGMA = 1.4826  # MAD of a normal distribution -> its standard deviation
 _TUKEY_C = 4.685  # Tukey biweight tuning constant (95 % efficiency at the normal)
 _MIN_SCALE_K = 1e-3  # floor of the residual scale (readings quantised to 0.01 K)
 
@@ -292,7 +292,7 @@ class BalanceEstimate:
 
 def _tukey(residual: np.ndarray) -> tuple[np.ndarray, float]:
     """Tukey biweights (N,) of residuals and their MAD scale (kelvin, floored)."""
-    scale = max(_MAD_TO_SIGMA * float(np.median(np.abs(residual))), _MIN_SCALE_K)
+    scale = max(MAD_TO_SIGMA * float(np.median(np.abs(residual))), _MIN_SCALE_K)
     u = residual / (_TUKEY_C * scale)
     w = np.square(1.0 - np.square(u))
     w[np.abs(u) >= 1.0] = 0.0
@@ -363,10 +363,6 @@ def _span_of_inliers(mid: np.ndarray, weights: np.ndarray) -> tuple[float, float
     inl = mid[weights > 0] if np.any(weights > 0) else mid
     p5, median, p95 = np.percentile(inl, [5.0, 50.0, 95.0])
     return float(p95 - p5), float(median)
-
-
-def _mad(r: np.ndarray) -> float:
-    return _MAD_TO_SIGMA * float(np.median(np.abs(r - np.median(r))))
 
 
 def estimate_balance(
@@ -470,7 +466,7 @@ def estimate_balance(
         n_points=n,
         n_inliers=int(np.count_nonzero(w > 0)),
         spread_k=spread,
-        mad_k=_mad(residual),
+        mad_k=mad_sigma(residual),
         reference_k=m,
         note=note,
     )

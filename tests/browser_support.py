@@ -23,7 +23,7 @@ from typing import Any
 
 import pytest
 
-from app.bench import CHROMIUM, CHROMIUM_FLAGS
+from app.bench import CHROMIUM, CHROMIUM_FLAGS, stop_process
 
 FLAGS = list(CHROMIUM_FLAGS)
 ROOT = Path(__file__).resolve().parents[1]
@@ -117,9 +117,4 @@ def console_running(args: Sequence[str]) -> Iterator[Console]:
     try:
         yield console
     finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
+        stop_process(proc)

@@ -22,6 +22,7 @@ from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
+from app.bench import stop_process
 from app.calib_session import CalibrationSession
 from app.cli import main
 from app.server.app import create_app
@@ -34,6 +35,7 @@ from app.sources.sim.head import default_rig
 from app.sources.sim.scenarios import CALIBRATION_BOARD
 from tests.browser_support import free_port, start_console
 from tests.test_api import _NoFrames
+from tests.test_push import serve
 
 TOKEN = "test-token-0123456789abcdef"
 HOST = "testserver"  # TestClient's Host header; its origin is http://testserver
@@ -281,12 +283,7 @@ def test_serve_over_tls_with_a_token_from_the_environment(certificate, tmp_path)
             meta = json.loads(ws.recv(timeout=60))
             assert "seq" in meta
     finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
+        stop_process(proc)
 
 
 class _NoRedirect(urllib.request.HTTPRedirectHandler):
@@ -295,25 +292,11 @@ class _NoRedirect(urllib.request.HTTPRedirectHandler):
 
 
 def test_push_driver_without_the_token_stops_with_a_message(tmp_path, capsys) -> None:
-    import threading
-
-    import uvicorn
-
     from app.drivers import push_sim
 
-    app = console_app(tmp_path)
-    port = free_port()
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    try:
-        while not server.started:
-            thread.join(0.05)
+    with serve(console_app(tmp_path)) as port:
         url = f"ws://127.0.0.1:{port}/ingest"
         args = ["--url", url, "--sensors", "tof", "--frames", "1", "--quiet"]
         assert push_sim.main([*args, "--token", "wrong-token-0123456"]) == 2
         assert "wrong --token" in capsys.readouterr().err
         assert push_sim.main([*args, "--token", TOKEN]) == 0
-    finally:
-        server.should_exit = True
-        thread.join(10)

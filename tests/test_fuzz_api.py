@@ -16,16 +16,12 @@ import json
 import os
 import socket
 import string
-import threading
-import time
 from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import quote, urlencode
 
 import pytest
-import uvicorn
 from fastapi import FastAPI
 from fastapi.routing import APIRoute
 from fastapi.testclient import TestClient
@@ -49,6 +45,7 @@ from app.server.stream import FrameHub
 from app.server.thermal_balance import ThermalBalancer
 from app.sources.frames import FrameSet
 from app.sources.sim.scenarios import CALIBRATION_BOARD
+from tests.test_push import serve
 from tests.test_recording import small_rig, synth_frames, write_recording
 
 MAX_BODY = DEFAULT_MAX_BODY_BYTES
@@ -773,26 +770,6 @@ def test_body_limit_leaves_websockets_alone() -> None:
     asyncio.run(BodyLimitMiddleware(app, 0)({"type": "websocket"}, None, None))
     asyncio.run(BodyLimitMiddleware(app, 0)({"type": "lifespan"}, None, None))
     assert seen == ["websocket", "lifespan"]
-
-
-@contextmanager
-def serve(app: FastAPI) -> Iterator[int]:
-    """``app`` under uvicorn on a free port of 127.0.0.1; yields the port."""
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="off"))
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 10
-    while not server.started:
-        assert time.monotonic() < deadline, "uvicorn did not start"
-        time.sleep(0.01)
-    try:
-        yield sock.getsockname()[1]
-    finally:
-        server.should_exit = True
-        thread.join(10)
-        sock.close()
 
 
 def test_body_limit_on_a_real_server_chunked_and_declared() -> None:

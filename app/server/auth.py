@@ -26,9 +26,11 @@ import json
 import secrets
 from collections.abc import Awaitable, Callable, Iterable, MutableMapping
 from dataclasses import dataclass, field
-from http.cookies import SimpleCookie
 from typing import Any
 from urllib.parse import parse_qsl, quote, urlencode, urlsplit
+
+from starlette.datastructures import Headers
+from starlette.requests import HTTPConnection
 
 Scope = MutableMapping[str, Any]
 Message = MutableMapping[str, Any]
@@ -115,32 +117,12 @@ class AuthConfig:
         return hmac.compare_digest(given.encode("utf-8"), self.session.encode("utf-8"))
 
 
-def _headers(scope: Scope) -> dict[str, str]:
-    """Request headers, lower-case names; the last of repeated ones (Cookie: joined)."""
-    out: dict[str, str] = {}
-    for raw_name, raw_value in scope.get("headers", ()):
-        name = raw_name.decode("latin-1").lower()
-        value = raw_value.decode("latin-1")
-        out[name] = f"{out[name]}; {value}" if name == "cookie" and name in out else value
-    return out
-
-
-def _cookie(headers: dict[str, str], name: str) -> str | None:
-    jar = SimpleCookie()
-    try:
-        jar.load(headers.get("cookie", ""))
-    except Exception:  # http.cookies raises CookieError and others on junk: no cookie
-        return None
-    morsel = jar.get(name)
-    return morsel.value if morsel is not None else None
-
-
-def _authorization_token(headers: dict[str, str]) -> str | None:
+def _authorization_token(headers: Headers) -> str | None:
     scheme, _, value = headers.get("authorization", "").partition(" ")
     return value.strip() if scheme.lower() in ("token", "bearer") else None
 
 
-def _own_origin(scope: Scope, headers: dict[str, str]) -> str:
+def _own_origin(scope: Scope, headers: Headers) -> str:
     scheme = {"ws": "http", "wss": "https"}.get(scope.get("scheme", "http"), scope.get("scheme"))
     return f"{scheme}://{headers.get('host', '')}".lower()
 
@@ -188,34 +170,34 @@ class AuthMiddleware:
         if kind not in ("http", "websocket"):
             await self.app(scope, receive, send)
             return
-        headers = _headers(scope)
+        conn = HTTPConnection(scope)
+        headers = conn.headers
         refusal = self._origin_refusal(scope, headers)
         if refusal:
-            await self._deny(scope, send, 403, refusal)
+            await self._deny(conn, send, 403, refusal)
             return
         cfg = self.config
         if kind == "http" and scope["path"] == LOGIN_PATH and cfg.token is not None:
             await self._login(scope, receive, send)
             return
-        if cfg.token is None or cfg.cookie_ok(_cookie(headers, cfg.cookie_name)):
+        if cfg.token is None or cfg.cookie_ok(conn.cookies.get(cfg.cookie_name)):
             await self.app(scope, receive, _with_headers(send))
             return
         if cfg.token_ok(_authorization_token(headers)):
             await self.app(scope, receive, _with_headers(send))
             return
-        query = parse_qsl(scope.get("query_string", b"").decode("latin-1"), True)
-        if cfg.token_ok(dict(query).get("token")):
+        if cfg.token_ok(conn.query_params.get("token")):
             if kind == "http" and scope["method"] == "GET" and _navigation(headers):
                 # a browser opened the token URL: cookie, then the same page without it
-                rest = urlencode([(k, v) for k, v in query if k != "token"])
+                rest = urlencode([kv for kv in conn.query_params.multi_items() if kv[0] != "token"])
                 await _redirect(send, scope["path"] + (f"?{rest}" if rest else ""), cfg)
                 return
             await self.app(scope, receive, _with_headers(send, cfg.set_cookie()))
             return
         what = "a token or a session cookie" if kind == "http" else "a session"
-        await self._deny(scope, send, 401, f"authentication required: {what}")
+        await self._deny(conn, send, 401, f"authentication required: {what}")
 
-    def _origin_refusal(self, scope: Scope, headers: dict[str, str]) -> str | None:
+    def _origin_refusal(self, scope: Scope, headers: Headers) -> str | None:
         """Why the request is refused for where it comes from, or None."""
         if self.config.token is None:
             host = _host_name(headers.get("host", ""))
@@ -233,15 +215,14 @@ class AuthMiddleware:
             return None
         return f"origin {origin!r} is not allowed (cross-site request)"
 
-    async def _deny(self, scope: Scope, send: Send, status: int, message: str) -> None:
-        if scope["type"] == "websocket":
+    async def _deny(self, conn: HTTPConnection, send: Send, status: int, message: str) -> None:
+        if conn.scope["type"] == "websocket":
             # closing before accepting: the server answers the upgrade with 403
             await send({"type": "websocket.close", "code": 1008, "reason": message[:120]})
             return
-        headers = _headers(scope)
-        if status == 401 and _navigation(headers):
-            path = scope["path"]
-            qs = scope.get("query_string", b"").decode("latin-1")
+        if status == 401 and _navigation(conn.headers):
+            path = conn.scope["path"]
+            qs = conn.scope.get("query_string", b"").decode("latin-1")
             next_path = path + (f"?{qs}" if qs and "token=" not in qs else "")
             body = _login_page("Sign in to use this console.", next_path)
             await _respond(send, status, body, b"text/html; charset=utf-8")
@@ -280,7 +261,7 @@ class AuthMiddleware:
         await _respond(send, 401, page, b"text/html; charset=utf-8")
 
 
-def _navigation(headers: dict[str, str]) -> bool:
+def _navigation(headers: Headers) -> bool:
     """Whether a browser is loading a page (rather than a script fetching data)."""
     mode = headers.get("sec-fetch-mode")
     if mode is not None:
