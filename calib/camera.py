@@ -18,12 +18,23 @@ from __future__ import annotations
 
 import numbers
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 import numpy.typing as npt
 
 DISTORTION_LENGTHS = (4, 5, 8)
+
+MAX_RAY_RADIUS = 1e4
+"""Largest normalised radius ``sqrt(x^2 + y^2)`` (x = X/Z, y = Y/Z) that projects: a ray
+within 0.006 degrees of the image plane (or a point on it, where ``Z`` is a rounding error
+such as 1e-17) is seen by no lens, and its powers overflow the distortion polynomial."""
+
+# Normalised radii scanned for the fold of the distortion: step 1e-3 up to 2 (63 degrees off
+# axis), then geometric up to MAX_RAY_RADIUS.
+_FOLD_SCAN = np.concatenate(
+    [np.linspace(0.0, 2.0, 2001), np.geomspace(2.0, MAX_RAY_RADIUS, 2001)[1:]]
+)
 
 
 @dataclass(frozen=True)
@@ -167,7 +178,10 @@ class Intrinsics:
     def project(self, points: npt.ArrayLike) -> np.ndarray:
         """Project camera-frame points ``(..., 3)`` in metres to pixels ``(..., 2)``.
 
-        Points with z <= 0 (behind or on the camera plane) or NaN project to NaN.
+        NaN for NaN points, for points on or behind the image plane (z <= 0, or so close
+        to it that the normalised radius exceeds :data:`MAX_RAY_RADIUS`), and for points
+        beyond the fold of the distortion model, where the polynomial would map them back
+        into the image (:func:`monotonic_radius`). Points outside the image are not NaN.
         """
         P = np.asarray(points, dtype=np.float64)
         if P.shape[-1] != 3:
@@ -175,6 +189,8 @@ class Intrinsics:
         z = P[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             xy = P[..., :2] / np.where(z > 0, z, np.nan)[..., None]
+            r_max = min(monotonic_radius(self), MAX_RAY_RADIUS)
+            xy[~(np.hypot(xy[..., 0], xy[..., 1]) <= r_max)] = np.nan
         uv = self.distort(xy)
         uv[..., 0] = uv[..., 0] * self.fx + self.cx
         uv[..., 1] = uv[..., 1] * self.fy + self.cy
@@ -198,6 +214,37 @@ class Intrinsics:
         rays[..., 2] = 1.0
         rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
         return rays
+
+
+@lru_cache(maxsize=64)
+def monotonic_radius(intrinsics: Intrinsics) -> float:
+    """Normalised radius up to which the radial distortion is one-to-one.
+
+    The distorted radius ``r_d = r * radial(r^2)`` must grow with ``r`` and ``radial``
+    must stay positive; beyond the first fold the polynomial maps points back into the
+    image (wrong pixels) and its inverse is not the camera's ray. Found on a grid up to
+    :data:`MAX_RAY_RADIUS`, conservatively: the last sample before the fold. The
+    tangential terms (p1, p2) are ignored. ``inf`` if there is no fold.
+
+    Args:
+        intrinsics: the camera (cached per value; ``Intrinsics`` is hashable).
+
+    Returns:
+        The radius ``sqrt(x^2 + y^2)`` in normalised coordinates (x = X/Z, y = Y/Z).
+    """
+    if not any(intrinsics.distortion):
+        return float("inf")
+    k1, k2, _, _, k3, k4, k5, k6 = intrinsics._coeffs
+    r = _FOLD_SCAN
+    r2 = r * r
+    with np.errstate(all="ignore"):
+        radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+        good = (radial > 0.0) & np.isfinite(radial)
+        good[1:] &= np.diff(r * radial) > 0.0
+    if good.all():
+        return float("inf")
+    first_bad = int(np.argmin(good))
+    return float(r[max(first_bad - 2, 0)])
 
 
 def pixel_grid(width: int, height: int) -> np.ndarray:

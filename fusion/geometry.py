@@ -15,12 +15,10 @@ NaN in, NaN out, never a point at the origin or a pixel at (0, 0).
 
 from __future__ import annotations
 
-from functools import lru_cache
-
 import numpy as np
 import numpy.typing as npt
 
-from calib.camera import Intrinsics, pixel_grid
+from calib.camera import Intrinsics, monotonic_radius, pixel_grid
 from calib.rig import Rig
 from calib.transforms import transform_points
 
@@ -35,10 +33,6 @@ __all__ = [
     "transform_points",
 ]
 
-# Normalised radii scanned for the fold of the distortion: step 1e-3 up to 2 (63 degrees off
-# axis), then geometric up to 1e4 (within 0.006 degrees of 90).
-_FOLD_SCAN = np.concatenate([np.linspace(0.0, 2.0, 2001), np.geomspace(2.0, 1e4, 2001)[1:]])
-
 
 def _positive_int(value: object, name: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int | np.integer) or value <= 0:
@@ -51,41 +45,8 @@ def _check_last_dim(a: np.ndarray, n: int, name: str) -> None:
         raise ValueError(f"{name}: expected shape (..., {n}), got {a.shape}")
 
 
-@lru_cache(maxsize=64)
-def monotonic_radius(intrinsics: Intrinsics) -> float:
-    """Normalised radius up to which the radial distortion is one-to-one.
-
-    The distorted radius ``r_d = r * radial(r^2)`` (DESIGN.md's model) must grow with
-    ``r`` and ``radial`` must stay positive; beyond the first fold the polynomial maps
-    points back into the image (wrong pixels) and its inverse is not the camera's ray.
-    Found on a grid (:data:`_FOLD_SCAN`), conservatively: the last sample before the fold.
-    The tangential terms (p1, p2) are ignored. ``inf`` if there is no fold.
-
-    Args:
-        intrinsics: the camera (cached per value; ``Intrinsics`` is hashable).
-
-    Returns:
-        The radius ``sqrt(x^2 + y^2)`` in normalised coordinates (x = X/Z, y = Y/Z).
-    """
-    c = np.zeros(8)
-    c[: len(intrinsics.distortion)] = intrinsics.distortion
-    k1, k2, _, _, k3, k4, k5, k6 = c
-    r = _FOLD_SCAN
-    r2 = r * r
-    with np.errstate(all="ignore"):
-        radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-        good = (radial > 0.0) & np.isfinite(radial)
-        good[1:] &= np.diff(r * radial) > 0.0
-    if good.all():
-        return float("inf")
-    first_bad = int(np.argmin(good))
-    return float(r[max(first_bad - 2, 0)])
-
-
 def _beyond_fold(intrinsics: Intrinsics, xy: np.ndarray) -> np.ndarray:
     """(...) True where normalised coordinates ``xy`` (..., 2) lie beyond the fold."""
-    if not any(intrinsics.distortion):
-        return np.zeros(xy.shape[:-1], dtype=bool)
     r_max = monotonic_radius(intrinsics)
     with np.errstate(invalid="ignore"):
         return np.hypot(xy[..., 0], xy[..., 1]) > r_max
@@ -186,19 +147,16 @@ def project_to_sensor(
 
     Returns:
         (..., 2) float64 pixel coordinates (u, v) in ``sensor``, with its distortion.
-        NaN for NaN points, for points on or behind the sensor's image plane (z <= 0),
-        and for points beyond the fold of the sensor's distortion model (where the
-        polynomial would map them back into the image, see :func:`monotonic_radius`).
+        NaN for NaN points, for points on or behind the sensor's image plane (z <= 0, or
+        beyond :data:`calib.camera.MAX_RAY_RADIUS`), and for points beyond the fold of the
+        sensor's distortion model (where the polynomial would map them back into the image,
+        see :func:`monotonic_radius`).
         Points outside the image are *not* NaN: see :func:`in_image`.
     """
     P = np.asarray(points_tof, dtype=np.float64)
     _check_last_dim(P, 3, "points_tof")
-    intr = rig[sensor].intrinsics
     P_sensor = transform_points(rig.T(sensor, tof_sensor_name(rig, tof)), P)
-    uv = intr.project(P_sensor)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv[_beyond_fold(intr, P_sensor[..., :2] / P_sensor[..., 2:3])] = np.nan
-    return uv
+    return rig[sensor].intrinsics.project(P_sensor)
 
 
 def tof_to_sensor_pixels(

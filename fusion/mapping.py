@@ -80,8 +80,11 @@ class DepthView:
         P = points_tof @ R.T + t
         z = P[:, 2]
         front = z > 0.05
+        # NaN on or behind the image plane and beyond the fold of the distortion (a point
+        # there would land on a wrong pixel inside the image): not splatted
         uv = self.sensor.intrinsics.project(P[front]).astype(np.float32)
-        z = z[front]
+        seen = np.isfinite(uv).all(axis=1)
+        uv, z = uv[seen], z[front][seen]
         s = self.scale
         cu = np.floor((uv[:, 0] + 0.5) / s).astype(np.int32)
         cv = np.floor((uv[:, 1] + 0.5) / s).astype(np.int32)
@@ -186,7 +189,6 @@ class ViewMapping:
             & (uv[..., 0] < w - 0.5)
             & (uv[..., 1] >= -0.5)
             & (uv[..., 1] < h - 0.5)
-            & (Q[..., 2] > 0)
         )
         iu = np.clip(
             np.floor((np.nan_to_num(uv[..., 0]) + 0.5) / s2), 0, src_z.shape[1] - 1

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from calib.camera import Intrinsics, pixel_grid
+from calib.camera import MAX_RAY_RADIUS, Intrinsics, pixel_grid
 
 # Deterministic property tests: same examples every run.
 PROPERTY = settings(derandomize=True, database=None, deadline=None, max_examples=150)
@@ -146,6 +146,35 @@ def test_points_on_or_behind_the_camera_are_nan(z: float) -> None:
     uv = intr.project([[0.1, -0.2, z], [0.0, 0.0, 1.0]])
     assert np.all(np.isnan(uv[0]))
     assert np.all(np.isfinite(uv[1]))
+
+
+@pytest.mark.parametrize("z", [1e-17, -1e-17, 1e-9])
+@pytest.mark.parametrize("dist", [(0.0,) * 5, (-0.19, 0.09, -0.0005, 0.0003, 0.0)])
+def test_points_on_the_image_plane_up_to_rounding_are_nan(z: float, dist: tuple) -> None:
+    # A point at z = 0 after a rigid round trip comes back with z of about 1e-17: its
+    # normalised radius (1e16) is no ray any lens sees, and the distortion polynomial
+    # overflows to pixels like (5.7e86, -1.1e87) (issue 14).
+    intr = Intrinsics(399.6, 399.9, 189.4, 145.1, dist)
+    assert np.isnan(intr.project([0.1, -0.2, z])).all()
+
+
+def test_grazing_but_real_rays_still_project() -> None:
+    # 89.9 degrees off axis (normalised radius 573, inside MAX_RAY_RADIUS): far outside any
+    # image, but a pixel, not NaN, without distortion.
+    intr = Intrinsics(500.0, 500.0, 320.0, 240.0)
+    r = np.tan(np.radians(89.9))
+    assert r < MAX_RAY_RADIUS
+    np.testing.assert_allclose(intr.project([r, 0.0, 1.0]), [320.0 + 500.0 * r, 240.0])
+    assert np.isnan(intr.project([1.01 * MAX_RAY_RADIUS, 0.0, 1.0])).all()
+
+
+def test_points_beyond_the_fold_of_the_distortion_are_nan() -> None:
+    # k1 = -0.4: r_d = r (1 - 0.4 r^2) folds at r = 0.913; a point at r = 1.5 would land
+    # back inside the image at r_d = 0.15.
+    intr = Intrinsics(500.0, 500.0, 320.0, 240.0, (-0.4, 0.0, 0.0, 0.0, 0.0))
+    uv = intr.project([[0.5, 0.0, 1.0], [1.5, 0.0, 1.0]])
+    assert np.isfinite(uv[0]).all()
+    assert np.isnan(uv[1]).all()
 
 
 def test_nan_points_project_to_nan() -> None:

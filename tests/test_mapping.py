@@ -11,9 +11,11 @@ from app.sources.sim.render import HeadModel, Renderer
 from app.sources.sim.scenarios import InspectionScenario
 from app.sources.sim.scene import Box, Material, Quad, Scene
 from app.sources.sim.tof_error import RangeErrorModel
+from calib.camera import Intrinsics
+from calib.rig import Rig, Sensor
 from calib.transforms import make_T
 from fusion.accuracy import band_errors, depth_edges, exact_mapping, fixed_depth_mapping
-from fusion.mapping import EyeFusion, ViewMapping, mixed_pixels
+from fusion.mapping import DepthView, EyeFusion, ViewMapping, mixed_pixels
 
 RIG = default_rig()
 NO_RANGE_ERROR = RangeErrorModel(
@@ -100,6 +102,31 @@ def test_invalid_depth_is_marked_and_never_a_point_at_the_origin() -> None:
     full = ViewMapping(RIG, "ccd_left", "thermal_left")
     full.update(frames["tof"].distance_m)
     assert full.fallback.sum() < m.fallback.sum()
+
+
+def test_z_buffer_ignores_points_beyond_the_fold_and_on_the_image_plane() -> None:
+    # k1 = -0.4 folds at a normalised radius of 0.913: a point at radius 1.5 would be drawn
+    # at radius 0.15, well inside the image, hiding what is really there.
+    cam = Intrinsics(200.0, 200.0, 159.5, 119.5, (-0.4, 0.0, 0.0, 0.0, 0.0))
+    rig = Rig(
+        sensors={
+            "tof": Sensor(
+                "tof", "tof", (101, 101), Intrinsics(100.0, 100.0, 50.0, 50.0), np.eye(4)
+            ),
+            "cam": Sensor("cam", "color", (320, 240), cam, np.eye(4)),
+        },
+        reference="tof",
+    )
+    view = DepthView(rig, "cam", "tof", 1)
+    points = np.array([[1.5, 0.0, 1.0], [0.3, 1e-17, 1e-17], [0.25, 0.0, 2.0]])
+    z = view.render(points)
+    # Only the last point, at radius 0.125 (v = 119.5 rounds up to row 120), splatted over
+    # 3 x 3 cells (a TOF pixel spans two of the camera's).
+    u = round(159.5 + 200.0 * 0.125 * (1 - 0.4 * 0.125**2))
+    np.testing.assert_array_equal(
+        np.argwhere(np.isfinite(z)), [(v, c) for v in (119, 120, 121) for c in (u - 1, u, u + 1)]
+    )
+    assert (z[119:122, u - 1 : u + 2] == 2.0).all()
 
 
 def test_mixed_pixels_are_only_those_between_two_surfaces() -> None:
