@@ -15,6 +15,7 @@ Add one with the decorator; the CLI lists and runs whatever is registered::
 
 from __future__ import annotations
 
+import itertools
 import statistics
 import time
 from collections.abc import Callable
@@ -857,6 +858,215 @@ def _stream(repeat: int) -> dict[str, float]:
         finally:
             browser.close()
     figures["warm_frame_interval_ms"] = 1e3 / figures["warm_fps"] if figures["warm_fps"] else 0
+    return figures
+
+
+# -- the console's first minute on the simulated head --------------------------------------
+
+# Injected into the viewer page: every binary stream message (one JPEG of the fused pair,
+# drawn by the viewer) as [performance.now() ms, size in bytes]. The pipeline publishes the
+# very same JPEG again while its inputs are unchanged, so equal consecutive sizes mean the
+# picture stood still.
+_PICTURE_PROBE = """
+(() => {
+  const rec = { pictures: [] };
+  window.__trifuseMotion = rec;
+  const Native = window.WebSocket;
+  window.WebSocket = class extends Native {
+    constructor(...args) {
+      super(...args);
+      this.addEventListener("message", (ev) => {
+        if (typeof ev.data !== "string") rec.pictures.push([performance.now(), ev.data.size]);
+      });
+    }
+  };
+})();
+"""
+
+MOTION_MERGE_S = 0.15
+"""Picture changes closer than this (seconds) count as one move: when the head's pose
+changes, the colour, thermal and TOF images switch a few frames apart."""
+
+
+def motion_figures(pictures: list[tuple[float, int]], t0_s: float, span_s: float) -> dict:
+    """How the picture moved in ``[t0_s, t0_s + span_s)``: ``pictures`` are (time s, JPEG
+    size) of the stream's pictures in arrival order; a size different from the previous
+    picture's is a change (changes within :data:`MOTION_MERGE_S` are one move).
+
+    Returns ``moves_per_s``, ``longest_still_s`` (the longest time between moves, the
+    window's ends included), ``pictures_per_s`` and ``distinct`` (distinct pictures).
+    """
+    inside = [(t, s) for t, s in pictures if t0_s <= t < t0_s + span_s]
+    moves: list[float] = []
+    prev = None
+    for t, size in inside:
+        if prev is not None and size != prev and (not moves or t - moves[-1] > MOTION_MERGE_S):
+            moves.append(t)
+        prev = size
+    edges = [t0_s, *moves, t0_s + span_s]
+    return {
+        "moves_per_s": len(moves) / span_s,
+        "longest_still_s": max(b - a for a, b in itertools.pairwise(edges)),
+        "pictures_per_s": len(inside) / span_s,
+        "distinct": float(len({s for _, s in inside})),
+    }
+
+
+@register(
+    "sim-first-minute",
+    "the console's first minute on the simulated head with an empty pose cache, against "
+    "the same console once every pose is cached: picture moves per second and the longest "
+    "time it stood still, in headless Chromium (minutes)",
+    baselines=(
+        ("first_longest_still_s", "full_longest_still_s"),
+        ("first_moves_per_s", "full_moves_per_s"),
+    ),
+    default_repeat=1,
+)
+def _sim_first_minute(repeat: int) -> dict[str, float]:
+    """``trifuse serve`` (default: the inspection room) with its viewer page in headless
+    Chromium, as in the ``stream`` benchmark, watched picture by picture.
+
+    ``first_*``: a console on an empty disk cache (a temporary ``XDG_CACHE_HOME``), the
+    ``SPAN_S`` seconds from the viewer's first picture (median over ``repeat`` consoles,
+    each on a new empty cache). Then the last console's cache is left to fill (at most 600
+    s; ``fill_s`` from its first picture, ``fill_poses_rendered`` of ``poses``) and
+    ``full_*`` is a console restarted on that full cache, its first ``SPAN_S`` seconds:
+    the baseline, how the picture moves once every pose is rendered.
+
+    Per console: ``moves_per_s`` picture changes per second (:func:`motion_figures`: the
+    JPEG the viewer receives changes), ``longest_still_s`` the longest time without one,
+    ``pictures_per_s`` the pictures the viewer received per second, ``distinct`` distinct
+    pictures, ``first_picture_s`` from the start of the server to the first picture.
+    """
+    import os
+    import statistics
+    import tempfile
+
+    if not os.path.exists(CHROMIUM):
+        raise RuntimeError(f"the sim-first-minute benchmark needs Debian's chromium at {CHROMIUM}")
+    from playwright.sync_api import sync_playwright
+
+    span_s = 60.0
+    fill_max_s = 600.0
+    poses = _inspection_pose_count()
+
+    def watch(console: _Console) -> tuple[dict[str, float], float]:
+        console.page.add_init_script(_PICTURE_PROBE)
+        console.page.reload()
+        console.page.wait_for_function(
+            "() => window.__trifuseMotion && window.__trifuseMotion.pictures.length > 0",
+            timeout=300e3,
+        )
+        first_s = time.monotonic() - console.t_start
+        js = "() => window.__trifuseMotion.pictures"
+        t0 = console.page.evaluate(js)[0][0] / 1e3
+        console.page.wait_for_timeout(span_s * 1e3)
+        console.page.wait_for_function(
+            f"() => performance.now() >= {(t0 + span_s) * 1e3 + 500}", timeout=60e3
+        )
+        pictures = [(t / 1e3, int(s)) for t, s in console.page.evaluate(js)]
+        out = motion_figures(pictures, t0, span_s)
+        out["first_picture_s"] = first_s
+        return out, time.monotonic() - (first_s + console.t_start)
+
+    figures: dict[str, float] = {"poses": float(poses)}
+    with tempfile.TemporaryDirectory(prefix="trifuse-bench-motion-") as tmp, sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=list(CHROMIUM_FLAGS))
+        try:
+            firsts = []
+            cache = Path(tmp) / "cache-0"
+            for i in range(repeat):
+                cache = Path(tmp) / f"cache-{i}"
+                console = _Console(browser, cache, Path(tmp) / f"work-{i}")
+                try:
+                    first, elapsed = watch(console)
+                    firsts.append(first)
+                    if i == repeat - 1:  # let its cache fill, for the baseline
+
+                        def rendered(c: Path = cache) -> int:
+                            return len(list(c.glob("trifuse/sim/*/pose-*.npz")))
+
+                        t_fill = time.monotonic() - elapsed
+                        while rendered() < poses and time.monotonic() - t_fill < fill_max_s:
+                            time.sleep(1.0)
+                        figures["fill_s"] = time.monotonic() - t_fill
+                        figures["fill_poses_rendered"] = float(rendered())
+                finally:
+                    console.close()
+            for key in firsts[0]:
+                figures[f"first_{key}"] = statistics.median(f[key] for f in firsts)
+            console = _Console(browser, cache, Path(tmp) / "work-full")
+            try:
+                full, _ = watch(console)
+            finally:
+                console.close()
+            figures.update({f"full_{k}": v for k, v in full.items()})
+        finally:
+            browser.close()
+    return figures
+
+
+@register(
+    "sim-live",
+    "simulated head: the live quality against the accurate one per image and per pose, one "
+    "frame from a live render, and a 3 s `trifuse record --source sim` against 3 s of real "
+    "time",
+    baselines=(
+        ("live_ccd_left_ms", "accurate_ccd_left_ms"),
+        ("live_thermal_left_ms", "accurate_thermal_left_ms"),
+        ("live_tof_ms", "accurate_tof_ms"),
+        ("live_pose_ms", "accurate_pose_ms"),
+        ("record_s", "recorded_s"),
+    ),
+    default_repeat=5,
+)
+def _sim_live(repeat: int) -> dict[str, float]:
+    """Medians over ``repeat`` renders of the inspection room at distinct moments (warm:
+    ray grids built), the accurate quality (``InspectionScenario``) against the live one
+    (``live=True``), frames with noise included: ``<sensor>_ms`` one sensor,
+    ``pose_ms`` all five. ``frame_<sensor>_ms``: one frame from a live render with a margin,
+    turned by 0.2 degrees, with fresh noise (what the recording pays per frame besides
+    encoding). ``record_s``: one ``record_simulation`` of ``recorded_s`` = 3 s in the
+    default (live) mode, wall time, new scenario included; the ratio is "x real time".
+    """
+    import tempfile
+
+    import numpy as np
+
+    from app.recording.simrecord import record_simulation
+    from app.sources.sim.scenarios import InspectionScenario
+
+    sensors = ("ccd_left", "thermal_left", "tof")
+    figures: dict[str, float] = {}
+    for label, live in (("accurate", False), ("live", True)):
+        scenario = InspectionScenario(seed=0, live=live)
+        scenario.render(0.0)
+        for name in sensors:
+            figures[f"{label}_{name}_ms"] = median_ms(
+                lambda i, n=name, s=scenario: s.render(1.0 + 0.37 * i, [n]), repeat
+            )
+        figures[f"{label}_pose_ms"] = median_ms(
+            lambda i, s=scenario: s.render(2.0 + 0.41 * i), repeat
+        )
+    assert scenario.developer is not None
+    dev = scenario.developer
+    rng = np.random.default_rng(0)
+    margins = dict.fromkeys(sensors, 15)
+    clean = scenario.render_clean(5.0, list(sensors), margins)
+    T = scenario.T_world_rig(5.07)  # 0.2 degrees on
+    for name in sensors:
+        T_sensor = T @ scenario.rig[name].T_rig_sensor
+        figures[f"frame_{name}_ms"] = median_ms(
+            lambda _i, n=name, Ts=T_sensor: dev.frame(clean[n], 0, rng, Ts), max(repeat, 20)
+        )
+    from app.sources.sim.head import default_rig
+
+    with tempfile.TemporaryDirectory(prefix="trifuse-bench-simrec-") as tmp:
+        t0 = time.perf_counter()
+        record_simulation(Path(tmp) / "sim.mcap", default_rig(), 3.0)
+        figures["record_s"] = time.perf_counter() - t0
+    figures["recorded_s"] = 3.0
     return figures
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from app.atomic import atomic_write_text
 from app.capture import Capture, CaptureError
+from app.report_format import coverage_sentence
 from calib.coverage import coverage
 from calib.detect import Detection, detect_board
 from calib.errors import CalibrationError
@@ -184,6 +185,7 @@ def build_report(
             "skew": cov.skew,
             "good_enough": cov.good_enough,
             "empty_regions": cov.empty_regions,
+            "reached": cov.reached,
             "corner_counts": cov.corner_counts.tolist(),
         }
     return _finite(report)
@@ -241,8 +243,7 @@ def format_summary(result: CalibrationResult, report: dict[str, Any]) -> str:
         bars = "  ".join(f"{k} {_bar(c[k])}" for k in ("x", "y", "size", "skew"))
         worst = entry["worst_view"]
         lines.append(f"{name:<14} coverage {bars}  worst view {worst}")
-        if c["empty_regions"]:
-            lines.append(f"{'':<14} never saw a corner: {', '.join(c['empty_regions'])}")
+        lines.append(f"{'':<14} {coverage_sentence(np.asarray(c['corner_counts']))}")
     if result.excluded_sensors:
         lines.append("")
         for name, why in result.excluded_sensors.items():
@@ -260,19 +261,26 @@ def format_summary(result: CalibrationResult, report: dict[str, Any]) -> str:
             lines.append(f"  view {o.view} of {o.sensor}, corner {o.corner}: {o.reason}")
         if len(corner_outliers) > 10:
             lines.append(f"  ... and {len(corner_outliers) - 10} more corners (report.json)")
-    rejected = Counter(
-        (s, r)
-        for per in report["detections"].values()
-        for s, d in per.items()
-        if not d["found"]
-        for r in [d["reason"]]
-    )
+    rejected: dict[tuple[str, str], list[str]] = {}
+    for view, per in report["detections"].items():
+        for sensor, d in per.items():
+            if not d["found"]:
+                rejected.setdefault((sensor, d["reason"]), []).append(view)
     if rejected:
         lines.append("")
-        lines.append("images without a usable board:")
-        for (sensor, reason), n in sorted(rejected.items()):
-            lines.append(f"  {sensor}: {n}x {reason}")
+        lines.append("images without a usable board (sensor, view folder: why):")
+        for (sensor, reason), views in sorted(rejected.items(), key=lambda i: (i[0][0], i[1])):
+            lines.append(f"  {sensor}, {_views_text(views)}: {reason}")
     return "\n".join(lines)
+
+
+def _views_text(views: list[str], at_most: int = 6) -> str:
+    """``view 0004`` or ``views 0004, 0011`` (the first ``at_most``, then how many more)."""
+    if len(views) == 1:
+        return f"view {views[0]}"
+    shown = ", ".join(views[:at_most])
+    more = f" and {len(views) - at_most} more" if len(views) > at_most else ""
+    return f"views {shown}{more}"
 
 
 def _bar(fraction: float, width: int = 10) -> str:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 import time
 from collections.abc import Sequence
@@ -19,9 +20,10 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
-from app.report_format import NEVER, limit_distance_cell, sensor_colour
+from app.report_format import NEVER, limit_distance_cell, pixel_cell, sensor_colour
 
 if TYPE_CHECKING:
+    from app.capture import Capture
     from app.server.auth import AuthConfig
     from app.server.serve import TLSFiles
     from calib.board import Board
@@ -69,12 +71,33 @@ def _out(msg: str) -> None:
     print(msg, flush=True)
 
 
+def _refuse_existing(flag: str, path: Path) -> NoReturn:
+    """The one refusal of every command whose output file or directory exists already."""
+    raise UsageError(f"{flag} {path}: exists; refusing to overwrite it (choose a new name)")
+
+
+def _load_rig_arg(path: str, flag: str = "") -> Rig:
+    """A rig file given on the command line; its errors on one line (a YAML error's
+    message spans several), naming the option."""
+    from app.rigfile import load_rig
+
+    try:
+        return load_rig(path)
+    except ValueError as exc:  # RigError
+        lines = (line.strip() for line in str(exc).splitlines())
+        text = " ".join(line for line in lines if line.strip("^"))
+        raise ValueError(f"{flag} {text}" if flag else text) from None
+
+
 # -- simulate calibration -----------------------------------------------------------------
 
 
 def _check_output_dir(out: Path) -> None:
     if out.exists() and not out.is_dir():
-        raise UsageError(f"--out {out}: exists and is not a directory")
+        raise UsageError(
+            f"--out {out}: exists and is not a directory; refusing to overwrite it "
+            "(choose a new directory)"
+        )
     if out.is_dir() and any(out.iterdir()):
         raise UsageError(
             f"--out {out}: directory exists and is not empty; refusing to write into it so "
@@ -158,10 +181,13 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     from calib.rig_calibration import CalibrationOptions
 
     out, report_path = Path(args.out), Path(args.report) if args.report else None
-    for path in (out, report_path):
+    for flag, path in (("--out", out), ("--report", report_path)):
         if path is not None and path.exists():
-            raise UsageError(f"{path}: exists; refusing to overwrite it (choose a new name)")
+            _refuse_existing(flag, path)
+    truth = _load_rig_arg(args.truth, "--truth") if args.truth else None
     capture = load_capture(args.capture_dir)
+    if truth is not None:
+        _check_truth_fits(truth, capture, args.truth)
     _out(capture.summary())
     options = CalibrationOptions(
         reference=args.reference, refine_intrinsics=not args.fixed_intrinsics
@@ -178,6 +204,18 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     result, report = calibrate_capture(capture, options, sensors, progress)
     _out("")
     _out(format_summary(result, report))
+    if truth is not None:
+        from app.report_format import comparison_text
+        from calib.rig_compare import compare_rigs
+
+        try:
+            comparison = compare_rigs(result.rig(), truth)
+        except ValueError as exc:  # e.g. every sensor in common was left out
+            _err(f"{PROG}: warning: not compared with --truth {args.truth}: {exc}")
+        else:
+            report["comparison"] = {"truth": str(args.truth), **comparison.as_dict()}
+            _out("")
+            _out(comparison_text(comparison, "the calibration", str(args.truth)))
     save_rig(out, result.rig())
     _out("")
     _out(f"rig written to {out}")
@@ -185,6 +223,51 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         write_report(report_path, report)
         _out(f"report written to {report_path}")
     return EXIT_OK
+
+
+def _check_truth_fits(truth: Rig, capture: Capture, path: str) -> None:
+    """Before calibrating: ``--truth`` must share a sensor with the capture, of the same
+    modality and image size (else the comparison at the end would fail)."""
+    from app.calibration_run import sensor_specs
+
+    specs = sensor_specs(capture)
+    common = [n for n in truth.names if n in specs]
+    if not common:
+        raise ValueError(
+            f"--truth {path}: no sensor in common with {capture.path} "
+            f"(truth: {truth.names}; capture: {sorted(specs)})"
+        )
+    for n in common:
+        t, spec = truth[n], specs[n]
+        if (t.modality, t.image_size) != (spec.modality, tuple(spec.image_size)):
+            raise ValueError(
+                f"--truth {path}: sensor {n!r} is {t.modality} {t.image_size[0]}x"
+                f"{t.image_size[1]} there but {spec.modality} {spec.image_size[0]}x"
+                f"{spec.image_size[1]} in {capture.path}"
+            )
+
+
+# -- compare ------------------------------------------------------------------------------
+
+
+def _cmd_compare(args: argparse.Namespace) -> int:
+    import json
+
+    from app.report_format import comparison_text
+    from calib.rig_compare import compare_rigs
+
+    estimate = _load_rig_arg(args.rig)
+    truth = _load_rig_arg(args.truth)
+    try:
+        comparison = compare_rigs(estimate, truth)
+    except ValueError as exc:
+        raise ValueError(f"{args.rig} against {args.truth}: {exc}") from None
+    if args.json:
+        data = {"rig": str(args.rig), "truth": str(args.truth), **comparison.as_dict()}
+        _out(json.dumps(data, indent=1, allow_nan=False))
+    else:
+        _out(comparison_text(comparison, str(args.rig), str(args.truth)))
+    return EXIT_OK if comparison.passed else EXIT_FAILURE
 
 
 # -- calibrate-range ----------------------------------------------------------------------
@@ -204,13 +287,14 @@ def _same_file(a: Path, b: Path | None) -> bool:
     return b is not None and a.exists() and b.exists() and a.resolve() == b.resolve()
 
 
-def _check_rig_out(out: Path, rig_path: Path | None, *others: str | None) -> None:
+def _check_rig_out(out: Path, rig_path: Path | None, **others: str | None) -> None:
     """``--out`` may be the ``--rig`` file itself (kept as a numbered backup); any other
-    existing output is refused."""
-    paths = [] if _same_file(out, rig_path) else [out]
-    for path in [*paths, *(Path(p) for p in others if p)]:
+    existing output (``others``: option name without dashes -> path) is refused."""
+    outputs = [] if _same_file(out, rig_path) else [("--out", out)]
+    outputs += [(f"--{flag}", Path(p)) for flag, p in others.items() if p]
+    for flag, path in outputs:
         if path.exists():
-            raise UsageError(f"{path}: exists; refusing to overwrite it (choose a new name)")
+            _refuse_existing(flag, path)
 
 
 def _write_rig_out(out: Path, rig_path: Path | None, rig: Rig, what: str) -> None:
@@ -242,7 +326,7 @@ def _cmd_calibrate_range(args: argparse.Namespace) -> int:
     from calib.range_calibration import FitOptions
 
     rig_path, out = Path(args.rig), Path(args.out)
-    _check_rig_out(out, rig_path, args.report, args.plot)
+    _check_rig_out(out, rig_path, report=args.report, plot=args.plot)
     rig = load_rig(rig_path)
     capture = load_capture(args.capture_dir)
     _out(capture.summary())
@@ -460,7 +544,7 @@ def _analyze_table(
     head = ["TOF pixel", "error", "coord", *analysis.sensors]
     rows: list[list[str]] = []
     for (u, v), key in zip(analysis.tof_pixels, analysis.distance_error, strict=True):
-        first_column = iter([f"({u:.10g}, {v:.10g})", labels.get(key, "")])
+        first_column = iter([pixel_cell(u, v), labels.get(key, "")])
         for kind, name in errors.items():
             per_sensor = analysis.results(kind)[key]
             for coord in ("x", "y"):
@@ -553,7 +637,7 @@ def _analyze_plot(
         per_sensor = analysis.results(kind)[key]
         top = title_h + legend_h + p * (mt + ph + mb) + mt
         u, v = analysis.tof_pixels[keys.index(key)]
-        where = f"TOF pixel ({u:.10g}, {v:.10g})" + (f", {labels[key]}" if labels.get(key) else "")
+        where = f"TOF pixel {pixel_cell(u, v)}" + (f", {labels[key]}" if labels.get(key) else "")
         values = np.abs(np.concatenate([np.r_[r.dx_px, r.dy_px] for r in per_sensor.values()]))
         values = values[np.isfinite(values)]
         y_max = max(float(values.max()) if values.size else 0.0, 2 * thr)
@@ -622,7 +706,6 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
     import json
 
     from app.atomic import atomic_write_bytes
-    from app.rigfile import load_rig
     from fusion.precision import (
         RANGE_MAX_M,
         RANGE_MIN_M,
@@ -633,12 +716,8 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
 
     plot = Path(args.plot) if args.plot else None
     if plot is not None and plot.exists():
-        raise UsageError(f"--plot {plot}: exists; refusing to overwrite it (choose a new name)")
-    try:
-        rig = load_rig(args.rig)
-    except ValueError as exc:  # RigError; a YAML error's message spans several lines
-        lines = (line.strip() for line in str(exc).splitlines())
-        raise ValueError(" ".join(line for line in lines if line.strip("^"))) from None
+        _refuse_existing("--plot", plot)
+    rig = _load_rig_arg(args.rig)
     if args.tof is not None and args.tof not in rig:
         raise UsageError(f"--tof: no sensor {args.tof!r} in {args.rig} (sensors: {rig.names})")
     tofs = rig.by_modality("tof")
@@ -718,8 +797,10 @@ def _record_summary(path: Path, writer: object) -> None:
             schema = rec.index.schema_of(ch)
             n = (rec.index.message_counts or {}).get(ch.id, 0)
             _out(f"  {ch.topic:<28} {schema.name if schema else '-':<28} {n} messages")
-    _out("Open it in Foxglove as it is, or replay it: app.recording.ReplaySource. Format:")
-    _out("docs/FORMATS.md (Recordings).")
+    _out("Open it in Foxglove as it is, or watch it in the console and fuse it offline:")
+    _out(f"  {PROG} serve --replay {shlex.quote(str(path))}")
+    _out(f"  {PROG} fuse {shlex.quote(str(path))} --out DIR")
+    _out("Format: docs/FORMATS.md (Recordings).")
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
@@ -728,24 +809,58 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     if out.exists() or out.is_symlink():
-        raise UsageError(f"--out {out}: exists; refusing to overwrite it (choose a new name)")
+        _refuse_existing("--out", out)
     rig = load_rig(args.rig) if args.rig else None
     source = args.source
     if source == "sim":
-        from app.recording.simrecord import record_simulation, sim_schedule
+        from app.recording.simrecord import (
+            POSE_HZ,
+            SimProgress,
+            plan_simulation,
+            record_simulation,
+        )
         from app.sources.sim.head import default_rig
 
         rig = rig or default_rig()
         duration = 2.0 if args.duration is None else args.duration
-        n = len(sim_schedule(rig, duration))
+        pose_hz = POSE_HZ if args.pose_hz is None else args.pose_hz
+        if not (np.isfinite(pose_hz) and pose_hz > 0):
+            raise UsageError(
+                f"{PROG} record: --pose-hz: expected a positive number of Hz, got {pose_hz:g}"
+            )
+        if args.exact and args.pose_hz is not None:
+            raise UsageError(f"{PROG} record: --pose-hz goes with the live mode, not --exact")
+        plan = plan_simulation(rig, duration, exact=args.exact, pose_hz=pose_hz)
+
+        def span(seconds: float) -> str:
+            if seconds < 90:
+                return f"{seconds:.0f} s"
+            return f"{seconds / 60:.1f} min" if seconds < 5400 else f"{seconds / 3600:.1f} h"
+
+        if args.exact:
+            how = (
+                f"every instant rendered at its own time in the accurate quality "
+                f"({plan.renders} images)"
+            )
+        else:
+            how = (
+                f"head poses rendered at {pose_hz:g} Hz ({plan.poses} poses, live quality), "
+                "each frame turned to its own instant's head pose with fresh noise "
+                "(--exact renders every instant)"
+            )
         _out(
             f"Recording {duration:g} s of the simulated head (inspection scenario, seed "
-            f"{args.seed}): {n} instants to render, each sensor at its own rate; rendering "
-            "takes seconds per colour frame, so this is much slower than real time."
+            f"{args.seed}): {len(plan.schedule)} instants, {plan.frames} frames, time "
+            f"stamps at each sensor's rate; {how}. Estimated time: about "
+            f"{span(plan.estimate_s)} ({plan.estimate_s / duration:.0f}x real time) on a "
+            "quiet 2-core machine, more on a busy one; the progress lines give the time left."
         )
 
-        def progress(i: int, total: int, stamp: int, sensors: list[str], secs: float) -> None:
-            _out(f"[{i}/{total}] t = {stamp / 1e9:.4f} s: {', '.join(sensors)} ({secs:.1f} s)")
+        def progress(p: SimProgress) -> None:
+            _out(
+                f"[{p.index}/{p.total}] t = {p.stamp_ns / 1e9:.4f} s: {', '.join(p.sensors)} "
+                f"({p.seconds:.2f} s), elapsed {span(p.elapsed_s)}, ETA {span(p.eta_s)}"
+            )
 
         try:
             writer = record_simulation(
@@ -755,6 +870,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
                 seed=args.seed,
                 jpeg_quality=args.jpeg_quality,
                 progress=progress,
+                plan=plan,
             )
         except KeyboardInterrupt:
             if out.exists():
@@ -978,7 +1094,39 @@ def build_parser() -> argparse.ArgumentParser:
         help="keep each sensor's Zhang intrinsics in the joint refinement "
         "(default: refine them with the poses)",
     )
+    cal.add_argument(
+        "--truth",
+        metavar="TRUTH.yaml",
+        help="also compare the result with this rig (e.g. the capture's "
+        "ground_truth_rig.yaml), as 'trifuse compare' does; the report gains the comparison",
+    )
     cal.set_defaults(func=_cmd_calibrate)
+
+    # compare -------------------------------------------------------------------------
+    cmp = commands.add_parser(
+        "compare",
+        help="compare a calibrated rig with the ground truth (errors against the targets)",
+        description=(
+            "Compare RIG.yaml with TRUTH.yaml (e.g. a simulated capture's "
+            "ground_truth_rig.yaml): per sensor the intrinsic errors (fx, fy, cx, cy in px, "
+            "fx and fy in %, and how far apart the distortion models put a pixel), and for "
+            "every pair of sensors the error of their relative pose inv(T_rig_a) @ T_rig_b "
+            "(rotation in degrees, translation in mm; independent of each rig's reference "
+            "sensor). Each judged figure is marked pass or FAIL against the calibration "
+            "targets: focal lengths within 0.3 % (colour, thermal) and 1 % (TOF); poses "
+            "within 0.1 deg and 1 mm, 0.2 deg and 3 mm for pairs with the TOF. Sensors in "
+            "one rig only are listed, not compared. Ends with a one-line verdict; the exit "
+            "status is 0 when every figure meets its target, 1 when one does not."
+        ),
+    )
+    cmp.add_argument("rig", metavar="RIG.yaml", help="the calibrated rig")
+    cmp.add_argument("truth", metavar="TRUTH.yaml", help="the true (or reference) rig")
+    cmp.add_argument(
+        "--json",
+        action="store_true",
+        help="print JSON instead of the tables (docs/FORMATS.md, the report's 'comparison' block)",
+    )
+    cmp.set_defaults(func=_cmd_compare)
 
     # calibrate-range -----------------------------------------------------------------
     cr = commands.add_parser(
@@ -1271,8 +1419,12 @@ def build_parser() -> argparse.ArgumentParser:
             "(16UC1 mm, 0 = invalid) and amplitude on /tof/distance and /tof/amplitude, "
             "calibration per sensor, the rig as /tf transforms and as the attachment rig.yaml. "
             "Foxglove opens it as it is. --source sim renders the simulated head's "
-            "inspection scenario at each sensor's rate (colour 30 Hz, thermal 27 Hz, TOF "
-            "15 Hz time stamps; slow: seconds per colour frame); --source replay:FILE "
+            "inspection scenario with time stamps at each sensor's rate (colour 30 Hz, "
+            "thermal 27 Hz, TOF 15 Hz): by default head poses rendered at --pose-hz in the "
+            "live quality, each frame turned to its own instant's pose with fresh noise "
+            "(about 7x slower than real time on 2 cores), with --exact every instant "
+            "rendered accurately (about 130x); it says how long at the start and gives the "
+            "time left as it goes; --source replay:FILE "
             "re-records a recording (a damaged one up to the damage)."
         ),
     )
@@ -1300,6 +1452,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rec.add_argument(
         "--seed", type=_seed, default=0, metavar="N", help="simulator noise seed (default: 0)"
+    )
+    rec.add_argument(
+        "--exact",
+        action="store_true",
+        help="sim: render every instant at its own time in the accurate quality (edge "
+        "supersampling), about 130x slower than real time; default: the live mode, head "
+        "poses rendered at --pose-hz and every frame turned to its own instant with fresh "
+        "noise, about 7x",
+    )
+    rec.add_argument(
+        "--pose-hz",
+        type=float,
+        metavar="HZ",
+        help="sim, live mode: head poses rendered per simulated second (default: 10); time "
+        "stamps stay at the sensors' rates",
     )
     rec.add_argument(
         "--jpeg-quality",
@@ -1371,7 +1538,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # --help and --version
         return exc.code if isinstance(exc.code, int) else EXIT_OK
     except UsageError as exc:
-        print(f"{exc}", file=sys.stderr)
+        message = str(exc)  # argparse's and some commands' messages name the command
+        named = message.startswith((f"{PROG}:", f"{PROG} "))
+        print(message if named else f"{PROG}: error: {message}", file=sys.stderr)
         return EXIT_USAGE
     except ValueError as exc:  # CaptureError, RigError, CalibrationError, ...
         print(f"{PROG}: error: {exc}", file=sys.stderr)

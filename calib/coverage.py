@@ -104,6 +104,11 @@ class Coverage:
         """(x, y, size, skew) bars, in ``PARAM_NAMES`` order."""
         return (self.x, self.y, self.size, self.skew)
 
+    @property
+    def reached(self) -> float:
+        """Fraction of the region grid's cells with at least one corner, in [0, 1]."""
+        return reached_fraction(self.corner_counts)
+
 
 # -- one view --------------------------------------------------------------------------------
 
@@ -270,6 +275,31 @@ def name_empty_regions(corner_counts: np.ndarray) -> list[str]:
             if empty[r, c] and (cr[r], cc[c]) not in whole:
                 names.append(f"row {r}, col {c} ({COARSE_NAMES[cr[r]][cc[c]]})")
     return names
+
+
+def reached_fraction(corner_counts: np.ndarray) -> float:
+    """Fraction of the cells of ``corner_counts`` (rows, cols) holding a corner, in [0, 1]."""
+    counts = np.asarray(corner_counts)
+    if counts.ndim != 2 or counts.size == 0:
+        raise ValueError(f"corner_counts: expected a non-empty 2-D array, got shape {counts.shape}")
+    return float(np.count_nonzero(counts) / counts.size)
+
+
+def coarse_reached(corner_counts: np.ndarray) -> np.ndarray:
+    """(3, 3) fraction of each coarse region's cells holding a corner (``COARSE_NAMES``
+    order; a cell belongs to the region that holds its centre). NaN for a region without
+    cells (a grid with fewer than 3 rows or columns)."""
+    counts = np.asarray(corner_counts)
+    if counts.ndim != 2 or counts.size == 0:
+        raise ValueError(f"corner_counts: expected a non-empty 2-D array, got shape {counts.shape}")
+    rows, cols = counts.shape
+    cr = np.array([_coarse_index(r, rows) for r in range(rows)])
+    cc = np.array([_coarse_index(c, cols) for c in range(cols)])
+    region = 3 * cr[:, None] + cc[None, :]  # (rows, cols) -> 0..8
+    cells = np.bincount(region.ravel(), minlength=9).astype(np.float64)
+    seen = np.bincount(region.ravel(), weights=(counts > 0).ravel(), minlength=9)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (seen / np.where(cells > 0, cells, np.nan)).reshape(3, 3)
 
 
 def coverage(

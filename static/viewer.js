@@ -1,15 +1,48 @@
 // The operator's stereo viewer: fused side-by-side frames from /stream (a JSON text message
 // with the frame's metadata, then the JPEG as a binary message, acknowledged once drawn so
-// the server always sends the newest frame), MJPEG as a fallback, an
-// overlay of frame rate, latency, the colour span and the sensors that are not ok (the
-// metadata's `health`), full screen, and WebXR.
+// the server always sends the newest frame), MJPEG as a fallback, a colour scale in each
+// eye (the metadata's palette and span), an overlay of frame rates, latency, display mode
+// and the sensors that are not ok (the metadata's `health`), full screen, and WebXR.
+//
+// Frame rates, all over the same sliding window (the metadata's `rates.window_s`, 3 s):
+// "received" counts the frames this browser drew; "stream" (frames the console published)
+// and "new pictures" (of these, the ones fused anew rather than repeated) are the console's
+// own figures, carried by each frame's metadata: the Source panel shows the same numbers.
 "use strict";
 const canvas = document.getElementById("view");
 const ctx = canvas.getContext("2d");
 const overlay = document.getElementById("overlay");
-const stats = { frames: 0, fps: 0, latencyMs: [], meta: null, t0: performance.now(), mode: "websocket" };
+const frameBox = document.getElementById("frame");
+const scaleEls = [...document.querySelectorAll(".scale")];
+const stats = {
+  frames: 0,        // frames drawn since the page opened
+  fps: 0,           // frames drawn per second over the window ("received")
+  drawTimes: [],    // performance.now() of the frames drawn within the window
+  firstDraw: null,
+  latencyMs: [],
+  meta: null,
+  lastFrameAt: null,
+  rates: null,      // the console's stream rates of the newest frame
+  scale: null,      // the colour scale shown (null: hidden)
+  mode: "websocket",
+};
 let latestBitmap = null;
-window.trifuseStats = stats;  // read by the browser tests
+window.trifuseStats = stats;  // read by the browser tests and the benchmark
+
+const DEFAULT_WINDOW_S = 3;
+const MIN_SPAN_S = 0.2;
+
+function windowS() {
+  return (stats.rates && stats.rates.window_s) || DEFAULT_WINDOW_S;
+}
+
+// Frames per second over the window ending now: the console's formula (app/server/rates.py).
+function receivedFps(now) {
+  const w = windowS() * 1000;
+  while (stats.drawTimes.length && stats.drawTimes[0] <= now - w) stats.drawTimes.shift();
+  if (stats.firstDraw === null) return 0;
+  return stats.drawTimes.length * 1000 / Math.min(w, Math.max(now - stats.firstDraw, MIN_SPAN_S * 1000));
+}
 
 function connect() {
   const proto = location.protocol === "https:" ? "wss:" : "ws:";
@@ -19,19 +52,29 @@ function connect() {
   ws.onopen = () => { opened = true; };
   ws.onmessage = async (ev) => {
     if (typeof ev.data === "string") { meta = JSON.parse(ev.data); return; }
+    const frameMeta = meta;
     const bitmap = await createImageBitmap(ev.data);
     if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
       canvas.width = bitmap.width; canvas.height = bitmap.height;
+      frameBox.style.setProperty("--ar", String(bitmap.width / bitmap.height));
     }
     ctx.drawImage(bitmap, 0, 0);
     ws.send("ack");  // flow control: the server sends the newest frame after this
     if (latestBitmap) latestBitmap.close();
     latestBitmap = bitmap;
+    const now = performance.now();
     stats.frames += 1;
-    if (meta) {
-      stats.meta = meta;
-      stats.latencyMs.push(Date.now() - meta.sent_ns / 1e6);
+    stats.drawTimes.push(now);
+    if (stats.firstDraw === null) stats.firstDraw = now;
+    stats.lastFrameAt = now;
+    if (frameMeta) {
+      stats.meta = frameMeta;
+      stats.latencyMs.push(Date.now() - frameMeta.sent_ns / 1e6);
       if (stats.latencyMs.length > 120) stats.latencyMs.shift();
+      showScale(scaleOf(frameMeta));
+      const fresh = frameMeta.rates && (!stats.rates || stats.rates.at_ns !== frameMeta.rates.at_ns);
+      stats.rates = frameMeta.rates || null;
+      if (fresh) showOverlay();  // the console's new figures at once, as the Source panel shows them
     }
   };
   ws.onclose = () => {
@@ -43,6 +86,7 @@ function connect() {
 function useMjpeg() {
   stats.mode = "mjpeg";
   canvas.style.display = "none";
+  showScale(null);  // MJPEG carries no metadata: no span to show
   const img = document.getElementById("mjpeg");
   img.style.display = "block";
   img.src = "/stream.mjpg";
@@ -54,24 +98,174 @@ function median(a) {
   return s[Math.floor(s.length / 2)];
 }
 
-setInterval(() => {
+// -- the colour scale ------------------------------------------------------------------------
+
+const K0 = 273.15;
+
+// A round tick step giving about `target` ticks over `range`.
+function niceStep(range, target) {
+  const raw = range / target;
+  const p = 10 ** Math.floor(Math.log10(raw));
+  for (const m of [1, 2, 2.5, 5]) if (m * p >= raw) return m * p;
+  return 10 * p;
+}
+
+function decimalsOf(step) {
+  let d = 0;
+  while (d < 3 && Math.abs(step * 10 ** d - Math.round(step * 10 ** d)) > 1e-6) d += 1;
+  return d;
+}
+
+// What the scale shows for a frame's metadata, or null (no palette colour in the picture).
+// Ticks: the span's ends (°C, 0.1) and round values between them, away from the ends.
+function scaleOf(m) {
+  if (!m || !m.palette || !m.span_k || !m.palette_rgb || m.palette_rgb.length !== 1536) return null;
+  const low = m.span_k[0] - K0, high = m.span_k[1] - K0;
+  if (!(high > low)) return null;
+  const ticks = [
+    { frac: 1, label: high.toFixed(1), end: "high" },
+    { frac: 0, label: low.toFixed(1), end: "low" },
+  ];
+  const step = niceStep(high - low, 5);
+  const d = decimalsOf(step);
+  for (let k = Math.ceil(low / step); k * step < high; k += 1) {
+    const frac = (k * step - low) / (high - low);
+    if (frac > 0.09 && frac < 0.91) ticks.push({ frac, label: (k * step).toFixed(d), end: "" });
+  }
+  return {
+    key: `${m.palette}|${ticks.map((t) => t.label).join(",")}|${m.span_auto}`,
+    palette: m.palette, rgb: m.palette_rgb, lowC: low, highC: high, auto: !!m.span_auto, ticks,
+  };
+}
+
+// The palette as a 1 x 256 image, hot end at the top.
+function rampCanvas(hex) {
+  const c = document.createElement("canvas");
+  c.width = 1; c.height = 256;
+  const g = c.getContext("2d");
+  const img = g.createImageData(1, 256);
+  for (let i = 0; i < 256; i += 1) {
+    const row = 255 - i, at = i * 6;
+    for (let ch = 0; ch < 3; ch += 1) img.data[row * 4 + ch] = parseInt(hex.substr(at + 2 * ch, 2), 16);
+    img.data[row * 4 + 3] = 255;
+  }
+  g.putImageData(img, 0, 0);
+  return c;
+}
+
+function showScale(model) {
+  const key = model ? model.key : null;
+  if (stats.scale && key === stats.scale.key) return;
+  if (!model) {
+    for (const el of scaleEls) el.hidden = true;
+    stats.scale = null;
+    return;
+  }
+  const rampChanged = !stats.scale || stats.scale.rgb !== model.rgb;
+  for (const el of scaleEls) {
+    if (rampChanged || !el.firstChild) {
+      el.replaceChildren();
+      const ramp = rampCanvas(model.rgb);
+      ramp.className = "ramp";
+      const ticks = document.createElement("div");
+      ticks.className = "ticks";
+      const top = document.createElement("div");
+      top.className = "caption top";
+      top.textContent = "°C";
+      const bottom = document.createElement("div");
+      bottom.className = "caption bottom";
+      el.append(top, ramp, ticks, bottom);
+    }
+    const ticks = el.querySelector(".ticks");
+    ticks.replaceChildren(...model.ticks.map((t) => {
+      const s = document.createElement("span");
+      s.className = t.end ? `tick end ${t.end}` : "tick";
+      s.style.top = `${(100 * (1 - t.frac)).toFixed(3)}%`;
+      s.textContent = t.label;
+      return s;
+    }));
+    el.querySelector(".caption.bottom").textContent = model.auto ? "auto" : "manual";
+    el.dataset.palette = model.palette;
+    el.setAttribute("aria-label",
+      `colour scale ${model.palette}, ${model.ticks[1].label} to ${model.ticks[0].label} °C`);
+    el.hidden = false;
+  }
+  stats.scale = model;
+}
+
+// The same scale drawn into a 2D context (the WebXR texture), at the place and size the
+// page's CSS gives it in each eye: `w` is the picture's width (cqw = w / 100), `h` its height.
+function drawScales(g, model, w, h, ramp) {
+  const q = w / 100;
+  for (const eyeRight of [w / 2, w]) {
+    const right = eyeRight - 1.5 * q, width = 5.8 * q, top = 0.14 * h, height = 0.72 * h;
+    const left = right - width;
+    g.fillStyle = "rgba(0,0,0,0.62)";
+    g.beginPath();
+    g.roundRect(left, top, width, height, 0.5 * q);
+    g.fill();
+    const r0 = top + 2.4 * q, r1 = top + height - 2.4 * q;
+    g.imageSmoothingEnabled = true;
+    g.drawImage(ramp, right - 1.8 * q, r0, q, r1 - r0);
+    g.strokeStyle = "rgba(255,255,255,0.85)";
+    g.lineWidth = 0.1 * q;
+    g.strokeRect(right - 1.8 * q, r0, q, r1 - r0);
+    g.fillStyle = "#fff";
+    g.textAlign = "center";
+    g.textBaseline = "middle";
+    g.font = `600 ${0.95 * q}px system-ui, sans-serif`;
+    g.fillText("°C", left + width / 2, top + 0.95 * q);
+    g.font = `400 ${0.8 * q}px system-ui, sans-serif`;
+    g.fillText(model.auto ? "auto" : "manual", left + width / 2, top + height - 0.95 * q);
+    g.textAlign = "right";
+    const x = right - 1.8 * q;
+    for (const t of model.ticks) {
+      const y = r1 - t.frac * (r1 - r0);
+      g.fillRect(x - 0.5 * q, y - 0.05 * q, 0.5 * q, 0.1 * q);
+      g.font = `${t.end ? 800 : 600} ${(t.end ? 1.05 : 0.95) * q}px system-ui, sans-serif`;
+      g.fillText(t.label, x - 0.7 * q, y);
+    }
+  }
+}
+window.trifuseDrawScales = drawScales;  // for a check of the WebXR rendering on a 2D canvas
+
+// -- the overlay -----------------------------------------------------------------------------
+
+function ratesLine(now) {
+  const r = stats.rates;
+  if (stats.lastFrameAt !== null && now - stats.lastFrameAt > windowS() * 1000) {
+    return `no frame for ${((now - stats.lastFrameAt) / 1000).toFixed(0)} s`;
+  }
+  if (!r) return "stream –";
+  const repeat = r.stream_fps - r.new_fps;
+  const why = repeat >= 0.05 ? " (the others repeat an unchanged picture)" : "";
+  return `stream ${r.stream_fps.toFixed(1)} fps, new pictures ${r.new_fps.toFixed(1)} fps${why}`;
+}
+
+function showOverlay() {
   const now = performance.now();
-  stats.fps = stats.frames * 1000 / (now - stats.t0);
-  stats.frames = 0; stats.t0 = now;
+  stats.fps = receivedFps(now);
+  if (stats.mode === "mjpeg") {
+    overlay.textContent = "mjpeg: no frame information (rates, colour scale) without the WebSocket";
+    return;
+  }
   const m = stats.meta || {};
-  const span = m.span_k ? `${(m.span_k[0] - 273.15).toFixed(1)}–${(m.span_k[1] - 273.15).toFixed(1)} °C` : "–";
+  const scale = stats.scale ? `${stats.scale.palette}, ${stats.scale.auto ? "auto" : "manual"} span` : "no colour scale";
   // sensors that are not ok (silent, no frame yet, failing), one line each, from the frame's metadata
   const health = Object.values(m.health || {}).map((line) => `\n⚠ ${line}`).join("");
-  overlay.textContent = `${stats.mode}  ${stats.fps.toFixed(1)} fps  latency ${median(stats.latencyMs).toFixed(0)} ms\n` +
-    `mode ${m.mode || "–"}  span ${span}` + health;
-}, 1000);
+  overlay.textContent =
+    `${stats.mode}: received ${stats.fps.toFixed(1)} fps, latency ${median(stats.latencyMs).toFixed(0)} ms\n` +
+    `console: ${ratesLine(now)}\nrates over the last ${windowS()} s; mode ${m.mode || "–"}, ${scale}` + health;
+}
+setInterval(showOverlay, 500);
 
 document.getElementById("fullscreen").onclick = () => {
-  const el = stats.mode === "mjpeg" ? document.getElementById("mjpeg") : canvas;
+  const el = document.getElementById("stage");  // the picture with its colour scales
   (el.requestFullscreen || el.webkitRequestFullscreen).call(el);
 };
 
-// WebXR: draw the left half to the left eye and the right half to the right eye.
+// WebXR: draw the left half to the left eye and the right half to the right eye, each with
+// its colour scale (composed on a 2D canvas as on the page).
 async function setupVr() {
   const button = document.getElementById("vr");
   if (!navigator.xr || !(await navigator.xr.isSessionSupported("immersive-vr").catch(() => false))) {
@@ -91,14 +285,27 @@ async function setupVr() {
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+    const composite = document.createElement("canvas");
+    const g = composite.getContext("2d");
+    let shown = null, ramp = null, rampRgb = null;
     const onFrame = (t, frame) => {
       session.requestAnimationFrame(onFrame);
       const pose = frame.getViewerPose(space);
       if (!pose || !latestBitmap) return;
+      if (shown !== latestBitmap) {  // compose each new picture once
+        shown = latestBitmap;
+        composite.width = shown.width; composite.height = shown.height;
+        g.drawImage(shown, 0, 0);
+        if (stats.scale) {
+          if (rampRgb !== stats.scale.rgb) { ramp = rampCanvas(stats.scale.rgb); rampRgb = stats.scale.rgb; }
+          drawScales(g, stats.scale, shown.width, shown.height, ramp);
+        }
+        gl.bindTexture(gl.TEXTURE_2D, tex);
+        gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA, gl.RGBA, gl.UNSIGNED_BYTE, composite);
+      }
       const layer = session.renderState.baseLayer;
       gl.bindFramebuffer(gl.FRAMEBUFFER, layer.framebuffer);
       gl.bindTexture(gl.TEXTURE_2D, tex);
-      gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA, gl.RGBA, gl.UNSIGNED_BYTE, latestBitmap);
       for (const view of pose.views) {
         const vp = layer.getViewport(view);
         gl.viewport(vp.x, vp.y, vp.width, vp.height);

@@ -1,14 +1,44 @@
-"""Live board detection: corners per sensor, the board's pose, steadiness."""
+"""Live board detection: corners per sensor, the board's pose, steadiness, and how the watch
+keeps up (the half-resolution first look, the pose published first, always the newest
+frame set)."""
 
 from __future__ import annotations
 
-import numpy as np
+import threading
+import time
+from collections.abc import Callable
 
-from app.server.board_watch import BoardWatch, sighting
+import numpy as np
+import pytest
+
+from app.server.board_watch import (
+    MAX_PAUSE_S,
+    BoardWatch,
+    board_in_image,
+    first_look,
+    sighting,
+)
 from app.sources.frames import Frame, FrameSet
 from app.sources.sim.head import default_rig
 from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
+from calib.detect import Detection, detect_board
 from calib.transforms import pose_error
+
+DEADLINE_S = 60.0  # generous: the machine may be busy
+
+
+def wait_for(condition: Callable[[], bool], what: str, timeout_s: float = DEADLINE_S) -> None:
+    """Poll ``condition`` until it holds; fail saying ``what`` after ``timeout_s``."""
+    end = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > end:
+            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(0.01)
+
+
+def restamped(fs: FrameSet, stamp_ns: int) -> FrameSet:
+    """The same images (the very arrays) as a new frame set with another time stamp."""
+    return FrameSet(stamp_ns, dict(fs.frames))
 
 
 def test_pose_steadiness_and_repeated_images(calibration_frame_sets) -> None:
@@ -17,7 +47,7 @@ def test_pose_steadiness_and_repeated_images(calibration_frame_sets) -> None:
     truth = calibration_poses(12, 1, rig, CALIBRATION_BOARD)[0]
     s1 = sighting(first, rig, CALIBRATION_BOARD)
     assert s1.found == rig.names and not s1.steady  # nothing to compare with yet
-    assert s1.pose_sensor == "ccd_left"
+    assert s1.pose_sensor == "ccd_left" and s1.complete
     rot_deg, trans_m = pose_error(s1.T_rig_board, truth)
     assert rot_deg < 0.2 and trans_m < 0.003, (rot_deg, trans_m)
 
@@ -33,25 +63,243 @@ def test_a_bad_frame_is_reported_not_raised(calibration_frame_sets) -> None:
     rig = default_rig()
     frames = dict(calibration_frame_sets[0].frames)
     frames["thermal_left"] = Frame("thermal_left", 0, np.zeros((5, 5, 7), np.float32))
+    frames["ccd_right"] = Frame("ccd_right", 0, np.zeros((960, 1280, 3), np.float64))
     s = sighting(FrameSet(0, frames), rig, CALIBRATION_BOARD)
     assert "cannot search this image" in s.detections["thermal_left"].reason
+    assert "cannot search this image" in s.detections["ccd_right"].reason
     assert "ccd_left" in s.found
+
+
+def test_half_resolution_first_look_finds_the_full_resolution_corners(
+    calibration_frame_sets,
+) -> None:
+    """The colour cameras: the same corners as a search of the whole image, or the same
+    verdict when the board is not (wholly) in the image."""
+    rig = default_rig()
+    truths = calibration_poses(12, 1, rig, CALIBRATION_BOARD)
+    compared = found = outside = 0
+    for fs, truth in zip(calibration_frame_sets[:6], truths, strict=False):
+        for name in ("ccd_left", "ccd_right"):
+            image = fs.frames[name].image
+            full = detect_board(image, CALIBRATION_BOARD, "color")
+            fast, coarse_only = first_look(image, CALIBRATION_BOARD, rig[name].modality)
+            compared += 1
+            # where the true pose puts a corner outside the image, no search finds it
+            inside = board_in_image(rig, name, truth, CALIBRATION_BOARD)
+            outside += not inside
+            assert inside or not full.found, name
+            if full.found:
+                found += 1
+                assert fast.found and not coarse_only, (name, fast.reason)
+                assert fast.method.endswith("-crop")
+                assert np.abs(fast.corners - full.corners).max() < 0.01
+            else:
+                assert not fast.found
+    assert compared == 12 and found >= 8  # the board is mostly in view (seed 1)
+    assert outside >= 1  # ... but not always
+    # small images are searched as they are
+    tof = calibration_frame_sets[0].frames["tof"].image
+    det, coarse_only = first_look(tof, CALIBRATION_BOARD, "tof")
+    assert det.found and not coarse_only and not det.method.endswith("-crop")
+
+
+def test_a_board_missing_at_half_resolution_gets_a_full_search_when_allowed(
+    calibration_frame_sets,
+) -> None:
+    """A stand-in detector that cannot find the board in half-resolution images: the full
+    search runs for the cameras allowed one, and only for them."""
+    rig = default_rig()
+    calls: list[tuple[str, int]] = []
+
+    def blind_when_small(image: np.ndarray, board, modality: str) -> Detection:
+        calls.append((modality, image.shape[1]))
+        if modality == "color" and image.shape[1] < 1280:
+            return Detection(None, "not found (stand-in)", None)
+        return detect_board(image, board, modality)
+
+    fs = calibration_frame_sets[0]
+    s = sighting(fs, rig, CALIBRATION_BOARD, full_search={"ccd_left"}, detect=blind_when_small)
+    assert s.detections["ccd_left"].found  # the full search found it
+    assert not s.detections["ccd_right"].found
+    assert "(half resolution)" in s.detections["ccd_right"].reason
+    assert ("color", 640) in calls and calls.count(("color", 1280)) == 1
+    assert s.pose_sensor == "ccd_left"  # the complete sighting takes the better camera
+
+
+def test_the_pose_is_published_before_the_other_sensors_are_searched(
+    calibration_frame_sets,
+) -> None:
+    """The thermal imagers' search is held back: the 3D scene's pose (``latest_pose``)
+    comes from the left colour camera meanwhile; the complete sighting follows."""
+    rig = default_rig()
+    release = threading.Event()
+
+    def slow_thermal(image: np.ndarray, board, modality: str) -> Detection:
+        if modality == "thermal" and not release.wait(DEADLINE_S):
+            raise RuntimeError("never released")
+        return detect_board(image, board, modality)
+
+    fs = calibration_frame_sets[0]
+    seen, heard = [], []
+    watch = BoardWatch(
+        lambda: fs, rig, CALIBRATION_BOARD, on_sighting=seen.append, detect=slow_thermal
+    )
+    watch.pose_listeners.append(heard.append)
+    worker = threading.Thread(target=watch.tick)
+    worker.start()
+    try:
+        wait_for(lambda: watch.latest_pose is not None, "the early pose")
+        early = watch.latest_pose
+        assert early.pose_sensor == "ccd_left" and not early.complete
+        assert "thermal_left" not in early.detections and watch.latest is None and not seen
+        assert heard == [early]  # the 3D scene is told at once
+        truth = calibration_poses(12, 1, rig, CALIBRATION_BOARD)[0]
+        rot_deg, trans_m = pose_error(early.T_rig_board, truth)
+        assert rot_deg < 0.2 and trans_m < 0.003, (rot_deg, trans_m)
+    finally:
+        release.set()
+        worker.join(DEADLINE_S)
+    assert len(seen) == 1 and seen[0].complete and seen[0].found == rig.names
+    assert watch.latest is seen[0] and watch.latest_pose is seen[0] and heard[-1] is seen[0]
+    (timing,) = watch.timings
+    assert timing.pose_s is not None and timing.pose_s < timing.pass_s
+    assert timing.pose_age_s == 0.0 and not timing.reused
+    watch.stop()
+
+
+def test_the_watch_searches_the_newest_frame_set_and_builds_no_backlog(
+    calibration_frame_sets,
+) -> None:
+    """While a pass is held up, five newer frame sets arrive: the next pass searches the
+    newest one; none of the four in between is ever searched."""
+    rig = default_rig()
+    base = calibration_frame_sets[0]
+    current = {"fs": restamped(base, 1)}
+    first_pass = threading.Event()
+    release = threading.Event()
+
+    def held(image: np.ndarray, board, modality: str) -> Detection:
+        first_pass.set()
+        if not release.wait(DEADLINE_S):
+            raise RuntimeError("never released")
+        return detect_board(image, board, modality)
+
+    searched: list[int] = []
+    watch = BoardWatch(
+        lambda: current["fs"],
+        rig,
+        CALIBRATION_BOARD,
+        rate_hz=1000.0,
+        duty=1.0,
+        poll_s=0.01,
+        on_sighting=lambda s: searched.append(s.frames.stamp_ns),
+        detect=held,
+    )
+    watch.start()
+    try:
+        assert first_pass.wait(DEADLINE_S), "the first pass never started"
+        for stamp in range(2, 7):  # newer frame sets while the pass is held up
+            current["fs"] = restamped(base, stamp)
+        release.set()
+        wait_for(lambda: len(searched) >= 2, "the second pass")
+        assert searched[:2] == [1, 6]
+        # the newest set's images are those searched before: nothing searched again
+        assert watch.timings[1].reused and watch.latest.steady
+        stamps = [t.stamp_ns for t in watch.timings]
+        assert not set(stamps) & {2, 3, 4, 5}, stamps
+    finally:
+        watch.stop()
+    assert all(s in (1, 6) for s in searched)
+
+
+def test_the_pose_loop_follows_a_new_picture_while_a_complete_pass_is_held_up(
+    calibration_frame_sets,
+) -> None:
+    """The board moves (a new picture) while the complete pass over the old one waits for
+    a thermal imager: the pose loop publishes the new picture's pose meanwhile."""
+    rig = default_rig()
+    old, new = calibration_frame_sets[0], calibration_frame_sets[1]
+    current = {"fs": old}
+    thermal_started = threading.Event()
+    release = threading.Event()
+
+    def slow_thermal(image: np.ndarray, board, modality: str) -> Detection:
+        if modality == "thermal" and image is old.frames["thermal_left"].image:
+            thermal_started.set()
+            if not release.wait(DEADLINE_S):
+                raise RuntimeError("never released")
+        return detect_board(image, board, modality)
+
+    seen = []
+    watch = BoardWatch(
+        lambda: current["fs"],
+        rig,
+        CALIBRATION_BOARD,
+        on_sighting=seen.append,
+        poll_s=0.01,
+        detect=slow_thermal,
+    )
+    watch.start()
+    try:
+        assert thermal_started.wait(DEADLINE_S), "the complete pass never reached thermal"
+        current["fs"] = new  # the board moved
+        wait_for(
+            lambda: watch.latest_pose is not None and watch.latest_pose.frames is new,
+            "the pose of the new picture",
+        )
+        assert not seen  # the complete pass over the old picture is still held up
+        pose = watch.latest_pose
+        assert pose.pose_sensor == "ccd_left" and not pose.complete
+        truth = calibration_poses(12, 1, rig, CALIBRATION_BOARD)[1]
+        rot_deg, trans_m = pose_error(pose.T_rig_board, truth)
+        assert rot_deg < 0.2 and trans_m < 0.003, (rot_deg, trans_m)
+        release.set()
+        wait_for(lambda: len(seen) >= 2, "the complete sightings of both pictures")
+        assert seen[0].frames is old and seen[1].frames is new
+        # the complete sighting of the old picture never replaced the newer pose
+        assert watch.latest_pose.frames is new
+        # the new picture's colour images were searched once, by the pose loop
+        assert seen[1].detections["ccd_left"] is pose.detections["ccd_left"]
+    finally:
+        release.set()
+        watch.stop()
 
 
 def test_watch_calls_back_with_each_new_frame_set(calibration_frame_sets) -> None:
     rig = default_rig()
     latest = {"fs": None}
     seen = []
-    watch = BoardWatch(lambda: latest["fs"], rig, CALIBRATION_BOARD, on_sighting=seen.append)
+    watch = BoardWatch(
+        lambda: latest["fs"], rig, CALIBRATION_BOARD, on_sighting=seen.append, rate_hz=1000.0
+    )
+    watch.duty = 1.0
     watch.tick()  # no frames yet: nothing happens
     latest["fs"] = calibration_frame_sets[0]
     watch.tick()
     watch.tick()  # the same frame set: not searched again
     assert len(seen) == 1 and watch.latest is seen[0] and seen[0].found
-    watch.enabled = False
     latest["fs"] = calibration_frame_sets[1]
     watch.tick()
-    assert len(seen) == 1
+    assert len(seen) == 2 and seen[1].frames is calibration_frame_sets[1]
+    watch.enabled = False
+    latest["fs"] = calibration_frame_sets[2]
+    watch.tick()
+    assert len(seen) == 2
+    watch.stop()
+
+
+def test_a_pass_is_followed_by_a_pause_as_long_as_itself(calibration_frame_sets) -> None:
+    """``duty`` 0.5: after a pass of ``t`` seconds, no pass is due for another ``t`` (at
+    most MAX_PAUSE_S)."""
+    rig = default_rig()
+    latest = {"fs": calibration_frame_sets[0]}
+    watch = BoardWatch(lambda: latest["fs"], rig, CALIBRATION_BOARD, rate_hz=1000.0)
+    started = time.monotonic()
+    watch.tick()
+    (timing,) = watch.timings
+    pause = min(MAX_PAUSE_S, timing.pass_s)
+    assert not watch.due(started + timing.pass_s + 0.9 * pause)
+    assert watch.due(started + timing.pass_s + 1.1 * pause + 0.01)
     watch.stop()
 
 
@@ -70,7 +318,13 @@ def test_without_a_board_the_watch_searches_less_often() -> None:
     latest = {"fs": blank()}
     seen = []
     watch = BoardWatch(
-        lambda: latest["fs"], rig, CALIBRATION_BOARD, on_sighting=seen.append, idle_period_s=60
+        lambda: latest["fs"],
+        rig,
+        CALIBRATION_BOARD,
+        on_sighting=seen.append,
+        idle_period_s=60,
+        rate_hz=1000.0,
+        duty=1.0,
     )
     watch.tick()
     assert len(seen) == 1 and not seen[0].found
@@ -80,3 +334,10 @@ def test_without_a_board_the_watch_searches_less_often() -> None:
     watch.idle_period_s = 0.0
     watch.tick()
     assert len(seen) == 2
+    watch.stop()
+
+
+def test_bad_settings_are_refused() -> None:
+    rig = default_rig()
+    with pytest.raises(ValueError, match="duty"):
+        BoardWatch(lambda: None, rig, CALIBRATION_BOARD, duty=0.0)

@@ -1,20 +1,43 @@
-"""The console's 3D scene in a real browser (Debian's chromium driven by Playwright): the
-"3D scene" folder, switching the cloud colouring and the rig shown, and a screenshot of the
-scene (saved to /tmp/shots/scene3d.png). Fixtures ``console`` and ``browser`` are in
-conftest.py."""
+"""The console's 3D scene in a real browser (Debian's chromium driven by Playwright): the view
+buttons move the browser's own camera (read back from what the browser reports), the
+"3D scene" folder switches the cloud colouring and the rig shown, the board found by the
+live detection is drawn in the calibration scenario, and screenshots of first sight, each
+view and the board go to /tmp/shots (scene3d.png, scene3d-head.png, scene3d-above.png,
+scene3d-side.png, board-in-scene.png; docs/screenshots/ holds copies a person looked at).
+
+The tests that start their own server come first: the module's ``console`` (conftest.py,
+the simulated inspection room) starts with the first test that asks for it, so no idle
+console shares the CPU with them."""
 
 from __future__ import annotations
 
+import contextlib
+import io
+import re
+import threading
+import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
+import pytest
+import viser
 
-from tests.browser_support import needs_chromium
+from tests.browser_support import console_running, needs_chromium
 
 pytestmark = needs_chromium
 
 SHOTS = Path("/tmp/shots")
+VIEWPORT = {"width": 800, "height": 600}
+CONNECTED = "() => !document.body.innerText.includes('Connecting...')"
+CLOUD_SHOWN = "() => /Cloud: [\\d,]+ points, color/.test(document.body.innerText)"
+VIEW_BUTTONS = {
+    "View from head": "head",
+    "View from above": "above",
+    "View from side": "side",
+    "Overview": "overview",
+}
 
 
 def choose(page, label: str, option: str) -> None:
@@ -23,37 +46,194 @@ def choose(page, label: str, option: str) -> None:
     page.get_by_role("option", name=option, exact=True).click()
 
 
-def test_scene_folder_switches_colouring_and_rig(console, browser) -> None:
-    page = browser.new_page(viewport={"width": 800, "height": 600})
+def open_scene(browser, url: str):
+    """A page at ``url`` (800 x 600), connected, with Viser's software-WebGL notice closed
+    (it would cover the top left of every screenshot)."""
+    page = browser.new_page(viewport=VIEWPORT)
+    page.goto(url)
+    page.wait_for_function(CONNECTED, timeout=60000)
+    notice = page.locator(".mantine-Notification-root", has_text="Software WebGL")
+    with contextlib.suppress(Exception):  # only under software WebGL
+        notice.locator("button").first.click(timeout=5000)
+    return page
+
+
+def scene_pixels(png: bytes) -> np.ndarray:
+    """The 3D view left of Viser's control panel, (H, W, 3) BGR, from a screenshot."""
+    shot = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    return shot[20:580, 10:450]
+
+
+def drawn_fraction(view: np.ndarray) -> float:
+    """Fraction of pixels that differ clearly from the white background."""
+    return float((np.abs(view.astype(int) - 255).sum(axis=2) > 60).mean())
+
+
+def wait_until(condition, what: str, timeout_s: float = 120.0) -> None:
+    end = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > end:
+            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(0.05)
+
+
+# -- the view buttons move this browser's camera (an in-process scene, no simulator) -----
+
+
+@pytest.fixture
+def small_scene():
+    """Viser with the console's 3D scene on the synthetic frame set of test_scene3d (a
+    ramp of TOF distances 1.5-3.5 m, uniform colour and thermal images)."""
+    from app.server.context import ConsoleContext
+    from app.server.scene3d import Scene3D
+    from calib.board import Board
+    from tests.test_scene3d import pipeline_for
+
+    pipeline = pipeline_for()
+    with contextlib.redirect_stdout(io.StringIO()):
+        server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    ctx = ConsoleContext(
+        server=server,
+        source=None,  # type: ignore[arg-type]
+        description="test",
+        hub=None,  # type: ignore[arg-type]
+        pipeline=pipeline,  # type: ignore[arg-type]
+        board=Board(9, 6, 0.04),
+        board_watch=SimpleNamespace(latest=None),  # type: ignore[arg-type]
+    )
+    scene = Scene3D(ctx).start()
+    try:
+        yield scene, f"http://127.0.0.1:{server.get_port()}/"
+    finally:
+        scene.stop()
+        server.stop()
+
+
+def test_view_buttons_move_the_browsers_own_camera(small_scene, browser) -> None:
+    """Each button moves the camera of the browser that pressed it to the view's pose:
+    what the browser itself reports back (Viser's camera messages) is checked."""
+    scene, url = small_scene
+    page = open_scene(browser, url)
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
-    page.goto(console.signin("/console/"))
-    page.wait_for_function(
-        "() => !document.body.innerText.includes('Connecting...')", timeout=60000
-    )
-    page.wait_for_function(
-        "() => /Cloud: [\\d,]+ points, color/.test(document.body.innerText)", timeout=120000
-    )
+    page.wait_for_function(CLOUD_SHOWN, timeout=60000)
+    (client,) = scene.server.get_clients().values()
+    reports: list[tuple[np.ndarray, np.ndarray]] = []
+    lock = threading.Lock()
+
+    def reported(camera) -> None:  # called for the browser's own camera messages only
+        with lock:
+            reports.append((np.array(camera.position), np.array(camera.look_at)))
+
+    client.camera.on_update(reported)
+    viewport = scene.canvas_of(client)  # the canvas, whatever drawing size Viser picks
+    assert viewport == (800, 600)
+    positions = {}
+    for label, view in VIEW_BUTTONS.items():
+        want = scene.view_pose(view, viewport)
+        with lock:
+            reports.clear()
+        page.get_by_role("button", name=label).click()
+
+        def arrived(want=want) -> bool:
+            with lock:
+                return any(
+                    np.allclose(p, want.position, atol=1e-3)
+                    and np.allclose(a, want.look_at, atol=1e-3)
+                    for p, a in reports
+                )
+
+        wait_until(arrived, f"the browser's camera at the {view} pose")
+        positions[view] = np.array(want.position)
+        assert client.camera.fov == pytest.approx(want.fov_rad, abs=1e-6)
+    assert np.allclose(positions["head"], 0.0)  # at the rig origin
+    assert positions["above"][1] < -1.0  # above the scene (-y is up)
+    assert positions["side"][0] > 1.0  # on the right
+    assert not errors, errors
+    page.close()
+
+
+# -- the board in the calibration scenario ------------------------------------------------
+
+
+def test_the_board_is_drawn_where_the_detection_puts_it(browser, tmp_path) -> None:
+    """The simulated calibration session (the heated board held at 40 poses): the 3D scene
+    draws the board and says from which sensor its pose comes."""
+    with console_running(["--scenario", "calibration", "--workdir", str(tmp_path)]) as console:
+        page = open_scene(browser, console.signin("/console/"))
+        page.wait_for_function(CLOUD_SHOWN, timeout=180000)
+        page.wait_for_function(
+            "() => /Board: [\\d.]+ m away, pose from ccd_/.test(document.body.innerText)",
+            timeout=180000,
+        )
+        text = page.evaluate("() => document.body.innerText")
+        m = re.search(r"Board: ([\d.]+) m away", text)
+        assert m is not None and 0.5 < float(m.group(1)) < 4.5  # the poses: 0.6-4 m
+        # as the sensors see it, with the board's line of the "3D scene" folder in view
+        page.get_by_role("button", name="View from head").click()
+        page.get_by_text(re.compile(r"m away, pose from")).scroll_into_view_if_needed()
+        page.mouse.move(5, 300)  # no button under the pointer (it would be highlighted)
+        page.wait_for_timeout(3000)  # the camera moved, a texture update (2 Hz)
+        SHOTS.mkdir(parents=True, exist_ok=True)
+        png = page.screenshot(path=str(SHOTS / "board-in-scene.png"))
+        assert drawn_fraction(scene_pixels(png)) > 0.3  # the cloud fills the view
+        page.close()
+
+
+# -- the inspection room (the module's console) -------------------------------------------
+
+
+def test_first_sight_and_the_view_buttons(console, browser) -> None:
+    """First sight: the frustum size taken from the scene, the five names and live images
+    below the head; then each view button changes what the browser shows. Screenshots of
+    each go to /tmp/shots."""
+    page = open_scene(browser, console.signin("/console/"))
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.wait_for_function(CLOUD_SHOWN, timeout=180000)
+    page.wait_for_timeout(4000)  # a texture update (2 Hz) and the renderer catching up
+    uuid = page.locator("label", has_text="Frustum size (m)").get_attribute("for")
+    box = page.locator(f"[id='{uuid}']").locator("xpath=..").locator("input:not([type=hidden])")
+    depth = float(box.input_value())
+    assert 0.3 <= depth <= 1.5, depth  # from the room (a quarter of its median distance)
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    first = scene_pixels(page.screenshot(path=str(SHOTS / "scene3d.png")))
+    assert drawn_fraction(first) > 0.1
+    shots = {"overview": first}
+    for label, view in VIEW_BUTTONS.items():
+        if view == "overview":
+            continue
+        page.get_by_role("button", name=label).click()
+        page.wait_for_timeout(3000)
+        png = page.screenshot(path=str(SHOTS / f"scene3d-{view}.png"))
+        shots[view] = scene_pixels(png)
+        assert drawn_fraction(shots[view]) > 0.05, view
+    for a in shots:
+        for b in shots:
+            if a < b:  # every view shows something else
+                diff = np.abs(shots[a].astype(int) - shots[b].astype(int)).sum(axis=2) > 60
+                assert diff.mean() > 0.05, (a, b, diff.mean())
+    assert not errors, errors
+    page.close()
+
+
+def test_scene_folder_switches_colouring_and_rig(console, browser) -> None:
+    page = open_scene(browser, console.signin("/console/"))
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.wait_for_function(CLOUD_SHOWN, timeout=180000)
     text = page.evaluate("() => document.body.innerText")
     assert "3D scene" in text and "Rig shown" in text and "Cloud colour" in text
     assert page.get_by_label("Rig shown").input_value() == "in use"
 
-    # the scene, with the cloud coloured by the colour camera and textured frustums
-    page.wait_for_timeout(4000)  # a texture update (2 Hz) and the renderer catching up
-    SHOTS.mkdir(parents=True, exist_ok=True)
-    png = page.screenshot(path=str(SHOTS / "scene3d.png"))
-    shot = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
-    view = shot[150:560, 120:460]  # the 3D view left of the panel, below the notice
-    drawn = (np.abs(view.astype(int) - 255).sum(axis=2) > 60).mean()
-    assert drawn > 0.2, f"only {drawn:.0%} of the view differs from the background"
-
-    # bigger frustums show their live images from the starting viewpoint (typed into the
-    # slider's number box: arrow keys would also move the 3D camera)
+    # the operator's frustum size is kept (typed into the slider's number box: arrow keys
+    # would also move the 3D camera)
     uuid = page.locator("label", has_text="Frustum size (m)").get_attribute("for")
     box = page.locator(f"[id='{uuid}']").locator("xpath=..").locator("input:not([type=hidden])")
     box.fill("0.3")
     box.blur()
     page.wait_for_timeout(3000)
+    assert box.input_value() == "0.3"
     page.screenshot(path=str(SHOTS / "scene3d_frustums.png"))
 
     for mode, pattern in (

@@ -6,6 +6,7 @@ A screenshot of the panel goes to /tmp/shots/source.png (for a person to look at
 
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 
@@ -40,6 +41,12 @@ def test_record_and_stop_from_the_source_panel(console, browser) -> None:
         page.wait_for_function("() => document.body.innerText.includes('Fused:')", timeout=60000)
         text = page.evaluate("() => document.body.innerText")
         assert "simulated: the simulated head" in text
+        # the stream's rates say what they count (the viewer shows the same: test_browser.py)
+        assert re.search(
+            r"Fused: \d+\.\d fps new pictures, stream \d+\.\d fps \(last 3 s; \d+ new of \d+ "
+            r"frames\)",
+            text,
+        ), text
         # the first folder of the GUI
         folders = [t for t in ("Source", "Fusion", "Thermal") if t in text.splitlines()]
         assert folders[0] == "Source", text[:400]

@@ -4,6 +4,7 @@ OpenCV sample images against their reference, and malformed input."""
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -13,6 +14,8 @@ import pytest
 from conftest import OPENCV_LEFT_9X6
 
 from app.cli import main
+from app.report_format import coverage_sentence
+from calib.coverage import coarse_reached
 from calib.transforms import pose_error, rvec_from_rotation
 
 REAL = OPENCV_LEFT_9X6
@@ -138,6 +141,56 @@ def test_left02_outlier_is_the_fixed_window() -> None:
     rms, *_rest, per_view = cv2.calibrateCameraExtended(objs, imgs, (640, 480), None, None)
     assert rms == pytest.approx(0.409, abs=0.01)
     assert names[int(np.argmax(per_view))] == "left02" and per_view.max() > 1.0
+
+
+# -- the summary: coverage in one line per sensor, rejected images by view ------------------
+
+
+def test_coverage_sentence_names_the_empty_and_thin_regions() -> None:
+    """6 x 8 cells: the bottom-left coarse region (rows 4-5, cols 0-2) empty, half of the top
+    edge region (rows 0-1, cols 3-4) empty: 40 of 48 cells reached."""
+    counts = np.ones((6, 8), np.int64)
+    counts[4:, :3] = 0
+    counts[0, 3:5] = 0
+    fractions = coarse_reached(counts)
+    assert fractions[2, 0] == 0.0 and fractions[0, 1] == 0.5 and fractions[1, 1] == 1.0
+    assert coverage_sentence(counts) == (
+        "corners cover 83 % of the image; none in the bottom-left corner; few in the top edge"
+    )
+    counts[0, 3] = 7  # three of the top edge's four cells: no longer thin
+    assert coverage_sentence(counts) == (
+        "corners cover 85 % of the image; none in the bottom-left corner"
+    )
+    assert coverage_sentence(np.ones((6, 8))) == "corners cover the whole image"
+    assert coverage_sentence(np.zeros((6, 8))) == "no corner anywhere in the image"
+    almost = np.ones((6, 8))
+    almost[5, 7] = 0  # 47 of 48: not rounded up to 100 %
+    assert coverage_sentence(almost) == "corners cover 97 % of the image"
+
+
+def test_summary_gives_coverage_in_a_line_and_rejected_images_by_view(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cap = _real_capture(tmp_path)
+    cv2.imwrite(str(cap / "left05" / "ccd_left.jpg"), np.full((480, 640), 128, np.uint8))
+    report_path = tmp_path / "report.json"
+    code = main(
+        ["calibrate", str(cap), "--out", str(tmp_path / "r.yaml"), "--report", str(report_path)]
+    )
+    out = capsys.readouterr().out
+    assert code == 0
+    report = json.loads(report_path.read_text())
+    coverage = report["sensors"]["ccd_left"]["coverage"]
+    counts = np.array(coverage["corner_counts"])
+    percent = math.floor(100 * np.count_nonzero(counts) / counts.size)
+    assert 0 < percent < 100 and coverage["reached"] == np.count_nonzero(counts) / counts.size
+    lines = out.splitlines()
+    bars = next(i for i, line in enumerate(lines) if line.startswith("ccd_left       coverage"))
+    assert lines[bars + 1].strip().startswith(f"corners cover {percent} % of the image")
+    assert "never saw a corner" not in out and "row 0, col" not in out
+    reason = report["detections"]["left05"]["ccd_left"]["reason"]
+    assert "not found" in reason
+    assert f"  ccd_left, view left05: {reason}" in lines
 
 
 # -- malformed input: one clear line, exit 2, no traceback ----------------------------------

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -14,7 +15,7 @@ from app import bench
 from app.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
-COMMANDS = ["simulate", "calibrate", "analyze", "record", "fuse", "serve", "bench"]
+COMMANDS = ["simulate", "calibrate", "compare", "analyze", "record", "fuse", "serve", "bench"]
 
 
 def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
@@ -142,6 +143,107 @@ def test_refuses_an_output_that_is_a_file(
     target.write_text("x")
     code, _, err = run(["simulate", "calibration", "--out", str(target)], capsys)
     assert code == 2 and "is not a directory" in err
+
+
+# Every command that writes refuses an existing output the same way: one line with the
+# prefix of every other error, exit 2, the file untouched. (A FILE is made as "precious";
+# a DIR as a directory holding one.) Inputs need not exist: the refusal comes first.
+REFUSALS = [
+    (["simulate", "calibration", "--out", "DIR"], "--out"),
+    (["simulate", "calibration", "--out", "FILE"], "--out"),
+    (["calibrate", "cap", "--out", "FILE"], "--out"),
+    (["calibrate", "cap", "--out", "new.yaml", "--report", "FILE"], "--report"),
+    (["calibrate-range", "cap", "--rig", "rig.yaml", "--out", "FILE"], "--out"),
+    (["calibrate-range", "cap", "--rig", "r", "--out", "r2", "--report", "FILE"], "--report"),
+    (["calibrate-range", "cap", "--rig", "r", "--out", "r2", "--plot", "FILE"], "--plot"),
+    (["balance-thermal", "rec.mcap", "--out", "FILE"], "--out"),
+    (["balance-thermal", "rec.mcap", "--rig", "r.yaml", "--out", "FILE"], "--out"),
+    (["analyze", "rig.yaml", "--plot", "FILE"], "--plot"),
+    (["record", "--source", "sim", "--out", "FILE"], "--out"),
+    (["record", "--source", "replay:rec.mcap", "--out", "FILE"], "--out"),
+    (["fuse", "rec.mcap", "--out", "DIR"], "--out"),
+    (["fuse", "rec.mcap", "--out", "FILE"], "--out"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("argv", "flag"), REFUSALS, ids=[" ".join(a) for a, _ in REFUSALS])
+def test_every_refusal_to_overwrite_is_one_prefixed_line(
+    argv: list[str], flag: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "DIR").mkdir()
+    (tmp_path / "DIR" / "precious.png").write_bytes(b"captured by hand")
+    (tmp_path / "FILE").write_bytes(b"precious")
+    before = sorted((p.relative_to(tmp_path), p.read_bytes() if p.is_file() else b"")
+                    for p in tmp_path.rglob("*"))  # fmt: skip
+    args = [str(tmp_path / a) if a in ("DIR", "FILE") else a for a in argv]
+    code, out, err = run(args, capsys)
+    assert code == 2 and out == ""
+    assert err.startswith(f"trifuse: error: {flag} {tmp_path}/"), err
+    assert "refusing to" in err and len(err.strip().splitlines()) == 1
+    after = sorted((p.relative_to(tmp_path), p.read_bytes() if p.is_file() else b"")
+                   for p in tmp_path.rglob("*"))  # fmt: skip
+    assert after == before
+
+
+def test_a_rig_may_replace_itself_but_nothing_else(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """calibrate-range --out RIG --rig RIG is allowed (the old file is kept as a backup): it
+    gets as far as reading the capture, not refused."""
+    rig = tmp_path / "rig.yaml"
+    rig.write_text("precious")
+    code, _, err = run(
+        ["calibrate-range", str(tmp_path / "nope"), "--rig", str(rig), "--out", str(rig)], capsys
+    )
+    assert code == 2 and "refusing" not in err and rig.read_text() == "precious"
+
+
+def test_record_suggests_the_commands_that_use_the_recording(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The summary after recording names trifuse commands, not Python classes, and each
+    suggested command line is one the parser takes, for the file just written."""
+    import shlex
+
+    from app.cli import build_parser
+    from tests.test_recording import small_rig, synth_frames, write_recording
+
+    rig = small_rig()
+    source = write_recording(tmp_path / "in.mcap", rig, synth_frames(rig, 0.1, seed=3))
+    out = tmp_path / "mission.mcap"
+    code, stdout, err = run(["record", "--source", f"replay:{source}", "--out", str(out)], capsys)
+    assert code == 0, err
+    assert "ReplaySource" not in stdout and "app.recording" not in stdout
+    suggested = [line.strip() for line in stdout.splitlines() if line.startswith("  trifuse ")]
+    assert suggested == [f"trifuse serve --replay {out}", f"trifuse fuse {out} --out DIR"]
+    serve = build_parser().parse_args(shlex.split(suggested[0])[1:])
+    fuse = build_parser().parse_args(shlex.split(suggested[1])[1:])
+    assert serve.command == "serve" and Path(serve.replay) == out
+    assert fuse.command == "fuse" and Path(fuse.recording) == out
+
+
+def test_analyze_prints_tof_pixels_rounded(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A calibrated TOF's principal point has many decimals; the table shows one."""
+    import dataclasses
+
+    from app.rigfile import save_rig
+    from app.sources.sim.head import default_rig
+    from calib.rig import Rig
+
+    rig = default_rig()
+    tof = rig["tof"]
+    calibrated = dataclasses.replace(
+        tof, intrinsics=dataclasses.replace(tof.intrinsics, cx=88.00229228, cy=71.20371737)
+    )
+    path = save_rig(tmp_path / "rig.yaml", Rig({**rig.sensors, "tof": calibrated}, "tof", rig.eyes))
+    code, out, err = run(["analyze", str(path)], capsys)
+    assert code == 0, err
+    pixels = [line.split(")")[0] + ")" for line in out.splitlines() if line.startswith("(")]
+    assert pixels[0] == "(88.0, 71.2)" and len(pixels) == 2
+    assert re.fullmatch(r"\(\d+\.\d, 71\.2\)", pixels[1]), pixels  # the region 3 edge
+    assert "88.002" not in out
 
 
 # -- simulate calibration end to end ------------------------------------------------------

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import viser
 
-from app.report_format import limit_distance_cell
+from app.report_format import limit_distance_cell, pixel_cell
 from app.server import panels as panels_mod
 from app.server.board_watch import BoardSighting
 from app.server.panels import (
@@ -62,9 +62,9 @@ def _table_rows(markdown: str) -> dict[tuple[str, str, str], list[str]]:
     rows: dict[tuple[str, str, str], list[str]] = {}
     pixel, error = None, None
     for line in markdown.splitlines():
-        m = re.match(r"\*\*TOF pixel \(([^,]+), ([^)]+)\)\*\*", line)
+        m = re.match(r"\*\*TOF pixel (\([^)]+\))\*\*", line)
         if m:
-            pixel = f"{m.group(1)},{m.group(2)}"
+            pixel = m.group(1)  # as printed: one decimal
             continue
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
         if len(cells) < 3 or cells[1] not in ("x", "y"):
@@ -78,14 +78,14 @@ def _expected_rows(rig: Rig) -> dict[tuple[str, str, str], list[str]]:
     before = analyze_precision(rig)  # the method's defaults: 41 mm, 0.5 px, threshold 0.5 px
     after = analyze_precision(rig, distance_error_m=0.015)
     out = {}
-    for key in before.distance_error:
+    for key, (u, v) in zip(before.distance_error, before.tof_pixels, strict=True):
         for error, results in (
             ("41 mm", before.distance_error[key]),
             ("15 mm", after.distance_error[key]),
             ("0.5 px", before.tof_pixel_error[key]),
         ):
             for coord in ("x", "y"):
-                out[(key, error, coord)] = [
+                out[(pixel_cell(u, v), error, coord)] = [
                     limit_distance_cell(getattr(results[s], f"{coord}_m"), 10.0)
                     for s in before.sensors
                 ]

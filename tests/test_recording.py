@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 from pathlib import Path
@@ -21,7 +22,13 @@ from app.recording import (
     RecordingWriter,
     ReplaySource,
 )
-from app.recording.simrecord import head_model_for, sim_schedule
+from app.recording.simrecord import (
+    head_model_for,
+    plan_simulation,
+    pose_index,
+    record_simulation,
+    sim_schedule,
+)
 from app.rigfile import save_rig
 from app.sources.base import frame_sets
 from app.sources.frames import Frame, FrameSet
@@ -607,6 +614,56 @@ def test_sim_schedule_renders_each_instant_once(rig):
     assert dict(sched)[1_000_000_000 // 15] == ["tof", "ccd_left", "ccd_right"]
 
 
+def test_record_simulation_live_mode_frames_stamps_and_noise(tmp_path, rig):
+    """The default (live) mode writes every sensor's frames at the sensors' own rates,
+    rendering the head pose only at 5 Hz, each frame turned to its own instant with fresh
+    noise; the exact mode's plan renders every instant."""
+    duration = 0.5
+    plan = plan_simulation(rig, duration)
+    schedule = sim_schedule(rig, duration)
+    assert plan.schedule == schedule and not plan.exact and plan.pose_hz == 5.0
+    assert plan.poses == len({pose_index(s, 5.0) for s, _ in schedule}) == 3  # 0, .2, .4 s
+    assert plan.renders == 3 * len(rig.names)
+    exact = plan_simulation(rig, duration, exact=True)
+    assert exact.renders == plan.frames == sum(len(s) for _, s in schedule)
+    assert exact.estimate_s > plan.estimate_s
+
+    seen = []
+    out = tmp_path / "live.mcap"
+    writer = record_simulation(out, rig, duration, seed=5, progress=seen.append)
+    assert [p.index for p in seen] == list(range(1, len(schedule) + 1))
+    assert all(p.eta_s >= 0 for p in seen) and seen[-1].eta_s == 0.0
+    assert writer.frames_written == plan.frames
+    frames: dict[str, list[Frame]] = {}
+    with ReplaySource(out, realtime=False) as src:
+        for f in src.frames():
+            frames.setdefault(f.sensor, []).append(f)
+    for name in rig.names:
+        expected = [stamp for stamp, sensors in schedule if name in sensors]
+        assert [f.stamp_ns for f in frames[name]] == expected, name
+        rate = RATES_HZ[rig[name].modality]
+        assert expected == [k * 1_000_000_000 // rate for k in range(len(expected))]
+        w, h = rig[name].image_size
+        assert all(f.image.shape[:2] == (h, w) for f in frames[name])
+    # Colour frames 1 and 2 (1/30 and 2/30 s) reuse the render of pose 0 (t = 0), turned a
+    # little (0.14 deg, 0.3 px here) and with fresh noise: they differ by about the noise.
+    # Mid-grey (linear 0.3) has sigma = sqrt(0.004^2 + 0.0004 * 0.3) = 0.0117 linear, 2.6
+    # levels after the gamma curve; two independent draws differ by sqrt(2) * sigma * sqrt(2
+    # / pi) = 2.9 levels on average (bright walls a little more, JPEG q90 adds about 1).
+    a, b = (frames["ccd_left"][i].image.astype(np.float64) for i in (1, 2))
+    assert pose_index(frames["ccd_left"][1].stamp_ns, 5.0) == 0
+    assert pose_index(frames["ccd_left"][2].stamp_ns, 5.0) == 0
+    diff = np.abs(a - b)
+    assert (diff > 0).mean() > 0.3 and diff.mean() < 6.0
+    # Seeded: the same recording again is the same, frame for frame.
+    again = tmp_path / "again.mcap"
+    record_simulation(again, rig, duration, seed=5)
+    with ReplaySource(again, realtime=False) as src:
+        replayed = [f for f in src.frames() if f.sensor == "thermal_left"]
+    pairs = zip(replayed, frames["thermal_left"], strict=True)
+    assert all(np.array_equal(x.image, y.image) for x, y in pairs)
+
+
 def test_record_sim_and_fuse_commands(tmp_path, rig, capsys):
     rig_path = save_rig(tmp_path / "rig.yaml", rig)
     out = tmp_path / "mission.mcap"
@@ -626,6 +683,16 @@ def test_record_sim_and_fuse_commands(tmp_path, rig, capsys):
     printed = capsys.readouterr()
     assert code == 0, printed.err
     assert "[1/" in printed.out and "Wrote" in printed.out
+    # it says at the start how long it will take, and the progress lines give the time left
+    first = printed.out.splitlines()[0]
+    estimate = re.search(r"Estimated time: about (\d+) s \((\d+)x real time\)", first)
+    assert estimate is not None, first
+    plan = plan_simulation(rig, 0.07)
+    assert int(estimate.group(1)) == round(plan.estimate_s) and 0 < plan.estimate_s < 60
+    assert "head poses rendered at 5 Hz (1 poses" in first and "--exact" in first
+    progress = [line for line in printed.out.splitlines() if line.startswith("[")]
+    assert len(progress) == len(sim_schedule(rig, 0.07))
+    assert all(re.search(r"elapsed \d+ s, ETA \d+ s$", line) for line in progress), progress
     with out.open("rb") as f:
         summary = make_reader(f).get_summary()
     schemas = {summary.schemas[c.schema_id].name for c in summary.channels.values()}

@@ -12,17 +12,24 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import viser
+import viser.transforms as vtf
 
+from app.server import scene_layout as layout
 from app.server.board_watch import BoardSighting
 from app.server.context import ConsoleContext
 from app.server.scene3d import (
     DEPTH_PALETTE,
+    FALLBACK_VIEWPORT,
     NAN_GREY,
     TEXTURE_MAX_W,
     Scene3D,
     board_checker_image,
+    board_lag_s,
+    frustum_scale,
     rig_difference_markdown,
     sensor_texture,
+    vertical_fov_rad,
+    viewport_of,
     wxyz_of,
 )
 from app.sources.frames import Frame, FrameSet
@@ -83,11 +90,16 @@ def fusion_rig() -> tuple[StereoFusion, Rig]:
     return fusion, rig
 
 
-@pytest.fixture
-def scene(fusion_rig) -> Iterator[tuple[Scene3D, SimpleNamespace, dict[str, Rig]]]:
-    fusion, rig = fusion_rig
+def pipeline_for(fusion: StereoFusion | None = None) -> SimpleNamespace:
+    """What the 3D scene reads of the console's FusionPipeline: the simulated head's rig,
+    a real StereoFusion with the :func:`ramp_distance` depth (or ``fusion``) and the
+    :func:`synthetic_set` frames."""
+    if fusion is None:
+        fusion = StereoFusion(default_rig())
+        fusion.update_depth(ramp_distance(fusion.rig))
+    rig = fusion.rig
     fusion.span_k = None
-    pipeline = SimpleNamespace(
+    return SimpleNamespace(
         rig=rig,
         fusion=fusion,
         tof="tof",
@@ -95,6 +107,12 @@ def scene(fusion_rig) -> Iterator[tuple[Scene3D, SimpleNamespace, dict[str, Rig]
         settings=DisplaySettings(span_k=SPAN_K, palette="iron"),
         radiometry={"thermal_left": Radiometry(), "thermal_right": Radiometry()},
     )
+
+
+@pytest.fixture
+def scene(fusion_rig) -> Iterator[tuple[Scene3D, SimpleNamespace, dict[str, Rig]]]:
+    fusion, _ = fusion_rig
+    pipeline = pipeline_for(fusion)
     extra: dict[str, Rig] = {}
     with contextlib.redirect_stdout(io.StringIO()):
         server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
@@ -191,31 +209,35 @@ def test_point_size_slider(scene) -> None:
 # -- textures ----------------------------------------------------------------------------
 
 
-def test_frustums_show_small_live_textures(scene) -> None:
+def test_the_image_panel_shows_small_live_images(scene) -> None:
     s, pipeline, _ = scene
     s.update_textures()
     for name in ("ccd_left", "ccd_right", "thermal_left", "thermal_right", "tof"):
-        img = s.nodes[name].frustum.image
-        assert img is not None and img.dtype == np.uint8 and img.ndim == 3, name
+        picture = s.nodes[name].picture
+        assert picture.visible, name
+        img = picture.image
+        assert img.dtype == np.uint8 and img.ndim == 3, name
         assert img.shape[1] <= TEXTURE_MAX_W and img.shape[2] == 3
-    assert s.nodes["ccd_left"].frustum.image.shape == (240, 320, 3)
-    np.testing.assert_array_equal(s.nodes["ccd_left"].frustum.image[5, 5], RED)
+        assert not s.nodes[name].frustum.image  # the frustums are bare wireframes
+    assert s.nodes["ccd_left"].picture.image.shape == (240, 320, 3)
+    np.testing.assert_array_equal(s.nodes["ccd_left"].picture.image[5, 5], RED)
     # thermal in the pipeline's palette over its span
     want = palette_colors(np.array([LEFT_K]), SPAN_K, "iron")[0]
-    np.testing.assert_array_equal(s.nodes["thermal_left"].frustum.image[10, 10], want)
+    np.testing.assert_array_equal(s.nodes["thermal_left"].picture.image[10, 10], want)
     # TOF amplitude stretched grey: dark at the left, bright at the right
-    tof = s.nodes["tof"].frustum.image
+    tof = s.nodes["tof"].picture.image
     assert tof.shape == (144, 176, 3) and tof[70, 1, 0] < 20 and tof[70, -2, 0] > 235
 
     # a sensor missing from the newest set shows no image; the others keep theirs
     fs = pipeline.latest_set
     pipeline.latest_set = FrameSet(2, {k: v for k, v in fs.frames.items() if k != "thermal_right"})
     s.update_textures()
-    assert s.nodes["thermal_right"].frustum.image is None
-    assert s.nodes["thermal_left"].frustum.image is not None
+    assert not s.nodes["thermal_right"].picture.visible
+    assert s.nodes["thermal_right"].cell_node.visible  # its frame and name stay
+    assert s.nodes["thermal_left"].picture.visible
 
     s.textures_on.value = False
-    assert all(n.frustum.image is None for n in s.nodes.values())
+    assert not any(n.picture.visible for n in s.nodes.values())
 
 
 def test_sensor_texture_shapes() -> None:
@@ -327,7 +349,7 @@ def test_tick_survives_missing_sensors_nan_depth_and_broken_parts(scene) -> None
         s.cloud_mode.value = mode
         s.tick()
         assert not s.cloud.visible, mode
-    assert s.nodes["ccd_left"].frustum.image is None
+    assert not s.nodes["ccd_left"].picture.visible
     assert not s.errors, s.errors
 
     # no depth yet at all
@@ -350,3 +372,307 @@ def test_tick_survives_missing_sensors_nan_depth_and_broken_parts(scene) -> None
     assert "textures" in s.errors
     assert s.board_node.visible  # the board part still ran
     del extra
+
+
+# -- first sight: frustum size, image panel, labels, views -------------------------------
+
+
+def room_cloud(rig: Rig, half_width_m: float = 3.5, depth_m: float = 8.3) -> np.ndarray:
+    """(N, 3) what the TOF camera of ``rig`` sees in a box room (rig frame, metres): its
+    pixel rays up to the walls at x = +-``half_width_m``, the ceiling at y = -1.6, the
+    floor at y = 1.2 and the far wall at z = ``depth_m`` (the head at the origin)."""
+    tof = rig["tof"]
+    w, h = tof.image_size
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    rays = tof.intrinsics.unproject(np.stack([u.ravel(), v.ravel()], axis=1))
+    rays = rays @ tof.T_rig_sensor[:3, :3].T
+    with np.errstate(divide="ignore"):
+        t_x = np.where(rays[:, 0] != 0, half_width_m / np.abs(rays[:, 0]), np.inf)
+        t_y = np.where(rays[:, 1] < 0, -1.6 / rays[:, 1], np.inf)
+        t_y = np.minimum(t_y, np.where(rays[:, 1] > 0, 1.2 / rays[:, 1], np.inf))
+        t_z = depth_m / rays[:, 2]
+    t = np.minimum(np.minimum(t_x, t_y), t_z)
+    return rays * t[:, None] + tof.T_rig_sensor[:3, 3]
+
+
+VIEWPORTS = ((800, 600), (1280, 800), (1920, 1080))
+
+
+def first_sight(rig: Rig) -> tuple[layout.SceneBox, layout.Panel]:
+    """The scene box of :func:`room_cloud` and the image panel Scene3D lays out for it."""
+    box = layout.scene_box(room_cloud(rig), Scene3D._positions(rig))
+    assert box is not None
+    panel = layout.image_panel(
+        {n: s.T_rig_sensor[:3, 3] for n, s in rig.sensors.items()},
+        {n: s.width / s.height for n, s in rig.sensors.items()},
+        layout.panel_image_width(box),
+    )
+    return box, panel
+
+
+def test_the_default_frustum_depth_comes_from_the_scene() -> None:
+    rig = default_rig()
+    cloud = room_cloud(rig, 1.2, 1.8)  # a small room: no bound applies
+    box = layout.scene_box(cloud, Scene3D._positions(rig))
+    head = layout.head_width(Scene3D._positions(rig))
+    assert 0.11 < head < 0.13  # the default head: ccd_left to ccd_right, 12 cm
+    assert box.median_z == pytest.approx(np.median(cloud[:, 2]))
+    assert 1.2 < box.median_z <= 1.8
+    depth = layout.default_frustum_depth(box, head)
+    assert depth == pytest.approx(round(0.25 * box.median_z, 2))
+    # a scene close by: at least 2.5 head widths; a huge one: at most 0.5 m
+    near = layout.scene_box(room_cloud(rig, 0.5, 0.6), Scene3D._positions(rig))
+    assert layout.default_frustum_depth(near, head) == pytest.approx(round(2.5 * head, 2))
+    far = layout.scene_box(room_cloud(rig, 30.0, 60.0), Scene3D._positions(rig))
+    assert layout.default_frustum_depth(far, head) == 0.5
+
+
+def test_frustum_scale_gives_viser_the_depth() -> None:
+    """Viser 1.1.1 normalises a frustum to unit volume (client CameraFrustumVariants.tsx):
+    its image plane lies scale / cbrt(tan(fov/2)^2 aspect / 3) in front of the apex."""
+    fov, aspect = np.radians(40.0), 4.0 / 3.0
+    y = np.tan(fov / 2)
+    volume_scale = np.cbrt(y * (y * aspect) * 1.0 / 3.0)
+    assert frustum_scale(0.9, fov, aspect) / volume_scale == pytest.approx(0.9)
+
+
+def test_the_first_cloud_sizes_the_frustums_unless_the_operator_did(scene) -> None:
+    s, pipeline, _ = scene
+    assert s.box is None and not s.user_sized
+    s.update_cloud()
+    head = layout.head_width(Scene3D._positions(pipeline.rig))
+    want = layout.default_frustum_depth(s.box, head)
+    assert s.box.median_z == pytest.approx(np.median(pipeline.fusion.points[:, 2]), rel=0.01)
+    assert s.frustum_size.value == pytest.approx(want) and not s.user_sized
+    for nodes in s.nodes.values():
+        f = nodes.frustum
+        assert f.scale == pytest.approx(frustum_scale(want, f.fov, f.aspect))
+    # the image panel hangs below the head, one picture per sensor, none overlapping
+    panel = s.panel
+    assert set(panel.cells) == set(pipeline.rig.names)
+    corners = panel.corners()
+    assert corners[:, 1].min() > max(p[1] for p in Scene3D._positions(pipeline.rig))
+    assert s.nodes["ccd_left"].picture.render_width == pytest.approx(
+        layout.panel_image_width(s.box)
+    )
+
+
+def test_the_operators_frustum_size_is_kept(scene) -> None:
+    s, _, _ = scene
+    s.frustum_size.value = 0.37  # as an operator's slider does, before the first cloud
+    assert s.user_sized
+    s.update_cloud()
+    assert s.box is not None and s.frustum_size.value == pytest.approx(0.37)
+    f = s.nodes["tof"].frustum
+    assert f.scale == pytest.approx(frustum_scale(0.37, f.fov, f.aspect))
+
+
+@pytest.mark.parametrize("viewport", VIEWPORTS)
+def test_at_the_default_view_labels_and_pictures_stay_apart(viewport) -> None:
+    """The overview of a room: no two sensor names overlap (their screen boxes from the
+    text size), no picture covers another or any of the cloud, and all of it lies in the
+    canvas left of Viser's control panel."""
+    rig = default_rig()
+    box, panel = first_sight(rig)
+    pose = layout.view_pose("overview", box, viewport, extra=panel.corners())
+    names = list(panel.cells)
+    anchors = layout.project(np.stack([panel.label_points()[n] for n in names]), pose, viewport)
+    boxes = layout.label_boxes(names, anchors)
+    assert layout.overlapping_labels(boxes) == []
+    # every label is at least the text size (one em) away from the others
+    gap = min(
+        max(
+            boxes[j, 0] - boxes[i, 2],
+            boxes[i, 0] - boxes[j, 2],
+            boxes[j, 1] - boxes[i, 3],
+            boxes[i, 1] - boxes[j, 3],
+        )
+        for i in range(len(names))
+        for j in range(i + 1, len(names))
+    )
+    assert gap >= layout.LABEL_EM_PX, gap
+    # pictures: projected quads apart from each other and from the cloud's points
+    cloud_px = layout.project(box.sample, pose, viewport)
+    quads = {}
+    for name, cell in panel.cells.items():
+        cx, cy, cz = cell.center
+        w, h = cell.width / 2, cell.height / 2
+        local = np.array(
+            [[cx - w, cy - h, cz], [cx + w, cy - h, cz], [cx + w, cy + h, cz], [cx - w, cy + h, cz]]
+        )
+        q = layout.project(panel.to_rig(local), pose, viewport)
+        quads[name] = (q.min(axis=0), q.max(axis=0))
+        lo, hi = quads[name]
+        assert hi[0] - lo[0] > 40, (name, hi - lo)  # big enough to read
+        inside = np.all((cloud_px >= lo) & (cloud_px <= hi), axis=1)
+        assert not inside.any(), f"{name}'s picture covers {inside.sum()} cloud points"
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            (alo, ahi), (blo, bhi) = quads[a], quads[b]
+            assert (ahi < blo).any() or (bhi < alo).any(), (a, b)
+    free_w, _ = layout.free_canvas(viewport)
+    everything = np.vstack([cloud_px, layout.project(panel.corners(), pose, viewport)])
+    assert everything[:, 0].min() >= 0 and everything[:, 0].max() <= free_w
+    assert everything[:, 1].min() >= 0 and everything[:, 1].max() <= viewport[1]
+
+
+def test_crowded_labels_are_caught() -> None:
+    """The check itself: two names at the same spot overlap, a line apart they do not."""
+    boxes = layout.label_boxes(["ccd_left", "thermal_left"], np.array([[100.0, 50], [104, 55]]))
+    assert layout.overlapping_labels(boxes) == [(0, 1)]
+    boxes = layout.label_boxes(["ccd_left", "thermal_left"], np.array([[100.0, 50], [104, 70]]))
+    assert layout.overlapping_labels(boxes) == []
+
+
+class FakeCamera:
+    """What Scene3D sets on a browser's camera, recorded (Viser's CameraHandle API)."""
+
+    def __init__(self, width: int | None = 800, height: int | None = 600) -> None:
+        if width is not None:
+            self.image_width, self.image_height = width, height
+        self.fov = self.near = None
+        self.up_direction = self.position = self.look_at = None
+
+
+def press(button, client) -> None:
+    """Run a Viser button's click callbacks as a browser's click does."""
+    for cb in button._impl.update_cb:
+        cb(SimpleNamespace(client=client, client_id=1, target=button))
+
+
+def test_view_buttons_move_the_camera_of_the_client_that_pressed(scene) -> None:
+    s, pipeline, _ = scene
+    s.update_cloud()
+    points = pipeline.fusion.points
+    client, other = SimpleNamespace(camera=FakeCamera()), SimpleNamespace(camera=FakeCamera())
+    vfov = max(vertical_fov_rad(x) for x in pipeline.rig.sensors.values())
+
+    press(s.view_buttons["View from head"], client)
+    cam = client.camera
+    assert cam.position == (0.0, 0.0, 0.0) and cam.up_direction == (0.0, -1.0, 0.0)
+    assert cam.look_at[:2] == (0.0, 0.0) and cam.look_at[2] > 1.0  # along +z
+    assert cam.fov == pytest.approx(1.15 * vfov)
+    # the frustums' ends are clipped away, the scene (1.5 m on) is not
+    assert cam.near == pytest.approx(1.05 * s.frustum_size.value)
+    assert cam.near < np.percentile(points[:, 2], 2)
+    s.frustum_size.value = 1.2  # deeper frustums: never clipped beyond 0.55 m
+    press(s.view_buttons["View from head"], client)
+    assert cam.near == pytest.approx(0.55)
+    assert other.camera.position is None  # only the browser that pressed
+
+    for label, check in (
+        ("View from above", lambda d: d[1] > 0.9),  # looking down (+y)
+        ("View from side", lambda d: d[0] < -0.99),  # from the right, looking left (-x)
+        ("Overview", lambda d: d[1] > 0.4 and d[2] > 0.7),  # forward and down
+    ):
+        press(s.view_buttons[label], client)
+        cam = client.camera
+        d = np.subtract(cam.look_at, cam.position)
+        assert check(d / np.linalg.norm(d)), (label, d)
+        assert cam.near == pytest.approx(0.01) and cam.up_direction == (0.0, -1.0, 0.0)
+        # the framed cloud lies in the canvas left of the control panel
+        pose = layout.CameraPose(cam.position, cam.look_at, cam.up_direction, cam.fov)
+        px = layout.project(s.box.sample, pose, (800, 600))
+        assert np.isfinite(px).all() and px[:, 0].min() > 0 and px[:, 0].max() < 800 - 345
+        assert px[:, 1].min() > 0 and px[:, 1].max() < 600
+
+    # a browser that has not told its canvas size: framed for a common one
+    blind = SimpleNamespace(camera=FakeCamera(None, None))
+    press(s.view_buttons["View from above"], blind)
+    assert blind.camera.position is not None
+    assert viewport_of(blind.camera) == FALLBACK_VIEWPORT
+
+
+class FakeClientScene:
+    """A browser's own scene (``client.scene``): the frames added, and removed."""
+
+    def __init__(self) -> None:
+        self.frames: list[SimpleNamespace] = []
+
+    def add_frame(self, name: str, **props) -> SimpleNamespace:
+        handle = SimpleNamespace(name=name, removed=False, **props)
+        handle.remove = lambda: setattr(handle, "removed", True)
+        self.frames.append(handle)
+        return handle
+
+
+def test_the_image_panel_faces_the_view_of_the_browser_that_chose_it(scene) -> None:
+    """Another view turns the panel for that browser only (a client-scoped /panel that
+    shadows the shared one); the overview gives it back the shared panel."""
+    s, _, _ = scene
+    s.update_cloud()
+    client = SimpleNamespace(client_id=3, camera=FakeCamera(), scene=FakeClientScene())
+    shared = s.panel_node.wxyz.copy()
+    press(s.view_buttons["View from side"], client)
+    (side,) = client.scene.frames
+    assert side.name == "/panel" and side.visible
+    R = vtf.SO3(np.asarray(side.wxyz)).as_matrix()
+    np.testing.assert_allclose(R[:, 2], [-1.0, 0.0, 0.0], atol=1e-9)  # faces +x
+    np.testing.assert_allclose(R[:, 1], [0.0, 1.0, 0.0], atol=1e-9)  # upright (down +y)
+    assert side.position[1] > 0.1  # below the head
+    np.testing.assert_array_equal(s.panel_node.wxyz, shared)  # the others' panel stays
+    # the side view's labels, now facing the camera, stay apart
+    placed = s.panel.placed("side")
+    names = list(placed.cells)
+    cam = client.camera
+    pose = layout.CameraPose(cam.position, cam.look_at, cam.up_direction, cam.fov)
+    anchors = layout.project(np.stack([placed.label_points()[n] for n in names]), pose, (800, 600))
+    assert layout.overlapping_labels(layout.label_boxes(names, anchors)) == []
+    press(s.view_buttons["View from head"], client)  # out of the way from the head
+    assert side.removed and not client.scene.frames[-1].visible
+    press(s.view_buttons["Overview"], client)
+    assert client.scene.frames[-1].removed and len(client.scene.frames) == 2
+
+
+def test_the_canvas_is_the_largest_drawing_size_a_browser_reported(scene) -> None:
+    """Viser reports its drawing buffer, which it shrinks to 0.75 x while drawing is slow:
+    views are framed for the canvas (the largest size at the present aspect ratio)."""
+    s, _, _ = scene
+    client = SimpleNamespace(client_id=7, camera=FakeCamera(800, 600))
+    s._note_canvas(7, client.camera)
+    client.camera.image_width, client.camera.image_height = 600, 450  # drawing slowly
+    s._note_canvas(7, client.camera)
+    assert s.canvas_of(client) == (800, 600)
+    press(s.view_buttons["Overview"], client)
+    want = s.view_pose("overview", (800, 600))
+    assert client.camera.position == pytest.approx(want.position)
+    client.camera.image_width, client.camera.image_height = 1000, 500  # window resized
+    s._note_canvas(7, client.camera)
+    assert s.canvas_of(client) == (1000, 500)
+
+
+def test_a_view_needs_no_cloud_and_an_unknown_view_is_refused(scene) -> None:
+    s, _, _ = scene
+    client = SimpleNamespace(camera=FakeCamera())
+    s.set_view(client, "overview")  # before any cloud: the default room
+    assert client.camera.position is not None
+    with pytest.raises(ValueError, match="expected one of overview, head, above, side"):
+        s.view_pose("below", (800, 600))
+
+
+def test_the_board_moves_when_the_watch_publishes_and_says_how_late(scene) -> None:
+    s, pipeline, _ = scene
+    listeners = []
+    s.ctx.board_watch = SimpleNamespace(latest=None, latest_pose=None, pose_listeners=listeners)
+    s2 = Scene3D(s.ctx)  # registers with the watch
+    assert len(listeners) == 1
+    fs = pipeline.latest_set
+    T = make_T(rotation_from_euler_deg(0, 10, 0), [0.2, 0.1, 1.5])
+    sighting = BoardSighting(fs, {}, T, "ccd_left", False, False)
+    s.ctx.board_watch.latest_pose = sighting
+    listeners[0](sighting)  # what the watch does when it publishes: no tick needed
+    assert s2.board_node.visible
+    np.testing.assert_allclose(s2.board_node.position, T[:3, 3])
+    assert "searching the other sensors" in s2.board_md.content
+    assert "older" not in s2.board_md.content
+    # 2 s later, the same picture (the very images): the board is not late
+    pipeline.latest_set = FrameSet(fs.stamp_ns + 2_000_000_000, dict(fs.frames))
+    assert board_lag_s(sighting, pipeline.latest_set) == 0.0
+    # a new picture 2 s later: the board drawn is 2 s late
+    moved = {k: Frame(k, 3, np.array(v.image), v.distance_m) for k, v in fs.frames.items()}
+    pipeline.latest_set = FrameSet(fs.stamp_ns + 2_000_000_000, moved)
+    assert board_lag_s(sighting, pipeline.latest_set) == pytest.approx(2.0)
+    complete = BoardSighting(fs, {}, T, "ccd_left", False)
+    s.ctx.board_watch.latest_pose = complete
+    listeners[0](complete)
+    assert "(in frames 2.0 s older than the cloud)" in s2.board_md.content

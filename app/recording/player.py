@@ -256,8 +256,6 @@ class MessageReplay(FrameSource):
                 ready.sort(key=lambda fr: fr[1])
                 for frame, due in ready:
                     if self._wait(due):
-                        with self._cond:
-                            self._position = max(self._position, due)
                         delivered += 1
                         yield frame
                 if self.loop and pass_delivered and self._pending_seek is None:
@@ -308,8 +306,6 @@ class MessageReplay(FrameSource):
             for frame, due in ready:
                 if not self._wait(due):
                     break  # a seek came: drop what was decoded before it
-                with self._cond:
-                    self._position = max(self._position, due)
                 delivered += 1
                 pass_delivered += 1
                 yield frame
@@ -360,7 +356,9 @@ class MessageReplay(FrameSource):
         return Frame(sensor, half.stamp_ns, amplitude, distance), half.log_ns
 
     def _wait(self, due_ns: int) -> bool:
-        """Block until a frame of log time ``due_ns`` is due; False if a seek came first."""
+        """Block until a frame of log time ``due_ns`` is due, then count it as delivered
+        (``position_ns``); False if a seek came first. The position moves under the same
+        lock as :meth:`pause` reads and sets: once ``pause()`` returns, it stays put."""
         with self._cond:
             while True:
                 if self._pending_seek is not None:
@@ -368,18 +366,19 @@ class MessageReplay(FrameSource):
                 if self._paused:
                     self._cond.wait()
                     continue
-                if not self.realtime:
-                    return True
-                now = time.monotonic()
-                if self._anchor is None:
-                    self._anchor = (due_ns, now)
-                anchor_ns, anchor_s = self._anchor
-                due_s = anchor_s + (due_ns - anchor_ns) / 1e9 / self._rate
-                if now >= due_s:
+                if self.realtime:
+                    now = time.monotonic()
+                    if self._anchor is None:
+                        self._anchor = (due_ns, now)
+                    anchor_ns, anchor_s = self._anchor
+                    due_s = anchor_s + (due_ns - anchor_ns) / 1e9 / self._rate
+                    if now < due_s:
+                        self._cond.wait(due_s - now)
+                        continue
                     if now - due_s > MAX_LAG_S:
                         self._anchor = (due_ns, now)
-                    return True
-                self._cond.wait(due_s - now)
+                self._position = max(self._position, due_ns)
+                return True
 
     def _damaged(
         self, reason: str, offset: int | None, stamp_ns: int | None, delivered: int

@@ -1,22 +1,59 @@
 """Recording the simulated head (``trifuse record --source sim``) without a real-time source.
 
-The inspection scenario is rendered at each sensor group's own rate (colour 30 Hz,
-thermal 27 Hz, TOF 15 Hz, all starting at t = 0), each distinct instant once, with only
-the sensors due then: rendering is far slower than real time (seconds per colour frame on
-two cores), so the recording's time stamps, not the wall clock, carry the rates.
+Time stamps follow each sensor group's own rate (colour 30 Hz, thermal 27 Hz, TOF 15 Hz,
+all starting at t = 0; :func:`sim_schedule`), each distinct instant once with only the
+sensors due then, so the recording's stamps, not the wall clock, carry the rates. What is
+rendered depends on the mode:
+
+* default (live): the inspection scenario in the live quality
+  (:class:`~app.sources.sim.render.Renderer` ``live=True``: no edge supersampling) at
+  :data:`POSE_HZ` head poses per second, each sensor's picture rendered once per pose with
+  a margin; every frame is that picture turned to the head's orientation at the frame's
+  own time stamp, with fresh sensor noise (:class:`~app.sources.sim.live.LiveDeveloper`).
+  The head moves smoothly at every sensor's rate; 3 s take about 10 s of CPU.
+* ``exact``: every instant rendered at its own time in the accurate quality (edge
+  supersampling, the accurate sensor model), about 130x slower than real time.
+
+:func:`plan_simulation` says beforehand what will be rendered and estimates the time from
+costs measured on the reference machine; :func:`record_simulation` reports progress with
+an estimate of the time left, refined from the time the work done so far took.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
 
 from app.recording.writer import RecordingWriter
 from calib.rig import Rig
 
+if TYPE_CHECKING:
+    from app.sources.frames import Frame
+    from app.sources.sim.live import CleanImage
+    from app.sources.sim.scenarios import InspectionScenario
+
 SIM_RATES_HZ = {"color": 30, "thermal": 27, "tof": 15}
 """Frame rates of the simulated head per modality."""
+POSE_HZ = 5.0
+"""Head poses rendered per simulated second in the default (live) mode."""
+
+# Costs on the reference machine (2 cores, otherwise quiet), seconds of CPU per megapixel of
+# the sensor's image: a live render (with its clean picture), one frame from it (turn,
+# noise, encoding, writing), an accurate render with its frame, and a sensor's ray grid
+# (its first render: a live one undistorts a colour camera's rays on a coarse grid).
+# Measured with `trifuse record --source sim` and app/bench.py's `render`.
+_LIVE_RENDER_S_PER_MPX = {"color": 0.13, "thermal": 0.12, "tof": 0.5}
+_LIVE_FRAME_S_PER_MPX = {"color": 0.022, "thermal": 0.03, "tof": 0.12}
+_EXACT_S_PER_MPX = {"color": 0.6, "thermal": 1.2, "tof": 0.8}
+_SETUP_S_PER_MPX = {"live": {"color": 0.12, "thermal": 0.3, "tof": 0.3}}
+_SETUP_S_PER_MPX["exact"] = {"color": 1.0, "thermal": 0.3, "tof": 0.3}
+_START_S = 1.5  # imports, the scenario, the writer
 
 
 def sim_schedule(rig: Rig, duration_s: float) -> list[tuple[int, list[str]]]:
@@ -55,6 +92,110 @@ def head_model_for(rig: Rig):  # -> HeadModel | None
     return replace(model, range_error=replace(model.range_error, width=w, height=h))
 
 
+def pose_index(stamp_ns: int, pose_hz: float) -> int:
+    """The head pose (``k``: time ``k / pose_hz``) whose render a frame at ``stamp_ns``
+    reuses in the live mode: the nearest one."""
+    return round(stamp_ns * pose_hz / 1e9)
+
+
+@dataclass(frozen=True)
+class SimRecordPlan:
+    """What a simulated recording renders, and how long it should take.
+
+    Attributes:
+        schedule: (stamp_ns, sensors due) per instant (:func:`sim_schedule`).
+        exact: every instant rendered accurately (else live, poses at ``pose_hz``).
+        pose_hz: head poses rendered per simulated second (live), None when exact.
+        renders: images rendered in all (every sensor's, every pose or instant).
+        costs_s: estimated seconds of each instant on the reference machine (its renders,
+            a sensor's first render with its ray grid, and its frames).
+    """
+
+    schedule: list[tuple[int, list[str]]]
+    exact: bool
+    pose_hz: float | None
+    renders: int
+    costs_s: list[float]
+
+    @property
+    def frames(self) -> int:
+        """Frames the recording will hold."""
+        return sum(len(sensors) for _, sensors in self.schedule)
+
+    @property
+    def poses(self) -> int:
+        """Distinct head poses rendered (live) or instants (exact)."""
+        if self.pose_hz is None:
+            return len(self.schedule)
+        return len({pose_index(stamp, self.pose_hz) for stamp, _ in self.schedule})
+
+    @property
+    def estimate_s(self) -> float:
+        """Estimated seconds for the whole recording on the reference machine."""
+        return float(sum(self.costs_s))
+
+
+def plan_simulation(
+    rig: Rig, duration_s: float, *, exact: bool = False, pose_hz: float = POSE_HZ
+) -> SimRecordPlan:
+    """The plan of :func:`record_simulation` with the same arguments."""
+    if not exact and not (math.isfinite(pose_hz) and pose_hz > 0):
+        raise ValueError(f"pose rate: expected a positive number of Hz, got {pose_hz}")
+    schedule = sim_schedule(rig, duration_s)
+    mpx = {n: rig[n].image_size[0] * rig[n].image_size[1] / 1e6 for n in rig.names}
+    modality = {n: rig[n].modality for n in rig.names}
+    rendered: dict[str, int] = {}
+    costs: list[float] = []
+    renders = 0
+    for stamp, sensors in schedule:
+        cost = 0.0 if costs else _START_S
+        for name in sensors:
+            mod, size = modality[name], mpx[name]
+            if name not in rendered:
+                cost += _SETUP_S_PER_MPX["exact" if exact else "live"][mod] * size
+            if exact:
+                cost += _EXACT_S_PER_MPX[mod] * size
+                renders += 1
+                rendered[name] = stamp
+                continue
+            k = pose_index(stamp, pose_hz)
+            if rendered.get(name) != k:
+                cost += _LIVE_RENDER_S_PER_MPX[mod] * size
+                renders += 1
+                rendered[name] = k
+            cost += _LIVE_FRAME_S_PER_MPX[mod] * size
+        costs.append(cost)
+    return SimRecordPlan(schedule, exact, None if exact else float(pose_hz), renders, costs)
+
+
+@dataclass(frozen=True)
+class SimProgress:
+    """Progress of :func:`record_simulation` after one instant.
+
+    Attributes:
+        index: instants done (1-based), of ``total``.
+        stamp_ns: the instant's time stamp; ``sensors``: the sensors recorded at it.
+        seconds: wall seconds the instant took; ``elapsed_s``: since the recording began.
+        eta_s: estimated seconds left: the plan's costs of the instants left, scaled by
+            how long the instants done took against their planned costs.
+    """
+
+    index: int
+    total: int
+    stamp_ns: int
+    sensors: list[str]
+    seconds: float
+    elapsed_s: float
+    eta_s: float
+
+
+def _margin_px(rig: Rig, name: str, turn_rad: float) -> int:
+    """Pixels a picture needs beyond the image to be turned by up to ``turn_rad``: the
+    shift at the image centre, 30 % more for the edges (perspective, distortion), plus 2."""
+    intr = rig[name].intrinsics
+    return min(64, math.ceil(1.3 * max(intr.fx, intr.fy) * math.tan(turn_rad)) + 2)
+
+
 def record_simulation(
     out: str | Path,
     rig: Rig,
@@ -62,22 +203,45 @@ def record_simulation(
     *,
     seed: int = 0,
     jpeg_quality: int = 90,
-    progress: Callable[[int, int, int, list[str], float], None] | None = None,
+    exact: bool = False,
+    pose_hz: float = POSE_HZ,
+    progress: Callable[[SimProgress], None] | None = None,
+    plan: SimRecordPlan | None = None,
 ) -> RecordingWriter:
-    """Render the inspection scenario per :func:`sim_schedule` and record it at ``out``.
+    """Render the inspection scenario per :func:`plan_simulation` and record it at ``out``.
 
-    ``progress(i, n, stamp_ns, sensors, seconds)`` is called after each rendered instant.
-    Returns the closed writer (its counters say what was written). A KeyboardInterrupt
-    keeps what was recorded so far (the file is finished and named) and propagates.
+    Live (default): each sensor's picture of the head pose nearest each instant
+    (:func:`pose_index`) is rendered once, with a margin, and every frame is that picture
+    turned to the instant's head orientation with fresh noise (seeded by ``seed`` and the
+    instant). ``exact``: every instant rendered accurately. ``plan``: the plan made
+    beforehand (made here otherwise). ``progress(SimProgress)`` is called after each
+    instant. Returns the closed writer (its counters say what was written). A
+    KeyboardInterrupt keeps what was recorded so far (the file is finished and named) and
+    propagates.
     """
     from app.sources.sim.scenarios import InspectionScenario
 
-    schedule = sim_schedule(rig, duration_s)
-    scenario = InspectionScenario(rig=rig, model=head_model_for(rig), seed=seed)
+    plan = plan or plan_simulation(rig, duration_s, exact=exact, pose_hz=pose_hz)
+    live = not plan.exact
+    scenario = InspectionScenario(rig=rig, model=head_model_for(rig), seed=seed, live=live)
+    margins: dict[str, int] = {}
+    if live:
+        assert plan.pose_hz is not None
+        turn = scenario.max_turn_rad(0.5 / plan.pose_hz)
+        margins = {name: _margin_px(rig, name, turn) for name in rig.names}
+    cleans: dict[str, tuple[int, CleanImage]] = {}
+    total_cost = plan.estimate_s
+    done_cost = 0.0
+    t_start = time.perf_counter()
     with RecordingWriter(out, rig, jpeg_quality=jpeg_quality) as writer:
-        for i, (stamp, sensors) in enumerate(schedule, start=1):
+        for i, ((stamp, sensors), cost) in enumerate(
+            zip(plan.schedule, plan.costs_s, strict=True), start=1
+        ):
             t0 = time.perf_counter()
-            frames, _truth = scenario.render(stamp / 1e9, sensors)
+            if live:
+                frames = _live_frames(scenario, rig, stamp, sensors, plan, margins, cleans, seed)
+            else:
+                frames = scenario.render(stamp / 1e9, sensors)[0].frames
             for name in sensors:
                 frame = frames[name]
                 if frame.stamp_ns != stamp:
@@ -85,6 +249,39 @@ def record_simulation(
                         f"simulator stamped {name} {frame.stamp_ns} ns, expected {stamp} ns"
                     )
                 writer.write(frame)
+            done_cost += cost
             if progress is not None:
-                progress(i, len(schedule), stamp, sensors, time.perf_counter() - t0)
+                now = time.perf_counter()
+                elapsed = now - t_start
+                eta = (total_cost - done_cost) * (elapsed / done_cost) if done_cost > 0 else 0.0
+                progress(
+                    SimProgress(i, len(plan.schedule), stamp, list(sensors), now - t0, elapsed, eta)
+                )
     return writer
+
+
+def _live_frames(
+    scenario: InspectionScenario,
+    rig: Rig,
+    stamp: int,
+    sensors: list[str],
+    plan: SimRecordPlan,
+    margins: dict[str, int],
+    cleans: dict[str, tuple[int, CleanImage]],
+    seed: int,
+) -> dict[str, Frame]:
+    """The frames of one instant in the live mode (see :func:`record_simulation`);
+    ``cleans`` holds each sensor's latest picture (pose index, picture)."""
+    assert plan.pose_hz is not None and scenario.developer is not None
+    k = pose_index(stamp, plan.pose_hz)
+    T_world_rig = scenario.T_world_rig(stamp / 1e9)
+    rng = np.random.default_rng([seed, 3, stamp])
+    frames = {}
+    for name in sensors:
+        have = cleans.get(name)
+        if have is None or have[0] != k:
+            clean = scenario.render_clean(k / plan.pose_hz, [name], margins)[name]
+            cleans[name] = have = (k, clean)
+        T_world_sensor = T_world_rig @ rig[name].T_rig_sensor
+        frames[name] = scenario.developer.frame(have[1], stamp, rng, T_world_sensor)
+    return frames

@@ -23,6 +23,7 @@ from app.server.thermal_balance import ThermalBalancer
 from app.server.viser_bridge import make_viser_router
 
 STATIC = Path(__file__).resolve().parents[2] / "static"
+FAVICON = "favicon.svg"
 
 
 def _json_safe(value: Any) -> Any:
@@ -75,5 +76,10 @@ def create_app(
     @app.get("/", include_in_schema=False)
     async def _viewer() -> FileResponse:
         return FileResponse(STATIC / "viewer.html")
+
+    @app.get("/favicon.ico", include_in_schema=False)
+    async def _favicon() -> FileResponse:
+        """Browsers ask for it whatever the page links: the console's icon (SVG)."""
+        return FileResponse(STATIC / FAVICON, media_type="image/svg+xml")
 
     return app

@@ -16,14 +16,14 @@ import numpy as np
 import viser.uplot as uplot
 
 from app.calib_session import CalibrationSession, SessionError, ViewInfo
-from app.report_format import sensor_colour
+from app.report_format import TRUTH_HEAD, markdown_table, sensor_colour, truth_rows, verdict_line
 from app.server.board_watch import BoardSighting
 from app.server.context import ConsoleContext
 from app.server.periodic import Periodic
 from calib.coverage import PARAM_NAMES
 from calib.errors import RigError
 from calib.rig import Rig
-from calib.transforms import pose_error
+from calib.rig_compare import compare_rigs
 
 NONE = "(none)"
 
@@ -291,8 +291,6 @@ class CalibrationPanel(Periodic):
             "| sensor | views | RMS px | σ fx px | σ rot ° | σ trans mm |",
             "|---|---|---|---|---|---|",
         ]
-        errors = ["", "Error against the simulated head's ground truth:", ""]
-        errors += ["| sensor | rot ° | trans mm | fx % |", "|---|---|---|---|"]
         for name, s in result.sensors.items():
             sig = s.sigma
             rot = float(np.linalg.norm(sig.get("rotation_deg", [0, 0, 0])))
@@ -301,14 +299,30 @@ class CalibrationPanel(Periodic):
                 f"| {name} | {s.views_used}/{s.views_detected} | {s.rms_px:.3f} | "
                 f"{sig.get('fx', 0.0):.2f} | {rot:.3f} | {trans:.2f} |"
             )
-            if truth is not None and name in truth:
-                dr, dt = pose_error(s.T_rig_sensor, truth[name].T_rig_sensor)
-                df = 100 * (s.intrinsics.fx / truth[name].intrinsics.fx - 1)
-                errors.append(f"| {name} | {dr:.3f} | {1000 * dt:.2f} | {df:+.3f} |")
         if result.excluded_sensors:
             lines.append("")
             lines += [f"- {s} not calibrated: {why}" for s, why in result.excluded_sensors.items()]
-        return "\n".join(lines + (errors if truth is not None else []))
+        if truth is not None:
+            lines += ["", *self._truth_md(result.rig(), truth)]
+        return "\n".join(lines)
+
+    @staticmethod
+    def _truth_md(rig: Rig, truth: Rig) -> list[str]:
+        """The errors against the ground truth (calib.rig_compare): per sensor its pose
+        relative to the truth's reference sensor and its focal lengths, pass/fail against
+        the calibration targets, and the verdict over every pair of sensors."""
+        try:
+            cmp = compare_rigs(rig, truth)
+        except ValueError as exc:
+            return [f"Not compared with the ground truth: {exc}"]
+        reference = truth.reference if truth.reference in cmp.intrinsics else rig.reference
+        return [
+            f"Error against the simulated head's ground truth (poses relative to {reference}):",
+            "",
+            *markdown_table(TRUTH_HEAD, truth_rows(cmp, reference)),
+            "",
+            verdict_line(cmp),
+        ]
 
     def _chart(self, result) -> None:
         """Per-view RMS of every sensor against the view number; the worst view is

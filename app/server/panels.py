@@ -241,7 +241,9 @@ class Panels(Periodic):
             self.auto_balance,
             self.balance_ref,
         ):
-            handle.on_update(lambda _event: self.apply())
+            # the operator's changes only: the panel's own updates (following the automatic
+            # span) must not write its controls over settings made through the REST API
+            handle.on_update(lambda event: self.apply() if event.client is not None else None)
         self.balance_now.on_click(lambda _e: self._act(self._balance_now))
         self.balance_reset.on_click(lambda _e: self._act(self._reset_balance))
         self.save_radiometry.on_click(lambda _e: self._act(self._save_radiometry))

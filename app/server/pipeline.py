@@ -13,26 +13,30 @@ the TOF is missing.
 When the left colour camera (which opens the frame sets) stops, the right one opens them
 (:class:`FrameSetAssembler` ``fallback``). Each frame's metadata carries ``missing`` and,
 when :attr:`FusionPipeline.sensor_notes` is set, ``health``: a line per sensor that is not
-ok (``{"thermal_right": "silent for 12 s"}``, :mod:`app.server.sensor_health`).
+ok (``{"thermal_right": "silent for 12 s"}``, :mod:`app.server.sensor_health`). For the
+viewer's colour scale it carries the palette and the span the picture was coloured with
+(:func:`scale_meta`: ``palette``, ``palette_rgb``, ``span_k``, ``span_auto``; null when the
+picture shows no palette colour).
 
 Repeated inputs are not fused again. A source may hand out the very same read-only array
 for several frames (the simulated head shows each rendered pose for many frames). When
 both colour images, both thermal images, the depth behind the mapping, the display
 settings and the imagers' radiometry are all what the previous picture was made of (and
-an automatic span has settled), its JPEG
-is published again with the new frame's metadata (time stamp, missing sensors): the
-stream's time stamps advance at the source's rate while no pixel is computed twice. Only
-arrays with ``flags.writeable`` False count as unchanged, so a source that refills its
-buffers in place is fused every frame. Likewise, a TOF frame whose distance array is the
-previous one (same read-only object) does not recompute the mapping.
+an automatic span has settled), its JPEG is published again with the new frame's metadata
+(time stamp, missing sensors): the stream's time stamps advance at the source's rate while
+no pixel is computed twice. The stream counts the two apart (frames published and new
+pictures per second, :class:`app.server.rates.StreamRates`). Only arrays with
+``flags.writeable`` False count as unchanged, so a source that refills its buffers in place
+is fused every frame. Likewise, a TOF frame whose distance array is the previous one (same
+read-only object) does not recompute the mapping.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import queue
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -46,6 +50,7 @@ from app.sources.frames import FrameSet
 from calib.radiometry import Radiometry
 from calib.rig import Rig
 from fusion.compose import DisplaySettings
+from fusion.palettes import palette
 from fusion.stereo import StereoFusion
 
 EYES = ("left", "right")
@@ -59,10 +64,43 @@ class PipelineStatus:
     """What the status route and the viewer's overlay report."""
 
     frames_out: int = 0
-    fps: float = 0.0
+    """Frames published to the stream since the start (new pictures and repeats)."""
+    pictures_out: int = 0
+    """Of these, new pictures (fused, not a repeat of the previous one)."""
     last_stamp_ns: int = 0
     missing: dict[str, str] = field(default_factory=dict)
     error: str | None = None
+
+
+def shows_palette(settings: DisplaySettings) -> bool:
+    """Whether a picture made with ``settings`` shows palette colours (so the viewer shows
+    a colour scale): not in ``color`` mode, not in ``blend`` at opacity 0, not in
+    ``isotherm`` with a fixed highlight colour."""
+    if settings.mode == "color" or (settings.mode == "blend" and settings.opacity == 0.0):
+        return False
+    return not (settings.mode == "isotherm" and settings.isotherm_color is not None)
+
+
+@functools.cache
+def palette_hex(name: str) -> str:
+    """Palette ``name``'s 256 RGB entries, cold end first, as one string of 1536 hex digits
+    (``"000000..."``: two per channel), for the viewer's colour scale."""
+    return palette(name).tobytes().hex()
+
+
+def scale_meta(settings: DisplaySettings, span_k: tuple[float, float] | None) -> dict[str, Any]:
+    """What the viewer's colour scale needs (JSON-able): ``palette`` (name), ``palette_rgb``
+    (:func:`palette_hex`), ``span_k`` ([low, high] kelvin: the palette's first entry is
+    ``low``, its last ``high``) and ``span_auto`` (the span follows the picture, or is the
+    operator's). All None when the picture shows no palette colour or there is no span."""
+    if span_k is None or not shows_palette(settings):
+        return {"palette": None, "palette_rgb": None, "span_k": None, "span_auto": None}
+    return {
+        "palette": settings.palette,
+        "palette_rgb": palette_hex(settings.palette),
+        "span_k": [float(span_k[0]), float(span_k[1])],
+        "span_auto": settings.span_k is None,
+    }
 
 
 def _unchanged(a: np.ndarray | None, b: np.ndarray | None) -> bool:
@@ -151,8 +189,9 @@ class _StreamEncoder:
                     ok, buf = cv2.imencode(".jpg", job.bgr, [cv2.IMWRITE_JPEG_QUALITY, job.quality])
                     self._jpeg = buf.tobytes() if ok else None
                 if self._jpeg is not None:
-                    self.hub.publish(self._jpeg, job.meta)
+                    self.hub.publish(self._jpeg, job.meta, new=job.bgr is not None)
                     self.status.frames_out += 1
+                    self.status.pictures_out += job.bgr is not None
             except Exception as exc:  # shown in the status; the next frame is tried
                 self.status.error = f"{type(exc).__name__}: {exc}"
             finally:
@@ -248,18 +287,12 @@ class FusionPipeline:
         self._encoder.close(timeout_s)
 
     def _run(self) -> None:
-        t_rate, n_rate = time.perf_counter(), self.status.frames_out
         try:
             for frame in self.source.frames():
                 if self._stop.is_set():
                     return
                 for fs in self.assembler.push(frame):
                     self._publish(fs)
-                now = time.perf_counter()
-                if now - t_rate >= 1.0:
-                    n = self.status.frames_out
-                    self.status.fps = (n - n_rate) / (now - t_rate)
-                    t_rate, n_rate = now, n
         except Exception as exc:  # shown in the status, the server keeps running
             self.status.error = f"{type(exc).__name__}: {exc}"
         finally:
@@ -344,11 +377,11 @@ class FusionPipeline:
 
     def _meta(self, fs: FrameSet, path: str, settings: DisplaySettings) -> dict[str, Any]:
         """What the viewer overlays with the frame (JSON-able)."""
-        span = self.fusion.span_k
+        mode = "color" if path == "raw" else settings.mode
         meta = {
             "stamp_ns": fs.stamp_ns,
-            "mode": "color" if path == "raw" else settings.mode,
-            "span_k": list(span) if span else None,
+            "mode": mode,
+            **scale_meta(settings, self.fusion.span_k if mode != "color" else None),
             "missing": sorted(fs.missing),
         }
         notes = self.sensor_notes

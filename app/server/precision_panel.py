@@ -23,7 +23,7 @@ import numpy as np
 import viser
 import viser.uplot
 
-from app.report_format import limit_distance_cell, sensor_colour
+from app.report_format import limit_distance_cell, pixel_cell, sensor_colour
 from app.server.context import ConsoleContext
 from app.server.periodic import Periodic
 from calib.rig import Rig
@@ -131,7 +131,7 @@ def table_markdown(result: PrecisionResult) -> str:
     )
     for (u, v), key in zip(before.tof_pixels, before.distance_error, strict=True):
         label = result.labels.get(key, "")
-        out.append(f"**TOF pixel ({u:.10g}, {v:.10g})**" + (f", {label}" if label else ""))
+        out.append(f"**TOF pixel {pixel_cell(u, v)}**" + (f", {label}" if label else ""))
         lines = [head, rule]
         for name, results in rows_of:
             for coord in COORDS:

@@ -3,22 +3,46 @@
 What it shows, all in the rig frame (OpenCV axes: +x right, +y down, +z forward, metres;
 the scene's "up" is therefore -y):
 
-- every sensor of the displayed rig: its frame at ``T_rig_sensor`` and its frustum
-  (vertical FOV from ``fy``, aspect W/H) textured with the sensor's newest image,
-  downscaled to at most :data:`TEXTURE_MAX_W` pixels wide (colour as is, thermal in the
-  pipeline's palette over its span, TOF amplitude stretched grey), at ``texture_hz``;
+- every sensor of the displayed rig: its frame at ``T_rig_sensor`` and its frustum (vertical
+  FOV from ``fy``, aspect W/H) as a wireframe in the modality's colour;
+- the sensors' live images on a panel just below the head, laid out as the sensors sit on
+  the head, each framed in its frustum's colour and named underneath (downscaled to at
+  most :data:`TEXTURE_MAX_W` pixels wide: colour as is, thermal in the pipeline's palette
+  over its span, TOF amplitude stretched grey), at ``texture_hz``;
 - the TOF point cloud of the newest depth frame, coloured by the colour camera, by
   temperature (the thermal imager, in the pipeline's palette over its span) or by radial
   distance, at ``rate_hz``;
 - the checkerboard at its live estimated pose ``T_rig_board`` (hidden while not seen);
-- in the "3D scene" GUI folder: which rig to display ("in use", "ground truth", saved
-  versions; the list is re-read every ``choices_period_s``), the cloud's colouring, the
-  point size, the frustums' size and whether they show images, and per sensor the
-  displayed rig's pose difference to the rig in use (rotation deg, translation mm).
+- in the "3D scene" GUI folder: the view buttons (overview, from the head, from above,
+  from the side: each moves the camera of the browser that pressed it), which rig to
+  display ("in use", "ground truth", saved versions; the list is re-read every
+  ``choices_period_s``), the cloud's colouring, the point size, the frustums' depth
+  ("Frustum size") and whether the live images are shown, and per sensor the displayed
+  rig's pose difference to the rig in use (rotation deg, translation mm).
+
+First sight (the layout and the views are :mod:`app.server.scene_layout`'s pure functions;
+its docstring says why): the head is about 15 cm wide and the scene 0.5-8 m away, and the
+five sensors sit within a few centimetres of each other looking the same way. Frustums at
+the head's scale are invisible in a view of the scene; at the scene's scale, their live
+images would cover each other (and the cloud) and their names collide. So the frustums
+stay at their true poses as wireframes, whose depth the first TOF cloud sets (a quarter of
+its median distance, 2.5 head widths to 0.5 m) unless the operator has moved the "Frustum
+size" slider (then their value stays); the live images are spread out on a panel below the
+head, each a fifth of the scene's width wide, and each name hangs under its image, so no
+two names overlap. Each browser starts with the overview: from behind and above the head,
+steep enough that everything the TOF camera sees lies above the head on the screen and the
+image panel below it covers none of it, framed in the part of the canvas that Viser's
+control panel leaves free; the first cloud re-frames browsers that connected before it.
+The view from the head clips what lies nearer than the frustums' ends (their lines would
+cross the view), never beyond 0.55 m. The views frame the clouds of the last 45 seconds (a
+panning head sweeps its cloud round).
 
 The point cloud and the board are measured with the rig in use; they hang under the node
 ``/live``, placed so that the TOF camera of the displayed rig carries them (for two rigs
-whose reference is the TOF camera, ``/live`` is the identity).
+whose reference is the TOF camera, ``/live`` is the identity). The board is the board
+watch's newest pose (:attr:`~app.server.board_watch.BoardWatch.latest_pose`, published as
+soon as the most trusted sensor has found it in a new picture), moved the moment the watch
+publishes it; the folder says when the picture it was found in is older than the cloud's.
 
 One thread (:class:`Periodic`) does all the pushing; GUI callbacks (Viser's thread) and
 the tick share a lock. Every step of a tick is guarded: a missing sensor, NaN depth or a
@@ -29,6 +53,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 
 import cv2
@@ -37,6 +62,7 @@ import viser
 import viser.transforms as vtf
 
 from app.preview import to_display
+from app.server import scene_layout as layout
 from app.server.context import ConsoleContext
 from app.server.periodic import Periodic
 from calib.board import Board
@@ -46,10 +72,15 @@ from fusion.compose import auto_span, resolve_span
 from fusion.palettes import PALETTE_NAMES, apply_palette
 
 FRUSTUM_COLORS = {"color": (40, 120, 240), "thermal": (240, 90, 30), "tof": (40, 200, 90)}
-FRUSTUM_SIZE_M = 0.05
-"""Default frustum depth: at 5 cm the five textured frustums of the head barely overlap."""
+FRUSTUM_SIZE_RANGE_M = (0.05, 2.0)
+"""The "Frustum size" slider: the frustums' depth, metres."""
+FRUSTUM_LINE_PX = 2.0
+"""Frustum and image-frame lines are this many screen pixels thick at any distance."""
+RIG_AXES_PER_DEPTH = 0.3
+"""The rig frame's axes are this fraction of the frustum depth long (visible at the
+scene's scale; the sensors' own frames keep 15 mm axes)."""
 TEXTURE_MAX_W = 320
-"""Frustum textures are downscaled to at most this width (pixels) before JPEG encoding."""
+"""Live images are downscaled to at most this width (pixels) before JPEG encoding."""
 TEXTURE_JPEG_QUALITY = 75
 CLOUD_MODES: tuple[str, ...] = ("color", "temperature", "depth")
 DEPTH_PALETTE = "rainbow" if "rainbow" in PALETTE_NAMES else PALETTE_NAMES[0]
@@ -60,6 +91,22 @@ BOARD_PLATE_BEHIND_M = 0.003
 """The board's checker plate is drawn this far behind the board plane (+z of the board
 frame, away from the cameras) so the cloud's points on the board stay visible."""
 BOARD_OUTLINE_RGB = (255, 220, 0)
+BOARD_LAG_SHOWN_S = 0.5
+"""The board's line in the folder says how much older its frames are than the cloud's
+from this lag on."""
+VIEW_BUTTONS = {
+    "Overview": "overview",
+    "View from head": "head",
+    "View from above": "above",
+    "View from side": "side",
+}
+"""The "3D scene" folder's view buttons: label -> :data:`scene_layout.VIEWS` name."""
+FALLBACK_VIEWPORT = (1280, 800)
+"""Canvas size (CSS px) assumed for a browser that has not reported its own."""
+FRAME_MEMORY_S = 45.0
+"""The views frame the clouds of this many seconds (a panning head sweeps its cloud)..."""
+FRAME_SAMPLE_S = 2.0
+"""... sampled this often."""
 C_TO_K = 273.15
 
 
@@ -149,6 +196,22 @@ def board_outline(board: Board) -> np.ndarray:
     return np.stack([c, np.roll(c, -1, axis=0)], axis=1)
 
 
+def board_lag_s(sighting: object, newest: object) -> float:
+    """How much older (seconds) the frames a board sighting was found in are than the
+    ``newest`` frame set: 0 when the newest set shows the very image the pose came from
+    (a simulated head holding a pose, a paused replay: the board drawn is current)."""
+    frames = getattr(sighting, "frames", None)
+    then = getattr(frames, "frames", None)
+    now = getattr(newest, "frames", None)
+    if not isinstance(then, dict) or not isinstance(now, dict):
+        return 0.0
+    sensor = getattr(sighting, "pose_sensor", None)
+    seen, current = then.get(sensor), now.get(sensor)
+    if seen is not None and current is not None and seen.image is current.image:
+        return 0.0
+    return (newest.stamp_ns - frames.stamp_ns) / 1e9  # type: ignore[union-attr]
+
+
 def rig_difference_markdown(shown_label: str, shown: Rig, in_use: Rig) -> str:
     """Markdown: per sensor of ``shown``, rotation (deg), translation (mm) and focal length
     (px) of ``shown`` minus ``in_use`` (sensors absent from either rig are listed as such)."""
@@ -174,34 +237,98 @@ def rig_difference_markdown(shown_label: str, shown: Rig, in_use: Rig) -> str:
     return "\n".join(lines)
 
 
-class _SensorNodes:
-    """One sensor's scene nodes: frame (pose), frustum (textured), label (above the
-    frustum's far edge, so that the labels of neighbouring sensors do not pile up)."""
+def frustum_scale(depth_m: float, fov_rad: float, aspect: float) -> float:
+    """Viser's ``scale`` of a camera frustum whose image plane lies ``depth_m`` metres in
+    front of its apex (Viser 1.1.1 normalises the frustum to unit volume before scaling:
+    its depth is ``scale / cbrt(tan(fov / 2)^2 * aspect / 3)``)."""
+    t = float(np.tan(fov_rad / 2.0))
+    return float(depth_m * np.cbrt(t * t * aspect / 3.0))
 
-    def __init__(self, server: viser.ViserServer, root: str, sensor: Sensor, size_m: float) -> None:
+
+def apply_camera(camera: object, pose: layout.CameraPose) -> None:
+    """Move a browser's camera (a :class:`viser.CameraHandle` or anything with its
+    ``fov``, ``near``, ``up_direction``, ``position`` and ``look_at``) to ``pose``. The
+    position goes before the look-at point: Viser moves the look-at point along with the
+    position."""
+    camera.fov = pose.fov_rad  # type: ignore[attr-defined]
+    camera.near = pose.near_m  # type: ignore[attr-defined]
+    camera.up_direction = pose.up  # type: ignore[attr-defined]
+    camera.position = pose.position  # type: ignore[attr-defined]
+    camera.look_at = pose.look_at  # type: ignore[attr-defined]
+
+
+def viewport_of(
+    camera: object, fallback: tuple[int, int] | None = FALLBACK_VIEWPORT
+) -> tuple[int, int]:
+    """(width, height) pixels of a browser's canvas as its camera reports them, or
+    ``fallback`` ((0, 0) for None) before it has reported them."""
+    missing = fallback or (0, 0)
+    try:
+        w, h = int(camera.image_width), int(camera.image_height)  # type: ignore[attr-defined]
+    except (AssertionError, AttributeError, TypeError, ValueError):
+        return missing
+    return (w, h) if w > 0 and h > 0 else missing
+
+
+_PLACEHOLDER = np.zeros((2, 2, 3), np.uint8)
+
+
+class _SensorNodes:
+    """One sensor's scene nodes: its frame (pose) with the frustum (wireframe), and on the
+    image panel below the head its live image, a frame in the frustum's colour and its
+    name under the image."""
+
+    def __init__(self, server: viser.ViserServer, root: str, sensor: Sensor) -> None:
         node = f"{root}/{sensor.name}"
+        color = FRUSTUM_COLORS.get(sensor.modality, (200, 200, 200))
         self.frame = server.scene.add_frame(node, axes_length=0.015, axes_radius=0.0008)
         self.frustum = server.scene.add_camera_frustum(
             f"{node}/frustum",
             fov=vertical_fov_rad(sensor),
             aspect=sensor.width / sensor.height,
-            scale=size_m,
-            thickness=0.001,
-            color=FRUSTUM_COLORS.get(sensor.modality, (200, 200, 200)),
+            scale=0.01,
+            thickness=FRUSTUM_LINE_PX,
+            thickness_units="screen",
+            color=color,
+        )
+        panel = f"/panel/{sensor.name}"  # under the panel's frame (its pose: Scene3D)
+        self.cell_node = server.scene.add_frame(panel, show_axes=False)
+        self.picture = server.scene.add_image(
+            f"{panel}/image",
+            _PLACEHOLDER,
+            render_width=0.01,
+            render_height=0.01,
             format="jpeg",
             jpeg_quality=TEXTURE_JPEG_QUALITY,
+            visible=False,
         )
-        self.label = server.scene.add_label(f"{node}/label", sensor.name)
+        self.outline = server.scene.add_line_segments(
+            f"{panel}/outline",
+            np.zeros((4, 2, 3)),
+            color,
+            thickness=FRUSTUM_LINE_PX,
+            thickness_units="screen",
+        )
+        self.label = server.scene.add_label(f"{panel}/label", sensor.name, anchor="top-center")
         self.modality = sensor.modality
-        self.size_m = size_m
-        self.shown_frame: object = None  # the Frame whose image the texture shows
+        self.depth_m = 0.0
+        self.cell: layout.Cell | None = None
+        self.shown_frame: object = None  # the Frame whose image the picture shows
 
-    def resize(self, size_m: float) -> None:
-        """Frustum depth ``size_m`` metres; the label stays on its top edge."""
-        self.size_m = size_m
-        self.frustum.scale = size_m
-        half_h = np.tan(self.frustum.fov / 2.0) * size_m
-        self.label.position = (0.0, -half_h, size_m)
+    def set_depth(self, depth_m: float) -> None:
+        """Frustum depth ``depth_m`` metres (apex to image plane)."""
+        self.depth_m = depth_m
+        self.frustum.scale = frustum_scale(depth_m, self.frustum.fov, self.frustum.aspect)
+
+    def set_cell(self, cell: layout.Cell) -> None:
+        """Put the live image, its frame and its name at ``cell`` of the image panel."""
+        self.cell = cell
+        centre = np.asarray(cell.center, dtype=np.float64)
+        self.cell_node.position = centre
+        self.picture.render_width = cell.width
+        self.picture.render_height = cell.height
+        self.outline.points = cell.outline().astype(np.float32)
+        self.label.position = layout.label_anchor(cell) - centre
 
     def place(self, sensor: Sensor) -> None:
         """Move to ``sensor.T_rig_sensor`` and take its FOV, aspect and modality."""
@@ -210,13 +337,23 @@ class _SensorNodes:
         self.frame.position = np.asarray(T[:3, 3], dtype=np.float64)
         self.frustum.fov = vertical_fov_rad(sensor)
         self.frustum.aspect = sensor.width / sensor.height
-        self.frustum.color = FRUSTUM_COLORS.get(sensor.modality, (200, 200, 200))
+        color = FRUSTUM_COLORS.get(sensor.modality, (200, 200, 200))
+        self.frustum.color = color
+        self.outline.colors = np.tile(np.asarray(color, np.uint8), (4, 2, 1))
         self.modality = sensor.modality
-        self.resize(self.size_m)
-        self.frame.visible = True
+        self.set_depth(self.depth_m)
+        self.frame.visible = self.cell_node.visible = True
+
+    def show_image(self, image: np.ndarray | None) -> None:
+        """The live image (h, w, 3) uint8 on the panel, or none (the frame stays)."""
+        if image is None:
+            self.picture.visible = False
+        else:
+            self.picture.image = image
+            self.picture.visible = True
 
     def hide(self) -> None:
-        self.frame.visible = False
+        self.frame.visible = self.cell_node.visible = False
 
 
 class Scene3D(Periodic):
@@ -225,8 +362,14 @@ class Scene3D(Periodic):
     Args:
         ctx: the console's shared objects (server, pipeline, board, board watch, rigs).
         rate_hz: ticks per second: point cloud and board pose at most this often.
-        texture_hz: frustum texture updates per second (each pushes ~5 small JPEGs).
+        texture_hz: live image updates per second (each pushes ~5 small JPEGs).
         choices_period_s: how often ``ctx.rigs()`` is re-read for the rig dropdown.
+
+    Attributes:
+        box: the scene's extent from the first TOF cloud (None before it): what the views
+            frame and the default frustum depth come from.
+        user_sized: whether an operator has moved the "Frustum size" slider (then the
+            first cloud leaves the frustum depth alone).
     """
 
     def __init__(
@@ -248,14 +391,16 @@ class Scene3D(Periodic):
         self.cloud_span: tuple[float, float] | None = None
         self._cloud_key: tuple | None = None
         self._sighting: object = None
+        self.box: layout.SceneBox | None = None
+        self._recent: deque[tuple[float, np.ndarray]] = deque()  # (time, (M, 3) sample)
+        self.user_sized = False
+        self._sizing = False  # the scene itself is setting the slider
+        self._unframed: set[int] = set()  # clients framed before the first cloud
+        self._canvas: dict[int, tuple[int, int]] = {}  # client -> canvas (px), largest seen
+        self._shadows: dict[int, tuple[object, str]] = {}  # client -> (its /panel, view)
+        self._canvas_lock = threading.Lock()
 
         server.scene.set_up_direction("-y")
-
-        @server.on_client_connect
-        def _start_view(client: viser.ClientHandle) -> None:
-            client.camera.up_direction = (0.0, -1.0, 0.0)
-            client.camera.position = (0.0, -0.6, -1.5)
-            client.camera.look_at = (0.0, 0.0, 2.5)
 
         try:
             self._rigs: dict[str, Rig] = self._read_rigs()
@@ -265,22 +410,30 @@ class Scene3D(Periodic):
         self._rigs = self._rigs or {IN_USE: ctx.pipeline.rig}
         self.shown_label = IN_USE if IN_USE in self._rigs else next(iter(self._rigs))
         self.shown_rig: Rig = self._rigs[self.shown_label]
+        first_depth = layout.default_frustum_depth(
+            layout.DEFAULT_BOX, layout.head_width(self._positions(self.shown_rig))
+        )
 
         gui = server.gui
         with gui.add_folder("3D scene"):
+            self.view_buttons = {label: gui.add_button(label) for label in VIEW_BUTTONS}
             self.rig_choice = gui.add_dropdown(
                 "Rig shown", tuple(self._rigs), initial_value=self.shown_label
             )
             self.cloud_mode = gui.add_dropdown("Cloud colour", CLOUD_MODES, initial_value="color")
             self.point_size = gui.add_slider("Point size (mm)", 1.0, 30.0, 1.0, 8.0)
-            self.textures_on = gui.add_checkbox("Live images on frustums", True)
-            self.frustum_size = gui.add_slider("Frustum size (m)", 0.02, 1.0, 0.01, FRUSTUM_SIZE_M)
+            self.textures_on = gui.add_checkbox("Live images", True)
+            self.frustum_size = gui.add_slider(
+                "Frustum size (m)", *FRUSTUM_SIZE_RANGE_M, 0.01, first_depth
+            )
             self.cloud_md = gui.add_markdown("Cloud: waiting for a TOF frame")
             self.board_md = gui.add_markdown("Board: not detected")
             self.rig_md = gui.add_markdown("")
             self.error_md = gui.add_markdown("")
 
-        server.scene.add_frame("/rig", axes_length=0.05, axes_radius=0.002)
+        self.rig_axes = server.scene.add_frame("/rig", axes_length=0.05, axes_radius=0.002)
+        self.panel_node = server.scene.add_frame("/panel", show_axes=False)
+        self.panel: layout.Panel | None = None
         self.nodes: dict[str, _SensorNodes] = {}
         self.live = server.scene.add_frame("/live", show_axes=False)
         self.cloud = server.scene.add_point_cloud(
@@ -294,11 +447,36 @@ class Scene3D(Periodic):
         self.board_node = self._add_board(ctx.board)
         self._show_rig(self.shown_label)
 
+        for label, view in VIEW_BUTTONS.items():
+            self.view_buttons[label].on_click(
+                lambda e, v=view: self._guard("view", lambda: self.set_view(e.client, v))
+            )
         self.rig_choice.on_update(lambda _e: self._guard("rig", self._on_rig_choice))
         self.cloud_mode.on_update(lambda _e: self._guard("cloud", self.update_cloud))
         self.point_size.on_update(lambda _e: self._guard("cloud", self._on_point_size))
         self.textures_on.on_update(lambda _e: self._guard("textures", self._on_textures))
         self.frustum_size.on_update(lambda _e: self._guard("rig", self._on_frustum_size))
+
+        listeners = getattr(ctx.board_watch, "pose_listeners", None)
+        if listeners is not None:  # the board moves the moment its pose is known
+            listeners.append(lambda _s: self._guard("board", self.update_board))
+
+        @server.on_client_connect
+        def _start_view(client: viser.ClientHandle) -> None:
+            self._note_canvas(client.client_id, client.camera)
+            client.camera.on_update(lambda camera: self._note_canvas(client.client_id, camera))
+            with self._lock:
+                if self.box is None:
+                    self._unframed.add(client.client_id)
+            self._guard("view", lambda: self.set_view(client, "overview"))
+
+        @server.on_client_disconnect
+        def _gone(client: viser.ClientHandle) -> None:
+            with self._lock:
+                self._unframed.discard(client.client_id)
+                self._shadows.pop(client.client_id, None)
+            with self._canvas_lock:
+                self._canvas.pop(client.client_id, None)
 
     # -- building ----------------------------------------------------------------------
 
@@ -319,15 +497,18 @@ class Scene3D(Periodic):
             position=center,
         )
         scene.add_line_segments(
-            "/live/board/outline", board_outline(board), BOARD_OUTLINE_RGB, thickness=0.004
+            "/live/board/outline",
+            board_outline(board),
+            BOARD_OUTLINE_RGB,
+            thickness=3.0,
+            thickness_units="screen",
         )
         return node
 
     def _nodes_for(self, sensor: Sensor) -> _SensorNodes:
         nodes = self.nodes.get(sensor.name)
         if nodes is None:
-            size_m = float(self.frustum_size.value)
-            nodes = self.nodes[sensor.name] = _SensorNodes(self.server, "/rig", sensor, size_m)
+            nodes = self.nodes[sensor.name] = _SensorNodes(self.server, "/rig", sensor)
         return nodes
 
     # -- helpers -----------------------------------------------------------------------
@@ -355,11 +536,155 @@ class Scene3D(Periodic):
     def _tof_name(self) -> str:
         return getattr(self.ctx.pipeline, "tof", None) or self.in_use.reference
 
+    @staticmethod
+    def _positions(rig: Rig) -> np.ndarray:
+        """(N, 3) the sensors' positions in the rig frame, metres."""
+        return np.stack([np.asarray(s.T_rig_sensor[:3, 3], float) for s in rig.sensors.values()])
+
+    # -- views -------------------------------------------------------------------------
+
+    def view_pose(self, view: str, viewport: tuple[int, int]) -> layout.CameraPose:
+        """The camera of ``view`` (:data:`scene_layout.VIEWS`) for a canvas of ``viewport``
+        (width, height) CSS px: framing the clouds of the last :data:`FRAME_MEMORY_S`
+        seconds (or :data:`scene_layout.DEFAULT_BOX` before any), the head and the image
+        panel."""
+        box = None
+        if self._recent:
+            samples = np.vstack([sample for _, sample in self._recent])
+            box = layout.scene_box(samples, self._positions(self.shown_rig))
+        box = box or self.box or layout.DEFAULT_BOX
+        extra = None if self.panel is None else self.panel.placed(view).corners()
+        fov = max(vertical_fov_rad(s) for s in self.shown_rig.sensors.values())
+        depth = float(self.frustum_size.value)
+        return layout.view_pose(view, box, viewport, extra, fov, frustum_depth_m=depth)
+
+    def _note_canvas(self, client_id: int, camera: object) -> None:
+        """Remember a browser's canvas size: the largest it has reported at its present
+        aspect ratio. Viser reports the size of the drawing buffer, which its client
+        shrinks (to 0.75 x) while drawing is slow; the largest is the canvas's own."""
+        w, h = viewport_of(camera, None)
+        if w <= 0:
+            return
+        with self._canvas_lock:
+            old = self._canvas.get(client_id)
+            if old is None or w > old[0] or abs(old[0] / old[1] - w / h) > 0.02 * w / h:
+                self._canvas[client_id] = (w, h)
+
+    def canvas_of(self, client: object) -> tuple[int, int]:
+        """(width, height) of a browser's canvas (:meth:`_note_canvas`), else what its
+        camera reports now, else :data:`FALLBACK_VIEWPORT`."""
+        with self._canvas_lock:
+            known = self._canvas.get(getattr(client, "client_id", None))  # type: ignore[arg-type]
+        return known or viewport_of(client.camera)  # type: ignore[attr-defined]
+
+    def set_view(self, client: viser.ClientHandle | None, view: str) -> None:
+        """Move ``client``'s camera to ``view`` (nothing without a client) and turn the
+        image panel to face it, for this browser only."""
+        if client is None:
+            return
+        apply_camera(client.camera, self.view_pose(view, self.canvas_of(client)))
+        self._turn_panel(client, view)
+
+    def _turn_panel(self, client: object, view: str) -> None:
+        """The image panel faces ``view``'s camera in ``client``'s browser: a client-scoped
+        node ``/panel`` shadows the shared one (Viser 1.1.1: same name, this client only)
+        and carries its pictures; hidden in the view from the head; none for the
+        overview (the shared panel faces it)."""
+        scene = getattr(client, "scene", None)
+        client_id = getattr(client, "client_id", None)
+        if scene is None or client_id is None:
+            return
+        old = self._shadows.pop(client_id, None)
+        if old is not None:
+            old[0].remove()
+        if view == "overview" or self.panel is None:
+            return
+        T = self.panel.placed(view).T_rig_panel
+        handle = scene.add_frame(
+            "/panel",
+            show_axes=False,
+            wxyz=wxyz_of(T),
+            position=T[:3, 3].copy(),
+            visible=view != "head",
+        )
+        self._shadows[client_id] = (handle, view)
+
+    def _frame_waiting_clients(self) -> None:
+        """Re-frame the browsers that connected before the first cloud (once)."""
+        waiting, self._unframed = self._unframed, set()
+        if not waiting:
+            return
+        for client_id, client in self.server.get_clients().items():
+            if client_id in waiting:
+                self.set_view(client, "overview")
+
     # -- rig ---------------------------------------------------------------------------
 
     def _on_frustum_size(self) -> None:
+        if not self._sizing:
+            self.user_sized = True
+        self._apply_depth(float(self.frustum_size.value))
+
+    def _apply_depth(self, depth_m: float) -> None:
+        """Frustums ``depth_m`` deep and the rig's axes to match."""
         for nodes in self.nodes.values():
-            nodes.resize(float(self.frustum_size.value))
+            nodes.set_depth(depth_m)
+        self.rig_axes.axes_length = RIG_AXES_PER_DEPTH * depth_m
+        self.rig_axes.axes_radius = 0.02 * RIG_AXES_PER_DEPTH * depth_m
+
+    def _layout_panel(self) -> None:
+        """Lay the image panel out for the displayed rig, its pictures sized from the
+        first cloud's extent (or :data:`scene_layout.DEFAULT_BOX` before it)."""
+        rig = self.shown_rig
+        shown = {n: self.nodes[n] for n in rig.sensors if n in self.nodes}
+        if not shown:
+            return
+        self.panel = layout.image_panel(
+            {n: rig[n].T_rig_sensor[:3, 3] for n in shown},
+            {n: rig[n].width / rig[n].height for n in shown},
+            layout.panel_image_width(self.box or layout.DEFAULT_BOX),
+        )
+        self.panel_node.wxyz = wxyz_of(self.panel.T_rig_panel)
+        self.panel_node.position = self.panel.T_rig_panel[:3, 3].copy()
+        for name, cell in self.panel.cells.items():
+            shown[name].set_cell(cell)
+        for handle, view in self._shadows.values():  # the browsers' own views follow
+            T = self.panel.placed(view).T_rig_panel
+            handle.wxyz = wxyz_of(T)  # type: ignore[attr-defined]
+            handle.position = T[:3, 3].copy()  # type: ignore[attr-defined]
+
+    def _remember(self, points: np.ndarray) -> None:
+        """Keep a sample of the cloud (N, 3) every :data:`FRAME_SAMPLE_S` for the views."""
+        now = time.monotonic()
+        if self._recent and now - self._recent[-1][0] < FRAME_SAMPLE_S:
+            return
+        box = layout.scene_box(points)
+        if box is None:
+            return
+        self._recent.append((now, box.sample[:-1]))  # without the rig origin
+        while self._recent and now - self._recent[0][0] > FRAME_MEMORY_S:
+            self._recent.popleft()
+
+    def _set_first_sight(self, points: np.ndarray) -> None:
+        """The first cloud: the scene's extent; the image panel sized from it, the
+        frustum depth too (unless an operator has set one); browsers that connected
+        before it re-framed."""
+        head = self._positions(self.shown_rig)
+        box = layout.scene_box(points, head)
+        if box is None:
+            return
+        self.box = box
+        self._layout_panel()
+        if not self.user_sized:
+            depth = layout.default_frustum_depth(box, layout.head_width(head))
+            depth = float(np.clip(depth, *FRUSTUM_SIZE_RANGE_M))
+            self._sizing = True
+            try:
+                self.frustum_size.value = depth  # runs _on_frustum_size
+            finally:
+                self._sizing = False
+            self._apply_depth(depth)
+        self._frame_waiting_clients()
 
     def _on_rig_choice(self) -> None:
         self._show_rig(self.rig_choice.value)
@@ -375,6 +700,8 @@ class Scene3D(Periodic):
         for name, nodes in self.nodes.items():
             if name not in rig.sensors:
                 nodes.hide()
+        self._apply_depth(float(self.frustum_size.value))
+        self._layout_panel()
         tof = self._tof_name()
         T_shown_use = np.eye(4)
         if tof in rig and tof in self.in_use:
@@ -497,20 +824,24 @@ class Scene3D(Periodic):
             self.cloud.visible = True
         self.cloud_md.content = f"Cloud: {len(pts):,} points, {mode}: {legend}"
         self._cloud_key = key
+        if self.box is None:
+            self._set_first_sight(pts)
+        self._remember(pts)
 
     # -- textures ----------------------------------------------------------------------
 
     def _on_textures(self) -> None:
         if not self.textures_on.value:
             for nodes in self.nodes.values():
-                nodes.frustum.image = None
+                nodes.show_image(None)
                 nodes.shown_frame = None
         else:
             self.update_textures()
 
     def update_textures(self) -> None:
-        """Each displayed sensor's frustum shows its newest image (<= TEXTURE_MAX_W px
-        wide); a sensor without a frame in the newest set shows no image."""
+        """Each displayed sensor's picture on the image panel shows its newest image
+        (<= TEXTURE_MAX_W px wide); a sensor without a frame in the newest set shows
+        none (its frame and name stay)."""
         if not self.textures_on.value:
             return
         p = self.ctx.pipeline
@@ -531,7 +862,7 @@ class Scene3D(Periodic):
             frame = frames.get(name)
             if frame is None or name not in self.shown_rig:
                 if nodes.shown_frame is not None:
-                    nodes.frustum.image = None
+                    nodes.show_image(None)
                     nodes.shown_frame = None
                 continue
             if frame is nodes.shown_frame:
@@ -540,19 +871,24 @@ class Scene3D(Periodic):
                 tex = sensor_texture(frame.image, nodes.modality, TEXTURE_MAX_W, span, palette)
             except (ValueError, cv2.error) as exc:
                 self.errors[f"texture {name}"] = str(exc)
-                nodes.frustum.image = None
+                nodes.show_image(None)
                 nodes.shown_frame = None
                 continue
             self.errors.pop(f"texture {name}", None)
-            nodes.frustum.image = tex
+            nodes.show_image(tex)
             nodes.shown_frame = frame
 
     # -- board -------------------------------------------------------------------------
 
     def update_board(self) -> None:
-        """The board at the newest sighting's ``T_rig_board`` (rig in use), hidden when
-        the sighting has no pose."""
-        latest = getattr(self.ctx.board_watch, "latest", None)
+        """The board at the board watch's newest pose ``T_rig_board`` (rig in use; its
+        ``latest_pose``, which may come before the other sensors' search ends), hidden
+        when that sighting has no pose; the folder says how far away, from which sensor,
+        who saw it and, from :data:`BOARD_LAG_SHOWN_S` on, how much older its frames are
+        than the cloud's."""
+        watch = self.ctx.board_watch
+        latest = getattr(watch, "latest_pose", None) or getattr(watch, "latest", None)
+        lag_s = board_lag_s(latest, self.ctx.pipeline.latest_set)
         if latest is self._sighting:
             return
         self._sighting = latest
@@ -565,17 +901,15 @@ class Scene3D(Periodic):
         self.board_node.wxyz = wxyz_of(T)
         self.board_node.position = T[:3, 3].copy()
         self.board_node.visible = True
-        seen = ", ".join(getattr(latest, "found", []) or [])
         dist = float(np.linalg.norm(T[:3, 3]))
         text = f"Board: {dist:.2f} m away, pose from {getattr(latest, 'pose_sensor', '?')}"
-        if seen:
+        seen = ", ".join(getattr(latest, "found", []) or [])
+        if not getattr(latest, "complete", True):
+            text += "; searching the other sensors"
+        elif seen:
             text += f"; seen by {seen}"
-        newest = self.ctx.pipeline.latest_set
-        frames = getattr(latest, "frames", None)
-        if newest is not None and frames is not None:
-            lag_s = (newest.stamp_ns - frames.stamp_ns) / 1e9
-            if lag_s > 0.5:  # detection is slower than the board may move
-                text += f" (in frames {lag_s:.1f} s older than the cloud)"
+        if lag_s >= BOARD_LAG_SHOWN_S:  # detection is slower than the board may move
+            text += f" (in frames {lag_s:.1f} s older than the cloud)"
         self.board_md.content = text
 
     # -- the loop ----------------------------------------------------------------------

@@ -84,8 +84,14 @@ class Status(BaseModel):
     ``error`` are the keys the first status route had."""
 
     viewers: int = Field(description="stereo stream viewers connected")
-    frames_out: int = Field(description="fused frames published since the start")
-    fps: float = Field(description="fused frames per second (0 while nothing arrives)")
+    frames_out: int = Field(description="frames published to the stream since the start")
+    fps: float = Field(
+        description="frames published to the stream per second over the last 3 s, new "
+        "pictures and repeats (0 while nothing arrives)"
+    )
+    new_fps: float = Field(
+        0.0, description="of these, new pictures per second (the rest repeat an unchanged one)"
+    )
     missing: dict[str, str] = Field(description="sensors missing from the last frame set: why")
     error: str | None = Field(description="the pipeline's error, if it stopped")
     source: SourceInfo | None = None
@@ -152,10 +158,12 @@ def make_source_router(
         if control is None:
             return Status(viewers=hub.viewers, frames_out=0, fps=0.0, missing={}, error=None)
         s = control.pipeline.status
+        rates = control.stream_rates()
         return Status(
             viewers=hub.viewers,
             frames_out=s.frames_out,
-            fps=control.fused_fps(),
+            fps=rates.stream_fps,
+            new_fps=rates.new_fps,
             missing=dict(s.missing),
             error=s.error,
             source=_source(control.source_state()),

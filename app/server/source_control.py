@@ -47,6 +47,7 @@ from typing import Literal
 from app.recording.errors import RecordingError
 from app.recording.writer import RecordingWriter, recover_interrupted
 from app.server.pipeline import FusionPipeline
+from app.server.rates import RATE_WINDOW_S, RatesSnapshot, window_rate
 from app.server.sensor_health import (
     HealthMonitor,
     Rejections,
@@ -64,10 +65,6 @@ log = logging.getLogger(__name__)
 SourceKind = Literal["simulated", "replay", "live", "push"]
 RATE_MIN, RATE_MAX = 0.25, 4.0
 """Replay speeds the console offers (1.0 = real time)."""
-RATE_WINDOW_S = 2.0
-"""Delivered frame rates are counted over this much of the recent past (seconds)."""
-STALE_S = 3.0
-"""No frame for this long (seconds): the fused rate is reported as 0 (paused, stalled)."""
 HEALTH_CACHE_S = 0.5
 """The health lines put in the stream's metadata are recomputed at most this often (s)."""
 RECORDINGS = "recordings"
@@ -83,7 +80,8 @@ class ControlError(RuntimeError):
 
 
 class RateMeter:
-    """Frames per second of each sensor over the last ``window_s`` seconds (thread-safe)."""
+    """Frames per second of each sensor over the last ``window_s`` seconds (thread-safe;
+    the same window as the stream's rates, :data:`app.server.rates.RATE_WINDOW_S`)."""
 
     def __init__(self, window_s: float = RATE_WINDOW_S) -> None:
         self.window_s = window_s
@@ -114,16 +112,10 @@ class RateMeter:
         with self._lock:
             names = list(sensors) if sensors is not None else []
             names += [s for s in self._times if s not in names]
-            out: dict[str, float] = {}
-            for s in names:
-                times = self._times.get(s)
-                if not times:
-                    out[s] = 0.0
-                    continue
-                n = sum(1 for t in times if t >= now - self.window_s)
-                span = min(self.window_s, max(now - self._first[s], 0.2))
-                out[s] = n / span
-            return out
+            return {
+                s: window_rate(self._times.get(s, deque()), self._first.get(s), now, self.window_s)
+                for s in names
+            }
 
 
 # -- recording ----------------------------------------------------------------------------
@@ -569,15 +561,17 @@ class SourceControl:
         rates = self.tap.meter.rates_hz(list(self.source.sensors))
         return dict.fromkeys(rates, 0.0) if self.paused else rates
 
-    def fused_fps(self) -> float:
-        """Fused frames per second; 0 while a replay is paused or when no frame came for
-        :data:`STALE_S` seconds."""
+    def stream_rates(self) -> RatesSnapshot:
+        """The stream's rates over the last :data:`~app.server.rates.RATE_WINDOW_S` seconds
+        (taken at whole seconds: the viewer's frame metadata carries the same figures):
+        frames published per second and, of these, new pictures per second. A repeated
+        picture is the previous one published again because its input did not change (the
+        simulated head shows each rendered pose for several frames). Zeros while a replay is
+        paused; a stalled stream reads 0 once the window has passed."""
+        snap = self.hub.rates.snapshot()
         if self.paused:
-            return 0.0
-        last = self.tap.meter.last_s if self.tap is not None else None
-        if self.tap is not None and (last is None or time.monotonic() - last > STALE_S):
-            return 0.0
-        return float(self.pipeline.status.fps)
+            return dataclasses.replace(snap, stream_fps=0.0, new_fps=0.0)
+        return snap
 
     def sensor_health(self, now_s: float | None = None) -> dict[str, SensorHealth]:
         """Each sensor's health (:mod:`app.server.sensor_health`): the frames the tap saw,

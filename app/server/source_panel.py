@@ -1,12 +1,15 @@
 """The console's Source panel (Viser GUI): what is playing, replay controls, recording.
 
 Shows the source's description, each sensor's delivered frame rate, one line per sensor
-that is not ok (silent, no frame yet, failing: :mod:`app.server.sensor_health`), the fused
-frame rate, missing sensors and errors. For a replay: a play/pause button, a position slider that
-follows the replay (and leaves the operator's hand alone while it drags) and a speed
-slider (0.25x-4x). For every source: Record / Stop recording, which records the frames the
-console receives to ``<workdir>/recordings/<time>.mcap`` (see
-:mod:`app.server.source_control`), with the file's size and duration while it grows.
+that is not ok (silent, no frame yet, failing: :mod:`app.server.sensor_health`), the
+stream's rates (:func:`stream_text`: new pictures and frames published per second, the same
+figures as the viewer's, and why pictures repeat), missing sensors and errors. Every rate is
+counted over the last few seconds (:data:`app.server.rates.RATE_WINDOW_S`). For a replay:
+a play/pause button, a position slider that follows the replay (and leaves the operator's
+hand alone while it drags) and a speed slider (0.25x-4x). For every source: Record / Stop
+recording, which records the frames the console receives to
+``<workdir>/recordings/<time>.mcap`` (see :mod:`app.server.source_control`), with the
+file's size and duration while it grows.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import viser
 
 from app.server.context import ConsoleContext
 from app.server.periodic import Periodic
+from app.server.rates import RatesSnapshot
 from app.server.sensor_health import SensorHealth
 from app.server.source_control import (
     RATE_MAX,
@@ -75,6 +79,31 @@ def recording_text(r: RecordingState) -> str:
         text += f"  \n{r.frames_rejected} frames not in the rig were skipped"
     if r.error:
         text += f"  \n**Error:** {r.error}"
+    return text
+
+
+REPEAT_WHY = {
+    "simulated": "the simulated head holds each rendered pose for several frames, fused once",
+}
+"""Why a source's pictures repeat, by source kind (other kinds: "their input did not
+change")."""
+
+
+def stream_text(
+    rates: RatesSnapshot, kind: str, paused: bool, frames_out: int, pictures_out: int
+) -> str:
+    """The stream's line(s) in the panel (markdown): new pictures and published frames per
+    second over the rates' window, the totals, and why pictures repeat when they do."""
+    if paused:
+        return f"Fused: **paused**, {frames_out} frames published ({pictures_out} new pictures)"
+    text = (
+        f"Fused: **{rates.new_fps:.1f} fps** new pictures, stream **{rates.stream_fps:.1f} fps** "
+        f"(last {rates.window_s:g} s; {pictures_out} new of {frames_out} frames)"
+    )
+    repeat = rates.repeat_fps
+    if repeat >= 0.05:
+        why = REPEAT_WHY.get(kind, "their input did not change")
+        text += f"  \n{repeat:.1f} fps repeat the previous picture: {why}"
     return text
 
 
@@ -220,8 +249,9 @@ class SourcePanel(Periodic):
         sick = health_text(c.sensor_health())
         if sick:
             text += "\n\n" + sick
-        fused = "paused" if c.paused else f"{c.fused_fps():.1f} fps"
-        text += f"\n\nFused: **{fused}**, {status.frames_out} frames"
+        text += "\n\n" + stream_text(
+            c.stream_rates(), c.kind, c.paused, status.frames_out, status.pictures_out
+        )
         if status.missing:
             text += "\n\nMissing: " + "; ".join(
                 f"{name} ({why})" for name, why in sorted(status.missing.items())

@@ -3,6 +3,11 @@
 A producer thread publishes JPEG frames into a :class:`FrameHub`; each viewer (WebSocket or
 MJPEG) waits for a frame newer than the last one it sent and sends the newest there is, so
 a slow viewer skips frames instead of building a queue, and never slows the others.
+
+The hub measures the stream (:class:`app.server.rates.StreamRates`): frames published and
+new pictures per second over the last few seconds. Each frame's metadata carries these
+figures (``rates``), so the viewer shows the same numbers as the Source panel and
+``/api/status``, next to the rate at which it receives frames itself.
 """
 
 from __future__ import annotations
@@ -17,6 +22,8 @@ from typing import Any
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from fastapi.responses import StreamingResponse
+
+from app.server.rates import StreamRates
 
 
 @dataclass(frozen=True)
@@ -37,13 +44,23 @@ class FrameHub:
         self._seq = 0
         self._waiters: set[tuple[asyncio.AbstractEventLoop, asyncio.Event]] = set()
         self.viewers = 0
+        self.rates = StreamRates()
+        """Frames published and new pictures per second (read by the panel and routes)."""
 
-    def publish(self, jpeg: bytes, meta: dict[str, Any]) -> StreamFrame:
-        """Make ``jpeg`` the newest frame (any thread). ``meta`` must be JSON-able."""
+    def publish(self, jpeg: bytes, meta: dict[str, Any], new: bool = True) -> StreamFrame:
+        """Make ``jpeg`` the newest frame (any thread). ``meta`` must be JSON-able.
+
+        ``new``: the picture is new (False: the previous picture published again because
+        its input did not change). The frame's metadata gains ``seq``, ``sent_ns`` and
+        ``rates`` (:meth:`app.server.rates.RatesSnapshot.as_dict`)."""
+        self.rates.tick(new)
+        rates = self.rates.snapshot().as_dict()
         with self._lock:
             self._seq += 1
             frame = StreamFrame(
-                self._seq, jpeg, {**meta, "seq": self._seq, "sent_ns": time.time_ns()}
+                self._seq,
+                jpeg,
+                {**meta, "seq": self._seq, "sent_ns": time.time_ns(), "rates": rates},
             )
             self._frame = frame
             waiters = list(self._waiters)

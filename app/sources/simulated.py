@@ -5,28 +5,46 @@ default, :class:`~app.sources.sim.scenarios.InspectionScenario`) into a stream o
 frames, each sensor at its own rate (colour 30 Hz, thermal 27 Hz, TOF 15 Hz by default),
 time-stamped on a simulated clock, optionally paced in real time.
 
-Rendering is far slower than real time (about 0.7 s per colour image, 0.14 s per thermal
-image, 0.02 s per TOF image; the first image of each sensor also builds its ray grid, about
-1-2 s more for a colour camera). The source therefore renders a *cache* of head poses: the
-scenario time is sampled at ``render_hz`` (default 2 Hz) over ``loop_s`` (default one pan
-period, 30 s; the stream loops over it), samples that give the same head pose share one
-rendering, and a background thread renders the poses lazily, those the stream is about to
-need first. Each frame shows the nearest *already rendered* pose to its time stamp, so the
-picture moves in steps of ``1 / render_hz`` (coarser while the cache fills), and the sensor
-noise of a pose repeats each time the pose is shown. The time stamps themselves are exact:
-sensor ``s`` delivers its ``i``-th frame at ``start_ns + offset_s[s] + i / rate[s]``.
+Rendering is slower than real time. The source therefore renders a *cache* of head poses:
+the scenario time is sampled at ``render_hz`` (default 2 Hz) over ``loop_s`` (default one
+pan period, 30 s; the stream loops over it), samples that give the same head pose share
+one rendering, and the poses are rendered in the background, those the stream is about to
+need first. Each frame shows the pose of the sample nearest its time stamp, so the picture
+moves in steps of ``1 / render_hz``, and the sensor noise of a pose repeats each time the
+pose is shown. The time stamps themselves are exact: sensor ``s`` delivers its ``i``-th
+frame at ``start_ns + offset_s[s] + i / rate[s]``.
+
+Live mode (the default scenario's default; ``live``): the poses are rendered in the live
+quality (:class:`~app.sources.sim.render.Renderer` ``live=True``: colour and thermal edges
+not supersampled; about 0.13 s of CPU per colour image, 0.01 s thermal, 0.013 s TOF, 0.3 s
+per pose, where the accurate quality takes about 0.5 s, 0.075 s and 0.013 s, 1.7-2 s per
+pose), with the fast noise of :class:`~app.sources.sim.live.LiveDeveloper`. And the picture
+moves the same way from the first second: a sample whose pose is not rendered yet shows
+the rendered pose nearest in head orientation, turned to its own orientation
+(:class:`~app.sources.sim.live.RotationWarp`, about 30 ms for the five images; pixels from
+beyond the rendered picture repeat its border, a strip as wide as the turn), until its own
+rendering arrives. Without live mode such a sample shows the nearest rendered pose as it
+is: the picture stood still for up to half a minute while the cache filled (measured in
+``trifuse bench --only sim-first-minute``, BENCHMARKS.md). The calibration scenario keeps
+the accurate quality (its captures must be exact) and has no live mode (the board moves,
+not the head).
 
 Start-up: the first pose is rendered as soon as the source is made, in two threads; frames
 are available once it is done. Measured on the reference machine (2 cores, otherwise
-idle): 3.9-4.5 s for the five sensors of the default head with a fresh scenario (ray grids
-included), 1.2-2.5 s when the scenario has rendered before (grids cached); under other
-load up to about twice that. Every further pose takes about 1.7-2 s of CPU in the
-background (see "Render process"); the default cache (60 samples over a 30 s pan, 31
-distinct poses since the pan swings back) holds about 8.4 MB of images per pose, about
-260 MB in all, and is complete after about a minute on an idle machine (about 3-5
-minutes beside a console with a viewer: rendering takes the CPU left over). Delivered
-rates: exactly 30/27/15 frames per simulated second; with ``realtime`` and a consumer
-that keeps up, 30.0/27.0/15.3 Hz measured over 3 s.
+idle): 3.9-4.5 s for the five sensors of the default head in the accurate quality with a
+fresh scenario (ray grids included), 1.2-2.5 s when the scenario has rendered before (grids
+cached). With screen boxes from each solid's hull (2026-11-24), under a load average of
+10: 2.2-3.0 s accurate, 0.5-0.7 s live (a colour camera's rays undistorted on a coarse
+grid), both with a fresh scenario. Meanwhile the render process starts, at low priority,
+and builds its own ray grids. Every further pose takes about 0.3 s (live) or 1.7-2 s
+(accurate) of CPU in the background (see "Render process"); the default cache (60 samples
+over a 30 s pan, 31 distinct poses since the pan swings back) holds about 8.4 MB of images
+per pose, about 260 MB in all. In the live quality it was complete after 40 s for the
+source alone (load average 4) and after 69-126 s beside a console with a viewer on a busy
+machine (load average 6-15: rendering takes the CPU left over); in the accurate quality it
+took about a minute alone on an idle machine and 3-5 minutes beside a console. Delivered
+rates: exactly 30/27/15 frames per simulated second; with ``realtime`` and a consumer that
+keeps up, 30.0/27.0/15.3 Hz measured over 3 s.
 
 The cached images are shared by every frame that shows the pose and are read-only
 (``flags.writeable`` is False): copy before modifying. A consumer may rely on this: equal
@@ -39,22 +57,22 @@ delayed every other thread of a console (a 2 ms sleep overshot by 2 ms median, 6
 and took a core from it while the cache filled. The process renders at lower priority
 (:data:`RENDER_NICE`), so the stream and the viewer come first and rendering takes what
 CPU is left. The first pose, which the stream waits for, is still rendered in this process
-(two threads, as before: no waiting for a new interpreter); the process starts after it,
-for the first pose that is not on disk (about 1 s of start-up), and ends with the source.
-Like any ``spawn`` child it imports the parent's ``__main__``: a script that makes a
-source must guard its top level with ``if __name__ == "__main__":``.
+(two threads: no waiting for a new interpreter); the process starts at the same time
+when some pose is not on disk (about 1 s of start-up, then its ray grids, at low priority)
+and ends with the source. Like any ``spawn`` child it imports the parent's ``__main__``:
+a script that makes a source must guard its top level with ``if __name__ == "__main__":``.
 
 Disk cache: rendered poses are also kept on disk, one ``.npz`` file per pose (about 8.4
 MB uncompressed for the default head), so a restarted console has every pose at once
 (loading one takes a few ms). The directory is :func:`default_cache_dir`
 (``$XDG_CACHE_HOME/trifuse/sim``, ``~/.cache/trifuse/sim``, or ``$TRIFUSE_SIM_CACHE``;
 ``TRIFUSE_SIM_CACHE=off`` keeps none), one folder per scenario, named by a hash of the
-scenario (the default one by its seed, another by its ``cache_key()``; scenarios without
-one are not cached on disk), the delivered sensors, the simulator's source code and the
-numpy and OpenCV versions; each file is named by its pose's scenario time. Files are
-written to a temporary name and renamed, so concurrent consoles share the folder safely;
-a file that cannot be read or holds the wrong shapes is deleted and the pose rendered
-again. Only the :data:`CACHE_KEEP` most recently used folders are kept.
+scenario (the default one by its seed and quality, another by its ``cache_key()``;
+scenarios without one are not cached on disk), the delivered sensors, the simulator's
+source code and the numpy and OpenCV versions; each file is named by its pose's scenario
+time. Files are written to a temporary name and renamed, so concurrent consoles share the
+folder safely; a file that cannot be read or holds the wrong shapes is deleted and the
+pose rendered again. Only the :data:`CACHE_KEEP` most recently used folders are kept.
 """
 
 from __future__ import annotations
@@ -81,6 +99,7 @@ import numpy as np
 
 from app.sources.base import FrameSource
 from app.sources.frames import Frame, FrameSet
+from app.sources.sim.live import RotationWarp
 from app.sources.sim.render import SensorTruth
 from calib.rig import Rig
 
@@ -179,10 +198,10 @@ def _code_fingerprint() -> str:
 
 
 def _scenario_key(scenario: Any, default_seed: int | None) -> str | None:
-    """What identifies a scenario's pictures: the default scenario by its seed, another by
-    its ``cache_key()``; None if it has none (no disk cache then)."""
+    """What identifies a scenario's pictures: the default scenario by its seed and quality,
+    another by its ``cache_key()``; None if it has none (no disk cache then)."""
     if default_seed is not None:
-        return f"InspectionScenario(seed={default_seed})"
+        return f"InspectionScenario(seed={default_seed}, live={getattr(scenario, 'live', False)})"
     key_fn = getattr(scenario, "cache_key", None)
     if key_fn is None:
         return None
@@ -305,20 +324,32 @@ def _render_frames(
     return out
 
 
-def _render_worker(conn: Any, scenario: Any, seed: int, sensors: list[str]) -> None:
+def _render_worker(
+    conn: Any, scenario: Any, seed: int, live: bool, sensors: list[str], warm_up: bool
+) -> None:
     """The render process: renders the poses asked for, until the pipe closes.
 
     A request is ``(pose, t_s, workers, path, low_priority)``. The pose is written to
     ``path`` (answer ``("saved", pose)``) or, without a path or if writing fails, sent
     back (``("frames", pose, {sensor: (image, distance)})``); an error is answered
-    ``("error", pose, message)``.
+    ``("error", pose, message)``. With ``warm_up`` the process lowers its priority at once
+    and builds the renderer's ray grids before the first request.
     """
     if scenario is None:
         from app.sources.sim.scenarios import InspectionScenario
 
-        scenario = InspectionScenario(seed=seed)
+        scenario = InspectionScenario(seed=seed, live=live)
     rig = scenario.rig
     niced = False
+    if warm_up:
+        niced = True
+        try:
+            os.nice(RENDER_NICE)
+        except OSError:
+            pass
+        prepare = getattr(getattr(scenario, "renderer", None), "prepare", None)
+        if prepare is not None:
+            prepare(sensors)
     while True:
         try:
             request = conn.recv()
@@ -356,12 +387,14 @@ def _render_worker(conn: Any, scenario: Any, seed: int, sensors: list[str]) -> N
 class _RenderProcess:
     """A render process (``spawn``: a clean interpreter, no forked threads) and its pipe."""
 
-    def __init__(self, scenario: Any, seed: int, sensors: list[str]) -> None:
+    def __init__(
+        self, scenario: Any, seed: int, live: bool, sensors: list[str], warm_up: bool = False
+    ) -> None:
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(
             target=_render_worker,
-            args=(child, scenario, seed, sensors),
+            args=(child, scenario, seed, live, sensors, warm_up),
             name="trifuse-sim-render",
             daemon=True,
         )
@@ -436,6 +469,13 @@ class SimulatedHeadSource(FrameSource):
         render_process: render in a separate, lower-priority process instead of a
             thread of this one; None: for the default scenario without ``keep_truth``.
             True with a scenario of your own pickles it to the process.
+        live: the live (demo) mode (see "Live mode" in the module docstring): the
+            default scenario renders in the live quality, and a frame whose pose is not
+            rendered yet shows the nearest rendered pose turned to its head pose. None:
+            for the default scenario without ``keep_truth`` or ``wait_for_render``. With
+            a scenario of your own only the turning applies (its quality is its own), and
+            it needs a scenario where only the head turns (``T_world_rig``, no
+            ``scene_key``).
 
     Attributes:
         rig: the scenario's ground-truth rig.
@@ -462,12 +502,21 @@ class SimulatedHeadSource(FrameSource):
         seed: int = 0,
         cache_dir: str | os.PathLike[str] | bool | None = None,
         render_process: bool | None = None,
+        live: bool | None = None,
     ) -> None:
         default_seed = seed if scenario is None else None
+        if live is None:
+            live = scenario is None and not keep_truth and not wait_for_render
+        if live and scenario is not None:
+            if not hasattr(scenario, "T_world_rig") or hasattr(scenario, "scene_key"):
+                raise ValueError(
+                    "live: needs a scenario where only the head turns (T_world_rig and no "
+                    "scene_key)"
+                )
         if scenario is None:
             from app.sources.sim.scenarios import InspectionScenario
 
-            scenario = InspectionScenario(seed=seed)
+            scenario = InspectionScenario(seed=seed, live=live)
         self.scenario = scenario
         self.rig: Rig = scenario.rig
         names = list(self.rig.names)
@@ -501,6 +550,7 @@ class SimulatedHeadSource(FrameSource):
         self.duration_s = duration_s
         self.wait_for_render = wait_for_render
         self.keep_truth = keep_truth
+        self.live = bool(live)
 
         # The cache: K samples of scenario time; samples with equal head poses share a pose.
         k = max(1, round(loop_s * render_hz))
@@ -528,6 +578,12 @@ class SimulatedHeadSource(FrameSource):
             self._sample_pose.append(match)
 
         self._poses: dict[int, _Pose] = {}
+        # Live mode: pictures of poses not rendered yet, turned from a rendered one:
+        # pose -> (the rendered pose it was turned from, the picture).
+        self._provisional: dict[int, tuple[int, _Pose]] = {}
+        self._warps: dict[str, RotationWarp] = {}
+        self.provisional_made = 0
+        """Live mode: provisional pictures made so far (poses turned from another)."""
         self._cond = threading.Condition()
         self._stop = threading.Event()
         self._error: BaseException | None = None
@@ -570,7 +626,7 @@ class SimulatedHeadSource(FrameSource):
             render_process = default_seed is not None and not keep_truth
         elif render_process and keep_truth:
             raise ValueError("render_process: not with keep_truth (truth stays in-process)")
-        self._process_args = (None if default_seed is not None else scenario, seed)
+        self._process_args = (None if default_seed is not None else scenario, seed, self.live)
         self.render_process = bool(render_process)
         self._process: _RenderProcess | None = None
         self._thread = threading.Thread(target=self._run, name="simulated-head-render", daemon=True)
@@ -647,6 +703,10 @@ class SimulatedHeadSource(FrameSource):
     def _run(self) -> None:
         try:
             t0 = time.perf_counter()
+            if self.render_process and not self._all_on_disk():
+                # Start the render process now, at low priority: its start-up (a new
+                # interpreter, the ray grids) overlaps the first pose.
+                self._process = _RenderProcess(*self._process_args, self.sensors, warm_up=True)
             # The first pose in this process: no waiting for the render process to start.
             self._obtain(self._sample_pose[0], workers=2, in_process=True)
             self.first_pose_s = time.perf_counter() - t0
@@ -664,6 +724,10 @@ class SimulatedHeadSource(FrameSource):
         finally:
             if self._process is not None:
                 self._process.close()
+
+    def _all_on_disk(self) -> bool:
+        paths = [self._pose_path(p) for p in range(len(self._pose_t))]
+        return all(p is not None and p.exists() for p in paths)
 
     def _next_pose(self) -> int | None:
         """The pose to render next: one a consumer waits for, else the first unrendered one
@@ -737,6 +801,7 @@ class SimulatedHeadSource(FrameSource):
                 f.distance_m.flags.writeable = False
         with self._cond:
             self._poses[pose] = _Pose(frames, truth)
+            self._provisional.pop(pose, None)
             self._cond.notify_all()
 
     def _wait_first_pose(self) -> bool:
@@ -781,6 +846,8 @@ class SimulatedHeadSource(FrameSource):
                 self._wanted = pose
                 self._cond.wait(0.1)
             k = j
+        elif self.live and self._poses:
+            k = j  # shown rendered, or turned from the nearest rendered pose meanwhile
         else:
             k = j
             for step in range(n // 2 + 1):
@@ -795,11 +862,60 @@ class SimulatedHeadSource(FrameSource):
             self._stamp_sample.popitem(last=False)
         return k
 
+    def _provisional_pose(self, pose: int) -> _Pose | None:
+        """Live mode: the picture of an unrendered ``pose``, turned from the rendered pose
+        whose head orientation is nearest (made again when a nearer one is rendered).
+        Call with the lock held."""
+        if not self._poses or self._pose_T[pose] is None:
+            return None
+
+        def angle(p: int) -> float:
+            R = self._pose_T[p][:3, :3].T @ self._pose_T[pose][:3, :3]  # type: ignore[index]
+            return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+
+        src = min(self._poses, key=lambda p: (angle(p), p))
+        made = self._provisional.get(pose)
+        if made is not None and made[0] == src:
+            return made[1]
+        picture = _Pose(self._turn(self._poses[src].frames, src, pose), None)
+        self._provisional[pose] = (src, picture)
+        self.provisional_made += 1
+        return picture
+
+    def _turn(self, frames: dict[str, Frame], src: int, dst: int) -> dict[str, Frame]:
+        """``frames`` of pose ``src`` turned to the head orientation of pose ``dst``
+        (:class:`~app.sources.sim.live.RotationWarp`; pixels from beyond the picture
+        repeat its border). Read-only arrays."""
+        T_src, T_dst = self._pose_T[src], self._pose_T[dst]
+        assert T_src is not None and T_dst is not None
+        out = {}
+        for name, f in frames.items():
+            warp = self._warps.get(name)
+            if warp is None:
+                warp = self._warps[name] = RotationWarp(self.rig[name])
+            R_rs = self.rig[name].T_rig_sensor[:3, :3]
+            R_src_dst = (T_src[:3, :3] @ R_rs).T @ (T_dst[:3, :3] @ R_rs)
+            m = warp.update(R_src_dst, 0)
+            nearest = self.rig[name].modality == "tof"
+            interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+            image = cv2.remap(f.image, m, None, interp, borderMode=cv2.BORDER_REPLICATE)
+            dist = None
+            if f.distance_m is not None:
+                dist = cv2.remap(
+                    f.distance_m, m, None, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE
+                )
+                dist.flags.writeable = False
+            image.flags.writeable = False
+            out[name] = Frame(name, 0, image, dist)
+        return out
+
     def _frame(self, sensor: str, stamp_ns: int) -> Frame | None:
         with self._cond:
             self._now_s = self._scenario_t(stamp_ns)
             k = self._sample_for(stamp_ns)
             pose = self._poses.get(self._sample_pose[k])
+            if pose is None and self.live and not self._stop.is_set():
+                pose = self._provisional_pose(self._sample_pose[k])
         if pose is None:  # closed while waiting
             return None
         f = pose.frames[sensor]

@@ -10,13 +10,14 @@
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
-from app.sources.frames import FrameSet
+from app.sources.frames import Frame, FrameSet
 from app.sources.sim.head import default_rig
+from app.sources.sim.live import CleanImage, LiveDeveloper
 from app.sources.sim.render import HeadModel, Renderer, SensorTruth
 from app.sources.sim.scene import (
     Board,
@@ -291,7 +292,12 @@ def inspection_scene() -> Scene:
 
 
 class InspectionScenario:
-    """The inspection room seen by a head that pans slowly (yaw +-20 deg, 30 s period)."""
+    """The inspection room seen by a head that pans slowly (yaw +-20 deg, 30 s period).
+
+    ``live``: render in the live (demo) quality (no edge supersampling, see
+    :class:`~app.sources.sim.render.Renderer`) and give frames the fast noise of
+    :class:`~app.sources.sim.live.LiveDeveloper`; the default is the accurate quality.
+    """
 
     def __init__(
         self,
@@ -300,9 +306,13 @@ class InspectionScenario:
         seed: int = 0,
         pan_deg: float = 20.0,
         pan_period_s: float = 30.0,
+        *,
+        live: bool = False,
     ) -> None:
         self.rig = rig or default_rig()
-        self.renderer = Renderer(self.rig, model)
+        self.renderer = Renderer(self.rig, model, live=live)
+        self.live = live
+        self.developer = LiveDeveloper(self.renderer, noise_seed=seed) if live else None
         self.scene = inspection_scene()
         self.seed = seed
         self.pan_deg = pan_deg
@@ -313,14 +323,45 @@ class InspectionScenario:
         yaw = self.pan_deg * np.sin(2 * np.pi * t_s / self.pan_period_s)
         return make_T(rotation_from_euler_deg(0.0, yaw, 0.0), (0.0, 0.0, 0.0))
 
+    def max_turn_rad(self, dt_s: float) -> float:
+        """The largest angle (radians) the head turns in ``dt_s`` seconds."""
+        rate = np.radians(self.pan_deg) * 2 * np.pi / self.pan_period_s
+        return float(min(rate * abs(dt_s), 2 * np.radians(self.pan_deg)))
+
     def render(
         self, t_s: float, sensors: list[str] | None = None
     ) -> tuple[FrameSet, dict[str, SensorTruth]]:
         """Frames and exact ground truth at time ``t_s``; noise is seeded by (seed, t)."""
         rng = np.random.default_rng([self.seed, round(t_s * 1e6) % 2**63])
-        return self.renderer.render(
-            self.scene, self.T_world_rig(t_s), round(t_s * 1e9), rng, sensors
-        )
+        stamp_ns = round(t_s * 1e9)
+        if self.developer is None:
+            return self.renderer.render(self.scene, self.T_world_rig(t_s), stamp_ns, rng, sensors)
+        frames: dict[str, Frame] = {}
+        truths: dict[str, SensorTruth] = {}
+        for name, clean in self.render_clean(t_s, sensors).items():
+            frames[name] = self.developer.frame(clean, stamp_ns, rng)
+            truths[name] = clean.truth
+        return FrameSet(stamp_ns, frames), truths
+
+    def render_clean(
+        self,
+        t_s: float,
+        sensors: list[str] | None = None,
+        margins: Mapping[str, int] | None = None,
+    ) -> dict[str, CleanImage]:
+        """Live quality only: each sensor's noise-free picture at time ``t_s``, with
+        ``margins[sensor]`` pixels more on every side (default 0), for
+        :meth:`LiveDeveloper.frame <app.sources.sim.live.LiveDeveloper.frame>`."""
+        if self.developer is None:
+            raise ValueError("render_clean: needs the live quality (InspectionScenario(live=True))")
+        T_world_rig = self.T_world_rig(t_s)
+        out = {}
+        for name in sensors or self.rig.names:
+            margin = (margins or {}).get(name, 0)
+            T_world_sensor = T_world_rig @ self.rig[name].T_rig_sensor
+            values, truth = self.renderer.render_raw(self.scene, name, T_world_sensor, margin)
+            out[name] = self.developer.clean(name, values, truth, T_world_sensor, margin)
+        return out
 
 
 class CalibrationScenario:

@@ -156,6 +156,21 @@ class Solid(ABC):
     def bounding_sphere(self) -> tuple[np.ndarray, float]:
         """Centre (3,) and radius (metres) of a sphere enclosing the solid."""
 
+    def hull_points(self) -> np.ndarray:
+        """(N, 3) world points whose convex hull encloses the solid (the renderer's screen
+        boxes come from them); by default the corners of the bounding sphere's cube."""
+        c, r = self.bounding_sphere()
+        return np.asarray(c, dtype=np.float64) + r * _CUBE
+
+
+_CUBE = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
+
+
+def _corners_world(T: np.ndarray, lo: tuple[float, ...], hi: tuple[float, ...]) -> np.ndarray:
+    """The 8 corners (world) of the local box ``lo <= p <= hi`` of frame ``T``."""
+    local = np.where(_CUBE > 0, np.asarray(hi, dtype=np.float64), np.asarray(lo, dtype=np.float64))
+    return local @ T[:3, :3].T + T[:3, 3]
+
 
 def apply_affine(M: np.ndarray, X: np.ndarray) -> np.ndarray:
     """``X @ M[:, :3].T + M[:, 3]`` for points/vectors ``(..., 3)``, in X's dtype.
@@ -207,8 +222,13 @@ class Quad(Solid):
     def surface(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         R = self.T_world_quad[:3, :3]
         local = _to_local(self.T_world_quad, points)
-        normals = np.broadcast_to(-R[:, 2], points.shape).copy()
+        normals = np.broadcast_to(-R[:, 2].astype(points.dtype), points.shape).copy()
         return normals, local[:, :2]
+
+    def hull_points(self) -> np.ndarray:
+        x0, x1, y0, y1 = self.extent
+        local = np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]], dtype=np.float64)
+        return local @ self.T_world_quad[:3, :3].T + self.T_world_quad[:3, 3]
 
     def bounding_sphere(self) -> tuple[np.ndarray, float]:
         x0, x1, y0, y1 = self.extent
@@ -252,6 +272,10 @@ class Box(Solid):
             np.stack([local[:, 0] + local[:, 2], local[:, 1]], axis=1),
         )
         return apply_affine(R, n_local), st
+
+    def hull_points(self) -> np.ndarray:
+        h = tuple(float(x) for x in self.half_size)
+        return _corners_world(self.T_world_box, tuple(-x for x in h), h)
 
     def bounding_sphere(self) -> tuple[np.ndarray, float]:
         return self.T_world_box[:3, 3].copy(), float(np.linalg.norm(self.half_size))
@@ -305,6 +329,11 @@ class Cylinder(Solid):
         st = np.stack([np.arctan2(local[:, 0], local[:, 2]) * self.radius, local[:, 1]], axis=1)
         return apply_affine(R, n_local), st
 
+    def hull_points(self) -> np.ndarray:
+        r = self.radius
+        y0, y1 = self.y_range
+        return _corners_world(self.T_world_cylinder, (-r, y0, -r), (r, y1, r))
+
     def bounding_sphere(self) -> tuple[np.ndarray, float]:
         y0, y1 = self.y_range
         c = (
@@ -333,7 +362,7 @@ class Sphere(Solid):
         return np.where((disc >= 0) & (t > _EPS), t, np.inf)
 
     def surface(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        n = (points - np.asarray(self.centre)) / self.radius
+        n = (points - np.asarray(self.centre, dtype=points.dtype)) / self.radius
         st = (
             np.stack([np.arctan2(n[:, 0], n[:, 2]), np.arcsin(np.clip(n[:, 1], -1, 1))], axis=1)
             * self.radius
