@@ -9,11 +9,12 @@ exit 1 the same way. No traceback reaches the user for either.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import shlex
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 from urllib.parse import urlsplit
@@ -55,6 +56,40 @@ def _positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
     return value
+
+
+def _bounded_int(low: int, high: int) -> Callable[[str], int]:
+    """An argparse type: an integer in ``[low, high]``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or not low <= value <= high:
+            raise argparse.ArgumentTypeError(
+                f"expected an integer from {low} to {high}, got {text!r}"
+            )
+        return value
+
+    return parse
+
+
+def _bounded_seconds(low: float, high: float) -> Callable[[str], float]:
+    """An argparse type: seconds in ``[low, high]``."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(
+                f"expected a number of seconds from {low:g} to {high:g}, got {text!r}"
+            )
+        return value
+
+    return parse
 
 
 def _seed(text: str) -> int:
@@ -459,8 +494,12 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         raise UsageError(f"{PROG} serve: choose one of --replay, --live, --push")
     if args.scenario != "inspection" and chosen:
         raise UsageError(f"{PROG} serve: --scenario is for the simulated head only")
+    if args.scenario != "calibration" and (args.board_poses, args.hold) != (40, 3.0):
+        raise UsageError(f"{PROG} serve: --board-poses and --hold are for --scenario calibration")
     board = _load_board_arg(args.board)
-    opened = open_source(args.replay, args.live, args.push, args.rig, args.scenario)
+    opened = open_source(
+        args.replay, args.live, args.push, args.rig, args.scenario, args.board_poses, args.hold
+    )
     serve(opened, board, Path(args.workdir), auth, args.host, tls)
     return EXIT_OK
 
@@ -1249,7 +1288,23 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("inspection", "calibration"),
         default="inspection",
         help="what the simulated head sees: the inspection room, or the heated board "
-        "held at 40 poses for a calibration session (default: %(default)s)",
+        "held at --board-poses poses for a calibration session (default: %(default)s)",
+    )
+    srv.add_argument(
+        "--board-poses",
+        type=_bounded_int(1, 1000),
+        default=40,
+        metavar="N",
+        help="calibration scenario: how many board poses it cycles through (default: "
+        "%(default)s; each is rendered once, about 1.5 s of CPU)",
+    )
+    srv.add_argument(
+        "--hold",
+        type=_bounded_seconds(0.5, 3600.0),
+        default=3.0,
+        metavar="S",
+        help="calibration scenario: seconds the board is held at each pose (default: "
+        "%(default)s; auto-capture needs it still for two searches)",
     )
     srv.add_argument(
         "--workdir",

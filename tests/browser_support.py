@@ -26,6 +26,10 @@ import pytest
 from app.bench import CHROMIUM, CHROMIUM_FLAGS, stop_process
 
 FLAGS = list(CHROMIUM_FLAGS)
+WAIT_MS = 300_000
+"""Bound of a browser test's wait for the console (ms): generous, because a 2-core machine
+busy with other work runs the console several times slower; the awaited event ends the wait
+as soon as it comes. Also every page's default timeout (conftest.py's ``browser``)."""
 ROOT = Path(__file__).resolve().parents[1]
 
 needs_chromium = pytest.mark.skipif(
@@ -68,12 +72,68 @@ class Console:
         return self.request(path, "POST", body)
 
 
+# -- the simulator's disk cache, warmed once per run ----------------------------------------
+
+TEST_BOARD_POSES = 20
+"""Board poses of the calibration scenario the tests' consoles show (``--board-poses``):
+half the default, so half the rendering; 16 of them give a calibration well within the
+calibration issue's targets (test_browser_calibration.py)."""
+WARM_SCENARIOS = {"inspection": {}, "calibration": {"board_poses": TEST_BOARD_POSES}}
+_warmups: dict[str, subprocess.Popen] = {}
+
+
+def start_cache_warmup() -> None:
+    """Render every pose the tests' consoles show into the simulator's disk cache, one
+    background process per scenario, while the first tests run (conftest.py starts them
+    when the run has console tests). Consoles then load their pictures instead of rendering
+    beside the tests (and beside each other)."""
+    cache = os.environ.get("TRIFUSE_SIM_CACHE", "")
+    if _warmups or cache.lower() in ("off", "0", "no", "false"):
+        return
+    for name, kwargs in WARM_SCENARIOS.items():
+        code = f"import app.server.serve as s; s.warm_simulator_cache({{{name!r}: {kwargs!r}}})"
+        _warmups[name] = subprocess.Popen(
+            [sys.executable, "-c", code],
+            cwd=ROOT,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+
+
+def wait_for_cache_warmup(scenario: str, timeout_s: float = 1200.0) -> None:
+    """Block until the warm-up of ``scenario`` (if one was started) has finished; fail if
+    it failed."""
+    proc = _warmups.get(scenario)
+    if proc is None:
+        return
+    try:
+        proc.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"the simulator's {scenario} poses were not rendered after {timeout_s} s")
+    if proc.returncode != 0:
+        pytest.fail(f"rendering the simulator's {scenario} poses failed: {proc.stderr.read()}")
+
+
+def stop_cache_warmup() -> None:
+    for proc in _warmups.values():
+        stop_process(proc)
+
+
+def scenario_of(args: Sequence[str]) -> str:
+    """The simulated scenario ``trifuse serve ARGS`` shows (``inspection`` by default)."""
+    args = list(args)
+    return args[args.index("--scenario") + 1] if "--scenario" in args else "inspection"
+
+
 def start_console(
     args: Sequence[str], port: int | None = None, env: dict[str, str] | None = None
 ) -> tuple[subprocess.Popen, Console]:
     """Start ``trifuse serve ARGS`` on a free loopback port (with its own random token
-    unless ``env`` gives one); returns the process and the console (its URL as printed:
-    ``https`` under TLS) once the port accepts connections."""
+    unless ``env`` gives one), once the simulator's cache is warm; returns the process and
+    the console (its URL as printed: ``https`` under TLS) once the port accepts
+    connections."""
+    wait_for_cache_warmup(scenario_of(args))
     port = port or free_port()
     proc = subprocess.Popen(
         [
@@ -101,11 +161,15 @@ def start_console(
     if m is None:
         proc.kill()
         raise RuntimeError(f"trifuse serve did not start: {said}{proc.stdout.read()}")
-    for _ in range(100):
+    deadline = time.monotonic() + 120  # the port opens once the console is up
+    while True:
         try:
             socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
             break
         except OSError:
+            if proc.poll() is not None or time.monotonic() > deadline:
+                stop_process(proc)
+                raise RuntimeError(f"trifuse serve did not open port {port}: {said}") from None
             time.sleep(0.1)
     return proc, Console(m.group(1), m.group(2))
 

@@ -15,6 +15,29 @@ DATA_DIR = Path(__file__).resolve().parent / "data"
 OPENCV_LEFT_9X6 = DATA_DIR / "opencv-left-9x6"
 
 
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Tests that need the 30-view simulated calibration (fixture ``simulated``, about 40
+    s once per run) are slow ones too."""
+    for item in items:
+        if "simulated" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.slow)
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """A run with slow tests (the consoles and browser sessions) warms the simulator's disk
+    cache in the background from the start (tests/browser_support.py)."""
+    if any(item.get_closest_marker("slow") for item in session.items):
+        from tests.browser_support import start_cache_warmup
+
+        start_cache_warmup()
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    from tests.browser_support import stop_cache_warmup
+
+    stop_cache_warmup()
+
+
 @pytest.fixture(scope="module")
 def console(tmp_path_factory: pytest.TempPathFactory):
     """`trifuse serve` on the simulated inspection room, on a free loopback port, with a
@@ -32,11 +55,19 @@ def browser():
     """Debian's chromium, headless, driven by Playwright; one per module, because the
     Playwright sync API keeps an event loop running in the main thread while it lives
     (``asyncio.run`` in later tests would fail)."""
-    from tests.browser_support import CHROMIUM, FLAGS
+    from tests.browser_support import CHROMIUM, FLAGS, WAIT_MS
 
     sync_api = pytest.importorskip("playwright.sync_api")
     with sync_api.sync_playwright() as p:
         b = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
+        new_page = b.new_page
+
+        def patient_page(**kwargs):  # waits without a timeout of their own take WAIT_MS
+            page = new_page(**kwargs)
+            page.set_default_timeout(WAIT_MS)
+            return page
+
+        b.new_page = patient_page
         yield b
         b.close()
 

@@ -246,6 +246,7 @@ def certificate(tmp_path_factory) -> tuple[Path, Path]:
     return cert, key
 
 
+@pytest.mark.slow
 def test_serve_over_tls_with_a_token_from_the_environment(certificate, tmp_path) -> None:
     from websockets.exceptions import InvalidStatus
     from websockets.sync.client import connect

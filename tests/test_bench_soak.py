@@ -272,6 +272,7 @@ def test_cli_help_names_the_soak(capsys: pytest.CaptureFixture[str]):
 # -- the machinery, end to end ----------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_short_soak_against_a_console():
     """Seconds, two fast viewers and both slow readers (the MJPEG one fast enough to
     complete frames): the report's structure, and every viewer got frames."""

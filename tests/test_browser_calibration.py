@@ -1,11 +1,12 @@
 """A whole calibration session driven from the browser, then a kill and a restart.
 
 The console runs on the simulated head's calibration scenario (the heated board held at
-40 poses, 3 s each). In Chromium: Capture writes a view to disk at once; Auto-capture takes
-the steady, novel poses; Run calibration; Save rig. The saved rig must meet the calibration
-issue's accuracy against the simulator's ground truth. Then the server is killed (SIGKILL)
-in the middle of a second calibration and started again on the same work directory: every
-captured view and the saved rig are still there, and the console lists them.
+``TEST_BOARD_POSES`` = 20 poses, 3 s each). In Chromium: Capture writes a view to disk at
+once; Auto-capture takes the steady, novel poses; Run calibration; Save rig. The saved
+rig must meet the calibration issue's accuracy against the simulator's ground truth. Then
+the server is killed (SIGKILL) in the middle of a second calibration and started again on
+the same work directory: every captured view and the saved rig are still there, and the
+console lists them.
 """
 
 from __future__ import annotations
@@ -16,17 +17,21 @@ import signal
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from app.capture import load_capture
 from app.rigfile import load_rig
 from app.sources.sim.head import default_rig
 from calib.transforms import pose_error
-from tests.browser_support import needs_chromium, start_console
+from tests.browser_support import TEST_BOARD_POSES, needs_chromium, start_console
 from tests.test_calibrate_cli import FOCAL, POSE
 
-pytestmark = needs_chromium
+pytestmark = [needs_chromium, pytest.mark.slow]
 
-MIN_VIEWS = 30  # of the scenario's 40 poses (ROS novelty keeps about 36)
+# Of the scenario's 20 poses. 12 simulated views (seeds 1-3) already calibrate within the
+# calibration issue's targets with a margin of 2.5 (worst pair 0.44 mm of 1 mm, 0.07 deg of
+# 0.2 deg: `trifuse calibrate --truth`), so 16 leave room for a less varied choice.
+MIN_VIEWS = 16
 
 
 def _views_on_disk(workdir: Path) -> list[str]:
@@ -40,15 +45,14 @@ def _views_shown(page) -> int:
 
 def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path) -> None:
     workdir = tmp_path / "work"
-    args = ["--scenario", "calibration", "--workdir", str(workdir)]
+    args = ["--scenario", "calibration", "--board-poses", str(TEST_BOARD_POSES)]
+    args += ["--workdir", str(workdir)]
     proc, console = start_console(args)
     try:
         page = browser.new_page(viewport={"width": 900, "height": 1200})
         page.goto(console.signin("/console/"))
-        page.wait_for_function(
-            "() => !document.body.innerText.includes('Connecting...')", timeout=60000
-        )
-        page.wait_for_function("() => document.body.innerText.includes('Board (')", timeout=120000)
+        page.wait_for_function("() => !document.body.innerText.includes('Connecting...')")
+        page.wait_for_function("() => document.body.innerText.includes('Board (')")
         # One click, one view on disk, before anything else happens.
         page.get_by_role("button", name="Capture", exact=True).click()
         page.wait_for_function("() => document.body.innerText.includes('Captured view 0001')")

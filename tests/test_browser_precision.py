@@ -4,22 +4,22 @@ and ``browser`` are in conftest.py."""
 
 from __future__ import annotations
 
+import pytest
+
 from app.report_format import limit_distance_cell
 from app.sources.sim.head import default_rig
 from fusion.precision import analyze_precision
 from tests.browser_support import needs_chromium
 
-pytestmark = needs_chromium
+pytestmark = [needs_chromium, pytest.mark.slow]
 
 
 def test_precision_panel_shows_table_1_and_its_curves(console, browser) -> None:
     page = browser.new_page(viewport={"width": 800, "height": 900})
     page.goto(console.signin("/console/"))
-    page.wait_for_function(
-        "() => !document.body.innerText.includes('Connecting...')", timeout=60000
-    )
+    page.wait_for_function("() => !document.body.innerText.includes('Connecting...')")
     page.get_by_text("Precision", exact=True).first.click()  # folded by default
-    page.wait_for_function("() => document.body.innerText.includes('TOF pixel (')", timeout=60000)
+    page.wait_for_function("() => document.body.innerText.includes('TOF pixel (')")
     text = page.evaluate("() => document.body.innerText")
     assert "principal point" in text and "region 3 edge" in text
     # the console fuses with the simulated head's rig: its numbers, as `trifuse analyze`
@@ -29,9 +29,7 @@ def test_precision_panel_shows_table_1_and_its_curves(console, browser) -> None:
     lines = [" ".join(t.split()) for t in text.splitlines()]
     assert any(line.startswith("41 mm") and " ".join(row) in line for line in lines), row
     # two uPlot charts (|dx| and |dy|) with their canvases, drawn at a usable size
-    page.wait_for_function(
-        "() => document.querySelectorAll('.uplot canvas').length >= 2", timeout=60000
-    )
+    page.wait_for_function("() => document.querySelectorAll('.uplot canvas').length >= 2")
     size = page.evaluate(
         "() => { const c = document.querySelector('.uplot canvas');"
         " const r = c.getBoundingClientRect(); return [r.width, r.height]; }"

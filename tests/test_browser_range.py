@@ -10,21 +10,23 @@ from __future__ import annotations
 
 import re
 import shutil
+import time
 
-from tests.browser_support import console_running, needs_chromium
+import pytest
 
-pytestmark = needs_chromium
+from tests.browser_support import TEST_BOARD_POSES, console_running, needs_chromium
+
+pytestmark = [needs_chromium, pytest.mark.slow]
 
 
 def test_range_panel_runs_saves_and_uses_the_correction(simulated, browser, tmp_path) -> None:
     workdir = tmp_path / "work"
     shutil.copytree(simulated["capture"], workdir / "captures")
-    with console_running(["--scenario", "calibration", "--workdir", str(workdir)]) as console:
+    args = ["--scenario", "calibration", "--board-poses", str(TEST_BOARD_POSES)]
+    with console_running([*args, "--workdir", str(workdir)]) as console:
         page = browser.new_page(viewport={"width": 900, "height": 1400})
         page.goto(console.signin("/console/"))
-        page.wait_for_function(
-            "() => document.body.innerText.includes('Range calibration')", timeout=60000
-        )
+        page.wait_for_function("() => document.body.innerText.includes('Range calibration')")
         page.get_by_text("Range calibration", exact=True).click()  # unfold the folder
         page.get_by_role("button", name="Run range calibration").click()
         # the session first searches the 30 views it found on disk, then fits (~1 min)
@@ -43,16 +45,13 @@ def test_range_panel_runs_saves_and_uses_the_correction(simulated, browser, tmp_
         assert abs(trusted["after_rms_mm"] - after) <= 0.05  # the panel shows 0.1 mm
 
         page.get_by_role("button", name="Save rig with range correction").click()
-        page.wait_for_function(
-            "() => document.body.innerText.includes('Saved rig-')", timeout=20000
-        )
+        page.wait_for_function("() => document.body.innerText.includes('Saved rig-')")
         name = console.get("/api/range")["saved_as"]
         assert "range_correction" in console.get(f"/api/rigs/{name}")["sensors"]["tof"]
         page.get_by_role("button", name="Use the saved rig").click()
-        page.wait_for_function(
-            "() => document.body.innerText.includes('TOF distances corrected')", timeout=20000
-        )
-        for _ in range(50):  # the pipeline swaps rigs at its next frame set
+        page.wait_for_function("() => document.body.innerText.includes('TOF distances corrected')")
+        deadline = time.monotonic() + 120  # the pipeline swaps rigs at its next frame set
+        while time.monotonic() < deadline:
             if "range_correction" in console.get("/api/rig")["sensors"]["tof"]:
                 break
             page.wait_for_timeout(200)

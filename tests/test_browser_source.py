@@ -10,10 +10,12 @@ import re
 import time
 from pathlib import Path
 
+import pytest
+
 from app.recording import ReplaySource
 from tests.browser_support import needs_chromium
 
-pytestmark = needs_chromium
+pytestmark = [needs_chromium, pytest.mark.slow]
 
 SHOT = Path("/tmp/shots/source.png")
 
@@ -35,10 +37,8 @@ def test_record_and_stop_from_the_source_panel(console, browser) -> None:
     page = browser.new_page(viewport={"width": 800, "height": 900})
     try:
         page.goto(console.signin("/console/"))
-        page.wait_for_function(
-            "() => !document.body.innerText.includes('Connecting...')", timeout=60000
-        )
-        page.wait_for_function("() => document.body.innerText.includes('Fused:')", timeout=60000)
+        page.wait_for_function("() => !document.body.innerText.includes('Connecting...')")
+        page.wait_for_function("() => document.body.innerText.includes('Fused:')")
         text = page.evaluate("() => document.body.innerText")
         assert "simulated: the simulated head" in text
         # the stream's rates say what they count (the viewer shows the same: test_browser.py)
@@ -54,7 +54,7 @@ def test_record_and_stop_from_the_source_panel(console, browser) -> None:
 
         page.get_by_role("button", name="Record", exact=True).click()
         stop = page.get_by_role("button", name="Stop recording", exact=True)
-        stop.wait_for(timeout=15000)
+        stop.wait_for()
         deadline = time.monotonic() + 60
         while console.get("/api/status")["recording"]["frames_written"] < 5:
             assert time.monotonic() < deadline, console.get("/api/status")["recording"]
@@ -62,17 +62,14 @@ def test_record_and_stop_from_the_source_panel(console, browser) -> None:
         page.wait_for_function(
             "() => document.body.innerText.includes('Recording') "
             "&& /\\d+ frames/.test(document.body.innerText)",
-            timeout=15000,
         )
         SHOT.parent.mkdir(parents=True, exist_ok=True)
         page.wait_for_timeout(600)  # the panel's next refresh (size, duration)
         page.screenshot(path=str(SHOT), clip=page.evaluate(_FOLDER_BOX))
 
         stop.click()
-        page.get_by_role("button", name="Record", exact=True).wait_for(timeout=60000)
-        page.wait_for_function(
-            "() => /Saved recordings\\//.test(document.body.innerText)", timeout=60000
-        )
+        page.get_by_role("button", name="Record", exact=True).wait_for()
+        page.wait_for_function("() => /Saved recordings\\//.test(document.body.innerText)")
         rec = console.get("/api/status")["recording"]
         assert not rec["active"] and rec["error"] is None, rec
         files = [Path(f) for f in rec["files"]]

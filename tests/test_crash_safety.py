@@ -49,7 +49,7 @@ from app.server.source_control import Recorder
 from app.sources.frames import Frame, FrameSet
 from app.sources.sim.head import default_rig
 from app.sources.sim.scenarios import CALIBRATION_BOARD
-from tests.browser_support import ROOT, free_port
+from tests.browser_support import ROOT, TEST_BOARD_POSES, free_port, wait_for_cache_warmup
 
 CRASHED = 86  # exit code of a child that "crashed" where the test wanted
 TOKEN = "crash-safety-token-0123456789"
@@ -332,6 +332,7 @@ class Server:
     """One run of ``trifuse serve`` (its output appended to ``log``)."""
 
     def __init__(self, workdir: Path, log: Path) -> None:
+        wait_for_cache_warmup("calibration")
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         start = log.stat().st_size if log.exists() else 0
@@ -349,6 +350,8 @@ class Server:
                     str(workdir),
                     "--scenario",
                     "calibration",
+                    "--board-poses",
+                    str(TEST_BOARD_POSES),
                 ],
                 cwd=ROOT,
                 stdout=out,
@@ -540,6 +543,7 @@ def _render_views(folder: Path) -> None:
 ROUNDS = 6
 
 
+@pytest.mark.slow
 def test_console_killed_during_captures_saves_and_recording(tmp_path) -> None:
     workdir = tmp_path / "work"
     _render_views(workdir / "captures")  # enough views for a quick calibration

@@ -583,12 +583,14 @@ def test_pause_and_resume(tmp_path, rig):
             time.sleep(0.005)
         src.pause()
         assert src.paused
-        time.sleep(0.05)
+        pos = src.position_ns  # fixed once pause() returns
+        deadline = time.monotonic() + 30  # the frame let through before the pause arrives
+        while not (got and got[-1].stamp_ns == pos) and time.monotonic() < deadline:
+            time.sleep(0.005)
         held = len(got)
-        time.sleep(0.4)  # longer than the rest of the recording
+        time.sleep(0.4)  # longer than the rest of the recording: nothing more may come
         assert len(got) == held < len(frames)
-        pos = src.position_ns
-        assert pos == got[-1].stamp_ns
+        assert src.position_ns == pos == got[-1].stamp_ns
         src.resume()
         worker.join(5)
         assert not worker.is_alive()

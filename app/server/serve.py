@@ -47,14 +47,68 @@ class OpenedSource:
     ground_truth_rig: Rig | None = None
 
 
+def simulated_source(scenario: str, board_poses: int = 40, hold_s: float = 3.0):
+    """The simulated head as the console shows it: ``(source, description)``.
+
+    Args:
+        scenario: ``inspection`` (the panning room, live quality) or ``calibration`` (the
+            heated board held at ``board_poses`` poses for ``hold_s`` seconds each, looping;
+            accurate quality).
+    """
+    from app.sources.simulated import SimulatedHeadSource
+
+    if scenario == "calibration":
+        from app.sources.sim.scenarios import CalibrationScenario
+
+        cal = CalibrationScenario(n_poses=board_poses, hold_s=hold_s)
+        src = SimulatedHeadSource(
+            cal, realtime=True, render_hz=1.0 / cal.hold_s, loop_s=cal.loop_s, start_ns=None
+        )
+        return src, (
+            f"the simulated head (calibration: {cal.n_poses} board poses, "
+            f"{cal.hold_s:g} s each, looping)"
+        )
+    if scenario == "inspection":
+        return SimulatedHeadSource(realtime=True, start_ns=None), (
+            "the simulated head (inspection room)"
+        )
+    raise ValueError(f"scenario: expected one of {', '.join(SCENARIOS)}, got {scenario!r}")
+
+
+def warm_simulator_cache(scenarios: dict[str, dict], timeout_s: float = 1800.0) -> None:
+    """Render every pose of each simulated scenario into the disk cache, all scenarios at
+    once (one render thread or process each), and return when all are there.
+
+    ``scenarios`` maps a scenario name to :func:`simulated_source`'s keyword arguments.
+    Consoles started afterwards with the same arguments load every pose from disk instead
+    of rendering beside their work (the test suite does this once per run).
+    """
+    import time
+
+    sources = [simulated_source(name, **kw)[0] for name, kw in scenarios.items()]
+    try:
+        deadline = time.monotonic() + timeout_s
+        for src in sources:
+            while src.rendered_count < src.pose_count and src.render_thread_alive:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"the simulator's poses were not rendered in {timeout_s} s")
+                time.sleep(0.2)
+    finally:
+        for src in sources:
+            src.close()
+
+
 def open_source(
     replay: str | None,
     live: str | None,
     push: bool,
     rig_path: str | None,
     scenario: str = "inspection",
+    board_poses: int = 40,
+    hold_s: float = 3.0,
 ) -> OpenedSource:
-    """The source the console shows, its rig, and a one-line description."""
+    """The source the console shows, its rig, and a one-line description (``board_poses``
+    and ``hold_s``: the simulated calibration scenario's, see :func:`simulated_source`)."""
     rig = load_rig(rig_path) if rig_path else None
     if replay:
         from app.recording import ReplaySource
@@ -77,21 +131,7 @@ def open_source(
 
         rig = rig or default_rig()
         return OpenedSource(PushSource(rig), rig, "frames pushed to /ingest")
-    from app.sources.simulated import SimulatedHeadSource
-
-    if scenario == "calibration":
-        from app.sources.sim.scenarios import CalibrationScenario
-
-        cal = CalibrationScenario()
-        src = SimulatedHeadSource(
-            cal, realtime=True, render_hz=1.0 / cal.hold_s, loop_s=cal.loop_s, start_ns=None
-        )
-        what = f"the simulated head (calibration: {cal.n_poses} board poses, looping)"
-    elif scenario == "inspection":
-        src = SimulatedHeadSource(realtime=True, start_ns=None)
-        what = "the simulated head (inspection room)"
-    else:
-        raise ValueError(f"scenario: expected one of {', '.join(SCENARIOS)}, got {scenario!r}")
+    src, what = simulated_source(scenario, board_poses, hold_s)
     return OpenedSource(src, rig or src.rig, what, ground_truth_rig=src.rig)
 
 
