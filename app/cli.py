@@ -1520,7 +1520,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--pose-hz",
         type=float,
         metavar="HZ",
-        help="sim, live mode: head poses rendered per simulated second (default: 10); time "
+        help="sim, live mode: head poses rendered per simulated second (default: 5); time "
         "stamps stay at the sensors' rates",
     )
     rec.add_argument(

@@ -130,10 +130,11 @@ def start_console(
     args: Sequence[str], port: int | None = None, env: dict[str, str] | None = None
 ) -> tuple[subprocess.Popen, Console]:
     """Start ``trifuse serve ARGS`` on a free loopback port (with its own random token
-    unless ``env`` gives one), once the simulator's cache is warm; returns the process and
-    the console (its URL as printed: ``https`` under TLS) once the port accepts
-    connections."""
-    wait_for_cache_warmup(scenario_of(args))
+    unless ``env`` gives one; the calibration scenario once its poses are rendered);
+    returns the process and the console (its URL as printed: ``https`` under TLS) once the
+    port accepts connections."""
+    if scenario_of(args) == "calibration":  # the inspection room's live mode needs none
+        wait_for_cache_warmup("calibration")
     port = port or free_port()
     proc = subprocess.Popen(
         [

@@ -12,17 +12,14 @@ console shares the CPU with them."""
 from __future__ import annotations
 
 import contextlib
-import io
 import re
 import threading
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
-import viser
 
 from tests.browser_support import console_running, needs_chromium
 
@@ -98,23 +95,11 @@ def wait_until(condition, what: str, timeout_s: float = 120.0) -> None:
 def small_scene():
     """Viser with the console's 3D scene on the synthetic frame set of test_scene3d (a
     ramp of TOF distances 1.5-3.5 m, uniform colour and thermal images)."""
-    from app.server.context import ConsoleContext
     from app.server.scene3d import Scene3D
-    from calib.board import Board
-    from tests.test_scene3d import pipeline_for
+    from tests.test_scene3d import pipeline_for, scene_context
 
-    pipeline = pipeline_for()
-    with contextlib.redirect_stdout(io.StringIO()):
-        server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    ctx = ConsoleContext(
-        server=server,
-        source=None,  # type: ignore[arg-type]
-        description="test",
-        hub=None,  # type: ignore[arg-type]
-        pipeline=pipeline,  # type: ignore[arg-type]
-        board=Board(9, 6, 0.04),
-        board_watch=SimpleNamespace(latest=None),  # type: ignore[arg-type]
-    )
+    ctx = scene_context(pipeline_for())
+    server = ctx.server
     scene = Scene3D(ctx).start()
     try:
         yield scene, f"http://127.0.0.1:{server.get_port()}/"

@@ -109,14 +109,12 @@ def pipeline_for(fusion: StereoFusion | None = None) -> SimpleNamespace:
     )
 
 
-@pytest.fixture
-def scene(fusion_rig) -> Iterator[tuple[Scene3D, SimpleNamespace, dict[str, Rig]]]:
-    fusion, _ = fusion_rig
-    pipeline = pipeline_for(fusion)
-    extra: dict[str, Rig] = {}
+def scene_context(pipeline: SimpleNamespace, **kwargs: object) -> ConsoleContext:
+    """A Viser server on a free loopback port and the console context of ``pipeline``
+    around it (no source, no stream, a 9 x 6 board never seen); ``kwargs`` add to it."""
     with contextlib.redirect_stdout(io.StringIO()):
         server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    ctx = ConsoleContext(
+    return ConsoleContext(
         server=server,
         source=None,  # type: ignore[arg-type]
         description="test",
@@ -124,9 +122,17 @@ def scene(fusion_rig) -> Iterator[tuple[Scene3D, SimpleNamespace, dict[str, Rig]
         pipeline=pipeline,  # type: ignore[arg-type]
         board=Board(9, 6, 0.04),
         board_watch=SimpleNamespace(latest=None),  # type: ignore[arg-type]
-        ground_truth_rig=default_rig(),
-        rig_choices=lambda: dict(extra),
+        **kwargs,  # type: ignore[arg-type]
     )
+
+
+@pytest.fixture
+def scene(fusion_rig) -> Iterator[tuple[Scene3D, SimpleNamespace, dict[str, Rig]]]:
+    fusion, _ = fusion_rig
+    pipeline = pipeline_for(fusion)
+    extra: dict[str, Rig] = {}
+    ctx = scene_context(pipeline, ground_truth_rig=default_rig(), rig_choices=lambda: dict(extra))
+    server = ctx.server
     s = Scene3D(ctx)
     try:
         yield s, pipeline, extra
