@@ -447,7 +447,8 @@ def _serve_auth(args: argparse.Namespace) -> AuthConfig:
         token = None
     else:
         try:
-            token = check_token(given) if given is not None else new_token()
+            network = not is_loopback(args.host)
+            token = check_token(given, network) if given is not None else new_token()
         except ValueError as e:
             where = "--token" if args.token is not None else TOKEN_ENV
             raise UsageError(f"{PROG} serve: {where}: {e}") from None

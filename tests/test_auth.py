@@ -26,7 +26,7 @@ from app.bench import stop_process
 from app.calib_session import CalibrationSession
 from app.cli import main
 from app.server.app import create_app
-from app.server.auth import AuthConfig, check_token, is_loopback
+from app.server.auth import AuthConfig, SignInThrottle, check_token, is_loopback
 from app.server.pipeline import FusionPipeline
 from app.server.session_api import make_session_router
 from app.server.stream import FrameHub
@@ -86,7 +86,8 @@ def test_every_route_and_websocket_needs_the_token(client) -> None:
         assert r.status_code == 401, (method, path, r.status_code)
         assert "authentication required" in r.json()["detail"]
         r = client.request(method, path, headers={"Authorization": "token wrong-token-0123456"})
-        assert r.status_code == 401, (method, path)
+        # refused; after a few wrong tokens the address must wait (429) before it may try
+        assert r.status_code in (401, 429), (method, path)
     for path in WEBSOCKETS:
         with pytest.raises(WebSocketDisconnect) as refused:
             with client.websocket_connect(path):
@@ -197,7 +198,73 @@ def test_token_rules() -> None:
         with pytest.raises(ValueError, match="token"):
             check_token(bad)
     assert is_loopback("127.0.0.1") and is_loopback("[::1]") and is_loopback("localhost")
+    assert is_loopback("127.1.2.3") and is_loopback("LOCALHOST") and is_loopback("::1")
     assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.2")
+    # DNS names anyone can point at 127.0.0.1 (or elsewhere): not loopback
+    for name in ("127.evil.com", "127.0.0.1.nip.io", "localhost.evil.com", "127.0.0.1.", ""):
+        assert not is_loopback(name), name
+    # on the network a token must carry 128 bits: 22 characters of a random URL-safe token
+    with pytest.raises(ValueError, match="at least 22 characters for a console on the network"):
+        check_token("x" * 21, network=True)
+    assert check_token("x" * 22, network=True) == "x" * 22
+
+
+@pytest.mark.parametrize("host", ["127.evil.com", "127.0.0.1.nip.io", "localhost.evil.com"])
+def test_without_a_token_rebinding_names_are_refused(tmp_path, host) -> None:
+    with TestClient(console_app(tmp_path, token=None), base_url="http://127.0.0.1:8000") as c:
+        r = c.get("/api/status", headers={"Host": f"{host}:8000"})
+        assert r.status_code == 403 and "not loopback" in r.json()["detail"]
+        for path in ("/stream", "/console"):
+            with pytest.raises(WebSocketDisconnect) as refused:
+                with c.websocket_connect(path, headers={"Host": f"{host}:8000"}):
+                    pass
+            assert refused.value.code == 1008
+        assert c.get("/api/status", headers={"Host": "127.0.0.1:8000"}).status_code == 200
+
+
+@pytest.mark.parametrize("path", ["/%2F%2Fevil.com", "//evil.com", "/%5Cevil.com", "/%09/evil.com"])
+def test_token_redirects_stay_on_the_console(client, path) -> None:
+    r = client.get(f"{path}?token={TOKEN}", headers={"Sec-Fetch-Mode": "navigate"})
+    assert r.status_code == 303
+    assert r.headers["location"] == "/"
+
+
+def test_wrong_tokens_slow_the_client_down(client) -> None:
+    assert client.get(f"/api/status?token={TOKEN}").status_code == 200
+    signed_in = dict(client.cookies)
+    client.cookies.clear()
+    wrong = {"Authorization": "token wrong-token-0123456"}
+    for _ in range(5):  # FAILURES_BEFORE_THROTTLE: the fifth starts a 1 s wait
+        assert client.get("/api/status", headers=wrong).status_code == 401
+    assert client.get("/api/status", headers=wrong).status_code == 429
+    r = client.get("/api/status", headers=AUTH)  # even the right token waits its turn
+    assert r.status_code == 429 and int(r.headers["retry-after"]) >= 1
+    assert "too many wrong tokens" in r.json()["detail"]
+    r = client.post("/login", data={"token": TOKEN, "next": "/"})
+    assert r.status_code == 429 and "Too many wrong tokens" in r.text
+    # a session cookie is not a token attempt: a signed-in browser is not held up
+    client.cookies.update(signed_in)
+    assert client.get("/api/status").status_code == 200
+
+
+def test_sign_in_throttle_backs_off_and_forgets_on_success() -> None:
+    now = [0.0]
+    t = SignInThrottle(clock=lambda: now[0])
+    for _ in range(4):
+        t.failed("a")
+    assert t.wait_s("a") == 0.0  # four failures: no wait yet
+    t.failed("a")
+    assert t.wait_s("a") == 1.0 and t.wait_s("b") == 0.0  # per address
+    t.failed("a")
+    assert t.wait_s("a") == 2.0
+    for _ in range(20):
+        t.failed("a")
+    assert t.wait_s("a") == 60.0  # MAX_BACKOFF_S
+    now[0] += 60.0
+    assert t.wait_s("a") == 0.0
+    t.succeeded("a")
+    t.failed("a")
+    assert t.wait_s("a") == 0.0  # forgotten: counting starts again
 
 
 # -- trifuse serve ------------------------------------------------------------------------
@@ -209,6 +276,7 @@ def test_token_rules() -> None:
         (["--host", "0.0.0.0", "--no-token"], "refusing to serve without a token"),
         (["--host", "192.168.7.7", "--no-token"], "non-loopback"),
         (["--token", "short"], "at least 16 characters"),
+        (["--host", "0.0.0.0", "--token", "x" * 16], "at least 22 characters"),
         (["--token", TOKEN, "--no-token"], "exclude each other"),
         (["--certfile", "cert.pem"], "go together"),
         (["--certfile", "missing.pem", "--keyfile", "missing.pem"], "cannot use"),

@@ -15,15 +15,22 @@ one given with ``--allow-origin``; otherwise 403, even with a valid cookie (cros
 WebSocket hijacking, CSRF). Without a token (``--no-token``, loopback only) the ``Host``
 header must name a loopback address too (DNS rebinding).
 
-Tokens and cookies are compared in constant time (:func:`hmac.compare_digest`).
+Tokens and cookies are compared in constant time (:func:`hmac.compare_digest`). A client
+(by address) that presents wrong tokens is slowed down: after
+:data:`FAILURES_BEFORE_THROTTLE` failures every further attempt within the back-off (doubling
+from 1 s up to :data:`MAX_BACKOFF_S`) is answered 429 without looking at the token.
+Every redirect target passes the same local-path check (never another site).
 """
 
 from __future__ import annotations
 
 import hmac
 import html
+import ipaddress
 import json
 import secrets
+import threading
+import time
 from collections.abc import Awaitable, Callable, Iterable, MutableMapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -41,7 +48,12 @@ ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 TOKEN_ENV = "TRIFUSE_TOKEN"
 """Environment variable holding the token (safer than ``--token``: not shown by ``ps``)."""
 MIN_TOKEN_CHARS = 16
-LOOPBACK_HOSTS = frozenset({"127.0.0.1", "localhost", "::1"})
+"""Shortest token accepted on a loopback address."""
+MIN_NETWORK_TOKEN_CHARS = 22
+"""Shortest token accepted when the console serves the network: 22 characters of a random
+URL-safe token carry 132 bits (at least 128)."""
+FAILURES_BEFORE_THROTTLE = 5
+MAX_BACKOFF_S = 60.0
 LOGIN_PATH = "/login"
 MAX_LOGIN_BODY = 4096
 SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
@@ -59,16 +71,27 @@ def new_token() -> str:
 
 
 def is_loopback(host: str) -> bool:
-    """Whether ``host`` (an address or name, IPv6 with or without brackets) is loopback."""
+    """Whether ``host`` is a loopback address (``127.0.0.0/8``, ``::1``; IPv6 with or
+    without brackets) or exactly the name ``localhost``. Other names are not, whatever
+    they start with (``127.evil.com`` and ``127.0.0.1.nip.io`` are DNS names that anyone
+    can point anywhere: DNS rebinding)."""
     host = host.strip().lower().removeprefix("[").removesuffix("]")
-    return host in LOOPBACK_HOSTS or host.startswith("127.")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
-def check_token(token: str) -> str:
-    """``token`` if it is usable, else ValueError saying why."""
-    if len(token) < MIN_TOKEN_CHARS:
+def check_token(token: str, network: bool = False) -> str:
+    """``token`` if it is usable, else ValueError saying why. ``network``: the console
+    serves more than loopback, and the token must carry at least 128 bits."""
+    least = MIN_NETWORK_TOKEN_CHARS if network else MIN_TOKEN_CHARS
+    if len(token) < least:
+        where = " for a console on the network" if network else ""
         raise ValueError(
-            f"the token must have at least {MIN_TOKEN_CHARS} characters (got {len(token)}); "
+            f"the token must have at least {least} characters{where} (got {len(token)}); "
             "leave it out and a random one is generated"
         )
     if not token.isascii() or not token.isprintable() or any(c in token for c in " ;,\"'"):
@@ -151,10 +174,52 @@ autofocus></label>
 
 
 def _safe_next(path: str) -> str:
-    """A local path to go to after signing in (never another site)."""
-    if not path.startswith("/") or path.startswith("//") or "\\" in path:
+    """A local path to go to after signing in or dropping the token (never another site:
+    ``//host``, ``/\\host`` and control characters, which browsers strip, fall back to
+    ``/``)."""
+    if (
+        not path.startswith("/")
+        or path.startswith("//")
+        or "\\" in path
+        or any(ord(c) < 32 or ord(c) == 127 for c in path)
+    ):
         return "/"
     return path
+
+
+class SignInThrottle:
+    """Failed token attempts per client address, and how long each must wait.
+
+    After :data:`FAILURES_BEFORE_THROTTLE` failures a client waits 1 s, then 2, 4, ... up to
+    :data:`MAX_BACKOFF_S` after each further failure; a success forgets it. Thread-safe;
+    at most ``max_clients`` addresses are remembered (the oldest go first).
+    """
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic, max_clients: int = 4096):
+        self._clock = clock
+        self._max = max_clients
+        self._lock = threading.Lock()
+        self._failures: dict[str, tuple[int, float]] = {}  # client -> (count, blocked until)
+
+    def wait_s(self, client: str) -> float:
+        """Seconds ``client`` must still wait before its next attempt is looked at."""
+        with self._lock:
+            _n, until = self._failures.get(client, (0, 0.0))
+        return max(0.0, until - self._clock())
+
+    def failed(self, client: str) -> None:
+        with self._lock:
+            n, _ = self._failures.pop(client, (0, 0.0))
+            n += 1
+            extra = n - FAILURES_BEFORE_THROTTLE
+            wait = 0.0 if extra < 0 else min(MAX_BACKOFF_S, 2.0**extra)
+            self._failures[client] = (n, self._clock() + wait)
+            while len(self._failures) > self._max:
+                del self._failures[next(iter(self._failures))]
+
+    def succeeded(self, client: str) -> None:
+        with self._lock:
+            self._failures.pop(client, None)
 
 
 class AuthMiddleware:
@@ -164,6 +229,7 @@ class AuthMiddleware:
     def __init__(self, app: ASGIApp, config: AuthConfig) -> None:
         self.app = app
         self.config = config
+        self.throttle = SignInThrottle()
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         kind = scope["type"]
@@ -183,19 +249,40 @@ class AuthMiddleware:
         if cfg.token is None or cfg.cookie_ok(conn.cookies.get(cfg.cookie_name)):
             await self.app(scope, receive, _with_headers(send))
             return
+        client = conn.client.host if conn.client else ""
+        presented = _authorization_token(headers) or conn.query_params.get("token")
+        if presented and (wait := self.throttle.wait_s(client)) > 0:
+            await self._too_many(conn, send, wait)
+            return
         if cfg.token_ok(_authorization_token(headers)):
+            self.throttle.succeeded(client)
             await self.app(scope, receive, _with_headers(send))
             return
         if cfg.token_ok(conn.query_params.get("token")):
+            self.throttle.succeeded(client)
             if kind == "http" and scope["method"] == "GET" and _navigation(headers):
                 # a browser opened the token URL: cookie, then the same page without it
                 rest = urlencode([kv for kv in conn.query_params.multi_items() if kv[0] != "token"])
-                await _redirect(send, scope["path"] + (f"?{rest}" if rest else ""), cfg)
+                target = _safe_next(scope["path"])
+                await _redirect(send, target + (f"?{rest}" if rest else ""), cfg)
                 return
             await self.app(scope, receive, _with_headers(send, cfg.set_cookie()))
             return
+        if presented:
+            self.throttle.failed(client)
         what = "a token or a session cookie" if kind == "http" else "a session"
         await self._deny(conn, send, 401, f"authentication required: {what}")
+
+    async def _too_many(self, conn: HTTPConnection, send: Send, wait_s: float) -> None:
+        """429 (a WebSocket: closed before accepting) while a client's back-off lasts."""
+        if conn.scope["type"] == "websocket":
+            await send({"type": "websocket.close", "code": 1008, "reason": "too many attempts"})
+            return
+        retry = str(max(1, round(wait_s))).encode()
+        body = json.dumps(
+            {"detail": f"too many wrong tokens from this address; try again in {retry.decode()} s"}
+        ).encode()
+        await _respond(send, 429, body, b"application/json", [(b"retry-after", retry)])
 
     def _origin_refusal(self, scope: Scope, headers: Headers) -> str | None:
         """Why the request is refused for where it comes from, or None."""
@@ -254,9 +341,17 @@ class AuthMiddleware:
                 break
         form = dict(parse_qsl(body.decode("utf-8", "replace"), keep_blank_values=True))
         next_path = _safe_next(form.get("next", "/"))
+        client = scope["client"][0] if scope.get("client") else ""
+        if (wait := self.throttle.wait_s(client)) > 0:
+            page = _login_page(f"Too many wrong tokens: wait {max(1, round(wait))} s.", next_path)
+            extra = [(b"retry-after", str(max(1, round(wait))).encode())]
+            await _respond(send, 429, page, b"text/html; charset=utf-8", extra)
+            return
         if self.config.token_ok(form.get("token")):
+            self.throttle.succeeded(client)
             await _redirect(send, next_path, self.config)
             return
+        self.throttle.failed(client)
         page = _login_page("Wrong token.", next_path)
         await _respond(send, 401, page, b"text/html; charset=utf-8")
 
