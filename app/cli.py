@@ -486,7 +486,8 @@ def _serve_tls(args: argparse.Namespace) -> TLSFiles | None:
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
-    from app.server.serve import open_source, serve
+    from app.server.serve import bind_public_socket, open_source, serve
+    from app.workdir_lock import WorkdirInUse, lock_workdir
 
     auth = _serve_auth(args)
     tls = _serve_tls(args)
@@ -498,10 +499,29 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     if args.scenario != "calibration" and (args.board_poses, args.hold) != (40, 3.0):
         raise UsageError(f"{PROG} serve: --board-poses and --hold are for --scenario calibration")
     board = _load_board_arg(args.board)
-    opened = open_source(
-        args.replay, args.live, args.push, args.rig, args.scenario, args.board_poses, args.hold
-    )
-    serve(opened, board, Path(args.workdir), auth, args.host, tls)
+    try:  # the port and the work directory first: refusals come before anything starts
+        sock = bind_public_socket(args.host, args.port)
+    except OSError as e:
+        raise UsageError(f"{PROG} serve: {e}") from None
+    try:
+        workdir = Path(args.workdir)
+        try:
+            lock = lock_workdir(workdir)
+        except WorkdirInUse as e:
+            raise UsageError(f"{PROG} serve: --workdir {e}") from None
+        with lock:
+            opened = open_source(
+                args.replay,
+                args.live,
+                args.push,
+                args.rig,
+                args.scenario,
+                args.board_poses,
+                args.hold,
+            )
+            serve(opened, board, workdir, auth, args.host, tls, sock)
+    finally:
+        sock.close()
     return EXIT_OK
 
 

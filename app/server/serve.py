@@ -4,8 +4,10 @@ public port (127.0.0.1 by default)."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import signal
+import socket
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -135,6 +137,36 @@ def open_source(
     return OpenedSource(src, rig or src.rig, what, ground_truth_rig=src.rig)
 
 
+def bind_public_socket(host: str, port: int) -> socket.socket:
+    """The console's listening socket, bound before anything else starts (a port in use is
+    then one line at once, not a traceback after the simulator has started).
+
+    Raises:
+        OSError: the address is in use, not local, or the port is not allowed; the message
+            says which.
+    """
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(
+            host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+        )[0]
+    except socket.gaierror as e:
+        raise OSError(f"--host {host}: not an address of this machine ({e.strerror})") from None
+    sock = socket.socket(family, kind, proto)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+        sock.listen(2048)
+    except OSError as e:
+        sock.close()
+        if e.errno == errno.EADDRINUSE:
+            raise OSError(
+                f"port {port} on {host} is in use (another console?); choose another --port"
+            ) from None
+        raise OSError(f"cannot listen on {host}:{port}: {e.strerror}") from None
+    sock.set_inheritable(False)
+    return sock
+
+
 def _exit_on_sigterm(signum: int, _frame: object) -> None:
     raise SystemExit(128 + signum)
 
@@ -164,9 +196,11 @@ def serve(
     auth: AuthConfig,
     host: str = "127.0.0.1",
     tls: TLSFiles | None = None,
+    sock: socket.socket | None = None,
 ) -> None:
     """Run the console until interrupted; the calibration session lives in ``workdir``.
-    ``auth`` (auth.py) guards every route and WebSocket; its port is the one served."""
+    ``auth`` (auth.py) guards every route and WebSocket; its port is the one served, on
+    ``sock`` (:func:`bind_public_socket`) if given."""
     port = auth.port
     source, rig = opened.source, opened.rig
     try:  # first: a work directory of another board or rig is refused before anything runs
@@ -242,7 +276,7 @@ def serve(
         # process before the clean-up below (a recording would be left unfinished)
         signal.signal(signal.SIGTERM, _exit_on_sigterm)
     try:
-        uvicorn.Server(config).run()
+        uvicorn.Server(config).run(sockets=[sock] if sock is not None else None)
     finally:
         for part in reversed(parts):
             part.stop()
