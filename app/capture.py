@@ -736,6 +736,23 @@ class Capture:
         """Views that hold an image of ``sensor``."""
         return [v for v in self.views if sensor in v.files]
 
+    def check_sizes(self, rig: Rig) -> None:
+        """CaptureError at the first image whose size (read from its header, no pixel
+        decoded) is not what ``rig`` says of its sensor: a rig of another head is refused
+        before anything is allocated for it."""
+        for view in self.views:
+            for sensor, files in view.files.items():
+                if sensor not in rig:
+                    continue
+                want = rig[sensor].image_size
+                for info in (files.image, files.distance):
+                    if info is not None and (info.width, info.height) != want:
+                        raise CaptureError(
+                            f"{info.path}: the rig says sensor {sensor!r} takes "
+                            f"{want[0]}x{want[1]} images (width x height), this one is "
+                            f"{info.width}x{info.height}: a rig of another head?"
+                        )
+
     def summary(self) -> str:
         """A few lines for people: views, sensors and how many views each one is in."""
         lines = [

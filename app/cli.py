@@ -1040,6 +1040,12 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
         _out(f"  skipped {n} frame sets: {reason}")
     if result.damage is not None:
         _err(f"{PROG}: warning: {result.damage}; the frames before it were fused")
+    if result.frames == 0:
+        skipped = "; ".join(f"{n} frame sets: {r}" for r, n in result.skipped.items())
+        raise ValueError(
+            f"{args.recording}: no frame set could be fused"
+            + (f" ({skipped})" if skipped else " (the recording holds no complete frame set)")
+        )
     return EXIT_OK
 
 

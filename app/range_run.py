@@ -97,6 +97,7 @@ def calibrate_range(
     if tof not in capture.sensors:
         raise ValueError(f"{capture.path}: no images of the TOF camera {tof!r}")
     sensors = [s for s in capture.sensors if s in rig]
+    capture.check_sizes(rig)
     if detections is None:
         detections = detect_capture(
             capture,

@@ -31,6 +31,8 @@ MODALITIES: tuple[str, ...] = get_args(Modality)
 RIG_FORMAT = "trifuse-rig/1"
 
 _TOP_KEYS = {"format", "reference", "eyes", "sensors"}
+MAX_IMAGE_PIXELS = 50_000_000
+"""Largest sensor image a rig may describe (width x height): 50 megapixels."""
 _SENSOR_REQUIRED = ("modality", "image_size", "intrinsics", "distortion", "T_rig_sensor")
 _SENSOR_OPTIONAL = ("uncertainty", "range_correction", "radiometry")
 _INTRINSIC_KEYS = ("fx", "fy", "cx", "cy")
@@ -212,6 +214,14 @@ def sensor_from_dict(name: str, data: Any) -> Sensor:
         raise RigError(
             f"{_where(name, 'image_size')}: expected [width, height] as two positive "
             f"integers, got {size!r}"
+        )
+    if size[0] * size[1] > MAX_IMAGE_PIXELS:
+        shown = f"{size[0]}x{size[1]}"
+        shown = shown if len(shown) <= 24 else shown[:21] + "..."
+        raise RigError(
+            f"{_where(name, 'image_size')}: {shown} is {size[0] * size[1] // 1_000_000} "
+            f"megapixels; expected at most {MAX_IMAGE_PIXELS // 1_000_000} (every per-frame "
+            "buffer of the fusion and the simulator is that large)"
         )
 
     intr = _mapping(d["intrinsics"], _where(name, "intrinsics"))

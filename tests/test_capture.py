@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
@@ -156,6 +157,22 @@ def test_written_files_follow_the_umask(capture: tuple[Path, Rig, FrameSet]) -> 
         assert p.stat().st_mode & 0o777 == 0o666 & ~mask
     assert (path / "0001").stat().st_mode & 0o777 == 0o777 & ~mask
     assert not [p for p in path.rglob(".*")]  # no staging or temporary files left
+
+
+def test_a_rig_of_another_head_is_refused_by_the_image_headers(
+    capture: tuple[Path, Rig, FrameSet],
+) -> None:
+    path, rig, _ = capture
+    loaded = load_capture(path)
+    loaded.check_sizes(rig)  # the capture's own rig fits
+    s = rig["thermal_left"]
+    other = Rig(
+        {**rig.sensors, "thermal_left": dataclasses.replace(s, image_size=(640, 512))}, "tof"
+    )
+    with pytest.raises(
+        CaptureError, match=r"thermal_left.png: the rig says sensor 'thermal_left' takes 640x512"
+    ):
+        loaded.check_sizes(other)
 
 
 def test_views_sorted_any_subset_and_non_views_ignored(tmp_path: Path) -> None:

@@ -769,6 +769,17 @@ def test_fuse_a_damaged_recording_says_so(recorded, tmp_path, capsys):
     assert 0 < len(list((tmp_path / "f").glob("*.jpg"))) < 4
 
 
+def test_fuse_with_nothing_to_fuse_is_an_error(tmp_path, capsys):
+    rig = small_rig()
+    rng = np.random.default_rng(3)
+    frames = [synth_frame(rig, "tof", k * 66_666_667, rng) for k in range(5)]  # no colour
+    path = write_recording(tmp_path / "tof-only.mcap", rig, frames)
+    assert main(["fuse", str(path), "--out", str(tmp_path / "f")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("trifuse: error: ") and "no frame set could be fused" in err
+    assert list((tmp_path / "f").glob("*.jpg")) == []
+
+
 def test_recording_benchmark_is_registered():
     from app.bench import REGISTRY
 

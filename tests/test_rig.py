@@ -191,6 +191,11 @@ MALFORMED = [
         F.format("tof", "image_size") + "expected",
     ),
     case(
+        "image_size-huge",  # allocating for it would take gigabytes before any check
+        _set("sensors", "ccd_left", "image_size", value=[20000, 20000]),
+        F.format("ccd_left", "image_size") + "20000x20000 is 400 megapixels; expected at most 50",
+    ),
+    case(
         "image_size-float",
         _set("sensors", "tof", "image_size", value=[176.0, 144]),
         F.format("tof", "image_size") + "expected",
