@@ -41,14 +41,28 @@ RADIOMETRY_KEYS: tuple[str, ...] = (
     "balance_offset_k",
     "manual_offset_k",
 )
-_POSITIVE = ("gain", "balance_gain")
+MAX_TRIM_K = 50.0
+"""Largest balance or manual offset, kelvin: two imagers of one model disagree by about
+1.5 K, a trim of more than 50 K is a typing error."""
+MAX_OFFSET_K = 10_000.0
+"""Largest radiometric calibration offset, kelvin (raw counts to kelvin)."""
+GAIN_RANGE = (1e-6, 1e3)
+"""Gains (kelvin per raw unit; the balance's, unitless) outside it are not physical."""
+_LIMITS = {
+    "gain": GAIN_RANGE,
+    "balance_gain": GAIN_RANGE,
+    "offset_k": (-MAX_OFFSET_K, MAX_OFFSET_K),
+    "balance_offset_k": (-MAX_TRIM_K, MAX_TRIM_K),
+    "manual_offset_k": (-MAX_TRIM_K, MAX_TRIM_K),
+}
 
 
 def _check_field(name: str, value: Any, where: str) -> float:
-    """``value`` as a float, or ValueError naming ``where.name``."""
+    """``value`` as a float within its physical limits, or ValueError naming ``where.name``."""
     v = check_finite(value, f"{where}.{name}")
-    if name in _POSITIVE and v <= 0.0:
-        raise ValueError(f"{where}.{name}: expected a number > 0, got {value!r}")
+    low, high = _LIMITS[name]
+    if not low <= v <= high:
+        raise ValueError(f"{where}.{name}: expected a number in [{low:g}, {high:g}], got {v:g}")
     return v
 
 
@@ -57,11 +71,12 @@ class Radiometry:
     """Raw value -> kelvin for one thermal imager (see the module docstring).
 
     Attributes:
-        gain: radiometric calibration, kelvin per raw unit (> 0).
-        offset_k: radiometric calibration, kelvin.
-        balance_gain: the automatic balance between the two imagers (> 0, unitless).
-        balance_offset_k: the automatic balance, kelvin.
-        manual_offset_k: the operator's trim, kelvin.
+        gain: radiometric calibration, kelvin per raw unit (in ``GAIN_RANGE``).
+        offset_k: radiometric calibration, kelvin (at most ``MAX_OFFSET_K``).
+        balance_gain: the automatic balance between the two imagers (in ``GAIN_RANGE``,
+            unitless).
+        balance_offset_k: the automatic balance, kelvin (at most ``MAX_TRIM_K``).
+        manual_offset_k: the operator's trim, kelvin (at most ``MAX_TRIM_K``).
 
     Every field is a finite plain float (checked on construction; ValueError otherwise),
     so instances are hashable and compare by value.
@@ -143,7 +158,7 @@ class Radiometry:
         return replace(self, balance_gain=gain, balance_offset_k=offset_k)
 
     def with_manual(self, offset_k: float) -> Radiometry:
-        """A copy with the operator's trim replaced."""
+        """A copy with the operator's trim replaced (ValueError beyond ``MAX_TRIM_K``)."""
         return replace(self, manual_offset_k=offset_k)
 
     # -- the rig file's block -------------------------------------------------------------

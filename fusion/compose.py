@@ -121,6 +121,35 @@ def _real(value: object, name: str) -> float:
     return v
 
 
+KELVIN_RANGE = (0.0, 10_000.0)
+"""Temperatures a setting may name, kelvin (absolute zero to far beyond any LWIR imager)."""
+MIN_SPAN_K = 0.01
+"""Narrowest colour span, kelvin (an eighth of the imagers' NETD)."""
+MIN_SMOOTHING_S = 0.01
+"""Shortest span smoothing time constant besides 0 (none), seconds."""
+
+
+def _in_kelvin_range(interval: tuple[float, float], name: str) -> tuple[float, float]:
+    low, high = KELVIN_RANGE
+    if not (low <= interval[0] and interval[1] <= high):
+        raise ValueError(
+            f"{name}: expected temperatures in [{low:g}, {high:g}] K, "
+            f"got ({interval[0]:g}, {interval[1]:g})"
+        )
+    return interval
+
+
+def _temperature_span(value: object, name: str) -> tuple[float, float]:
+    """A colour span: ``check_span``, within ``KELVIN_RANGE``, at least ``MIN_SPAN_K`` wide."""
+    span = _in_kelvin_range(check_span(value, name), name)
+    if span[1] - span[0] < MIN_SPAN_K - 1e-9:  # the limit itself, written in decimal, passes
+        raise ValueError(
+            f"{name}: expected a span at least {MIN_SPAN_K:g} K wide, "
+            f"got ({span[0]:g}, {span[1]:g})"
+        )
+    return span
+
+
 def _interval(value: object, name: str) -> tuple[float, float]:
     """(low, high) with low <= high; a single number T is (T, T)."""
     if isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool):
@@ -216,7 +245,7 @@ class DisplaySettings:
             raise ValueError(f"opacity: expected a number in [0, 1], got {opacity}")
         put("opacity", opacity)
         if self.span_k is not None:
-            put("span_k", check_span(self.span_k, "span_k"))
+            put("span_k", _temperature_span(self.span_k, "span_k"))
         low_pct = _real(self.auto_low_pct, "auto_low_pct")
         high_pct = _real(self.auto_high_pct, "auto_high_pct")
         if not 0.0 <= low_pct < high_pct <= 100.0:
@@ -226,13 +255,16 @@ class DisplaySettings:
             )
         put("auto_low_pct", low_pct)
         put("auto_high_pct", high_pct)
-        put("threshold_k", _interval(self.threshold_k, "threshold_k"))
+        put(
+            "threshold_k",
+            _in_kelvin_range(_interval(self.threshold_k, "threshold_k"), "threshold_k"),
+        )
         if self.threshold_direction not in DIRECTIONS:
             raise ValueError(
                 f"threshold_direction: expected one of {', '.join(DIRECTIONS)}, "
                 f"got {self.threshold_direction!r}"
             )
-        put("isotherm_k", _interval(self.isotherm_k, "isotherm_k"))
+        put("isotherm_k", _in_kelvin_range(_interval(self.isotherm_k, "isotherm_k"), "isotherm_k"))
         if self.isotherm_color is not None:
             put("isotherm_color", _check_rgb(self.isotherm_color, "isotherm_color"))
         if self.isotherm_background not in BACKGROUNDS:
@@ -252,8 +284,11 @@ class DisplaySettings:
             raise ValueError(f"mark_fallback: expected True or False, got {self.mark_fallback!r}")
         put("mark_fallback", bool(self.mark_fallback))
         smoothing = _real(self.span_smoothing_s, "span_smoothing_s")
-        if not 0.0 <= smoothing <= 60.0:
-            raise ValueError(f"span_smoothing_s: expected seconds in [0, 60], got {smoothing}")
+        if not (smoothing == 0.0 or MIN_SMOOTHING_S <= smoothing <= 60.0):
+            raise ValueError(
+                f"span_smoothing_s: expected 0 (none) or seconds in [{MIN_SMOOTHING_S:g}, 60], "
+                f"got {smoothing:g}"
+            )
         put("span_smoothing_s", smoothing)
 
 

@@ -74,3 +74,27 @@ def test_non_finite_numbers_get_422_not_500(client_and_pipeline) -> None:
         headers={"content-type": "application/json"},
     )
     assert r.status_code == 422 and "span_k" in r.text and pipeline.settings.span_k is None
+
+
+@pytest.mark.parametrize(
+    ("body", "field"),
+    [
+        ({"offset_k": {"thermal_left": 1e308}}, "offset_k"),  # overflowed a float32 cast
+        ({"offset_k": {"thermal_left": -51.0}}, "offset_k"),  # a trim, not a calibration
+        ({"span_k": [0.0, 1e-300]}, "span_k"),  # narrower than 0.01 K
+        ({"span_k": [-5.0, 300.0]}, "span_k"),  # below absolute zero
+        ({"span_k": [290.0, 2e4]}, "span_k"),
+        ({"span_smoothing_s": 1e-320}, "span_smoothing_s"),  # 0 (none) or >= 0.01 s
+        ({"span_k": [290.0, 320.0], "offset_k": {"thermal_right": 1e9}}, "offset_k"),
+    ],
+)
+def test_absurd_thermal_settings_are_refused_and_change_nothing(
+    client_and_pipeline, body, field
+) -> None:
+    client, pipeline = client_and_pipeline
+    before = (pipeline.settings, dict(pipeline.radiometry))
+    r = client.put("/api/thermal", json=body)
+    assert r.status_code == 422 and field in r.text, r.text
+    assert (pipeline.settings, dict(pipeline.radiometry)) == before
+    ok = client.put("/api/thermal", json={"span_k": [290.0, 290.01], "span_smoothing_s": 0.01})
+    assert ok.status_code == 200  # the limits themselves are allowed

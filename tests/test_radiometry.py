@@ -128,9 +128,14 @@ def test_copies() -> None:
         ({"balance_offset_k": None}, "radiometry.balance_offset_k: expected a number, got None"),
         ({"offset_k": math.nan}, "radiometry.offset_k: expected a finite number, got nan"),
         ({"manual_offset_k": math.inf}, "expected a finite number, got inf"),
-        ({"gain": 0.0}, "radiometry.gain: expected a number > 0, got 0.0"),
-        ({"gain": -1}, "radiometry.gain: expected a number > 0, got -1"),
-        ({"balance_gain": 0}, "radiometry.balance_gain: expected a number > 0, got 0"),
+        ({"gain": 0.0}, "radiometry.gain: expected a number in [1e-06, 1000], got 0"),
+        ({"gain": -1}, "radiometry.gain: expected a number in [1e-06, 1000], got -1"),
+        ({"balance_gain": 0}, "radiometry.balance_gain: expected a number in [1e-06, 1000]"),
+        # physical bounds: a 1e308 K offset overflowed a float32 cast in the fusion
+        ({"manual_offset_k": 1e308}, "manual_offset_k: expected a number in [-50, 50], got 1e+308"),
+        ({"balance_offset_k": -51}, "balance_offset_k: expected a number in [-50, 50]"),
+        ({"offset_k": 2e4}, "radiometry.offset_k: expected a number in [-10000, 10000]"),
+        ({"gain": 1e5}, "radiometry.gain: expected a number in [1e-06, 1000]"),
     ],
 )
 def test_from_dict_names_the_bad_field(data: object, message: str) -> None:
@@ -145,12 +150,12 @@ def test_from_dict_prefixes_the_location() -> None:
 
 
 def test_constructor_validates_too() -> None:
-    with pytest.raises(ValueError, match=r"Radiometry\.balance_gain: expected a number > 0"):
+    with pytest.raises(ValueError, match=r"Radiometry\.balance_gain: expected a number in"):
         Radiometry(balance_gain=0.0)
     with pytest.raises(ValueError, match=r"Radiometry\.offset_k: expected a finite number"):
         Radiometry(offset_k=math.nan)
     # Copies are checked as well.
-    with pytest.raises(ValueError, match=r"Radiometry\.balance_gain: expected a number > 0"):
+    with pytest.raises(ValueError, match=r"Radiometry\.balance_gain: expected a number in"):
         FULL.with_balance(-1.0, 0.0)
     with pytest.raises(ValueError, match=r"Radiometry\.manual_offset_k: expected a finite"):
         FULL.with_manual(math.inf)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, ConfigDict, Field
@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from app.server.limits import require_json
 from app.server.pipeline import FusionPipeline
 from app.server.thermal_balance import ThermalBalancer
+from calib.radiometry import MAX_TRIM_K
 from calib.rig import rig_to_dict
 from fusion.balance import BalanceEstimate
 
@@ -80,7 +81,9 @@ class ThermalSettings(BaseModel):
 
     span_k: tuple[float, float] | None = None
     span_smoothing_s: float | None = Field(default=None, ge=0.0, le=60.0)
-    offset_k: dict[str, float] = Field(default_factory=dict)
+    offset_k: dict[str, Annotated[float, Field(ge=-MAX_TRIM_K, le=MAX_TRIM_K)]] = Field(
+        default_factory=dict
+    )
     auto_balance: bool | None = None
     balance_reference: str | None = None
 
