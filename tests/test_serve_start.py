@@ -1,16 +1,23 @@
 """``trifuse serve`` refuses at once, in one line, what it cannot do: a port in use, a
-work directory another console holds (app/workdir_lock.py, serve.bind_public_socket)."""
+work directory another console holds (app/workdir_lock.py, serve.bind_public_socket); and
+no socket it listens on lets anyone in without the console's credentials."""
 
 from __future__ import annotations
 
+import os
 import socket
+import urllib.error
+import urllib.request
+from pathlib import Path
 
 import pytest
 
+from app.bench import stop_process
 from app.cli import main
 from app.server.serve import bind_public_socket
 from app.workdir_lock import WorkdirInUse, lock_workdir
-from tests.browser_support import console_running, free_port
+from tests.browser_support import console_running, free_port, start_console
+from tests.test_viser_bridge import direct_websocket
 
 
 def test_a_port_in_use_is_one_line(tmp_path) -> None:
@@ -52,3 +59,47 @@ def test_a_second_console_is_refused_at_once(tmp_path, capsys) -> None:
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "is in use by another console" in err
         assert console.get("/api/status")["error"] is None  # the first one goes on
+
+
+def listening_ports(pid: int) -> set[int]:
+    """TCP ports the process ``pid`` listens on (Linux: its socket inodes in /proc)."""
+    inodes = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            target = os.readlink(fd)
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    ports = set()
+    for table in ("tcp", "tcp6"):
+        lines = Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]
+        for line in lines:
+            fields = line.split()
+            if fields[3] == "0A" and fields[9] in inodes:  # 0A: LISTEN
+                ports.add(int(fields[1].rsplit(":", 1)[1], 16))
+    return ports
+
+
+@pytest.mark.slow
+def test_no_listening_socket_but_the_public_port_lets_anyone_in(tmp_path) -> None:
+    """Every socket the console listens on refuses a connection without the console's
+    credentials: the public port wants the token, Viser's loopback port the relay's secret
+    (tested with what the issue found open: subprotocol viser-v1.1.1, Origin evil.com)."""
+    proc, console = start_console(["--workdir", str(tmp_path / "work")])
+    try:
+        public = int(console.url.rsplit(":", 1)[1])
+        ports = listening_ports(proc.pid)
+        assert public in ports and len(ports) >= 2, ports  # the public one and Viser's
+        for port in ports:
+            with pytest.raises(urllib.error.HTTPError) as refused:
+                urllib.request.urlopen(f"http://127.0.0.1:{port}/api/status", timeout=10)
+            assert refused.value.code == (401 if port == public else 403), port
+            if port != public:
+                assert direct_websocket(port, {"Origin": "http://evil.com"}) == 403
+                assert direct_websocket(port, {}) == 403
+        # nothing was captured through a side door; the console itself still works
+        assert console.get("/api/captures")["views"] == []
+        assert console.get("/api/status")["error"] is None
+    finally:
+        stop_process(proc)

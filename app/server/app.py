@@ -53,12 +53,13 @@ def create_app(
     source_control: SourceControl | None = None,
     balancer: ThermalBalancer | None = None,
     auth: AuthConfig | None = None,
+    viser_secret: str | None = None,
 ) -> FastAPI:
     """The app: ``/`` viewer, ``/stream`` + ``/stream.mjpg``, ``/console/`` (Viser),
     ``/api/status`` and the source and recording controls (``source_control``; default:
     one over ``pipeline`` without recording), ``/docs`` (OpenAPI). With ``auth`` every
     request and WebSocket, also of routers added later, is authenticated (auth.py); ``trifuse
-    serve`` always passes one."""
+    serve`` always passes one, and ``viser_secret`` (viser_bridge.start_guarded_viser)."""
     app = FastAPI(title="trifuse", summary="Calibration and fused stereo telepresence")
     add_body_limit(app)  # 413 over 1 MiB (limits.py)
     if auth is not None:  # added last: the outermost, nothing is read before it passes
@@ -66,7 +67,7 @@ def create_app(
     app.add_exception_handler(RequestValidationError, _invalid_request)
     app.include_router(make_stream_router(hub))
     if viser_port is not None:
-        app.include_router(make_viser_router(viser_port))
+        app.include_router(make_viser_router(viser_port, viser_secret))
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     if pipeline is not None:
         app.include_router(make_api_router(pipeline, balancer))

@@ -3,9 +3,7 @@ public port (127.0.0.1 by default)."""
 
 from __future__ import annotations
 
-import contextlib
 import errno
-import io
 import signal
 import socket
 import threading
@@ -13,7 +11,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import uvicorn
-import viser
 
 from app.calib_session import CalibrationSession
 from app.rigfile import load_rig
@@ -32,6 +29,7 @@ from app.server.source_control import SourceControl, SourceTap
 from app.server.source_panel import SourcePanel
 from app.server.stream import FrameHub
 from app.server.thermal_balance import ThermalBalancer
+from app.server.viser_bridge import start_guarded_viser
 from app.sources.base import FrameSource
 from calib.board import Board
 from calib.rig import Rig
@@ -211,8 +209,7 @@ def serve(
     hub = FrameHub()
     tap = SourceTap(source)  # per-sensor rates and recording (source_control.py)
     pipeline = FusionPipeline(tap, rig, hub).start()
-    with contextlib.redirect_stdout(io.StringIO()):  # Viser's banner shows its inner port
-        server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    server, viser_secret = start_guarded_viser()
     watch = BoardWatch(lambda: pipeline.latest_set, rig, board)
     balancer = ThermalBalancer(pipeline)
     ctx = ConsoleContext(
@@ -239,7 +236,7 @@ def serve(
         PrecisionPanel(ctx).start(),
     ]
     parts.append(control)  # stopped first: a running recording is finished and kept
-    app = create_app(hub, server.get_port(), pipeline, control, balancer, auth)
+    app = create_app(hub, server.get_port(), pipeline, control, balancer, auth, viser_secret)
     app.include_router(
         make_session_router(
             session,
