@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 from fastapi.testclient import TestClient
@@ -98,3 +99,17 @@ def test_absurd_thermal_settings_are_refused_and_change_nothing(
     assert (pipeline.settings, dict(pipeline.radiometry)) == before
     ok = client.put("/api/thermal", json={"span_k": [290.0, 290.01], "span_smoothing_s": 0.01})
     assert ok.status_code == 200  # the limits themselves are allowed
+
+
+@pytest.mark.parametrize("path", ["/docs", "/redoc"])
+def test_docs_pages_use_only_this_servers_scripts(client_and_pipeline, path) -> None:
+    client, _ = client_and_pipeline
+    r = client.get(path)
+    assert r.status_code == 200
+    assert "script-src 'self'" in r.headers["content-security-policy"]
+    scripts = re.findall(r"<script([^>]*)>(.*?)</script>", r.text, re.S)
+    assert scripts and all(body.strip() == "" for _, body in scripts)  # no inline script
+    assert "http" not in r.text  # no CDN
+    for src in re.findall(r'(?:src|href)="([^"]+)"', r.text):
+        if src != "/openapi.json":
+            assert client.get(src).status_code == 200, src

@@ -258,3 +258,19 @@ def test_viewer_and_source_panel_show_the_same_stream_rates(console, browser) ->
         assert repeats_explained or all(r[0] == r[1] for _, r in seen_panel), seen_panel
     finally:
         context.close()
+
+
+def test_api_docs_load_nothing_from_another_site(console, browser) -> None:
+    """/docs and /redoc render from the console's own scripts (a robot has no internet);
+    their policy lets no other script run (issue 16)."""
+    page = browser.new_page(viewport={"width": 1200, "height": 900})
+    foreign: list[str] = []  # ReDoc's search worker is a blob of this origin
+    own = (console.url, f"blob:{console.url}")
+    page.on("response", lambda r: None if r.url.startswith(own) else foreign.append(r.url))
+    page.goto(console.signin("/docs"))
+    page.wait_for_function("() => document.body.innerText.includes('/api/thermal')")
+    assert page.locator(".opblock").count() >= 30  # every route, from /openapi.json
+    page.goto(console.url + "/redoc")
+    page.wait_for_function("() => document.body.innerText.includes('Put Thermal')")
+    page.close()
+    assert foreign == []

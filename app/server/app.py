@@ -14,6 +14,7 @@ from fastapi.staticfiles import StaticFiles
 
 from app.server.api import make_api_router
 from app.server.auth import AuthConfig, AuthMiddleware
+from app.server.docs_pages import add_docs_pages
 from app.server.limits import add_body_limit
 from app.server.pipeline import FusionPipeline
 from app.server.source_api import make_source_router
@@ -60,7 +61,13 @@ def create_app(
     one over ``pipeline`` without recording), ``/docs`` (OpenAPI). With ``auth`` every
     request and WebSocket, also of routers added later, is authenticated (auth.py); ``trifuse
     serve`` always passes one, and ``viser_secret`` (viser_bridge.start_guarded_viser)."""
-    app = FastAPI(title="trifuse", summary="Calibration and fused stereo telepresence")
+    app = FastAPI(
+        title="trifuse",
+        summary="Calibration and fused stereo telepresence",
+        docs_url=None,  # docs_pages.py: the same pages without a CDN
+        redoc_url=None,
+    )
+    add_docs_pages(app)
     add_body_limit(app)  # 413 over 1 MiB (limits.py)
     if auth is not None:  # added last: the outermost, nothing is read before it passes
         app.add_middleware(AuthMiddleware, config=auth)
@@ -76,7 +83,9 @@ def create_app(
 
     @app.get("/", include_in_schema=False)
     async def _viewer() -> FileResponse:
-        return FileResponse(STATIC / "viewer.html")
+        # the viewer has no inline script: nothing but this server's scripts may run in it
+        csp = "script-src 'self'; object-src 'none'; base-uri 'self'; frame-ancestors 'none'"
+        return FileResponse(STATIC / "viewer.html", headers={"Content-Security-Policy": csp})
 
     @app.get("/favicon.ico", include_in_schema=False)
     async def _favicon() -> FileResponse:
