@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from mcap.reader import make_reader
 
 import app.atomic
 import app.capture
@@ -43,6 +44,7 @@ from app.atomic import atomic_write_bytes, remove_temporaries
 from app.calib_session import CalibrationSession
 from app.capture import load_capture, load_view, write_board, write_rig, write_view
 from app.recording import ReplaySource
+from app.recording.sealed_file import SEAL
 from app.recording.writer import RecordingWriter, recover_interrupted
 from app.rigfile import load_rig
 from app.server.source_control import Recorder
@@ -241,20 +243,26 @@ from app.sources.sim.head import default_rig
 rig = default_rig()
 w, h = rig["thermal_left"].image_size
 rng = np.random.default_rng(5)
-writer = RecordingWriter(sys.argv[1], rig, chunk_size=64 * 1024)
+writer = RecordingWriter(sys.argv[1], rig, chunk_size=64 * 1024, seal_period_s=3600)
 k = 0
-while writer.temp_path.stat().st_size < 600_000:
+def frame():
     image = (290 + 20 * rng.random((h, w))).astype(np.float32)
-    writer.write(Frame("thermal_left", 1_000_000_000 + k * 50_000_000, image))
+    return Frame("thermal_left", 1_000_000_000 + k * 50_000_000, image)
+while k < 30:
+    writer.write(frame())
     k += 1
+writer.seal()  # what the writer does every second (seal_period_s)
 print(k, flush=True)
+for _ in range(5):  # written after the last seal: only in memory when the kill comes
+    writer.write(frame())
+    k += 1
 os.kill(os.getpid(), signal.SIGKILL)
 """
 
 
 def _record_and_die(path: Path) -> int:
     """A child process writes thermal frames to ``path`` and is SIGKILLed mid-recording;
-    returns how many frames it wrote."""
+    returns how many frames it had sealed (written to disk as a complete MCAP)."""
     done = subprocess.run(
         [sys.executable, "-c", _RECORD_CHILD, str(path)],
         cwd=ROOT,
@@ -272,6 +280,14 @@ def test_killed_recording_is_kept_readable_and_reported(tmp_path) -> None:
     (recordings / ".20260101-120000.mcap.reserved").touch()  # as the console reserves it
     leftovers = sorted(p.suffix for p in recordings.iterdir())
     assert leftovers == [".partial", ".reserved"]  # all hidden: .<name>.mcap.<random>.partial
+    # What the kill left is a complete MCAP of complete records, as any reader sees it: the
+    # standard mcap reader gets every sealed frame (issue 16: it used to stop at a record of
+    # length 2**64 - 1).
+    (partial,) = recordings.glob("*.partial")
+    with partial.open("rb") as f:
+        topics = [ch.topic for _, ch, _ in make_reader(f).iter_messages()]
+    assert topics.count("/thermal_left/temperature") == written
+    assert partial.read_bytes()[-len(SEAL) :] == SEAL
 
     # Killed after naming a finished recording, before releasing its name: the name is
     # taken anyway. A reservation without any file may be a recorder starting: kept.
@@ -295,7 +311,7 @@ def test_killed_recording_is_kept_readable_and_reported(tmp_path) -> None:
     # It reads up to its last complete chunk, then says why it ends.
     with ReplaySource(kept, realtime=False, on_damage="stop") as src:
         frames = list(src.frames())
-        assert 0 < len(frames) <= written
+        assert len(frames) == written
         assert src.damage is not None and "not finished" in str(src.damage)
     with ReplaySource(kept, realtime=False) as src:  # on_damage="raise": a clear error
         with pytest.raises(Exception, match=r"recording damaged.*not finished"):
@@ -646,3 +662,66 @@ def _kill_and_restart(workdir: Path, log: Path, servers: list[Server]) -> None:
     assert status == 200 and not state["active"] and state["error"] is None, state
     with ReplaySource(state["files"][0], realtime=False) as src:
         assert sum(1 for _ in src.frames()) > 0 and src.damage is None
+
+
+def _record_until(out: Path, instants: int) -> tuple[subprocess.Popen, Path, str]:
+    """``trifuse record --source sim`` into ``out`` until it has written ``instants``
+    instants; returns the process, the file it writes into and what it printed."""
+    main = "import sys; from app.cli import main; sys.exit(main(sys.argv[1:]))"
+    argv = ["record", "--source", "sim", "--out", str(out), "--duration", "60"]
+    proc = subprocess.Popen(
+        [sys.executable, "-c", main, *argv],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    said, temp = "", None
+    for line in proc.stdout:
+        said += line
+        if line.startswith("Writing into "):
+            temp = Path(line.split()[2].rstrip(";"))
+        if line.startswith(f"[{instants}/"):
+            break
+    assert temp is not None and temp.name.startswith(f".{out.name}."), said
+    return proc, temp, said
+
+
+@pytest.mark.slow
+def test_record_finishes_on_sigterm_and_leaves_a_readable_file_on_sigkill(tmp_path) -> None:
+    out = tmp_path / "term.mcap"
+    proc, temp, _ = _record_until(out, 60)
+    proc.send_signal(signal.SIGTERM)  # like Ctrl-C: the file is finished and named
+    rest = proc.communicate(timeout=120)[0]
+    assert "interrupted; what was recorded so far is in" in rest
+    assert not temp.exists()
+    with ReplaySource(out, realtime=False) as src:  # finished: no damage
+        assert len(list(src.frames())) > 0 and src.damage is None
+
+    out = tmp_path / "kill.mcap"
+    proc, temp, _ = _record_until(out, 60)
+    proc.kill()
+    proc.wait(30)
+    assert not out.exists()
+    with temp.open("rb") as f:  # complete records only: the standard reader reads it
+        messages = list(make_reader(f).iter_messages())
+    assert len(messages) > 0 and temp.read_bytes()[-len(SEAL) :] == SEAL
+
+
+def test_a_killed_recording_without_frames_goes_after_a_minute(tmp_path) -> None:
+    child = (
+        "import os, signal, sys\n"
+        "from app.recording.writer import RecordingWriter\n"
+        "from app.sources.sim.head import default_rig\n"
+        "writer = RecordingWriter(sys.argv[1], default_rig())\n"
+        "os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    path = tmp_path / "rec" / "empty.mcap"
+    done = subprocess.run([sys.executable, "-c", child, str(path)], cwd=ROOT, timeout=120)
+    assert done.returncode == -signal.SIGKILL
+    (temp,) = path.parent.glob(".empty.mcap.*.partial")
+    with temp.open("rb") as f:  # a valid recording of nothing (header, rig, metadata)
+        assert list(make_reader(f).iter_messages()) == []
+    assert recover_interrupted(path.parent) == [] and temp.exists()  # a writer starting?
+    os.utime(temp, (time.time() - 120, time.time() - 120))
+    assert recover_interrupted(path.parent) == [] and not temp.exists()

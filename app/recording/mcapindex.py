@@ -49,6 +49,7 @@ from mcap.records import (
 from mcap.stream_reader import breakup_chunk
 
 from app.recording.errors import RecordingError
+from app.recording.layout import METADATA_NAME as SEALED_BY
 
 MAGIC = b"\x89MCAP0\r\n"
 _PREFIX = 9  # opcode (1) + record length (8)
@@ -151,6 +152,14 @@ class McapIndex:
                     index.notes.append(f"{reason}; the file was indexed by scanning it instead")
                 index.indexed_by = "scan"
                 index._scan()
+                if reason == "no summary" and index.damage is None and SEALED_BY in index.metadata:
+                    # trifuse writes a summary when it finishes a recording: without one, the
+                    # file is what its writer had sealed when it stopped
+                    index.damage = McapDamage(
+                        "the recording was not finished: its writer stopped or was killed "
+                        "(it holds what was sealed up to about a second before)",
+                        index.size,
+                    )
             return index
         except BaseException:
             f.close()

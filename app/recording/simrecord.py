@@ -207,6 +207,7 @@ def record_simulation(
     pose_hz: float = POSE_HZ,
     progress: Callable[[SimProgress], None] | None = None,
     plan: SimRecordPlan | None = None,
+    opened: Callable[[RecordingWriter], None] | None = None,
 ) -> RecordingWriter:
     """Render the inspection scenario per :func:`plan_simulation` and record it at ``out``.
 
@@ -214,8 +215,9 @@ def record_simulation(
     (:func:`pose_index`) is rendered once, with a margin, and every frame is that picture
     turned to the instant's head orientation with fresh noise (seeded by ``seed`` and the
     instant). ``exact``: every instant rendered accurately. ``plan``: the plan made
-    beforehand (made here otherwise). ``progress(SimProgress)`` is called after each
-    instant. Returns the closed writer (its counters say what was written). A
+    beforehand (made here otherwise). ``opened(writer)`` is called once the file is open
+    (its ``temp_path`` is where the frames go until it is finished), ``progress(SimProgress)``
+    after each instant. Returns the closed writer (its counters say what was written). A
     KeyboardInterrupt keeps what was recorded so far (the file is finished and named) and
     propagates.
     """
@@ -234,6 +236,8 @@ def record_simulation(
     done_cost = 0.0
     t_start = time.perf_counter()
     with RecordingWriter(out, rig, jpeg_quality=jpeg_quality) as writer:
+        if opened is not None:
+            opened(writer)
         for i, ((stamp, sensors), cost) in enumerate(
             zip(plan.schedule, plan.costs_s, strict=True), start=1
         ):

@@ -6,10 +6,13 @@ docs/FORMATS.md ("Recordings"). Writing goes through foxglove-sdk (one private
 the target's directory; :meth:`RecordingWriter.close` finishes the MCAP (summary, indexes),
 fsyncs it and links it to its name, refusing to replace a file that exists by then.
 
-While it is written, the temporary file ``.<name>.<random>.partial`` is locked (``flock``);
-if the program is killed, the lock goes with it and :func:`recover_interrupted` (called when
-the console starts) finds the file and keeps it under a visible name: an MCAP cut short
-reads up to its last complete chunk (:mod:`app.recording.mcapindex`).
+While it is written, the temporary file ``.<name>.<random>.partial`` is locked (``flock``)
+and is a complete MCAP at every moment (:mod:`app.recording.sealed_file`): about once a
+second (``seal_period_s``) the chunk in progress is finished and put on disk with an ending
+(``DataEnd``, a footer without summary), so a killed program leaves a file that every MCAP
+reader (the ``mcap`` package, Foxglove) opens, with only complete records, holding all but
+the last second. :func:`recover_interrupted` (called when the console starts) finds such a
+file and keeps it under a visible name.
 """
 
 from __future__ import annotations
@@ -18,8 +21,9 @@ import contextlib
 import fcntl
 import numbers
 import os
+import random
 import re
-import tempfile
+import string
 import time
 from pathlib import Path
 from types import TracebackType
@@ -56,6 +60,7 @@ from app.recording.layout import (
     topic_of,
 )
 from app.recording.mcapindex import McapIndex
+from app.recording.sealed_file import SealedMcapFile
 from app.sources.frames import Frame, FrameSet
 from calib.rig import Rig, Sensor, rig_to_yaml
 
@@ -119,7 +124,9 @@ class RecordingWriter:
             frame's time and again at least this often (recording time), so that a player
             that seeks finds them.
         chunk_size: target uncompressed size of an MCAP chunk in bytes (the unit of
-            compression, indexing and of what a truncated file loses at its end).
+            compression and indexing).
+        seal_period_s: at most this many seconds (wall clock) of frames are only in memory:
+            then the chunk in progress is finished and the file sealed (see above).
 
     Frames are checked against the rig (sensor known, image size, dtype); a frame whose
     sensor and ``stamp_ns`` equal the last one written for that sensor is skipped (a frame
@@ -138,6 +145,7 @@ class RecordingWriter:
         compression: str = "zstd",
         calibration_period_s: float = 1.0,
         chunk_size: int = 1 << 20,
+        seal_period_s: float = 1.0,
     ) -> None:
         self.path = Path(path)
         if not isinstance(rig, Rig):
@@ -162,6 +170,10 @@ class RecordingWriter:
             )
         if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1024:
             raise RecordingError(f"chunk_size: expected an integer >= 1024, got {chunk_size!r}")
+        if not (np.isfinite(seal_period_s) and seal_period_s > 0):
+            raise RecordingError(
+                f"seal_period_s: expected a positive number, got {seal_period_s!r}"
+            )
         if self.path.exists():
             raise FileExistsError(
                 f"{self.path}: exists; refusing to overwrite a recording (choose a new name)"
@@ -177,21 +189,21 @@ class RecordingWriter:
         self._last_stamp: dict[str, int] = {}
         self._next_calibration_ns: int | None = None
         self._closed = False
+        self.seal_period_s = float(seal_period_s)
+        self._next_seal = time.monotonic() + self.seal_period_s
 
         parent = self.path.parent
         make_dirs(parent)
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".partial", dir=parent)
-        self.temp_path = Path(tmp)
-        self._lock_fd: int | None = fd  # held open and locked while the file is written
+        self._file = _new_partial(self.path)
+        self.temp_path = self._file.path
+        self._lock_fd: int | None = self._file.fd  # locked while the file is written
         try:
             with contextlib.suppress(OSError):  # a file system without locks: unlocked
-                fcntl.flock(fd, fcntl.LOCK_EX)
-            os.fchmod(fd, 0o666 & ~umask())
+                fcntl.flock(self._file.fd, fcntl.LOCK_EX)
+            os.fchmod(self._file.fd, 0o666 & ~umask())
             self._ctx = foxglove.Context()
             options = MCAPWriteOptions(compression=COMPRESSIONS[compression], chunk_size=chunk_size)
-            self._mcap = foxglove.open_mcap(
-                self.temp_path, allow_overwrite=True, context=self._ctx, writer_options=options
-            )
+            self._mcap = foxglove.open_mcap(self._file, context=self._ctx, writer_options=options)
             now = time.time_ns()
             self._mcap.attach(
                 log_time=now,
@@ -215,6 +227,7 @@ class RecordingWriter:
             for name, s in rig.sensors.items():
                 self._make_channels(name, s)
             self._tf = FrameTransformChannel(TF_TOPIC, context=self._ctx)
+            self.seal()  # from the start the file on disk is an (empty) recording
         except BaseException:
             self._closed = True
             self.temp_path.unlink(missing_ok=True)
@@ -222,9 +235,8 @@ class RecordingWriter:
             raise
 
     def _unlock(self) -> None:
-        fd, self._lock_fd = self._lock_fd, None
-        if fd is not None:
-            os.close(fd)
+        self._lock_fd = None
+        self._file.close()  # closing the descriptor releases the lock
 
     def _make_channels(self, name: str, s: Sensor) -> None:
         def meta(kind: str, unit: str) -> dict[str, str]:
@@ -284,6 +296,8 @@ class RecordingWriter:
         for channel, msg in messages:
             channel.log(msg, log_time=stamp)  # type: ignore[attr-defined]
         self._last_stamp[sensor] = stamp
+        if time.monotonic() >= self._next_seal:
+            self.seal()
         self.frames_written += 1
         self.first_ns = stamp if self.first_ns is None else min(self.first_ns, stamp)
         self.last_ns = stamp if self.last_ns is None else max(self.last_ns, stamp)
@@ -379,6 +393,12 @@ class RecordingWriter:
             self._tf.log(tf, log_time=stamp)
         self._next_calibration_ns = stamp + self.calibration_period_ns
 
+    def seal(self) -> None:
+        """Finish the chunk in progress and put everything written so far on disk as a
+        complete MCAP (done about every ``seal_period_s`` by :meth:`write`)."""
+        self._mcap.flush()  # the writer flushes the file too: SealedMcapFile seals it
+        self._next_seal = time.monotonic() + self.seal_period_s
+
     # -- finishing ------------------------------------------------------------------------
 
     def close(self) -> Path:
@@ -393,11 +413,7 @@ class RecordingWriter:
         try:
             self._mcap.close()
             self._close_channels()
-            fd = os.open(self.temp_path, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
+            self._file.finish()  # summary and footer over the seal, fsynced
             try:
                 os.link(self.temp_path, self.path)
             except FileExistsError:
@@ -448,6 +464,17 @@ class RecordingWriter:
                 self.abort()
 
 
+def _new_partial(path: Path) -> SealedMcapFile:
+    """A new ``.<name>.<random>.partial`` beside ``path`` (never an existing file)."""
+    for _ in range(100):
+        token = "".join(random.choices(string.ascii_lowercase + string.digits + "_", k=8))
+        try:
+            return SealedMcapFile(path.parent / f".{path.name}.{token}.partial")
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"{path.parent}: no free temporary name for {path.name}")
+
+
 def _raw(ts: Timestamp, frame_id: str, plane: np.ndarray, encoding: str = "16UC1") -> RawImage:
     """A RawImage of a (H, W) uint16 (little-endian) or float32 plane."""
     h, w = plane.shape
@@ -484,9 +511,9 @@ def recover_interrupted(directory: str | Path) -> list[tuple[str, Path]]:
     * a finished file (footer and summary intact: the writer died while naming it) becomes
       ``<name>.mcap`` (or is dropped if it is ``<name>.mcap`` already, as a second link);
     * a file cut short becomes ``<name>.partial.mcap`` (``-2``, ``-3`` ... if taken); it
-      reads up to its last complete chunk (:class:`~app.recording.ReplaySource` reports the
+      reads up to its last seal (:class:`~app.recording.ReplaySource` reports the
       damage where it ends);
-    * an empty file (nothing was written) is removed once it is a minute old.
+    * a file without frames (nothing was recorded) is removed once it is a minute old.
 
     Files being written (locked) are left alone. Names are never reused: each file is
     hard-linked to its new name, which fails rather than replacing a file.
@@ -512,8 +539,8 @@ def recover_interrupted(directory: str | Path) -> list[tuple[str, Path]]:
                 continue  # a writer is alive (or the file system cannot tell: leave it)
             final = directory / m["name"]
             st = os.fstat(fd)
-            if st.st_size == 0:  # nothing written (a writer may be starting: wait a minute)
-                if time.time() - st.st_mtime > 60:
+            if st.st_size == 0 or not _has_frames(temp):  # nothing recorded (a writer may
+                if time.time() - st.st_mtime > 60:  # be starting: wait a minute)
                     temp.unlink(missing_ok=True)
                 continue
             if final.exists() and os.path.samefile(final, temp):
@@ -537,6 +564,19 @@ def recover_interrupted(directory: str | Path) -> list[tuple[str, Path]]:
         finally:
             os.close(fd)
     return out
+
+
+def _has_frames(path: Path) -> bool:
+    """Whether an MCAP file holds any chunk of messages (a sealed file that got no frame
+    holds only its header, metadata and attachment)."""
+    try:
+        index = McapIndex.open(path)
+    except Exception:
+        return True  # damaged: keep it for a person to look at
+    try:
+        return bool(index.chunks)
+    finally:
+        index.close()
 
 
 def _finished(path: Path) -> bool:
