@@ -12,7 +12,9 @@ import argparse
 import math
 import os
 import shlex
+import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -25,6 +27,7 @@ from app.report_format import NEVER, limit_distance_cell, pixel_cell, sensor_col
 
 if TYPE_CHECKING:
     from app.capture import Capture
+    from app.recording.writer import RecordingWriter
     from app.server.auth import AuthConfig
     from app.server.serve import TLSFiles
     from calib.board import Board
@@ -863,7 +866,30 @@ def _record_summary(path: Path, writer: object) -> None:
     _out("Format: docs/FORMATS.md (Recordings).")
 
 
+def _say_where(writer: RecordingWriter) -> None:
+    _out(
+        f"Writing into {writer.temp_path}; it becomes {writer.path} when the recording is "
+        "finished (Ctrl-C or SIGTERM finish it too). If this program is killed, that file is "
+        "a complete MCAP of everything but about the last second."
+    )
+
+
+def _sigterm_as_interrupt(signum: int, _frame: object) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
 def _cmd_record(args: argparse.Namespace) -> int:
+    if threading.current_thread() is threading.main_thread():
+        # SIGTERM (kill, systemd, a container stopping) finishes the file like Ctrl-C
+        previous = signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
+        try:
+            return _record(args)
+        finally:
+            signal.signal(signal.SIGTERM, previous)
+    return _record(args)
+
+
+def _record(args: argparse.Namespace) -> int:
     from app.recording import RecordingDamaged, RecordingWriter, ReplaySource
     from app.rigfile import load_rig
 
@@ -931,6 +957,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
                 jpeg_quality=args.jpeg_quality,
                 progress=progress,
                 plan=plan,
+                opened=_say_where,
             )
         except KeyboardInterrupt:
             if out.exists():
@@ -973,6 +1000,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
         )
     damage = None
     with src, RecordingWriter(out, rig, jpeg_quality=args.jpeg_quality) as writer:
+        _say_where(writer)
         try:
             for frame in src.frames():
                 if end_ns is not None and frame.stamp_ns >= end_ns:
