@@ -18,6 +18,7 @@ from app.server.app import create_app
 from app.server.auth import AuthConfig
 from app.server.board_watch import BoardWatch
 from app.server.calibration_panel import CalibrationPanel
+from app.server.connections import GuardedH11Protocol, quiet_repeated_logs
 from app.server.context import ConsoleContext
 from app.server.panels import Panels
 from app.server.pipeline import FusionPipeline
@@ -264,10 +265,12 @@ def serve(
         host=host,
         port=port,
         log_level="warning",
+        http=GuardedH11Protocol,  # header-read timeout, connection caps per client and in all
         ws_per_message_deflate=False,  # JPEG does not deflate; it cost 13 ms a frame
         **({"ws_max_size": ws_max} if ws_max else {}),
         **({"ssl_certfile": tls.certfile, "ssl_keyfile": tls.keyfile} if tls else {}),
     )
+    quiet_repeated_logs()  # after uvicorn's logging set-up
     if threading.current_thread() is threading.main_thread():
         # uvicorn re-raises a SIGTERM after its shutdown; by default that would end the
         # process before the clean-up below (a recording would be left unfinished)
