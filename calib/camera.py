@@ -251,3 +251,18 @@ def pixel_grid(width: int, height: int) -> np.ndarray:
     """Pixel centres ``(height, width, 2)`` as (u, v) float64, u along columns."""
     u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
     return np.stack([u, v], axis=-1)
+
+
+def pixel_rays(intrinsics: Intrinsics, width: int, height: int) -> np.ndarray:
+    """Unit rays through every pixel centre of a ``width`` x ``height`` image.
+
+    Returns:
+        (height, width, 3) float64 unit vectors in the camera frame (z > 0); ``rays[v, u]``
+        is the ray through pixel (u, v). NaN where the distortion model cannot be inverted
+        within its one-to-one zone (beyond :func:`monotonic_radius`).
+    """
+    rays = intrinsics.unproject(pixel_grid(width, height))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xy = rays[..., :2] / rays[..., 2:3]
+        rays[np.hypot(xy[..., 0], xy[..., 1]) > monotonic_radius(intrinsics)] = np.nan
+    return rays

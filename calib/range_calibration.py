@@ -21,7 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from calib.board import Board
-from calib.camera import Intrinsics
+from calib.camera import Intrinsics, pixel_rays
 from calib.range_correction import (
     RangeCorrection,
     amplitude_log,
@@ -114,8 +114,6 @@ def board_samples(
             that distance) to the checkered area's outline are left out (mixed pixels).
         max_incidence_deg: rays meeting the board more obliquely are left out.
     """
-    from fusion.geometry import tof_rays  # fusion builds on calib, not the other way round
-
     w, h = image_size
     d = np.asarray(distance_m, np.float64)
     if d.shape != (h, w) or np.shape(amplitude) != (h, w):
@@ -123,7 +121,7 @@ def board_samples(
             f"distance and amplitude: expected ({h}, {w}) images, got {d.shape} and "
             f"{np.shape(amplitude)}"
         )
-    rays = tof_rays(intrinsics, w, h)
+    rays = pixel_rays(intrinsics, w, h)
     R, t = T_tof_board[:3, :3], T_tof_board[:3, 3]
     n = R[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):

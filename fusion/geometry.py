@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from calib.camera import Intrinsics, monotonic_radius, pixel_grid
+from calib.camera import Intrinsics, monotonic_radius, pixel_rays
 from calib.rig import Rig
 from calib.transforms import transform_points
 
@@ -45,13 +45,6 @@ def _check_last_dim(a: np.ndarray, n: int, name: str) -> None:
         raise ValueError(f"{name}: expected shape (..., {n}), got {a.shape}")
 
 
-def _beyond_fold(intrinsics: Intrinsics, xy: np.ndarray) -> np.ndarray:
-    """(...) True where normalised coordinates ``xy`` (..., 2) lie beyond the fold."""
-    r_max = monotonic_radius(intrinsics)
-    with np.errstate(invalid="ignore"):
-        return np.hypot(xy[..., 0], xy[..., 1]) > r_max
-
-
 def tof_rays(intrinsics: Intrinsics, width: int, height: int) -> np.ndarray:
     """Unit rays through every pixel centre of the TOF image (step 1).
 
@@ -64,12 +57,7 @@ def tof_rays(intrinsics: Intrinsics, width: int, height: int) -> np.ndarray:
         the ray through pixel (u, v). NaN where the distortion model cannot be inverted
         within its one-to-one zone (see :func:`monotonic_radius`).
     """
-    w = _positive_int(width, "width")
-    h = _positive_int(height, "height")
-    rays = intrinsics.unproject(pixel_grid(w, h))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rays[_beyond_fold(intrinsics, rays[..., :2] / rays[..., 2:3])] = np.nan
-    return rays
+    return pixel_rays(intrinsics, _positive_int(width, "width"), _positive_int(height, "height"))
 
 
 def tof_points(
