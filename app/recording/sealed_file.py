@@ -8,9 +8,10 @@ is one that keeps everything after the last complete record in memory and puts o
 complete records, each time followed by a *seal*: a ``DataEnd`` record, a ``Footer`` without
 summary and the closing magic. Every flush (:meth:`flush`, called by the writer's own
 ``flush()``, which first finishes the chunk in progress) writes the new records and a new
-seal over the old seal in one ``pwrite`` (a killed process completes its system call), so a
-reader always finds a valid MCAP, without a summary, holding everything up to the last
-flush. :meth:`finish` writes the writer's real ending (summary, footer) instead.
+seal, in an order that keeps the file valid if the process is killed in the middle of a
+write (:meth:`flush`), so a reader always finds a valid MCAP, without a summary, holding
+everything up to the last flush. :meth:`finish` writes the writer's real ending (summary,
+footer) instead.
 
 Record framing (MCAP spec): after the 8-byte magic, records of opcode (1 byte), length
 (uint64 little-endian) and that many bytes.
@@ -84,14 +85,32 @@ class SealedMcapFile:
         return self.pos
 
     def flush(self) -> None:
-        """Put the complete records received so far on disk, sealed."""
+        """Put the complete records received so far on disk, sealed.
+
+        A SIGKILL can cut a large ``pwrite`` short (Linux stops copying at a page boundary
+        when a fatal signal is pending), so the new records never overwrite the old seal
+        until they are on disk: first the new seal at the new end of the file, then the
+        records after the old seal (meanwhile a reader's linear scan from the start still
+        stops at the old seal's footer, whatever lies behind it), and last the records'
+        first ``len(SEAL)`` bytes over the old seal, one small write.
+        """
         n = self._complete_prefix()
-        if n:
-            os.pwrite(self.fd, bytes(self.pending[:n]) + SEAL, self.committed)
-            del self.pending[:n]
-            self.committed += n
+        if not n:
+            return
+        new = bytes(self.pending[:n])
+        head = len(SEAL)
+        if self.committed == 0 or n <= head:  # nothing sealed yet, or a write of a few bytes
+            os.pwrite(self.fd, new + SEAL, self.committed)
+        else:
+            os.pwrite(self.fd, SEAL, self.committed + n)
+            os.pwrite(self.fd, new[head:], self.committed + head)
             if self.sync:
-                os.fdatasync(self.fd)
+                os.fdatasync(self.fd)  # the same order on disk after a power cut
+            os.pwrite(self.fd, new[:head], self.committed)
+        del self.pending[:n]
+        self.committed += n
+        if self.sync:
+            os.fdatasync(self.fd)
 
     # -- the end ---------------------------------------------------------------------------
 
