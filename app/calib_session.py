@@ -58,10 +58,11 @@ from app.capture import (
 from app.range_run import RangeRun, build_range_report, calibrate_range, with_range_correction
 from app.rigfile import load_rig
 from app.sources.frames import FrameSet
-from calib.board import Board
+from calib.board import POLARITY_KEYS, Board
 from calib.coverage import NOVELTY_THRESHOLD, Coverage, coverage, pose_novelty, view_params
-from calib.detect import Detection, detect_board
+from calib.detect import Detection
 from calib.errors import CalibrationError
+from calib.polarity import detect_board_configured
 from calib.rig import Rig, rig_to_yaml
 from calib.rig_calibration import CalibrationOptions, CalibrationResult
 
@@ -203,10 +204,9 @@ class CalibrationSession:
             existing = load_board(self.captures)
             if existing != board:
                 raise SessionError(
-                    f"{self.captures}: this session's board is {existing.cols}x{existing.rows} "
-                    f"inner corners of {existing.square_size_m * 1000:g} mm, not "
-                    f"{board.cols}x{board.rows} of {board.square_size_m * 1000:g} mm; "
-                    "start the console with another --workdir (or --board)"
+                    f"{self.captures}: this session's board is {_board_text(existing)}, not "
+                    f"{_board_text(board)}; start the console with another --workdir (or "
+                    "--board)"
                 )
         else:
             write_board(self.captures, board)
@@ -328,7 +328,8 @@ class CalibrationSession:
             for sensor in view.sensors:
                 s = self.rig[sensor]
                 try:
-                    det = detect_board(view.frame(sensor).image, self.board, s.modality)
+                    image = view.frame(sensor).image
+                    det = detect_board_configured(image, self.board, s.modality)
                 except (CaptureError, ValueError) as exc:
                     det = Detection(None, f"cannot search this image: {exc}", None)
                 found[sensor] = det
@@ -420,7 +421,9 @@ class CalibrationSession:
             if len(names) < 3:
                 raise SessionError(
                     f"{len(names)} view(s) captured; a calibration needs several views of "
-                    "the board (at least 3 per sensor, 20 or more for a good one)"
+                    f"the board (at least 3 to start; a sensor is calibrated from at least "
+                    f"{CalibrationOptions().min_views} views that show it the board, 20 or "
+                    "more for a good calibration)"
                 )
             self.job = job = CalibrationJob("running", "starting", 0.0, names, started=time.time())
         self._job_thread = threading.Thread(
@@ -614,6 +617,17 @@ class CalibrationSession:
             job.saved_as = version.name
         self._changed()
         return version
+
+
+def _board_text(board: Board) -> str:
+    """``9x6 inner corners of 60 mm`` and the polarity keys it sets (board.yaml)."""
+    keys = {k: v for k, v in board.to_dict().items() if k in POLARITY_KEYS}
+    text = f"{board.cols}x{board.rows} inner corners of {board.square_size_m * 1000:g} mm"
+    if keys:
+        text += " with " + ", ".join(f"{k}: {str(v).lower()}" for k, v in keys.items())
+    else:
+        text += " (polarity found from the data)"
+    return text
 
 
 def radiometry_report(rig: Rig) -> dict[str, Any]:

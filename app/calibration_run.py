@@ -16,10 +16,17 @@ import numpy as np
 
 from app.atomic import atomic_write_text
 from app.capture import Capture, CaptureError
-from app.report_format import coverage_sentence
+from app.report_format import (
+    POLARITY_HEAD,
+    coverage_sentence,
+    polarity_caption,
+    polarity_rows,
+    text_table,
+)
 from calib.coverage import coverage
-from calib.detect import Detection, detect_board
+from calib.detect import Detection
 from calib.errors import CalibrationError
+from calib.polarity import detect_board_configured
 from calib.rig_calibration import (
     CalibrationOptions,
     CalibrationResult,
@@ -82,7 +89,11 @@ def detect_capture(
     workers: int = 2,
     progress: Progress | None = None,
 ) -> DetectionRun:
-    """Detect the board in every image (threads: OpenCV releases the GIL)."""
+    """Detect the board in every image (threads: OpenCV releases the GIL).
+
+    Thermal and TOF images are searched with the board's polarity overrides when
+    ``board.yaml`` sets them (:func:`calib.polarity.detect_board_configured`), else as the
+    detector assumes; the calibration then finds each sensor's polarity from the data."""
     jobs = [(v, s) for v in capture.views for s in v.sensors if sensors is None or s in sensors]
     if not jobs:
         raise CaptureError(
@@ -95,7 +106,7 @@ def detect_capture(
         return (
             view.name,
             sensor,
-            detect_board(frame.image, capture.board, capture.modalities[sensor]),
+            detect_board_configured(frame.image, capture.board, capture.modalities[sensor]),
         )
 
     run = DetectionRun({}, {}, {})
@@ -130,7 +141,8 @@ def calibrate_capture(
     if len(capture.views) < 2:
         raise CalibrationError(
             f"{capture.path}: {len(capture.views)} view(s); a calibration "
-            "needs several views of the board (at least 3 per sensor)"
+            f"needs several views of the board (at least {CalibrationOptions().min_views} "
+            "per sensor, 20 or more for a good one)"
         )
 
     def stage(offset: float, span: float) -> Progress | None:
@@ -244,10 +256,18 @@ def format_summary(result: CalibrationResult, report: dict[str, Any]) -> str:
         worst = entry["worst_view"]
         lines.append(f"{name:<14} coverage {bars}  worst view {worst}")
         lines.append(f"{'':<14} {coverage_sentence(np.asarray(c['corner_counts']))}")
+    if report.get("polarity"):
+        lines += ["", polarity_caption(report["polarity"]) + ":"]
+        lines += [
+            "  " + line for line in text_table(POLARITY_HEAD, polarity_rows(report["polarity"]))
+        ]
     if result.excluded_sensors:
         lines.append("")
         for name, why in result.excluded_sensors.items():
             lines.append(f"not calibrated: {name}: {why}")
+    if result.notes:
+        lines.append("")
+        lines += [f"note: {note}" for note in result.notes]
     view_outliers = [o for o in result.outliers if o.corner is None]
     corner_outliers = [o for o in result.outliers if o.corner is not None]
     if result.outliers:

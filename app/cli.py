@@ -127,6 +127,45 @@ def _load_rig_arg(path: str, flag: str = "") -> Rig:
         raise ValueError(f"{flag} {text}" if flag else text) from None
 
 
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
+
+
+def _board_size(text: str) -> tuple[int, int]:
+    """``COLSxROWS`` inner corners, one odd and one even (a board the detector can orient)."""
+    parts = text.lower().split("x")
+    try:
+        cols, rows = (int(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected COLSxROWS inner corners such as 9x6, got {text!r}"
+        ) from None
+    if min(cols, rows) < 2 or (cols + rows) % 2 == 0:
+        raise argparse.ArgumentTypeError(
+            f"expected at least 2x2 inner corners, one count odd and the other even (e.g. "
+            f"9x6: only then do the square colours tell the board from its half turn), got "
+            f"{text!r}"
+        )
+    return cols, rows
+
+
+def _sensor_count(text: str) -> tuple[str, int]:
+    name, sep, count = text.partition("=")
+    try:
+        n = int(count)
+    except ValueError:
+        n = -1
+    if not sep or not name or n < 0:
+        raise argparse.ArgumentTypeError(f"expected SENSOR=N (N >= 0), got {text!r}")
+    return name, n
+
+
 # -- simulate calibration -----------------------------------------------------------------
 
 
@@ -148,22 +187,35 @@ def _cmd_simulate_calibration(args: argparse.Namespace) -> int:
     from app.preview import ContactSheet
     from app.rigfile import load_rig
     from app.sources.sim.head import default_rig, nominal_rig
-    from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_views
+    from app.sources.sim.scenarios import board_finish, calibration_views
+    from calib.board import Board
 
     out = Path(args.out)
     _check_output_dir(out)
     truth = load_rig(args.rig) if args.rig else default_rig()
     start = nominal_rig(truth)
+    cols, rows = args.board
+    board = Board(cols, rows, args.square_size)
+    finish = board_finish(args.thermal_board, args.tof_board)
+    sensor_views = dict(args.sensor_views or [])
+    unknown = sorted(set(sensor_views) - set(truth.names))
+    if unknown:
+        raise UsageError(
+            f"--sensor-views: no sensor {', '.join(unknown)} in the rig (sensors: {truth.names})"
+        )
 
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     try:
-        write_board(out, CALIBRATION_BOARD)
+        write_board(out, board)
         write_rig(out, start)
         poses: list[tuple[str, np.ndarray]] = []
         sheet = ContactSheet(truth.names)
         t_view = time.perf_counter()
-        for i, view in enumerate(calibration_views(args.views, args.seed, truth), start=1):
+        rendered = calibration_views(
+            args.views, args.seed, truth, board=board, finish=finish, sensor_views=sensor_views
+        )
+        for i, view in enumerate(rendered, start=1):
             path = write_view(out, view.name, view.frames, truth)
             poses.append((view.name, view.T_rig_board))
             sheet.add(view.name, view.frames)
@@ -173,7 +225,7 @@ def _cmd_simulate_calibration(args: argparse.Namespace) -> int:
                 f"-> {path} ({now - t_view:.1f} s)"
             )
             t_view = now
-        write_ground_truth(out, truth, poses, CALIBRATION_BOARD)
+        write_ground_truth(out, truth, poses, board)
         sheet.write(out / "overview.png")
     except BaseException:
         print(
@@ -186,7 +238,12 @@ def _cmd_simulate_calibration(args: argparse.Namespace) -> int:
     tof = truth.by_modality("tof")
     files = [f"{s}.png" for s in truth.names] + [f"{s}_distance.png" for s in tof]
     listing = [
-        ("board.yaml", "the checkerboard"),
+        (
+            "board.yaml",
+            f"the checkerboard: {cols}x{rows} inner corners of {args.square_size * 1000:g} mm, "
+            f"{args.thermal_board} in thermal, black squares {args.tof_board} in the TOF "
+            "(not written down: a calibration finds it)",
+        ),
         ("rig.yaml", "a nominal starting rig (where a calibration starts from)"),
         (f"{first}/ ...", f"one folder per view: {', '.join(files)}"),
         ("ground_truth.yaml", "the true board pose of every view"),
@@ -1141,6 +1198,44 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="RIG.yaml",
         help="ground-truth rig file to render with (default: the simulator's "
         "built-in head); the starting rig.yaml is then derived from it",
+    )
+    calib_p.add_argument(
+        "--board",
+        type=_board_size,
+        default=(9, 6),
+        metavar="COLSxROWS",
+        help="inner corners of the checkerboard, one odd and one even (default: 9x6)",
+    )
+    calib_p.add_argument(
+        "--square-size",
+        type=_positive_float,
+        default=0.06,
+        metavar="M",
+        help="side of a square, metres (default: %(default)s)",
+    )
+    calib_p.add_argument(
+        "--thermal-board",
+        choices=("heated", "cooled", "white-hot"),
+        default="heated",
+        help="how the board reads in thermal: heated with hot black squares, cooled (black "
+        "squares cold), or heated with the high-emissivity paint on the white squares "
+        "(white squares hot) (default: %(default)s); board.yaml never says which: the "
+        "calibration finds it",
+    )
+    calib_p.add_argument(
+        "--tof-board",
+        choices=("dark", "bright"),
+        default="dark",
+        help="black squares dark in the TOF amplitude, or bright (an ink that reflects the "
+        "near infrared) (default: %(default)s)",
+    )
+    calib_p.add_argument(
+        "--sensor-views",
+        type=_sensor_count,
+        action="append",
+        metavar="SENSOR=N",
+        help="keep SENSOR's images in only N views, spread over the session (repeatable); "
+        "the other sensors keep all",
     )
     calib_p.set_defaults(func=_cmd_simulate_calibration)
 

@@ -240,3 +240,111 @@ def comparison_text(cmp: RigComparison, estimate: str, truth: str) -> str:
         ]
     lines += ["", verdict_line(cmp)]
     return "\n".join(lines)
+
+
+# -- board polarity per sensor (calib.polarity, the report's ``polarity``) ----------------
+
+POLARITY_HEAD = ["sensor", "squares", "found by", "spread as detected °", "half-turned °", "ratio"]
+POLARITY_PANEL_HEAD = ["sensor", "black squares", "found by", "spread °"]
+
+_FOUND_BY = {
+    "colour": "printed colours",
+    "data": "poses vs {anchor}",
+    "board.yaml": "board.yaml",
+    "assumed": "assumed (no colour camera)",
+    "undecided": "not decided",
+}
+
+
+def _degrees(value: float | None) -> str:
+    return NEVER if value is None else f"{value:.2f}"
+
+
+def polarity_rows(polarity: dict[str, dict]) -> list[list[str]]:
+    """Rows under ``POLARITY_HEAD`` from a report's ``polarity`` block: per sensor which
+    squares read dark/cold or bright/hot, how that was found, the spread (degrees) of its
+    per-view poses against the anchor's for its corners as detected and half-turned, and
+    their ratio (how decisive); ``turned`` when the corners were relabelled, ``REFUSED``
+    when the sensor was left out (its reason is listed with the sensors not calibrated)."""
+    rows = []
+    for name, p in polarity.items():
+        how = _FOUND_BY.get(p["decided_by"], p["decided_by"]).format(anchor=p.get("anchor"))
+        if p["decided_by"] == "board.yaml" and p.get("anchor"):
+            how += f", checked vs {p['anchor']}"
+        spread = p.get("spread_deg") or {}
+        ratio = p.get("ratio")
+        cell = NEVER if not spread else ("∞" if ratio is None else f"×{ratio:.0f}")
+        if p.get("problem"):
+            cell += " REFUSED"
+        elif p.get("turned"):
+            cell += " turned"
+        if p.get("turned_views"):
+            cell += f" ({len(p['turned_views'])} view(s) turned alone)"
+        rows.append(
+            [
+                name,
+                p["polarity"],
+                how,
+                _degrees(spread.get("as_detected")),
+                _degrees(spread.get("half_turned")),
+                cell,
+            ]
+        )
+    return rows
+
+
+_SHORT_FOUND_BY = {"colour": "colours", "data": "poses", "undecided": "–"}
+
+
+def polarity_panel_rows(polarity: dict[str, dict]) -> list[list[str]]:
+    """Rows under ``POLARITY_PANEL_HEAD``: :func:`polarity_rows` narrowed for the console's
+    side panel (about 280 px): the polarity in a word (``hot``, ``cold``, ``dark``,
+    ``bright``; ``turned`` or ``REFUSED`` added), how it was found in a word, and the two
+    spreads as ``as detected / half-turned`` degrees."""
+    rows = []
+    for name, p in polarity.items():
+        word = p["polarity"].removeprefix("black squares ")
+        if p.get("problem"):
+            word += ", REFUSED"
+        elif p.get("turned"):
+            word += ", turned"
+        spread = p.get("spread_deg") or {}
+        cell = (
+            f"{_degrees(spread.get('as_detected'))} / {_degrees(spread.get('half_turned'))}"
+            if spread
+            else NEVER
+        )
+        rows.append([name, word, _SHORT_FOUND_BY.get(p["decided_by"], p["decided_by"]), cell])
+    return rows
+
+
+def _with_anchors(polarity: dict[str, dict]) -> str:
+    anchors = sorted({p["anchor"] for p in polarity.values() if p.get("anchor")})
+    return f" with {', '.join(anchors)}" if anchors else ""
+
+
+def polarity_panel_note(polarity: dict[str, dict]) -> str:
+    """What :func:`polarity_panel_rows` shows, in a few words."""
+    return (
+        "found by the printed colours, or by how the per-view poses agree"
+        f"{_with_anchors(polarity)}; "
+        "spread: as detected / half-turned, the smaller wins"
+    )
+
+
+def polarity_note(polarity: dict[str, dict]) -> str:
+    """What the polarity table's figures are, in a few words."""
+    return (
+        "thermal and TOF decided by how their per-view poses agree"
+        f"{_with_anchors(polarity)}: spread in degrees "
+        "of their corners as detected and half-turned; the smaller wins"
+    )
+
+
+def polarity_caption(polarity: dict[str, dict]) -> str:
+    """One sentence over the polarity table: what the figures are."""
+    return (
+        "Board polarity per sensor, which squares read dark/cold or bright/hot ("
+        + polarity_note(polarity)
+        + ")"
+    )

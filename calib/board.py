@@ -6,9 +6,14 @@ metres. Corners are ordered row-major: index ``r * cols + c`` is at
 ``(c * square, r * square, 0)``. The square diagonally up-left of corner (0, 0) is black
 (on the heated board: high emissivity, so hot in thermal; dark in TOF amplitude). With
 an odd number of squares on one side and an even number on the other, the colours fix
-the ordering under a half turn. ``thermal_black_is_hot`` says whether the black squares
-read hot in thermal images (true for a heated board whose black squares are the
-high-emissivity material); the detector needs it to tell the two orderings apart there.
+the ordering under a half turn.
+
+Which squares read dark in a thermal image or in a TOF amplitude image depends on the
+board (painted squares on bare aluminium read hot when heated, cold when cooled; some black
+inks are bright in the near infrared), so a calibration finds it from the data
+(calib.polarity). ``thermal_black_is_hot`` and ``tof_black_is_dark`` are optional
+overrides: None (the default, key absent from ``board.yaml``) means "found from the data";
+true/false fixes it (the detector then uses it and the calibration only checks it).
 """
 
 from __future__ import annotations
@@ -21,6 +26,9 @@ import numpy as np
 
 from calib.numbers import finite_float
 
+POLARITY_KEYS = ("thermal_black_is_hot", "tof_black_is_dark")
+"""The optional polarity overrides of ``board.yaml`` (None: found from the data)."""
+
 
 @dataclass(frozen=True)
 class Board:
@@ -29,7 +37,8 @@ class Board:
     cols: int
     rows: int
     square_size_m: float
-    thermal_black_is_hot: bool = True
+    thermal_black_is_hot: bool | None = None
+    tof_black_is_dark: bool | None = None
 
     def __post_init__(self) -> None:
         for name in ("cols", "rows"):
@@ -40,11 +49,13 @@ class Board:
         if not (finite_float(size) or 0.0) > 0.0:
             raise ValueError(f"board square_size_m: expected a positive number, got {size!r}")
         object.__setattr__(self, "square_size_m", float(self.square_size_m))
-        if not isinstance(self.thermal_black_is_hot, bool):
-            raise ValueError(
-                f"board thermal_black_is_hot: expected true or false, "
-                f"got {self.thermal_black_is_hot!r}"
-            )
+        for name in POLARITY_KEYS:
+            v = getattr(self, name)
+            if v is not None and not isinstance(v, bool):
+                raise ValueError(
+                    f"board {name}: expected true or false (or no key: found from the data), "
+                    f"got {v!r}"
+                )
 
     @property
     def pattern_size(self) -> tuple[int, int]:
@@ -80,14 +91,15 @@ class Board:
         return ((i + j) % 2) == 0
 
     def to_dict(self) -> dict[str, Any]:
-        """``board.yaml`` content (the polarity only when it is not the default)."""
+        """``board.yaml`` content (a polarity key only when it is set)."""
         out: dict[str, Any] = {
             "pattern": "checkerboard",
             "inner_corners": [self.cols, self.rows],
             "square_size_m": self.square_size_m,
         }
-        if not self.thermal_black_is_hot:
-            out["thermal_black_is_hot"] = False
+        for name in POLARITY_KEYS:
+            if getattr(self, name) is not None:
+                out[name] = getattr(self, name)
         return out
 
 
@@ -96,7 +108,7 @@ def board_from_dict(data: Any) -> Board:
     if not isinstance(data, Mapping):
         raise ValueError(f"board: expected a mapping, got {type(data).__name__}")
     required = {"pattern", "inner_corners", "square_size_m"}
-    allowed = required | {"thermal_black_is_hot"}
+    allowed = required | set(POLARITY_KEYS)
     unknown = sorted(set(data) - allowed, key=str)
     if unknown:
         raise ValueError(f"board: unknown key(s) {unknown} (allowed: {sorted(allowed)})")
@@ -110,4 +122,10 @@ def board_from_dict(data: Any) -> Board:
     ic = data["inner_corners"]
     if not isinstance(ic, list | tuple) or len(ic) != 2:
         raise ValueError(f"board inner_corners: expected [cols, rows], got {ic!r}")
-    return Board(ic[0], ic[1], data["square_size_m"], data.get("thermal_black_is_hot", True))
+    return Board(
+        ic[0],
+        ic[1],
+        data["square_size_m"],
+        data.get("thermal_black_is_hot"),
+        data.get("tof_black_is_dark"),
+    )

@@ -2,21 +2,31 @@
 
 Pipeline (the method's Zhang-based calibration, extended to the whole rig at once):
 
-1. **Intrinsics per sensor** with Zhang's method (``cv2.calibrateCameraExtended``: closed
-   form start, then Levenberg-Marquardt with distortion). Sensors with too few views are
-   left out and reported.
+1. **Intrinsics per sensor** with Zhang's method (``cv2.calibrateCamera``: closed form
+   start, then Levenberg-Marquardt with distortion; ``cv2.calibrateCameraExtended`` for
+   the standard deviations when the joint pass does not refine the intrinsics). Sensors
+   with too few views are left out and reported.
 2. **Initial poses**: each sensor's pose relative to the reference from the views it shares
    with an already placed sensor (chordal mean of rotations, median of translations),
    walking the co-visibility graph outward from the reference; each board pose from a
    sensor that saw it.
 3. **Joint refinement** of every sensor pose ``T_rig_sensor``, every board pose
    ``T_rig_board`` and (optionally) every sensor's intrinsics and distortion, minimising the
-   reprojection error of all corners of all sensors at once (``scipy.optimize.least_squares``,
-   sparse Jacobian), first with a robust loss; then outlier corners and views are flagged,
-   each sensor's residuals are weighted by its own noise level, and a final least-squares
-   pass runs on the inliers.
-4. **Uncertainty**: the covariance ``s^2 (J^T J)^-1`` of the final pass gives a 1-sigma for
-   every parameter.
+   reprojection error of all corners of all sensors at once (analytic sparse Jacobian;
+   Levenberg-Marquardt with a Schur complement on the board poses, calib.schur_lm, so an
+   iteration costs time linear in the number of views), first with a robust loss; then
+   outlier corners and views are flagged, each sensor's residuals are weighted by its own
+   noise level, and a final least-squares pass runs on the inliers.
+4. **Uncertainty**: the covariance ``s^2 (J^T J)^-1`` of the final pass, and a
+   cluster-robust (per image) one, give a 1-sigma for every parameter; ``J^T J`` is formed
+   from the sparse Jacobian (n x n, never the dense m x n matrix).
+
+BLAS runs on one thread throughout (threadpoolctl, for the duration of
+:func:`calibrate_rig`): beside other busy processes, OpenBLAS's spinning threads cost far
+more than they gain on these small products. OpenCV's own threads are left alone: one or
+two made no difference to Zhang's stage, idle or beside two busy processes (measured).
+Everything per corner is vectorised (numpy); Python loops run over sensors, views or
+images only.
 
 Inputs are plain arrays; nothing here reads files or prints. ``observations`` maps view
 name -> sensor name -> (N, 2) float64 corners in canonical board order (calib.board).
@@ -27,16 +37,22 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
+import scipy.linalg
+from scipy import sparse
+from threadpoolctl import threadpool_limits
 
 from calib.board import Board
 from calib.camera import Intrinsics
+from calib.diagnosis import fallback_reference, screen_sensors, zhang_failure
 from calib.errors import CalibrationError
+from calib.polarity import SensorPolarity
 from calib.rig import Eye, Rig, Sensor
+from calib.schur_lm import SchurResult, least_squares_schur
 from calib.transforms import (
     invert,
     make_T,
@@ -51,6 +67,11 @@ Progress = Callable[[str, float], None]
 
 # Rayleigh: the median of |e| for 2-D Gaussian errors of per-axis sigma s is s*sqrt(2 ln 2).
 _RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
+
+# BLAS threads of the whole calibration: the products are small (sparse, n x n with n of a
+# few hundred, the screening's (n M, 3) x (3, 3 J)), so more threads gain little and, beside
+# other busy processes, spinning OpenBLAS threads cost up to 10x (BENCHMARKS.md).
+_BLAS_THREADS = 1
 
 
 @dataclass(frozen=True)
@@ -80,7 +101,11 @@ class CalibrationOptions:
         view_outlier_factor: a view is an outlier for a sensor when its RMS error exceeds
             this factor times the median view RMS of that sensor ...
         view_outlier_min_px: ... and exceeds this absolute value.
-        min_views: fewest views with the board for a sensor's intrinsics.
+        min_views: fewest views with the board for a sensor's intrinsics. Zhang's method
+            runs from 3, but measured on simulated captures a thermal imager seen in 3-6 of
+            16 views missed the calibration targets (0.1 deg, 1 mm to the other sensors:
+            up to 0.17 deg, 1.7 mm) and met them from 8 (0.06 deg, 0.4 mm); a sensor with
+            fewer is left out with the reason (too few views), not calibrated badly.
     """
 
     reference: str | None = None
@@ -91,7 +116,7 @@ class CalibrationOptions:
     corner_outlier_min_px: float = 0.3
     view_outlier_factor: float = 3.0
     view_outlier_min_px: float = 0.3
-    min_views: int = 3
+    min_views: int = 8
 
 
 @dataclass
@@ -150,6 +175,10 @@ class CalibrationResult:
     rms_px: float
     seconds: float
     eyes: dict[str, Eye] = field(default_factory=dict)
+    polarity: dict[str, SensorPolarity] = field(default_factory=dict)
+    """Per sensor: which squares read dark/cold or bright/hot, and how that was found."""
+    notes: list[str] = field(default_factory=list)
+    """What the calibration decided on its own (e.g. another reference), in sentences."""
 
     def rig(self) -> Rig:
         """The calibrated rig (sensors that were calibrated), with ``uncertainty`` blocks."""
@@ -188,6 +217,8 @@ class CalibrationResult:
             "seconds": self.seconds,
             "sensors": sensors,
             "excluded_sensors": dict(self.excluded_sensors),
+            "polarity": {n: p.as_dict() for n, p in sorted(self.polarity.items())},
+            "notes": list(self.notes),
             "views": {
                 v: {
                     s: {
@@ -228,6 +259,87 @@ def _project(Q: np.ndarray, K4: np.ndarray, D8: np.ndarray) -> np.ndarray:
     xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
     return np.stack([K4[:, 0] * xd + K4[:, 2], K4[:, 1] * yd + K4[:, 3]], axis=1)
+
+
+def _project_derivatives(
+    Q: np.ndarray, K4: np.ndarray, D8: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Derivatives of :func:`_project` (analytic, same per-point parameters).
+
+    Args:
+        Q: (M, 3) camera-frame points (metres).
+        K4: (M, 4) fx fy cx cy (px).
+        D8: (M, 8) k1 k2 p1 p2 k3 k4 k5 k6.
+
+    Returns:
+        ``d(u, v)/dQ`` (M, 2, 3) in px per metre, ``d(u, v)/d(fx, fy, cx, cy)`` (M, 2, 4)
+        and ``d(u, v)/d(k1 ... k6)`` (M, 2, 8) in px per unit coefficient.
+    """
+    iz = 1.0 / Q[:, 2]
+    x = Q[:, 0] * iz
+    y = Q[:, 1] * iz
+    k1, k2, p1, p2, k3, k4, k5, k6 = D8.T
+    fx, fy = K4[:, 0], K4[:, 1]
+    r2 = x * x + y * y
+    a = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    b = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    rad = a / b
+    drad = ((k1 + r2 * (2 * k2 + 3 * r2 * k3)) * b - a * (k4 + r2 * (2 * k5 + 3 * r2 * k6))) / (
+        b * b
+    )  # d rad / d r2
+    xy = x * y
+    xd = x * rad + 2 * p1 * xy + p2 * (r2 + 2 * x * x)
+    yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * xy
+    # d(xd, yd)/d(x, y)
+    dxx = rad + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
+    dxy = 2 * xy * drad + 2 * p1 * x + 2 * p2 * y
+    dyy = rad + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
+    M = len(Q)
+    # d(x, y)/dQ = [[1/z, 0, -x/z], [0, 1/z, -y/z]]
+    dQ = np.empty((M, 2, 3))
+    dQ[:, 0, 0] = fx * dxx * iz
+    dQ[:, 0, 1] = fx * dxy * iz
+    dQ[:, 0, 2] = -fx * (dxx * x + dxy * y) * iz
+    dQ[:, 1, 0] = fy * dxy * iz
+    dQ[:, 1, 1] = fy * dyy * iz
+    dQ[:, 1, 2] = -fy * (dxy * x + dyy * y) * iz
+    dK = np.zeros((M, 2, 4))
+    dK[:, 0, 0] = xd
+    dK[:, 1, 1] = yd
+    dK[:, 0, 2] = 1.0
+    dK[:, 1, 3] = 1.0
+    dD = np.empty((M, 2, 8))
+    powers = np.stack([r2, r2 * r2, r2 * r2 * r2], axis=1) / b[:, None]  # d rad / d k1 k2 k3
+    dD[:, 0, [0, 1, 4]] = (fx * x)[:, None] * powers
+    dD[:, 1, [0, 1, 4]] = (fy * y)[:, None] * powers
+    dD[:, 0, [5, 6, 7]] = -(fx * x * rad)[:, None] * powers
+    dD[:, 1, [5, 6, 7]] = -(fy * y * rad)[:, None] * powers
+    dD[:, 0, 2] = fx * 2 * xy
+    dD[:, 1, 2] = fy * (r2 + 2 * y * y)
+    dD[:, 0, 3] = fx * (r2 + 2 * x * x)
+    dD[:, 1, 3] = fy * 2 * xy
+    return dQ, dK, dD
+
+
+def _right_jacobians(rvecs: np.ndarray) -> np.ndarray:
+    """Right Jacobians of SO(3) at axis-angle vectors (K, 3) (radians): (K, 3, 3).
+
+    ``R(r + dr) = R(r) exp([J_r(r) dr]x)`` to first order, with
+    ``J_r = I - (1 - cos t) / t^2 [r]x + (t - sin t) / t^3 [r]x^2``, t = |r| (Taylor
+    series below 1e-4 rad, where the closed form loses digits).
+    """
+    r = np.asarray(rvecs, dtype=np.float64).reshape(-1, 3)
+    t2 = np.sum(r * r, axis=1)
+    t = np.sqrt(t2)
+    small = t < 1e-4
+    ts = np.where(small, 1.0, t)
+    c1 = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
+    c2 = np.where(small, 1.0 / 6.0 - t2 / 120.0, (ts - np.sin(ts)) / ts**3)
+    S = np.zeros((len(r), 3, 3))
+    S[:, 0, 1], S[:, 0, 2] = -r[:, 2], r[:, 1]
+    S[:, 1, 0], S[:, 1, 2] = r[:, 2], -r[:, 0]
+    S[:, 2, 0], S[:, 2, 1] = -r[:, 1], r[:, 0]
+    return np.eye(3)[None] - c1[:, None, None] * S + c2[:, None, None] * (S @ S)
 
 
 # -- the problem --------------------------------------------------------------------------
@@ -316,67 +428,200 @@ class _Problem:
         Q = np.einsum("kji,kj->ki", Rs[self.s_idx], P - ts[self.s_idx])
         return _project(Q, K4[self.s_idx], D8[self.s_idx])
 
-    def column_groups(self) -> list[list[tuple[int, np.ndarray]]]:
-        """Columns that touch disjoint rows, grouped for finite differences.
+    def subset(self, keep: np.ndarray) -> _Problem:
+        """The problem on the corners where ``keep`` (M,) is true, in the same order; views
+        left without corners are dropped (and the board poses' layout with them)."""
+        used = np.unique(self.v_idx[keep])
+        remap = np.zeros(len(self.views), dtype=np.int64)
+        remap[used] = np.arange(len(used))
+        return _Problem(
+            self.sensors,
+            [self.views[i] for i in used],
+            self.s_idx[keep],
+            remap[self.v_idx[keep]],
+            self.c_idx[keep],
+            self.X[keep],
+            self.uv[keep],
+            self.free_dist,
+            self.refine_intrinsics,
+        )
 
-        Each group lists (column, rows of the residual vector it affects); the columns
-        of one group are perturbed together (one sensor's or view's parameters never
-        share rows with another's).
+    @cached_property
+    def _jacobian_layout(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
+        """Sparsity of the residuals' Jacobian, built once per problem.
+
+        Each corner's two rows touch its board pose (6 columns), its sensor's pose (6,
+        none for the reference) and its sensor's intrinsics (4 + free distortion
+        coefficients, when refined). :meth:`jacobian` computes the values in that block
+        order; ``order`` sorts them into CSR order (``indices``, ``indptr``).
+
+        Returns:
+            ``(order, indices, indptr, points)``: (nnz,) permutation, (nnz,) int32 column
+            of each CSR value, (2M + 1,) row pointers, and the corner indices of each
+            sensor.
         """
         M = len(self.s_idx)
-        point_rows = np.stack([2 * np.arange(M), 2 * np.arange(M) + 1], axis=1)
-        rows_s = [point_rows[self.s_idx == k].ravel() for k in range(len(self.sensors))]
-        rows_v = [point_rows[self.v_idx == k].ravel() for k in range(len(self.views))]
-        groups: list[list[tuple[int, np.ndarray]]] = []
-        for j in range(6):
-            groups.append([(6 * (k - 1) + j, rows_s[k]) for k in range(1, len(self.sensors))])
-            groups.append([(self.off_board + 6 * k + j, rows_v[k]) for k in range(len(self.views))])
-        width = max((sl.stop - sl.start for sl in self.intr_slices.values()), default=0)
-        for j in range(width):
-            groups.append(
-                [
-                    (sl.start + j, rows_s[k])
-                    for k, sl in self.intr_slices.items()
-                    if sl.start + j < sl.stop
-                ]
+        points = [np.flatnonzero(self.s_idx == k) for k in range(len(self.sensors))]
+        row2 = 2 * np.arange(M)[:, None, None] + np.arange(2)[None, :, None]  # (M, 2, 1)
+        rows = [np.broadcast_to(row2, (M, 2, 6))]
+        cols = [
+            np.broadcast_to(
+                self.off_board + 6 * self.v_idx[:, None, None] + np.arange(6), (M, 2, 6)
             )
-        return [g for g in groups if g]
+        ]
+        moving = np.flatnonzero(self.s_idx > 0)
+        rows.append(np.broadcast_to(row2[moving], (len(moving), 2, 6)))
+        cols.append(
+            np.broadcast_to(
+                6 * (self.s_idx[moving, None, None] - 1) + np.arange(6), (len(moving), 2, 6)
+            )
+        )
+        for k, sl in self.intr_slices.items():
+            n = sl.stop - sl.start
+            rows.append(np.broadcast_to(row2[points[k]], (len(points[k]), 2, n)))
+            cols.append(np.broadcast_to(sl.start + np.arange(n), (len(points[k]), 2, n)))
+        r = np.concatenate([a.ravel() for a in rows])
+        c = np.concatenate([a.ravel() for a in cols])
+        order = np.lexsort((c, r))
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=2 * M))])
+        return order, c[order].astype(np.int32), indptr, points
 
     def jacobian(
-        self,
-        fun: Callable[[np.ndarray], np.ndarray],
-        x: np.ndarray,
-        groups: list[list[tuple[int, np.ndarray]]],
-    ) -> np.ndarray:
-        """Dense Jacobian of ``fun`` at ``x`` by grouped central differences."""
-        J = np.zeros((2 * len(self.s_idx), len(x)))
-        for group in groups:
-            cols = np.array([c for c, _ in group])
-            h = 1e-6 * np.maximum(1.0, np.abs(x[cols]))
-            xp, xm = x.copy(), x.copy()
-            xp[cols] += h
-            xm[cols] -= h
-            diff = fun(xp) - fun(xm)
-            for (c, rows), hc in zip(group, h, strict=True):
-                J[rows, c] = diff[rows] / (2.0 * hc)
-        return J
+        self, x: np.ndarray, fixed: dict[str, Intrinsics], weights: np.ndarray
+    ) -> sparse.csr_matrix:
+        """Analytic Jacobian of the weighted residuals ``(project(x) - uv) * weights``.
+
+        Args:
+            x: (n,) parameters (rotation vectors in radians, translations in metres,
+                intrinsics in px, distortion coefficients).
+            fixed: intrinsics of sensors whose intrinsics are not parameters.
+            weights: (M,) weight of each corner (both of its rows), 1/px.
+
+        Returns:
+            (2M, n) CSR matrix, rows ``2m`` (u) and ``2m + 1`` (v) of corner m; about
+            21 non-zeros per row (see :attr:`_jacobian_layout`).
+        """
+        order, indices, indptr, points = self._jacobian_layout
+        n_s = len(self.sensors)
+        s, v = self.s_idx, self.v_idx
+        Rs, ts, Rb, tb = self.poses(x)
+        K4, D8 = self.unpack_intrinsics(x, fixed)
+        P = np.einsum("kij,kj->ki", Rb[v], self.X) + tb[v]
+        Q = np.einsum("kji,kj->ki", Rs[s], P - ts[s])
+        dQ, dK, dD = _project_derivatives(Q, K4[s], D8[s])
+        w = weights[:, None, None]
+        dQ *= w
+        dP = np.einsum("kai,kji->kaj", dQ, Rs[s])  # d/dP = d/dQ R_s^T
+        Jrb = _right_jacobians(x[self.off_board : self.off_intr].reshape(-1, 6)[:, :3])
+        # P = R_b X + t_b: dP/dr_b = -R_b [X]x J_r(r_b), and c^T [X]x = (c x X)^T.
+        dRb = -np.einsum(
+            "kai,kij->kaj", np.cross(np.einsum("kai,kij->kaj", dP, Rb[v]), self.X[:, None]), Jrb[v]
+        )
+        blocks = [np.concatenate([dRb, dP], axis=2)]
+        moving = s > 0
+        if n_s > 1:
+            # Q = R_s^T (P - t_s): dQ/dr_s = [Q]x J_r(r_s), dQ/dt_s = -R_s^T.
+            Jrs = _right_jacobians(x[: self.off_board].reshape(-1, 6)[:, :3])
+            dRs = np.einsum(
+                "kai,kij->kaj", np.cross(dQ[moving], Q[moving, None]), Jrs[s[moving] - 1]
+            )
+            blocks.append(np.concatenate([dRs, -dP[moving]], axis=2))
+        for k in self.intr_slices:
+            m = points[k]
+            free = self.free_dist[self.sensors[k]]
+            blocks.append(np.concatenate([dK[m], dD[m][:, :, free]], axis=2) * w[m])
+        data = np.concatenate([b.ravel() for b in blocks])[order]
+        return sparse.csr_matrix(
+            (data, indices, indptr), shape=(2 * len(s), self.n_params), copy=False
+        )
+
+
+def _build_problem(
+    sensors: list[str],
+    views: list[str],
+    by_sensor: Mapping[str, Mapping[str, np.ndarray]],
+    board: Board,
+    free_dist: dict[str, list[int]],
+    refine_intrinsics: bool,
+) -> _Problem:
+    """Every corner of every sensor's views, ordered by sensor, view (as ``views``: sorted)
+    and corner.
+
+    Args:
+        sensors: sensor names, the reference first.
+        views: every view any of them saw, sorted.
+        by_sensor: sensor -> view -> (N, 2) corners, pixels.
+        board: the checkerboard (N corners).
+        free_dist: sensor -> indices (into k1 k2 p1 p2 k3 k4 k5 k6) of the estimated
+            distortion coefficients.
+        refine_intrinsics: intrinsics are parameters.
+    """
+    n = board.n_corners
+    vpos = {v: i for i, v in enumerate(views)}
+    s_idx, v_idx, uv = [], [], []
+    for si, s in enumerate(sensors):
+        names = sorted(by_sensor[s])
+        if not names:
+            continue
+        s_idx.append(np.full(len(names) * n, si))
+        v_idx.append(np.repeat([vpos[v] for v in names], n))
+        uv.append(np.stack([by_sensor[s][v] for v in names]).reshape(-1, 2))
+    s_all = np.concatenate(s_idx)
+    c_idx = np.tile(np.arange(n), len(s_all) // n)
+    return _Problem(
+        list(sensors),
+        list(views),
+        s_all,
+        np.concatenate(v_idx),
+        c_idx,
+        board.object_points()[c_idx],
+        np.concatenate(uv).astype(np.float64),
+        free_dist,
+        refine_intrinsics,
+    )
 
 
 # -- initialisation -----------------------------------------------------------------------
 
 
 def _intrinsics_per_sensor(
-    obs: dict[str, dict[str, np.ndarray]], board: Board, spec: SensorSpec, free_k3: bool
+    obs: dict[str, dict[str, np.ndarray]],
+    board: Board,
+    spec: SensorSpec,
+    free_k3: bool,
+    with_std: bool = True,
 ) -> tuple[Intrinsics, dict[str, np.ndarray], np.ndarray]:
-    """Zhang per sensor: intrinsics, T_sensor_board per view, std devs of the intrinsics."""
+    """Zhang per sensor (OpenCV).
+
+    Args:
+        obs: view -> (N, 2) corners, pixels.
+        board: the checkerboard.
+        spec: the sensor's image size.
+        free_k3: estimate k3 (else k3 = 0).
+        with_std: also the standard deviations of the intrinsics
+            (``cv2.calibrateCameraExtended``). They cost more than the calibration itself
+            and grow with the cube of the views (OpenCV inverts the dense normal matrix of
+            intrinsics and every view's pose: 0.8 s against 0.2 s at 150 views); the joint
+            refinement's covariance replaces them when it refines the intrinsics.
+
+    Returns:
+        Intrinsics, view -> (4, 4) T_sensor_board (metres), and (9,) standard deviations of
+        fx fy cx cy (px) k1 k2 p1 p2 k3 (NaN without ``with_std``).
+    """
     views = sorted(obs)
     obj = [board.object_points().astype(np.float32) for _ in views]
     img = [obs[v].astype(np.float32).reshape(-1, 1, 2) for v in views]
     flags = 0 if free_k3 else cv2.CALIB_FIX_K3
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    _rms, K, dist, rvecs, tvecs, std_intr, *_ = cv2.calibrateCameraExtended(
-        obj, img, spec.image_size, None, None, flags=flags, criteria=crit
-    )
+    if with_std:
+        _rms, K, dist, rvecs, tvecs, std_intr, *_ = cv2.calibrateCameraExtended(
+            obj, img, spec.image_size, None, None, flags=flags, criteria=crit
+        )
+    else:
+        _rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
+            obj, img, spec.image_size, None, None, flags=flags, criteria=crit
+        )
+        std_intr = np.full(9, np.nan)
     d = dist.ravel()[:5]
     intr = Intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], tuple(float(c) for c in d))
     T = {
@@ -480,6 +725,23 @@ def calibrate_rig(
     Raises:
         CalibrationError: nothing usable (no detections, the reference has too few views ...).
     """
+    # BLAS on one thread throughout (threadpoolctl; numpy's, scipy's and OpenCV's own
+    # OpenBLAS): every product here is small, and OpenBLAS's spinning threads cost more than
+    # they gain. Measured on 40 views: 0.42 s idle, 0.87 s beside two busy processes; with
+    # OpenBLAS's default 2 threads 0.56 s and 1.5 s.
+    with threadpool_limits(limits=_BLAS_THREADS, user_api="blas"):
+        return _calibrate_rig(observations, board, specs, options, progress, eyes)
+
+
+def _calibrate_rig(
+    observations: Observations,
+    board: Board,
+    specs: Mapping[str, SensorSpec],
+    options: CalibrationOptions | None,
+    progress: Progress | None,
+    eyes: Mapping[str, Eye] | None,
+) -> CalibrationResult:
+    """:func:`calibrate_rig`'s work (same arguments), with BLAS limited by the caller."""
     opts = options or CalibrationOptions()
     t0 = time.perf_counter()
     report = progress or (lambda _stage, _frac: None)
@@ -491,10 +753,9 @@ def calibrate_rig(
         if len(by_sensor[s]) < opts.min_views:
             excluded[s] = (
                 f"board detected in {len(by_sensor[s])} view(s); at least "
-                f"{opts.min_views} are needed for intrinsics"
+                f"{opts.min_views} are needed for intrinsics: too few views (show it the "
+                "board in more views)"
             )
-    if reference in excluded:
-        raise CalibrationError(f"reference sensor {reference!r}: {excluded[reference]}")
 
     # 1. Intrinsics per sensor.
     intr: dict[str, Intrinsics] = {}
@@ -504,9 +765,45 @@ def calibrate_rig(
     for k, s in enumerate(candidates):
         report(f"intrinsics of {s}", 0.4 * k / len(candidates))
         free_k3 = specs[s].modality in opts.free_k3_modalities
-        intr[s], T_s_board[s], std_zhang[s] = _intrinsics_per_sensor(
-            by_sensor[s], board, specs[s], free_k3
+        try:
+            intr[s], T_s_board[s], std_zhang[s] = _intrinsics_per_sensor(
+                by_sensor[s], board, specs[s], free_k3, with_std=not opts.refine_intrinsics
+            )
+        except (cv2.error, ValueError) as exc:  # e.g. a negative focal length
+            excluded[s] = zhang_failure(len(by_sensor[s]), exc)
+
+    # 1b. Diagnosis (calib.diagnosis): physical intrinsics, and every sensor's board
+    # ordering (thermal and TOF polarity) found from its poses' agreement with the others;
+    # a sensor that cannot be reconciled is left out with the reason.
+    report("board orientation per sensor", 0.38)
+    screen = screen_sensors(
+        {s: by_sensor[s] for s in intr},
+        {s: specs[s].modality for s in intr},
+        {s: specs[s].image_size for s in intr},
+        intr,
+        T_s_board,
+        board,
+    )
+    excluded.update(screen.excluded)
+    by_sensor = {**by_sensor, **screen.observations}
+    T_s_board = screen.T_sensor_board
+    candidates = [s for s in candidates if s not in excluded]
+    notes = list(screen.notes)
+    if reference in excluded:
+        fallback = fallback_reference(
+            reference, candidates, {s: specs[s].modality for s in specs}, screen.anchor
         )
+        if fallback is None:
+            raise CalibrationError(
+                f"reference sensor {reference!r}: {excluded[reference]}; and no other sensor "
+                "can be calibrated: "
+                + "; ".join(f"{s}: {why}" for s, why in excluded.items() if s != reference)
+            )
+        notes.append(
+            f"the reference {reference} is not calibrated ({excluded[reference]}): the rig "
+            f"frame is {fallback}'s instead"
+        )
+        reference = fallback
 
     # 2. Initial poses.
     report("initial poses", 0.4)
@@ -525,50 +822,18 @@ def calibrate_rig(
         for s in sensors
     }
 
-    def build(keep: set[tuple[str, str, int]] | None) -> _Problem:
-        s_idx, v_idx, c_idx, X, uv = [], [], [], [], []
-        obj = board.object_points()
-        for si, s in enumerate(sensors):
-            for v in sorted(by_sensor[s]):
-                corners = np.arange(board.n_corners)
-                if keep is not None:
-                    corners = np.array([c for c in corners if (v, s, int(c)) in keep], int)
-                if not len(corners):
-                    continue
-                s_idx.append(np.full(len(corners), si))
-                v_idx.append(np.full(len(corners), v))
-                c_idx.append(corners)
-                X.append(obj[corners])
-                uv.append(by_sensor[s][v][corners])
-        vnames = np.concatenate(v_idx)
-        used_views = [v for v in views if v in set(vnames.tolist())]
-        vpos = {v: i for i, v in enumerate(used_views)}
-        return _Problem(
-            sensors,
-            used_views,
-            np.concatenate(s_idx),
-            np.array([vpos[v] for v in vnames]),
-            np.concatenate(c_idx),
-            np.concatenate(X),
-            np.concatenate(uv),
-            free_dist,
-            opts.refine_intrinsics,
-        )
-
-    def solve(prob: _Problem, x0: np.ndarray, weights: np.ndarray, loss: str):
-        w = np.repeat(weights[prob.s_idx], 2)
-        groups = prob.column_groups()
+    def solve(prob: _Problem, x0: np.ndarray, weights: np.ndarray, loss: str) -> SchurResult:
+        w_point = weights[prob.s_idx]
+        w = np.repeat(w_point, 2)
 
         def fun(x: np.ndarray) -> np.ndarray:
             return (prob.project(x, intr) - prob.uv).ravel() * w
 
-        return least_squares(
+        return least_squares_schur(
             fun,
+            lambda x: prob.jacobian(x, intr, w_point),
             x0,
-            jac=lambda x: prob.jacobian(fun, x, groups),
-            method="trf",
-            tr_solver="exact",
-            x_scale="jac",
+            (prob.off_board, len(prob.views), 6),
             loss=loss,
             f_scale=opts.loss_scale_px,
             ftol=1e-12,
@@ -579,7 +844,7 @@ def calibrate_rig(
 
     # 3a. Robust joint pass on everything.
     report("joint refinement (robust)", 0.5)
-    prob = build(None)
+    prob = _build_problem(sensors, views, by_sensor, board, free_dist, opts.refine_intrinsics)
     x = solve(prob, prob.pack(T_rig_sensor, T_rig_board, intr), np.ones(len(sensors)), "soft_l1").x
     err = np.linalg.norm(prob.project(x, intr) - prob.uv, axis=1)
 
@@ -590,13 +855,8 @@ def calibrate_rig(
     )
     limit = np.maximum(opts.corner_outlier_sigmas * sigma_s[prob.s_idx], opts.corner_outlier_min_px)
     bad_corner = err > limit
-    outliers, bad_views = _flag_outliers(prob, err, bad_corner, limit, opts)
-    keep = {
-        (prob.views[prob.v_idx[m]], sensors[prob.s_idx[m]], int(prob.c_idx[m]))
-        for m in range(len(err))
-        if not bad_corner[m]
-        and (prob.views[prob.v_idx[m]], sensors[prob.s_idx[m]]) not in bad_views
-    }
+    outliers, in_bad_view = _flag_outliers(prob, err, bad_corner, limit, opts)
+    inlier = ~bad_corner & ~in_bad_view
 
     # 3c. Final pass: inliers, each sensor weighted by its own noise level.
     report("joint refinement (inliers, weighted)", 0.75)
@@ -607,19 +867,8 @@ def calibrate_rig(
         intr[s] = Intrinsics(*K4[k], tuple(D8[k, :5]))
     for vi, v in enumerate(prob.views):
         T_rig_board[v] = make_T(Rb[vi], tb[vi])
-    final = build(keep)
-    inlier_err = err[
-        [
-            (prob.views[prob.v_idx[m]], sensors[prob.s_idx[m]], int(prob.c_idx[m])) in keep
-            for m in range(len(err))
-        ]
-    ]
-    inlier_s = prob.s_idx[
-        [
-            (prob.views[prob.v_idx[m]], sensors[prob.s_idx[m]], int(prob.c_idx[m])) in keep
-            for m in range(len(err))
-        ]
-    ]
+    final = prob.subset(inlier)
+    inlier_err, inlier_s = err[inlier], prob.s_idx[inlier]
     noise = np.array(
         [np.sqrt(np.mean(inlier_err[inlier_s == k] ** 2) / 2.0) for k in range(len(sensors))]
     )
@@ -629,7 +878,7 @@ def calibrate_rig(
 
     # 4. Covariance of the parameters from the weighted Jacobian.
     report("uncertainty", 0.95)
-    sig = _parameter_sigma(final, np.asarray(res.jac), res.fun)
+    sig = _parameter_sigma(final, res.jac, res.fun)
 
     Rs, ts, Rb, tb = final.poses(x)
     K4, D8 = final.unpack_intrinsics(x, intr)
@@ -639,22 +888,21 @@ def calibrate_rig(
     board_poses = {v: make_T(Rb[vi], tb[vi]) for vi, v in enumerate(final.views)}
 
     # Errors of every observation (outliers included) at the final solution.
-    all_prob = build(None)
-    x_all = all_prob.pack(T_rig_sensor, {**T_rig_board, **board_poses}, intr)
-    err_all = np.linalg.norm(all_prob.project(x_all, intr) - all_prob.uv, axis=1)
+    x_all = prob.pack(T_rig_sensor, {**T_rig_board, **board_poses}, intr)
+    err_all = np.linalg.norm(prob.project(x_all, intr) - prob.uv, axis=1)
     outlier_views = {(o.view, o.sensor): o.reason for o in outliers if o.corner is None}
+    n_s = len(sensors)
+    image = prob.v_idx * n_s + prob.s_idx  # view-major: the report's order
+    count, sum_sq, worst_px = _image_sums(image, err_all, len(prob.views) * n_s)
     views_out: dict[str, dict[str, ViewError]] = {}
-    for vi, v in enumerate(all_prob.views):
-        for k, s in enumerate(sensors):
-            sel = (all_prob.s_idx == k) & (all_prob.v_idx == vi)
-            if sel.any():
-                e = err_all[sel]
-                views_out.setdefault(v, {})[s] = ViewError(
-                    float(np.sqrt(np.mean(e**2))),
-                    float(e.max()),
-                    (v, s) in outlier_views,
-                    outlier_views.get((v, s)),
-                )
+    for i in np.flatnonzero(count):
+        v, s = prob.views[i // n_s], sensors[i % n_s]
+        views_out.setdefault(v, {})[s] = ViewError(
+            float(np.sqrt(sum_sq[i] / count[i])),
+            float(worst_px[i]),
+            (v, s) in outlier_views,
+            outlier_views.get((v, s)),
+        )
 
     results: dict[str, SensorResult] = {}
     final_err = np.linalg.norm(final.project(x, intr) - final.uv, axis=1)
@@ -687,29 +935,65 @@ def calibrate_rig(
         rms_px=float(np.sqrt(np.mean(final_err**2))),
         seconds=time.perf_counter() - t0,
         eyes=dict(eyes or {}),
+        polarity=screen.polarity,
+        notes=notes,
     )
 
 
-def _parameter_sigma(prob: _Problem, J: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """1-sigma of every parameter: the larger of two covariance estimates.
+def _parameter_sigma(prob: _Problem, J: sparse.spmatrix | np.ndarray, r: np.ndarray) -> np.ndarray:
+    """1-sigma of every parameter (units of ``x``): the larger of two covariance estimates.
 
     * ``s^2 (J^T J)^-1``: right when corner errors are independent;
     * the cluster-robust (sandwich) estimate ``B (sum_g J_g^T r_g r_g^T J_g) B`` with
       ``B = (J^T J)^-1`` and one cluster per (view, sensor) image: detector errors are
       correlated within an image (blur, lighting or heating gradients move neighbouring
       corners alike), which the first estimate ignores and this one measures.
+
+    Args:
+        prob: the problem ``J`` and ``r`` belong to.
+        J: (2M, n) Jacobian of the weighted residuals, sparse (or dense); only the
+            (n, n) ``J^T J`` and the (images, n) sparse per-image scores are formed.
+        r: (2M,) weighted residuals at the solution.
+
+    Returns:
+        (n,) standard deviations.
     """
-    bread = np.linalg.pinv(J.T @ J)
-    dof = max(1, J.shape[0] - J.shape[1])
-    cov_iid = bread * float(np.sum(r**2) / dof)
-    cluster = np.repeat(prob.v_idx * len(prob.sensors) + prob.s_idx, 2)
-    order = np.argsort(cluster, kind="stable")
-    starts = np.flatnonzero(np.r_[True, np.diff(cluster[order]) != 0])
-    scores = np.add.reduceat(J[order] * r[order, None], starts, axis=0)  # (groups, n)
-    g = len(starts)
-    cov_cluster = bread @ (scores.T @ scores) @ bread * (g / max(1, g - 1))
-    var = np.maximum(np.diag(cov_iid), np.diag(cov_cluster))
+    J = sparse.csr_matrix(J)
+    A = (J.T @ J).toarray()  # (n, n)
+    # Invert the equilibrated matrix (unit diagonal): parameters in px, metres and radians
+    # differ by orders of magnitude; scaling keeps the inverse accurate.
+    diag = np.diag(A).copy()
+    d = 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0))
+    As = A * d[:, None] * d[None, :]
+    with threadpool_limits(limits=_BLAS_THREADS, user_api="blas"):
+        try:
+            inv = scipy.linalg.cho_solve(scipy.linalg.cho_factor(As), np.eye(len(As)))
+        except np.linalg.LinAlgError:  # singular: some parameter is not determined
+            inv = np.linalg.pinv(As, hermitian=True)
+        bread = inv * d[:, None] * d[None, :]
+        dof = max(1, J.shape[0] - J.shape[1])
+        var_iid = np.diag(bread) * float(np.sum(r**2) / dof)
+        cluster = np.repeat(prob.v_idx * len(prob.sensors) + prob.s_idx, 2)
+        _, group = np.unique(cluster, return_inverse=True)
+        g = int(group.max()) + 1
+        C = sparse.csr_matrix((r, (group, np.arange(len(r)))), shape=(g, len(r)))
+        scores = (C @ J).tocsr()  # (g, n): sum over the image's rows of r_i J_i
+        SB = np.asarray(scores @ bread)  # (g, n)
+        var_cluster = np.sum(SB * SB, axis=0) * (g / max(1, g - 1))
+    var = np.maximum(var_iid, var_cluster)
     return np.sqrt(np.clip(var, 0.0, None))
+
+
+def _image_sums(
+    image: np.ndarray, err: np.ndarray, n_images: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per image: corners, sum of squared errors (px^2) and largest error (px; -inf when
+    empty), from the (M,) image id and (M,) error of each corner."""
+    count = np.bincount(image, minlength=n_images)
+    sum_sq = np.bincount(image, weights=err * err, minlength=n_images)
+    worst = np.full(n_images, -np.inf)
+    np.maximum.at(worst, image, err)
+    return count, sum_sq, worst
 
 
 def _flag_outliers(
@@ -718,44 +1002,58 @@ def _flag_outliers(
     bad_corner: np.ndarray,
     limit: np.ndarray,
     opts: CalibrationOptions,
-) -> tuple[list[Outlier], set[tuple[str, str]]]:
-    """Outlier views and corners, with the reason for each."""
+) -> tuple[list[Outlier], np.ndarray]:
+    """Outlier views and corners, with the reason for each.
+
+    Args:
+        prob: the problem the corners belong to.
+        err: (M,) error of each corner, px.
+        bad_corner: (M,) whether each corner is beyond its limit.
+        limit: (M,) each corner's limit, px.
+        opts: the thresholds.
+
+    Returns:
+        The outliers (per sensor: its outlier views in view order, then the corners of
+        other views), and (M,) whether each corner's view is an outlier for its sensor.
+    """
     outliers: list[Outlier] = []
-    bad_views: set[tuple[str, str]] = set()
-    view_rms: dict[tuple[int, int], float] = {}
+    n_v = len(prob.views)
+    size = len(prob.sensors) * n_v
+    image = prob.s_idx * n_v + prob.v_idx  # sensor-major
+    count, sum_sq, _ = _image_sums(image, err, size)
+    n_bad = np.bincount(image, weights=bad_corner, minlength=size).astype(int)
+    good_count, good_sq, _ = _image_sums(image[~bad_corner], err[~bad_corner], size)
+    bad_image = np.zeros(size, dtype=bool)
     for k, s in enumerate(prob.sensors):
-        for vi, v in enumerate(prob.views):
-            sel = (prob.s_idx == k) & (prob.v_idx == vi)
-            if not sel.any():
-                continue
-            n_bad = int(bad_corner[sel].sum())
-            if n_bad > 0.2 * sel.sum():
-                bad_views.add((v, s))
+        view_rms: dict[int, float] = {}
+        for i in k * n_v + np.flatnonzero(count[k * n_v : (k + 1) * n_v]):
+            v = prob.views[i - k * n_v]
+            if n_bad[i] > 0.2 * count[i]:
+                bad_image[i] = True
                 outliers.append(
                     Outlier(
                         v,
                         s,
                         None,
-                        float(np.sqrt(np.mean(err[sel] ** 2))),
+                        float(np.sqrt(sum_sq[i] / count[i])),
                         (
-                            f"{n_bad} of {int(sel.sum())} corners are beyond "
+                            f"{n_bad[i]} of {count[i]} corners are beyond "
                             f"{opts.corner_outlier_sigmas:g} sigma of {s}'s noise (or "
                             f"{opts.corner_outlier_min_px:g} px)"
                         ),
                     )
                 )
             else:
-                view_rms[(k, vi)] = float(np.sqrt(np.mean(err[sel & ~bad_corner] ** 2)))
-        rms = [r for (kk, _), r in view_rms.items() if kk == k]
-        if not rms:
+                view_rms[int(i)] = float(np.sqrt(good_sq[i] / good_count[i]))
+        if not view_rms:
             continue
-        med = float(np.median(rms))
-        for (kk, vi), r in view_rms.items():
-            if kk == k and r > opts.view_outlier_factor * med and r > opts.view_outlier_min_px:
-                bad_views.add((prob.views[vi], s))
+        med = float(np.median(list(view_rms.values())))
+        for i, r in view_rms.items():
+            if r > opts.view_outlier_factor * med and r > opts.view_outlier_min_px:
+                bad_image[i] = True
                 outliers.append(
                     Outlier(
-                        prob.views[vi],
+                        prob.views[i - k * n_v],
                         s,
                         None,
                         r,
@@ -765,23 +1063,23 @@ def _flag_outliers(
                         ),
                     )
                 )
-    for m in np.flatnonzero(bad_corner):
-        v, s = prob.views[prob.v_idx[m]], prob.sensors[prob.s_idx[m]]
-        if (v, s) not in bad_views:
-            outliers.append(
-                Outlier(
-                    v,
-                    s,
-                    int(prob.c_idx[m]),
-                    float(err[m]),
-                    (
-                        f"error {err[m]:.2f} px > {limit[m]:.2f} px (the larger of "
-                        f"{opts.corner_outlier_sigmas:g} sigma of {s}'s noise and "
-                        f"{opts.corner_outlier_min_px:g} px)"
-                    ),
-                )
+    in_bad_view = bad_image[image]
+    for m in np.flatnonzero(bad_corner & ~in_bad_view):  # the (few) outlier corners
+        s = prob.sensors[prob.s_idx[m]]
+        outliers.append(
+            Outlier(
+                prob.views[prob.v_idx[m]],
+                s,
+                int(prob.c_idx[m]),
+                float(err[m]),
+                (
+                    f"error {err[m]:.2f} px > {limit[m]:.2f} px (the larger of "
+                    f"{opts.corner_outlier_sigmas:g} sigma of {s}'s noise and "
+                    f"{opts.corner_outlier_min_px:g} px)"
+                ),
             )
-    return outliers, bad_views
+        )
+    return outliers, in_bad_view
 
 
 def _sensor_sigma(

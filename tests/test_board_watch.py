@@ -4,6 +4,7 @@ frame set)."""
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections.abc import Callable
@@ -124,6 +125,45 @@ def test_a_board_missing_at_half_resolution_gets_a_full_search_when_allowed(
     assert "(half resolution)" in s.detections["ccd_right"].reason
     assert ("color", 640) in calls and calls.count(("color", 1280)) == 1
     assert s.pose_sensor == "ccd_left"  # the complete sighting takes the better camera
+
+
+def test_thermal_and_tof_orderings_follow_the_colour_cameras_pose(
+    calibration_frame_sets,
+) -> None:
+    """A board whose polarity board.yaml leaves open: a detector that takes the wrong
+    squares as black in thermal_left and the TOF (their corners come reversed) is put right
+    by the colour camera's board pose through the rig, so the Feeds panel and steadiness
+    see the true order; a board.yaml key is obeyed as it is."""
+    rig = default_rig()
+    fs = calibration_frame_sets[0]
+    truth = {
+        n: detect_board(fs.frames[n].image, CALIBRATION_BOARD, rig[n].modality) for n in rig.names
+    }
+
+    def wrong_polarity(image: np.ndarray, board, modality: str) -> Detection:
+        det = detect_board(image, board, modality)
+        if det.found and (image is fs.frames["thermal_left"].image or modality == "tof"):
+            return Detection(det.corners[::-1].copy(), None, det.method)
+        return det
+
+    s = sighting(fs, rig, CALIBRATION_BOARD, detect=wrong_polarity)
+    assert s.pose_sensor == "ccd_left"
+    for n in rig.names:  # colour: the crop search, the same corners to 0.01 px
+        assert np.abs(s.detections[n].corners - truth[n].corners).max() < 0.01, n
+    assert s.detections["thermal_left"].method.endswith("-turned")
+    assert s.detections["tof"].method.endswith("-turned")
+    assert not s.detections["thermal_right"].method.endswith("-turned")
+    again = sighting(restamped(fs, 1), rig, CALIBRATION_BOARD, previous=s, detect=wrong_polarity)
+    assert again.steady  # the corners did not move: the orderings agree from pass to pass
+
+    # With the key set, the sighting keeps what the detector gives (the key is its job).
+    keyed = dataclasses.replace(CALIBRATION_BOARD, thermal_black_is_hot=True)
+    s = sighting(fs, rig, keyed, detect=wrong_polarity)
+    assert (
+        np.abs(s.detections["thermal_left"].corners - truth["thermal_left"].corners[::-1]).max()
+        < 1e-9
+    )
+    assert np.abs(s.detections["tof"].corners - truth["tof"].corners).max() < 1e-9
 
 
 def test_the_pose_is_published_before_the_other_sensors_are_searched(

@@ -77,6 +77,11 @@ def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path)
         )
         text = page.evaluate("() => document.body.innerText")
         assert "Calibration failed" not in text, text
+        # the polarity found per sensor: the scenario's board is heated, black squares hot
+        assert "Board polarity per sensor" in text, text
+        for name in ("thermal_left", "thermal_right"):
+            assert re.search(rf"{name}\s+hot\s+poses\s", text), text
+        assert re.search(r"tof\s+dark\s+poses\s", text), text
         page.get_by_role("button", name="Save rig", exact=True).click()
         page.wait_for_function("() => document.body.innerText.includes('Saved rig-0001')")
         page.screenshot(path=str(tmp_path / "calibration-panel.png"), full_page=True)

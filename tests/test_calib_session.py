@@ -83,7 +83,7 @@ def test_delete_moves_the_view_aside_and_numbers_go_on(tmp_path, views) -> None:
 def test_refuses_what_cannot_be_done(tmp_path, views) -> None:
     rig = default_rig()
     session = CalibrationSession(tmp_path, rig, CALIBRATION_BOARD)
-    with pytest.raises(SessionError, match="at least 3 per sensor"):
+    with pytest.raises(SessionError, match="at least 3 to start"):
         session.start_calibration()
     with pytest.raises(SessionError, match="run a calibration first"):
         session.save()
@@ -113,6 +113,11 @@ def test_calibrate_save_and_reopen(tmp_path, views) -> None:
         session.save()
     report = json.loads((tmp_path / "rigs" / "rig-0001.report.json").read_text())
     assert report["rms_px"] == pytest.approx(first.rms_px) and report["rms_px"] < 0.3
+    # The polarity, found from the data (the simulated board: black hot and dark).
+    for name, words in (("thermal_left", "hot"), ("thermal_right", "hot"), ("tof", "dark")):
+        p = report["polarity"][name]
+        assert p["polarity"] == f"black squares {words}" and p["decided_by"] == "data"
+        assert not p["turned"] and p["problem"] is None
     rig = load_rig(first.path)
     for name in truth.names:  # 12 views: a rough but sound calibration
         rot_deg, trans_m = pose_error(rig[name].T_rig_sensor, truth[name].T_rig_sensor)
@@ -139,3 +144,33 @@ def test_calibrate_save_and_reopen(tmp_path, views) -> None:
         load_rig(second.path)["ccd_left"].T_rig_sensor,
     )
     reopened.close()
+
+
+def test_the_board_yaml_keys_reach_the_sessions_search(tmp_path, views) -> None:
+    """A session whose board says the black squares are cold in thermal and bright in the
+    TOF searches its views that way: on the simulated board (black hot and dark) the thermal
+    and TOF corner lists come out reversed, the colour ones as without the keys."""
+    rig = default_rig()
+    keyed_board = Board(
+        9,
+        6,
+        CALIBRATION_BOARD.square_size_m,
+        thermal_black_is_hot=False,
+        tof_black_is_dark=False,
+    )
+    found = {}
+    for name, board in (("auto", CALIBRATION_BOARD), ("keyed", keyed_board)):
+        session = CalibrationSession(tmp_path / name, rig, board)
+        session.take(views[0])
+        wait_searched(session)
+        found[name] = session.view("0001").detections
+        session.close()
+    for s in rig.names:
+        auto, keyed = found["auto"][s], found["keyed"][s]
+        assert auto.found and keyed.found, s
+        turned = rig[s].modality in ("thermal", "tof")
+        expected = auto.corners[::-1] if turned else auto.corners
+        assert np.abs(keyed.corners - expected).max() < 0.05, s
+    # A session's board is its own: reopening with other keys is refused, saying so.
+    with pytest.raises(SessionError, match="thermal_black_is_hot: false"):
+        CalibrationSession(tmp_path / "keyed", rig, CALIBRATION_BOARD)

@@ -246,11 +246,61 @@ def test_never_overwrites(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     assert code == 2 and "refusing to overwrite" in err and out.read_text() == "precious"
 
 
-def test_board_thermal_polarity_round_trips() -> None:
+def test_board_polarity_keys_are_tri_state_and_round_trip() -> None:
+    """Absent (None): found from the data; true/false: an override. Load -> save -> load
+    gives the same board, and the default board.yaml carries no polarity key."""
     from calib.board import Board, board_from_dict
 
-    cold = Board(9, 6, 0.06, thermal_black_is_hot=False)
-    assert board_from_dict(cold.to_dict()) == cold
-    assert board_from_dict(Board(9, 6, 0.06).to_dict()).thermal_black_is_hot
-    with pytest.raises(ValueError, match="thermal_black_is_hot"):
-        board_from_dict({**cold.to_dict(), "thermal_black_is_hot": "yes"})
+    auto = Board(9, 6, 0.06)
+    assert auto.thermal_black_is_hot is None and auto.tof_black_is_dark is None
+    assert set(auto.to_dict()) == {"pattern", "inner_corners", "square_size_m"}
+    assert board_from_dict(auto.to_dict()) == auto
+    for hot in (True, False):
+        for dark in (True, False, None):
+            b = Board(9, 6, 0.06, thermal_black_is_hot=hot, tof_black_is_dark=dark)
+            assert board_from_dict(b.to_dict()) == b
+            assert b.to_dict()["thermal_black_is_hot"] is hot
+    assert board_from_dict({**auto.to_dict(), "tof_black_is_dark": None}) == auto
+    for key in ("thermal_black_is_hot", "tof_black_is_dark"):
+        with pytest.raises(ValueError, match=f"{key}: expected true or false"):
+            board_from_dict({**auto.to_dict(), key: "yes"})
+
+
+def test_board_yaml_polarity_keys_reach_the_detector(
+    tmp_path: Path, calibration_frame_sets
+) -> None:
+    """``trifuse calibrate``'s detection (app.calibration_run.detect_capture) searches with
+    the keys board.yaml sets: on the simulated heated board (black hot, dark in the TOF),
+    ``thermal_black_is_hot: false`` and ``tof_black_is_dark: false`` give the corner lists
+    reversed, leaving the colour cameras alone."""
+    from app.calibration_run import detect_capture
+    from app.capture import load_capture, write_board, write_view
+    from app.sources.sim.head import default_rig
+    from app.sources.sim.scenarios import CALIBRATION_BOARD
+    from calib.board import Board
+
+    rig = default_rig()
+    runs = {}
+    for keys in ({}, {"thermal_black_is_hot": False, "tof_black_is_dark": False}):
+        cap = tmp_path / ("keyed" if keys else "auto")
+        write_board(cap, Board(9, 6, CALIBRATION_BOARD.square_size_m, **keys))
+        for i, fs in enumerate(calibration_frame_sets[:2]):
+            write_view(cap, f"{i + 1:04d}", fs, rig)
+        capture = load_capture(cap)
+        assert (capture.board.thermal_black_is_hot, capture.board.tof_black_is_dark) == (
+            keys.get("thermal_black_is_hot"),
+            keys.get("tof_black_is_dark"),
+        )
+        sensors = ["ccd_left", "thermal_left", "thermal_right", "tof"]
+        runs[bool(keys)] = detect_capture(capture, sensors).observations
+    auto, keyed = runs[False], runs[True]
+    compared = 0
+    for view, per in auto.items():
+        for s, corners in per.items():
+            if s not in keyed[view]:
+                continue
+            compared += 1
+            turned = rig[s].modality in ("thermal", "tof")
+            same = keyed[view][s][::-1] if turned else keyed[view][s]
+            assert np.abs(same - corners).max() < 0.05, (view, s)
+    assert compared >= 8

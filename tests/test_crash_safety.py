@@ -325,6 +325,46 @@ def test_killed_recording_is_kept_readable_and_reported(tmp_path) -> None:
     assert kept.is_file()
 
 
+class _Killed(BaseException):
+    """The process dies here (raised by a write cut short, as a SIGKILL cuts it)."""
+
+
+def test_a_seal_cut_short_by_a_kill_leaves_the_previous_one_readable(tmp_path, monkeypatch) -> None:
+    """Linux stops a large ``pwrite`` at a page boundary when a fatal signal is pending, so
+    a SIGKILL can leave part of a flush on disk. The sealed file writes the new records
+    behind the old seal before touching it: a flush cut in the middle of the records
+    leaves the file as the previous seal left it, for every reader."""
+    rig = default_rig()
+    w, h = rig["thermal_left"].image_size
+    rng = np.random.default_rng(6)
+    writer = RecordingWriter(tmp_path / "cut.mcap", rig, chunk_size=64 * 1024, seal_period_s=3600)
+    for k in range(20):
+        image = (290 + 20 * rng.random((h, w))).astype(np.float32)
+        writer.write(Frame("thermal_left", 1_000_000_000 + k * 50_000_000, image))
+        if k == 9:
+            writer.seal()
+    real_pwrite = os.pwrite
+
+    def torn_pwrite(fd: int, data: bytes, offset: int) -> int:
+        if len(data) <= len(SEAL):
+            return real_pwrite(fd, data, offset)
+        cut.append(real_pwrite(fd, data[: len(data) // 2 // 4096 * 4096], offset))
+        raise _Killed  # (the MCAP writer reports it as an I/O error)
+
+    cut: list[int] = []
+    monkeypatch.setattr("app.recording.sealed_file.os.pwrite", torn_pwrite)
+    with pytest.raises((_Killed, RuntimeError)):
+        writer.seal()
+    monkeypatch.undo()
+    assert cut and cut[0] > 100_000  # a large part of the new records reached the disk
+    with writer.temp_path.open("rb") as f:
+        topics = [ch.topic for _, ch, _ in make_reader(f).iter_messages()]
+    assert topics.count("/thermal_left/temperature") == 10  # the first seal's frames
+    with ReplaySource(writer.temp_path, realtime=False, on_damage="stop") as src:
+        assert len(list(src.frames())) == 10
+        assert "not finished" in str(src.damage)
+
+
 def test_recording_finished_but_not_named_gets_its_name(tmp_path) -> None:
     rig = default_rig()
     done = tmp_path / "done.mcap"
@@ -546,14 +586,14 @@ def _check_after_restart(
 
 
 def _render_views(folder: Path) -> None:
-    """Three rendered views of the calibration scenario in which every sensor sees the board
-    (poses 0, 2 and 3 of its sequence; pose 1 is outside ccd_right's image)."""
-    from app.sources.sim.scenarios import CalibrationScenario
+    """Ten rendered calibration views (``trifuse simulate calibration --seed 1``'s): enough
+    for every sensor's intrinsics (the calibration needs the board in 8 views a sensor)."""
+    from app.sources.sim.head import default_rig
+    from app.sources.sim.scenarios import calibration_views
 
-    scenario = CalibrationScenario()
-    for k, pose in enumerate((0, 2, 3)):
-        frames, _truth = scenario.render(pose * scenario.hold_s + 0.5)
-        write_view(folder, f"{k + 1:04d}", frames, scenario.rig)
+    rig = default_rig()
+    for view in calibration_views(10, 1, rig):
+        write_view(folder, view.name, view.frames, rig)
 
 
 ROUNDS = 6

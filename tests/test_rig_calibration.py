@@ -4,12 +4,24 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import sparse
+from scipy.optimize import least_squares
+from threadpoolctl import threadpool_info
 
 from app.sources.sim.head import default_rig
 from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
+from calib import polarity
 from calib.errors import CalibrationError
-from calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
-from calib.transforms import rvec_from_rotation, transform_points
+from calib.rig_calibration import (
+    CalibrationOptions,
+    SensorSpec,
+    _flag_outliers,
+    _parameter_sigma,
+    _Problem,
+    calibrate_rig,
+)
+from calib.schur_lm import least_squares_schur
+from calib.transforms import make_T, rotation_from_rvec, rvec_from_rotation, transform_points
 
 RIG = default_rig()
 SPECS = {n: SensorSpec(n, RIG[n].modality, RIG[n].image_size) for n in RIG.names}
@@ -146,3 +158,192 @@ def test_sensor_with_too_few_views_is_left_out_and_said() -> None:
     result = calibrate_rig(obs, CALIBRATION_BOARD, SPECS)
     assert "thermal_right" not in result.sensors
     assert "2 view(s)" in result.excluded_sensors["thermal_right"]
+
+
+# -- the solver's parts: analytic sparse Jacobian, covariance, Schur complement steps -------
+
+
+def _problem(
+    views: int = 6, refine_intrinsics: bool = True, seed: int = 0
+) -> tuple[_Problem, np.ndarray, dict]:
+    """A joint problem of the default head (every sensor), and a point near its solution."""
+    obs = synthetic(views=views, seed=seed)
+    sensors = ["tof", "ccd_left", "ccd_right", "thermal_left", "thermal_right"]
+    names = sorted(obs)
+    obj = CALIBRATION_BOARD.object_points()
+    rows = [(si, vi, s, v) for si, s in enumerate(sensors) for vi, v in enumerate(names)]
+    seen = [(si, vi, obs[v][s]) for si, vi, s, v in rows if s in obs[v]]
+    n = len(obj)
+    prob = _Problem(
+        sensors,
+        names,
+        np.concatenate([np.full(n, si) for si, _, _ in seen]),
+        np.concatenate([np.full(n, vi) for _, vi, _ in seen]),
+        np.concatenate([np.arange(n) for _ in seen]),
+        np.concatenate([obj for _ in seen]),
+        np.concatenate([uv for _, _, uv in seen]),
+        {s: [0, 1, 2, 3] + ([4] if RIG[s].modality == "color" else []) for s in sensors},
+        refine_intrinsics,
+    )
+    poses = dict(zip(names, calibration_poses(views, seed=1, rig=RIG), strict=True))
+    intr = {s: RIG[s].intrinsics for s in sensors}
+    x = prob.pack({s: RIG.T("tof", s) for s in sensors}, poses, intr)
+    x += np.random.default_rng(seed).normal(0, 1e-3, x.shape)  # rotations off zero too
+    return prob, x, intr
+
+
+@pytest.mark.parametrize("refine_intrinsics", [True, False])
+def test_analytic_jacobian_matches_central_differences(refine_intrinsics: bool) -> None:
+    prob, x, intr = _problem(refine_intrinsics=refine_intrinsics)
+    w = np.random.default_rng(1).uniform(5.0, 20.0, len(prob.sensors))[prob.s_idx]
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        return ((prob.project(x, intr) - prob.uv) * w[:, None]).ravel()
+
+    J = prob.jacobian(x, intr, w)
+    assert sparse.isspmatrix_csr(J) and J.shape == (2 * len(prob.s_idx), prob.n_params)
+    numeric = np.empty(J.shape)
+    for j in range(len(x)):
+        h = 1e-6 * max(1.0, abs(x[j]))
+        step = np.zeros_like(x)
+        step[j] = h
+        numeric[:, j] = (fun(x + step) - fun(x - step)) / (2 * h)
+    # Central differences are good to about 1e-8 of a column's scale here.
+    scale = np.abs(numeric).max(axis=0)
+    assert np.all(np.abs(J.toarray() - numeric).max(axis=0) <= 1e-7 * scale)
+    # Nothing outside the declared sparsity: every non-zero derivative is a stored entry.
+    assert np.count_nonzero(np.abs(numeric) > 1e-9 * scale) <= J.nnz
+
+
+def test_covariance_from_sparse_blocks_equals_the_dense_formula() -> None:
+    prob, x, intr = _problem(views=8)
+    rng = np.random.default_rng(2)
+    J = prob.jacobian(x, intr, np.ones(len(prob.s_idx)))
+    # Residuals correlated within each image (what the cluster-robust estimate is for).
+    image = prob.v_idx * len(prob.sensors) + prob.s_idx
+    r = rng.normal(0, 0.1, (image.max() + 1, 2))[image] + rng.normal(0, 0.05, (len(image), 2))
+    r = r.ravel()
+    # The former dense computation, written out.
+    Jd = J.toarray()
+    bread = np.linalg.pinv(Jd.T @ Jd)
+    cov_iid = bread * np.sum(r**2) / (Jd.shape[0] - Jd.shape[1])
+    cluster = np.repeat(image, 2)
+    order = np.argsort(cluster, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(cluster[order]) != 0])
+    scores = np.add.reduceat(Jd[order] * r[order, None], starts, axis=0)
+    g = len(starts)
+    cov_cluster = bread @ (scores.T @ scores) @ bread * g / (g - 1)
+    dense = np.sqrt(np.maximum(np.diag(cov_iid), np.diag(cov_cluster)))
+    assert np.allclose(_parameter_sigma(prob, J, r), dense, rtol=1e-7, atol=0)
+
+
+@pytest.mark.parametrize("loss", ["soft_l1", "linear"])
+def test_schur_solver_reaches_the_exact_trust_region_solution(loss: str) -> None:
+    """Same problem, same start: scipy's dense exact solver (the former engine) and ours."""
+    prob, x_true, intr = _problem(views=10, seed=3)
+    rng = np.random.default_rng(4)
+    x0 = x_true + rng.normal(0, 2e-3, x_true.shape)  # a few px off at the start
+    w = np.repeat(rng.uniform(5.0, 20.0, len(prob.sensors))[prob.s_idx], 2)
+    if loss == "soft_l1":  # a few gross errors for the robust loss to handle
+        bad = rng.choice(len(prob.uv), 10, replace=False)
+        prob.uv[bad] += rng.normal(0, 3.0, (10, 2))
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        return (prob.project(x, intr) - prob.uv).ravel() * w
+
+    def jac(x: np.ndarray) -> sparse.csr_matrix:
+        return prob.jacobian(x, intr, w[::2])
+
+    kw = dict(loss=loss, f_scale=1.0, ftol=1e-12, xtol=1e-12, gtol=1e-10, max_nfev=100)
+    ours = least_squares_schur(fun, jac, x0, (prob.off_board, len(prob.views), 6), **kw)
+    dense = {"method": "trf", "tr_solver": "exact", "x_scale": "jac"}
+    ref = least_squares(fun, x0, jac=lambda x: jac(x).toarray(), **dense, **kw)
+    assert ours.status in (1, 2, 3, 4) and ref.status in (1, 2, 3, 4)
+    assert ours.cost == pytest.approx(ref.cost, rel=1e-9)
+    # The parameters agree far below their uncertainty.
+    sigma = _parameter_sigma(prob, ref.jac, ref.fun)
+    assert np.max(np.abs(ours.x - ref.x) / sigma) < 1e-5  # measured: 3e-7
+
+
+# -- bookkeeping and threads (vectorised; no per-corner loops) -----------------------------
+
+
+def test_outlier_flags_and_inlier_problem_match_a_per_image_loop() -> None:
+    """``_flag_outliers`` (per-image sums) and ``_Problem.subset`` against the plain loops
+    over images and corners they replaced."""
+    prob, _, _ = _problem(views=8)
+    rng = np.random.default_rng(7)
+    err = np.abs(rng.normal(0, 0.1, len(prob.s_idx)))
+    image = prob.v_idx * len(prob.sensors) + prob.s_idx
+    first = np.unique(image)
+    err[image == first[3]] += 2.0  # a whole bad image: outlier by its corners
+    err[image == first[9]] *= 8.0  # a noisy image: outlier by its RMS
+    bad_corner = err > 0.35
+    bad_corner[np.flatnonzero(image == first[5])[4]] = True  # one bad corner elsewhere
+    limit = np.full(len(err), 0.35)
+    opts = CalibrationOptions()
+    outliers, in_bad_view = _flag_outliers(prob, err, bad_corner, limit, opts)
+
+    bad_images, expected = set(), []
+    for k, s in enumerate(prob.sensors):
+        rms = {}
+        for vi, v in enumerate(prob.views):
+            sel = (prob.s_idx == k) & (prob.v_idx == vi)
+            if not sel.any():
+                continue
+            if bad_corner[sel].sum() > 0.2 * sel.sum():
+                bad_images.add((k, vi))
+                expected.append((v, s, None, np.sqrt(np.mean(err[sel] ** 2))))
+            else:
+                rms[vi] = np.sqrt(np.mean(err[sel & ~bad_corner] ** 2))
+        med = np.median(list(rms.values()))
+        for vi, r in rms.items():
+            if r > opts.view_outlier_factor * med and r > opts.view_outlier_min_px:
+                bad_images.add((k, vi))
+                expected.append((prob.views[vi], s, None, r))
+    in_bad = np.array([(k, vi) in bad_images for k, vi in zip(prob.s_idx, prob.v_idx, strict=True)])
+    for m in np.flatnonzero(bad_corner & ~in_bad):
+        expected.append(
+            (prob.views[prob.v_idx[m]], prob.sensors[prob.s_idx[m]], prob.c_idx[m], err[m])
+        )
+    assert len(bad_images) == 2 and (bad_corner & ~in_bad).sum() == 1
+    assert [(o.view, o.sensor, o.corner) for o in outliers] == [e[:3] for e in expected]
+    assert np.allclose([o.error_px for o in outliers], [e[3] for e in expected], rtol=1e-12)
+    assert np.array_equal(in_bad_view, in_bad)
+
+    # The inlier problem: the same corners in the same order, views renumbered.
+    keep = ~bad_corner & ~in_bad_view
+    keep[prob.v_idx == 2] = False  # a view with no corner left is dropped
+    sub = prob.subset(keep)
+    assert sub.views == [v for i, v in enumerate(prob.views) if i != 2]
+    assert [sub.views[i] for i in sub.v_idx] == [prob.views[i] for i in prob.v_idx[keep]]
+    for name in ("s_idx", "c_idx", "X", "uv"):
+        assert np.array_equal(getattr(sub, name), getattr(prob, name)[keep])
+    assert sub.n_params == prob.n_params - 6
+
+
+def test_consensus_angles_in_chunks_equal_the_broadcast_formula(monkeypatch) -> None:
+    """The screening's vote (calib.polarity) in chunks of transforms, against the direct
+    (J, n, K, M, 3) broadcast it replaced."""
+    rng = np.random.default_rng(3)
+    n, K, M, J = 7, 2, 54, 11
+    T = np.stack(
+        [make_T(rotation_from_rvec(rng.normal(0, 0.3, 3)), rng.normal(0, 0.2, 3)) for _ in range(J)]
+    )
+    far = np.array([0.0, 0.0, 1.5])  # in front of the camera
+    P = rng.normal(0, 0.2, (n, M, 3)) + far
+    moved = rng.normal(0, 0.2, (n, K, M, 3)) + far
+    direct = polarity._angle_deg(moved[None], polarity._apply(T[:, None], P[None])[:, :, None])
+    monkeypatch.setattr(polarity, "_CHUNK_ELEMENTS", 3 * n * K * M)  # chunks of 3: 3+3+3+2
+    assert direct.shape == (J, n, K)
+    assert np.allclose(polarity._angle_deg_each(moved, P, T), direct, rtol=1e-12, atol=1e-12)
+
+
+def test_blas_runs_on_one_thread_during_the_calibration() -> None:
+    seen: list[list[int]] = []
+
+    def progress(_stage: str, _fraction: float) -> None:
+        seen.append([p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"])
+
+    calibrate_rig(synthetic(views=10, seed=4), CALIBRATION_BOARD, SPECS, progress=progress)
+    assert len(seen) > 5 and all(threads and set(threads) == {1} for threads in seen)

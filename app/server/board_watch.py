@@ -39,6 +39,13 @@ up to 3.8 s before; now no later than the cloud (median), 0.4 s at worst: BENCHM
   (:func:`board_in_image`).
 - While the last pass found the board nowhere, complete passes are ``idle_period_s``
   apart and the pose loop rests (a failed search costs the most).
+
+Which squares read hot or dark in a thermal or TOF image depends on the board
+(calib.polarity): the images are searched with ``board.yaml``'s polarity keys when it sets
+them, and otherwise each complete sighting puts every thermal and TOF detection in the
+ordering that agrees with the board pose a colour camera found, through the rig in use
+(:func:`orient_by_colour`), so that the Feeds panel, the steadiness and auto-capture see
+the corners in the right order.
 """
 
 from __future__ import annotations
@@ -57,7 +64,8 @@ import numpy as np
 from app.server.periodic import Periodic
 from app.sources.frames import FrameSet
 from calib.board import Board
-from calib.detect import Detection, detect_board
+from calib.detect import Detection
+from calib.polarity import detect_board_configured, orient_to_pose, override
 from calib.rig import Rig
 from calib.transforms import invert
 
@@ -164,6 +172,37 @@ def board_in_image(rig: Rig, sensor: str, T_rig_board: np.ndarray, board: Board)
     return bool(np.all(np.isfinite(uv)) and np.all(inside))
 
 
+def orient_by_colour(
+    detections: dict[str, Detection],
+    rig: Rig,
+    board: Board,
+    T_rig_board: np.ndarray | None,
+    pose_sensor: str | None,
+) -> dict[str, Detection]:
+    """Thermal and TOF detections in the ordering that agrees with a colour camera's.
+
+    Which squares read hot or dark in a thermal or TOF image depends on the board
+    (calib.polarity); unless ``board.yaml`` fixes it, each such detection is compared with
+    where the board pose ``T_rig_board`` (4, 4), found by the colour camera ``pose_sensor``,
+    puts the corners in that sensor's image through the rig, and is reversed (relabelled by
+    the half turn, method suffixed ``-turned``) when the reversed ordering is the one that
+    agrees. Without a colour camera's pose, or where the expected corners do not tell, the
+    detections stay as they are.
+    """
+    if T_rig_board is None or pose_sensor is None or rig[pose_sensor].modality != "color":
+        return detections
+    out = dict(detections)
+    for name, det in detections.items():
+        m = rig[name].modality
+        if not det.found or m not in ("thermal", "tof") or override(board, m) is not None:
+            continue
+        T_sensor_board = invert(rig[name].T_rig_sensor) @ T_rig_board
+        got = orient_to_pose(det.corners, rig[name].intrinsics, T_sensor_board, board)
+        if got is not None and got[1]:
+            out[name] = Detection(got[0], None, f"{det.method}-turned")
+    return out
+
+
 def _corner_spacing(corners: np.ndarray, board: Board) -> float:
     """Median distance between neighbouring corners (N, 2) of the board's grid, pixels."""
     G = corners.reshape(board.rows, board.cols, 2)
@@ -173,7 +212,7 @@ def _corner_spacing(corners: np.ndarray, board: Board) -> float:
 
 
 def first_look(
-    image: np.ndarray, board: Board, modality: str, detect: Detector = detect_board
+    image: np.ndarray, board: Board, modality: str, detect: Detector = detect_board_configured
 ) -> tuple[Detection, bool]:
     """Search one sensor image, colour images of at least :data:`COARSE_MIN_WIDTH` pixels
     at half resolution first.
@@ -234,7 +273,7 @@ class LookCache:
         detect: the detector.
     """
 
-    def __init__(self, board: Board, detect: Detector = detect_board) -> None:
+    def __init__(self, board: Board, detect: Detector = detect_board_configured) -> None:
         self.board, self.detect = board, detect
         self._lock = threading.Lock()
         self._entries: dict[str, tuple[np.ndarray, Future]] = {}
@@ -280,7 +319,7 @@ def sighting(
     *,
     on_pose: Callable[[BoardSighting], None] | None = None,
     full_search: Collection[str] | None = None,
-    detect: Detector = detect_board,
+    detect: Detector = detect_board_configured,
     looker: Looker | None = None,
 ) -> BoardSighting:
     """Detect the board in every frame of ``frames`` (sensors of ``rig`` only).
@@ -294,7 +333,9 @@ def sighting(
         full_search: colour cameras that may get a full-resolution search when the
             half-resolution one finds nothing (:func:`first_look`), unless the pose from
             another sensor puts the board (partly) outside their image; None: all.
-        detect: the detector (:func:`calib.detect.detect_board`'s signature).
+        detect: the detector (:func:`calib.detect.detect_board`'s signature; default
+            :func:`calib.polarity.detect_board_configured`: with the board file's polarity
+            overrides).
         looker: does the first look at a sensor's image (default :func:`first_look` with
             ``detect``); :class:`LookCache` shares looks between threads.
     """
@@ -362,6 +403,7 @@ def sighting(
             if det.found and (T := board_pose(rig, name, det.corners, board)) is not None:
                 pose_sensor, pose = name, T
                 break
+    detections = orient_by_colour(detections, rig, board, pose, pose_sensor)
     moved = [
         float(np.max(np.linalg.norm(det.corners - previous.detections[name].corners, axis=1)))
         for name, det in detections.items()
@@ -435,7 +477,7 @@ class BoardWatch(Periodic):
         idle_period_s: float = 3.0,
         duty: float = 0.5,
         poll_s: float = 0.05,
-        detect: Detector = detect_board,
+        detect: Detector = detect_board_configured,
     ) -> None:
         super().__init__("board-watch", poll_s)
         if not (rate_hz > 0 and 0 < duty <= 1 and poll_s > 0):

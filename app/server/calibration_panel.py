@@ -4,8 +4,10 @@ Capture (the newest frames, written at once) and auto-capture (steady, novel boa
 sightings, as ROS ``camera_calibration`` does); coverage bars per sensor; the views with
 the board found or not per sensor; delete a view; run the calibration with progress; then
 per-sensor RMS, the per-view error chart with "drop this view and calibrate again", the
-1-sigma table (and, on the simulated head, the errors against the ground truth); Save as a
-new rig version and use a saved version.
+1-sigma table, the board polarity found per sensor (which squares read dark/cold or
+bright/hot, and how decisively) with any sensor left out and why (and, on the simulated
+head, the errors against the ground truth); Save as a new rig version and use a saved
+version.
 """
 
 from __future__ import annotations
@@ -16,7 +18,16 @@ import numpy as np
 import viser.uplot as uplot
 
 from app.calib_session import CalibrationSession, SessionError, ViewInfo
-from app.report_format import TRUTH_HEAD, markdown_table, sensor_colour, truth_rows, verdict_line
+from app.report_format import (
+    POLARITY_PANEL_HEAD,
+    TRUTH_HEAD,
+    markdown_table,
+    polarity_panel_note,
+    polarity_panel_rows,
+    sensor_colour,
+    truth_rows,
+    verdict_line,
+)
 from app.server.board_watch import BoardSighting
 from app.server.context import ConsoleContext
 from app.server.periodic import Periodic
@@ -299,9 +310,22 @@ class CalibrationPanel(Periodic):
                 f"| {name} | {s.views_used}/{s.views_detected} | {s.rms_px:.3f} | "
                 f"{sig.get('fx', 0.0):.2f} | {rot:.3f} | {trans:.2f} |"
             )
+        if result.polarity:
+            pol = {n: p.as_dict() for n, p in result.polarity.items()}
+            lines += [
+                "",
+                f"**Board polarity per sensor** ({polarity_panel_note(pol)}):",
+                "",
+                *markdown_table(POLARITY_PANEL_HEAD, polarity_panel_rows(pol)),
+            ]
         if result.excluded_sensors:
             lines.append("")
-            lines += [f"- {s} not calibrated: {why}" for s, why in result.excluded_sensors.items()]
+            lines += [
+                f"- **{s} not calibrated:** {why}" for s, why in result.excluded_sensors.items()
+            ]
+        if result.notes:
+            lines.append("")
+            lines += [f"- Note: {note}" for note in result.notes]
         if truth is not None:
             lines += ["", *self._truth_md(result.rig(), truth)]
         return "\n".join(lines)

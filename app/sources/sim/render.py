@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -31,6 +32,9 @@ from app.sources.sim.scene import Scene, apply_affine
 from app.sources.sim.tof_error import RangeErrorModel
 from calib.camera import Intrinsics
 from calib.rig import Rig, Sensor
+
+if TYPE_CHECKING:
+    from app.sources.sim.thermal_conditions import ImagerThermal
 
 _CHUNK = 1 << 20  # samples traced at once in the supersampling pass
 
@@ -57,6 +61,9 @@ class HeadModel:
     supersample: dict[str, int] = field(
         default_factory=lambda: {"color": 6, "thermal": 8, "tof": 4}
     )
+    thermal_imager: ImagerThermal | None = None
+    """Vignetting/narcissus, fixed-pattern stripes, raw counts
+    (app.sources.sim.thermal_conditions); None: off."""
 
 
 @dataclass
@@ -454,6 +461,8 @@ class Renderer:
         offset = m.thermal_offset_k.get(sensor.name, 0.0)
         temp = gain * temp + offset
         temp += m.thermal_netd_k * rng.standard_normal(temp.shape, dtype=np.float32)
+        if m.thermal_imager is not None:
+            return m.thermal_imager.apply(temp, sensor.name)
         return temp.astype(np.float32)
 
     def tof_readings(

@@ -30,7 +30,7 @@ from app.sources.sim.scene import (
     Solid,
     Sphere,
 )
-from calib.rig import Rig, rig_to_yaml
+from calib.rig import Rig, Sensor, rig_to_yaml
 from calib.transforms import make_T, rotation_from_euler_deg
 
 CALIBRATION_BOARD = Board(cols=9, rows=6, square_size_m=0.06)
@@ -69,18 +69,72 @@ def _room(
     ]
 
 
+@dataclass(frozen=True)
+class BoardFinish:
+    """What the board's two kinds of squares are made of and how warm the plate is.
+
+    The default is the simulated head's board: black matte foil (emissivity 0.95, NIR
+    reflectance 0.06) on bare aluminium (0.12, 0.75), heated by ``heating_k`` kelvin (a
+    negative value cools it). The colours (black squares dark in colour) never change;
+    which squares read hot or dark in thermal and TOF images does.
+    """
+
+    heating_k: float = 22.0
+    black_emissivity: float = 0.95
+    white_emissivity: float = 0.12
+    black_nir: float = 0.06
+    white_nir: float = 0.75
+
+
+THERMAL_FINISHES: dict[str, dict[str, float]] = {
+    "heated": {},
+    "cooled": {"heating_k": -25.0},
+    "white-hot": {"black_emissivity": 0.12, "white_emissivity": 0.95},
+}
+"""Thermal variants of the board: ``heated`` (black squares hot), ``cooled`` (the same board
+25 K colder at most: black squares cold), ``white-hot`` (heated, the high-emissivity paint on
+the white squares: white squares hot)."""
+
+TOF_FINISHES: dict[str, dict[str, float]] = {
+    "dark": {},
+    "bright": {"black_nir": 0.8, "white_nir": 0.2},
+}
+"""TOF amplitude variants: ``dark`` (black squares dark), ``bright`` (a black ink that
+reflects the near infrared over a duller white: black squares bright)."""
+
+
+def board_finish(thermal: str = "heated", tof: str = "dark") -> BoardFinish:
+    """The :class:`BoardFinish` of a thermal and a TOF variant (names above)."""
+    for what, name, table in (("thermal", thermal, THERMAL_FINISHES), ("tof", tof, TOF_FINISHES)):
+        if name not in table:
+            raise ValueError(f"{what} board variant: expected one of {sorted(table)}, got {name!r}")
+    return BoardFinish(**{**THERMAL_FINISHES[thermal], **TOF_FINISHES[tof]})
+
+
 def board_solid(
-    T_world_board: np.ndarray, board: Board = CALIBRATION_BOARD, heating_k: float = 22.0
+    T_world_board: np.ndarray,
+    board: Board = CALIBRATION_BOARD,
+    heating_k: float = 22.0,
+    finish: BoardFinish | None = None,
 ) -> Quad:
-    """The heated board as a quad in its own frame (calib.board), margin included."""
+    """The heated board as a quad in its own frame (calib.board), margin included.
+
+    ``finish`` (default: the simulated head's board heated by ``heating_k``) sets the
+    squares' emissivities and NIR reflectances and the heating (it replaces ``heating_k``).
+    """
     s, m = board.square_size_m, BOARD_MARGIN_M
     extent = (-s - m, board.cols * s + m, -s - m, board.rows * s + m)
+    f = finish if finish is not None else BoardFinish(heating_k=heating_k)
     mat = BoardMaterial(
         (0.8, 0.8, 0.78),
         BOARD_PLATE_K,
         board=board,
-        heating_k=heating_k,
+        heating_k=f.heating_k,
         hot_spot_xy_m=(0.3 * board.size_m[0], 0.2 * board.size_m[1]),
+        black_emissivity=f.black_emissivity,
+        white_emissivity=f.white_emissivity,
+        black_nir=f.black_nir,
+        white_nir=f.white_nir,
     )
     return Quad("board", mat, T_world_board, extent)
 
@@ -215,18 +269,74 @@ def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
 
 
 def calibration_views(
-    views: int, seed: int, rig: Rig | None = None, model: HeadModel | None = None
+    views: int,
+    seed: int,
+    rig: Rig | None = None,
+    model: HeadModel | None = None,
+    board: Board = CALIBRATION_BOARD,
+    finish: BoardFinish | None = None,
+    sensor_views: Mapping[str, int] | None = None,
 ) -> Iterator[CalibrationView]:
-    """Render the calibration scenario lazily, one view (all sensors) at a time."""
+    """Render the calibration scenario lazily, one view (all sensors) at a time.
+
+    Args:
+        views, seed: how many views, and the seed of the poses and the noise.
+        rig: the head (default: the simulated head's ground truth).
+        model: the sensor models.
+        board: the checkerboard (its poses follow its size).
+        finish: what the squares are made of and how warm (default: the heated board).
+        sensor_views: sensor -> N: that sensor's image is kept in N views only, views
+            that show it the whole board where there are enough (spread evenly over the
+            session: :func:`kept_views`); the others' are all kept.
+    """
     rig = rig or default_rig()
     renderer = Renderer(rig, model)
     background = lab_background()
     rng = np.random.default_rng([seed, 1])
-    for i, T_rig_board in enumerate(calibration_poses(views, seed, rig)):
-        scene = Scene([*background, board_solid(T_rig_board)])
+    poses = calibration_poses(views, seed, rig, board)
+    keep = {}
+    for name, n in (sensor_views or {}).items():
+        inside = [i for i, T in enumerate(poses) if board_inside(rig[name], T, board)]
+        pool = inside if len(inside) >= n else list(range(views))
+        keep[name] = frozenset(pool[k] for k in kept_views(len(pool), n))
+    for i, T_rig_board in enumerate(poses):
+        scene = Scene([*background, board_solid(T_rig_board, board, finish=finish)])
         stamp_ns = int(i * 2e9)
         frames, truth = renderer.render(scene, np.eye(4), stamp_ns, rng)
+        dropped = [s for s, k in keep.items() if i not in k]
+        if dropped:
+            frames = FrameSet(
+                frames.stamp_ns, {n: f for n, f in frames.frames.items() if n not in dropped}
+            )
+            truth = {n: t for n, t in truth.items() if n not in dropped}
         yield CalibrationView(f"{i + 1:04d}", T_rig_board, frames, truth)
+
+
+def board_inside(
+    sensor: Sensor, T_rig_board: np.ndarray, board: Board, margin: float = 0.05
+) -> bool:
+    """Whether the whole board plate at ``T_rig_board`` (4, 4, rig frame) lies in front of
+    ``sensor`` and inside its image, at least ``margin`` x the image size from the border."""
+    T = np.linalg.inv(sensor.T_rig_sensor) @ T_rig_board
+    P = _plate_corners(board) @ T[:3, :3].T + T[:3, 3]
+    if not np.all(P[:, 2] > 0):
+        return False
+    uv = sensor.intrinsics.project(P)
+    size = np.array(sensor.image_size, dtype=np.float64)
+    inside = np.all(uv >= margin * size) and np.all(uv <= (1 - margin) * size)
+    return bool(np.all(np.isfinite(uv)) and inside)
+
+
+def kept_views(views: int, n: int) -> frozenset[int]:
+    """Indices (0-based) of ``n`` of ``views`` views spread evenly over them, first and last
+    included (all of them when ``n >= views``)."""
+    if n < 0:
+        raise ValueError(f"views kept: expected a number >= 0, got {n}")
+    if n >= views:
+        return frozenset(range(views))
+    if n == 1:
+        return frozenset({0})
+    return frozenset(round(k * (views - 1) / (n - 1)) for k in range(n))
 
 
 def inspection_scene() -> Scene:
@@ -422,3 +532,135 @@ class CalibrationScenario:
         rng = np.random.default_rng([self.seed, 2, i])
         scene = Scene([*self.background, board_solid(self.poses[i])])
         return self.renderer.render(scene, np.eye(4), round(t_s * 1e9), rng, sensors)
+
+
+# -- hard thermal views (issue 15: app.sources.sim.thermal_conditions) ----------------------
+
+
+def _facing_pose(
+    sensor: Sensor, px: np.ndarray, distance: float, R_extra: np.ndarray, centre_b: np.ndarray
+) -> np.ndarray:
+    """``T_sensor_board`` (4, 4) with the board's inner-corner centre ``centre_b`` at
+    ``distance`` (m) along the ray of pixel ``px`` (2,), facing the camera, then turned by
+    ``R_extra`` (3, 3) about that centre."""
+    ray = sensor.intrinsics.unproject(px)
+    z = ray / np.linalg.norm(ray)
+    x = np.cross((0.0, 1.0, 0.0), z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z], axis=1) @ R_extra
+    return make_T(R, distance * z - R @ centre_b)
+
+
+def partial_view_poses(
+    views: int, seed: int, rig: Rig, board: Board = CALIBRATION_BOARD
+) -> list[np.ndarray]:
+    """Board poses ``T_rig_board`` (4, 4) that put the board across the image border.
+
+    View i is aimed at sensor ``i mod n`` of ``rig``: the board (0.8-3 m away, tilted up
+    to 35 degrees, rolled up to 15) is pushed over one edge or corner of that image
+    (seeded) so that a fraction from -0.1 (wholly inside, outer squares at the border) to
+    0.45 of its checkered area's image lies beyond it. Whether every inner corner is still
+    in view is for the caller to work out from the exact projection.
+    """
+    if views < 1:
+        raise ValueError(f"views: expected at least 1, got {views}")
+    rng = np.random.default_rng([seed, 18])
+    names = rig.names
+    s = board.square_size_m
+    centre_b = np.array([(board.cols - 1) * s / 2, (board.rows - 1) * s / 2, 0.0])
+    outline_b = np.array(
+        [[-s, -s, 0], [board.cols * s, -s, 0], [board.cols * s, board.rows * s, 0],
+         [-s, board.rows * s, 0]],
+        dtype=np.float64,
+    )  # fmt: skip
+    sides = [(-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (1, -1), (-1, 1), (1, 1)]
+    poses = []
+    for i in range(views):
+        sensor = rig[names[i % len(names)]]
+        w, h = sensor.image_size
+        distance = rng.uniform(0.8, 3.0)
+        tilt = np.radians(rng.uniform(0.0, 35.0))
+        tilt_dir = rng.uniform(0.0, 2 * np.pi)
+        R_extra = _axis_angle(np.array([np.cos(tilt_dir), np.sin(tilt_dir), 0.0]), tilt)
+        R_extra = R_extra @ rotation_from_euler_deg(0.0, 0.0, rng.uniform(-15.0, 15.0))
+        side = sides[int(rng.integers(len(sides)))]
+        overhang = rng.uniform(-0.1, 0.45)
+        along = rng.uniform(0.25, 0.75)
+        centre_px = np.array([(w - 1) / 2, (h - 1) / 2])
+        T0 = _facing_pose(sensor, centre_px, distance, R_extra, centre_b)
+        uv = sensor.intrinsics.project((T0[:3, :3] @ outline_b.T).T + T0[:3, 3])
+        size = uv.max(axis=0) - uv.min(axis=0)
+        target = np.empty(2)
+        for k, (d, extent) in enumerate(zip(side, (w, h), strict=True)):
+            if d < 0:
+                target[k] = (0.5 - overhang) * size[k]
+            elif d > 0:
+                target[k] = extent - 1 - (0.5 - overhang) * size[k]
+            else:
+                target[k] = along * (extent - 1)
+        T_s_b = _facing_pose(sensor, target, distance, R_extra, centre_b)
+        poses.append(sensor.T_rig_sensor @ T_s_b)
+    return poses
+
+
+HOT_PIPE_K = 333.15
+"""The hot pipe beside the board: 60 C."""
+
+
+def hot_objects_beside_board(
+    T_rig_board: np.ndarray, board: Board = CALIBRATION_BOARD, seed: int = 0
+) -> list[Solid]:
+    """Hot clutter around the board at ``T_rig_board`` (4, 4): a vertical 60 C pipe beside
+    it (5-25 cm from the plate, on a seeded side) and the person holding it (a 33 C body
+    behind the board, sticking out on the other side, a 37 C head above it, 34 C hands on
+    the plate's edges in front). Hands and pipe may hide parts of the board: what is
+    visible comes from the render's truth. Names: ``hot_pipe``, ``person_body``, ``person_head``,
+    ``hand_left``, ``hand_right``."""
+    rng = np.random.default_rng([seed, 19])
+    s, m = board.square_size_m, BOARD_MARGIN_M
+    x_lo, x_hi = -s - m, board.cols * s + m
+    y_lo, y_hi = -s - m, board.rows * s + m
+    cy = 0.5 * (y_lo + y_hi)
+    side = 1.0 if rng.uniform() < 0.5 else -1.0
+    pipe_r = rng.uniform(0.03, 0.05)
+    gap = rng.uniform(0.05, 0.25) + pipe_r
+    pipe_x = x_hi + gap if side > 0 else x_lo - gap
+
+    def world(p: tuple[float, float, float]) -> np.ndarray:
+        return T_rig_board[:3, :3] @ np.asarray(p, dtype=np.float64) + T_rig_board[:3, 3]
+
+    pipe = Cylinder(
+        "hot_pipe",
+        Material((0.5, 0.5, 0.52), HOT_PIPE_K, 0.9, 0.5),
+        make_T(np.eye(3), world((pipe_x, cy, rng.uniform(-0.1, 0.3)))),
+        pipe_r,
+        (-1.2, 1.2),
+    )
+    # The person stands behind the board (world-vertical body, head on top), far enough
+    # along the board's normal that no part of them comes through a tilted board.
+    normal = T_rig_board[:3, 2]  # board +z: away from the camera
+    body_r, top, bottom = 0.2, -0.75, 1.0  # head top and feet, metres from board height
+    lean = abs(normal[1])
+    depth = 0.1 + max(abs(top), bottom) * lean + body_r * np.sqrt(max(0.0, 1 - lean**2))
+    body_x = 0.5 * (x_lo + x_hi) - side * rng.uniform(0.1, 0.3) * (x_hi - x_lo)
+    base = world((body_x, cy, 0.0)) + depth * normal
+    body = Cylinder(
+        "person_body",
+        Material((0.2, 0.28, 0.5), 306.0, 0.95, 0.4, pattern=(0.12, 0.15)),
+        make_T(np.eye(3), base),
+        body_r,
+        (-0.5, bottom),
+    )
+    head = Sphere(
+        "person_head",
+        Material((0.76, 0.57, 0.45), 310.15, 0.98, 0.45),
+        tuple(base + np.array([0.0, -0.62, 0.0])),
+        0.11,
+    )
+    skin = Material((0.76, 0.57, 0.45), 307.0, 0.98, 0.45)
+    hands = [
+        Sphere(name, skin, tuple(world((x, cy + rng.uniform(-0.1, 0.1), -0.04))), 0.045)
+        for name, x in (("hand_left", x_lo), ("hand_right", x_hi))
+    ]
+    return [pipe, body, head, *hands]

@@ -14,11 +14,15 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from calib.board import Board
+
+if TYPE_CHECKING:
+    from app.sources.sim.thermal_conditions import BoardThermal
 
 _EPS = 1e-9
 
@@ -93,6 +97,17 @@ class BoardMaterial(Material):
     hot_spot_xy_m: tuple[float, float] = (0.12, 0.08)
     hot_spot_sigma_m: float = 0.25
     heating_k: float = 22.0
+    black_emissivity: float = 0.95
+    """Thermal emissivity of the black squares (foil); the white squares' is
+    ``white_emissivity`` (bare aluminium). Heated (``heating_k`` > 0) the higher one reads
+    hot, cooled the colder one reads cold."""
+    white_emissivity: float = 0.12
+    black_nir: float = 0.06
+    """Near-infrared reflectance of the black squares (TOF amplitude); ``white_nir`` that of
+    the white squares and the margin."""
+    white_nir: float = 0.75
+    thermal: BoardThermal | None = None
+    """Real-world conditions of this view (app.sources.sim.thermal_conditions); None: off."""
 
     def _black(self, st: np.ndarray) -> np.ndarray:
         b = self.board
@@ -117,13 +132,14 @@ class BoardMaterial(Material):
         dy = st[:, 1] - self.hot_spot_xy_m[1]
         spot = np.exp(-(dx * dx + dy * dy) / (2 * self.hot_spot_sigma_m**2))
         slope = 0.5 - 0.5 * np.clip(st[:, 0] / (self.board.size_m[0]), -0.2, 1.2)
-        return self.temperature_k + self.heating_k * (0.35 + 0.45 * spot + 0.2 * slope)
+        t = self.temperature_k + self.heating_k * (0.35 + 0.45 * spot + 0.2 * slope)
+        return t if self.thermal is None else self.thermal.temperature(self.board, st, t)
 
     def emissivity_at(self, st: np.ndarray) -> np.ndarray:
-        return np.where(self._black(st), 0.95, 0.12)
+        return np.where(self._black(st), self.black_emissivity, self.white_emissivity)
 
     def nir(self, st: np.ndarray) -> np.ndarray:
-        return np.where(self._black(st), 0.06, 0.75)
+        return np.where(self._black(st), self.black_nir, self.white_nir)
 
     def edge_key(self, st: np.ndarray) -> np.ndarray:
         return self._black(st).astype(np.int32) + 1
