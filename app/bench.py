@@ -23,6 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from app.processes import stop_process
+
 BenchFn = Callable[[int], dict[str, float]]
 
 
@@ -892,21 +894,6 @@ class _Console:
         stop_process(self.proc)
 
 
-def stop_process(proc: Any) -> None:
-    """End a console subprocess: SIGTERM (it finishes recordings and closes cleanly), then
-    SIGKILL if it has not ended within 15 s."""
-    import subprocess
-
-    if proc.poll() is not None:
-        return
-    proc.terminate()
-    try:
-        proc.wait(15)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait(5)
-
-
 def _phase(console: _Console, windows: list[dict[str, float]], prefix: str) -> dict[str, float]:
     import statistics
 
@@ -1245,4 +1232,11 @@ def run_soak_command(soak_s: float, viewers: int) -> int:
     return run_soak_cli(SoakConfig(soak_s=soak_s, viewers=viewers))
 
 
-import app.bench_detect  # noqa: E402, F401  (registers thermal-detect)
+from app import bench_detect  # noqa: E402  (after REGISTRY; imports nothing from here)
+
+register(
+    "thermal-detect",
+    bench_detect.DESCRIPTION,
+    baselines=bench_detect.ratio_pairs(),
+    default_repeat=1,
+)(bench_detect.thermal_detect)

@@ -38,7 +38,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from app.bench import register
 from calib.board import Board
 from calib.detect import Detection, detect_board
 from calib.detect_baseline import detect_board_baseline
@@ -152,8 +151,9 @@ def simulated_results(
     colour_conditions: Iterable[str] = COLOUR_CONDITIONS,
 ) -> list[ConditionResult]:
     """Both detectors on rendered views of every condition (thermal, then colour)."""
+    from app.sources.sim.condition_views import thermal_condition_views
     from app.sources.sim.scenarios import CALIBRATION_BOARD
-    from app.sources.sim.thermal_conditions import BENCH_CONDITIONS, thermal_condition_views
+    from app.sources.sim.thermal_conditions import BENCH_CONDITIONS
 
     seeds = tuple(seeds)
     names = list(BENCH_CONDITIONS) if conditions is None else list(conditions)
@@ -229,7 +229,9 @@ def markdown_table(figures: dict[str, float]) -> str:
     return "\n".join(lines)
 
 
-def _ratio_pairs() -> tuple[tuple[str, str], ...]:
+def ratio_pairs() -> tuple[tuple[str, str], ...]:
+    """The figures ``thermal-detect`` compares, ours over the baseline: found and RMS per
+    condition, and the real images found."""
     from app.sources.sim.thermal_conditions import BENCH_CONDITIONS
 
     conds = [*BENCH_CONDITIONS, *(f"colour-{c}" for c in COLOUR_CONDITIONS)]
@@ -238,15 +240,15 @@ def _ratio_pairs() -> tuple[tuple[str, str], ...]:
     return (*pairs, ("real_found_ours", "real_found_baseline"))
 
 
-@register(
-    "thermal-detect",
+DESCRIPTION = (
     "board detection under real-world thermal conditions (issue 15): calib.detect vs the "
     "plain OpenCV pipeline per condition, found / truth error / time, plus the real colour "
-    "images; --repeat N renders N seeds per condition (16 images each)",
-    baselines=_ratio_pairs(),
-    default_repeat=1,
+    "images; --repeat N renders N seeds per condition (16 images each)"
 )
-def _thermal_detect(repeat: int) -> dict[str, float]:
+"""The ``thermal-detect`` benchmark (registered by app.bench) in a sentence."""
+
+
+def thermal_detect(repeat: int) -> dict[str, float]:
     """``repeat`` seeds (0 .. repeat - 1) of :data:`POSES_PER_SEED` poses per condition,
     both thermal imagers (colour cameras for :data:`COLOUR_CONDITIONS`); each detector runs
     once per image (its time is the median over the images)."""

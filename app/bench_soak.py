@@ -79,7 +79,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from app.bench import stop_process
+from app.processes import stop_process
 
 ROOT = Path(__file__).resolve().parents[1]
 

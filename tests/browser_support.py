@@ -23,7 +23,8 @@ from typing import Any
 
 import pytest
 
-from app.bench import CHROMIUM, CHROMIUM_FLAGS, stop_process
+from app.bench import CHROMIUM, CHROMIUM_FLAGS
+from app.processes import stop_process
 
 FLAGS = list(CHROMIUM_FLAGS)
 WAIT_MS = 300_000

@@ -22,9 +22,9 @@ from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
-from app.bench import stop_process
 from app.calib_session import CalibrationSession
 from app.cli import main
+from app.processes import stop_process
 from app.server.app import create_app
 from app.server.auth import AuthConfig, SignInThrottle, check_token, is_loopback
 from app.server.pipeline import FusionPipeline

@@ -5,6 +5,7 @@ per period."""
 
 from __future__ import annotations
 
+import http.client
 import logging
 import os
 import resource
@@ -13,7 +14,7 @@ import time
 
 import pytest
 
-from app.bench import stop_process
+from app.processes import stop_process
 from app.server.connections import _RepeatFilter
 from tests.browser_support import start_console
 
@@ -87,15 +88,20 @@ def test_half_sent_requests_neither_starve_the_console_nor_flood_its_log() -> No
         assert still_open(socks, 0.0) == 0
         assert console.get("/api/status")["error"] is None
         # a complete request on a kept-alive connection is not cut by the timeout
-        with socket.create_connection(("127.0.0.1", port)) as keep:
-            request = (
-                f"GET /api/status HTTP/1.1\r\nHost: 127.0.0.1\r\n"
-                f"Authorization: token {console.token}\r\n\r\n"
-            ).encode()
+        keep = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+        keep.connect()
+        first = keep.sock
+        try:
             for _ in range(2):
-                keep.sendall(request)
-                assert keep.recv(65536).startswith(b"HTTP/1.1 200")
+                auth = {"Authorization": f"token {console.token}"}
+                keep.request("GET", "/api/status", headers=auth)
+                reply = keep.getresponse()
+                assert reply.status == 200
+                reply.read()
                 time.sleep(HEADER_TIMEOUT_S / 2)
+            assert keep.sock is first  # the same connection throughout
+        finally:
+            keep.close()
     finally:
         for sock in socks:
             sock.close()

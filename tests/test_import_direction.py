@@ -1,5 +1,6 @@
 """Imports point one way, ``app -> fusion -> calib``, imports inside functions included:
-``calib`` imports neither ``fusion`` nor ``app``, ``fusion`` does not import ``app``."""
+``calib`` imports neither ``fusion`` nor ``app``, ``fusion`` does not import ``app``; and no
+modules import each other in a circle."""
 
 from __future__ import annotations
 
@@ -10,6 +11,66 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 FORBIDDEN = {"calib": ("fusion", "app"), "fusion": ("app",)}
+
+
+def imported_modules(path: Path) -> set[str]:
+    """Every module of the project's packages that ``path`` imports, anywhere in it
+    (``from a.b import c`` counts ``a.b`` and, when it is a module, ``a.b.c``)."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found |= {node.module} | {f"{node.module}.{a.name}" for a in node.names}
+    return found
+
+
+def module_graph() -> dict[str, set[str]]:
+    """Module name -> the project modules it imports (app, fusion, calib)."""
+    paths = {}
+    for package in ("app", "fusion", "calib"):
+        for path in (ROOT / package).rglob("*.py"):
+            name = ".".join(path.relative_to(ROOT).with_suffix("").parts)
+            paths[name.removesuffix(".__init__")] = path
+    return {m: (imported_modules(p) & paths.keys()) - {m} for m, p in paths.items()}
+
+
+def circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The groups of modules that import each other in a circle (Tarjan's strongly
+    connected components of more than one module)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = stack[stack.index(v) :]
+            del stack[stack.index(v) :]
+            if len(group) > 1:
+                found.append(sorted(group))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_no_modules_import_each_other_in_a_circle() -> None:
+    assert circles(module_graph()) == []
+
+
+def test_the_circle_check_finds_a_circle() -> None:
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert circles(graph) == [["a", "b", "c"]]
 
 
 def imported_packages(path: Path) -> set[tuple[str, int]]:

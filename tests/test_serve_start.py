@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from app.bench import stop_process
 from app.cli import main
+from app.processes import stop_process
 from app.server.serve import bind_public_socket
 from app.workdir_lock import WorkdirInUse, lock_workdir
 from tests.browser_support import console_running, free_port, start_console

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from conftest import OPENCV_LEFT_9X6
 
+from app.sources.sim.condition_views import ThermalView, thermal_condition_views
 from app.sources.sim.head import default_rig
 from app.sources.sim.render import Renderer
 from app.sources.sim.scenarios import (
@@ -34,12 +35,10 @@ from app.sources.sim.thermal_conditions import (
     ROOM_K,
     ImagerThermal,
     ThermalConditions,
-    ThermalView,
     blurred_black,
     centre_excess_k,
     counts_to_kelvin,
     square_emissivities,
-    thermal_condition_views,
     to_counts,
 )
 from calib.board import Board
