@@ -44,7 +44,7 @@ from app.atomic import atomic_write_bytes, fsync_dir, make_dirs, umask
 from app.rigfile import load_rig, save_rig
 from app.sources.frames import Frame, FrameSet
 from calib.board import Board, board_from_dict
-from calib.rig import Modality, Rig, rig_to_yaml
+from calib.rig import MODALITY_PREFIXES, Modality, Rig, modality_of_name, rig_to_yaml
 from calib.transforms import rigidity_problem
 from calib.yaml_text import YamlError, parse_yaml
 
@@ -63,17 +63,6 @@ THERMAL_COUNTS_PER_K = 100.0
 DISTANCE_COUNTS_PER_M = 1000.0
 """Counts per metre of a 16-bit distance PNG (millimetres)."""
 UINT16_MAX = 65535
-
-# Name prefixes that give a sensor's modality when the capture has no rig.yaml.
-MODALITY_PREFIXES: tuple[tuple[str, Modality], ...] = (
-    ("ccd", "color"),
-    ("color", "color"),
-    ("rgb", "color"),
-    ("thermal", "thermal"),
-    ("lwir", "thermal"),
-    ("tof", "tof"),
-    ("depth", "tof"),
-)
 
 ThermalEncoding = Literal["centikelvin", "counts"]
 
@@ -100,20 +89,16 @@ class ViewExistsError(CaptureError):
 
 
 def modality_from_name(sensor: str) -> Modality:
-    """Modality of a sensor from its name prefix (used when a capture has no rig.yaml).
-
-    ``ccd*``/``color*``/``rgb*`` -> color, ``thermal*``/``lwir*`` -> thermal,
-    ``tof*``/``depth*`` -> tof (case-insensitive). Raises CaptureError for any other name.
-    """
-    lower = sensor.lower()
-    for prefix, modality in MODALITY_PREFIXES:
-        if lower.startswith(prefix):
-            return modality
-    prefixes = ", ".join(f"{p}*" for p, _ in MODALITY_PREFIXES)
-    raise CaptureError(
-        f"sensor {sensor!r}: cannot tell its modality from the name (expected a prefix among "
-        f"{prefixes}); add a rig.yaml to the capture directory that names the sensor"
-    )
+    """Modality of a sensor from its name prefix (used when a capture has no rig.yaml):
+    :func:`calib.rig.modality_of_name`, and CaptureError for any other name."""
+    modality = modality_of_name(sensor)
+    if modality is None:
+        prefixes = ", ".join(f"{p}*" for p, _ in MODALITY_PREFIXES)
+        raise CaptureError(
+            f"sensor {sensor!r}: cannot tell its modality from the name (expected a prefix "
+            f"among {prefixes}); add a rig.yaml to the capture directory that names the sensor"
+        )
+    return modality
 
 
 def _check_name(name: str, what: str) -> None:

@@ -30,6 +30,28 @@ Modality = Literal["color", "thermal", "tof"]
 MODALITIES: tuple[str, ...] = get_args(Modality)
 RIG_FORMAT = "trifuse-rig/1"
 
+MODALITY_PREFIXES: tuple[tuple[str, Modality], ...] = (
+    ("ccd", "color"),
+    ("color", "color"),
+    ("rgb", "color"),
+    ("thermal", "thermal"),
+    ("lwir", "thermal"),
+    ("tof", "tof"),
+    ("depth", "tof"),
+)
+"""Name prefixes (case-insensitive) that give a sensor's modality where nothing says it."""
+
+
+def modality_of_name(sensor: str) -> Modality | None:
+    """Modality of a sensor from its name prefix (:data:`MODALITY_PREFIXES`), or None.
+
+    ``ccd*``/``color*``/``rgb*`` -> color, ``thermal*``/``lwir*`` -> thermal,
+    ``tof*``/``depth*`` -> tof (case-insensitive).
+    """
+    lower = sensor.lower()
+    return next((m for prefix, m in MODALITY_PREFIXES if lower.startswith(prefix)), None)
+
+
 _TOP_KEYS = {"format", "reference", "eyes", "sensors"}
 MAX_IMAGE_PIXELS = 50_000_000
 """Largest sensor image a rig may describe (width x height): 50 megapixels."""

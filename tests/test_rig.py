@@ -463,3 +463,11 @@ def test_lookup_helpers() -> None:
     assert "tof" in rig
     assert "lidar" not in rig
     assert (rig["tof"].width, rig["tof"].height) == (176, 144)
+
+
+def test_modality_of_a_sensor_name() -> None:
+    from calib.rig import modality_of_name
+
+    assert modality_of_name("CCD_left") == "color" and modality_of_name("rgb") == "color"
+    assert modality_of_name("LWIR_2") == "thermal" and modality_of_name("depth0") == "tof"
+    assert modality_of_name("imu") is None and modality_of_name("") is None

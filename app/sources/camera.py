@@ -49,7 +49,7 @@ from app.sources.base import FrameSource
 from app.sources.frames import Frame
 from app.sources.slots import NewestFrameSlots
 from calib.numbers import finite_float
-from calib.rig import Rig
+from calib.rig import Rig, modality_of_name
 from calib.yaml_text import YamlError, parse_yaml
 
 CAMERA_CONFIG_FORMAT = "trifuse-cameras/1"
@@ -255,15 +255,13 @@ def cameras_config_from_dict(
         ):
             kwargs["device"] = str(Path(base_dir) / device)
         if "modality" not in kwargs:
-            from app.capture import CaptureError, modality_from_name
-
-            try:
-                kwargs["modality"] = modality_from_name(str(name))
-            except CaptureError:
+            modality = modality_of_name(str(name))
+            if modality is None:
                 raise CameraError(
                     f"{where}: sensors.{name}: missing 'modality' (color or thermal) and the "
                     "name does not tell it"
-                ) from None
+                )
+            kwargs["modality"] = modality
         for key in ("fps", "max_rate_hz", "scale", "offset"):
             if _finite(kwargs.get(key)):
                 kwargs[key] = float(kwargs[key])
