@@ -32,8 +32,8 @@ scene (functions in :mod:`app.sources.sim.scenarios`)
     * **hot objects beside the board**: a 60 C pipe and a person holding the board
       (:func:`~app.sources.sim.scenarios.hot_objects_beside_board`).
 
-:func:`thermal_condition_views` renders a seeded set of thermal views under one set of
-conditions, with the exact corner projections (the benchmark and the tests use it).
+app.sources.sim.condition_views renders seeded thermal views under one set of conditions,
+with the exact corner projections (the benchmark and the tests use them).
 Temperatures in kelvin, lengths in metres, board coordinates in the board frame
 (calib.board).
 """
