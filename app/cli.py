@@ -23,13 +23,13 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
-from app.report_format import NEVER, limit_distance_cell, pixel_cell, sensor_colour
+from app.workflows.report_format import NEVER, limit_distance_cell, pixel_cell, sensor_colour
 
 if TYPE_CHECKING:
-    from app.capture import Capture
     from app.recording.writer import RecordingWriter
-    from app.server.auth import AuthConfig
-    from app.server.serve import TLSFiles
+    from app.server.routers.auth import AuthConfig
+    from app.server.runtime.serve import TLSFiles
+    from app.storage.capture import Capture
     from calib.board import Board
     from calib.rig import Rig
     from fusion.precision import PrecisionAnalysis
@@ -117,7 +117,7 @@ def _refuse_existing(flag: str, path: Path) -> NoReturn:
 def _load_rig_arg(path: str, flag: str = "") -> Rig:
     """A rig file given on the command line; its errors on one line (a YAML error's
     message spans several), naming the option."""
-    from app.rigfile import load_rig
+    from app.storage.rigfile import load_rig
 
     try:
         return load_rig(path)
@@ -183,11 +183,11 @@ def _check_output_dir(out: Path) -> None:
 
 
 def _cmd_simulate_calibration(args: argparse.Namespace) -> int:
-    from app.capture import write_board, write_ground_truth, write_rig, write_view
-    from app.preview import ContactSheet
-    from app.rigfile import load_rig
     from app.sources.sim.head import default_rig, nominal_rig
     from app.sources.sim.scenarios import board_finish, calibration_views
+    from app.storage.capture import write_board, write_ground_truth, write_rig, write_view
+    from app.storage.preview import ContactSheet
+    from app.storage.rigfile import load_rig
     from calib.board import Board
 
     out = Path(args.out)
@@ -259,7 +259,7 @@ def _cmd_simulate_calibration(args: argparse.Namespace) -> int:
     _out("or the per-view PNGs (thermal and TOF files are 16-bit centi-kelvin / amplitude and")
     _out("millimetres, so they look flat in a plain viewer), or list what a calibration reads:")
     _out(
-        f'  {sys.executable} -c "from app.capture import load_capture; '
+        f'  {sys.executable} -c "from app.storage.capture import load_capture; '
         f"print(load_capture('{out}').summary())\""
     )
     _out("Formats: docs/FORMATS.md")
@@ -270,9 +270,9 @@ def _cmd_simulate_calibration(args: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from app.calibration_run import calibrate_capture, format_summary, write_report
-    from app.capture import load_capture
-    from app.rigfile import save_rig
+    from app.storage.capture import load_capture
+    from app.storage.rigfile import save_rig
+    from app.workflows.calibration_run import calibrate_capture, format_summary, write_report
     from calib.rig_calibration import CalibrationOptions
 
     out, report_path = Path(args.out), Path(args.report) if args.report else None
@@ -300,7 +300,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     _out("")
     _out(format_summary(result, report))
     if truth is not None:
-        from app.report_format import comparison_text
+        from app.workflows.report_format import comparison_text
         from calib.rig_compare import compare_rigs
 
         try:
@@ -323,7 +323,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 def _check_truth_fits(truth: Rig, capture: Capture, path: str) -> None:
     """Before calibrating: ``--truth`` must share a sensor with the capture, of the same
     modality and image size (else the comparison at the end would fail)."""
-    from app.calibration_run import sensor_specs
+    from app.workflows.calibration_run import sensor_specs
 
     specs = sensor_specs(capture)
     common = [n for n in truth.names if n in specs]
@@ -348,7 +348,7 @@ def _check_truth_fits(truth: Rig, capture: Capture, path: str) -> None:
 def _cmd_compare(args: argparse.Namespace) -> int:
     import json
 
-    from app.report_format import comparison_text
+    from app.workflows.report_format import comparison_text
     from calib.rig_compare import compare_rigs
 
     estimate = _load_rig_arg(args.rig)
@@ -395,7 +395,7 @@ def _check_rig_out(out: Path, rig_path: Path | None, **others: str | None) -> No
 def _write_rig_out(out: Path, rig_path: Path | None, rig: Rig, what: str) -> None:
     """Write the updated rig; when it replaces ``rig_path``, the old file stays as
     ``RIG.yaml.~N~`` first."""
-    from app.rigfile import save_rig
+    from app.storage.rigfile import save_rig
 
     same = _same_file(out, rig_path)
     if same:
@@ -407,9 +407,10 @@ def _write_rig_out(out: Path, rig_path: Path | None, rig: Rig, what: str) -> Non
 
 
 def _cmd_calibrate_range(args: argparse.Namespace) -> int:
-    from app.calibration_run import write_report
-    from app.capture import load_capture
-    from app.range_run import (
+    from app.storage.capture import load_capture
+    from app.storage.rigfile import load_rig
+    from app.workflows.calibration_run import write_report
+    from app.workflows.range_run import (
         build_range_report,
         calibrate_range,
         format_range_summary,
@@ -417,7 +418,6 @@ def _cmd_calibrate_range(args: argparse.Namespace) -> int:
         with_range_correction,
         write_png,
     )
-    from app.rigfile import load_rig
     from calib.range_calibration import FitOptions
 
     rig_path, out = Path(args.rig), Path(args.out)
@@ -453,8 +453,8 @@ def _cmd_calibrate_range(args: argparse.Namespace) -> int:
 
 def _cmd_balance_thermal(args: argparse.Namespace) -> int:
     from app.recording import ReplaySource
-    from app.rigfile import load_rig
-    from app.thermal_run import balance_source, format_thermal_summary, with_balance
+    from app.storage.rigfile import load_rig
+    from app.workflows.thermal_run import balance_source, format_thermal_summary, with_balance
 
     out = Path(args.out)
     rig_path = Path(args.rig) if args.rig else None
@@ -484,7 +484,7 @@ def _load_board_arg(path: str | None) -> Board:
         from app.sources.sim.scenarios import CALIBRATION_BOARD
 
         return CALIBRATION_BOARD
-    from app.capture import load_board_file
+    from app.storage.capture import load_board_file
 
     return load_board_file(path)
 
@@ -492,7 +492,7 @@ def _load_board_arg(path: str | None) -> Board:
 def _serve_auth(args: argparse.Namespace) -> AuthConfig:
     """The console's authentication from ``--token`` / ``TRIFUSE_TOKEN`` / ``--no-token``,
     ``--host``, ``--allow-origin`` and TLS; UsageError for an unsafe or unusable choice."""
-    from app.server.auth import TOKEN_ENV, AuthConfig, check_token, is_loopback, new_token
+    from app.server.routers.auth import TOKEN_ENV, AuthConfig, check_token, is_loopback, new_token
 
     given = args.token if args.token is not None else os.environ.get(TOKEN_ENV)
     if args.no_token:
@@ -526,7 +526,7 @@ def _serve_auth(args: argparse.Namespace) -> AuthConfig:
 
 def _serve_tls(args: argparse.Namespace) -> TLSFiles | None:
     """``--certfile``/``--keyfile`` checked by loading them, or None."""
-    from app.server.serve import TLSFiles
+    from app.server.runtime.serve import TLSFiles
 
     if (args.certfile is None) != (args.keyfile is None):
         raise UsageError(f"{PROG} serve: --certfile and --keyfile go together")
@@ -546,8 +546,8 @@ def _serve_tls(args: argparse.Namespace) -> TLSFiles | None:
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
-    from app.server.serve import bind_public_socket, open_source, serve
-    from app.workdir_lock import WorkdirInUse, lock_workdir
+    from app.server.runtime.serve import bind_public_socket, open_source, serve
+    from app.storage.workdir_lock import WorkdirInUse, lock_workdir
 
     auth = _serve_auth(args)
     tls = _serve_tls(args)
@@ -589,7 +589,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from app.bench import REGISTRY, run_benchmark, run_soak_command
+    from app.devtools.bench import REGISTRY, run_benchmark, run_soak_command
 
     if args.soak:
         if args.only or args.repeat:
@@ -825,7 +825,7 @@ def _analyze_plot(
 def _cmd_analyze(args: argparse.Namespace) -> int:
     import json
 
-    from app.atomic import atomic_write_bytes
+    from app.storage.atomic import atomic_write_bytes
     from fusion.precision import (
         RANGE_MAX_M,
         RANGE_MIN_M,
@@ -948,7 +948,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
 def _record(args: argparse.Namespace) -> int:
     from app.recording import RecordingDamaged, RecordingWriter, ReplaySource
-    from app.rigfile import load_rig
+    from app.storage.rigfile import load_rig
 
     out = Path(args.out)
     if out.exists() or out.is_symlink():
@@ -1086,7 +1086,7 @@ def _progress_bar(done: int, total: int | None, width: int = 30) -> str:
 def _cmd_fuse(args: argparse.Namespace) -> int:
     from app.recording import ReplaySource
     from app.recording.fuse import VIDEO_NAME, fuse_recording
-    from app.rigfile import load_rig
+    from app.storage.rigfile import load_rig
     from fusion.compose import DisplaySettings
 
     out = Path(args.out)
@@ -1138,7 +1138,7 @@ def _cmd_fuse(args: argparse.Namespace) -> int:
 
 
 def _bench_names() -> str:
-    from app.bench import REGISTRY
+    from app.devtools.bench import REGISTRY
 
     return ", ".join(f"{n} ({b.description})" for n, b in REGISTRY.items())
 

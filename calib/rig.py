@@ -5,7 +5,7 @@ Each sensor stores ``T_rig_sensor``, its pose in the rig frame (4x4, metres); an
 is derived with ``rig.T(dst, src)``.
 
 This module parses and produces the rig file's *text* (YAML); reading and writing files is
-the app's job (``app.rigfile``).
+the app's job (``app.storage.rigfile``).
 """
 
 from __future__ import annotations

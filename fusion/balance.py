@@ -4,7 +4,7 @@ Two radiometric imagers disagree by up to their absolute accuracy (about 2 K) ev
 calibration; on a stereo display that shows as one eye warmer than the other. Every TOF
 point that both imagers see, unoccluded and away from thermal edges, gives a pair
 ``(t_left, t_right)`` of readings of the same surface (the method's parallax-free
-registration, DESIGN.md "The geometry of the fusion"):
+registration, docs/CONVENTIONS.md, "The geometry of the fusion"):
 
 1. :func:`shared_temperatures` collects those pairs from one frame set;
 2. :func:`estimate_balance` fits ``t_left = gain * t_right + c`` robustly (Tukey biweight

@@ -1,4 +1,4 @@
-"""The fusion geometry (DESIGN.md, "The geometry of the fusion"), vectorised in numpy.
+"""The fusion geometry (docs/CONVENTIONS.md, "The geometry of the fusion"), vectorised in numpy.
 
 A TOF pixel (u, v) with measured *radial* distance d (metres along the ray, not z):
 

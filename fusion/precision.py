@@ -1,7 +1,7 @@
 """How TOF errors move the fused pixels: the method's section 4.1 and Table 1, vectorised.
 
-The fusion (DESIGN.md, :mod:`fusion.geometry`) puts a TOF pixel (u, v) with radial distance
-d into every other sensor s:
+The fusion (docs/CONVENTIONS.md, :mod:`fusion.geometry`) puts a TOF pixel (u, v) with radial
+distance d into every other sensor s:
 
     P(d) = d * r(u, v)                     unit ray r with undistortion, TOF frame, metres
     p_s(u, v, d) = project_s(T_s_tof P(d)) pixel in sensor s, with its distortion

@@ -36,7 +36,7 @@ function windowS() {
   return (stats.rates && stats.rates.window_s) || DEFAULT_WINDOW_S;
 }
 
-// Frames per second over the window ending now: the console's formula (app/server/rates.py).
+// Frames per second over the window ending now: the console's formula (app/server/runtime/rates.py).
 function receivedFps(now) {
   const w = windowS() * 1000;
   while (stats.drawTimes.length && stats.drawTimes[0] <= now - w) stats.drawTimes.shift();

@@ -23,8 +23,8 @@ from typing import Any
 
 import pytest
 
-from app.bench import CHROMIUM, CHROMIUM_FLAGS
-from app.processes import stop_process
+from app.devtools.bench import CHROMIUM, CHROMIUM_FLAGS
+from app.devtools.processes import stop_process
 
 FLAGS = list(CHROMIUM_FLAGS)
 WAIT_MS = 300_000
@@ -92,7 +92,10 @@ def start_cache_warmup() -> None:
     if _warmups or cache.lower() in ("off", "0", "no", "false"):
         return
     for name, kwargs in WARM_SCENARIOS.items():
-        code = f"import app.server.serve as s; s.warm_simulator_cache({{{name!r}: {kwargs!r}}})"
+        code = (
+            "from app.server.runtime import serve as s; "
+            f"s.warm_simulator_cache({{{name!r}: {kwargs!r}}})"
+        )
         _warmups[name] = subprocess.Popen(
             [sys.executable, "-c", code],
             cwd=ROOT,

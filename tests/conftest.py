@@ -88,7 +88,7 @@ def simulated(tmp_path_factory: pytest.TempPathFactory) -> dict:
     import json
 
     from app.cli import main
-    from app.rigfile import load_rig
+    from app.storage.rigfile import load_rig
 
     root = tmp_path_factory.mktemp("sim")
     capture = root / "captures"

@@ -8,9 +8,9 @@ import re
 import pytest
 from fastapi.testclient import TestClient
 
-from app.server.app import create_app
-from app.server.pipeline import FusionPipeline
-from app.server.stream import FrameHub
+from app.server.routers.app import create_app
+from app.server.runtime.pipeline import FusionPipeline
+from app.server.runtime.stream import FrameHub
 from app.sources.base import FrameSource
 from app.sources.sim.head import default_rig
 

@@ -1,4 +1,4 @@
-"""Authentication and Origin checks of the console (app/server/auth.py, ``trifuse serve``).
+"""Authentication and Origin checks of the console (app/server/routers/auth.py, ``trifuse serve``).
 
 The app under test is built as ``trifuse serve`` builds it (every router, the push ingest
 and the Viser relay), so a route added later without protection fails here.
@@ -22,17 +22,17 @@ from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
-from app.calib_session import CalibrationSession
 from app.cli import main
-from app.processes import stop_process
-from app.server.app import create_app
-from app.server.auth import AuthConfig, SignInThrottle, check_token, is_loopback
-from app.server.pipeline import FusionPipeline
-from app.server.session_api import make_session_router
-from app.server.stream import FrameHub
+from app.devtools.processes import stop_process
+from app.server.routers.app import create_app
+from app.server.routers.auth import AuthConfig, SignInThrottle, check_token, is_loopback
+from app.server.routers.session_api import make_session_router
+from app.server.runtime.pipeline import FusionPipeline
+from app.server.runtime.stream import FrameHub
 from app.sources.push import PushSource, make_push_router
 from app.sources.sim.head import default_rig
 from app.sources.sim.scenarios import CALIBRATION_BOARD
+from app.workflows.calib_session import CalibrationSession
 from tests.browser_support import free_port, start_console
 from tests.test_api import _NoFrames
 from tests.test_push import serve

@@ -29,7 +29,7 @@ from fusion.balance import (
 from fusion.span import SpanSmoother, level_from_span, span_from_level
 from fusion.stereo import StereoFusion
 
-NETD_K = 0.08  # the imagers' noise (DESIGN.md), 1 sigma per reading
+NETD_K = 0.08  # the simulated imagers' noise (app.sources.sim.render), 1 sigma per reading
 SIGMA_DIFF_K = NETD_K * math.sqrt(2.0)  # 1 sigma of a left - right difference: 0.113 K
 L, R = "thermal_left", "thermal_right"
 SENSORS = [L, R, "tof"]

@@ -1,4 +1,4 @@
-"""``trifuse bench --soak`` (app/bench_soak.py): its pure helpers, the command line, and a
+"""``trifuse bench --soak`` (app/devtools/bench_soak.py): its pure helpers, the command line, and a
 short run of the whole machinery against a real console (no performance assertions: the
 figures are for BENCHMARKS.md, measured on an idle machine)."""
 
@@ -10,8 +10,9 @@ import random
 
 import pytest
 
-from app import bench_soak
-from app.bench_soak import (
+from app.cli import main
+from app.devtools import bench_soak
+from app.devtools.bench_soak import (
     MjpegParts,
     Phase,
     SoakConfig,
@@ -22,7 +23,6 @@ from app.bench_soak import (
     slope_per_minute,
     summarize,
 )
-from app.cli import main
 
 # -- the slope fit --------------------------------------------------------------------------
 
@@ -77,7 +77,7 @@ def test_sample_process_of_this_process():
 
 
 def _part(jpeg: bytes) -> bytes:
-    # as app/server/stream.py writes them
+    # as app/server/runtime/stream.py writes them
     return (
         b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
         + str(len(jpeg)).encode()

@@ -12,7 +12,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from app.server.board_watch import (
+from app.server.runtime.board_watch import (
     MAX_PAUSE_S,
     BoardWatch,
     board_in_image,

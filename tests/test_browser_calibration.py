@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.capture import load_capture
-from app.rigfile import load_rig
 from app.sources.sim.head import default_rig
+from app.storage.capture import load_capture
+from app.storage.rigfile import load_rig
 from calib.transforms import pose_error
 from tests.browser_support import TEST_BOARD_POSES, needs_chromium, start_console
 from tests.test_calibrate_cli import FOCAL, POSE

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import pytest
 
-from app.report_format import limit_distance_cell
 from app.sources.sim.head import default_rig
+from app.workflows.report_format import limit_distance_cell
 from fusion.precision import analyze_precision
 from tests.browser_support import needs_chromium
 

@@ -8,12 +8,12 @@ import time
 import numpy as np
 import pytest
 
-from app.calib_session import CalibrationSession, SessionError
-from app.capture import load_capture
-from app.rigfile import load_rig
 from app.sources.frames import FrameSet
 from app.sources.sim.head import default_rig
 from app.sources.sim.scenarios import CALIBRATION_BOARD
+from app.storage.capture import load_capture
+from app.storage.rigfile import load_rig
+from app.workflows.calib_session import CalibrationSession, SessionError
 from calib.board import Board
 from calib.detect import Detection
 from calib.transforms import pose_error

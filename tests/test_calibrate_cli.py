@@ -14,7 +14,7 @@ import pytest
 from conftest import OPENCV_LEFT_9X6
 
 from app.cli import main
-from app.report_format import coverage_sentence
+from app.workflows.report_format import coverage_sentence
 from calib.coverage import coarse_reached
 from calib.transforms import pose_error, rvec_from_rotation
 
@@ -269,14 +269,14 @@ def test_board_polarity_keys_are_tri_state_and_round_trip() -> None:
 def test_board_yaml_polarity_keys_reach_the_detector(
     tmp_path: Path, calibration_frame_sets
 ) -> None:
-    """``trifuse calibrate``'s detection (app.calibration_run.detect_capture) searches with
+    """``trifuse calibrate``'s detection (calibration_run.detect_capture) searches with
     the keys board.yaml sets: on the simulated heated board (black hot, dark in the TOF),
     ``thermal_black_is_hot: false`` and ``tof_black_is_dark: false`` give the corner lists
     reversed, leaving the colour cameras alone."""
-    from app.calibration_run import detect_capture
-    from app.capture import load_capture, write_board, write_view
     from app.sources.sim.head import default_rig
     from app.sources.sim.scenarios import CALIBRATION_BOARD
+    from app.storage.capture import load_capture, write_board, write_view
+    from app.workflows.calibration_run import detect_capture
     from calib.board import Board
 
     rig = default_rig()

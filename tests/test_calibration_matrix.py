@@ -35,8 +35,8 @@ import cv2
 import pytest
 
 from app.cli import main
-from app.rigfile import load_rig, save_rig
 from app.sources.sim.head import default_rig
+from app.storage.rigfile import load_rig, save_rig
 from calib.rig_compare import compare_rigs
 from tests.test_polarity import upside_down
 

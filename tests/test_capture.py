@@ -1,4 +1,4 @@
-"""The capture directory (app.capture): writing, reading back, and every refusal."""
+"""The capture directory (app.storage.capture): writing, reading back, and every refusal."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import yaml
 
-from app.capture import (
+from app.sources.frames import Frame, FrameSet
+from app.storage.capture import (
     GROUND_TRUTH_FORMAT,
     CaptureError,
     ViewExistsError,
@@ -25,7 +26,6 @@ from app.capture import (
     write_rig,
     write_view,
 )
-from app.sources.frames import Frame, FrameSet
 from calib.board import Board
 from calib.camera import Intrinsics
 from calib.rig import Eye, Rig, Sensor

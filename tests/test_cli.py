@@ -1,4 +1,4 @@
-"""The ``trifuse`` command line (app.cli) and the benchmark registry (app.bench)."""
+"""The ``trifuse`` command line (app.cli) and the benchmark registry (app.devtools.bench)."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import yaml
 
-from app import bench
 from app.cli import main
+from app.devtools import bench
 
 ROOT = Path(__file__).resolve().parent.parent
 COMMANDS = ["simulate", "calibrate", "compare", "analyze", "record", "fuse", "serve", "bench"]
@@ -228,8 +228,8 @@ def test_analyze_prints_tof_pixels_rounded(
     """A calibrated TOF's principal point has many decimals; the table shows one."""
     import dataclasses
 
-    from app.rigfile import save_rig
     from app.sources.sim.head import default_rig
+    from app.storage.rigfile import save_rig
     from calib.rig import Rig
 
     rig = default_rig()
@@ -256,8 +256,8 @@ def test_simulate_calibration_writes_a_capture(
         "app.sources.sim.scenarios",
         reason="the simulator module app.sources.sim.scenarios is not in this checkout yet",
     )
-    from app.capture import load_capture, load_ground_truth
     from app.sources.sim.head import default_rig, nominal_rig
+    from app.storage.capture import load_capture, load_ground_truth
 
     out = tmp_path / "captures"
     code, stdout, err = run(

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from app.cli import main
-from app.rigfile import load_rig, save_rig
 from app.sources.sim.head import default_rig
+from app.storage.rigfile import load_rig, save_rig
 from calib.camera import Intrinsics
 from calib.rig import Rig, Sensor
 from calib.rig_compare import FOCAL_TARGET, POSE_TARGET, compare_rigs

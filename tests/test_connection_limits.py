@@ -1,4 +1,4 @@
-"""The public port against connection exhaustion (app/server/connections.py): half-sent
+"""The public port against connection exhaustion (app/server/routers/connections.py): half-sent
 requests are closed after the header timeout, a client cannot hold more than its share of
 connections, the total stays below the file limit, and a message that repeats is logged once
 per period."""
@@ -14,8 +14,8 @@ import time
 
 import pytest
 
-from app.processes import stop_process
-from app.server.connections import _RepeatFilter
+from app.devtools.processes import stop_process
+from app.server.routers.connections import _RepeatFilter
 from tests.browser_support import start_console
 
 HEADER_TIMEOUT_S = 3.0

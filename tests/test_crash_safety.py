@@ -38,19 +38,19 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-import app.atomic
-import app.capture
-from app.atomic import atomic_write_bytes, remove_temporaries
-from app.calib_session import CalibrationSession
-from app.capture import load_capture, load_view, write_board, write_rig, write_view
+import app.storage.atomic
+import app.storage.capture
 from app.recording import ReplaySource
 from app.recording.sealed_file import SEAL
 from app.recording.writer import RecordingWriter, recover_interrupted
-from app.rigfile import load_rig
-from app.server.source_control import Recorder
+from app.server.runtime.source_control import Recorder
 from app.sources.frames import Frame, FrameSet
 from app.sources.sim.head import default_rig
 from app.sources.sim.scenarios import CALIBRATION_BOARD
+from app.storage.atomic import atomic_write_bytes, remove_temporaries
+from app.storage.capture import load_capture, load_view, write_board, write_rig, write_view
+from app.storage.rigfile import load_rig
+from app.workflows.calib_session import CalibrationSession
 from tests.browser_support import ROOT, TEST_BOARD_POSES, free_port, wait_for_cache_warmup
 
 CRASHED = 86  # exit code of a child that "crashed" where the test wanted
@@ -103,7 +103,7 @@ def _temporaries(folder: Path) -> list[str]:
     [
         (os, "fsync", False),  # data written, not yet durable
         (os, "replace", False),  # data durable, not yet renamed
-        (app.atomic, "fsync_dir", True),  # renamed, the directory not yet fsynced
+        (app.storage.atomic, "fsync_dir", True),  # renamed, the directory not yet fsynced
     ],
 )
 def test_atomic_write_crash_leaves_old_or_new(tmp_path, module, name, new_is_there) -> None:
@@ -164,7 +164,7 @@ def _file_hashes(folder: Path) -> dict[str, str]:
     [
         (os, "replace", 3, False),  # two images written into the staging folder, third not
         (os, "rename", 1, False),  # every image written, the folder not renamed into place
-        (app.capture, "fsync_dir", 2, True),  # renamed, the capture directory not fsynced
+        (app.storage.capture, "fsync_dir", 2, True),  # renamed, the capture directory not fsynced
     ],
 )
 def test_capture_crash_leaves_views_whole(tmp_path, module, name, nth, new_is_there) -> None:

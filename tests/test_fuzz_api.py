@@ -5,7 +5,7 @@ file) gets random JSON values, mutated valid bodies, non-JSON bodies, wrong cont
 random path parameters and random query strings. Whatever arrives: never a 5xx; a 4xx
 carries a JSON ``detail`` and changes nothing (settings, replay, recording, views, saved
 rigs, files); nothing is created outside the session's work directory, and no temporary
-file is left in it. Also the request body limit (app/server/limits.py).
+file is left in it. Also the request body limit (app/server/routers/limits.py).
 """
 
 from __future__ import annotations
@@ -29,22 +29,22 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 from hypothesis.control import currently_in_test_context
 
-from app.calib_session import CalibrationSession
 from app.recording import ReplaySource
-from app.server.app import create_app
-from app.server.limits import (
+from app.server.routers.app import create_app
+from app.server.routers.limits import (
     DEFAULT_MAX_BODY_BYTES,
     BodyLimitMiddleware,
     add_body_limit,
     require_json,
 )
-from app.server.pipeline import FusionPipeline
-from app.server.session_api import make_session_router
-from app.server.source_control import SourceControl, SourceTap
-from app.server.stream import FrameHub
-from app.server.thermal_balance import ThermalBalancer
+from app.server.routers.session_api import make_session_router
+from app.server.runtime.pipeline import FusionPipeline
+from app.server.runtime.source_control import SourceControl, SourceTap
+from app.server.runtime.stream import FrameHub
+from app.server.runtime.thermal_balance import ThermalBalancer
 from app.sources.frames import FrameSet
 from app.sources.sim.scenarios import CALIBRATION_BOARD
+from app.workflows.calib_session import CalibrationSession
 from tests.test_push import serve
 from tests.test_recording import small_rig, synth_frames, write_recording
 

@@ -36,7 +36,14 @@ import yaml
 from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 
-from app.capture import (
+from app.recording import RecordingError, ReplaySource, TopicMapError, load_topic_map
+from app.recording.ros2 import Ros2BagSource
+from app.recording.topicmap import topic_map_from_yaml
+from app.sources.camera import CameraError, load_cameras_config
+from app.sources.frames import Frame, FrameSet
+from app.sources.push import PREFIX, PushError, PushSource, encode_frame
+from app.sources.sim.head import default_rig
+from app.storage.capture import (
     BOARD_FILE,
     RIG_FILE,
     CaptureError,
@@ -48,14 +55,7 @@ from app.capture import (
     write_rig,
     write_view,
 )
-from app.recording import RecordingError, ReplaySource, TopicMapError, load_topic_map
-from app.recording.ros2 import Ros2BagSource
-from app.recording.topicmap import topic_map_from_yaml
-from app.rigfile import load_rig, save_rig
-from app.sources.camera import CameraError, load_cameras_config
-from app.sources.frames import Frame, FrameSet
-from app.sources.push import PREFIX, PushError, PushSource, encode_frame
-from app.sources.sim.head import default_rig
+from app.storage.rigfile import load_rig, save_rig
 from calib.board import Board
 from calib.errors import RigError
 from calib.range_correction import RangeCorrection, offset_grid_shape

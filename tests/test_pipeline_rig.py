@@ -8,8 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from app.server.pipeline import FusionPipeline
-from app.server.stream import FrameHub
+from app.server.runtime.pipeline import FusionPipeline
+from app.server.runtime.stream import FrameHub
 from app.sources.base import FrameSource
 from app.sources.frames import FrameSet
 from app.sources.sim.head import default_rig

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from app.cli import main
-from app.rigfile import save_rig
 from app.sources.sim.head import default_rig
+from app.storage.rigfile import save_rig
 from calib.camera import Intrinsics
 from calib.rig import Rig, Sensor, rig_to_yaml
 from calib.tof import region_map

@@ -15,10 +15,8 @@ import numpy as np
 import pytest
 import viser
 
-from app.report_format import limit_distance_cell, pixel_cell
-from app.server import panels as panels_mod
-from app.server.board_watch import BoardSighting
-from app.server.panels import (
+from app.server.panels import display as panels_mod
+from app.server.panels.display import (
     FEED_WIDTH_PX,
     ROW_COLOURS,
     Panels,
@@ -26,9 +24,11 @@ from app.server.panels import (
     scale_corners,
     short_reason,
 )
-from app.server.precision_panel import PrecisionPanel, plot_data, short_names
+from app.server.panels.precision import PrecisionPanel, plot_data, short_names
+from app.server.runtime.board_watch import BoardSighting
 from app.sources.frames import Frame, FrameSet
 from app.sources.sim.head import default_rig
+from app.workflows.report_format import limit_distance_cell, pixel_cell
 from calib.board import Board
 from calib.detect import Detection
 from calib.radiometry import Radiometry
@@ -178,7 +178,7 @@ def test_panel_shows_an_error_and_keeps_running(server) -> None:
 
 
 def test_plot_data_clips_to_the_log_axis() -> None:
-    from app.server.precision_panel import compute
+    from app.server.panels.precision import compute
 
     result = compute(default_rig())
     key = next(iter(result.before.distance_error))

@@ -22,7 +22,7 @@ from websockets.exceptions import ConnectionClosedError, InvalidStatus
 from websockets.sync.client import connect
 
 from app.drivers import push_sim
-from app.server.auth import AuthConfig, AuthMiddleware
+from app.server.routers.auth import AuthConfig, AuthMiddleware
 from app.sources.frames import Frame
 from app.sources.push import (
     MAGIC,

@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.capture import load_ground_truth
 from app.cli import main
-from app.rigfile import load_rig
 from app.sources.sim.head import default_rig
 from app.sources.sim.tof_error import RangeErrorModel
+from app.storage.capture import load_ground_truth
+from app.storage.rigfile import load_rig
 from calib.board import Board
 from calib.errors import RigError
 from calib.range_calibration import (
@@ -245,7 +245,7 @@ def test_range_calibration_meets_the_target_on_held_out_views(
     model = RangeCorrection.of(range_run["rig"]["tof"])
     held = range_run["report"]["views"]["holdout"]
     assert len(held) >= 5
-    from app.capture import load_capture
+    from app.storage.capture import load_capture
 
     capture = load_capture(simulated["capture"])
     parts = []
@@ -312,7 +312,7 @@ def test_a_rig_without_a_tof_is_a_clear_error(simulated: dict, tmp_path: Path, c
     T = np.asarray(d["sensors"]["ccd_left"]["T_rig_sensor"])
     for s in d["sensors"].values():
         s["T_rig_sensor"] = (np.linalg.inv(T) @ np.asarray(s["T_rig_sensor"])).tolist()
-    from app.rigfile import save_rig
+    from app.storage.rigfile import save_rig
 
     rig_path = save_rig(tmp_path / "no-tof.yaml", rig_from_dict(d))
     argv = ["calibrate-range", str(simulated["capture"]), "--rig", str(rig_path)]

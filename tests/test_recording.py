@@ -14,7 +14,6 @@ import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from app.capture import encode_amplitude, encode_distance, encode_thermal
 from app.cli import main
 from app.recording import (
     RecordingDamaged,
@@ -29,9 +28,10 @@ from app.recording.simrecord import (
     record_simulation,
     sim_schedule,
 )
-from app.rigfile import save_rig
 from app.sources.base import frame_sets
 from app.sources.frames import Frame, FrameSet
+from app.storage.capture import encode_amplitude, encode_distance, encode_thermal
+from app.storage.rigfile import save_rig
 from calib.camera import Intrinsics
 from calib.rig import Eye, Rig, Sensor
 from calib.transforms import make_T, rotation_from_euler_deg
@@ -781,7 +781,7 @@ def test_fuse_with_nothing_to_fuse_is_an_error(tmp_path, capsys):
 
 
 def test_recording_benchmark_is_registered():
-    from app.bench import REGISTRY
+    from app.devtools.bench import REGISTRY
 
     assert "recording" in REGISTRY
 
@@ -790,8 +790,8 @@ def test_record_live_cameras_from_a_config(tmp_path):
     """`trifuse record --source live:CONFIG`: OpenCV devices (here a video file and a
     16-bit PNG sequence) recorded for a duration, then replayed."""
     from app.cli import main as cli_main
-    from app.rigfile import save_rig
     from app.sources.sim.head import default_rig
+    from app.storage.rigfile import save_rig
     from calib.rig import Rig
 
     full = default_rig()

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from app.rigfile import load_rig, save_rig
 from app.sources.sim.head import default_rig
+from app.storage.rigfile import load_rig, save_rig
 from calib.camera import Intrinsics
 from calib.errors import RigError
 from calib.rig import Eye, Rig, Sensor, rig_from_dict, rig_from_yaml, rig_to_dict, rig_to_yaml

@@ -323,7 +323,7 @@ def test_topic_map_file(tmp_path):
 
 
 def test_bag_replay_with_a_rig(bag, tmp_path):
-    from app.rigfile import save_rig
+    from app.storage.rigfile import save_rig
     from calib.rig import Rig, Sensor
 
     path, _ = bag

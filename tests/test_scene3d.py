@@ -1,4 +1,4 @@
-"""The console's 3D scene (app/server/scene3d.py) on a real Viser server with a small fake
+"""The console's 3D scene (app/server/panels/scene3d.py) on a real Viser server with a small fake
 pipeline: a real StereoFusion of the simulated head's rig fed one synthetic frame set."""
 
 from __future__ import annotations
@@ -14,10 +14,8 @@ import pytest
 import viser
 import viser.transforms as vtf
 
-from app.server import scene_layout as layout
-from app.server.board_watch import BoardSighting
-from app.server.context import ConsoleContext
-from app.server.scene3d import (
+from app.server.panels import scene_layout as layout
+from app.server.panels.scene3d import (
     DEPTH_PALETTE,
     FALLBACK_VIEWPORT,
     NAN_GREY,
@@ -32,6 +30,8 @@ from app.server.scene3d import (
     viewport_of,
     wxyz_of,
 )
+from app.server.runtime.board_watch import BoardSighting
+from app.server.runtime.context import ConsoleContext
 from app.sources.frames import Frame, FrameSet
 from app.sources.sim.head import default_rig
 from calib.board import Board

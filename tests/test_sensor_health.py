@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from app.server.app import create_app
-from app.server.pipeline import FusionPipeline
-from app.server.sensor_health import (
+from app.server.panels.source import health_text
+from app.server.routers.app import create_app
+from app.server.runtime.pipeline import FusionPipeline
+from app.server.runtime.sensor_health import (
     Expected,
     HealthMonitor,
     Rejections,
@@ -28,9 +29,8 @@ from app.server.sensor_health import (
     short_error,
     silence_threshold_s,
 )
-from app.server.source_control import SourceControl, SourceTap
-from app.server.source_panel import health_text
-from app.server.stream import FrameHub
+from app.server.runtime.source_control import SourceControl, SourceTap
+from app.server.runtime.stream import FrameHub
 from app.sources.base import FrameSetAssembler, FrameSource
 from app.sources.frames import Frame
 from app.sources.push import PushError, PushSource, encode_frame

@@ -1,5 +1,5 @@
 """``trifuse serve`` refuses at once, in one line, what it cannot do: a port in use, a
-work directory another console holds (app/workdir_lock.py, serve.bind_public_socket); and
+work directory another console holds (app/storage/workdir_lock.py, serve.bind_public_socket); and
 no socket it listens on lets anyone in without the console's credentials."""
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 
 from app.cli import main
-from app.processes import stop_process
-from app.server.serve import bind_public_socket
-from app.workdir_lock import WorkdirInUse, lock_workdir
+from app.devtools.processes import stop_process
+from app.server.runtime.serve import bind_public_socket
+from app.storage.workdir_lock import WorkdirInUse, lock_workdir
 from tests.browser_support import console_running, free_port, start_console
 from tests.test_viser_bridge import direct_websocket
 

@@ -8,10 +8,10 @@ import pytest
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from app.calib_session import CalibrationSession
-from app.server.session_api import make_session_router
+from app.server.routers.session_api import make_session_router
 from app.sources.sim.head import default_rig
 from app.sources.sim.scenarios import CALIBRATION_BOARD
+from app.workflows.calib_session import CalibrationSession
 from calib.rig import Rig
 from tests.test_calib_session import wait_searched
 

@@ -11,10 +11,10 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.recording import ReplaySource
-from app.server.app import create_app
-from app.server.pipeline import FusionPipeline
-from app.server.source_control import SourceControl, SourceTap
-from app.server.stream import FrameHub
+from app.server.routers.app import create_app
+from app.server.runtime.pipeline import FusionPipeline
+from app.server.runtime.source_control import SourceControl, SourceTap
+from app.server.runtime.stream import FrameHub
 from app.sources.base import FrameSource
 from app.sources.frames import Frame
 from calib.rig import Rig

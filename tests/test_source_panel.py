@@ -17,13 +17,19 @@ import viser
 from viser import GuiEvent
 
 from app.recording import RecordingWriter, ReplaySource
-from app.server import source_panel
-from app.server.board_watch import BoardWatch
-from app.server.context import ConsoleContext
-from app.server.pipeline import FusionPipeline
-from app.server.source_control import ControlError, RateMeter, Recorder, SourceControl, SourceTap
-from app.server.source_panel import SourcePanel, human_bytes
-from app.server.stream import FrameHub
+from app.server.panels import source as source_panel
+from app.server.panels.source import SourcePanel, human_bytes
+from app.server.runtime.board_watch import BoardWatch
+from app.server.runtime.context import ConsoleContext
+from app.server.runtime.pipeline import FusionPipeline
+from app.server.runtime.source_control import (
+    ControlError,
+    RateMeter,
+    Recorder,
+    SourceControl,
+    SourceTap,
+)
+from app.server.runtime.stream import FrameHub
 from app.sources.base import FrameSource
 from app.sources.frames import Frame
 from calib.board import Board

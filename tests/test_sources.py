@@ -308,7 +308,7 @@ def test_simulated_live_mode_turns_the_nearest_rendered_pose(scenario):
 def test_first_minute_benchmark_measures_moves_and_stills():
     """``trifuse bench --only sim-first-minute`` judges the picture by the JPEGs the
     viewer receives: a new size is a change, changes within 0.15 s are one move."""
-    from app.bench import REGISTRY, motion_figures
+    from app.devtools.bench import REGISTRY, motion_figures
 
     assert {"sim-first-minute", "sim-live"} <= set(REGISTRY)
     pictures = [(0.0, 10), (0.1, 10), (0.5, 11), (0.55, 12), (1.0, 12), (2.5, 13), (3.2, 14)]

@@ -13,10 +13,10 @@ import pytest
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from app.server.pipeline import FusionPipeline
-from app.server.rates import RatesSnapshot, StreamRates
-from app.server.source_panel import stream_text
-from app.server.stream import FrameHub, make_stream_router
+from app.server.panels.source import stream_text
+from app.server.runtime.pipeline import FusionPipeline
+from app.server.runtime.rates import RatesSnapshot, StreamRates
+from app.server.runtime.stream import FrameHub, make_stream_router
 from app.sources.base import FrameSource
 from app.sources.frames import Frame
 from fusion.compose import DisplaySettings

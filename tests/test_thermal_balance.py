@@ -15,9 +15,9 @@ import yaml
 
 from app.cli import main
 from app.recording.writer import RecordingWriter
-from app.server.pipeline import FusionPipeline
-from app.server.stream import FrameHub
-from app.server.thermal_balance import ThermalBalancer
+from app.server.runtime.pipeline import FusionPipeline
+from app.server.runtime.stream import FrameHub
+from app.server.runtime.thermal_balance import ThermalBalancer
 from app.sources.base import FrameSource
 from app.sources.frames import Frame, FrameSet
 from app.sources.sim.scenarios import InspectionScenario
@@ -175,7 +175,7 @@ def _recording(path: Path, rig, sets: list[FrameSet]) -> Path:
 
 def test_balance_thermal_command(inspection, tmp_path: Path, capsys) -> None:
     rig, sets = inspection
-    from app.rigfile import save_rig
+    from app.storage.rigfile import save_rig
 
     rec = _recording(tmp_path / "room.mcap", rig, sets)
     rig_path = save_rig(tmp_path / "rig.yaml", rig)

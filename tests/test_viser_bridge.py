@@ -13,7 +13,7 @@ import websockets.sync.client
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from app.server.viser_bridge import RELAY_HEADER, make_viser_router, start_guarded_viser
+from app.server.routers.viser_bridge import RELAY_HEADER, make_viser_router, start_guarded_viser
 
 PROTOCOL = f"viser-v{viser.__version__}"
 

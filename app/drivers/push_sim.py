@@ -23,7 +23,7 @@ from collections.abc import Sequence
 
 from websockets.exceptions import InvalidStatus, InvalidURI, WebSocketException
 
-from app.server.auth import TOKEN_ENV
+from app.server.routers.auth import TOKEN_ENV
 from app.sources.push import PushClient
 from app.sources.simulated import SimulatedHeadSource
 

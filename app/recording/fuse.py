@@ -20,10 +20,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from app.atomic import atomic_write_bytes, atomic_write_text, fsync_dir
 from app.recording.errors import RecordingDamaged
 from app.recording.player import MessageReplay
 from app.sources.base import frame_sets
+from app.storage.atomic import atomic_write_bytes, atomic_write_text, fsync_dir
 from calib.radiometry import Radiometry
 from calib.rig import Rig
 from fusion.compose import DisplaySettings

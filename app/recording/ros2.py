@@ -152,7 +152,7 @@ class Ros2BagSource(MessageReplay):
     ) -> None:
         tmap = topic_map if isinstance(topic_map, TopicMap) else load_topic_map(topic_map)
         if rig is not None and not isinstance(rig, Rig):
-            from app.rigfile import load_rig
+            from app.storage.rigfile import load_rig
 
             rig = load_rig(rig)
         super().__init__(

@@ -48,8 +48,6 @@ from foxglove.messages import (
     Vector3,
 )
 
-from app.atomic import fsync_dir, make_dirs, umask
-from app.capture import encode_amplitude, encode_distance, encode_thermal
 from app.recording.errors import RecordingError
 from app.recording.layout import (
     METADATA_NAME,
@@ -62,6 +60,8 @@ from app.recording.layout import (
 from app.recording.mcapindex import McapIndex
 from app.recording.sealed_file import SealedMcapFile
 from app.sources.frames import Frame, FrameSet
+from app.storage.atomic import fsync_dir, make_dirs, umask
+from app.storage.capture import encode_amplitude, encode_distance, encode_thermal
 from calib.rig import Rig, Sensor, rig_to_yaml
 
 THERMAL_ENCODINGS = ("16UC1", "32FC1")

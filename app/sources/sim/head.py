@@ -1,4 +1,4 @@
-"""The default sensor head (DESIGN.md): ground-truth rig and a nominal starting rig.
+"""The default sensor head (docs/CONVENTIONS.md): ground-truth rig and a nominal starting rig.
 
 Rig frame = TOF frame (+x right, +y down, +z forward, metres). The colour pair sits 3 cm
 above the TOF with a 12 cm baseline, the thermal pair at the TOF's height, 11 cm apart,

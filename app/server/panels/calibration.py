@@ -1,0 +1,368 @@
+"""The console's Calibration panel (Viser GUI) over a :class:`CalibrationSession`.
+
+Capture (the newest frames, written at once) and auto-capture (steady, novel board
+sightings, as ROS ``camera_calibration`` does); coverage bars per sensor; the views with
+the board found or not per sensor; delete a view; run the calibration with progress; then
+per-sensor RMS, the per-view error chart with "drop this view and calibrate again", the
+1-sigma table, the board polarity found per sensor (which squares read dark/cold or
+bright/hot, and how decisively) with any sensor left out and why (and, on the simulated
+head, the errors against the ground truth); Save as a new rig version and use a saved
+version.
+"""
+
+from __future__ import annotations
+
+import html
+
+import numpy as np
+import viser.uplot as uplot
+
+from app.server.runtime.board_watch import BoardSighting
+from app.server.runtime.context import ConsoleContext
+from app.server.runtime.periodic import Periodic
+from app.workflows.calib_session import CalibrationSession, SessionError, ViewInfo
+from app.workflows.report_format import (
+    POLARITY_PANEL_HEAD,
+    TRUTH_HEAD,
+    markdown_table,
+    polarity_panel_note,
+    polarity_panel_rows,
+    sensor_colour,
+    truth_rows,
+    verdict_line,
+)
+from calib.coverage import PARAM_NAMES
+from calib.errors import RigError
+from calib.rig import Rig
+from calib.rig_compare import compare_rigs
+
+NONE = "(none)"
+
+
+def coverage_html(bars: dict[str, tuple[float, float, float, float]], views: dict[str, int]) -> str:
+    """A table of ROS-style bars: one row per sensor, X / Y / size / skew in [0, 1]."""
+    head = "".join(f"<th style='font-weight:normal'>{n}</th>" for n in PARAM_NAMES)
+    rows = []
+    for sensor, values in bars.items():
+        cells = []
+        for v in values:
+            pct = round(100 * min(1.0, max(0.0, v)))
+            color = "#2ca02c" if v >= 1.0 else "#e0a030"
+            cells.append(
+                "<td><div style='background:#ddd;height:8px;width:48px'>"
+                f"<div style='background:{color};height:8px;width:{pct}%'></div></div></td>"
+            )
+        rows.append(
+            f"<tr><td>{html.escape(sensor)} ({views.get(sensor, 0)})</td>{''.join(cells)}</tr>"
+        )
+    return (
+        "<table style='font-size:0.8em;border-spacing:4px 1px'>"
+        f"<tr><th></th>{head}</tr>{''.join(rows)}</table>"
+    )
+
+
+def views_html(views: list[ViewInfo], sensors: list[str]) -> str:
+    """The views as a compact table: per sensor ✓ board found, ✗ not, … still searching."""
+    if not views:
+        return (
+            "<p style='font-size:0.85em'>No views yet: show the board, then Capture or "
+            "Auto-capture.</p>"
+        )
+    head = "".join(
+        f"<th style='font-weight:normal'>{html.escape(s).replace('_', '<br>')}</th>"
+        for s in sensors
+    )
+    rows = []
+    for v in views:
+        marks = []
+        for s in sensors:
+            found = v.found(s) if s in v.sensors else False
+            title = html.escape(v.detections[s].reason or "") if s in v.detections else ""
+            mark = "…" if found is None else ("✓" if found else "✗")
+            color = "#2ca02c" if found else ("#888" if found is None else "#d62728")
+            marks.append(f"<td title='{title}' style='color:{color}'>{mark}</td>")
+        rows.append(f"<tr><td>{v.name}</td>{''.join(marks)}</tr>")
+    return (
+        f"<p style='font-size:0.85em;margin:0'>{len(views)} views</p>"
+        "<div style='max-height:220px;overflow-y:auto'>"
+        "<table style='font-size:0.75em;text-align:center;border-spacing:6px 0'>"
+        f"<tr><th></th>{head}</tr>{''.join(rows)}</table></div>"
+    )
+
+
+class CalibrationPanel(Periodic):
+    """Builds the Calibration folder and keeps it current (refreshed at ``rate_hz``)."""
+
+    def __init__(
+        self, ctx: ConsoleContext, session: CalibrationSession, rate_hz: float = 2.0
+    ) -> None:
+        super().__init__("calibration-panel", 1.0 / rate_hz)
+        self.ctx, self.session = ctx, session
+        self.sensors = list(ctx.pipeline.rig.names)
+        gui = ctx.server.gui
+        with gui.add_folder("Calibration"):
+            self.seen = gui.add_markdown("Board: not searched yet")
+            self.capture = gui.add_button("Capture", hint="Write the newest frames as a view")
+            self.auto = gui.add_checkbox(
+                "Auto-capture",
+                False,
+                hint="Take the board whenever it is steady and at a new pose",
+            )
+            self.message = gui.add_markdown("")
+            self.coverage = gui.add_html(coverage_html({s: (0, 0, 0, 0) for s in self.sensors}, {}))
+            self.views_html = gui.add_html(views_html([], self.sensors))
+            self.view_pick = gui.add_dropdown("View", (NONE,))
+            self.delete = gui.add_button("Delete view", color="red")
+            self.run = gui.add_button("Run calibration", color="green")
+            self.progress = gui.add_progress_bar(0.0, visible=False)
+            self.stage = gui.add_markdown("")
+            self.results = gui.add_markdown("")
+            self.chart = gui.add_uplot(
+                (np.zeros(1), *(np.full(1, np.nan) for _ in self.sensors)),
+                self._series(),
+                title="RMS error per view (px)",
+                scales={"x": uplot.Scale(time=False), "y": uplot.Scale(auto=True)},
+                aspect=1.6,
+                visible=False,
+            )
+            self.drop = gui.add_button("Drop view and calibrate again", visible=False)
+            self.save = gui.add_button("Save rig", disabled=True)
+            self.version_pick = gui.add_dropdown("Saved rig", (NONE,))
+            self.use = gui.add_button("Use this rig")
+        self.capture.on_click(lambda _e: self._act(self._capture))
+        self.delete.on_click(lambda _e: self._act(self._delete))
+        self.run.on_click(lambda _e: self._act(self._calibrate))
+        self.drop.on_click(lambda _e: self._act(self._drop))
+        self.save.on_click(lambda _e: self._act(self._save))
+        self.use.on_click(lambda _e: self._act(self._use))
+        self._dirty = True
+        self._shown_job: object = None
+        session.on_change.append(self._mark_dirty)
+        ctx.board_watch.on_sighting = self._on_sighting
+        self._saved_rigs: dict[str, Rig] = {}
+        ctx.rig_choices = self._rig_choices
+
+    # -- actions --------------------------------------------------------------------------
+
+    def _act(self, action) -> None:
+        """Run a button's action; its refusal is shown, never raised into Viser."""
+        try:
+            self.message.content = action() or ""
+        except (SessionError, KeyError, RigError, ValueError) as exc:
+            self.message.content = f"**Not done:** {exc.args[0] if exc.args else exc}"
+        self._dirty = True
+
+    def _capture(self) -> str:
+        fs = self.ctx.pipeline.latest_set
+        if fs is None:
+            raise SessionError("no frames yet")
+        return f"Captured view {self.session.take(fs).name}."
+
+    def _delete(self) -> str:
+        name = self.view_pick.value
+        if name == NONE:
+            raise SessionError("choose a view first")
+        moved = self.session.delete(name)
+        return f"Deleted view {name} (kept in {moved})."
+
+    def _calibrate(self) -> str:
+        self.session.start_calibration()
+        return ""
+
+    def _drop(self) -> str:
+        name = self.view_pick.value
+        if name == NONE:
+            raise SessionError("choose a view first")
+        self.session.delete(name)
+        self.session.start_calibration()
+        return f"Dropped view {name}; calibrating again."
+
+    def _save(self) -> str:
+        v = self.session.save()
+        return f"Saved **{v.name}** ({v.path})."
+
+    def _use(self) -> str:
+        name = self.version_pick.value.split(" ")[0]
+        if name == NONE:
+            raise SessionError("choose a saved rig first")
+        self.ctx.use_rig(self.session.load_version(name))
+        return f"The console now fuses with **{name}**."
+
+    def _on_sighting(self, s: BoardSighting) -> None:
+        """Auto-capture (in the board watch's thread)."""
+        self._sighting_text(s)
+        if not self.auto.value:
+            return
+        why = self.session.worth_taking(s.detections, s.steady)
+        if why is None:
+            return
+        try:
+            view = self.session.take(s.frames)
+        except SessionError as exc:
+            self.message.content = f"**Auto-capture failed:** {exc}"
+            return
+        self.message.content = f"Auto-captured view {view.name} ({why})."
+
+    def _rig_choices(self) -> dict[str, Rig]:
+        """Saved versions by label; each file is read once (versions are never rewritten)."""
+        out = {}
+        for v in self.session.versions():
+            if v.name not in self._saved_rigs:
+                try:
+                    self._saved_rigs[v.name] = self.session.load_version(v.name)
+                except RigError:
+                    continue
+            out[v.label] = self._saved_rigs[v.name]
+        return out
+
+    def _mark_dirty(self) -> None:
+        self._dirty = True
+
+    # -- refresh --------------------------------------------------------------------------
+
+    def _sighting_text(self, s: BoardSighting) -> None:
+        found = s.found
+        if not found:
+            self.seen.content = "Board: not seen"
+            return
+        state = "steady" if s.steady else "moving"
+        self.seen.content = f"Board ({state}): seen by {', '.join(found)}"
+
+    def tick(self) -> None:
+        if not self._dirty:
+            return
+        self._dirty = False
+        views = self.session.views()
+        cov = self.session.coverage()
+        self.coverage.content = coverage_html(
+            {s: c.progress for s, c in cov.items()}, {s: c.n_views for s, c in cov.items()}
+        )
+        self.views_html.content = views_html(views, self.sensors)
+        names = tuple(v.name for v in views) or (NONE,)
+        if tuple(self.view_pick.options) != names:
+            keep = self.view_pick.value
+            self.view_pick.options = names
+            if keep in names:
+                self.view_pick.value = keep
+        versions = tuple(v.label for v in self.session.versions()) or (NONE,)
+        if tuple(self.version_pick.options) != versions:
+            self.version_pick.options = versions
+            self.version_pick.value = versions[-1]
+        self._show_job()
+
+    def _series(self) -> tuple[uplot.Series, ...]:
+        return (
+            uplot.Series(label="view"),
+            *(
+                uplot.Series(
+                    label=s,
+                    stroke="rgb({}, {}, {})".format(*sensor_colour(i)),
+                    width=1.5,
+                    points={"show": True, "size": 5},
+                )
+                for i, s in enumerate(self.sensors)
+            ),
+        )
+
+    def _show_job(self) -> None:
+        job = self.session.job
+        running = job.state == "running"
+        self.run.disabled = running
+        self.progress.visible = running
+        self.progress.value = 100.0 * job.progress
+        if job.state == "idle":
+            self.stage.content = ""
+        elif running:
+            self.stage.content = f"Calibrating {len(job.views)} views: {job.stage}"
+        elif job.state == "failed":
+            self.stage.content = f"**Calibration failed:** {job.error}"
+        else:
+            took = (job.finished or 0) - (job.started or 0)
+            saved = f", saved as **{job.saved_as}**" if job.saved_as else ""
+            self.stage.content = f"Calibrated {len(job.views)} views in {took:.0f} s{saved}."
+        self.save.disabled = job.state != "done" or job.saved_as is not None
+        done = job.state == "done" and job.result is not None
+        self.chart.visible = self.drop.visible = done
+        if not done:
+            self.results.content = ""
+            return
+        if self._shown_job is job:
+            return
+        self._shown_job = job
+        self.results.content = self._results_md(job.result)
+        self._chart(job.result)
+
+    def _results_md(self, result) -> str:
+        """Per-sensor RMS and 1-sigma; on the simulated head a second table of errors
+        against the ground truth."""
+        truth = self.ctx.ground_truth_rig
+        lines = [
+            f"Overall RMS **{result.rms_px:.3f} px**, reference {result.reference}.",
+            "",
+            "| sensor | views | RMS px | σ fx px | σ rot ° | σ trans mm |",
+            "|---|---|---|---|---|---|",
+        ]
+        for name, s in result.sensors.items():
+            sig = s.sigma
+            rot = float(np.linalg.norm(sig.get("rotation_deg", [0, 0, 0])))
+            trans = 1000 * float(np.linalg.norm(sig.get("translation_m", [0, 0, 0])))
+            lines.append(
+                f"| {name} | {s.views_used}/{s.views_detected} | {s.rms_px:.3f} | "
+                f"{sig.get('fx', 0.0):.2f} | {rot:.3f} | {trans:.2f} |"
+            )
+        if result.polarity:
+            pol = {n: p.as_dict() for n, p in result.polarity.items()}
+            lines += [
+                "",
+                f"**Board polarity per sensor** ({polarity_panel_note(pol)}):",
+                "",
+                *markdown_table(POLARITY_PANEL_HEAD, polarity_panel_rows(pol)),
+            ]
+        if result.excluded_sensors:
+            lines.append("")
+            lines += [
+                f"- **{s} not calibrated:** {why}" for s, why in result.excluded_sensors.items()
+            ]
+        if result.notes:
+            lines.append("")
+            lines += [f"- Note: {note}" for note in result.notes]
+        if truth is not None:
+            lines += ["", *self._truth_md(result.rig(), truth)]
+        return "\n".join(lines)
+
+    @staticmethod
+    def _truth_md(rig: Rig, truth: Rig) -> list[str]:
+        """The errors against the ground truth (calib.rig_compare): per sensor its pose
+        relative to the truth's reference sensor and its focal lengths, pass/fail against
+        the calibration targets, and the verdict over every pair of sensors."""
+        try:
+            cmp = compare_rigs(rig, truth)
+        except ValueError as exc:
+            return [f"Not compared with the ground truth: {exc}"]
+        reference = truth.reference if truth.reference in cmp.intrinsics else rig.reference
+        return [
+            f"Error against the simulated head's ground truth (poses relative to {reference}):",
+            "",
+            *markdown_table(TRUTH_HEAD, truth_rows(cmp, reference)),
+            "",
+            verdict_line(cmp),
+        ]
+
+    def _chart(self, result) -> None:
+        """Per-view RMS of every sensor against the view number; the worst view is
+        preselected for "Drop view"."""
+        views = sorted(result.views)
+        x = np.array([int(v) if v.isdigit() else i for i, v in enumerate(views, 1)], float)
+        self.chart.data = (
+            x,
+            *(
+                np.array(
+                    [result.views[v][s].rms_px if s in result.views[v] else np.nan for v in views]
+                )
+                for s in self.sensors
+            ),
+        )
+        if views:
+            self.view_pick.value = max(
+                views, key=lambda v: max((e.rms_px for e in result.views[v].values()), default=0)
+            )

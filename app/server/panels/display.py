@@ -1,0 +1,387 @@
+"""The console's Viser GUI panels: Fusion, Thermal and Feeds.
+
+Fusion and Thermal write the pipeline's display settings and per-imager offsets (taking
+effect on the next frame); Feeds shows each sensor's newest image (thermal colour-mapped,
+TOF amplitude stretched) with the board watch's detected corners drawn on it (or, in a strip
+at the bottom, why the board was not found there), and the Thermal panel the live left-right
+temperature difference over points both imagers see (the same TOF point sampled in each).
+
+While the board watch's newest sighting is recent (:data:`SIGHTING_RECENT_S`), the feeds
+show the sighting's own frames, so that the corners sit on the image they were found in.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+
+import cv2
+import numpy as np
+
+from app.server.runtime.board_watch import BoardSighting
+from app.server.runtime.context import ConsoleContext
+from app.server.runtime.periodic import Periodic
+from app.server.runtime.pipeline import FusionPipeline
+from app.server.runtime.thermal_balance import BalanceStatus
+from app.sources.frames import Frame, FrameSet
+from app.storage.preview import to_display
+from app.workflows.calib_session import radiometry_report
+from calib.detect import Detection
+from fusion.palettes import PALETTE_NAMES
+from fusion.span import level_from_span, span_from_level
+
+MODES = ("blend", "edges", "thermal", "threshold", "isotherm", "pip", "color")
+C_TO_K = 273.15
+
+FEED_WIDTH_PX = 320
+"""Width of a feed thumbnail (the height keeps the sensor's aspect ratio)."""
+
+SIGHTING_RECENT_S = 30.0
+"""A board sighting whose frame set is at most this much older than the newest one is
+drawn (on its own frames); an older one is not drawn at all (a paused watch, a replay that
+jumped). A detection pass takes about 0.6 s of CPU, but 10-15 s were measured on an
+overloaded machine: the feeds then lag by that much, and their labels say so."""
+
+LAG_SHOWN_S = 2.0
+"""From this age on, a feed drawn from a sighting says in its label how old it is."""
+
+ROW_COLOURS = (
+    (255, 0, 0),
+    (255, 128, 0),
+    (200, 200, 0),
+    (0, 255, 0),
+    (0, 200, 200),
+    (0, 0, 255),
+    (255, 0, 255),
+)
+"""RGB colour of each row of corners, cyclic (``cv2.drawChessboardCorners``' colours)."""
+
+_SHIFT = 4  # fixed-point bits for sub-pixel drawing
+
+
+def thumbnail(image: np.ndarray, width: int = FEED_WIDTH_PX) -> np.ndarray:
+    """(h, width, 3) uint8 RGB display version of any frame image (:func:`to_display`)."""
+    img = to_display(image)
+    h, w = img.shape[:2]
+    size = (width, max(1, round(width * h / w)))
+    interp = cv2.INTER_AREA if width < w else cv2.INTER_LINEAR
+    return cv2.resize(img, size, interpolation=interp)
+
+
+def scale_corners(
+    corners_px: np.ndarray, image_size: tuple[int, int], thumb: np.ndarray
+) -> np.ndarray:
+    """(N, 2) corners in the full image (W, H = ``image_size``) -> thumbnail pixels.
+
+    Pixel centres at integers in both (OpenCV): ``x' = (x + 0.5) * w / W - 0.5``.
+    """
+    w_full, h_full = image_size
+    sx, sy = thumb.shape[1] / w_full, thumb.shape[0] / h_full
+    c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 2)
+    return np.stack([(c[:, 0] + 0.5) * sx - 0.5, (c[:, 1] + 0.5) * sy - 0.5], axis=1)
+
+
+FULL_MARKERS_PX = 10.0
+"""Corner spacing (thumbnail pixels) from which corners get circles, crosses and row
+lines; closer corners get small dots only, so that the board stays visible under them."""
+
+
+def draw_corners(thumb: np.ndarray, corners: np.ndarray, cols: int) -> None:
+    """Draw corners (N, 2), thumbnail pixels, row-major ``cols`` per row, in place: like
+    ``cv2.drawChessboardCorners`` (a circle and an x per corner, a line from the previous
+    corner, one colour per row), sized to the corner spacing; dots where the corners are
+    closer than :data:`FULL_MARKERS_PX`."""
+    n = len(corners)
+    if n == 0:
+        return
+    cols = cols if cols > 0 and n % cols == 0 else n
+    steps = np.linalg.norm(np.diff(corners.reshape(-1, cols, 2), axis=1), axis=2)
+    spacing = float(np.median(steps)) if steps.size else FULL_MARKERS_PX
+    one = 1 << _SHIFT
+    pts = np.round(corners * one).astype(np.int64)
+    aa = cv2.LINE_AA
+    full = spacing >= FULL_MARKERS_PX
+    rr = round(min(0.3 * spacing, 4.0) * one) if full else round(max(0.2 * spacing, 0.8) * one)
+    for i in range(n):
+        colour = ROW_COLOURS[(i // cols) % len(ROW_COLOURS)]
+        x, y = int(pts[i, 0]), int(pts[i, 1])
+        if not full:
+            cv2.circle(thumb, (x, y), rr, colour, -1, aa, _SHIFT)
+            continue
+        if i:
+            prev = (int(pts[i - 1, 0]), int(pts[i - 1, 1]))
+            cv2.line(thumb, prev, (x, y), colour, 1, aa, _SHIFT)
+        cv2.line(thumb, (x - rr, y - rr), (x + rr, y + rr), colour, 1, aa, _SHIFT)
+        cv2.line(thumb, (x - rr, y + rr), (x + rr, y - rr), colour, 1, aa, _SHIFT)
+        cv2.circle(thumb, (x, y), rr + one, colour, 1, aa, _SHIFT)
+
+
+def short_reason(reason: str | None) -> str:
+    """A detector's reason without its parenthesised details, e.g. "board not found"."""
+    text = re.sub(r"\s*\([^()]*\)", "", reason or "board not found").strip()
+    return text or "board not found"
+
+
+def draw_note(thumb: np.ndarray, text: str, scale: float = 0.4) -> None:
+    """Write ``text`` in white on a darkened strip along the bottom, in place (cut with
+    "..." to the width)."""
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    h, w = thumb.shape[:2]
+    (tw, th), base = cv2.getTextSize(text, font, scale, 1)
+    while tw > w - 8 and len(text) > 4:
+        text = text[: len(text) - 5].rstrip() + "..."
+        (tw, th), base = cv2.getTextSize(text, font, scale, 1)
+    top = max(0, h - th - base - 8)
+    thumb[top:] //= 3
+    cv2.putText(thumb, text, (4, h - base - 4), font, scale, (255, 255, 255), 1, cv2.LINE_AA)
+
+
+def feed_image(
+    frame: Frame, detection: Detection | None, cols: int, width: int = FEED_WIDTH_PX
+) -> np.ndarray:
+    """The feed thumbnail of ``frame`` with the detection drawn: corners when found, else
+    the short reason; nothing when ``detection`` is None (no recent search)."""
+    thumb = np.ascontiguousarray(thumbnail(frame.image, width))
+    if detection is None:
+        return thumb
+    if detection.found:
+        h, w = frame.image.shape[:2]
+        draw_corners(thumb, scale_corners(detection.corners, (w, h), thumb), cols)
+    else:
+        draw_note(thumb, short_reason(detection.reason))
+    return thumb
+
+
+def recent_sighting(sighting: BoardSighting | None, newest: FrameSet) -> bool:
+    """Whether ``sighting`` searched a frame set within :data:`SIGHTING_RECENT_S` of
+    ``newest`` (either way: a looping replay goes back in time)."""
+    if sighting is None:
+        return False
+    return abs(newest.stamp_ns - sighting.frames.stamp_ns) <= SIGHTING_RECENT_S * 1e9
+
+
+class Panels(Periodic):
+    """Builds the panels and refreshes the feeds and the left-right difference."""
+
+    def __init__(self, ctx: ConsoleContext, feed_hz: float = 2.0) -> None:
+        super().__init__("panels", 1.0 / feed_hz)
+        self.ctx = ctx
+        server, pipeline = ctx.server, ctx.pipeline
+        self.server, self.pipeline = server, pipeline
+        gui = server.gui
+        s = pipeline.settings
+        with gui.add_folder("Fusion"):
+            self.mode = gui.add_dropdown("Mode", MODES, initial_value=s.mode)
+            self.opacity = gui.add_slider("Opacity", 0.0, 1.0, 0.05, s.opacity)
+            self.edges = gui.add_slider("Edge strength", 0.0, 10.0, 0.5, s.edge_strength)
+            self.thr_lo = gui.add_number("Threshold low (°C)", 40.0, step=0.5)
+            self.thr_hi = gui.add_number("Threshold high (°C)", 40.0, step=0.5)
+            self.thr_dir = gui.add_dropdown(
+                "Threshold shows", ("above", "below", "inside"), initial_value=s.threshold_direction
+            )
+            self.iso_lo = gui.add_number("Isotherm low (°C)", 30.0, step=0.5)
+            self.iso_hi = gui.add_number("Isotherm high (°C)", 40.0, step=0.5)
+            self.mark = gui.add_checkbox("Mark fallback depth", s.mark_fallback)
+        with gui.add_folder("Thermal"):
+            self.palette = gui.add_dropdown("Palette", PALETTE_NAMES, initial_value=s.palette)
+            self.auto = gui.add_checkbox(
+                "Auto span (both eyes)",
+                s.span_k is None,
+                hint="Percentiles over both imagers, smoothed over time",
+            )
+            self.level = gui.add_number("Level (°C)", 30.0, step=0.5)
+            self.span = gui.add_number("Span (K)", 30.0, min=0.5, step=0.5)
+            self.smoothing = gui.add_slider(
+                "Span smoothing (s)", 0.0, 10.0, 0.5, s.span_smoothing_s
+            )
+            self.offsets = {
+                name: gui.add_number(f"Offset {name} (K)", r.manual_offset_k, step=0.05)
+                for name, r in pipeline.radiometry.items()
+            }
+            self.auto_balance = gui.add_checkbox(
+                "Auto-balance",
+                False,
+                hint="Estimate the left-right offset from points both imagers see, "
+                "filtered over time, and apply it",
+            )
+            imagers = tuple(pipeline.radiometry)
+            self.balance_ref = gui.add_dropdown("Balance onto", (SPLIT, *imagers))
+            self.balance_now = gui.add_button("Balance now")
+            self.balance_reset = gui.add_button("Reset balance")
+            self.balance_md = gui.add_markdown("Balance: not estimated yet")
+            self.difference = gui.add_markdown("Left - right: waiting for frames")
+            self.save_radiometry = gui.add_button(
+                "Save as rig version", hint="The rig in use with this radiometry, as rigs/rig-NNNN"
+            )
+            self.error = gui.add_markdown("")
+        with gui.add_folder("Feeds", expand_by_default=False):
+            blank = np.zeros((90, 120, 3), np.uint8)
+            self.feeds = {
+                name: gui.add_image(blank, label=name, format="jpeg") for name in pipeline.rig.names
+            }
+            self.feeds_error = gui.add_markdown("")
+        # what each feed shows: (frame, detection), compared by identity
+        self._shown: dict[str, tuple[Frame, Detection | None]] = {}
+        for handle in (
+            self.mode,
+            self.palette,
+            self.opacity,
+            self.edges,
+            self.thr_lo,
+            self.thr_hi,
+            self.thr_dir,
+            self.iso_lo,
+            self.iso_hi,
+            self.mark,
+            self.auto,
+            self.level,
+            self.span,
+            self.smoothing,
+            *self.offsets.values(),
+            self.auto_balance,
+            self.balance_ref,
+        ):
+            # the operator's changes only: the panel's own updates (following the automatic
+            # span) must not write its controls over settings made through the REST API
+            handle.on_update(lambda event: self.apply() if event.client is not None else None)
+        self.balance_now.on_click(lambda _e: self._act(self._balance_now))
+        self.balance_reset.on_click(lambda _e: self._act(self._reset_balance))
+        self.save_radiometry.on_click(lambda _e: self._act(self._save_radiometry))
+
+    def apply(self) -> None:
+        """Settings from the controls; a bad combination is shown, the old one kept."""
+        try:
+            span = span_from_level(self.level.value + C_TO_K, float(self.span.value))
+            settings = dataclasses.replace(
+                self.pipeline.settings,
+                mode=self.mode.value,
+                palette=self.palette.value,
+                opacity=float(self.opacity.value),
+                edge_strength=float(self.edges.value),
+                threshold_k=(self.thr_lo.value + C_TO_K, self.thr_hi.value + C_TO_K),
+                threshold_direction=self.thr_dir.value,
+                isotherm_k=(self.iso_lo.value + C_TO_K, self.iso_hi.value + C_TO_K),
+                mark_fallback=bool(self.mark.value),
+                span_k=None if self.auto.value else span,
+                span_smoothing_s=float(self.smoothing.value),
+            )
+            for name, handle in self.offsets.items():
+                self.pipeline.set_manual_offset(name, float(handle.value))
+        except ValueError as exc:
+            self.error.content = f"**Not applied:** {exc}"
+            return
+        self.error.content = ""
+        self.pipeline.settings = settings
+        balancer = self.ctx.balancer
+        if balancer is not None:
+            ref = self.balance_ref.value
+            balancer.reference = None if ref == SPLIT else ref
+            balancer.set_auto(bool(self.auto_balance.value))
+
+    def _follow_auto_span(self) -> None:
+        """While the span is automatic, Level and Span show it (so that switching to
+        manual starts from the colours on screen)."""
+        span = self.pipeline.fusion.span_k if self.auto.value else None
+        if span is None:
+            return
+        level, width = level_from_span(*span)
+        level_c = round(level - C_TO_K, 1)
+        if abs(self.level.value - level_c) > 0.05 or abs(self.span.value - round(width, 1)) > 0.05:
+            self.level.value, self.span.value = level_c, round(width, 1)
+
+    def _act(self, action) -> None:
+        """Run a button's action; its refusal is shown, never raised into Viser."""
+        try:
+            self.error.content = action() or ""
+        except (KeyError, ValueError, OSError) as exc:
+            self.error.content = f"**Not done:** {exc.args[0] if exc.args else exc}"
+
+    def _balance_now(self) -> str:
+        if self.ctx.balancer is None:
+            raise ValueError("no balance estimation in this console")
+        state = self.ctx.balancer.apply_filtered()
+        return f"Balanced: left - right was {state.offset_k:+.2f} K."
+
+    def _reset_balance(self) -> str:
+        if self.ctx.balancer is not None:
+            self.ctx.balancer.reset_balance()
+        self.auto_balance.value = False
+        return "Balance reset."
+
+    def _save_radiometry(self) -> str:
+        if self.ctx.save_rig is None:
+            raise ValueError("no calibration session to save into")
+        rig = self.pipeline.rig_with_radiometry()
+        version = self.ctx.save_rig(rig, radiometry_report(rig))
+        return f"Saved the radiometry with the rig in use as **{version.name}**."
+
+    def tick(self) -> None:
+        fs = self.pipeline.latest_set
+        if fs is None:
+            return
+        watch = self.ctx.board_watch
+        try:
+            self.update_feeds(fs, watch.latest if watch.enabled else None)
+        except Exception as exc:  # shown under the feeds; the panels keep updating
+            self.feeds_error.content = f"**Feeds:** {type(exc).__name__}: {exc}"
+        else:
+            if self.feeds_error.content:
+                self.feeds_error.content = ""
+        self._follow_auto_span()
+        balancer = self.ctx.balancer
+        if balancer is not None:
+            status = balancer.status
+            self.difference.content = status.difference_text()
+            self.balance_md.content = balance_text(status, balancer.auto, self.pipeline)
+
+    def update_feeds(self, newest: FrameSet, sighting: BoardSighting | None) -> None:
+        """Each feed: the sighting's frame with its corners or reason when the sighting is
+        recent (its age in the label from :data:`LAG_SHOWN_S`), else the newest frame as
+        it is."""
+        if not recent_sighting(sighting, newest):
+            sighting = None
+        lag_s = 0.0 if sighting is None else (newest.stamp_ns - sighting.frames.stamp_ns) / 1e9
+        for name, handle in self.feeds.items():
+            label = name
+            if sighting is not None and name in sighting.frames.frames and lag_s >= LAG_SHOWN_S:
+                label = f"{name} (board search: {lag_s:.0f} s ago)"
+            if handle.label != label:
+                handle.label = label
+            if sighting is not None and name in sighting.frames.frames:
+                frame = sighting.frames.frames[name]
+                detection = sighting.detections.get(name)
+            elif name in newest.frames:
+                frame, detection = newest.frames[name], None
+            else:
+                continue
+            shown = self._shown.get(name)
+            if shown is not None and shown[0] is frame and shown[1] is detection:
+                continue
+            handle.image = feed_image(frame, detection, self.ctx.board.cols)
+            self._shown[name] = (frame, detection)
+
+
+SPLIT = "both (split evenly)"
+
+
+def balance_text(status: BalanceStatus, auto: bool, pipeline: FusionPipeline) -> str:
+    """The balance state, markdown: what is applied, what the newest frames say and why a
+    refused estimate changed nothing."""
+    applied = ", ".join(
+        f"{name} {r.balance_offset_k:+.2f} K"
+        + (f" x{r.balance_gain:.3f}" if r.balance_gain != 1 else "")
+        for name, r in pipeline.radiometry.items()
+    )
+    lines = [f"Balance applied: {applied} ({'automatic' if auto else 'manual'})"]
+    e, f = status.estimate, status.filtered
+    if status.waiting:
+        lines.append(f"Estimate: {status.waiting}")
+    elif e is not None and not e.ok:
+        lines.append(f"Estimate refused, balance unchanged: {e.reason}")
+    elif f is not None:
+        gain = f"gain {f.gain:.3f}" if f.gain_fitted else "offset only"
+        lines.append(
+            f"Estimate (filtered): left - right {f.offset_k:+.2f} K, {gain}, "
+            f"{f.n_inliers} points, scatter {f.mad_k:.2f} K"
+        )
+    return "  \n".join(lines)

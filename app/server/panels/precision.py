@@ -1,0 +1,370 @@
+"""The console's Precision panel: the method's Table 1 and its curves for the rig in use.
+
+How far a TOF error moves a fused pixel, as a function of the radial distance (the method's
+section 4.1, :mod:`fusion.precision`): for the TOF's two significant pixels (principal
+point, edge of accuracy region 3), the radial distance below which a TOF distance error
+(before and after range calibration) or a TOF pixel error shifts each sensor's pixel by
+more than the threshold, and the shift curves |dx|, |dy| against distance (uPlot, log
+scale). The numbers are :func:`fusion.precision.analyze_precision`'s, the cells formatted
+as ``trifuse analyze`` prints them.
+
+The analysis runs in the panel's own thread (about 0.1 s for the default head, longer for
+fine steps), again whenever ``pipeline.rig`` is replaced by another object or the
+operator changes an error or the threshold; meanwhile the panel says "computing...". An
+error (a rig without a TOF, a bad value) is shown in the panel; the console keeps running.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+import viser
+import viser.uplot
+
+from app.server.runtime.context import ConsoleContext
+from app.server.runtime.periodic import Periodic
+from app.workflows.report_format import limit_distance_cell, pixel_cell, sensor_colour
+from calib.rig import Rig
+from fusion.precision import (
+    DEFAULT_DISTANCE_ERROR_M,
+    DEFAULT_THRESHOLD_PX,
+    DEFAULT_TOF_PIXEL_ERROR_PX,
+    PrecisionAnalysis,
+    analyze_precision,
+    tof_pixel_label,
+)
+
+AFTER_RANGE_CAL_M = 0.015
+"""The method's TOF distance error after range calibration (Table 1: 15 mm)."""
+
+ERROR_KINDS = ("distance error", "TOF pixel error")
+COORDS = ("x", "y")
+PLOT_HEIGHT_PX = 260
+
+
+@dataclass(frozen=True, eq=False)
+class PrecisionResult:
+    """What the panel shows.
+
+    Attributes:
+        rig: the rig analysed (the object ``pipeline.rig`` was).
+        before, after: the analyses with the distance error before and after range
+            calibration (same TOF pixels, TOF pixel error and threshold; the TOF pixel error
+            rows come from ``before``).
+        labels: pixel key -> "principal point", "region 3 edge" or "".
+    """
+
+    rig: Rig
+    before: PrecisionAnalysis
+    after: PrecisionAnalysis
+    labels: dict[str, str]
+
+    @property
+    def range_m(self) -> tuple[float, float]:
+        any_shift = next(iter(next(iter(self.before.distance_error.values())).values()))
+        return float(any_shift.distance_m[0]), float(any_shift.distance_m[-1])
+
+
+def compute(
+    rig: Rig,
+    before_m: float = DEFAULT_DISTANCE_ERROR_M,
+    after_m: float = AFTER_RANGE_CAL_M,
+    tof_pixel_error_px: float = DEFAULT_TOF_PIXEL_ERROR_PX,
+    threshold_px: float = DEFAULT_THRESHOLD_PX,
+) -> PrecisionResult:
+    """Both analyses of ``rig`` (default TOF pixels and distances, as ``trifuse analyze``)."""
+    before = analyze_precision(
+        rig,
+        distance_error_m=before_m,
+        tof_pixel_error_px=tof_pixel_error_px,
+        threshold_px=threshold_px,
+    )
+    after = analyze_precision(
+        rig,
+        distance_error_m=after_m,
+        tof_pixel_error_px=tof_pixel_error_px,
+        threshold_px=threshold_px,
+    )
+    labels = {
+        key: tof_pixel_label(rig, pixel, before.tof)
+        for key, pixel in zip(before.distance_error, before.tof_pixels, strict=True)
+    }
+    return PrecisionResult(rig, before, after, labels)
+
+
+MODALITY_SHORT = {"color": "col", "thermal": "th", "tof": "tof"}
+
+
+def short_names(rig: Rig, sensors: tuple[str, ...]) -> dict[str, str]:
+    """Column headers narrow enough for the side panel: ``"col L"``, ``"th R"`` ... for
+    the sensors of an eye (modality and the eye's initial, as the method's "CCDl", "TH. r"),
+    the sensor's own name otherwise or where two would read the same."""
+    out = {}
+    for name in sensors:
+        eye = next((e for e, v in rig.eyes.items() if name in (v.color, v.thermal)), None)
+        modality = MODALITY_SHORT.get(rig[name].modality, rig[name].modality)
+        out[name] = f"{modality} {eye[:1].upper()}" if eye else name
+    if len(set(out.values())) != len(out):
+        return {name: name for name in sensors}
+    return out
+
+
+def table_markdown(result: PrecisionResult) -> str:
+    """Table 1 as markdown: one table per TOF pixel, a row per (error, coordinate), a column
+    per sensor; cells in metres as ``trifuse analyze`` prints them."""
+    before, after = result.before, result.after
+    lo, hi = result.range_m
+    short = short_names(result.rig, before.sensors)
+    nbsp = "\u00a0"
+    out = [
+        f"Radial distance [m] below which the shift exceeds **{before.threshold_px:g} px** "
+        f"(TOF `{before.tof}`, {lo:g}–{hi:g} m; – never, ≥{hi:.2f} everywhere)."
+    ]
+    head = "| error | | " + " | ".join(short[n].replace(" ", nbsp) for n in before.sensors) + " |"
+    rule = "|:--|:-:|" + "--:|" * len(before.sensors)
+    rows_of = (
+        (f"{before.distance_error_m * 1000:g}{nbsp}mm", before.distance_error),
+        (f"{after.distance_error_m * 1000:g}{nbsp}mm", after.distance_error),
+        (f"{before.tof_pixel_error_px:g}{nbsp}px", before.tof_pixel_error),
+    )
+    for (u, v), key in zip(before.tof_pixels, before.distance_error, strict=True):
+        label = result.labels.get(key, "")
+        out.append(f"**TOF pixel {pixel_cell(u, v)}**" + (f", {label}" if label else ""))
+        lines = [head, rule]
+        for name, results in rows_of:
+            for coord in COORDS:
+                cells = [
+                    limit_distance_cell(getattr(r, f"{coord}_m"), hi) for r in results[key].values()
+                ]
+                first = name if coord == "x" else ""
+                lines.append(f"| {first} | {coord} | " + " | ".join(cells) + " |")
+        out.append("\n".join(lines))
+    legend = ", ".join(f"{short[n]} = `{n}`" for n in before.sensors if short[n] != n)
+    out.append(
+        f"Rows: TOF distance error before range calibration ({before.distance_error_m * 1000:g}"
+        f" mm), after it ({after.distance_error_m * 1000:g} mm), TOF pixel error along x "
+        f"({before.tof_pixel_error_px:g} px)." + (f" Columns: {legend}." if legend else "")
+    )
+    return "\n\n".join(out)
+
+
+def _colour(i: int, alpha: float = 1.0) -> str:
+    r, g, b = sensor_colour(i)
+    return f"rgba({r}, {g}, {b}, {alpha:g})"
+
+
+def plot_data(
+    result: PrecisionResult, key: str, kind: str, coord: str
+) -> tuple[tuple[np.ndarray, ...], tuple[viser.uplot.Series, ...], tuple[float, float]]:
+    """uPlot data, series and y range for one plot: |d<coord>| against the radial distance
+    for every sensor (distance error: before solid, after dashed), and the threshold.
+    Colours and decreasing line widths per sensor as in ``trifuse analyze --plot``.
+
+    Shifts are clipped to the bottom of the log axis (two decades below the threshold);
+    NaN (the point does not project into the sensor) is drawn there too.
+    """
+    if kind not in ERROR_KINDS:
+        raise ValueError(f"kind: expected one of {ERROR_KINDS}, got {kind!r}")
+    before, after = result.before, result.after
+    thr = before.threshold_px
+    floor = 10.0 ** (int(np.floor(np.log10(thr))) - 2)
+    curves: list[tuple[str, np.ndarray, int, bool]] = []  # label, |shift|, colour, dashed
+    if kind == "distance error":
+        groups = [(before.distance_error, False), (after.distance_error, True)]
+        errors = [before.distance_error_m, after.distance_error_m]
+    else:
+        groups, errors = [(before.tof_pixel_error, False)], []
+    short = short_names(result.rig, before.sensors)
+    for g, (results, dashed) in enumerate(groups):
+        for i, (name, r) in enumerate(results[key].items()):
+            label = short[name] + (f" {errors[g] * 1000:g} mm" if errors else "")
+            shift = r.dx_px if coord == "x" else r.dy_px
+            curves.append((label, np.abs(shift), i, dashed))
+    distance = next(iter(before.distance_error[key].values())).distance_m
+    ys = [np.clip(np.nan_to_num(c[1], nan=floor), floor, None) for c in curves]
+    top = max(float(max(y.max() for y in ys)), 2.0 * thr)
+    y_range = (floor, 10.0 ** int(np.ceil(np.log10(top))))
+    series = [viser.uplot.Series(label="distance [m]")]
+    n = len(before.sensors)
+    for label, _, colour, dashed in curves:
+        # decreasing widths, so that coinciding curves (a left/right pair) both show
+        width = 1.0 + 0.75 * (n - 1 - colour)
+        s = viser.uplot.Series(label=label, stroke=_colour(colour), width=width)
+        if dashed:
+            s["dash"] = (6.0, 4.0)
+        series.append(s)
+    series.append(
+        viser.uplot.Series(
+            label=f"threshold {thr:g} px", stroke="rgba(0, 0, 0, 1)", width=1, dash=(3.0, 3.0)
+        )
+    )
+    data = (distance, *ys, np.full(distance.shape, thr))
+    return tuple(np.asarray(a, np.float64) for a in data), tuple(series), y_range
+
+
+def plot_axes(
+    y_range: tuple[float, float], coord: str, range_m: tuple[float, float]
+) -> tuple[dict[str, viser.uplot.Scale], tuple[viser.uplot.Axis, ...]]:
+    """Scales and axes: distance in metres (ticks every 2 m), |shift| log10 in pixels (a
+    tick and grid line per decade only: the side panel is narrow)."""
+    lo, hi = range_m
+    step = 2.0 if hi - lo > 4.0 else 0.5
+    x_splits = tuple(float(x) for x in np.arange(0.0, hi + 1e-9, step) if x >= lo)
+    decades = range(round(np.log10(y_range[0])), round(np.log10(y_range[1])) + 1)
+    y_splits = tuple(10.0**k for k in decades)
+    scales = {
+        "x": viser.uplot.Scale(time=False, range=(lo, hi)),
+        "y": viser.uplot.Scale(distr=3, log=10, range=y_range),
+    }
+    axes = (
+        viser.uplot.Axis(
+            label="radial distance [m]", splits=x_splits, values=tuple(f"{x:g}" for x in x_splits)
+        ),
+        viser.uplot.Axis(
+            label=f"|d{coord}| [px]", splits=y_splits, values=tuple(f"{y:g}" for y in y_splits)
+        ),
+    )
+    return scales, axes
+
+
+class PrecisionPanel(Periodic):
+    """The "Precision" folder; recomputes when ``ctx.pipeline.rig`` changes (polled)."""
+
+    def __init__(self, ctx: ConsoleContext, poll_s: float = 0.5) -> None:
+        super().__init__("precision-panel", poll_s)
+        self.ctx, self.server = ctx, ctx.server
+        gui = self.server.gui
+        self.result: PrecisionResult | None = None
+        self.error: str | None = None
+        self.analysed: Rig | None = None  # the rig the panel's content is about, once shown
+        self.updates = 0  # analyses shown (result or error)
+        self._rig: Rig | None = None
+        self._dirty = True
+        self._plots: list[viser.GuiUplotHandle] = []
+        self.folder = gui.add_folder("Precision", expand_by_default=False)
+        with self.folder:
+            gui.add_markdown(
+                "How far a TOF error moves a fused pixel, by radial distance "
+                "(the method's Table 1; `trifuse analyze`)."
+            )
+            self.before_mm = gui.add_number(
+                "Distance error before (mm)", DEFAULT_DISTANCE_ERROR_M * 1000, min=0.0, step=1.0
+            )
+            self.after_mm = gui.add_number(
+                "Distance error after (mm)", AFTER_RANGE_CAL_M * 1000, min=0.0, step=1.0
+            )
+            self.pixel_px = gui.add_number(
+                "TOF pixel error (px)", DEFAULT_TOF_PIXEL_ERROR_PX, min=0.0, step=0.1
+            )
+            self.threshold = gui.add_number(
+                "Threshold (px)", DEFAULT_THRESHOLD_PX, min=0.01, step=0.1
+            )
+            self.status = gui.add_markdown("computing...")
+            self.table = gui.add_markdown("")
+            self.pixel_choice = gui.add_dropdown("Plot TOF pixel", ("principal point",))
+            self.kind_choice = gui.add_dropdown(
+                "Plot error", ERROR_KINDS, initial_value=ERROR_KINDS[0]
+            )
+        for handle in (self.before_mm, self.after_mm, self.pixel_px, self.threshold):
+            handle.on_update(lambda _event: self._invalidate())
+        for handle in (self.pixel_choice, self.kind_choice):
+            handle.on_update(lambda _event: self._replot())
+        self._lock = threading.Lock()
+
+    def _invalidate(self) -> None:
+        self._dirty = True
+
+    def start(self) -> PrecisionPanel:
+        super().start()
+        return self
+
+    def _run(self) -> None:
+        self.tick()  # the first result without waiting a period
+        super()._run()
+
+    def tick(self) -> None:
+        rig = self.ctx.pipeline.rig
+        if rig is self._rig and not self._dirty:
+            return
+        self._rig, self._dirty = rig, False
+        self.status.content = "computing..."
+        try:
+            self._update(rig)
+        except Exception as exc:  # shown in the panel; the console keeps running
+            self.error = f"{type(exc).__name__}: {exc}"
+            self.result = None
+            self.status.content = f"**Cannot analyse this rig:** {self.error}"
+            self.table.content = ""
+            self._remove_plots()
+        self.analysed = rig
+        self.updates += 1
+
+    def _update(self, rig: Rig) -> None:
+        result = compute(
+            rig,
+            before_m=float(self.before_mm.value) / 1000.0,
+            after_m=float(self.after_mm.value) / 1000.0,
+            tof_pixel_error_px=float(self.pixel_px.value),
+            threshold_px=float(self.threshold.value),
+        )
+        self.table.content = table_markdown(result)
+        self.error, self.result = None, result
+        choices = tuple(self._pixel_choices(result))
+        if tuple(self.pixel_choice.options) != choices:
+            self.pixel_choice.options = choices
+        self._show_plots()
+        self.status.content = ""
+
+    @staticmethod
+    def _pixel_choices(result: PrecisionResult) -> list[str]:
+        return [
+            result.labels.get(key) or f"({u:.10g}, {v:.10g})"
+            for (u, v), key in zip(
+                result.before.tof_pixels, result.before.distance_error, strict=True
+            )
+        ]
+
+    def _replot(self) -> None:
+        try:
+            self._show_plots()
+        except Exception as exc:  # shown in the panel
+            self.status.content = f"**Cannot plot:** {type(exc).__name__}: {exc}"
+
+    def _remove_plots(self) -> None:
+        for plot in self._plots:
+            plot.remove()
+        self._plots = []
+
+    def _show_plots(self) -> None:
+        """(Re)build the |dx| and |dy| plots for the chosen TOF pixel and error."""
+        result = self.result
+        if result is None:
+            return
+        with self._lock:
+            choices = self._pixel_choices(result)
+            index = (
+                choices.index(self.pixel_choice.value) if self.pixel_choice.value in choices else 0
+            )
+            key = list(result.before.distance_error)[index]
+            kind = self.kind_choice.value
+            plots = []
+            with self.folder:
+                for coord in COORDS:
+                    data, series, y_range = plot_data(result, key, kind, coord)
+                    scales, axes = plot_axes(y_range, coord, result.range_m)
+                    plots.append(
+                        self.server.gui.add_uplot(
+                            data,
+                            series,
+                            title=f"|d{coord}| from the {kind}",
+                            scales=scales,
+                            axes=axes,
+                            legend=viser.uplot.Legend(show=True, live=False),
+                            height=PLOT_HEIGHT_PX,
+                            padding=(12, 16, 0, 0),
+                        )
+                    )
+            self._remove_plots()
+            self._plots = plots

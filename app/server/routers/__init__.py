@@ -1,0 +1,3 @@
+"""The console's HTTP side: the FastAPI application, its REST routers, authentication, request and
+connection limits, the Viser relay.
+"""

@@ -1,0 +1,95 @@
+"""The console's FastAPI application: viewer, stream, 3D console, status."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
+
+from app.server.routers.api import make_api_router
+from app.server.routers.auth import AuthConfig, AuthMiddleware
+from app.server.routers.docs_pages import add_docs_pages
+from app.server.routers.limits import add_body_limit
+from app.server.routers.source_api import make_source_router
+from app.server.routers.viser_bridge import make_viser_router
+from app.server.runtime.pipeline import FusionPipeline
+from app.server.runtime.source_control import SourceControl
+from app.server.runtime.stream import FrameHub, make_stream_router
+from app.server.runtime.thermal_balance import ThermalBalancer
+
+STATIC = Path(__file__).resolve().parents[3] / "static"
+FAVICON = "favicon.svg"
+
+
+def _json_safe(value: Any) -> Any:
+    """``value`` with non-finite floats as strings (``"nan"``): JSON has no NaN."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return repr(value)
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+async def _invalid_request(_request: Request, exc: RequestValidationError) -> JSONResponse:
+    """422 naming what was wrong, also when the body held NaN or Infinity (FastAPI's own
+    handler echoes the input and fails to encode those: a 500)."""
+    errors = jsonable_encoder(  # undecodable bytes echoed from the body must not fail here
+        exc.errors(), custom_encoder={bytes: lambda b: b.decode("utf-8", "replace")}
+    )
+    return JSONResponse({"detail": _json_safe(errors)}, status_code=422)
+
+
+def create_app(
+    hub: FrameHub,
+    viser_port: int | None = None,
+    pipeline: FusionPipeline | None = None,
+    source_control: SourceControl | None = None,
+    balancer: ThermalBalancer | None = None,
+    auth: AuthConfig | None = None,
+    viser_secret: str | None = None,
+) -> FastAPI:
+    """The app: ``/`` viewer, ``/stream`` + ``/stream.mjpg``, ``/console/`` (Viser),
+    ``/api/status`` and the source and recording controls (``source_control``; default:
+    one over ``pipeline`` without recording), ``/docs`` (OpenAPI). With ``auth`` every
+    request and WebSocket, also of routers added later, is authenticated (auth.py); ``trifuse
+    serve`` always passes one, and ``viser_secret`` (viser_bridge.start_guarded_viser)."""
+    app = FastAPI(
+        title="trifuse",
+        summary="Calibration and fused stereo telepresence",
+        docs_url=None,  # docs_pages.py: the same pages without a CDN
+        redoc_url=None,
+    )
+    add_docs_pages(app)
+    add_body_limit(app)  # 413 over 1 MiB (limits.py)
+    if auth is not None:  # added last: the outermost, nothing is read before it passes
+        app.add_middleware(AuthMiddleware, config=auth)
+    app.add_exception_handler(RequestValidationError, _invalid_request)
+    app.include_router(make_stream_router(hub))
+    if viser_port is not None:
+        app.include_router(make_viser_router(viser_port, viser_secret))
+    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    if pipeline is not None:
+        app.include_router(make_api_router(pipeline, balancer))
+    # /api/status, /api/source/*, /api/recording/* (source_api.py)
+    app.include_router(make_source_router(hub, pipeline, source_control))
+
+    @app.get("/", include_in_schema=False)
+    async def _viewer() -> FileResponse:
+        # the viewer has no inline script: nothing but this server's scripts may run in it
+        csp = "script-src 'self'; object-src 'none'; base-uri 'self'; frame-ancestors 'none'"
+        return FileResponse(STATIC / "viewer.html", headers={"Content-Security-Policy": csp})
+
+    @app.get("/favicon.ico", include_in_schema=False)
+    async def _favicon() -> FileResponse:
+        """Browsers ask for it whatever the page links: the console's icon (SVG)."""
+        return FileResponse(STATIC / FAVICON, media_type="image/svg+xml")
+
+    return app

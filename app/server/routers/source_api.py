@@ -1,0 +1,211 @@
+"""REST routes of the source: status, replay controls, recording (OpenAPI at /docs).
+
+``GET /api/status`` reports the source, per-sensor rates, the fused stream and the
+recording; ``/api/source/*`` pause, resume, seek and set the speed of a replay (409 on
+another kind of source); ``/api/recording/*`` start and stop recording what the console
+receives (docs/FORMATS.md, "Console REST API"). Bad values get a 422 naming the field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+from fastapi import APIRouter, Depends, HTTPException
+from pydantic import BaseModel, ConfigDict, Field
+
+from app.server.routers.limits import require_json
+from app.server.runtime.pipeline import FusionPipeline
+from app.server.runtime.source_control import (
+    RATE_MAX,
+    RATE_MIN,
+    ControlError,
+    RecordingState,
+    SourceControl,
+    SourceState,
+)
+from app.server.runtime.stream import FrameHub
+
+
+class SourceInfo(BaseModel):
+    """What the console plays. The replay fields are null for other sources."""
+
+    description: str = Field(description="one line saying what the source is")
+    kind: Literal["simulated", "replay", "live", "push"]
+    sensors: list[str] = Field(description="the sensors the source can deliver")
+    position_s: float | None = Field(
+        None, description="replay: seconds from the recording's start to the last frame"
+    )
+    duration_s: float | None = Field(None, description="replay: the recording's length, s")
+    paused: bool | None = Field(None, description="replay: held by pause")
+    rate: float | None = Field(None, description="replay: speed, 1.0 = real time")
+
+
+class RecordingInfo(BaseModel):
+    """The recording in progress, or the last one (``active`` false)."""
+
+    available: bool = Field(description="false without a work directory")
+    active: bool = Field(description="recording now")
+    path: str | None = Field(None, description="the file being written, or the last one")
+    size_bytes: int = Field(0, description="bytes written so far (all files of the recording)")
+    duration_s: float = Field(0.0, description="recording time (first to last stamp), s")
+    frames_written: int = 0
+    frames_dropped: int = Field(0, description="frames dropped because the disk was slow")
+    frames_rejected: int = Field(0, description="frames the rig does not describe, skipped")
+    queued: int = Field(0, description="frames waiting to be written")
+    stopping: bool = Field(False, description="stopped; writing what was queued, finishing")
+    files: list[str] = Field(
+        default_factory=list, description="finished files (a new one when replay time goes back)"
+    )
+    interrupted: list[str] = Field(
+        default_factory=list,
+        description="recordings a crash interrupted, kept as *.partial.mcap (readable up to "
+        "their last complete chunk)",
+    )
+    error: str | None = None
+
+
+class SensorInfo(BaseModel):
+    """One sensor's health (app/server/runtime/sensor_health.py)."""
+
+    state: Literal["ok", "silent", "never", "failing"] = Field(
+        description="ok; silent: no frame for max(1 s, 5 frame periods); never: no frame yet; "
+        "failing: frames arrive but are rejected or garbage"
+    )
+    reason: str = Field("", description="why, for a person")
+    last_frame_age_s: float | None = Field(
+        None, description="seconds since its last good frame (null: none yet)"
+    )
+    rate_hz: float = Field(0.0, description="frames per second it delivers (usable or not)")
+
+
+class Status(BaseModel):
+    """The console at a glance. ``viewers``, ``frames_out``, ``fps``, ``missing`` and
+    ``error`` are the keys the first status route had."""
+
+    viewers: int = Field(description="stereo stream viewers connected")
+    frames_out: int = Field(description="frames published to the stream since the start")
+    fps: float = Field(
+        description="frames published to the stream per second over the last 3 s, new "
+        "pictures and repeats (0 while nothing arrives)"
+    )
+    new_fps: float = Field(
+        0.0, description="of these, new pictures per second (the rest repeat an unchanged one)"
+    )
+    missing: dict[str, str] = Field(description="sensors missing from the last frame set: why")
+    error: str | None = Field(description="the pipeline's error, if it stopped")
+    source: SourceInfo | None = None
+    rates_hz: dict[str, float] = Field(
+        default_factory=dict, description="frames per second each sensor delivers"
+    )
+    recording: RecordingInfo | None = None
+    sensors: dict[str, SensorInfo] = Field(
+        default_factory=dict, description="each sensor's health: state, reason, age, rate"
+    )
+
+
+class SeekRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    position_s: float = Field(
+        ge=0.0, allow_inf_nan=False, description="seconds from the recording's start"
+    )
+
+
+class RateRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    rate: float = Field(
+        ge=RATE_MIN, le=RATE_MAX, allow_inf_nan=False, description="replay speed, x real time"
+    )
+
+
+def _source(state: SourceState) -> SourceInfo:
+    return SourceInfo(**dataclasses.asdict(state))
+
+
+def _recording(state: RecordingState) -> RecordingInfo:
+    return RecordingInfo(**dataclasses.asdict(state))
+
+
+def make_source_router(
+    hub: FrameHub,
+    pipeline: FusionPipeline | None = None,
+    control: SourceControl | None = None,
+) -> APIRouter:
+    """The routes; without ``control`` (and a pipeline) the status reports zeros and the
+    controls answer 409."""
+    if control is None and pipeline is not None:
+        control = SourceControl(pipeline, hub)
+    router = APIRouter(prefix="/api", tags=["source"])
+
+    def need() -> SourceControl:
+        if control is None:
+            raise HTTPException(409, "the console has no source")
+        return control
+
+    def call(fn, *args):
+        try:
+            return fn(*args)
+        except ControlError as exc:
+            raise HTTPException(409, str(exc)) from None
+        except ValueError as exc:
+            raise HTTPException(422, str(exc)) from None
+
+    @router.get("/status")
+    def status() -> Status:
+        """The source, per-sensor rates, the fused stream, viewers and the recording."""
+        if control is None:
+            return Status(viewers=hub.viewers, frames_out=0, fps=0.0, missing={}, error=None)
+        s = control.pipeline.status
+        rates = control.stream_rates()
+        return Status(
+            viewers=hub.viewers,
+            frames_out=s.frames_out,
+            fps=rates.stream_fps,
+            new_fps=rates.new_fps,
+            missing=dict(s.missing),
+            error=s.error,
+            source=_source(control.source_state()),
+            rates_hz=control.rates_hz(),
+            recording=_recording(control.recording_state()),
+            sensors={n: SensorInfo(**h.as_dict()) for n, h in control.sensor_health().items()},
+        )
+
+    @router.post("/source/pause")
+    def pause() -> SourceInfo:
+        """Hold the replay (409 for a source that is not a recording)."""
+        return _source(call(need().pause))
+
+    @router.post("/source/resume")
+    def resume() -> SourceInfo:
+        """Continue a paused replay from where it stopped."""
+        return _source(call(need().resume))
+
+    @router.post("/source/seek", dependencies=[Depends(require_json)])
+    def seek(body: SeekRequest) -> SourceInfo:
+        """Continue the replay from ``position_s`` (422 outside 0..duration_s)."""
+        return _source(call(need().seek, body.position_s))
+
+    @router.put("/source/rate", dependencies=[Depends(require_json)])
+    def rate(body: RateRequest) -> SourceInfo:
+        """Replay speed, 0.25..4 times real time."""
+        return _source(call(need().set_rate, body.rate))
+
+    @router.get("/recording")
+    def recording() -> RecordingInfo:
+        """The recording in progress, or the last one."""
+        return _recording(need().recording_state())
+
+    @router.post("/recording/start")
+    def start_recording() -> RecordingInfo:
+        """Record the frames the console receives to ``<workdir>/recordings/<time>.mcap``
+        (409 while recording)."""
+        return _recording(call(need().start_recording))
+
+    @router.post("/recording/stop")
+    def stop_recording() -> RecordingInfo:
+        """Finish the recording: queued frames are written, the file is closed and named."""
+        return _recording(call(need().stop_recording))
+
+    return router

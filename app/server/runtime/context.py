@@ -1,0 +1,62 @@
+"""What every part of the console is built from: one :class:`ConsoleContext`."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import viser
+
+from app.server.runtime.board_watch import BoardWatch
+from app.server.runtime.pipeline import FusionPipeline
+from app.server.runtime.stream import FrameHub
+from app.server.runtime.thermal_balance import ThermalBalancer
+from app.sources.base import FrameSource
+from app.workflows.calib_session import RigVersion
+from calib.board import Board
+from calib.rig import Rig
+
+
+@dataclass
+class ConsoleContext:
+    """The running console's shared objects.
+
+    Attributes:
+        server: the Viser server (3D scene and GUI panels).
+        source: the frame source being shown.
+        description: one line saying what the source is.
+        hub: the fused stereo stream's newest frame.
+        pipeline: the live fusion loop; ``pipeline.rig`` is the rig in use.
+        board: the calibration checkerboard.
+        board_watch: live board detection on the newest frame set.
+        ground_truth_rig: the simulated head's exact rig (None for real sources).
+        rig_choices: rigs an operator may display, by label (``"in use"``, ``"ground
+            truth"``, saved versions ...); the calibration session extends it.
+        balancer: the thermal balance estimation (None: not running).
+        save_rig: writes a rig (and its report) as the session's next rig version.
+    """
+
+    server: viser.ViserServer
+    source: FrameSource
+    description: str
+    hub: FrameHub
+    pipeline: FusionPipeline
+    board: Board
+    board_watch: BoardWatch
+    ground_truth_rig: Rig | None = None
+    rig_choices: Callable[[], dict[str, Rig]] = field(default=lambda: {})
+    balancer: ThermalBalancer | None = None
+    save_rig: Callable[[Rig, dict], RigVersion] | None = None
+
+    def use_rig(self, rig: Rig) -> None:
+        """Fuse with, detect with and show ``rig`` from now on (ValueError: wrong sensors)."""
+        self.pipeline.set_rig(rig)
+        self.board_watch.rig = rig
+
+    def rigs(self) -> dict[str, Rig]:
+        """``{"in use": ..., "ground truth": ... (simulated head), **rig_choices()}``."""
+        out = {"in use": self.pipeline.rig}
+        if self.ground_truth_rig is not None:
+            out["ground truth"] = self.ground_truth_rig
+        out.update(self.rig_choices())
+        return out

@@ -1,0 +1,285 @@
+"""``trifuse serve``: a source, the fusion pipeline, Viser on loopback, FastAPI on one
+public port (127.0.0.1 by default)."""
+
+from __future__ import annotations
+
+import errno
+import signal
+import socket
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import uvicorn
+
+from app.server.panels.calibration import CalibrationPanel
+from app.server.panels.display import Panels
+from app.server.panels.precision import PrecisionPanel
+from app.server.panels.range import RangePanel
+from app.server.panels.scene3d import Scene3D
+from app.server.panels.source import SourcePanel
+from app.server.routers.app import create_app
+from app.server.routers.auth import AuthConfig
+from app.server.routers.connections import GuardedH11Protocol, quiet_repeated_logs
+from app.server.routers.session_api import make_session_router
+from app.server.routers.viser_bridge import start_guarded_viser
+from app.server.runtime.board_watch import BoardWatch
+from app.server.runtime.context import ConsoleContext
+from app.server.runtime.pipeline import FusionPipeline
+from app.server.runtime.source_control import SourceControl, SourceTap
+from app.server.runtime.stream import FrameHub
+from app.server.runtime.thermal_balance import ThermalBalancer
+from app.sources.base import FrameSource
+from app.storage.rigfile import load_rig
+from app.workflows.calib_session import CalibrationSession
+from calib.board import Board
+from calib.rig import Rig
+
+SCENARIOS = ("inspection", "calibration")
+
+
+@dataclass
+class OpenedSource:
+    """A source for the console, the rig to fuse with, and what to tell the operator."""
+
+    source: FrameSource
+    rig: Rig
+    description: str
+    ground_truth_rig: Rig | None = None
+
+
+def simulated_source(scenario: str, board_poses: int = 40, hold_s: float = 3.0):
+    """The simulated head as the console shows it: ``(source, description)``.
+
+    Args:
+        scenario: ``inspection`` (the panning room, live quality) or ``calibration`` (the
+            heated board held at ``board_poses`` poses for ``hold_s`` seconds each, looping;
+            accurate quality).
+    """
+    from app.sources.simulated import SimulatedHeadSource
+
+    if scenario == "calibration":
+        from app.sources.sim.scenarios import CalibrationScenario
+
+        cal = CalibrationScenario(n_poses=board_poses, hold_s=hold_s)
+        src = SimulatedHeadSource(
+            cal, realtime=True, render_hz=1.0 / cal.hold_s, loop_s=cal.loop_s, start_ns=None
+        )
+        return src, (
+            f"the simulated head (calibration: {cal.n_poses} board poses, "
+            f"{cal.hold_s:g} s each, looping)"
+        )
+    if scenario == "inspection":
+        return SimulatedHeadSource(realtime=True, start_ns=None), (
+            "the simulated head (inspection room)"
+        )
+    raise ValueError(f"scenario: expected one of {', '.join(SCENARIOS)}, got {scenario!r}")
+
+
+def warm_simulator_cache(scenarios: dict[str, dict], timeout_s: float = 1800.0) -> None:
+    """Render every pose of each simulated scenario into the disk cache, all scenarios at
+    once (one render thread or process each), and return when all are there.
+
+    ``scenarios`` maps a scenario name to :func:`simulated_source`'s keyword arguments.
+    Consoles started afterwards with the same arguments load every pose from disk instead
+    of rendering beside their work (the test suite does this once per run).
+    """
+    import time
+
+    sources = [simulated_source(name, **kw)[0] for name, kw in scenarios.items()]
+    try:
+        deadline = time.monotonic() + timeout_s
+        for src in sources:
+            while src.rendered_count < src.pose_count and src.render_thread_alive:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"the simulator's poses were not rendered in {timeout_s} s")
+                time.sleep(0.2)
+    finally:
+        for src in sources:
+            src.close()
+
+
+def open_source(
+    replay: str | None,
+    live: str | None,
+    push: bool,
+    rig_path: str | None,
+    scenario: str = "inspection",
+    board_poses: int = 40,
+    hold_s: float = 3.0,
+) -> OpenedSource:
+    """The source the console shows, its rig, and a one-line description (``board_poses``
+    and ``hold_s``: the simulated calibration scenario's, see :func:`simulated_source`)."""
+    rig = load_rig(rig_path) if rig_path else None
+    if replay:
+        from app.recording import ReplaySource
+
+        src = ReplaySource(Path(replay), loop=True, realtime=True)
+        rig = rig or src.rig
+        if rig is None:
+            src.close()
+            raise ValueError(f"{replay}: the recording holds no rig; give one with --rig")
+        return OpenedSource(src, rig, f"replay of {replay} (looping)")
+    if live:
+        from app.sources.camera import CameraSource
+
+        if rig is None:
+            raise ValueError("--live needs --rig RIG.yaml (cameras do not know their calibration)")
+        return OpenedSource(CameraSource(Path(live), rig=rig), rig, f"live cameras of {live}")
+    if push:
+        from app.sources.push import PushSource
+        from app.sources.sim.head import default_rig
+
+        rig = rig or default_rig()
+        return OpenedSource(PushSource(rig), rig, "frames pushed to /ingest")
+    src, what = simulated_source(scenario, board_poses, hold_s)
+    return OpenedSource(src, rig or src.rig, what, ground_truth_rig=src.rig)
+
+
+def bind_public_socket(host: str, port: int) -> socket.socket:
+    """The console's listening socket, bound before anything else starts (a port in use is
+    then one line at once, not a traceback after the simulator has started).
+
+    Raises:
+        OSError: the address is in use, not local, or the port is not allowed; the message
+            says which.
+    """
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(
+            host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+        )[0]
+    except socket.gaierror as e:
+        raise OSError(f"--host {host}: not an address of this machine ({e.strerror})") from None
+    sock = socket.socket(family, kind, proto)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+        sock.listen(2048)
+    except OSError as e:
+        sock.close()
+        if e.errno == errno.EADDRINUSE:
+            raise OSError(
+                f"port {port} on {host} is in use (another console?); choose another --port"
+            ) from None
+        raise OSError(f"cannot listen on {host}:{port}: {e.strerror}") from None
+    sock.set_inheritable(False)
+    return sock
+
+
+def _exit_on_sigterm(signum: int, _frame: object) -> None:
+    raise SystemExit(128 + signum)
+
+
+@dataclass(frozen=True)
+class TLSFiles:
+    """A PEM certificate (chain) and its private key, for HTTPS (a headset's WebXR needs a
+    secure context)."""
+
+    certfile: Path
+    keyfile: Path
+
+
+def console_url(host: str, port: int, auth: AuthConfig, path: str = "/") -> str:
+    """The URL to open: scheme, a host a browser can reach, the token when there is one."""
+    shown = "127.0.0.1" if host in ("0.0.0.0", "::") else host
+    shown = f"[{shown}]" if ":" in shown else shown
+    scheme = "https" if auth.secure else "http"
+    query = f"?token={auth.token}" if auth.token else ""
+    return f"{scheme}://{shown}:{port}{path}{query}"
+
+
+def serve(
+    opened: OpenedSource,
+    board: Board,
+    workdir: Path,
+    auth: AuthConfig,
+    host: str = "127.0.0.1",
+    tls: TLSFiles | None = None,
+    sock: socket.socket | None = None,
+) -> None:
+    """Run the console until interrupted; the calibration session lives in ``workdir``.
+    ``auth`` (auth.py) guards every route and WebSocket; its port is the one served, on
+    ``sock`` (:func:`bind_public_socket`) if given."""
+    port = auth.port
+    source, rig = opened.source, opened.rig
+    try:  # first: a work directory of another board or rig is refused before anything runs
+        session = CalibrationSession(workdir, rig, board)
+    except BaseException:
+        source.close()
+        raise
+    hub = FrameHub()
+    tap = SourceTap(source)  # per-sensor rates and recording (source_control.py)
+    pipeline = FusionPipeline(tap, rig, hub).start()
+    server, viser_secret = start_guarded_viser()
+    watch = BoardWatch(lambda: pipeline.latest_set, rig, board)
+    balancer = ThermalBalancer(pipeline)
+    ctx = ConsoleContext(
+        server=server,
+        source=source,
+        description=opened.description,
+        hub=hub,
+        pipeline=pipeline,
+        board=board,
+        board_watch=watch,
+        ground_truth_rig=opened.ground_truth_rig,
+        balancer=balancer,
+        save_rig=session.save_rig,
+    )
+    control = SourceControl(pipeline, hub, opened.description, workdir)
+    parts = [
+        SourcePanel(ctx, control).start(),  # first: the Source panel tops the GUI
+        CalibrationPanel(ctx, session).start(),
+        watch.start(),
+        Scene3D(ctx).start(),
+        RangePanel(ctx, session).start(),
+        Panels(ctx).start(),
+        balancer.start(),
+        PrecisionPanel(ctx).start(),
+    ]
+    parts.append(control)  # stopped first: a running recording is finished and kept
+    app = create_app(hub, server.get_port(), pipeline, control, balancer, auth, viser_secret)
+    app.include_router(
+        make_session_router(
+            session,
+            lambda: pipeline.latest_set,
+            ctx.use_rig,
+            lambda: pipeline.rig,
+            pipeline.rig_with_radiometry,
+        )
+    )
+    ws_max = None
+    from app.sources.push import PushSource, make_push_router, uvicorn_ws_max_size
+
+    if isinstance(source, PushSource):
+        app.include_router(make_push_router(source))
+        ws_max = uvicorn_ws_max_size(source)
+    print(
+        f"trifuse console on {opened.description}: {console_url(host, port, auth)}  "
+        f"(3D console /console/, API /docs)",
+        flush=True,
+    )
+    if auth.token is None:
+        print("no token: anyone on this machine can use the console (--no-token)", flush=True)
+    config = uvicorn.Config(
+        app,
+        host=host,
+        port=port,
+        log_level="warning",
+        http=GuardedH11Protocol,  # header-read timeout, connection caps per client and in all
+        ws_per_message_deflate=False,  # JPEG does not deflate; it cost 13 ms a frame
+        **({"ws_max_size": ws_max} if ws_max else {}),
+        **({"ssl_certfile": tls.certfile, "ssl_keyfile": tls.keyfile} if tls else {}),
+    )
+    quiet_repeated_logs()  # after uvicorn's logging set-up
+    if threading.current_thread() is threading.main_thread():
+        # uvicorn re-raises a SIGTERM after its shutdown; by default that would end the
+        # process before the clean-up below (a recording would be left unfinished)
+        signal.signal(signal.SIGTERM, _exit_on_sigterm)
+    try:
+        uvicorn.Server(config).run(sockets=[sock] if sock is not None else None)
+    finally:
+        for part in reversed(parts):
+            part.stop()
+        pipeline.stop()
+        session.close()
+        server.stop()

@@ -1,0 +1,141 @@
+"""The fused stereo stream: the newest frame only, to any number of viewers.
+
+A producer thread publishes JPEG frames into a :class:`FrameHub`; each viewer (WebSocket or
+MJPEG) waits for a frame newer than the last one it sent and sends the newest there is, so
+a slow viewer skips frames instead of building a queue, and never slows the others.
+
+The hub measures the stream (:class:`app.server.runtime.rates.StreamRates`): frames published and
+new pictures per second over the last few seconds. Each frame's metadata carries these
+figures (``rates``), so the viewer shows the same numbers as the Source panel and
+``/api/status``, next to the rate at which it receives frames itself.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+import time
+from collections.abc import AsyncIterator
+from dataclasses import dataclass, field
+from typing import Any
+
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from fastapi.responses import StreamingResponse
+
+from app.server.runtime.rates import StreamRates
+
+
+@dataclass(frozen=True)
+class StreamFrame:
+    """One encoded stereo frame and what the viewer overlays with it."""
+
+    seq: int
+    jpeg: bytes
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+class FrameHub:
+    """The newest frame, published from any thread, awaited from the server's loop."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._frame: StreamFrame | None = None
+        self._seq = 0
+        self._waiters: set[tuple[asyncio.AbstractEventLoop, asyncio.Event]] = set()
+        self.viewers = 0
+        self.rates = StreamRates()
+        """Frames published and new pictures per second (read by the panel and routes)."""
+
+    def publish(self, jpeg: bytes, meta: dict[str, Any], new: bool = True) -> StreamFrame:
+        """Make ``jpeg`` the newest frame (any thread). ``meta`` must be JSON-able.
+
+        ``new``: the picture is new (False: the previous picture published again because
+        its input did not change). The frame's metadata gains ``seq``, ``sent_ns`` and
+        ``rates`` (:meth:`app.server.runtime.rates.RatesSnapshot.as_dict`)."""
+        self.rates.tick(new)
+        rates = self.rates.snapshot().as_dict()
+        with self._lock:
+            self._seq += 1
+            frame = StreamFrame(
+                self._seq,
+                jpeg,
+                {**meta, "seq": self._seq, "sent_ns": time.time_ns(), "rates": rates},
+            )
+            self._frame = frame
+            waiters = list(self._waiters)
+        for loop, event in waiters:
+            loop.call_soon_threadsafe(event.set)
+        return frame
+
+    @property
+    def latest(self) -> StreamFrame | None:
+        return self._frame
+
+    async def frames(self, poll_s: float = 1.0) -> AsyncIterator[StreamFrame]:
+        """The newest frame each time there is a newer one (skipping what was missed)."""
+        event = asyncio.Event()
+        key = (asyncio.get_running_loop(), event)
+        with self._lock:
+            self._waiters.add(key)
+        last = 0
+        try:
+            while True:
+                frame = self._frame
+                if frame is not None and frame.seq > last:
+                    last = frame.seq
+                    yield frame
+                    continue
+                event.clear()
+                if self._frame is None or self._frame.seq <= last:
+                    try:
+                        await asyncio.wait_for(event.wait(), poll_s)
+                    except TimeoutError:
+                        pass
+        finally:
+            with self._lock:
+                self._waiters.discard(key)
+
+
+def make_stream_router(hub: FrameHub) -> APIRouter:
+    """``/stream`` (WebSocket: per frame a JSON text message, then the JPEG as binary; the
+    viewer answers each frame with a text message, ``"ack"``, before the next is sent) and
+    ``/stream.mjpg`` (multipart/x-mixed-replace for a plain ``<img>``)."""
+    router = APIRouter()
+
+    @router.websocket("/stream")
+    async def _ws(ws: WebSocket) -> None:
+        # Flow control: one frame in flight. The viewer acknowledges each frame (any text
+        # message) once drawn; only then is the newest frame sent. Transport buffers
+        # cannot fill up with stale frames however slow the viewer or its network is.
+        await ws.accept()
+        hub.viewers += 1
+        try:
+            async for frame in hub.frames():
+                await ws.send_text(json.dumps(frame.meta))
+                await ws.send_bytes(frame.jpeg)
+                await ws.receive_text()
+        except (WebSocketDisconnect, RuntimeError):
+            pass
+        finally:
+            hub.viewers -= 1
+
+    @router.get("/stream.mjpg")
+    async def _mjpeg() -> StreamingResponse:
+        async def parts() -> AsyncIterator[bytes]:
+            hub.viewers += 1
+            try:
+                async for frame in hub.frames():
+                    yield (
+                        b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
+                        + str(len(frame.jpeg)).encode()
+                        + b"\r\n\r\n"
+                        + frame.jpeg
+                        + b"\r\n"
+                    )
+            finally:
+                hub.viewers -= 1
+
+        return StreamingResponse(parts(), media_type="multipart/x-mixed-replace; boundary=frame")
+
+    return router

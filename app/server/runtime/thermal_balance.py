@@ -1,0 +1,127 @@
+"""The console's thermal balance: measured twice a second on the newest frames, applied
+to the fused picture when automatic.
+
+Each tick takes the newest frame set and the TOF points behind the current mapping,
+finds the points both thermal imagers see (:func:`fusion.balance.measure_balance`),
+estimates the left-right relation on calibrated temperatures, and filters it over frame
+time (:class:`fusion.balance.BalanceFilter`). With ``auto`` on, the filtered estimate
+becomes both imagers' balance terms (split evenly, or onto a reference imager). A frame
+whose estimate is refused (no overlap, too few TOF points) changes nothing; the status
+says why. The live left-right difference is measured over the same points, as displayed
+(calibration, balance and the operator's trims).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from app.server.runtime.periodic import Periodic
+from app.server.runtime.pipeline import FusionPipeline
+from fusion.balance import BalanceEstimate, BalanceFilter, balance_terms, measure_balance
+
+MIN_SHARED_POINTS = 200
+
+
+@dataclass(frozen=True)
+class BalanceStatus:
+    """The newest measurement, for the panel and ``GET /api/thermal``.
+
+    Attributes:
+        difference_k: median left - right as displayed over the shared points (NaN: none).
+        points: shared points of the newest frame set.
+        estimate: the newest frame's own estimate (refused ones carry the reason).
+        filtered: the filtered estimate, None before the first usable one.
+        waiting: why nothing was measured (no frames yet ...), else None.
+    """
+
+    difference_k: float = math.nan
+    points: int = 0
+    estimate: BalanceEstimate | None = None
+    filtered: BalanceEstimate | None = None
+    waiting: str | None = "waiting for frames"
+
+    def difference_text(self) -> str:
+        """The live difference line, markdown."""
+        if self.waiting:
+            return f"Left - right: {self.waiting}"
+        if not math.isfinite(self.difference_k):
+            return f"Left - right: no shared points ({self._why()})"
+        return f"Left - right: **{self.difference_k:+.2f} K** over {self.points} shared points"
+
+    def _why(self) -> str:
+        e = self.estimate
+        return e.reason if e is not None and e.reason else "the imagers see nothing in common"
+
+
+class ThermalBalancer(Periodic):
+    """Measures (and, when ``auto``, applies) the balance at ``rate_hz``.
+
+    Attributes:
+        auto: apply the filtered estimate continuously.
+        reference: None (split the correction evenly) or the imager left unchanged.
+        status: the newest :class:`BalanceStatus`.
+    """
+
+    def __init__(
+        self, pipeline: FusionPipeline, rate_hz: float = 2.0, time_constant_s: float = 3.0
+    ) -> None:
+        super().__init__("thermal-balance", 1.0 / rate_hz)
+        self.pipeline = pipeline
+        self.auto = False
+        self.reference: str | None = None
+        self.filter = BalanceFilter(time_constant_s)
+        self.status = BalanceStatus()
+        self._seen: tuple | None = None
+
+    def set_auto(self, on: bool) -> None:
+        """Turn automatic balancing on (from a fresh estimate) or off (the balance stays)."""
+        if on and not self.auto:
+            self.filter.reset()
+            self._seen = None  # measure the frames on screen again, even if unchanged
+        self.auto = bool(on)
+
+    def apply_filtered(self) -> BalanceEstimate:
+        """Apply the filtered estimate once (SessionError-like ValueError when none)."""
+        state = self.filter.state
+        if state is None:
+            raise ValueError(
+                "no balance estimate yet: "
+                + (self.filter.last_reason or "waiting for frames with both imagers and depth")
+            )
+        self._apply(state)
+        return state
+
+    def reset_balance(self) -> None:
+        """Both imagers back to no balance (their calibration and trims stay)."""
+        self.set_auto(False)
+        self.pipeline.set_balance({s: (1.0, 0.0) for s in self.pipeline.radiometry})
+
+    def _apply(self, state: BalanceEstimate) -> None:
+        p = self.pipeline
+        left, right = (p.rig.eyes[e].thermal for e in ("left", "right"))
+        p.set_balance(balance_terms(state, left, right, self.reference))
+
+    def tick(self) -> None:
+        p = self.pipeline
+        fs, fusion = p.latest_set, p.fusion
+        rig = p.rig
+        left, right = rig.eyes["left"].thermal, rig.eyes["right"].thermal
+        if fs is None or left not in fs.frames or right not in fs.frames or not fusion.ready:
+            self.status = BalanceStatus(waiting="needs both thermal imagers and a TOF frame")
+            return
+        points = fusion.points
+        images = (fs.frames[left].image, fs.frames[right].image)
+        seen = (points, *images, tuple(sorted(p.radiometry.items())))
+        last = self._seen
+        if last is not None and all(a is b for a, b in zip(seen[:3], last[:3], strict=True)):
+            if seen[3] == last[3]:
+                return  # the very same frames and radiometry (a source repeating them)
+        m = measure_balance(
+            rig, p.tof, points, left, right, *images, p.radiometry, min_points=MIN_SHARED_POINTS
+        )
+        filtered = self.filter.update(m.estimate, fs.stamp_ns)
+        self.status = BalanceStatus(m.difference_k, m.shared.n_points, m.estimate, filtered, None)
+        self._seen = seen
+        if self.auto and m.estimate.ok and filtered is not None:
+            self._apply(filtered)

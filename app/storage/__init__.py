@@ -1,0 +1,3 @@
+"""What trifuse keeps on disk: capture directories, rig files, previews, atomic writes, the work-
+directory lock.
+"""

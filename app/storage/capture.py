@@ -1,0 +1,926 @@
+"""The capture directory on disk: checkerboard views of every sensor, written and read back.
+
+Layout (docs/FORMATS.md)::
+
+    captures/
+      board.yaml               # the checkerboard (calib.board)
+      rig.yaml                 # optional starting rig (names, modalities, sizes, nominal poses)
+      ground_truth.yaml        # optional, simulated captures only (trifuse-ground-truth/1)
+      ground_truth_rig.yaml    # optional, the rig the simulator rendered with
+      0001/                    # one folder per view, any name, sorted by name
+        ccd_left.png           # colour: 8-bit RGB or grey, PNG or JPG
+        thermal_left.png       # thermal: 16-bit PNG, centi-kelvin (0 = no reading)
+        tof.png                # TOF amplitude: 8- or 16-bit PNG
+        tof_distance.png       # TOF radial distance: 16-bit PNG, millimetres, 0 = invalid
+
+In memory the images follow docs/CONVENTIONS.md: colour (H, W, 3) uint8 RGB, thermal
+(H, W) float32 kelvin, TOF amplitude (H, W) float32 and TOF radial distance (H, W) float32
+metres with NaN where invalid. BGR exists only at the OpenCV encode/decode calls.
+
+Every file is written atomically (temporary file in the same directory, fsync, rename) and a
+view appears complete or not at all (it is assembled in a hidden staging folder that is
+renamed into place). Reading is lazy: :func:`load_capture` checks the directory and the image
+headers (sizes, bit depths) without decoding pixels; :meth:`CaptureView.frame` decodes one
+image when asked, so 30 views x 5 sensors cost the memory of what the caller keeps.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import struct
+import tempfile
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+import yaml
+
+from app.sources.frames import Frame, FrameSet
+from app.storage.atomic import atomic_write_bytes, fsync_dir, make_dirs, umask
+from app.storage.rigfile import load_rig, save_rig
+from calib.board import Board, board_from_dict
+from calib.rig import MODALITY_PREFIXES, Modality, Rig, modality_of_name, rig_to_yaml
+from calib.transforms import rigidity_problem
+from calib.yaml_text import YamlError, parse_yaml
+
+BOARD_FILE = "board.yaml"
+RIG_FILE = "rig.yaml"
+GROUND_TRUTH_FILE = "ground_truth.yaml"
+GROUND_TRUTH_RIG_FILE = "ground_truth_rig.yaml"
+GROUND_TRUTH_FORMAT = "trifuse-ground-truth/1"
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+DISTANCE_SUFFIX = "_distance"
+"""A TOF sensor's distance image is ``<sensor>_distance.png`` beside ``<sensor>.png``."""
+
+THERMAL_COUNTS_PER_K = 100.0
+"""Counts per kelvin of a 16-bit thermal PNG (centi-kelvin)."""
+DISTANCE_COUNTS_PER_M = 1000.0
+"""Counts per metre of a 16-bit distance PNG (millimetres)."""
+UINT16_MAX = 65535
+
+ThermalEncoding = Literal["centikelvin", "counts"]
+
+_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# PNG colour type -> channels after OpenCV's IMREAD_UNCHANGED (palette decodes to BGR).
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}
+# JPEG start-of-frame markers (baseline, extended, progressive, lossless ...), not DHT/DAC/JPG.
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+class CaptureError(ValueError):
+    """A capture directory, view or image is not what the format expects.
+
+    The message names the file or folder, what was expected and what was found.
+    """
+
+
+class ViewExistsError(CaptureError):
+    """A view folder of that name exists already; captures are never overwritten."""
+
+
+# -- names and modalities -------------------------------------------------------------------
+
+
+def modality_from_name(sensor: str) -> Modality:
+    """Modality of a sensor from its name prefix (used when a capture has no rig.yaml):
+    :func:`calib.rig.modality_of_name`, and CaptureError for any other name."""
+    modality = modality_of_name(sensor)
+    if modality is None:
+        prefixes = ", ".join(f"{p}*" for p, _ in MODALITY_PREFIXES)
+        raise CaptureError(
+            f"sensor {sensor!r}: cannot tell its modality from the name (expected a prefix "
+            f"among {prefixes}); add a rig.yaml to the capture directory that names the sensor"
+        )
+    return modality
+
+
+def _check_name(name: str, what: str) -> None:
+    if not isinstance(name, str) or not _NAME_RE.fullmatch(name):
+        raise CaptureError(
+            f"{what} {name!r}: expected a file name of letters, digits, '.', '_' or '-' "
+            "not starting with '.', '_' or '-'"
+        )
+
+
+# -- low-level file writing -----------------------------------------------------------------
+
+
+def _encode_png(image: np.ndarray, what: str) -> bytes:
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise CaptureError(f"{what}: OpenCV could not encode the image as PNG")
+    return buf.tobytes()
+
+
+def _write_same_or_fail(path: Path, text: str, what: str) -> Path:
+    """Write ``text`` unless ``path`` holds it already; refuse to replace other content."""
+    if path.exists():
+        try:
+            existing = path.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise CaptureError(f"{path}: exists and cannot be read: {exc.strerror}") from None
+        if existing == text:
+            return path
+        raise CaptureError(f"{path}: exists with a different {what}; refusing to overwrite it")
+    atomic_write_bytes(path, text.encode("utf-8"))
+    return path
+
+
+# -- encoding one sensor's images -----------------------------------------------------------
+
+
+def _check_image(
+    image: Any, sensor: str, modality: str, size: tuple[int, int] | None, what: str
+) -> np.ndarray:
+    """Check a frame's image array against the in-memory conventions and the rig's size."""
+    if not isinstance(image, np.ndarray):
+        raise CaptureError(f"{what}: expected a numpy array, got {type(image).__name__}")
+    if modality == "color":
+        if image.dtype != np.uint8 or not (
+            image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 3)
+        ):
+            raise CaptureError(
+                f"{what}: expected a colour image (H, W, 3) uint8 RGB or (H, W) "
+                f"uint8 grey, got shape {image.shape} {image.dtype}"
+            )
+    elif image.ndim != 2 or not (
+        np.issubdtype(image.dtype, np.floating) or np.issubdtype(image.dtype, np.integer)
+    ):
+        raise CaptureError(
+            f"{what}: expected a {modality} image (H, W) of numbers, "
+            f"got shape {image.shape} {image.dtype}"
+        )
+    if size is not None and (image.shape[1], image.shape[0]) != size:
+        raise CaptureError(
+            f"{what}: expected {size[0]}x{size[1]} (width x height) as the rig says for "
+            f"sensor {sensor!r}, got {image.shape[1]}x{image.shape[0]}"
+        )
+    return image
+
+
+def _to_uint16(values: np.ndarray, counts_per_unit: float) -> np.ndarray:
+    """``round(values * counts_per_unit)`` clipped to 0..65535 as uint16; NaN -> 0."""
+    v = np.asarray(values, dtype=np.float64) * counts_per_unit
+    v = np.where(np.isfinite(v), v, 0.0)
+    return np.clip(np.rint(v), 0, UINT16_MAX).astype(np.uint16)
+
+
+def encode_thermal(temperature_k: np.ndarray) -> np.ndarray:
+    """Kelvin (H, W) -> uint16 centi-kelvin (H, W): rounded, clipped to 0..655.35 K, NaN -> 0."""
+    return _to_uint16(temperature_k, THERMAL_COUNTS_PER_K)
+
+
+def encode_amplitude(amplitude: np.ndarray) -> np.ndarray:
+    """TOF amplitude (H, W) -> uint16 (H, W): rounded, clipped to 0..65535, NaN -> 0."""
+    return _to_uint16(amplitude, 1.0)
+
+
+def encode_distance(distance_m: np.ndarray) -> np.ndarray:
+    """Radial distance in metres (H, W) -> uint16 millimetres (H, W), 0 = invalid.
+
+    NaN, negative and zero distances become 0; distances beyond 65.535 m, which 16 bits
+    cannot hold, also become 0 (invalid) rather than being clipped to a wrong range.
+    """
+    mm = np.asarray(distance_m, dtype=np.float64) * DISTANCE_COUNTS_PER_M
+    valid = np.isfinite(mm) & (mm > 0) & (mm <= UINT16_MAX + 0.5)
+    out = np.zeros(mm.shape, dtype=np.uint16)
+    out[valid] = np.clip(np.rint(mm[valid]), 0, UINT16_MAX).astype(np.uint16)
+    return out
+
+
+def _encode_frame(
+    frame: Frame, sensor: str, modality: str, size: tuple[int, int] | None, where: str
+) -> dict[str, bytes]:
+    """PNG bytes of one sensor's frame, keyed by file name."""
+    what = f"{where}: sensor {sensor!r}"
+    image = _check_image(frame.image, sensor, modality, size, f"{what} image")
+    files: dict[str, bytes] = {}
+    if modality == "color":
+        bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image
+        files[f"{sensor}.png"] = _encode_png(bgr, what)
+    elif modality == "thermal":
+        if frame.distance_m is not None:
+            raise CaptureError(f"{what}: a thermal frame has no distance image, got one")
+        files[f"{sensor}.png"] = _encode_png(encode_thermal(image), what)
+    else:
+        files[f"{sensor}.png"] = _encode_png(encode_amplitude(image), what)
+        if frame.distance_m is not None:
+            dist = frame.distance_m
+            if not isinstance(dist, np.ndarray) or dist.shape != image.shape:
+                got = dist.shape if isinstance(dist, np.ndarray) else type(dist).__name__
+                raise CaptureError(
+                    f"{what}: expected distance_m of the amplitude's shape {image.shape}, got {got}"
+                )
+            files[f"{sensor}{DISTANCE_SUFFIX}.png"] = _encode_png(encode_distance(dist), what)
+    return files
+
+
+# -- writing --------------------------------------------------------------------------------
+
+
+def write_board(capture_dir: str | Path, board: Board) -> Path:
+    """Write ``board.yaml`` into ``capture_dir`` (created if needed); return its path.
+
+    Writing the same board again is a no-op; a different existing board raises CaptureError.
+    """
+    capture_dir = Path(capture_dir)
+    make_dirs(capture_dir)
+    text = yaml.safe_dump(board.to_dict(), sort_keys=False, default_flow_style=None)
+    return _write_same_or_fail(capture_dir / BOARD_FILE, text, "board")
+
+
+def write_rig(capture_dir: str | Path, rig: Rig) -> Path:
+    """Write the starting rig ``rig.yaml`` into ``capture_dir``; return its path.
+
+    Writing the same rig again is a no-op; a different existing rig raises CaptureError.
+    """
+    capture_dir = Path(capture_dir)
+    make_dirs(capture_dir)
+    return _write_same_or_fail(capture_dir / RIG_FILE, rig_to_yaml(rig), "rig")
+
+
+def write_view(capture_dir: str | Path, view_name: str, frames: FrameSet, rig: Rig) -> Path:
+    """Write one view (a folder of PNG images, one per sensor) and return the folder's path.
+
+    Args:
+        capture_dir: the capture directory (created if needed).
+        view_name: the folder name, e.g. ``"0001"``; an existing folder of that name raises
+            :class:`ViewExistsError` (a capture is never overwritten).
+        frames: the frames to write; every sensor must be in ``rig``. Colour (H, W, 3)
+            uint8 RGB (or (H, W) grey) -> 8-bit PNG; thermal kelvin -> 16-bit PNG in
+            centi-kelvin (rounded, clipped, NaN -> 0); TOF amplitude -> 16-bit ``<tof>.png``
+            (rounded, clipped) and, if ``distance_m`` is set, radial distance -> 16-bit
+            ``<tof>_distance.png`` in millimetres with 0 = invalid.
+        rig: gives each sensor's modality and image size (checked before anything is written).
+
+    The images are encoded first, then written into a hidden staging folder (each file
+    atomically) that is renamed to ``view_name``: a reader never sees half a view.
+    """
+    capture_dir = Path(capture_dir)
+    _check_name(view_name, "view name")
+    target = capture_dir / view_name
+    if target.exists():
+        raise ViewExistsError(
+            f"{target}: view exists already; refusing to overwrite a capture "
+            "(choose another view name)"
+        )
+    if not frames.frames:
+        raise CaptureError(f"view {view_name!r}: expected at least one frame, got none")
+
+    encoded: dict[str, bytes] = {}
+    for sensor, frame in frames.frames.items():
+        _check_name(sensor, "sensor name")
+        if sensor.endswith(DISTANCE_SUFFIX):
+            raise CaptureError(
+                f"sensor {sensor!r}: names ending in {DISTANCE_SUFFIX!r} are "
+                "reserved for TOF distance images"
+            )
+        if sensor not in rig:
+            raise CaptureError(
+                f"view {view_name!r}: sensor {sensor!r} is not in the rig (sensors: {rig.names})"
+            )
+        s = rig[sensor]
+        encoded.update(
+            _encode_frame(frame, sensor, s.modality, s.image_size, f"view {view_name!r}")
+        )
+
+    make_dirs(capture_dir)
+    staging = Path(tempfile.mkdtemp(prefix=f".{view_name}.", suffix=".partial", dir=capture_dir))
+    try:
+        staging.chmod(0o777 & ~umask())
+        for name, data in encoded.items():
+            atomic_write_bytes(staging / name, data)
+        fsync_dir(staging)
+        if target.exists():  # appeared while we were encoding
+            raise ViewExistsError(
+                f"{target}: view exists already; refusing to overwrite a "
+                "capture (choose another view name)"
+            )
+        os.rename(staging, target)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    fsync_dir(capture_dir)
+    return target
+
+
+def write_ground_truth(
+    capture_dir: str | Path,
+    rig: Rig,
+    views: Iterable[tuple[str, np.ndarray]],
+    board: Board,
+) -> tuple[Path, Path]:
+    """Write the simulator's ground truth: ``ground_truth_rig.yaml`` and ``ground_truth.yaml``.
+
+    Args:
+        capture_dir: the capture directory.
+        rig: the rig the views were rendered with (a normal rig file).
+        views: (view name, ``T_rig_board``) pairs; ``T_rig_board`` is the (4, 4) board pose in
+            the rig frame, metres.
+        board: the checkerboard.
+
+    Returns:
+        The paths of ``ground_truth.yaml`` and ``ground_truth_rig.yaml``. Existing files are
+        never replaced (CaptureError).
+    """
+    capture_dir = Path(capture_dir)
+    gt_path = capture_dir / GROUND_TRUTH_FILE
+    rig_path = capture_dir / GROUND_TRUTH_RIG_FILE
+    for p in (gt_path, rig_path):
+        if p.exists():
+            raise CaptureError(f"{p}: exists already; refusing to overwrite ground truth")
+    poses: dict[str, Any] = {}
+    for name, T in views:
+        _check_name(name, "view name")
+        problem = rigidity_problem(T)
+        if problem is not None:
+            raise CaptureError(f"view {name!r}: T_rig_board is not a rigid transform: {problem}")
+        if name in poses:
+            raise CaptureError(f"view {name!r}: listed twice in the ground truth")
+        poses[name] = {"T_rig_board": np.asarray(T, dtype=np.float64).tolist()}
+    data = {
+        "format": GROUND_TRUTH_FORMAT,
+        "rig": GROUND_TRUTH_RIG_FILE,
+        "board": board.to_dict(),
+        "views": poses,
+    }
+    save_rig(rig_path, rig, overwrite=True)
+    text = yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=100)
+    atomic_write_bytes(gt_path, text.encode("utf-8"))
+    return gt_path, rig_path
+
+
+@dataclass
+class GroundTruth:
+    """What the simulator rendered: the rig, the board and each view's board pose.
+
+    Attributes:
+        rig: the ground-truth rig.
+        board: the checkerboard.
+        T_rig_board: view name -> (4, 4) float64 board pose in the rig frame, metres.
+    """
+
+    rig: Rig
+    board: Board
+    T_rig_board: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def load_ground_truth(capture_dir: str | Path) -> GroundTruth:
+    """Read ``ground_truth.yaml`` (and the rig file it names); CaptureError names the defect."""
+    capture_dir = Path(capture_dir)
+    path = capture_dir / GROUND_TRUTH_FILE
+    data = _read_yaml(path, "ground truth")
+    if not isinstance(data, dict):
+        raise CaptureError(f"{path}: expected a mapping, got {type(data).__name__}")
+    expected = {"format", "rig", "board", "views"}
+    if set(data) != expected:
+        raise CaptureError(f"{path}: expected keys {sorted(expected)}, got {sorted(data, key=str)}")
+    if data["format"] != GROUND_TRUTH_FORMAT:
+        raise CaptureError(
+            f"{path}: field 'format': expected {GROUND_TRUTH_FORMAT!r}, got {data['format']!r}"
+        )
+    rig_name = data["rig"]
+    if not isinstance(rig_name, str) or Path(rig_name).name != rig_name:
+        raise CaptureError(f"{path}: field 'rig': expected a file name beside it, got {rig_name!r}")
+    rig = load_rig(capture_dir / rig_name)
+    try:
+        board = board_from_dict(data["board"])
+    except ValueError as exc:
+        raise CaptureError(f"{path}: field 'board': {exc}") from None
+    views = data["views"] or {}
+    if not isinstance(views, dict):
+        raise CaptureError(
+            f"{path}: field 'views': expected a mapping of view name to pose, "
+            f"got {type(views).__name__}"
+        )
+    poses: dict[str, np.ndarray] = {}
+    for name, entry in views.items():
+        if not isinstance(entry, dict) or set(entry) != {"T_rig_board"}:
+            raise CaptureError(
+                f"{path}: view {name!r}: expected {{T_rig_board: 4x4}}, got {entry!r}"
+            )
+        problem = rigidity_problem(entry["T_rig_board"])
+        if problem is not None:
+            raise CaptureError(f"{path}: view {name!r}: T_rig_board: {problem}")
+        poses[str(name)] = np.asarray(entry["T_rig_board"], dtype=np.float64)
+    return GroundTruth(rig=rig, board=board, T_rig_board=poses)
+
+
+# -- image headers --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ImageFile:
+    """One image file of a view, as its header describes it (pixels not decoded).
+
+    Attributes:
+        path: the file.
+        width, height: pixels.
+        bit_depth: bits per sample (8 or 16).
+        channels: samples per pixel as OpenCV decodes it (1 grey, 2 grey+alpha, 3, 4).
+        format: ``"png"`` or ``"jpeg"``.
+    """
+
+    path: Path
+    width: int
+    height: int
+    bit_depth: int
+    channels: int
+    format: Literal["png", "jpeg"]
+
+
+def _png_header(path: Path, head: bytes) -> ImageFile:
+    if len(head) < 26 or head[12:16] != b"IHDR":
+        raise CaptureError(f"{path}: corrupt PNG: expected an IHDR chunk after the signature")
+    width, height = struct.unpack(">II", head[16:24])
+    bit_depth, colour_type = head[24], head[25]
+    if width == 0 or height == 0 or colour_type not in _PNG_CHANNELS:
+        raise CaptureError(
+            f"{path}: corrupt PNG header (width {width}, height {height}, "
+            f"colour type {colour_type})"
+        )
+    channels = _PNG_CHANNELS[colour_type]
+    depth = 8 if colour_type == 3 or bit_depth < 8 else bit_depth
+    return ImageFile(path, width, height, depth, channels, "png")
+
+
+def _jpeg_header(path: Path) -> ImageFile:
+    with path.open("rb") as f:
+        f.seek(2)
+        while True:
+            byte = f.read(1)
+            if not byte:
+                break
+            if byte != b"\xff":
+                continue
+            marker = f.read(1)
+            while marker == b"\xff":
+                marker = f.read(1)
+            if not marker:
+                break
+            m = marker[0]
+            if m in (0x01, 0xD8) or 0xD0 <= m <= 0xD7:
+                continue
+            if m in (0xD9, 0xDA):  # end of image or start of scan before any frame header
+                break
+            raw_len = f.read(2)
+            if len(raw_len) < 2:
+                break
+            (length,) = struct.unpack(">H", raw_len)
+            if m in _JPEG_SOF:
+                body = f.read(6)
+                if len(body) < 6:
+                    break
+                precision, height, width, comps = struct.unpack(">BHHB", body)
+                if width == 0 or height == 0:
+                    break
+                return ImageFile(path, width, height, precision, comps, "jpeg")
+            f.seek(length - 2, os.SEEK_CUR)
+    raise CaptureError(f"{path}: corrupt JPEG: no frame header (width, height) found")
+
+
+def read_image_header(path: str | Path) -> ImageFile:
+    """Size, bit depth and channels of a PNG or JPEG file from its header.
+
+    Raises CaptureError naming the file when it cannot be read or is neither format.
+    """
+    path = Path(path)
+    try:
+        with path.open("rb") as f:
+            head = f.read(32)
+    except OSError as exc:
+        raise CaptureError(f"{path}: cannot read image: {exc.strerror}") from None
+    if head.startswith(_PNG_SIGNATURE):
+        return _png_header(path, head)
+    if head.startswith(b"\xff\xd8"):
+        return _jpeg_header(path)
+    raise CaptureError(
+        f"{path}: not an image: expected a PNG or JPEG file, the first bytes are {head[:8]!r}"
+    )
+
+
+# -- decoding -------------------------------------------------------------------------------
+
+
+def _decode(info: ImageFile) -> np.ndarray:
+    """Decode a file with OpenCV (unchanged depth and channels); CaptureError if corrupt."""
+    try:
+        data = np.fromfile(info.path, dtype=np.uint8)
+    except OSError as exc:
+        raise CaptureError(f"{info.path}: cannot read image: {exc.strerror}") from None
+    try:
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    except cv2.error as exc:  # e.g. a header claiming more pixels than OpenCV decodes
+        raise CaptureError(
+            f"{info.path}: OpenCV refuses to decode a {info.width}x{info.height} image ({exc.err})"
+        ) from None
+    if image is None:
+        raise CaptureError(f"{info.path}: corrupt or unreadable image (OpenCV cannot decode it)")
+    if image.shape[:2] != (info.height, info.width):
+        raise CaptureError(
+            f"{info.path}: decoded {image.shape[1]}x{image.shape[0]}, "
+            f"but the header says {info.width}x{info.height}"
+        )
+    return image
+
+
+def _single_channel(image: np.ndarray, info: ImageFile, what: str) -> np.ndarray:
+    """(H, W) of a grey image; a 3/4-channel image is accepted only if its colours are grey."""
+    if image.ndim == 2:
+        return image
+    if image.shape[2] in (3, 4):
+        first = image[:, :, 0]
+        if np.array_equal(first, image[:, :, 1]) and np.array_equal(first, image[:, :, 2]):
+            return first
+    if image.shape[2] == 2:
+        return image[:, :, 0]
+    raise CaptureError(
+        f"{info.path}: expected a single-channel {what} image, got "
+        f"{image.shape[2]} channels with colour (a false-colour image holds no "
+        "values)"
+    )
+
+
+def decode_color(info: ImageFile) -> np.ndarray:
+    """8-bit colour or grey PNG/JPG -> (H, W, 3) uint8 RGB (grey is replicated to RGB)."""
+    image = _decode(info)
+    if image.dtype != np.uint8:
+        raise CaptureError(
+            f"{info.path}: expected an 8-bit colour or grey image, got {image.dtype} samples"
+        )
+    if image.ndim == 2:
+        return cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
+    code = {2: None, 3: cv2.COLOR_BGR2RGB, 4: cv2.COLOR_BGRA2RGB}[image.shape[2]]
+    if code is None:  # grey + alpha
+        return cv2.cvtColor(np.ascontiguousarray(image[:, :, 0]), cv2.COLOR_GRAY2RGB)
+    return cv2.cvtColor(image, code)
+
+
+def decode_thermal(info: ImageFile, encoding: ThermalEncoding = "centikelvin") -> np.ndarray:
+    """Thermal image -> (H, W) float32.
+
+    16-bit with ``encoding="centikelvin"`` (the format's default): kelvin, counts / 100, with
+    0 (no reading) -> NaN. 16-bit with ``encoding="counts"`` and any 8-bit image: the stored
+    values as float32, *not* kelvin (enough to detect a board, not to read temperatures).
+    """
+    image = _single_channel(_decode(info), info, "thermal")
+    if image.dtype == np.uint16 and encoding == "centikelvin":
+        # float64 division, then one rounding to float32
+        kelvin = (image / THERMAL_COUNTS_PER_K).astype(np.float32)
+        kelvin[image == 0] = np.nan
+        return kelvin
+    return image.astype(np.float32)
+
+
+def decode_amplitude(info: ImageFile) -> np.ndarray:
+    """TOF amplitude (8- or 16-bit) -> (H, W) float32 of the stored values."""
+    return _single_channel(_decode(info), info, "TOF amplitude").astype(np.float32)
+
+
+def decode_distance(info: ImageFile) -> np.ndarray:
+    """16-bit millimetres, 0 = invalid -> (H, W) float32 metres with NaN where invalid."""
+    image = _single_channel(_decode(info), info, "TOF distance")
+    if image.dtype != np.uint16:
+        raise CaptureError(
+            f"{info.path}: expected a 16-bit distance image in millimetres, got "
+            f"{image.dtype} samples"
+        )
+    metres = (image / DISTANCE_COUNTS_PER_M).astype(np.float32)
+    metres[image == 0] = np.nan
+    return metres
+
+
+# -- reading --------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SensorFiles:
+    """The files of one sensor in one view.
+
+    Attributes:
+        sensor: sensor id.
+        modality: ``color``, ``thermal`` or ``tof``.
+        image: the image (colour, thermal, or TOF amplitude).
+        distance: TOF only: the radial distance image, if the view has one.
+    """
+
+    sensor: str
+    modality: Modality
+    image: ImageFile
+    distance: ImageFile | None = None
+
+
+@dataclass
+class CaptureView:
+    """One view: a folder with some sensors' images. Pixels are decoded on request.
+
+    Attributes:
+        name: the folder name.
+        path: the folder.
+        files: sensor id -> its files, in sensor order (rig order, else sorted by name).
+        thermal_encoding: how 16-bit thermal images are read (see :func:`decode_thermal`).
+    """
+
+    name: str
+    path: Path
+    files: dict[str, SensorFiles]
+    thermal_encoding: ThermalEncoding = "centikelvin"
+
+    @property
+    def sensors(self) -> list[str]:
+        """Sensor ids present in this view."""
+        return list(self.files)
+
+    def __contains__(self, sensor: object) -> bool:
+        return sensor in self.files
+
+    def thermal_is_kelvin(self, sensor: str) -> bool:
+        """Whether ``frame(sensor).image`` is in kelvin (16-bit centi-kelvin thermal file)."""
+        f = self._files(sensor)
+        return (
+            f.modality == "thermal"
+            and f.image.bit_depth == 16
+            and self.thermal_encoding == "centikelvin"
+        )
+
+    def _files(self, sensor: str) -> SensorFiles:
+        try:
+            return self.files[sensor]
+        except KeyError:
+            raise KeyError(
+                f"view {self.name!r} has no image of sensor {sensor!r} (has: {self.sensors})"
+            ) from None
+
+    def frame(self, sensor: str) -> Frame:
+        """Decode one sensor's image(s) into a Frame (``stamp_ns`` 0: captures carry no time).
+
+        Colour -> (H, W, 3) uint8 RGB; thermal -> (H, W) float32 (kelvin for 16-bit files,
+        see :meth:`thermal_is_kelvin`); TOF -> amplitude (H, W) float32 and, if present,
+        ``distance_m`` (H, W) float32 metres, NaN where invalid. Raises CaptureError naming
+        the file if it is corrupt.
+        """
+        f = self._files(sensor)
+        if f.modality == "color":
+            return Frame(sensor, 0, decode_color(f.image))
+        if f.modality == "thermal":
+            return Frame(sensor, 0, decode_thermal(f.image, self.thermal_encoding))
+        distance = decode_distance(f.distance) if f.distance is not None else None
+        return Frame(sensor, 0, decode_amplitude(f.image), distance)
+
+    def frames(self, sensors: Iterable[str] | None = None) -> FrameSet:
+        """Decode the view's images (all, or the given sensors) into a FrameSet (stamp 0)."""
+        names = self.sensors if sensors is None else list(sensors)
+        return FrameSet(0, {s: self.frame(s) for s in names})
+
+
+@dataclass
+class Capture:
+    """A capture directory: the board, the optional starting rig, and the views.
+
+    Attributes:
+        path: the directory.
+        board: the checkerboard (``board.yaml``).
+        rig: the starting rig (``rig.yaml``), or None if the directory has none.
+        views: the views sorted by folder name.
+        modalities: every sensor seen (or named by the rig) -> its modality.
+    """
+
+    path: Path
+    board: Board
+    rig: Rig | None
+    views: list[CaptureView]
+    modalities: dict[str, Modality]
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+    def __iter__(self) -> Iterator[CaptureView]:
+        return iter(self.views)
+
+    @property
+    def sensors(self) -> list[str]:
+        """Sensors that appear in at least one view (rig order, else sorted by name)."""
+        seen = {s for v in self.views for s in v.files}
+        return [s for s in self.modalities if s in seen]
+
+    def view(self, name: str) -> CaptureView:
+        """The view of that folder name."""
+        for v in self.views:
+            if v.name == name:
+                return v
+        raise KeyError(f"{self.path}: no view {name!r} (views: {[v.name for v in self.views]})")
+
+    def views_with(self, sensor: str) -> list[CaptureView]:
+        """Views that hold an image of ``sensor``."""
+        return [v for v in self.views if sensor in v.files]
+
+    def check_sizes(self, rig: Rig) -> None:
+        """CaptureError at the first image whose size (read from its header, no pixel
+        decoded) is not what ``rig`` says of its sensor: a rig of another head is refused
+        before anything is allocated for it."""
+        for view in self.views:
+            for sensor, files in view.files.items():
+                if sensor not in rig:
+                    continue
+                want = rig[sensor].image_size
+                for info in (files.image, files.distance):
+                    if info is not None and (info.width, info.height) != want:
+                        raise CaptureError(
+                            f"{info.path}: the rig says sensor {sensor!r} takes "
+                            f"{want[0]}x{want[1]} images (width x height), this one is "
+                            f"{info.width}x{info.height}: a rig of another head?"
+                        )
+
+    def summary(self) -> str:
+        """A few lines for people: views, sensors and how many views each one is in."""
+        lines = [
+            f"{self.path}: {len(self.views)} views, board {self.board.cols}x"
+            f"{self.board.rows} inner corners of {self.board.square_size_m * 1000:g} mm, "
+            f"{'starting rig rig.yaml' if self.rig else 'no rig.yaml'}"
+        ]
+        for s in self.sensors:
+            lines.append(f"  {s} ({self.modalities[s]}): in {len(self.views_with(s))} views")
+        return "\n".join(lines)
+
+
+def _read_yaml(path: Path, what: str) -> Any:
+    if not path.is_file():
+        raise CaptureError(f"{path}: missing {what} file")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise CaptureError(f"{path}: cannot read {what} file: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise CaptureError(
+            f"{path}: {what} file is not UTF-8 text: {exc.reason} at byte {exc.start}"
+        ) from None
+    try:
+        return parse_yaml(text)
+    except YamlError as exc:
+        raise CaptureError(f"{path}: {what} file is not valid YAML: {exc}") from None
+
+
+def load_board(capture_dir: str | Path) -> Board:
+    """Read ``board.yaml`` of a capture directory; CaptureError names the path and the defect."""
+    path = Path(capture_dir) / BOARD_FILE
+    if not path.is_file():
+        raise CaptureError(
+            f"{path}: missing; a capture directory needs board.yaml describing the checkerboard, "
+            "e.g. '{pattern: checkerboard, inner_corners: [9, 6], square_size_m: 0.025}'"
+        )
+    return load_board_file(path)
+
+
+def load_board_file(path: str | Path) -> Board:
+    """Read a board file (``board.yaml`` layout); CaptureError names the path and the defect."""
+    path = Path(path)
+    data = _read_yaml(path, "board")
+    try:
+        return board_from_dict(data)
+    except ValueError as exc:
+        raise CaptureError(f"{path}: {exc}") from None
+
+
+def _scan_view(
+    path: Path, rig: Rig | None, modalities: dict[str, Modality], thermal_encoding: ThermalEncoding
+) -> CaptureView:
+    """Index one view folder; check names, modalities and (with a rig) image sizes."""
+    images: dict[str, Path] = {}
+    distances: dict[str, Path] = {}
+    for entry in sorted(path.iterdir()):
+        if entry.name.startswith(".") or not entry.is_file():
+            continue
+        if entry.suffix.lower() not in IMAGE_SUFFIXES:
+            continue  # notes, metadata: not images of this format
+        stem = entry.stem
+        target = images
+        if stem.endswith(DISTANCE_SUFFIX):
+            stem = stem[: -len(DISTANCE_SUFFIX)]
+            target = distances
+        if stem in target:
+            raise CaptureError(
+                f"{path}: two images of sensor {stem!r} "
+                f"({target[stem].name} and {entry.name}); keep one"
+            )
+        target[stem] = entry
+
+    files: dict[str, SensorFiles] = {}
+    for sensor in sorted(images.keys() | distances.keys()):
+        if rig is not None:
+            if sensor not in rig:
+                f = images.get(sensor) or distances[sensor]
+                raise CaptureError(
+                    f"{f}: sensor {sensor!r} is not in the capture's rig.yaml "
+                    f"(sensors: {rig.names})"
+                )
+            modality = rig[sensor].modality
+        else:
+            try:
+                modality = modality_from_name(sensor)
+            except CaptureError as exc:
+                raise CaptureError(f"{images.get(sensor) or distances[sensor]}: {exc}") from None
+        if sensor not in images:
+            raise CaptureError(
+                f"{distances[sensor]}: a distance image needs its amplitude image "
+                f"{sensor}.png beside it; none found"
+            )
+        image = read_image_header(images[sensor])
+        distance = read_image_header(distances[sensor]) if sensor in distances else None
+        if distance is not None and modality != "tof":
+            raise CaptureError(
+                f"{distance.path}: only TOF sensors have distance images; {sensor!r} is {modality}"
+            )
+        if distance is not None and distance.format != "png":
+            raise CaptureError(
+                f"{distance.path}: expected a 16-bit PNG distance image, got a "
+                "JPEG (lossy compression corrupts distances)"
+            )
+        if rig is not None:
+            want = rig[sensor].image_size
+            for info in (image, distance):
+                if info is not None and (info.width, info.height) != want:
+                    raise CaptureError(
+                        f"{info.path}: expected {want[0]}x{want[1]} (width x height) for sensor "
+                        f"{sensor!r} as rig.yaml says, got {info.width}x{info.height}"
+                    )
+        elif distance is not None and (distance.width, distance.height) != (
+            image.width,
+            image.height,
+        ):
+            raise CaptureError(
+                f"{distance.path}: expected the amplitude image's size "
+                f"{image.width}x{image.height}, got "
+                f"{distance.width}x{distance.height}"
+            )
+        modalities.setdefault(sensor, modality)
+        files[sensor] = SensorFiles(sensor, modality, image, distance)
+    return CaptureView(path.name, path, files, thermal_encoding)
+
+
+def load_view(capture_dir: str | Path, name: str, rig: Rig) -> CaptureView:
+    """Index one view folder of a capture whose sensors ``rig`` names, without scanning
+    the other views (CaptureError names the path and the defect)."""
+    path = Path(capture_dir) / name
+    if not path.is_dir():
+        raise CaptureError(f"{path}: no such view folder")
+    modalities: dict[str, Modality] = {n: s.modality for n, s in rig.sensors.items()}
+    return _scan_view(path, rig, modalities, "centikelvin")
+
+
+def load_capture(
+    capture_dir: str | Path,
+    *,
+    thermal_encoding: ThermalEncoding = "centikelvin",
+    verify: bool = False,
+) -> Capture:
+    """Index a capture directory (board, optional starting rig, views); pixels stay on disk.
+
+    Args:
+        capture_dir: the directory.
+        thermal_encoding: how 16-bit thermal PNGs are read: ``"centikelvin"`` (the format)
+            or ``"counts"`` (raw sensor counts, returned as float32 values, not kelvin).
+        verify: also decode every image once (slower) so that corrupt pixel data is found
+            now rather than when a view is read.
+
+    Every folder not starting with ``.`` is a view; files at the top level (board.yaml,
+    rig.yaml, ground_truth*.yaml, anything else) and hidden folders (e.g. a view being
+    written) are not. Raises CaptureError (or RigError for a bad rig.yaml) naming the path.
+    """
+    capture_dir = Path(capture_dir)
+    if not capture_dir.is_dir():
+        what = "not a directory" if capture_dir.exists() else "no such directory"
+        raise CaptureError(f"{capture_dir}: expected a capture directory, {what}")
+    if thermal_encoding not in ("centikelvin", "counts"):
+        raise CaptureError(
+            f"thermal_encoding: expected 'centikelvin' or 'counts', got {thermal_encoding!r}"
+        )
+    board = load_board(capture_dir)
+    rig_path = capture_dir / RIG_FILE
+    rig = load_rig(rig_path) if rig_path.exists() else None
+
+    modalities: dict[str, Modality] = {}
+    if rig is not None:
+        modalities.update({n: s.modality for n, s in rig.sensors.items()})
+    view_dirs = sorted(
+        (p for p in capture_dir.iterdir() if p.is_dir() and not p.name.startswith(".")),
+        key=lambda p: p.name,
+    )
+    views = [_scan_view(p, rig, modalities, thermal_encoding) for p in view_dirs]
+    if rig is None:
+        modalities = dict(sorted(modalities.items()))
+    order = {name: i for i, name in enumerate(modalities)}
+    for v in views:  # each view's sensors in the capture's order (rig order, else by name)
+        v.files = dict(sorted(v.files.items(), key=lambda kv: order[kv[0]]))
+    capture = Capture(capture_dir, board, rig, views, modalities)
+    if verify:
+        for v in views:
+            for s in v.sensors:
+                v.frame(s)
+    return capture

@@ -1,0 +1,35 @@
+"""Reading and writing rig files on disk (the pure parsing lives in ``calib.rig``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from app.storage.atomic import atomic_write_text
+from calib.errors import RigError
+from calib.rig import Rig, rig_from_yaml, rig_to_yaml
+
+
+def load_rig(path: str | Path) -> Rig:
+    """Load and validate a rig file; RigError messages start with the file's path."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise RigError(f"{path}: cannot read rig file: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise RigError(
+            f"{path}: rig file is not UTF-8 text: {exc.reason} at byte {exc.start}"
+        ) from None
+    except ValueError as exc:  # a path the OS cannot take (a NUL byte)
+        raise RigError(f"{path}: cannot read rig file: {exc}") from None
+    try:
+        return rig_from_yaml(text)
+    except RigError as exc:
+        raise RigError(f"{path}: {exc}") from None
+
+
+def save_rig(path: str | Path, rig: Rig, overwrite: bool = False) -> Path:
+    """Write ``rig`` to ``path`` atomically. An existing file is kept unless ``overwrite``."""
+    path = Path(path)
+    atomic_write_text(path, rig_to_yaml(rig), overwrite=overwrite)
+    return path

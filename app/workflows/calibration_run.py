@@ -1,0 +1,308 @@
+"""Calibrating a capture directory: detection in every image, the joint calibration,
+coverage, and the report (``trifuse calibrate`` and, later, the console use this)."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import Counter
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from app.storage.atomic import atomic_write_text
+from app.storage.capture import Capture, CaptureError
+from app.workflows.report_format import (
+    POLARITY_HEAD,
+    coverage_sentence,
+    polarity_caption,
+    polarity_rows,
+    text_table,
+)
+from calib.coverage import coverage
+from calib.detect import Detection
+from calib.errors import CalibrationError
+from calib.polarity import detect_board_configured
+from calib.rig_calibration import (
+    CalibrationOptions,
+    CalibrationResult,
+    SensorSpec,
+    calibrate_rig,
+)
+
+Progress = Callable[[str, float], None]
+
+
+@dataclass
+class DetectionRun:
+    """Corners found in a capture, and why the other images gave none.
+
+    Attributes:
+        observations: view -> sensor -> (N, 2) corners in canonical board order.
+        rejected: view -> sensor -> reason the board was not used.
+        methods: view -> sensor -> detector that found it.
+    """
+
+    observations: dict[str, dict[str, np.ndarray]]
+    rejected: dict[str, dict[str, str]]
+    methods: dict[str, dict[str, str]]
+
+    def only(self, sensors: list[str]) -> DetectionRun:
+        """The same run restricted to ``sensors`` (views left without any are dropped)."""
+
+        def keep(part: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+            out = {v: {s: x for s, x in per.items() if s in sensors} for v, per in part.items()}
+            return {v: per for v, per in out.items() if per}
+
+        return DetectionRun(keep(self.observations), keep(self.rejected), keep(self.methods))
+
+
+def sensor_specs(capture: Capture) -> dict[str, SensorSpec]:
+    """Modality and image size of every sensor of the capture.
+
+    Sizes come from ``rig.yaml`` when there is one (load_capture has checked every image
+    against it), else from the images, which must then agree across views.
+    """
+    specs: dict[str, SensorSpec] = {}
+    for view in capture.views:
+        for name, files in view.files.items():
+            size = (files.image.width, files.image.height)
+            if capture.rig is not None and name in capture.rig:
+                size = capture.rig[name].image_size
+            known = specs.get(name)
+            if known is not None and known.image_size != size:
+                raise CaptureError(
+                    f"{files.image.path}: image is {size[0]}x{size[1]} but {name}'s images in "
+                    f"earlier views are {known.image_size[0]}x{known.image_size[1]}"
+                )
+            specs[name] = SensorSpec(name, files.modality, size)
+    return specs
+
+
+def detect_capture(
+    capture: Capture,
+    sensors: list[str] | None = None,
+    workers: int = 2,
+    progress: Progress | None = None,
+) -> DetectionRun:
+    """Detect the board in every image (threads: OpenCV releases the GIL).
+
+    Thermal and TOF images are searched with the board's polarity overrides when
+    ``board.yaml`` sets them (:func:`calib.polarity.detect_board_configured`), else as the
+    detector assumes; the calibration then finds each sensor's polarity from the data."""
+    jobs = [(v, s) for v in capture.views for s in v.sensors if sensors is None or s in sensors]
+    if not jobs:
+        raise CaptureError(
+            f"{capture.path}: no images to calibrate ({len(capture.views)} view folders)"
+        )
+
+    def one(job: tuple[Any, str]) -> tuple[str, str, Detection]:
+        view, sensor = job
+        frame = view.frame(sensor)
+        return (
+            view.name,
+            sensor,
+            detect_board_configured(frame.image, capture.board, capture.modalities[sensor]),
+        )
+
+    run = DetectionRun({}, {}, {})
+    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        for k, (view, sensor, det) in enumerate(pool.map(one, jobs)):
+            if det.found:
+                run.observations.setdefault(view, {})[sensor] = det.corners
+                run.methods.setdefault(view, {})[sensor] = det.method or ""
+            else:
+                run.rejected.setdefault(view, {})[sensor] = det.reason or "not found"
+            if progress:
+                progress(f"detecting the board ({k + 1}/{len(jobs)})", (k + 1) / len(jobs))
+    return run
+
+
+def calibrate_capture(
+    capture: Capture,
+    options: CalibrationOptions | None = None,
+    sensors: list[str] | None = None,
+    progress: Progress | None = None,
+    detections: DetectionRun | None = None,
+) -> tuple[CalibrationResult, dict[str, Any]]:
+    """Detect (unless ``detections`` of every view are given), calibrate and build the
+    report of a capture directory."""
+    specs = sensor_specs(capture)
+    if sensors is not None:
+        unknown = sorted(set(sensors) - set(specs))
+        if unknown:
+            raise CaptureError(
+                f"--sensors: no images of {unknown} in {capture.path} (sensors: {sorted(specs)})"
+            )
+    if len(capture.views) < 2:
+        raise CalibrationError(
+            f"{capture.path}: {len(capture.views)} view(s); a calibration "
+            f"needs several views of the board (at least {CalibrationOptions().min_views} "
+            "per sensor, 20 or more for a good one)"
+        )
+
+    def stage(offset: float, span: float) -> Progress | None:
+        if progress is None:
+            return None
+        return lambda what, frac: progress(what, offset + span * frac)
+
+    if detections is None:
+        detections = detect_capture(capture, sensors, progress=stage(0.0, 0.6))
+    elif sensors is not None:
+        detections = detections.only(sensors)
+    if not detections.observations:
+        reasons = Counter(r for per in detections.rejected.values() for r in per.values())
+        common = "; ".join(f"{n}x {r}" for r, n in reasons.most_common(3))
+        raise CalibrationError(
+            f"the board ({capture.board.cols}x{capture.board.rows} inner "
+            f"corners) was not found in any image: {common}"
+        )
+    eyes = capture.rig.eyes if capture.rig is not None else {}
+    result = calibrate_rig(
+        detections.observations, capture.board, specs, options, progress=stage(0.6, 0.4), eyes=eyes
+    )
+    return result, build_report(result, detections, capture)
+
+
+def build_report(
+    result: CalibrationResult, detections: DetectionRun, capture: Capture
+) -> dict[str, Any]:
+    """``report.json`` content: the calibration plus detection results and coverage."""
+    report = result.to_report()
+    report["capture"] = str(capture.path)
+    report["detections"] = {
+        v: {s: {"found": True, "method": m} for s, m in per.items()}
+        for v, per in detections.methods.items()
+    }
+    for v, per in detections.rejected.items():
+        for s, reason in per.items():
+            report["detections"].setdefault(v, {})[s] = {"found": False, "reason": reason}
+    report["detections"] = dict(sorted(report["detections"].items()))
+    for name, entry in report["sensors"].items():
+        used = [
+            detections.observations[v][name]
+            for v in sorted(detections.observations)
+            if name in detections.observations[v]
+            and not result.views.get(v, {}).get(name, _NOT_OUTLIER).outlier
+        ]
+        cov = coverage(used, capture.board, tuple(entry["image_size"]))
+        entry["coverage"] = {
+            "x": cov.x,
+            "y": cov.y,
+            "size": cov.size,
+            "skew": cov.skew,
+            "good_enough": cov.good_enough,
+            "empty_regions": cov.empty_regions,
+            "reached": cov.reached,
+            "corner_counts": cov.corner_counts.tolist(),
+        }
+    return _finite(report)
+
+
+class _NotOutlier:
+    outlier = False
+
+
+_NOT_OUTLIER = _NotOutlier()
+
+
+def _finite(value: Any) -> Any:
+    """JSON cannot hold NaN or infinity: they become null."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value
+
+
+def write_report(path: str | Path, report: dict[str, Any], overwrite: bool = False) -> Path:
+    """Write the report as JSON, atomically; an existing file is kept unless ``overwrite``."""
+    return atomic_write_text(path, json.dumps(report, indent=1) + "\n", overwrite=overwrite)
+
+
+def format_summary(result: CalibrationResult, report: dict[str, Any]) -> str:
+    """A human-readable summary of a calibration, for the terminal."""
+    lines = [
+        f"Calibrated {len(result.sensors)} sensor(s) in {result.seconds:.1f} s, "
+        f"reference {result.reference}, overall RMS {result.rms_px:.3f} px",
+        "",
+    ]
+    head = (
+        f"{'sensor':<14} {'views':>7} {'RMS px':>7} {'fx':>16} {'fy':>16} {'cx':>15} "
+        f"{'cy':>15}  {'t (mm)':>22} {'sigma t':>7} {'sigma R':>8}"
+    )
+    lines.append(head)
+    for name, s in result.sensors.items():
+        i, sg = s.intrinsics, s.sigma
+        t = s.T_rig_sensor[:3, 3] * 1000
+        st = float(np.linalg.norm(sg["translation_m"])) * 1000
+        sr = float(np.linalg.norm(sg["rotation_deg"]))
+        lines.append(
+            f"{name:<14} {s.views_used:>3}/{s.views_detected:<3} {s.rms_px:>7.3f} "
+            f"{i.fx:>9.2f}±{sg['fx']:<6.2f} {i.fy:>9.2f}±{sg['fy']:<6.2f} "
+            f"{i.cx:>8.2f}±{sg['cx']:<6.2f} {i.cy:>8.2f}±{sg['cy']:<6.2f} "
+            f"({t[0]:6.1f},{t[1]:6.1f},{t[2]:6.1f}) {st:6.2f}mm {sr:7.3f}°"
+        )
+    lines.append("")
+    for name, entry in report["sensors"].items():
+        c = entry["coverage"]
+        bars = "  ".join(f"{k} {_bar(c[k])}" for k in ("x", "y", "size", "skew"))
+        worst = entry["worst_view"]
+        lines.append(f"{name:<14} coverage {bars}  worst view {worst}")
+        lines.append(f"{'':<14} {coverage_sentence(np.asarray(c['corner_counts']))}")
+    if report.get("polarity"):
+        lines += ["", polarity_caption(report["polarity"]) + ":"]
+        lines += [
+            "  " + line for line in text_table(POLARITY_HEAD, polarity_rows(report["polarity"]))
+        ]
+    if result.excluded_sensors:
+        lines.append("")
+        for name, why in result.excluded_sensors.items():
+            lines.append(f"not calibrated: {name}: {why}")
+    if result.notes:
+        lines.append("")
+        lines += [f"note: {note}" for note in result.notes]
+    view_outliers = [o for o in result.outliers if o.corner is None]
+    corner_outliers = [o for o in result.outliers if o.corner is not None]
+    if result.outliers:
+        lines.append("")
+        lines.append(
+            f"outliers left out: {len(view_outliers)} view(s), {len(corner_outliers)} corner(s)"
+        )
+        for o in view_outliers:
+            lines.append(f"  view {o.view} of {o.sensor}: {o.reason}")
+        for o in corner_outliers[:10]:
+            lines.append(f"  view {o.view} of {o.sensor}, corner {o.corner}: {o.reason}")
+        if len(corner_outliers) > 10:
+            lines.append(f"  ... and {len(corner_outliers) - 10} more corners (report.json)")
+    rejected: dict[tuple[str, str], list[str]] = {}
+    for view, per in report["detections"].items():
+        for sensor, d in per.items():
+            if not d["found"]:
+                rejected.setdefault((sensor, d["reason"]), []).append(view)
+    if rejected:
+        lines.append("")
+        lines.append("images without a usable board (sensor, view folder: why):")
+        for (sensor, reason), views in sorted(rejected.items(), key=lambda i: (i[0][0], i[1])):
+            lines.append(f"  {sensor}, {_views_text(views)}: {reason}")
+    return "\n".join(lines)
+
+
+def _views_text(views: list[str], at_most: int = 6) -> str:
+    """``view 0004`` or ``views 0004, 0011`` (the first ``at_most``, then how many more)."""
+    if len(views) == 1:
+        return f"view {views[0]}"
+    shown = ", ".join(views[:at_most])
+    more = f" and {len(views) - at_most} more" if len(views) > at_most else ""
+    return f"views {shown}{more}"
+
+
+def _bar(fraction: float, width: int = 10) -> str:
+    n = round(max(0.0, min(1.0, fraction)) * width)
+    return "[" + "#" * n + "." * (width - n) + "]"
