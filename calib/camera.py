@@ -16,12 +16,13 @@ is NaN, never a wrong ray.
 
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 
 import numpy as np
 import numpy.typing as npt
+
+from calib.numbers import check_finite
 
 DISTORTION_LENGTHS = (4, 5, 8)
 
@@ -52,12 +53,7 @@ class Intrinsics:
 
     def __post_init__(self) -> None:
         for name in ("fx", "fy", "cx", "cy"):
-            value = getattr(self, name)
-            if not isinstance(value, numbers.Real) or isinstance(value, bool):
-                raise ValueError(f"{name}: expected a number, got {value!r}")
-            if not np.isfinite(value):
-                raise ValueError(f"{name}: expected a finite number, got {value!r}")
-            object.__setattr__(self, name, float(value))
+            object.__setattr__(self, name, check_finite(getattr(self, name), name))
         if self.fx <= 0 or self.fy <= 0:
             raise ValueError(f"focal length must be positive, got fx={self.fx}, fy={self.fy}")
         dist = tuple(float(d) for d in self.distortion)

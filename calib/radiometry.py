@@ -163,12 +163,6 @@ class Radiometry:
 
     # -- the rig file's block -------------------------------------------------------------
 
-    @classmethod
-    def of(cls, sensor: Any) -> Radiometry | None:
-        """The radiometry stored with a rig's thermal ``Sensor``, or None when it has none."""
-        block = getattr(sensor, "radiometry", None)
-        return None if block is None else cls.from_dict(block, f"{sensor.name}.radiometry")
-
     def to_dict(self) -> dict[str, float]:
         """The rig-file block: all five keys, plain floats."""
         return {k: float(getattr(self, k)) for k in RADIOMETRY_KEYS}

@@ -26,7 +26,7 @@ Rig file block (``sensors.<tof>.range_correction``, docs/FORMATS.md)::
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
 
@@ -238,30 +238,34 @@ class RangeCorrection:
 
     # -- rig file ---------------------------------------------------------------------
 
-    @classmethod
-    def of(cls, sensor: Any) -> RangeCorrection | None:
-        """The correction stored with a rig's TOF ``Sensor``, or None when it has none."""
-        block = getattr(sensor, "range_correction", None)
-        return None if block is None else cls.from_dict(block, tuple(sensor.image_size))
+    def rounded(self) -> RangeCorrection:
+        """A copy with the distance, offset and amplitude coefficients rounded to 0.1 um
+        (``round(x, 7)`` metres; plenty): what a fitted model is kept as in a rig."""
+        return replace(
+            self,
+            distance_coeffs_m=np.array(_rounded(self.distance_coeffs_m)),
+            offset_nodes_m=np.array([_rounded(row) for row in self.offset_nodes_m]),
+            amplitude_coeffs_m=tuple(_rounded(self.amplitude_coeffs_m)),
+        )
 
     def to_dict(self) -> dict[str, Any]:
-        """The rig file block (plain YAML types)."""
-        r = lambda a: [round(float(x), 7) for x in a]  # noqa: E731  (0.1 um is plenty)
+        """The rig file block (plain YAML types; every number as it is, see :meth:`rounded`)."""
+        floats = lambda a: [float(x) for x in a]  # noqa: E731
         out: dict[str, Any] = {
             "model": MODEL,
             "distance": {
                 "start_m": float(self.distance_start_m),
                 "step_m": float(self.distance_step_m),
-                "coeffs_m": r(self.distance_coeffs_m),
+                "coeffs_m": floats(self.distance_coeffs_m),
             },
             "offset": {
                 "step_px": int(self.offset_step_px),
-                "nodes_m": [r(row) for row in self.offset_nodes_m],
+                "nodes_m": [floats(row) for row in self.offset_nodes_m],
             },
             "amplitude": {
                 "ref": float(self.amplitude_ref),
-                "log_range": [float(x) for x in self.amplitude_log_range],
-                "coeffs_m": r(self.amplitude_coeffs_m),
+                "log_range": floats(self.amplitude_log_range),
+                "coeffs_m": floats(self.amplitude_coeffs_m),
             },
         }
         if self.fit:
@@ -318,6 +322,11 @@ class RangeCorrection:
             raise ValueError(
                 msg if msg.startswith("range_correction") else f"range_correction.{msg}"
             ) from None
+
+
+def _rounded(values: Any) -> list[float]:
+    """Each number rounded to 7 decimals (Python's correctly rounded ``round``)."""
+    return [round(float(x), 7) for x in values]
 
 
 def _mapping(value: Any, where: str) -> Mapping[str, Any]:

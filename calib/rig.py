@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal, get_args
 
 import numpy as np
@@ -72,8 +72,10 @@ class Sensor:
         image_size: (width, height) in pixels.
         intrinsics: focal lengths, principal point (pixels) and distortion.
         T_rig_sensor: (4, 4) float64 pose of the sensor in the rig frame, metres.
-        uncertainty, range_correction, radiometry: optional blocks written by the
-            calibrations that produce them (plain YAML-compatible mappings).
+        uncertainty: the rig calibration's 1-sigma block (a plain YAML-compatible
+            mapping), or None.
+        range_correction: a TOF camera's range correction, or None.
+        radiometry: a thermal imager's raw -> kelvin model, or None.
     """
 
     name: str
@@ -82,8 +84,8 @@ class Sensor:
     intrinsics: Intrinsics
     T_rig_sensor: np.ndarray
     uncertainty: dict[str, Any] | None = None
-    range_correction: dict[str, Any] | None = None
-    radiometry: dict[str, Any] | None = None
+    range_correction: RangeCorrection | None = None
+    radiometry: Radiometry | None = None
 
     @property
     def width(self) -> int:
@@ -163,6 +165,16 @@ class Rig:
     def T(self, dst: str, src: str) -> np.ndarray:
         """``T_dst_src`` (4, 4): maps points from sensor ``src``'s frame into ``dst``'s."""
         return invert(self[dst].T_rig_sensor) @ self[src].T_rig_sensor
+
+    def with_sensor(self, sensor: Sensor) -> Rig:
+        """A copy of the rig with ``sensor`` in place of the rig's sensor of that name.
+
+        The sensor order, the reference and the eyes are kept (and checked again, e.g. an
+        eye's modalities); the other sensors are shared with this rig, not copied. KeyError
+        when the rig has no sensor of that name.
+        """
+        _ = self[sensor.name]  # KeyError naming the rig's sensors
+        return replace(self, sensors={**self.sensors, sensor.name: sensor})
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Rig):
@@ -284,30 +296,43 @@ def sensor_from_dict(name: str, data: Any) -> Sensor:
         else None
         for k in _SENSOR_OPTIONAL
     }
-    _check_calibration_blocks(name, modality, (size[0], size[1]), extras)
-    return Sensor(name, modality, (size[0], size[1]), intrinsics, T, **extras)
+    image_size = (size[0], size[1])
+    return Sensor(
+        name,
+        modality,
+        image_size,
+        intrinsics,
+        T,
+        uncertainty=extras["uncertainty"],
+        range_correction=_range_correction(name, modality, image_size, extras["range_correction"]),
+        radiometry=_radiometry(name, modality, extras["radiometry"]),
+    )
 
 
-def _check_calibration_blocks(
-    name: str, modality: str, size: tuple[int, int], extras: Mapping[str, Any]
-) -> None:
-    """The range correction (TOF) and radiometry (thermal) blocks parse as their models."""
-    block = extras.get("range_correction")
-    if block is not None:
-        if modality != "tof":
-            raise RigError(f"{_where(name, 'range_correction')}: only a TOF camera has one")
-        try:
-            RangeCorrection.from_dict(block, size)
-        except ValueError as exc:
-            raise RigError(f"sensor {name!r}: {exc}") from None
-    block = extras.get("radiometry")
-    if block is not None:
-        if modality != "thermal":
-            raise RigError(f"{_where(name, 'radiometry')}: only a thermal imager has one")
-        try:
-            Radiometry.from_dict(block, "radiometry")
-        except ValueError as exc:
-            raise RigError(f"sensor {name!r}: {exc}") from None
+def _range_correction(
+    name: str, modality: str, size: tuple[int, int], block: Mapping[str, Any] | None
+) -> RangeCorrection | None:
+    """A TOF camera's ``range_correction`` block as its model (RigError naming the field)."""
+    if block is None:
+        return None
+    if modality != "tof":
+        raise RigError(f"{_where(name, 'range_correction')}: only a TOF camera has one")
+    try:
+        return RangeCorrection.from_dict(block, size)
+    except ValueError as exc:
+        raise RigError(f"sensor {name!r}: {exc}") from None
+
+
+def _radiometry(name: str, modality: str, block: Mapping[str, Any] | None) -> Radiometry | None:
+    """A thermal imager's ``radiometry`` block as its model (RigError naming the field)."""
+    if block is None:
+        return None
+    if modality != "thermal":
+        raise RigError(f"{_where(name, 'radiometry')}: only a thermal imager has one")
+    try:
+        return Radiometry.from_dict(block, "radiometry")
+    except ValueError as exc:
+        raise RigError(f"sensor {name!r}: {exc}") from None
 
 
 def rig_from_dict(data: Any) -> Rig:
@@ -371,9 +396,12 @@ def rig_to_dict(rig: Rig) -> dict[str, Any]:
             "distortion": [float(c) for c in i.distortion],
             "T_rig_sensor": _floats(s.T_rig_sensor),
         }
-        for k in _SENSOR_OPTIONAL:
-            if getattr(s, k) is not None:
-                entry[k] = getattr(s, k)
+        if s.uncertainty is not None:
+            entry["uncertainty"] = s.uncertainty
+        if s.range_correction is not None:
+            entry["range_correction"] = s.range_correction.to_dict()
+        if s.radiometry is not None:
+            entry["radiometry"] = s.radiometry.to_dict()
         sensors[name] = entry
     return {
         "format": RIG_FORMAT,

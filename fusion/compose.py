@@ -8,7 +8,7 @@ Input per eye, at the colour camera's resolution (from ``fusion.mapping``):
 - ``fallback``: (H, W) bool, True where the depth behind the mapping is a fallback
   distance (the TOF had no valid depth there), or None.
 
-Display modes (:data:`MODES`, :class:`DisplaySettings`):
+Display modes (:data:`DISPLAY_MODES`, :class:`DisplaySettings`):
 
 ``color``
     the colour image only.
@@ -62,17 +62,18 @@ point cloud for the 3D view.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal, get_args
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
+from calib.numbers import check_finite
 from fusion.palettes import (
     PALETTE_NAMES,
+    PaletteName,
     _check_rgb,
     _colormap_into,
     _index_into,
@@ -81,10 +82,16 @@ from fusion.palettes import (
 )
 
 __all__ = [
+    "BACKGROUNDS",
+    "CLOUD_COLORINGS",
     "DIRECTIONS",
-    "MODES",
+    "DISPLAY_MODES",
+    "CloudColoring",
     "Composer",
+    "DisplayMode",
     "DisplaySettings",
+    "IsothermBackground",
+    "ThresholdDirection",
     "anaglyph",
     "auto_span",
     "pip_box",
@@ -94,12 +101,19 @@ __all__ = [
     "stereo_halves",
 ]
 
-#: Display modes.
-MODES: tuple[str, ...] = ("color", "blend", "edges", "thermal", "threshold", "isotherm", "pip")
-#: Directions of the ``threshold`` mode.
-DIRECTIONS: tuple[str, ...] = ("above", "below", "inside")
-#: Backgrounds of the ``isotherm`` mode.
-BACKGROUNDS: tuple[str, ...] = ("color", "grey")
+DisplayMode = Literal["color", "blend", "edges", "thermal", "threshold", "isotherm", "pip"]
+"""A display mode (the module's docstring describes each)."""
+#: The display modes, in the order of :data:`DisplayMode`.
+DISPLAY_MODES: tuple[DisplayMode, ...] = get_args(DisplayMode)
+ThresholdDirection = Literal["above", "below", "inside"]
+"""Which temperatures the ``threshold`` mode paints, relative to its interval."""
+DIRECTIONS: tuple[ThresholdDirection, ...] = get_args(ThresholdDirection)
+IsothermBackground = Literal["color", "grey"]
+"""The background of the ``isotherm`` mode."""
+BACKGROUNDS: tuple[IsothermBackground, ...] = get_args(IsothermBackground)
+CloudColoring = Literal["color", "temperature", "depth"]
+"""What colours a point cloud (:func:`point_colors`)."""
+CLOUD_COLORINGS: tuple[CloudColoring, ...] = get_args(CloudColoring)
 
 #: Fallback hatch: period along the anti-diagonal (px), line width (px), grey shift.
 HATCH_PERIOD_PX = 8
@@ -110,15 +124,6 @@ EDGE_GAIN = 2.0
 #: Box size of the low-pass subtracted from the luminance in ``edges`` mode.
 EDGE_BOX_PX = 5
 MAX_EDGE_STRENGTH = 10.0
-
-
-def _real(value: object, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
-        raise ValueError(f"{name}: expected a number, got {value!r}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise ValueError(f"{name}: expected a finite number, got {v}")
-    return v
 
 
 KELVIN_RANGE = (0.0, 10_000.0)
@@ -153,7 +158,7 @@ def _temperature_span(value: object, name: str) -> tuple[float, float]:
 def _interval(value: object, name: str) -> tuple[float, float]:
     """(low, high) with low <= high; a single number T is (T, T)."""
     if isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool):
-        t = _real(value, name)
+        t = check_finite(value, name)
         return t, t
     try:
         items = tuple(value)  # type: ignore[call-overload]
@@ -161,7 +166,7 @@ def _interval(value: object, name: str) -> tuple[float, float]:
         items = ()
     if len(items) != 2:
         raise ValueError(f"{name}: expected (low_k, high_k) or one temperature, got {value!r}")
-    low, high = _real(items[0], name), _real(items[1], name)
+    low, high = check_finite(items[0], name), check_finite(items[1], name)
     if low > high:
         raise ValueError(f"{name}: expected low_k <= high_k, got ({low}, {high})")
     return low, high
@@ -178,7 +183,7 @@ def _pair_in(value: object, name: str, lo: float, hi: float, open_low: bool) -> 
             items = ()
     if len(items) != 2:
         raise ValueError(f"{name}: expected a number or a pair of numbers, got {value!r}")
-    out = (_real(items[0], name), _real(items[1], name))
+    out = (check_finite(items[0], name), check_finite(items[1], name))
     for v in out:
         if v > hi or v < lo or (open_low and v == lo):
             bound = f"({lo}, {hi}]" if open_low else f"[{lo}, {hi}]"
@@ -191,7 +196,7 @@ class DisplaySettings:
     """How to show one stereo frame; validated on construction (``ValueError``).
 
     Attributes:
-        mode: one of :data:`MODES`.
+        mode: one of :data:`DISPLAY_MODES`.
         palette: one of ``fusion.palettes.PALETTE_NAMES``.
         opacity: ``blend`` mode, 0 (colour only) .. 1 (thermal only).
         span_k: ``(low_k, high_k)`` for the palette, low < high; None = automatic
@@ -213,17 +218,17 @@ class DisplaySettings:
     Numbers in lists are normalised to tuples of floats, so settings compare and hash.
     """
 
-    mode: str = "blend"
-    palette: str = "iron"
+    mode: DisplayMode = "blend"
+    palette: PaletteName = "iron"
     opacity: float = 0.6
     span_k: tuple[float, float] | None = None
     auto_low_pct: float = 1.0
     auto_high_pct: float = 99.0
     threshold_k: tuple[float, float] | float = (313.15, 313.15)
-    threshold_direction: str = "above"
+    threshold_direction: ThresholdDirection = "above"
     isotherm_k: tuple[float, float] = (303.15, 313.15)
     isotherm_color: tuple[int, int, int] | None = None
-    isotherm_background: str = "grey"
+    isotherm_background: IsothermBackground = "grey"
     edge_strength: float = 1.0
     pip_center: tuple[float, float] = (0.5, 0.5)
     pip_size: tuple[float, float] | float = (0.5, 0.5)
@@ -234,20 +239,20 @@ class DisplaySettings:
         def put(name: str, value: object) -> None:
             object.__setattr__(self, name, value)
 
-        if self.mode not in MODES:
-            raise ValueError(f"mode: expected one of {', '.join(MODES)}, got {self.mode!r}")
+        if self.mode not in DISPLAY_MODES:
+            raise ValueError(f"mode: expected one of {', '.join(DISPLAY_MODES)}, got {self.mode!r}")
         if self.palette not in PALETTE_NAMES:
             raise ValueError(
                 f"palette: expected one of {', '.join(PALETTE_NAMES)}, got {self.palette!r}"
             )
-        opacity = _real(self.opacity, "opacity")
+        opacity = check_finite(self.opacity, "opacity")
         if not 0.0 <= opacity <= 1.0:
             raise ValueError(f"opacity: expected a number in [0, 1], got {opacity}")
         put("opacity", opacity)
         if self.span_k is not None:
             put("span_k", _temperature_span(self.span_k, "span_k"))
-        low_pct = _real(self.auto_low_pct, "auto_low_pct")
-        high_pct = _real(self.auto_high_pct, "auto_high_pct")
+        low_pct = check_finite(self.auto_low_pct, "auto_low_pct")
+        high_pct = check_finite(self.auto_high_pct, "auto_high_pct")
         if not 0.0 <= low_pct < high_pct <= 100.0:
             raise ValueError(
                 "auto_low_pct, auto_high_pct: expected 0 <= low < high <= 100, "
@@ -272,7 +277,7 @@ class DisplaySettings:
                 f"isotherm_background: expected one of {', '.join(BACKGROUNDS)}, "
                 f"got {self.isotherm_background!r}"
             )
-        strength = _real(self.edge_strength, "edge_strength")
+        strength = check_finite(self.edge_strength, "edge_strength")
         if not 0.0 <= strength <= MAX_EDGE_STRENGTH:
             raise ValueError(
                 f"edge_strength: expected a number in [0, {MAX_EDGE_STRENGTH}], got {strength}"
@@ -283,7 +288,7 @@ class DisplaySettings:
         if not isinstance(self.mark_fallback, bool | np.bool_):
             raise ValueError(f"mark_fallback: expected True or False, got {self.mark_fallback!r}")
         put("mark_fallback", bool(self.mark_fallback))
-        smoothing = _real(self.span_smoothing_s, "span_smoothing_s")
+        smoothing = check_finite(self.span_smoothing_s, "span_smoothing_s")
         if not (smoothing == 0.0 or MIN_SMOOTHING_S <= smoothing <= 60.0):
             raise ValueError(
                 f"span_smoothing_s: expected 0 (none) or seconds in [{MIN_SMOOTHING_S:g}, 60], "
@@ -335,15 +340,15 @@ def auto_span(
     Returns:
         ``(low_k, high_k)`` with ``low < high``.
     """
-    low_pct = _real(low_pct, "low_pct")
-    high_pct = _real(high_pct, "high_pct")
+    low_pct = check_finite(low_pct, "low_pct")
+    high_pct = check_finite(high_pct, "high_pct")
     if not 0.0 <= low_pct < high_pct <= 100.0:
         raise ValueError(
             f"low_pct, high_pct: expected 0 <= low < high <= 100, got ({low_pct}, {high_pct})"
         )
     if isinstance(step, bool) or not isinstance(step, int | np.integer) or step < 1:
         raise ValueError(f"step: expected a positive integer, got {step!r}")
-    if not _real(min_span_k, "min_span_k") > 0.0:
+    if not check_finite(min_span_k, "min_span_k") > 0.0:
         raise ValueError(f"min_span_k: expected a positive number, got {min_span_k}")
     images = [thermal_images] if isinstance(thermal_images, np.ndarray) else list(thermal_images)
     samples = []
@@ -714,10 +719,10 @@ def anaglyph(
 
 def point_colors(
     points: npt.ArrayLike,
-    by: str = "color",
+    by: CloudColoring = "color",
     values: npt.ArrayLike | None = None,
     span: tuple[float, float] | None = None,
-    palette: str = "iron",
+    palette: PaletteName = "iron",
     nan_color: tuple[int, int, int] = (128, 128, 128),
 ) -> np.ndarray:
     """Colours of a point cloud for the 3D view: (N, 3) uint8 RGB.
@@ -760,7 +765,8 @@ def point_colors(
             raise ValueError("values: expected None for by='depth' (computed from points)")
         v = np.linalg.norm(p, axis=1)
     else:
-        raise ValueError(f"by: expected 'color', 'temperature' or 'depth', got {by!r}")
+        *first, last = (repr(c) for c in CLOUD_COLORINGS)
+        raise ValueError(f"by: expected {', '.join(first)} or {last}, got {by!r}")
     if span is None:
         span = auto_span(v, step=1, min_span_k=1e-3)
     return palette_colors(v, span, palette, nan_color)

@@ -14,6 +14,10 @@ On each new TOF frame (:meth:`ViewMapping.update`):
 3. the coarse map is brought to full resolution: bilinear inside surfaces, nearest at depth
    edges (so foreground and background never blend).
 
+The TOF's rays are computed once (:class:`TofGrid`) and shared by every mapping fed the same
+TOF frames; a frame's points are computed once too (:meth:`TofGrid.points`) and handed to
+each mapping (:meth:`ViewMapping.update_points`), as :class:`fusion.stereo.StereoFusion` does.
+
 Per frame, :meth:`ViewMapping.warp` is one ``cv2.remap`` of the source image into the
 target's pixels; invisible pixels come out NaN (or a given fill value), never the
 occluder's value.
@@ -101,6 +105,42 @@ class DepthView:
         return self.z
 
 
+class TofGrid:
+    """A rig's TOF sensor and the unit ray of each of its pixels: computed once, shared by
+    every mapping fed the same TOF frames (both eyes, both directions).
+
+    Attributes:
+        tof: the TOF sensor's name (default the rig's only sensor of modality "tof").
+        rays: (H, W, 3) float32 unit rays through the TOF's pixel centres, TOF frame
+            (:func:`fusion.geometry.tof_rays`).
+    """
+
+    def __init__(self, rig: Rig, tof: str | None = None) -> None:
+        self.tof = tof_sensor_name(rig, tof)
+        s = rig[self.tof]
+        self.rays = tof_rays(s.intrinsics, *s.image_size).astype(np.float32)
+
+    def points(
+        self, distance_m: np.ndarray, edge_rel: float, max_range_m: float = 10.0
+    ) -> np.ndarray:
+        """Valid TOF points (N, 3) float32 in the TOF frame, metres.
+
+        Args:
+            distance_m: (H, W) radial distances of the TOF, metres, NaN invalid.
+            edge_rel: a pixel between two neighbours differing from it by more than this
+                fraction is a flying pixel (:func:`mixed_pixels`) and left out.
+            max_range_m: farther distances are left out (as are those <= 0.1 m).
+        """
+        d = np.asarray(distance_m, dtype=np.float32)
+        if d.shape != self.rays.shape[:2]:
+            raise ValueError(
+                f"distance_m: expected shape {self.rays.shape[:2]} (the TOF image), got {d.shape}"
+            )
+        ok = np.isfinite(d) & (d > 0.1) & (d <= max_range_m)
+        ok &= ~mixed_pixels(d, edge_rel)
+        return self.rays[ok] * d[ok, None]
+
+
 class ViewMapping:
     """Where each pixel of ``target`` finds the same 3D point in ``source``.
 
@@ -117,12 +157,18 @@ class ViewMapping:
         source: str,
         tof: str | None = None,
         options: MappingOptions | None = None,
+        grid: TofGrid | None = None,
     ) -> None:
+        """``grid``: the TOF's rays, shared with the other mappings of the same TOF frames
+        (built from ``tof`` if None; if both are given, they must name the same sensor)."""
         self.options = options or MappingOptions()
-        self.tof = tof_sensor_name(rig, tof)
+        if grid is None:
+            grid = TofGrid(rig, tof)
+        elif tof is not None and tof != grid.tof:
+            raise ValueError(f"tof: {tof!r} is not the grid's TOF sensor {grid.tof!r}")
+        self.grid = grid
+        self.tof = grid.tof
         self.target, self.source = rig[target], rig[source]
-        t_s = rig[self.tof]
-        self.tof_rays = tof_rays(t_s.intrinsics, *t_s.image_size).astype(np.float32)
         s = self.options.scale
         self.target_depth = DepthView(rig, target, self.tof, s)
         # The source's z-buffer decides occlusion; its cells as fine as a target cell.
@@ -149,16 +195,9 @@ class ViewMapping:
     # -- per TOF frame --------------------------------------------------------------------
 
     def points(self, distance_m: np.ndarray, max_range_m: float = 10.0) -> np.ndarray:
-        """Valid TOF points (N, 3) float32 in the TOF frame from a distance image."""
-        d = np.asarray(distance_m, dtype=np.float32)
-        if d.shape != self.tof_rays.shape[:2]:
-            raise ValueError(
-                f"distance_m: expected shape {self.tof_rays.shape[:2]} (the TOF "
-                f"image), got {d.shape}"
-            )
-        ok = np.isfinite(d) & (d > 0.1) & (d <= max_range_m)
-        ok &= ~mixed_pixels(d, self.options.edge_rel)
-        return self.tof_rays[ok] * d[ok, None]
+        """Valid TOF points (N, 3) float32 in the TOF frame, metres, from a distance image
+        (:meth:`TofGrid.points` with this mapping's ``edge_rel``)."""
+        return self.grid.points(distance_m, self.options.edge_rel, max_range_m)
 
     def update(self, distance_m: np.ndarray) -> None:
         """Recompute the mapping from a TOF radial distance image (H, W) metres, NaN invalid."""
@@ -316,27 +355,48 @@ def _fill_holes(z: np.ndarray, iterations: int) -> None:
         np.copyto(z, grown, where=empty & (grown > 0))
 
 
-@dataclass
 class EyeFusion:
-    """Thermal onto colour (and back) for one eye of the rig."""
+    """Thermal onto colour for one eye of the rig, and colour onto thermal on request.
 
-    forward: ViewMapping  # target colour, source thermal
-    reverse: ViewMapping  # target thermal, source colour
+    Attributes:
+        forward: the colour camera's pixels <- the thermal imager's (target colour, source
+            thermal), what the picture is composed from.
+        grid: the TOF rays it shares with the other mappings of the same TOF frames.
+    """
 
-    @classmethod
-    def for_eye(cls, rig: Rig, eye: str, options: MappingOptions | None = None) -> EyeFusion:
+    def __init__(
+        self,
+        rig: Rig,
+        eye: str,
+        options: MappingOptions | None = None,
+        grid: TofGrid | None = None,
+    ) -> None:
         if eye not in rig.eyes:
             raise KeyError(f"no eye {eye!r} in the rig (eyes: {sorted(rig.eyes)})")
-        e = rig.eyes[eye]
-        opts = options or MappingOptions()
-        rev = MappingOptions(
-            scale=1,
-            fallback_depth_m=opts.fallback_depth_m,
-            occlusion_rel=opts.occlusion_rel,
-            occlusion_abs_m=opts.occlusion_abs_m,
-            edge_rel=opts.edge_rel,
+        self.rig = rig
+        self.eye = rig.eyes[eye]
+        self.options = options or MappingOptions()
+        self.grid = grid if grid is not None else TofGrid(rig)
+        self.forward = ViewMapping(
+            rig, self.eye.color, self.eye.thermal, options=self.options, grid=self.grid
         )
-        return cls(
-            ViewMapping(rig, e.color, e.thermal, options=opts),
-            ViewMapping(rig, e.thermal, e.color, options=rev),
-        )
+        self._reverse: ViewMapping | None = None
+
+    @property
+    def reverse(self) -> ViewMapping:
+        """The thermal imager's pixels <- the colour camera's (target thermal, source
+        colour, z-buffer at full resolution), built on first use; the caller updates it
+        (:meth:`ViewMapping.update_points`), it does not follow :attr:`forward`."""
+        if self._reverse is None:
+            opts = self.options
+            rev = MappingOptions(
+                scale=1,
+                fallback_depth_m=opts.fallback_depth_m,
+                occlusion_rel=opts.occlusion_rel,
+                occlusion_abs_m=opts.occlusion_abs_m,
+                edge_rel=opts.edge_rel,
+            )
+            self._reverse = ViewMapping(
+                self.rig, self.eye.thermal, self.eye.color, options=rev, grid=self.grid
+            )
+        return self._reverse

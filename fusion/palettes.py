@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Literal, get_args
 
 import cv2
 import numpy as np
@@ -37,6 +38,7 @@ import numpy.typing as npt
 __all__ = [
     "CONTROL_POINTS",
     "PALETTE_NAMES",
+    "PaletteName",
     "apply_palette",
     "check_span",
     "palette",
@@ -46,10 +48,15 @@ __all__ = [
     "temperature_index",
 ]
 
+PaletteName = Literal["iron", "rainbow", "white_hot", "black_hot", "arctic", "lava"]
+"""A palette's name, in the order a user interface lists them."""
+#: The palette names, in the order of :data:`PaletteName`.
+PALETTE_NAMES: tuple[PaletteName, ...] = get_args(PaletteName)
+
 #: Control points of every palette: (position in [0, 1], (R, G, B)). Position 0 is the cold
 #: end of the span, 1 the hot end; the first and last points are the table's first and last
 #: entries exactly.
-CONTROL_POINTS: dict[str, tuple[tuple[float, tuple[int, int, int]], ...]] = {
+CONTROL_POINTS: dict[PaletteName, tuple[tuple[float, tuple[int, int, int]], ...]] = {
     # black -> indigo -> purple -> red -> orange -> yellow -> near white (luma 0 .. 252)
     "iron": (
         (0.00, (0, 0, 0)),
@@ -93,9 +100,6 @@ CONTROL_POINTS: dict[str, tuple[tuple[float, tuple[int, int, int]], ...]] = {
     ),
 }
 
-#: The palette names, in the order a user interface lists them.
-PALETTE_NAMES: tuple[str, ...] = tuple(CONTROL_POINTS)
-
 
 def _build(points: Sequence[tuple[float, tuple[int, int, int]]]) -> np.ndarray:
     pos = np.array([p for p, _ in points], dtype=np.float64)
@@ -107,7 +111,7 @@ def _build(points: Sequence[tuple[float, tuple[int, int, int]]]) -> np.ndarray:
     return table
 
 
-_TABLES: dict[str, np.ndarray] = {name: _build(pts) for name, pts in CONTROL_POINTS.items()}
+_TABLES: dict[str, np.ndarray] = {name: _build(CONTROL_POINTS[name]) for name in PALETTE_NAMES}
 # OpenCV's shape for a user colormap: (256, 1, 3) CV_8UC3, contiguous.
 _LUTS: dict[str, np.ndarray] = {}
 for _name, _table in _TABLES.items():

@@ -247,12 +247,16 @@ def distance_error_shifts(
         sensor name -> (N, 2) float64 signed shift ``p_s(d + Δd) - p_s(d)`` in that
         sensor's pixels (dx, dy).
     """
-    tof_name = tof_sensor_name(rig, tof)
-    names = _other_sensors(rig, tof_name, sensors)
-    err = _non_negative(distance_error_m, "distance_error_m")
-    d = np.asarray(distance_m, dtype=np.float64).reshape(-1)
-    shifts = _distance_error_function(rig, tof_name, names, tof_pixel, err)(d)
-    return dict(zip(names, shifts, strict=True))
+    return _shifts(
+        _distance_error_function,
+        rig,
+        tof,
+        sensors,
+        tof_pixel,
+        distance_m,
+        distance_error_m,
+        "distance_error_m",
+    )
 
 
 def tof_pixel_error_shifts(
@@ -276,11 +280,35 @@ def tof_pixel_error_shifts(
         sensor name -> (N, 2) float64 signed shift ``p_s(u + δ, v, d) - p_s(u, v, d)`` in
         that sensor's pixels (dx, dy).
     """
+    return _shifts(
+        _pixel_error_function,
+        rig,
+        tof,
+        sensors,
+        tof_pixel,
+        distance_m,
+        tof_pixel_error_px,
+        "tof_pixel_error_px",
+    )
+
+
+def _shifts(
+    function_of: Callable[[Rig, str, Sequence[str], Sequence[float], float], ShiftFunction],
+    rig: Rig,
+    tof: str | None,
+    sensors: Sequence[str] | None,
+    tof_pixel: Sequence[float],
+    distance_m: npt.ArrayLike,
+    error: float,
+    error_name: str,
+) -> dict[str, np.ndarray]:
+    """sensor name -> (N, 2) pixel shifts at ``distance_m`` (N,) metres of the shift
+    function ``function_of`` builds for an ``error`` (checked >= 0, named ``error_name``)."""
     tof_name = tof_sensor_name(rig, tof)
     names = _other_sensors(rig, tof_name, sensors)
-    err = _non_negative(tof_pixel_error_px, "tof_pixel_error_px")
+    err = _non_negative(error, error_name)
     d = np.asarray(distance_m, dtype=np.float64).reshape(-1)
-    shifts = _pixel_error_function(rig, tof_name, names, tof_pixel, err)(d)
+    shifts = function_of(rig, tof_name, names, tof_pixel, err)(d)
     return dict(zip(names, shifts, strict=True))
 
 

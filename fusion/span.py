@@ -14,20 +14,13 @@ from __future__ import annotations
 import math
 import numbers
 
+from calib.numbers import check_finite
+
 __all__ = ["SpanSmoother", "level_from_span", "span_from_level"]
 
 
-def _finite(value: float, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise ValueError(f"{name}: expected a number, got {value!r}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise ValueError(f"{name}: expected a finite number, got {value!r}")
-    return v
-
-
 def _check_span(low: float, high: float, name: str = "span") -> tuple[float, float]:
-    lo, hi = _finite(low, f"{name} low"), _finite(high, f"{name} high")
+    lo, hi = check_finite(low, f"{name} low"), check_finite(high, f"{name} high")
     if not lo < hi:
         raise ValueError(f"{name}: expected low < high (kelvin), got ({lo}, {hi})")
     return lo, hi
@@ -36,8 +29,8 @@ def _check_span(low: float, high: float, name: str = "span") -> tuple[float, flo
 def span_from_level(level_k: float, span_k: float) -> tuple[float, float]:
     """``(low, high)`` kelvin from a level (the centre, kelvin) and a span (the width,
     kelvin, > 0). Raises ValueError for a span <= 0 or non-finite values."""
-    level = _finite(level_k, "level_k")
-    span = _finite(span_k, "span_k")
+    level = check_finite(level_k, "level_k")
+    span = check_finite(span_k, "span_k")
     if span <= 0.0:
         raise ValueError(f"span_k: expected a width > 0 kelvin, got {span_k!r}")
     return level - span / 2.0, level + span / 2.0
@@ -61,7 +54,7 @@ class SpanSmoother:
     """
 
     def __init__(self, time_constant_s: float = 1.0) -> None:
-        tau = _finite(time_constant_s, "time_constant_s")
+        tau = check_finite(time_constant_s, "time_constant_s")
         if tau < 0.0:
             raise ValueError(f"time_constant_s: expected >= 0 seconds, got {time_constant_s!r}")
         self.time_constant_s = tau

@@ -1,9 +1,11 @@
 """The operator's fused stereo pair: both eyes' thermal-on-colour pictures, side by side.
 
-Per TOF frame, each eye's mapping is recomputed (:meth:`StereoFusion.update_depth`); per
-frame, each eye's thermal image is warped into its colour camera's pixels, one colour span
-is chosen for both eyes, and both pictures are composed straight into the halves of one
-preallocated side-by-side buffer (left | right) ready for encoding.
+Per TOF frame, the TOF points are computed once (along the rays of one shared
+:class:`fusion.mapping.TofGrid`) and each eye's mapping is recomputed from them
+(:meth:`StereoFusion.update_depth`); per frame, each eye's thermal image is warped into its
+colour camera's pixels, one colour span is chosen for both eyes, and both pictures are
+composed straight into the halves of one preallocated side-by-side buffer (left | right)
+ready for encoding.
 """
 
 from __future__ import annotations
@@ -13,9 +15,9 @@ from collections.abc import Mapping
 import cv2
 import numpy as np
 
-from calib.range_correction import RangeCorrection
 from calib.rig import Rig
 from fusion.compose import (
+    CloudColoring,
     Composer,
     DisplaySettings,
     anaglyph,
@@ -23,7 +25,8 @@ from fusion.compose import (
     resolve_span,
     stereo_halves,
 )
-from fusion.mapping import EyeFusion, MappingOptions
+from fusion.mapping import EyeFusion, MappingOptions, TofGrid
+from fusion.palettes import PaletteName
 from fusion.span import SpanSmoother
 
 EYE_ORDER = ("left", "right")
@@ -35,6 +38,9 @@ class StereoFusion:
     """Fusion of a rig's two eyes (``left``/``right`` in ``rig.eyes``) into one frame.
 
     Attributes:
+        tof: the name of the rig's TOF sensor, whose frames drive the mappings.
+        grid: its rays, shared by every eye's mappings.
+        fusion: eye -> its :class:`fusion.mapping.EyeFusion` (colour <- thermal, and back).
         span_k: the (low, high) span of the last frame, kelvin, shared by both eyes.
     """
 
@@ -46,7 +52,10 @@ class StereoFusion:
             raise ValueError(f"rig has no eye(s) {missing} (eyes: {sorted(rig.eyes)})")
         self.rig = rig
         self.eyes = eyes
-        self.fusion = {e: EyeFusion.for_eye(rig, e, options) for e in eyes}
+        self.options = options or MappingOptions()
+        self.grid = TofGrid(rig)
+        self.tof = self.grid.tof
+        self.fusion = {e: EyeFusion(rig, e, self.options, self.grid) for e in eyes}
         sizes = {rig[rig.eyes[e].color].image_size for e in eyes}
         if len(sizes) != 1:
             raise ValueError(f"the eyes' colour cameras differ in size ({sorted(sizes)})")
@@ -58,9 +67,9 @@ class StereoFusion:
         self.span_k: tuple[float, float] | None = None
         self.span_smoother = SpanSmoother()
         self._span_target: tuple[float, float] | None = None
-        self._reverse_stale = True
-        tof = rig[self.fusion[eyes[0]].forward.tof]
-        self.range_correction = RangeCorrection.of(tof)
+        self._reverse_fresh: set[str] = set()
+        tof = rig[self.tof]
+        self.range_correction = tof.range_correction
         self._corrected = np.empty(tof.image_size[::-1], np.float32)
         self.distance_m: np.ndarray | None = None
 
@@ -86,11 +95,11 @@ class StereoFusion:
         if self.range_correction is not None:
             distance_m = self.range_correction.apply(distance_m, amplitude, out=self._corrected)
         self.distance_m = distance_m
-        points = self.fusion[self.eyes[0]].forward.points(distance_m)
+        points = self.grid.points(distance_m, self.options.edge_rel)
         for f in self.fusion.values():
             f.forward.update_points(points)
         self._points = points
-        self._reverse_stale = True
+        self._reverse_fresh.clear()
 
     def compose(
         self,
@@ -148,21 +157,22 @@ class StereoFusion:
 
     def color_in_thermal_view(self, eye: str, color: np.ndarray) -> np.ndarray:
         """The reverse direction: the eye's colour image drawn into its thermal imager's
-        pixels (h, w, 3) uint8, black where the colour camera does not see the point."""
+        pixels (h, w, 3) uint8, black where the colour camera does not see the point.
+        The eye's reverse mapping is built on first use and updated from the last TOF
+        frame's points when it lags behind them."""
         f = self.fusion[eye]
-        if self._reverse_stale:
-            for g in self.fusion.values():
-                g.reverse.update_points(self._points)
-            self._reverse_stale = False
+        if eye not in self._reverse_fresh:
+            f.reverse.update_points(self._points)
+            self._reverse_fresh.add(eye)
         return f.reverse.warp(color, fill=0)
 
     def point_cloud(
         self,
         colors: Mapping[str, np.ndarray],
         thermals: Mapping[str, np.ndarray],
-        by: str = "color",
+        by: CloudColoring = "color",
         span: tuple[float, float] | None = None,
-        palette: str = "iron",
+        palette: PaletteName = "iron",
         eye: str | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The last TOF frame's points (N, 3) float32 (TOF frame, metres) and their colours
@@ -175,11 +185,11 @@ class StereoFusion:
         pts = self._points
         if by == "color":
             sensor = self.rig.eyes[e].color
-            rgb = sample_image(self.rig, sensor, self.fusion[e].forward.tof, pts, colors[e], 128)
+            rgb = sample_image(self.rig, sensor, self.tof, pts, colors[e], 128)
             return pts, point_colors(pts, "color", rgb.astype(np.uint8))
         if by == "temperature":
             sensor = self.rig.eyes[e].thermal
-            t = sample_image(self.rig, sensor, self.fusion[e].forward.tof, pts, thermals[e], np.nan)
+            t = sample_image(self.rig, sensor, self.tof, pts, thermals[e], np.nan)
             return pts, point_colors(pts, "temperature", t, span, palette)
         return pts, point_colors(pts, by, None, span, palette)
 

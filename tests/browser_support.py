@@ -8,23 +8,16 @@ simulated inspection room, one per test module) and ``browser`` live in conftest
 from __future__ import annotations
 
 import contextlib
-import json
 import os
-import re
-import socket
 import subprocess
 import sys
-import time
-import urllib.request
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import pytest
 
-from app.devtools.bench import CHROMIUM, CHROMIUM_FLAGS
-from app.devtools.processes import stop_process
+from app.devtools.browser_console import CHROMIUM, CHROMIUM_FLAGS
+from app.devtools.console_process import ConsoleProcess, stop_process
 
 FLAGS = list(CHROMIUM_FLAGS)
 WAIT_MS = 300_000
@@ -36,41 +29,6 @@ ROOT = Path(__file__).resolve().parents[1]
 needs_chromium = pytest.mark.skipif(
     not os.path.exists(CHROMIUM), reason=f"browser tests need Debian's chromium at {CHROMIUM}"
 )
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-@dataclass(frozen=True)
-class Console:
-    """A running console: its base URL and the token it printed."""
-
-    url: str
-    token: str
-
-    def signin(self, path: str = "/") -> str:
-        """What an operator opens: ``path`` with the token (the browser exchanges it for a
-        session cookie and is sent on to ``path``)."""
-        return f"{self.url}{path}?token={self.token}"
-
-    def request(self, path: str, method: str = "GET", body: Any = None) -> tuple[int, Any]:
-        """A REST call as a script makes it (``Authorization: token``): (status, JSON)."""
-        data = None if body is None else json.dumps(body).encode()
-        req = urllib.request.Request(self.url + path, data=data, method=method)
-        req.add_header("Authorization", f"token {self.token}")
-        if data is not None:
-            req.add_header("Content-Type", "application/json")
-        with urllib.request.urlopen(req, timeout=10) as r:
-            return r.status, json.loads(r.read())
-
-    def get(self, path: str) -> Any:
-        return self.request(path)[1]
-
-    def post(self, path: str, body: Any = None) -> tuple[int, Any]:
-        return self.request(path, "POST", body)
 
 
 # -- the simulator's disk cache, warmed once per run ----------------------------------------
@@ -132,58 +90,20 @@ def scenario_of(args: Sequence[str]) -> str:
 
 def start_console(
     args: Sequence[str], port: int | None = None, env: dict[str, str] | None = None
-) -> tuple[subprocess.Popen, Console]:
+) -> tuple[subprocess.Popen, ConsoleProcess]:
     """Start ``trifuse serve ARGS`` on a free loopback port (with its own random token
     unless ``env`` gives one; the calibration scenario once its poses are rendered);
-    returns the process and the console (its URL as printed: ``https`` under TLS) once the
-    port accepts connections."""
+    returns the process and the console (its URL as printed: ``https`` under TLS) once it
+    answers. Its output is the text pipe ``proc.stdout``."""
     if scenario_of(args) == "calibration":  # the inspection room's live mode needs none
         wait_for_cache_warmup("calibration")
-    port = port or free_port()
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            "import sys; from app.cli import main; sys.exit(main(sys.argv[1:]))",
-            "serve",
-            "--port",
-            str(port),
-            *args,
-        ],
-        cwd=ROOT,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
-    said = ""  # warnings (e.g. about an interrupted capture) may come before the URL
-    for _ in range(50):
-        line = proc.stdout.readline()
-        said += line
-        m = re.search(rf"(https?://127\.0\.0\.1:{port})/\?token=(\S+)", line)
-        if m is not None or not line:
-            break
-    if m is None:
-        proc.kill()
-        raise RuntimeError(f"trifuse serve did not start: {said}{proc.stdout.read()}")
-    deadline = time.monotonic() + 120  # the port opens once the console is up
-    while True:
-        try:
-            socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
-            break
-        except OSError:
-            if proc.poll() is not None or time.monotonic() > deadline:
-                stop_process(proc)
-                raise RuntimeError(f"trifuse serve did not open port {port}: {said}") from None
-            time.sleep(0.1)
-    return proc, Console(m.group(1), m.group(2))
+    console = ConsoleProcess(args, env=env, port=port, timeout_s=WAIT_MS / 1e3)
+    return console.proc, console
 
 
 @contextlib.contextmanager
-def console_running(args: Sequence[str]) -> Iterator[Console]:
+def console_running(args: Sequence[str]) -> Iterator[ConsoleProcess]:
     """``trifuse serve ARGS`` for the duration of the block; yields the console."""
-    proc, console = start_console(args)
-    try:
+    _, console = start_console(args)
+    with console:
         yield console
-    finally:
-        stop_process(proc)

@@ -1,5 +1,14 @@
 """Test set-up: the repository's packages importable without installing trifuse, the real
-test images kept in ``tests/data`` (with their licences), and shared fixtures."""
+test images kept in ``tests/data`` (with their licences), and shared fixtures.
+
+Plain helpers shared by test modules live in support modules, never in a test module that
+another imports: ``support.py`` (waiting, a simulated clock, small rigs, synthetic frames and
+recordings, capture directories, the CLI), ``scene_support.py`` (the 3D scene's fake
+pipeline), ``ros2_support.py`` (ROS 2 bags), ``fuzz_support.py`` (the loaders' fuzzing:
+strategies, mutators, case counts) and ``browser_support.py`` (consoles and the browser).
+Tests check behaviour, not speed: code paced by the wall clock takes a simulated one
+(``support.FakeClock``), waits are for a condition with a generous time-out
+(``support.wait_until``), and timings are measured by ``trifuse bench``."""
 
 import sys
 from pathlib import Path

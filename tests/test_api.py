@@ -11,22 +11,14 @@ from fastapi.testclient import TestClient
 from app.server.routers.app import create_app
 from app.server.runtime.pipeline import FusionPipeline
 from app.server.runtime.stream import FrameHub
-from app.sources.base import FrameSource
 from app.sources.sim.head import default_rig
-
-
-class _NoFrames(FrameSource):
-    def __init__(self) -> None:
-        self.sensors = []
-
-    def frames(self):
-        return iter(())
+from tests.support import ListSource
 
 
 @pytest.fixture()
 def client_and_pipeline():
     rig = default_rig()
-    pipeline = FusionPipeline(_NoFrames(), rig, FrameHub())
+    pipeline = FusionPipeline(ListSource(), rig, FrameHub())
     return TestClient(create_app(FrameHub(), None, pipeline)), pipeline
 
 

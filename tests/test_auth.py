@@ -23,18 +23,19 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from app.cli import main
-from app.devtools.processes import stop_process
+from app.devtools.console_process import free_port, stop_process
 from app.server.routers.app import create_app
 from app.server.routers.auth import AuthConfig, SignInThrottle, check_token, is_loopback
 from app.server.routers.session_api import make_session_router
 from app.server.runtime.pipeline import FusionPipeline
 from app.server.runtime.stream import FrameHub
-from app.sources.push import PushSource, make_push_router
+from app.sources.push.router import make_push_router
+from app.sources.push.source import PushSource
 from app.sources.sim.head import default_rig
 from app.sources.sim.scenarios import CALIBRATION_BOARD
 from app.workflows.calib_session import CalibrationSession
-from tests.browser_support import free_port, start_console
-from tests.test_api import _NoFrames
+from tests.browser_support import start_console
+from tests.support import ListSource
 from tests.test_push import serve
 
 TOKEN = "test-token-0123456789abcdef"
@@ -47,7 +48,7 @@ AUTH = {"Authorization": f"token {TOKEN}"}
 def console_app(tmp_path: Path, token: str | None = TOKEN, **auth_kw) -> FastAPI:
     """The console's app with every router ``trifuse serve`` adds."""
     rig = default_rig()
-    pipeline = FusionPipeline(_NoFrames(), rig, FrameHub())
+    pipeline = FusionPipeline(ListSource(), rig, FrameHub())
     auth = AuthConfig(token, 8000, **auth_kw)
     app = create_app(FrameHub(), free_port(), pipeline, auth=auth)
     session = CalibrationSession(tmp_path / "work", rig, CALIBRATION_BOARD)

@@ -1,6 +1,7 @@
-"""``trifuse bench --soak`` (app/devtools/bench_soak.py): its pure helpers, the command line, and a
-short run of the whole machinery against a real console (no performance assertions: the
-figures are for BENCHMARKS.md, measured on an idle machine)."""
+"""``trifuse bench --soak`` (app/devtools/bench_soak.py, with soak_report.py, procfs.py and
+stream_clients.py): its pure helpers, the command line, and a short run of the whole
+machinery against a real console (no performance assertions: the figures are for
+BENCHMARKS.md, measured on an idle machine)."""
 
 from __future__ import annotations
 
@@ -11,18 +12,10 @@ import random
 import pytest
 
 from app.cli import main
-from app.devtools import bench_soak
-from app.devtools.bench_soak import (
-    MjpegParts,
-    Phase,
-    SoakConfig,
-    Window,
-    parse_proc_cpu_s,
-    parse_proc_status,
-    sample_process,
-    slope_per_minute,
-    summarize,
-)
+from app.devtools import bench_soak, soak_report
+from app.devtools.procfs import parse_proc_cpu_s, parse_proc_status, sample_process
+from app.devtools.soak_report import Phase, SoakConfig, Window, slope_per_minute, summarize
+from app.devtools.stream_clients import MjpegParts
 
 # -- the slope fit --------------------------------------------------------------------------
 
@@ -219,7 +212,7 @@ def test_rss_slope_of_a_short_run_is_not_judged():
     assert fig["rss_slope_mb_per_min"] == pytest.approx(30.0, abs=1)
     assert not rss.judged and not rss.failed and not rss.ok
     assert _failed(criteria) == set()
-    report = bench_soak.SoakReport(cfg, baseline, soak, fig, _viewers(), criteria)
+    report = soak_report.SoakReport(cfg, baseline, soak, fig, _viewers(), criteria)
     assert report.ok
     text = report.format()
     assert "n/a  rss_slope_mb_per_min" in text
@@ -324,6 +317,6 @@ def test_short_soak_against_a_console():
     assert report.figures["baseline_fps"] > 0 and report.figures["rss_max_mb"] > 0
     assert {c.name for c in report.criteria} >= {"fast_fps_ratio", "rss_slope_mb_per_min"}
     text = report.format()
-    assert text.splitlines()[0] == bench_soak.TABLE_HEAD
+    assert text.splitlines()[0] == soak_report.TABLE_HEAD
     assert "criteria:" in text and text.splitlines()[-1].startswith(("PASS", "FAIL"))
     assert any(line.startswith("baseline: ") for line in lines)

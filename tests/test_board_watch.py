@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-import time
-from collections.abc import Callable
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from app.server.runtime import board_watch
 from app.server.runtime.board_watch import (
     MAX_PAUSE_S,
     BoardWatch,
@@ -24,17 +24,7 @@ from app.sources.sim.head import default_rig
 from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
 from calib.detect import Detection, detect_board
 from calib.transforms import pose_error
-
-DEADLINE_S = 60.0  # generous: the machine may be busy
-
-
-def wait_for(condition: Callable[[], bool], what: str, timeout_s: float = DEADLINE_S) -> None:
-    """Poll ``condition`` until it holds; fail saying ``what`` after ``timeout_s``."""
-    end = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > end:
-            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.01)
+from tests.support import WAIT_S, FakeClock, wait_until
 
 
 def restamped(fs: FrameSet, stamp_ns: int) -> FrameSet:
@@ -175,7 +165,7 @@ def test_the_pose_is_published_before_the_other_sensors_are_searched(
     release = threading.Event()
 
     def slow_thermal(image: np.ndarray, board, modality: str) -> Detection:
-        if modality == "thermal" and not release.wait(DEADLINE_S):
+        if modality == "thermal" and not release.wait(WAIT_S):
             raise RuntimeError("never released")
         return detect_board(image, board, modality)
 
@@ -188,7 +178,7 @@ def test_the_pose_is_published_before_the_other_sensors_are_searched(
     worker = threading.Thread(target=watch.tick)
     worker.start()
     try:
-        wait_for(lambda: watch.latest_pose is not None, "the early pose")
+        wait_until(lambda: watch.latest_pose is not None, "the early pose")
         early = watch.latest_pose
         assert early.pose_sensor == "ccd_left" and not early.complete
         assert "thermal_left" not in early.detections and watch.latest is None and not seen
@@ -198,7 +188,7 @@ def test_the_pose_is_published_before_the_other_sensors_are_searched(
         assert rot_deg < 0.2 and trans_m < 0.003, (rot_deg, trans_m)
     finally:
         release.set()
-        worker.join(DEADLINE_S)
+        worker.join(WAIT_S)
     assert len(seen) == 1 and seen[0].complete and seen[0].found == rig.names
     assert watch.latest is seen[0] and watch.latest_pose is seen[0] and heard[-1] is seen[0]
     (timing,) = watch.timings
@@ -220,7 +210,7 @@ def test_the_watch_searches_the_newest_frame_set_and_builds_no_backlog(
 
     def held(image: np.ndarray, board, modality: str) -> Detection:
         first_pass.set()
-        if not release.wait(DEADLINE_S):
+        if not release.wait(WAIT_S):
             raise RuntimeError("never released")
         return detect_board(image, board, modality)
 
@@ -237,11 +227,11 @@ def test_the_watch_searches_the_newest_frame_set_and_builds_no_backlog(
     )
     watch.start()
     try:
-        assert first_pass.wait(DEADLINE_S), "the first pass never started"
+        assert first_pass.wait(WAIT_S), "the first pass never started"
         for stamp in range(2, 7):  # newer frame sets while the pass is held up
             current["fs"] = restamped(base, stamp)
         release.set()
-        wait_for(lambda: len(searched) >= 2, "the second pass")
+        wait_until(lambda: len(searched) >= 2, "the second pass")
         assert searched[:2] == [1, 6]
         # the newest set's images are those searched before: nothing searched again
         assert watch.timings[1].reused and watch.latest.steady
@@ -266,7 +256,7 @@ def test_the_pose_loop_follows_a_new_picture_while_a_complete_pass_is_held_up(
     def slow_thermal(image: np.ndarray, board, modality: str) -> Detection:
         if modality == "thermal" and image is old.frames["thermal_left"].image:
             thermal_started.set()
-            if not release.wait(DEADLINE_S):
+            if not release.wait(WAIT_S):
                 raise RuntimeError("never released")
         return detect_board(image, board, modality)
 
@@ -281,9 +271,9 @@ def test_the_pose_loop_follows_a_new_picture_while_a_complete_pass_is_held_up(
     )
     watch.start()
     try:
-        assert thermal_started.wait(DEADLINE_S), "the complete pass never reached thermal"
+        assert thermal_started.wait(WAIT_S), "the complete pass never reached thermal"
         current["fs"] = new  # the board moved
-        wait_for(
+        wait_until(
             lambda: watch.latest_pose is not None and watch.latest_pose.frames is new,
             "the pose of the new picture",
         )
@@ -294,7 +284,7 @@ def test_the_pose_loop_follows_a_new_picture_while_a_complete_pass_is_held_up(
         rot_deg, trans_m = pose_error(pose.T_rig_board, truth)
         assert rot_deg < 0.2 and trans_m < 0.003, (rot_deg, trans_m)
         release.set()
-        wait_for(lambda: len(seen) >= 2, "the complete sightings of both pictures")
+        wait_until(lambda: len(seen) >= 2, "the complete sightings of both pictures")
         assert seen[0].frames is old and seen[1].frames is new
         # the complete sighting of the old picture never replaced the newer pose
         assert watch.latest_pose.frames is new
@@ -328,19 +318,41 @@ def test_watch_calls_back_with_each_new_frame_set(calibration_frame_sets) -> Non
     watch.stop()
 
 
-def test_a_pass_is_followed_by_a_pause_as_long_as_itself(calibration_frame_sets) -> None:
+def test_a_pass_is_followed_by_a_pause_as_long_as_itself(
+    calibration_frame_sets, monkeypatch
+) -> None:
     """``duty`` 0.5: after a pass of ``t`` seconds, no pass is due for another ``t`` (at
-    most MAX_PAUSE_S)."""
+    most MAX_PAUSE_S). The watch's clock is simulated: each search takes ``step_s`` of it."""
+    clock, lock, step_s = FakeClock(1000.0), threading.Lock(), [0.01]
+    monkeypatch.setattr(board_watch, "time", SimpleNamespace(monotonic=clock))
+
+    def timed_detect(image: np.ndarray, board, modality: str) -> Detection:
+        with lock:  # the sensors are searched in a pool of threads
+            clock.advance(step_s[0])
+        return detect_board(image, board, modality)
+
     rig = default_rig()
     latest = {"fs": calibration_frame_sets[0]}
-    watch = BoardWatch(lambda: latest["fs"], rig, CALIBRATION_BOARD, rate_hz=1000.0)
-    started = time.monotonic()
-    watch.tick()
-    (timing,) = watch.timings
-    pause = min(MAX_PAUSE_S, timing.pass_s)
-    assert not watch.due(started + timing.pass_s + 0.9 * pause)
-    assert watch.due(started + timing.pass_s + 1.1 * pause + 0.01)
-    watch.stop()
+    watch = BoardWatch(
+        lambda: latest["fs"], rig, CALIBRATION_BOARD, rate_hz=1000.0, detect=timed_detect
+    )
+    assert watch.duty == 0.5
+    try:
+        for k, step in enumerate((0.01, 1.0)):  # a short pass, then one longer than the cap
+            step_s[0] = step
+            latest["fs"] = calibration_frame_sets[k]
+            started = clock.now
+            watch.tick()
+            done = clock.now
+            timing = watch.timings[-1]
+            assert timing.pass_s == pytest.approx(done - started) and timing.pass_s > 0
+            pause = min(MAX_PAUSE_S, timing.pass_s)
+            assert pause == (MAX_PAUSE_S if step == 1.0 else timing.pass_s)
+            assert not watch.due(done + 0.999 * pause)
+            assert watch.due(done + pause)
+            clock.now = done + pause
+    finally:
+        watch.stop()
 
 
 def test_without_a_board_the_watch_searches_less_often() -> None:

@@ -24,7 +24,7 @@ from app.storage.capture import load_capture
 from app.storage.rigfile import load_rig
 from calib.transforms import pose_error
 from tests.browser_support import TEST_BOARD_POSES, needs_chromium, start_console
-from tests.test_calibrate_cli import FOCAL, POSE
+from tests.support import FOCAL, POSE
 
 pytestmark = [needs_chromium, pytest.mark.slow]
 

@@ -96,7 +96,7 @@ def small_scene():
     """Viser with the console's 3D scene on the synthetic frame set of test_scene3d (a
     ramp of TOF distances 1.5-3.5 m, uniform colour and thermal images)."""
     from app.server.panels.scene3d import Scene3D
-    from tests.test_scene3d import pipeline_for, scene_context
+    from tests.scene_support import pipeline_for, scene_context
 
     ctx = scene_context(pipeline_for())
     server = ctx.server

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import time
 
 import numpy as np
 import pytest
@@ -17,6 +16,7 @@ from app.workflows.calib_session import CalibrationSession, SessionError
 from calib.board import Board
 from calib.detect import Detection
 from calib.transforms import pose_error
+from tests.support import wait_searched
 
 N_VIEWS = 12
 
@@ -25,15 +25,6 @@ N_VIEWS = 12
 def views(calibration_frame_sets) -> list[FrameSet]:
     """Twelve simulated views of the board (seed 1, conftest.py), every sensor's frames."""
     return calibration_frame_sets
-
-
-def wait_searched(session: CalibrationSession) -> None:
-    """Until every view of the session has been searched for the board (30 s at most)."""
-    for _ in range(600):
-        if all(v.searched for v in session.views()):
-            return
-        time.sleep(0.05)
-    raise AssertionError("views were not searched in 30 s")
 
 
 def test_take_writes_each_view_at_once_and_finds_the_board(tmp_path, views) -> None:

@@ -17,14 +17,10 @@ from app.cli import main
 from app.workflows.report_format import coverage_sentence
 from calib.coverage import coarse_reached
 from calib.transforms import pose_error, rvec_from_rotation
+from tests.support import FOCAL, POSE
 
 REAL = OPENCV_LEFT_9X6
 BOARD_9x6 = "pattern: checkerboard\ninner_corners: [9, 6]\nsquare_size_m: 0.025\n"
-
-
-# Targets of the issue: focal length (relative) and pose (deg, m) per modality.
-FOCAL = {"color": 0.003, "thermal": 0.003, "tof": 0.01}
-POSE = {"color": (0.1, 0.001), "thermal": (0.1, 0.001), "tof": (0.2, 0.003)}
 
 
 def test_simulated_calibration_meets_the_accuracy_targets(simulated: dict) -> None:
@@ -275,7 +271,8 @@ def test_board_yaml_polarity_keys_reach_the_detector(
     reversed, leaving the colour cameras alone."""
     from app.sources.sim.head import default_rig
     from app.sources.sim.scenarios import CALIBRATION_BOARD
-    from app.storage.capture import load_capture, write_board, write_view
+    from app.storage.capture import load_capture
+    from app.storage.capture_writer import write_board, write_view
     from app.workflows.calibration_run import detect_capture
     from calib.board import Board
 

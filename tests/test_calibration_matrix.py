@@ -38,7 +38,7 @@ from app.cli import main
 from app.sources.sim.head import default_rig
 from app.storage.rigfile import load_rig, save_rig
 from calib.rig_compare import compare_rigs
-from tests.test_polarity import upside_down
+from tests.support import upside_down
 
 pytestmark = pytest.mark.slow
 

@@ -11,81 +11,32 @@ import numpy as np
 import pytest
 import yaml
 
-from app.sources.frames import Frame, FrameSet
+from app.sources.frames import FrameSet
 from app.storage.capture import (
-    GROUND_TRUTH_FORMAT,
     CaptureError,
     ViewExistsError,
-    encode_distance,
     load_capture,
-    load_ground_truth,
     modality_from_name,
     read_image_header,
-    write_board,
-    write_ground_truth,
-    write_rig,
-    write_view,
 )
+from app.storage.capture_writer import write_board, write_rig, write_view
+from app.storage.ground_truth import GROUND_TRUTH_FORMAT, load_ground_truth, write_ground_truth
 from calib.board import Board
-from calib.camera import Intrinsics
-from calib.rig import Eye, Rig, Sensor
+from calib.rig import Rig
 from calib.transforms import make_T, rotation_from_euler_deg
+from calib.units import encode_distance
+from tests.support import CAPTURE_BOARD, capture_frames, small_capture_rig
 
-BOARD = Board(9, 6, 0.025)
-SIZES = {"tof": (22, 18), "ccd_left": (64, 48), "thermal_left": (38, 29)}
 # Half a centi-kelvin of rounding plus float32's resolution near 300 K (about 3e-5 K).
 THERMAL_TOL_K = 0.005 + 3e-5
 DISTANCE_TOL_M = 0.0005 + 1e-6
 
 
-def small_rig() -> Rig:
-    """A three-sensor rig with tiny images, so that tests write and read quickly."""
-    modality = {"tof": "tof", "ccd_left": "color", "thermal_left": "thermal"}
-    sensors = {}
-    for i, (name, (w, h)) in enumerate(SIZES.items()):
-        T = (
-            np.eye(4)
-            if name == "tof"
-            else make_T(rotation_from_euler_deg(1, 2, 3), (0.05 * i, -0.01, 0.0))
-        )
-        sensors[name] = Sensor(
-            name,
-            modality[name],
-            (w, h),  # type: ignore[arg-type]
-            Intrinsics(50.0, 50.0, (w - 1) / 2, (h - 1) / 2),
-            T,
-        )
-    return Rig(sensors, "tof", {"left": Eye("ccd_left", "thermal_left")})
-
-
-def make_frames(seed: int = 0) -> FrameSet:
-    """Known values for every sensor, including the edge cases of each encoding."""
-    rng = np.random.default_rng(seed)
-    w, h = SIZES["ccd_left"]
-    color = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
-    w, h = SIZES["thermal_left"]
-    thermal = (280.0 + 60.0 * rng.random((h, w))).astype(np.float32)
-    thermal[0, 0] = np.nan
-    w, h = SIZES["tof"]
-    amplitude = (20000.0 * rng.random((h, w))).astype(np.float32)
-    amplitude[0, 0], amplitude[0, 1] = -5.0, 70000.0
-    distance = (0.1 + 9.9 * rng.random((h, w))).astype(np.float32)
-    distance[1, :4] = [np.nan, 0.0, -1.0, 70.0]  # all invalid
-    return FrameSet(
-        123,
-        {
-            "tof": Frame("tof", 1, amplitude, distance),
-            "ccd_left": Frame("ccd_left", 1, color),
-            "thermal_left": Frame("thermal_left", 1, thermal),
-        },
-    )
-
-
 @pytest.fixture
 def capture(tmp_path: Path) -> tuple[Path, Rig, FrameSet]:
-    rig = small_rig()
-    frames = make_frames()
-    write_board(tmp_path, BOARD)
+    rig = small_capture_rig()
+    frames = capture_frames()
+    write_board(tmp_path, CAPTURE_BOARD)
     write_rig(tmp_path, rig)
     write_view(tmp_path, "0001", frames, rig)
     return tmp_path, rig, frames
@@ -103,7 +54,7 @@ def test_round_trip_values(capture: tuple[Path, Rig, FrameSet]) -> None:
         "tof_distance.png",
     ]
     cap = load_capture(path)
-    assert cap.board == BOARD
+    assert cap.board == CAPTURE_BOARD
     assert cap.rig == rig
     assert [v.name for v in cap.views] == ["0001"]
     view = cap.views[0]
@@ -176,9 +127,9 @@ def test_a_rig_of_another_head_is_refused_by_the_image_headers(
 
 
 def test_views_sorted_any_subset_and_non_views_ignored(tmp_path: Path) -> None:
-    rig = small_rig()
-    frames = make_frames()
-    write_board(tmp_path, BOARD)
+    rig = small_capture_rig()
+    frames = capture_frames()
+    write_board(tmp_path, CAPTURE_BOARD)
     write_view(tmp_path, "0010", FrameSet(0, {"ccd_left": frames["ccd_left"]}), rig)
     write_view(tmp_path, "0002", frames, rig)
     write_view(tmp_path, "0003", FrameSet(0, {"tof": frames["tof"]}), rig)
@@ -201,7 +152,7 @@ def test_views_sorted_any_subset_and_non_views_ignored(tmp_path: Path) -> None:
 
 
 def test_grey_jpeg_colour_and_8bit_thermal(tmp_path: Path) -> None:
-    write_board(tmp_path, BOARD)
+    write_board(tmp_path, CAPTURE_BOARD)
     view = tmp_path / "a"
     view.mkdir()
     grey = np.tile(np.arange(64, dtype=np.uint8) * 4, (48, 1))
@@ -265,8 +216,8 @@ def test_wrong_image_size_on_disk(capture: tuple[Path, Rig, FrameSet]) -> None:
 
 
 def test_wrong_image_size_refused_on_write(tmp_path: Path) -> None:
-    rig = small_rig()
-    frames = make_frames()
+    rig = small_capture_rig()
+    frames = capture_frames()
     frames.frames["ccd_left"].image = np.zeros((10, 10, 3), np.uint8)
     with pytest.raises(CaptureError, match=r"expected 64x48 .* got 10x10"):
         write_view(tmp_path, "0001", frames, rig)
@@ -274,10 +225,10 @@ def test_wrong_image_size_refused_on_write(tmp_path: Path) -> None:
 
 
 def test_wrong_dtype_refused_on_write(tmp_path: Path) -> None:
-    frames = make_frames()
+    frames = capture_frames()
     frames.frames["ccd_left"].image = np.zeros((48, 64, 3), np.float32)
     with pytest.raises(CaptureError, match=r"uint8 RGB .* got shape \(48, 64, 3\) float32"):
-        write_view(tmp_path, "0001", frames, small_rig())
+        write_view(tmp_path, "0001", frames, small_capture_rig())
 
 
 def test_sensor_not_in_rig(capture: tuple[Path, Rig, FrameSet]) -> None:
@@ -311,7 +262,7 @@ def test_truncated_png_found_when_decoding(capture: tuple[Path, Rig, FrameSet]) 
 
 
 def test_unknown_sensor_prefix_without_rig(tmp_path: Path) -> None:
-    write_board(tmp_path, BOARD)
+    write_board(tmp_path, CAPTURE_BOARD)
     (tmp_path / "0001").mkdir()
     cv2.imwrite(str(tmp_path / "0001" / "camera3.png"), np.zeros((4, 4), np.uint8))
     with pytest.raises(CaptureError, match=r"'camera3': cannot tell its modality .*ccd\*"):
@@ -321,7 +272,7 @@ def test_unknown_sensor_prefix_without_rig(tmp_path: Path) -> None:
 
 
 def test_distance_without_amplitude(tmp_path: Path) -> None:
-    write_board(tmp_path, BOARD)
+    write_board(tmp_path, CAPTURE_BOARD)
     (tmp_path / "0001").mkdir()
     cv2.imwrite(str(tmp_path / "0001" / "tof_distance.png"), np.ones((4, 4), np.uint16))
     with pytest.raises(CaptureError, match=r"needs its amplitude image tof\.png"):
@@ -332,19 +283,19 @@ def test_refuses_to_overwrite_a_view(capture: tuple[Path, Rig, FrameSet]) -> Non
     path, rig, _ = capture
     before = {p.name: p.read_bytes() for p in (path / "0001").iterdir()}
     with pytest.raises(ViewExistsError, match="view exists already; refusing to overwrite"):
-        write_view(path, "0001", make_frames(seed=7), rig)
+        write_view(path, "0001", capture_frames(seed=7), rig)
     assert {p.name: p.read_bytes() for p in (path / "0001").iterdir()} == before
     assert isinstance(ViewExistsError("x"), ValueError)
 
 
 def test_bad_view_name(tmp_path: Path) -> None:
     with pytest.raises(CaptureError, match=r"view name '\.\./x'"):
-        write_view(tmp_path, "../x", make_frames(), small_rig())
+        write_view(tmp_path, "../x", capture_frames(), small_capture_rig())
 
 
 def test_board_and_rig_never_replaced(capture: tuple[Path, Rig, FrameSet]) -> None:
     path, rig, _ = capture
-    write_board(path, BOARD)  # the same board again: fine
+    write_board(path, CAPTURE_BOARD)  # the same board again: fine
     write_rig(path, rig)
     with pytest.raises(CaptureError, match="exists with a different board"):
         write_board(path, Board(7, 5, 0.03))
@@ -364,21 +315,23 @@ def test_encode_distance_edges() -> None:
 def test_ground_truth_round_trip(capture: tuple[Path, Rig, FrameSet]) -> None:
     path, rig, _ = capture
     T = make_T(rotation_from_euler_deg(10, -20, 5), (0.1, -0.2, 1.5))
-    gt_path, rig_path = write_ground_truth(path, rig, [("0001", T)], BOARD)
+    gt_path, rig_path = write_ground_truth(path, rig, [("0001", T)], CAPTURE_BOARD)
     assert gt_path.name == "ground_truth.yaml" and rig_path.name == "ground_truth_rig.yaml"
     data = yaml.safe_load(gt_path.read_text())
     assert data["format"] == GROUND_TRUTH_FORMAT
     assert data["rig"] == "ground_truth_rig.yaml"
-    assert data["board"] == BOARD.to_dict()
+    assert data["board"] == CAPTURE_BOARD.to_dict()
     assert np.array(data["views"]["0001"]["T_rig_board"]).shape == (4, 4)
     gt = load_ground_truth(path)
-    assert gt.rig == rig and gt.board == BOARD
+    assert gt.rig == rig and gt.board == CAPTURE_BOARD
     np.testing.assert_array_equal(gt.T_rig_board["0001"], T)
     assert [v.name for v in load_capture(path).views] == ["0001"]  # still one view
     with pytest.raises(CaptureError, match="refusing to overwrite ground truth"):
-        write_ground_truth(path, rig, [("0001", T)], BOARD)
+        write_ground_truth(path, rig, [("0001", T)], CAPTURE_BOARD)
 
 
 def test_ground_truth_rejects_non_rigid_pose(tmp_path: Path) -> None:
     with pytest.raises(CaptureError, match="view '0001': T_rig_board is not a rigid"):
-        write_ground_truth(tmp_path, small_rig(), [("0001", np.diag([2.0, 1, 1, 1]))], BOARD)
+        write_ground_truth(
+            tmp_path, small_capture_rig(), [("0001", np.diag([2.0, 1, 1, 1]))], CAPTURE_BOARD
+        )

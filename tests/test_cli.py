@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from app.cli import main
-from app.devtools import bench
+from app.devtools import bench, benchmark
 
 ROOT = Path(__file__).resolve().parent.parent
 COMMANDS = ["simulate", "calibrate", "compare", "analyze", "record", "fuse", "serve", "bench"]
@@ -206,7 +206,7 @@ def test_record_suggests_the_commands_that_use_the_recording(
     import shlex
 
     from app.cli import build_parser
-    from tests.test_recording import small_rig, synth_frames, write_recording
+    from tests.support import small_rig, synth_frames, write_recording
 
     rig = small_rig()
     source = write_recording(tmp_path / "in.mcap", rig, synth_frames(rig, 0.1, seed=3))
@@ -257,7 +257,8 @@ def test_simulate_calibration_writes_a_capture(
         reason="the simulator module app.sources.sim.scenarios is not in this checkout yet",
     )
     from app.sources.sim.head import default_rig, nominal_rig
-    from app.storage.capture import load_capture, load_ground_truth
+    from app.storage.capture import load_capture
+    from app.storage.ground_truth import load_ground_truth
 
     out = tmp_path / "captures"
     code, stdout, err = run(
@@ -316,7 +317,7 @@ def test_bench_registry_and_ratios(
 
 def test_median_ms_excludes_warmup() -> None:
     calls: list[int] = []
-    assert bench.median_ms(calls.append, 3, warmup=1) >= 0.0
+    assert benchmark.median_ms(calls.append, 3, warmup=1) >= 0.0
     assert calls == [-1, 0, 1, 2]
     assert "render" in bench.REGISTRY
 

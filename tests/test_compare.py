@@ -13,13 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.cli import main
 from app.sources.sim.head import default_rig
 from app.storage.rigfile import load_rig, save_rig
 from calib.camera import Intrinsics
 from calib.rig import Rig, Sensor
 from calib.rig_compare import FOCAL_TARGET, POSE_TARGET, compare_rigs
 from calib.transforms import invert, make_T, pose_error, rotation_from_rvec
+from tests.support import run_cli
 
 TRUTH = default_rig()
 NAMES = TRUTH.names  # tof, ccd_left, ccd_right, thermal_left, thermal_right
@@ -166,20 +166,13 @@ def test_incomparable_rigs_are_refused() -> None:
 # -- trifuse compare ----------------------------------------------------------------------
 
 
-def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    code = main(argv)
-    out, err = capsys.readouterr()
-    assert "Traceback" not in out + err
-    return code, out, err
-
-
 def test_compare_a_real_calibration(simulated: dict, capsys: pytest.CaptureFixture[str]) -> None:
     """The README's calibration against its ground truth: the verdict agrees with the
     calibration issue's check (focal lengths, every ordered pair's relative pose) and every
     printed pair error with ``pose_error`` of the relative poses."""
     rig, truth = simulated["rig"], simulated["truth"]
     truth_path = simulated["capture"] / "ground_truth_rig.yaml"
-    code, out, err = run(["compare", str(simulated["rig_path"]), str(truth_path)], capsys)
+    code, out, err = run_cli(["compare", str(simulated["rig_path"]), str(truth_path)], capsys)
     assert code == 0, err
 
     meets = all(
@@ -213,7 +206,9 @@ def test_compare_a_real_calibration(simulated: dict, capsys: pytest.CaptureFixtu
     fx_percent = 100 * (rig["ccd_left"].intrinsics.fx / truth["ccd_left"].intrinsics.fx - 1)
     assert float(fx_row.split()[3]) == pytest.approx(fx_percent, abs=0.0005)
 
-    code, out, err = run(["compare", str(simulated["rig_path"]), str(truth_path), "--json"], capsys)
+    code, out, err = run_cli(
+        ["compare", str(simulated["rig_path"]), str(truth_path), "--json"], capsys
+    )
     assert code == 0, err
     data = json.loads(out)
     assert data["passed"] is meets and len(data["pairs"]) == 10
@@ -230,7 +225,7 @@ def test_compare_marks_failures_and_exits_1(
     turn = make_T(rotation_from_rvec([0.0, np.radians(0.3), 0.0]), [0, 0, 0])
     bad = changed(TRUTH, "ccd_right", T_rig_sensor=TRUTH["ccd_right"].T_rig_sensor @ turn)
     bad_path = save_rig(tmp_path / "bad.yaml", reframed(bad, "ccd_left"))
-    code, out, err = run(["compare", str(bad_path), str(truth_path)], capsys)
+    code, out, err = run_cli(["compare", str(bad_path), str(truth_path)], capsys)
     assert code == 1 and err == ""
     failing = [line for line in out.splitlines() if "FAIL (rot)" in line]
     assert len(failing) == 4 and all("ccd_right" in line for line in failing)
@@ -239,7 +234,7 @@ def test_compare_marks_failures_and_exits_1(
     assert "tof-ccd_right rotation" in verdict
 
     same_path = save_rig(tmp_path / "same.yaml", reframed(TRUTH, "thermal_left"))
-    code, out, _ = run(["compare", str(same_path), str(truth_path)], capsys)
+    code, out, _ = run_cli(["compare", str(same_path), str(truth_path)], capsys)
     assert code == 0 and "FAIL" not in out and out.strip().endswith("pairs' poses).")
 
 
@@ -248,7 +243,7 @@ def test_compare_lists_sensors_in_one_rig_only(
 ) -> None:
     truth_path = save_rig(tmp_path / "truth.yaml", TRUTH)
     one_eye = Rig({n: TRUTH[n] for n in ("tof", "ccd_left", "thermal_left")}, "tof")
-    code, out, err = run(
+    code, out, err = run_cli(
         ["compare", str(save_rig(tmp_path / "e.yaml", one_eye)), str(truth_path)], capsys
     )
     assert code == 0, err
@@ -270,7 +265,7 @@ def test_compare_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureFix
         ([str(truth_path)], "required: TRUTH.yaml"),
     ]
     for argv, match in cases:
-        code, out, err = run(["compare", *argv], capsys)
+        code, out, err = run_cli(["compare", *argv], capsys)
         assert code == 2, argv
         assert match in err and out == "", (argv, err)
         assert len(err.strip().splitlines()) == 1
@@ -287,7 +282,7 @@ def test_calibrate_with_truth_prints_and_reports_the_comparison(
     out_rig, report = tmp_path / "rig.yaml", tmp_path / "report.json"
     argv = ["calibrate", str(simulated["capture"]), "--out", str(out_rig), "--report", str(report)]
     argv += ["--sensors", "thermal_left,thermal_right", "--truth", str(truth_path)]
-    code, out, err = run(argv, capsys)
+    code, out, err = run_cli(argv, capsys)
     assert code == 0, err
     rig, truth = load_rig(out_rig), simulated["truth"]
     assert rig.reference == "thermal_left"
@@ -324,7 +319,7 @@ def test_calibrate_refuses_a_truth_without_a_common_sensor_before_calibrating(
     stranger = save_rig(tmp_path / "stranger.yaml", Rig({"cam": cam}, "cam"))
     out_rig = tmp_path / "rig.yaml"
     argv = ["calibrate", str(simulated["capture"]), "--out", str(out_rig), "--truth", str(stranger)]
-    code, out, err = run(argv, capsys)
+    code, out, err = run_cli(argv, capsys)
     assert code == 2 and out == "" and not out_rig.exists()
     assert err.startswith("trifuse: error: --truth") and "no sensor in common" in err
     assert len(err.strip().splitlines()) == 1

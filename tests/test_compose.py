@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from fusion.compose import (
-    MODES,
+    DISPLAY_MODES,
     Composer,
     DisplaySettings,
     anaglyph,
@@ -287,7 +287,7 @@ def test_nan_pixels_are_never_painted(kw: dict, mark: bool) -> None:
 
 
 def test_every_mode_is_covered() -> None:
-    assert {kw["mode"] for kw in PAINTING} == set(MODES)
+    assert {kw["mode"] for kw in PAINTING} == set(DISPLAY_MODES)
 
 
 def selection(t: np.ndarray, direction: str, low: float, high: float) -> np.ndarray:
@@ -465,7 +465,7 @@ def test_compose_without_span_uses_settings_or_auto() -> None:
 def test_float64_thermal_gives_the_same_picture() -> None:
     color, t, fb = scene(13)
     comp = Composer(W, H)
-    for mode in MODES:
+    for mode in DISPLAY_MODES:
         s = DisplaySettings(mode=mode, threshold_k=300.0)
         a = comp.compose(color, t, fb, s, SPAN).copy()
         b = comp.compose(color, t.astype(np.float64), fb, s, SPAN)
@@ -484,7 +484,8 @@ def test_steady_state_compose_allocates_no_frame() -> None:
     comp = Composer(w, h)
     out = np.empty((h, w, 3), np.uint8)
     settings = [
-        DisplaySettings(mode=m, threshold_k=300.0, isotherm_color=(0, 255, 0)) for m in MODES
+        DisplaySettings(mode=m, threshold_k=300.0, isotherm_color=(0, 255, 0))
+        for m in DISPLAY_MODES
     ]
     for s in settings:  # warm-up: first use of a solid colour fills a buffer
         comp.compose(color, thermal, fallback, s, None, out=out)

@@ -18,7 +18,6 @@ No timing is asserted (shared, noisy machine): waits have generous time-outs onl
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import os
@@ -39,7 +38,8 @@ import pytest
 from mcap.reader import make_reader
 
 import app.storage.atomic
-import app.storage.capture
+import app.storage.capture_writer
+from app.devtools.console_process import ConsoleProcess
 from app.recording import ReplaySource
 from app.recording.sealed_file import SEAL
 from app.recording.writer import RecordingWriter, recover_interrupted
@@ -48,10 +48,11 @@ from app.sources.frames import Frame, FrameSet
 from app.sources.sim.head import default_rig
 from app.sources.sim.scenarios import CALIBRATION_BOARD
 from app.storage.atomic import atomic_write_bytes, remove_temporaries
-from app.storage.capture import load_capture, load_view, write_board, write_rig, write_view
+from app.storage.capture import load_capture, load_view
+from app.storage.capture_writer import write_board, write_rig, write_view
 from app.storage.rigfile import load_rig
 from app.workflows.calib_session import CalibrationSession
-from tests.browser_support import ROOT, TEST_BOARD_POSES, free_port, wait_for_cache_warmup
+from tests.browser_support import ROOT, TEST_BOARD_POSES, wait_for_cache_warmup
 
 CRASHED = 86  # exit code of a child that "crashed" where the test wanted
 TOKEN = "crash-safety-token-0123456789"
@@ -164,7 +165,8 @@ def _file_hashes(folder: Path) -> dict[str, str]:
     [
         (os, "replace", 3, False),  # two images written into the staging folder, third not
         (os, "rename", 1, False),  # every image written, the folder not renamed into place
-        (app.storage.capture, "fsync_dir", 2, True),  # renamed, the capture directory not fsynced
+        # renamed, the capture directory not fsynced
+        (app.storage.capture_writer, "fsync_dir", 2, True),
     ],
 )
 def test_capture_crash_leaves_views_whole(tmp_path, module, name, nth, new_is_there) -> None:
@@ -389,52 +391,25 @@ class Server:
 
     def __init__(self, workdir: Path, log: Path) -> None:
         wait_for_cache_warmup("calibration")
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        start = log.stat().st_size if log.exists() else 0
         self.log = log
-        with log.open("a") as out:
-            self.proc = subprocess.Popen(
-                [
-                    sys.executable,
-                    "-c",
-                    "import sys; from app.cli import main; sys.exit(main(sys.argv[1:]))",
-                    "serve",
-                    "--port",
-                    str(self.port),
-                    "--workdir",
-                    str(workdir),
-                    "--scenario",
-                    "calibration",
-                    "--board-poses",
-                    str(TEST_BOARD_POSES),
-                ],
-                cwd=ROOT,
-                stdout=out,
-                stderr=subprocess.STDOUT,
+        args = ["--workdir", str(workdir), "--scenario", "calibration"]
+        try:
+            self.console = ConsoleProcess(
+                [*args, "--board-poses", str(TEST_BOARD_POSES)],
                 env={**os.environ, "TRIFUSE_TOKEN": TOKEN},
+                log_path=log,
+                timeout_s=180,
             )
-        deadline = time.monotonic() + 180
-        while True:
-            if self.proc.poll() is not None:
-                pytest.fail(f"trifuse serve ended ({self.proc.returncode}):\n{self.output()}")
-            if time.monotonic() > deadline:
-                self.kill()
-                pytest.fail(f"trifuse serve did not answer:\n{self.output()}")
-            with contextlib.suppress(OSError):
-                if self.call("GET", "/api/status", timeout=5)[0] == 200:
-                    break
-            time.sleep(0.2)
-        self.started_at = start
+        except RuntimeError as e:  # what this run printed is in the message
+            pytest.fail(str(e))
+        self.proc, self.url = self.console.proc, self.console.url
 
     def output(self) -> str:
         return self.log.read_text(errors="replace")
 
     def this_run(self) -> str:
         """What this run printed."""
-        with self.log.open("rb") as f:
-            f.seek(self.started_at)
-            return f.read().decode(errors="replace")
+        return self.console.output()
 
     def call(self, method: str, path: str, timeout: float = 300) -> tuple[int, Any]:
         """(status, JSON) of a REST call; OSError when the server is gone."""
@@ -454,15 +429,10 @@ class Server:
         return body
 
     def kill(self) -> None:
-        self.proc.kill()  # SIGKILL: no clean-up of any kind
-        self.proc.wait(60)
+        self.console.kill()  # SIGKILL: no clean-up of any kind
 
     def stop(self) -> None:
-        self.proc.terminate()
-        try:
-            self.proc.wait(60)
-        except subprocess.TimeoutExpired:
-            self.kill()
+        self.console.close(timeout_s=60)
 
 
 class Client(threading.Thread):

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.sources.base import FrameSetAssembler, FrameSource, frame_sets
+from app.sources.base import FrameSetAssembler, frame_sets
 from app.sources.frames import Frame
+from tests.support import ListSource
 
 IMG = np.zeros((2, 2), np.float32)
 
@@ -22,15 +23,6 @@ def stream(rates: dict[str, float], seconds: float, drop: dict[str, float] | Non
                 break
             frames.append(Frame(s, round(t * 1e9), IMG))
     return sorted(frames, key=lambda f: f.stamp_ns)
-
-
-class ListSource(FrameSource):
-    def __init__(self, frames: list[Frame]) -> None:
-        self._frames = frames
-        self.sensors = sorted({f.sensor for f in frames})
-
-    def frames(self):
-        yield from self._frames
 
 
 def test_sensors_at_different_rates_are_grouped_by_nearest_time() -> None:

@@ -45,8 +45,8 @@ from app.server.runtime.thermal_balance import ThermalBalancer
 from app.sources.frames import FrameSet
 from app.sources.sim.scenarios import CALIBRATION_BOARD
 from app.workflows.calib_session import CalibrationSession
+from tests.support import small_rig, synth_frames, write_recording
 from tests.test_push import serve
-from tests.test_recording import small_rig, synth_frames, write_recording
 
 MAX_BODY = DEFAULT_MAX_BODY_BYTES
 FUZZ = settings(

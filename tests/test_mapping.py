@@ -143,7 +143,7 @@ def test_accuracy_per_band_against_the_exact_mapping(eye: str) -> None:
     edges, and at 0.5-2 m at least 5x better than one fixed homography (3 m)."""
     scenario = InspectionScenario(model=HeadModel(range_error=NO_RANGE_ERROR), seed=2)
     color, thermal = RIG.eyes[eye].color, RIG.eyes[eye].thermal
-    fusion = EyeFusion.for_eye(RIG, eye)
+    fusion = EyeFusion(RIG, eye)
     ours, naive = [], []
     for t_s in (0.0, 10.0):
         frames, truth = scenario.render(t_s, [color, thermal, "tof"])

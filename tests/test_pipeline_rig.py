@@ -3,38 +3,20 @@
 from __future__ import annotations
 
 import dataclasses
-import time
 
 import numpy as np
 import pytest
 
 from app.server.runtime.pipeline import FusionPipeline
 from app.server.runtime.stream import FrameHub
-from app.sources.base import FrameSource
-from app.sources.frames import FrameSet
 from app.sources.sim.head import default_rig
 from calib.rig import Rig
-
-
-class _NoFrames(FrameSource):
-    def frames(self):
-        return iter(())
-
-
-class _Frames(FrameSource):
-    """The frames of some frame sets, one set after the other."""
-
-    def __init__(self, sets: list[FrameSet]) -> None:
-        self.sets = sets
-
-    def frames(self):
-        for fs in self.sets:
-            yield from fs.frames.values()
+from tests.support import ListSource, wait_until
 
 
 def test_set_rig_takes_effect_with_the_next_frame_set(calibration_frame_sets) -> None:
     rig = default_rig()
-    pipeline = FusionPipeline(_NoFrames(), rig, FrameHub())
+    pipeline = FusionPipeline(ListSource(), rig, FrameHub())
     T = rig["ccd_right"].T_rig_sensor.copy()
     T[0, 3] += 0.01
     moved = Rig(
@@ -47,12 +29,9 @@ def test_set_rig_takes_effect_with_the_next_frame_set(calibration_frame_sets) ->
     )
     pipeline.set_rig(moved)
     assert pipeline.rig is rig  # not before the fusion thread's next frame set
-    pipeline.source = _Frames(calibration_frame_sets[:3])
+    pipeline.source = ListSource.of_sets(calibration_frame_sets[:3])
     pipeline.start()
-    for _ in range(600):
-        if pipeline.status.frames_out >= 2:
-            break
-        time.sleep(0.05)
+    wait_until(lambda: pipeline.status.frames_out >= 2, "two fused frame sets")
     pipeline.stop()
     assert pipeline.status.error is None and pipeline.status.frames_out >= 2
     assert pipeline.rig is moved and pipeline.fusion.ready
@@ -61,7 +40,7 @@ def test_set_rig_takes_effect_with_the_next_frame_set(calibration_frame_sets) ->
 
 def test_set_rig_refuses_other_sensors() -> None:
     rig = default_rig()
-    pipeline = FusionPipeline(_NoFrames(), rig, FrameHub())
+    pipeline = FusionPipeline(ListSource(), rig, FrameHub())
     fewer = Rig(
         sensors={n: s for n, s in rig.sensors.items() if n != "thermal_right"},
         reference=rig.reference,

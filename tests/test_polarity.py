@@ -38,6 +38,7 @@ from calib.transforms import (
     rvec_from_rotation,
     transform_points,
 )
+from tests.support import upside_down
 
 RIG = default_rig()
 BOARDS = {
@@ -48,17 +49,6 @@ BOARDS = {
 # Per-axis corner noise (px) of each modality, about what the detectors achieve.
 NOISE = {"color": 0.08, "thermal": 0.06, "tof": 0.05}
 VIEWS = 16
-
-
-def upside_down(rig: Rig, names: tuple[str, ...]) -> Rig:
-    """``rig`` with the sensors ``names`` mounted upside down: turned 180 degrees about
-    their optical axis (``T_rig_sensor @ Rz(180)``)."""
-    flip = np.diag([-1.0, -1.0, 1.0, 1.0])
-    sensors = {
-        n: dataclasses.replace(s, T_rig_sensor=s.T_rig_sensor @ flip) if n in names else s
-        for n, s in rig.sensors.items()
-    }
-    return Rig(sensors=sensors, reference=rig.reference, eyes=dict(rig.eyes))
 
 
 def corners_seen(

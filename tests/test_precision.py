@@ -9,7 +9,6 @@ import cv2
 import numpy as np
 import pytest
 
-from app.cli import main
 from app.sources.sim.head import default_rig
 from app.storage.rigfile import save_rig
 from calib.camera import Intrinsics
@@ -26,6 +25,7 @@ from fusion.precision import (
     tof_pixel_error_shifts,
     tof_pixel_label,
 )
+from tests.support import run_cli
 
 # -- a hand-built rig with a closed form ----------------------------------------------------
 
@@ -309,16 +309,10 @@ def rig_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return save_rig(tmp_path_factory.mktemp("rig") / "rig.yaml", default_rig())
 
 
-def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    code = main(argv)
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
 def test_cli_json_has_exactly_the_documented_shape(
     rig_file: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    code, out, err = run(
+    code, out, err = run_cli(
         ["analyze", str(rig_file), "--distance-error-mm", "41", "--threshold-px", "0.5", "--json"],
         capsys,
     )
@@ -351,7 +345,7 @@ def test_cli_json_has_exactly_the_documented_shape(
 def test_cli_tof_pixels_replace_the_defaults(
     rig_file: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    code, out, err = run(
+    code, out, err = run_cli(
         [
             "analyze",
             str(rig_file),
@@ -375,7 +369,7 @@ def test_cli_tof_pixels_replace_the_defaults(
 
 
 def test_cli_prints_the_table(rig_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    code, out, err = run(["analyze", str(rig_file), "--distance-error-mm", "15"], capsys)
+    code, out, err = run_cli(["analyze", str(rig_file), "--distance-error-mm", "15"], capsys)
     assert code == 0, err
     for word in (*CCD, *THERMAL, "principal point", "region 3 edge", "distance error 15 mm"):
         assert word in out
@@ -390,7 +384,7 @@ def test_cli_prints_the_table(rig_file: Path, capsys: pytest.CaptureFixture[str]
 
 def test_cli_plot(rig_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     plot = tmp_path / "out.png"
-    code, out, err = run(["analyze", str(rig_file), "--plot", str(plot)], capsys)
+    code, out, err = run_cli(["analyze", str(rig_file), "--plot", str(plot)], capsys)
     assert code == 0, err
     assert str(plot) in out
     assert plot.stat().st_size > 0
@@ -399,7 +393,7 @@ def test_cli_plot(rig_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture[
     packed = image.astype(np.int32) @ np.array([1 << 16, 1 << 8, 1], np.int32)
     assert np.unique(packed).size > 10  # curves in colour, not a blank canvas
     # never overwritten
-    code, _, err = run(["analyze", str(rig_file), "--plot", str(plot)], capsys)
+    code, _, err = run_cli(["analyze", str(rig_file), "--plot", str(plot)], capsys)
     assert code == 2 and "exists" in err
 
 
@@ -432,7 +426,7 @@ def _no_tof_rig(path: Path) -> Path:
 def test_cli_bad_arguments_exit_2(
     rig_file: Path, extra: list[str], match: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    code, out, err = run(["analyze", str(rig_file), *extra], capsys)
+    code, out, err = run_cli(["analyze", str(rig_file), *extra], capsys)
     assert code == 2
     assert match in err
     assert len(err.strip().splitlines()) == 1
@@ -448,7 +442,7 @@ def test_cli_bad_rig_files_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[
         (_no_tof_rig(tmp_path / "no_tof.yaml"), "modality 'tof'"),
     ]
     for path, match in cases:
-        code, out, err = run(["analyze", str(path)], capsys)
+        code, out, err = run_cli(["analyze", str(path)], capsys)
         assert code == 2, path
         assert match in err and str(path) in err
         assert out == ""
@@ -457,7 +451,7 @@ def test_cli_bad_rig_files_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[
 
 
 def test_cli_help_mentions_the_options(capsys: pytest.CaptureFixture[str]) -> None:
-    code, out, _ = run(["analyze", "--help"], capsys)
+    code, out, _ = run_cli(["analyze", "--help"], capsys)
     assert code == 0
     for word in (
         "--distance-error-mm",

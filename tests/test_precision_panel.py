@@ -8,7 +8,6 @@ import contextlib
 import dataclasses
 import io
 import re
-import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -35,8 +34,7 @@ from calib.radiometry import Radiometry
 from calib.rig import Rig
 from fusion.compose import DisplaySettings
 from fusion.precision import analyze_precision
-
-WAIT_S = 60.0  # the panel computes in its own thread; generous for a loaded CI machine
+from tests.support import wait_until
 
 
 @pytest.fixture
@@ -49,12 +47,7 @@ def server():
 
 def _wait_for(panel: PrecisionPanel, rig: Rig, after: int = 0) -> None:
     """Until the panel shows its analysis of ``rig`` (its ``after``-th or later)."""
-    deadline = time.monotonic() + WAIT_S
-    while time.monotonic() < deadline:
-        if panel.analysed is rig and panel.updates > after:
-            return
-        time.sleep(0.02)
-    raise AssertionError(f"the panel did not analyse the rig in {WAIT_S} s")
+    wait_until(lambda: panel.analysed is rig and panel.updates > after, "the panel's analysis")
 
 
 def _table_rows(markdown: str) -> dict[tuple[str, str, str], list[str]]:

@@ -24,20 +24,11 @@ from websockets.sync.client import connect
 from app.drivers import push_sim
 from app.server.routers.auth import AuthConfig, AuthMiddleware
 from app.sources.frames import Frame
-from app.sources.push import (
-    MAGIC,
-    AsyncPushClient,
-    Part,
-    PushClient,
-    PushError,
-    PushRejected,
-    PushSource,
-    encode_frame,
-    encode_message,
-    encode_part,
-    make_push_router,
-    uvicorn_ws_max_size,
-)
+from app.sources.push.clients import AsyncPushClient, PushClient, PushRejected
+from app.sources.push.encode import encode_frame, encode_part
+from app.sources.push.protocol import MAGIC, Part, PushError, encode_message
+from app.sources.push.router import make_push_router, uvicorn_ws_max_size
+from app.sources.push.source import PushSource
 from app.sources.sim.head import default_rig
 
 RIG = default_rig()

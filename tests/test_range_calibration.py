@@ -15,7 +15,7 @@ import pytest
 from app.cli import main
 from app.sources.sim.head import default_rig
 from app.sources.sim.tof_error import RangeErrorModel
-from app.storage.capture import load_ground_truth
+from app.storage.ground_truth import load_ground_truth
 from app.storage.rigfile import load_rig
 from calib.board import Board
 from calib.errors import RigError
@@ -128,7 +128,7 @@ def test_model_round_trips_through_the_rig_file() -> None:
     d = rig_to_dict(default_rig())
     d["sensors"]["tof"]["range_correction"] = model.to_dict()
     rig = rig_from_dict(d)
-    again = RangeCorrection.of(rig["tof"])
+    again = rig["tof"].range_correction
     assert again == model
     distance = np.full(TOF_SIZE[::-1], 2.0, np.float32)
     np.testing.assert_allclose(again.apply(distance), model.apply(distance), atol=1e-6)
@@ -242,7 +242,7 @@ def test_range_calibration_meets_the_target_on_held_out_views(
     # not the references the fit itself used.
     gt = load_ground_truth(simulated["capture"])
     truth_tof = gt.rig["tof"]
-    model = RangeCorrection.of(range_run["rig"]["tof"])
+    model = range_run["rig"]["tof"].range_correction
     held = range_run["report"]["views"]["holdout"]
     assert len(held) >= 5
     from app.storage.capture import load_capture

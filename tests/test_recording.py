@@ -5,7 +5,6 @@ from __future__ import annotations
 import logging
 import re
 import threading
-import time
 from pathlib import Path
 
 import cv2
@@ -21,6 +20,7 @@ from app.recording import (
     RecordingWriter,
     ReplaySource,
 )
+from app.recording.player import MAX_LAG_S
 from app.recording.simrecord import (
     head_model_for,
     plan_simulation,
@@ -30,113 +30,19 @@ from app.recording.simrecord import (
 )
 from app.sources.base import frame_sets
 from app.sources.frames import Frame, FrameSet
-from app.storage.capture import encode_amplitude, encode_distance, encode_thermal
 from app.storage.rigfile import save_rig
-from calib.camera import Intrinsics
-from calib.rig import Eye, Rig, Sensor
-from calib.transforms import make_T, rotation_from_euler_deg
-
-RATES_HZ = {"color": 30, "thermal": 27, "tof": 15}
-
-
-def small_rig() -> Rig:
-    """A five-sensor head at a tenth of the real resolutions (fast to encode and render)."""
-    spec = {  # name: modality, size, (fx, fy, cx, cy), translation m, (roll, pitch, yaw) deg
-        "tof": ("tof", (44, 36), (41.4, 41.4, 21.5, 17.5), (0, 0, 0), (0, 0, 0)),
-        "ccd_left": (
-            "color", (128, 96), (133.3, 133.1, 63.6, 47.4), (-0.06, -0.03, 0.002), (0.6, -1.1, 0.3)
-        ),
-        "ccd_right": (
-            "color", (128, 96), (133.6, 133.5, 63.8, 48.2), (0.06, -0.03, 0.002), (-0.4, 1.3, -0.5)
-        ),
-        "thermal_left": (
-            "thermal", (96, 72), (100.5, 100.4, 47.9, 35.7), (-0.055, 0.001, -0.01), (1.2, 1.6, 0)
-        ),
-        "thermal_right": (
-            "thermal", (96, 72), (99.9, 100.0, 47.4, 36.3), (0.055, -0.001, -0.01), (0, -1.8, 0.8)
-        ),
-    }  # fmt: skip
-    sensors = {}
-    for name, (modality, size, (fx, fy, cx, cy), t, rpy) in spec.items():
-        dist = (-0.1, 0.02, 0.0003, -0.0002, 0.0) if modality != "tof" else (0.0,) * 5
-        if name == "thermal_right":
-            dist = (-0.1, 0.02, 0.0003, -0.0002, 0.001, 0.01, -0.002, 0.0005)  # rational
-        T = make_T(rotation_from_euler_deg(*rpy), t)
-        sensors[name] = Sensor(name, modality, size, Intrinsics(fx, fy, cx, cy, dist), T)  # type: ignore[arg-type]
-    eyes = {"left": Eye("ccd_left", "thermal_left"), "right": Eye("ccd_right", "thermal_right")}
-    return Rig(sensors=sensors, reference="tof", eyes=eyes)
-
-
-def synth_frame(rig: Rig, sensor: str, stamp_ns: int, rng: np.random.Generator) -> Frame:
-    """A seeded frame with smooth content and noise, NaN where a sensor has no reading."""
-    s = rig[sensor]
-    w, h = s.image_size
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
-    phase = stamp_ns / 1e9
-    if s.modality == "color":
-        img = np.empty((h, w, 3), np.uint8)
-        for k in range(3):
-            base = 128 + 80 * np.sin(xx / (9 + 4 * k) + phase) * np.cos(yy / 13 - k)
-            img[..., k] = np.clip(base + rng.normal(0, 2, (h, w)), 0, 255)
-        return Frame(sensor, stamp_ns, img)
-    if s.modality == "thermal":
-        t = 290 + 15 * xx / w + 5 * np.sin(yy / 7 + phase) + rng.normal(0, 0.05, (h, w))
-        t = t.astype(np.float32)
-        t[0, :5] = np.nan
-        return Frame(sensor, stamp_ns, t)
-    dist = (0.5 + 7.5 * (xx + yy) / (w + h) + rng.normal(0, 0.01, (h, w))).astype(np.float32)
-    dist[rng.random((h, w)) < 0.05] = np.nan
-    amp = (rng.random((h, w)) * 20000).astype(np.float32)
-    return Frame(sensor, stamp_ns, amp, dist)
-
-
-def synth_frames(
-    rig: Rig, duration_s: float, seed: int = 0, start_ns: int = 1_000_000_000, skip=()
-) -> list[Frame]:
-    """Frames of every sensor at its own rate over ``duration_s``, in time order."""
-    rng = np.random.default_rng(seed)
-    frames = []
-    for name, s in rig.sensors.items():
-        if name in skip:
-            continue
-        rate = RATES_HZ[s.modality]
-        k = 0
-        while (t := k * 1_000_000_000 // rate) < duration_s * 1e9:
-            frames.append(synth_frame(rig, name, start_ns + t, rng))
-            k += 1
-    order = {n: i for i, n in enumerate(rig.names)}
-    return sorted(frames, key=lambda f: (f.stamp_ns, order[f.sensor]))
-
-
-def write_recording(path: Path, rig: Rig, frames: list[Frame], **kw) -> Path:
-    with RecordingWriter(path, rig, **kw) as w:
-        for f in frames:
-            w.write(f)
-    return path
-
-
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
-    return float(10 * np.log10(255.0**2 / mse)) if mse else float("inf")
-
-
-def assert_same_frame(got: Frame, want: Frame) -> None:
-    assert (got.sensor, got.stamp_ns) == (want.sensor, want.stamp_ns)
-    if want.image.ndim == 3:
-        assert got.image.dtype == np.uint8 and got.image.shape == want.image.shape
-        assert psnr(got.image, want.image) > 35.0
-    elif want.distance_m is None:  # thermal: equal to the 0.01 K quantisation
-        assert got.image.dtype == np.float32
-        np.testing.assert_array_equal(encode_thermal(got.image), encode_thermal(want.image))
-        np.testing.assert_array_equal(np.isnan(got.image), np.isnan(want.image))
-    else:
-        assert got.image.dtype == np.float32 and got.distance_m.dtype == np.float32
-        np.testing.assert_array_equal(encode_amplitude(got.image), encode_amplitude(want.image))
-        np.testing.assert_array_equal(
-            encode_distance(got.distance_m), encode_distance(want.distance_m)
-        )
-        np.testing.assert_array_equal(np.isnan(got.distance_m), np.isnan(want.distance_m))
-        assert np.nanmax(np.abs(got.distance_m - want.distance_m)) <= 0.0005 + 1e-6
+from calib.rig import Rig
+from calib.units import encode_amplitude
+from tests.support import (
+    RATES_HZ,
+    WAIT_S,
+    FakeClock,
+    assert_same_frame,
+    small_rig,
+    synth_frame,
+    synth_frames,
+    write_recording,
+)
 
 
 @pytest.fixture(scope="module")
@@ -549,52 +455,92 @@ def test_rate_is_checked(recorded):
         assert src.rate == 0.5
 
 
-def _paced(path: Path, rate: float) -> float:
-    with ReplaySource(path, rate=rate) as src:
-        t0 = time.monotonic()
-        n = sum(1 for _ in src.frames())
-        assert n > 0
-        return time.monotonic() - t0
+def _paced(path: Path, rate: float, busy_s: dict[int, float] | None = None) -> list[float]:
+    """When each frame of a real-time replay at ``rate`` is released, on a simulated clock
+    (its own seconds); ``busy_s``: how long the consumer takes after frame ``k``."""
+    clock = FakeClock(100.0)
+    released = []
+    with ReplaySource(path, rate=rate, clock=clock, sleep=clock.sleep) as src:
+        for k, _ in enumerate(src.frames()):
+            released.append(clock.now)
+            clock.advance((busy_s or {}).get(k, 0.0))
+    return released
 
 
 def test_realtime_pacing_follows_the_rate(tmp_path, rig):
+    """Each frame is released when the clock reaches its log time, scaled by the rate."""
     rng = np.random.default_rng(0)
-    # a light recording: 0.6 s of the TOF at 15 Hz
     frames = [synth_frame(rig, "tof", k * 1_000_000_000 // 15, rng) for k in range(10)]
     path = write_recording(tmp_path / "tof.mcap", rig, frames)
-    span = (frames[-1].stamp_ns - frames[0].stamp_ns) / 1e9  # 0.6 s
-    t1 = _paced(path, 1.0)
-    t2 = _paced(path, 2.0)
-    assert span * 0.9 <= t1 <= span + 0.5
-    assert span / 2 * 0.9 <= t2 <= span / 2 + 0.4
-    assert 0.3 <= t2 / t1 <= 0.75
+    offsets = [(f.stamp_ns - frames[0].stamp_ns) / 1e9 for f in frames]
+    for rate in (1.0, 2.0, 0.5):
+        released = _paced(path, rate)
+        assert len(released) == len(frames)
+        want = [released[0] + t / rate for t in offsets]
+        assert released == pytest.approx(want, abs=1e-9), rate
+
+
+def test_a_late_consumer_is_not_caught_up_in_a_burst(tmp_path, rig):
+    """A consumer busy for longer than MAX_LAG_S gets the next frame at once, then the
+    replay plays on at its rate from there: no burst of the frames it was late for."""
+    rng = np.random.default_rng(0)
+    frames = [synth_frame(rig, "tof", k * 1_000_000_000 // 15, rng) for k in range(8)]
+    path = write_recording(tmp_path / "tof.mcap", rig, frames)
+    gaps = np.diff([f.stamp_ns for f in frames]) / 1e9
+    released = _paced(path, 1.0, busy_s={2: 1.0})
+    assert len(released) == len(frames)  # late frames are delivered, not skipped
+    steps = np.diff(released)
+    assert steps[:2] == pytest.approx(gaps[:2], abs=1e-9)
+    assert steps[2] == pytest.approx(1.0, abs=1e-9)  # at once when the consumer is back
+    assert steps[3:] == pytest.approx(gaps[3:], abs=1e-9)  # re-anchored: at the rate
+
+
+def test_a_consumer_late_by_less_than_the_lag_catches_up(tmp_path, rig):
+    """Late by less than MAX_LAG_S, the replay keeps its schedule: the next frames come
+    at once until it is on time again."""
+    rng = np.random.default_rng(0)
+    frames = [synth_frame(rig, "tof", k * 1_000_000_000 // 15, rng) for k in range(6)]
+    path = write_recording(tmp_path / "tof.mcap", rig, frames)
+    offsets = [(f.stamp_ns - frames[0].stamp_ns) / 1e9 for f in frames]
+    late = 0.5 * MAX_LAG_S
+    assert offsets[1] < late < offsets[-1]  # misses a frame's time, back on time later
+    released = _paced(path, 1.0, busy_s={0: late})
+    t0 = released[0]
+    want = [t0] + [t0 + max(t, late) for t in offsets[1:]]
+    assert released == pytest.approx(want, abs=1e-9)
 
 
 def test_pause_and_resume(tmp_path, rig):
+    """Paused after the third frame, the replay holds; resumed, it plays the rest at its
+    rate from the moment of the resume (the pause is not caught up)."""
     rng = np.random.default_rng(0)
     frames = [synth_frame(rig, "tof", k * 20_000_000, rng) for k in range(20)]  # 0.4 s
     path = write_recording(tmp_path / "tof.mcap", rig, frames)
-    got: list[Frame] = []
-    with ReplaySource(path, rate=1.0) as src:
-        worker = threading.Thread(target=lambda: got.extend(src.frames()))
+    clock = FakeClock(100.0)
+    got: list[tuple[float, Frame]] = []
+    paused = threading.Event()
+    with ReplaySource(path, rate=1.0, clock=clock, sleep=clock.sleep) as src:
+
+        def consume() -> None:
+            for f in src.frames():
+                got.append((clock.now, f))
+                if len(got) == 3:
+                    src.pause()  # before asking for the next frame
+                    paused.set()
+
+        worker = threading.Thread(target=consume)
         worker.start()
-        deadline = time.monotonic() + 5
-        while len(got) < 3 and time.monotonic() < deadline:
-            time.sleep(0.005)
-        src.pause()
-        assert src.paused
-        pos = src.position_ns  # fixed once pause() returns
-        deadline = time.monotonic() + 30  # the frame let through before the pause arrives
-        while not (got and got[-1].stamp_ns == pos) and time.monotonic() < deadline:
-            time.sleep(0.005)
-        held = len(got)
-        time.sleep(0.4)  # longer than the rest of the recording: nothing more may come
-        assert len(got) == held < len(frames)
-        assert src.position_ns == pos == got[-1].stamp_ns
+        assert paused.wait(WAIT_S)
+        assert src.paused and src.position_ns == got[-1][1].stamp_ns
+        clock.advance(60.0)  # a minute of pause: nothing comes, the clock is not caught up
+        assert len(got) == 3 and src.position_ns == frames[2].stamp_ns
+        resumed_at = clock.now
         src.resume()
-        worker.join(5)
+        worker.join(WAIT_S)
         assert not worker.is_alive()
-    assert [f.stamp_ns for f in got] == [f.stamp_ns for f in frames]
+    assert [f.stamp_ns for _, f in got] == [f.stamp_ns for f in frames]
+    after = [t for t, _ in got[3:]]
+    assert after == pytest.approx([resumed_at + 0.02 * k for k in range(17)], abs=1e-9)
 
 
 # -- the commands -----------------------------------------------------------------------------

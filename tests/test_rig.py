@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import itertools
 from collections.abc import Callable
 from pathlib import Path
@@ -16,6 +17,7 @@ from app.sources.sim.head import default_rig
 from app.storage.rigfile import load_rig, save_rig
 from calib.camera import Intrinsics
 from calib.errors import RigError
+from calib.radiometry import Radiometry
 from calib.rig import Eye, Rig, Sensor, rig_from_dict, rig_from_yaml, rig_to_dict, rig_to_yaml
 from calib.transforms import invert, make_T
 
@@ -47,7 +49,7 @@ def test_round_trip_keeps_optional_blocks() -> None:
     d["sensors"]["thermal_left"]["radiometry"] = {"gain": 1.02, "offset_k": -0.3}
     d["sensors"]["ccd_left"]["uncertainty"] = {"fx": 0.4, "T_rig_sensor": {"t_m": [1e-4] * 3}}
     rig = rig_from_dict(d)
-    assert rig["tof"].range_correction == block
+    assert rig["tof"].range_correction.to_dict() == block
     assert rig_from_yaml(rig_to_yaml(rig)) == rig
     assert rig != default_rig()
 
@@ -406,6 +408,21 @@ def test_rig_constructor_validates() -> None:
         Rig(sensors=rig.sensors, reference="lidar")
     with pytest.raises(RigError, match=r"eyes\.x\.thermal: sensor 'tof' has modality 'tof'"):
         Rig(sensors=rig.sensors, reference="tof", eyes={"x": Eye("ccd_left", "tof")})
+
+
+def test_with_sensor_replaces_one_sensor_in_a_copy() -> None:
+    rig = default_rig()
+    thermal = rig["thermal_left"]
+    trimmed = dataclasses.replace(thermal, radiometry=Radiometry(manual_offset_k=1.5))
+    new = rig.with_sensor(trimmed)
+    assert new["thermal_left"] is trimmed and rig["thermal_left"] is thermal
+    assert new.names == rig.names and new.reference == rig.reference and new.eyes == rig.eyes
+    assert all(new[n] is rig[n] for n in rig.names if n != "thermal_left")
+    assert rig_from_yaml(rig_to_yaml(new)) == new
+    with pytest.raises(KeyError, match="no sensor 'lidar' in the rig"):
+        rig.with_sensor(dataclasses.replace(thermal, name="lidar"))
+    with pytest.raises(RigError, match=r"eyes\.left\.thermal: sensor 'thermal_left' has modality"):
+        rig.with_sensor(dataclasses.replace(thermal, modality="color"))
 
 
 # -- derived transforms ------------------------------------------------------------------------

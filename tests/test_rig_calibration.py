@@ -12,14 +12,9 @@ from app.sources.sim.head import default_rig
 from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
 from calib import polarity
 from calib.errors import CalibrationError
-from calib.rig_calibration import (
-    CalibrationOptions,
-    SensorSpec,
-    _flag_outliers,
-    _parameter_sigma,
-    _Problem,
-    calibrate_rig,
-)
+from calib.rig_calibration import CalibrationOptions, SensorSpec, _flag_outliers, calibrate_rig
+from calib.rig_problem import CornerProblem
+from calib.rig_uncertainty import parameter_sigma
 from calib.schur_lm import least_squares_schur
 from calib.transforms import make_T, rotation_from_rvec, rvec_from_rotation, transform_points
 
@@ -165,7 +160,7 @@ def test_sensor_with_too_few_views_is_left_out_and_said() -> None:
 
 def _problem(
     views: int = 6, refine_intrinsics: bool = True, seed: int = 0
-) -> tuple[_Problem, np.ndarray, dict]:
+) -> tuple[CornerProblem, np.ndarray, dict]:
     """A joint problem of the default head (every sensor), and a point near its solution."""
     obs = synthetic(views=views, seed=seed)
     sensors = ["tof", "ccd_left", "ccd_right", "thermal_left", "thermal_right"]
@@ -174,7 +169,7 @@ def _problem(
     rows = [(si, vi, s, v) for si, s in enumerate(sensors) for vi, v in enumerate(names)]
     seen = [(si, vi, obs[v][s]) for si, vi, s, v in rows if s in obs[v]]
     n = len(obj)
-    prob = _Problem(
+    prob = CornerProblem(
         sensors,
         names,
         np.concatenate([np.full(n, si) for si, _, _ in seen]),
@@ -234,7 +229,7 @@ def test_covariance_from_sparse_blocks_equals_the_dense_formula() -> None:
     g = len(starts)
     cov_cluster = bread @ (scores.T @ scores) @ bread * g / (g - 1)
     dense = np.sqrt(np.maximum(np.diag(cov_iid), np.diag(cov_cluster)))
-    assert np.allclose(_parameter_sigma(prob, J, r), dense, rtol=1e-7, atol=0)
+    assert np.allclose(parameter_sigma(prob, J, r), dense, rtol=1e-7, atol=0)
 
 
 @pytest.mark.parametrize("loss", ["soft_l1", "linear"])
@@ -261,7 +256,7 @@ def test_schur_solver_reaches_the_exact_trust_region_solution(loss: str) -> None
     assert ours.status in (1, 2, 3, 4) and ref.status in (1, 2, 3, 4)
     assert ours.cost == pytest.approx(ref.cost, rel=1e-9)
     # The parameters agree far below their uncertainty.
-    sigma = _parameter_sigma(prob, ref.jac, ref.fun)
+    sigma = parameter_sigma(prob, ref.jac, ref.fun)
     assert np.max(np.abs(ours.x - ref.x) / sigma) < 1e-5  # measured: 3e-7
 
 
@@ -269,7 +264,7 @@ def test_schur_solver_reaches_the_exact_trust_region_solution(loss: str) -> None
 
 
 def test_outlier_flags_and_inlier_problem_match_a_per_image_loop() -> None:
-    """``_flag_outliers`` (per-image sums) and ``_Problem.subset`` against the plain loops
+    """``_flag_outliers`` (per-image sums) and ``CornerProblem.subset`` against the plain loops
     over images and corners they replaced."""
     prob, _, _ = _problem(views=8)
     rng = np.random.default_rng(7)

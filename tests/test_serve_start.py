@@ -13,11 +13,11 @@ from pathlib import Path
 import pytest
 
 from app.cli import main
-from app.devtools.processes import stop_process
+from app.devtools.console_process import free_port, stop_process
 from app.server.runtime.serve import bind_public_socket
 from app.storage.workdir_lock import WorkdirInUse, lock_workdir
-from tests.browser_support import console_running, free_port, start_console
-from tests.test_viser_bridge import direct_websocket
+from tests.browser_support import console_running, start_console
+from tests.support import direct_websocket
 
 
 def test_a_port_in_use_is_one_line(tmp_path) -> None:

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import pytest
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
@@ -13,7 +11,7 @@ from app.sources.sim.head import default_rig
 from app.sources.sim.scenarios import CALIBRATION_BOARD
 from app.workflows.calib_session import CalibrationSession
 from calib.rig import Rig
-from tests.test_calib_session import wait_searched
+from tests.support import wait_searched, wait_until
 
 
 @pytest.fixture
@@ -66,11 +64,11 @@ def test_calibrate_save_and_use_a_version(api) -> None:
     r = client.post("/api/calibrate")
     assert r.status_code == 202 and r.json()["state"] == "running"
     assert client.post("/api/calibrate").status_code == 409  # one run at a time
-    for _ in range(3000):
-        status = client.get("/api/calibrate").json()
-        if status["state"] != "running":
-            break
-        time.sleep(0.1)
+    status = wait_until(
+        lambda: (s := client.get("/api/calibrate").json())["state"] != "running" and s,
+        "the calibration run to end",
+        timeout_s=600.0,
+    )
     assert status["state"] == "done", status
     assert status["progress"] == 1.0 and len(status["views"]) == len(frames)
     report = client.get("/api/calibrate/result").json()

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import io
-import time
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
@@ -30,11 +30,18 @@ from app.server.runtime.source_control import (
     SourceTap,
 )
 from app.server.runtime.stream import FrameHub
-from app.sources.base import FrameSource
 from app.sources.frames import Frame
 from calib.board import Board
 from calib.rig import Rig
-from tests.test_recording import small_rig, synth_frame, synth_frames, write_recording
+from tests.support import (
+    WAIT_S,
+    ListSource,
+    small_rig,
+    synth_frame,
+    synth_frames,
+    wait_until,
+    write_recording,
+)
 
 
 @pytest.fixture(scope="module")
@@ -79,14 +86,6 @@ def drag(slider, value: float) -> None:
         cb(GuiEvent(client=SimpleNamespace(), client_id=1, target=slider))
 
 
-def wait_for(cond, timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError("timed out")
-        time.sleep(0.02)
-
-
 @pytest.fixture()
 def replay_panel(recording, rig, tmp_path) -> Iterator[tuple[SourcePanel, ReplaySource, Path]]:
     replay = ReplaySource(recording, loop=True, realtime=True)
@@ -109,7 +108,7 @@ def replay_panel(recording, rig, tmp_path) -> Iterator[tuple[SourcePanel, Replay
 def test_panel_shows_the_replay_and_its_rates(replay_panel) -> None:
     panel, _, _ = replay_panel
     assert panel.what.content == "**replay**: replay of short.mcap"
-    wait_for(lambda: panel.control.rates_hz().get("ccd_left", 0) > 20)
+    wait_until(lambda: panel.control.rates_hz().get("ccd_left", 0) > 0, "a rate")
     panel.tick()
     text = panel.rates.content
     assert "| ccd_left |" in text and "| tof |" in text and "Fused:" in text
@@ -119,7 +118,7 @@ def test_panel_shows_the_replay_and_its_rates(replay_panel) -> None:
 
 def test_play_pause_and_the_position_slider(replay_panel) -> None:
     panel, replay, _ = replay_panel
-    wait_for(lambda: replay.position_ns - replay.start_ns > 300_000_000)
+    wait_until(lambda: replay.position_ns - replay.start_ns > 300_000_000)
     click(panel.play)
     assert replay.paused and panel.play.label == "Play"
     panel.tick()
@@ -139,7 +138,7 @@ def test_the_slider_leaves_the_operators_drag_alone(replay_panel, monkeypatch) -
     panel, replay, _ = replay_panel
     seeks: list[float] = []
     monkeypatch.setattr(panel.control, "seek", seeks.append)  # the replay does not move
-    wait_for(lambda: replay.position_ns - replay.start_ns > 100_000_000)
+    wait_until(lambda: replay.position_ns - replay.start_ns > 100_000_000)
     drag(panel.position, 2.9)
     assert seeks == [2.9]
     panel.tick()
@@ -153,7 +152,7 @@ def test_record_and_stop_from_the_panel(replay_panel) -> None:
     panel, _, workdir = replay_panel
     click(panel.record)
     assert panel.record.label == "Stop recording"
-    wait_for(lambda: panel.control.recording_state().frames_written > 30)
+    wait_until(lambda: panel.control.recording_state().frames_written > 30, "31 frames")
     panel.tick()
     assert "Recording" in panel.recording.content and "recordings/" in panel.recording.content
     click(panel.record)
@@ -166,15 +165,8 @@ def test_record_and_stop_from_the_panel(replay_panel) -> None:
 
 
 def test_panel_of_a_live_source_has_no_replay_controls(rig) -> None:
-    class Quiet(FrameSource):
-        def __init__(self) -> None:
-            self.sensors = ["tof"]
-
-        def frames(self):
-            return iter(())
-
     hub = FrameHub()
-    pipeline = FusionPipeline(SourceTap(Quiet()), rig, hub)
+    pipeline = FusionPipeline(SourceTap(ListSource(sensors=["tof"])), rig, hub)
     control = SourceControl(pipeline, hub, "cameras")  # no work directory
     server = _server()
     try:
@@ -197,30 +189,38 @@ def test_human_bytes() -> None:
 # -- the recorder ---------------------------------------------------------------------------
 
 
-def test_slow_disk_drops_frames_and_never_blocks(rig, tmp_path, monkeypatch) -> None:
+def test_a_stuck_disk_drops_frames_and_never_blocks(rig, tmp_path, monkeypatch) -> None:
+    """The pipeline's offers return while the writer is stuck on the disk: the queue fills
+    to ``max_queue`` and every further frame is dropped and counted, none waited for."""
     real_write = RecordingWriter.write
+    writing, disk_free = threading.Event(), threading.Event()
+    released_in_time: list[bool] = []
 
-    def slow_write(self, frame):
-        time.sleep(0.02)  # a disk that takes 20 ms a frame
+    def stuck_write(self, frame):
+        writing.set()
+        if not released_in_time:  # the first frame waits until every offer has returned
+            released_in_time.append(disk_free.wait(WAIT_S))
         return real_write(self, frame)
 
-    monkeypatch.setattr(RecordingWriter, "write", slow_write)
+    monkeypatch.setattr(RecordingWriter, "write", stuck_write)
     recorder = Recorder(tmp_path / "rec", max_queue=4)
     recorder.start(rig)
     rng = np.random.default_rng(1)
     frames = [synth_frame(rig, "tof", 1_000_000_000 + k * 10_000_000, rng) for k in range(100)]
-    t0 = time.perf_counter()
-    for f in frames:
+    recorder.offer(frames[0])
+    wait_until(writing.is_set, "the writer to take the first frame")
+    for f in frames[1:]:  # an offer that waited for the disk would never return here
         recorder.offer(f)
-    offered_s = time.perf_counter() - t0
-    assert offered_s < 0.05  # 100 frames handed over without waiting for the 2 s of writing
+    during = recorder.state()
+    disk_free.set()
     state = recorder.stop()
-    assert state.frames_dropped > 50
-    assert state.frames_written + state.frames_dropped == len(frames)  # the queue was written
+    assert released_in_time == [True]  # the offers returned before the disk moved
+    assert during.frames_dropped == state.frames_dropped == len(frames) - 1 - 4
+    assert state.frames_written == 1 + 4  # the frame on the disk, then the queue
     (path,) = state.files
     with ReplaySource(path, realtime=False) as src:
         got = [f.stamp_ns for f in src.frames()]
-    assert len(got) == state.frames_written and got == sorted(got)
+    assert got == [f.stamp_ns for f in frames[:5]]
 
 
 def test_time_going_back_starts_a_new_file(rig, tmp_path) -> None:

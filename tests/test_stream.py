@@ -21,7 +21,7 @@ from app.sources.base import FrameSource
 from app.sources.frames import Frame
 from fusion.compose import DisplaySettings
 from fusion.palettes import palette
-from tests.test_recording import small_rig, synth_frame
+from tests.support import FakeClock, small_rig, synth_frame
 
 RIG = small_rig()
 
@@ -68,38 +68,25 @@ def test_mjpeg_fallback_streams_jpeg_parts() -> None:
 # -- the stream's rates ----------------------------------------------------------------------
 
 
-class FakeClock:
-    """Monotonic seconds set by the test; wall clock = 1e9 s + monotonic, in ns."""
-
-    def __init__(self, t: float = 100.0) -> None:
-        self.t = t
-
-    def __call__(self) -> float:
-        return self.t
-
-    def wall_ns(self) -> int:
-        return round((1e9 + self.t) * 1e9)
-
-
 def test_stream_rates_over_a_sliding_window_taken_at_whole_seconds() -> None:
-    clock = FakeClock()
+    clock = FakeClock(100.0)
     rates = StreamRates(window_s=3.0, clock=clock, wall_ns=clock.wall_ns)
     assert rates.snapshot().stream_fps == 0.0  # nothing yet
     for k in range(135):  # 30 frames/s for 4.5 s, every 10th a new picture
-        clock.t = 100.0 + k / 30
+        clock.now = 100.0 + k / 30
         rates.tick(new=k % 10 == 0)
-    clock.t = 104.6
+    clock.now = 104.6
     snap = rates.snapshot()
     # the window (101, 104]: frames k = 31..120, new pictures k = 40, 50, ..., 120
     assert snap.stream_fps == pytest.approx(90 / 3) and snap.new_fps == pytest.approx(9 / 3)
     assert snap.repeat_fps == pytest.approx(27.0)
     assert snap.at_ns == round((1e9 + 104.0) * 1e9)  # the window's end, wall clock
     rates.tick(new=True)  # a frame in the same second: the figures stay those of 104 s
-    clock.t = 104.99
+    clock.now = 104.99
     assert rates.snapshot() == snap
-    clock.t = 105.0  # the next second
+    clock.now = 105.0  # the next second
     assert rates.snapshot().at_ns == snap.at_ns + 1_000_000_000
-    clock.t = 108.2  # stalled since 104.6: the window (105, 108] is empty
+    clock.now = 108.2  # stalled since 104.6: the window (105, 108] is empty
     assert rates.snapshot().stream_fps == 0.0 and rates.snapshot().new_fps == 0.0
 
 
@@ -107,7 +94,7 @@ def test_stream_rates_right_after_the_first_frame_use_the_time_since() -> None:
     clock = FakeClock(50.0)
     rates = StreamRates(window_s=3.0, clock=clock, wall_ns=clock.wall_ns)
     for k in range(16):  # 10 frames/s from 50.0 s to 51.5 s, all new
-        clock.t = 50.0 + k / 10
+        clock.now = 50.0 + k / 10
         rates.tick(new=True)
     snap = rates.snapshot()  # at 51 s: 11 frames over the 1 s since the first, not over 3 s
     assert snap.stream_fps == pytest.approx(11.0) and snap.new_fps == pytest.approx(11.0)
@@ -121,16 +108,16 @@ def test_stream_rates_refuse_a_bad_window() -> None:
 
 def test_each_frame_carries_the_rates_readers_see() -> None:
     """The viewer's figures (a frame's metadata) are the ones the panel and status read."""
-    clock = FakeClock()
+    clock = FakeClock(100.0)
     hub = FrameHub()
     hub.rates = StreamRates(clock=clock, wall_ns=clock.wall_ns)
     app = FastAPI()
     app.include_router(make_stream_router(hub))
     with TestClient(app) as client, client.websocket_connect("/stream") as ws:
         for k in range(60):  # 20 frames/s for 3 s, one new picture a second
-            clock.t = 100.0 + k / 20
+            clock.now = 100.0 + k / 20
             hub.publish(_jpeg(k), {"k": k}, new=k % 20 == 0)
-        clock.t = 103.2
+        clock.now = 103.2
         hub.publish(_jpeg(60), {"k": 60}, new=False)
         meta = json.loads(ws.receive_text())
         while meta["k"] != 60:  # the newest frame once acknowledged
@@ -233,7 +220,7 @@ def test_repeated_pictures_are_counted_apart_from_new_ones() -> None:
     pipeline, hub = _run(_Sets(12, same=True), settings, hub)
     st = pipeline.status
     assert st.frames_out >= 10 and st.pictures_out == 1
-    clock.t = 101.0
+    clock.now = 101.0
     snap = hub.rates.snapshot()  # everything published in the 0.5 s since the first frame
     assert snap.stream_fps == pytest.approx(st.frames_out / 0.5)
     assert snap.new_fps == pytest.approx(1 / 0.5)

@@ -18,7 +18,6 @@ from app.recording.writer import RecordingWriter
 from app.server.runtime.pipeline import FusionPipeline
 from app.server.runtime.stream import FrameHub
 from app.server.runtime.thermal_balance import ThermalBalancer
-from app.sources.base import FrameSource
 from app.sources.frames import Frame, FrameSet
 from app.sources.sim.scenarios import InspectionScenario
 from calib.radiometry import Radiometry
@@ -26,17 +25,10 @@ from calib.transforms import make_T, rotation_from_euler_deg
 from fusion.balance import balance_terms, measure_balance
 from fusion.compose import DisplaySettings
 from fusion.stereo import StereoFusion
+from tests.support import ListSource
 
 # The simulator's imagers read +0.75 K (left) and -0.75 K (right) off; NETD 0.08 K.
 SIM_DIFFERENCE_K = 1.5
-
-
-class _NoFrames(FrameSource):
-    def __init__(self) -> None:
-        self.sensors: list[str] = []
-
-    def frames(self):
-        return iter(())
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +39,7 @@ def inspection():
 
 
 def _pipeline_at(rig, fs: FrameSet) -> FusionPipeline:
-    p = FusionPipeline(_NoFrames(), rig, FrameHub())
+    p = FusionPipeline(ListSource(), rig, FrameHub())
     p.fusion.update_depth(fs.frames["tof"].distance_m, fs.frames["tof"].image)
     p.latest_set = fs
     return p

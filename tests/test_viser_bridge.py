@@ -8,12 +8,11 @@ import urllib.request
 
 import pytest
 import viser
-import websockets.exceptions
-import websockets.sync.client
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
 from app.server.routers.viser_bridge import RELAY_HEADER, make_viser_router, start_guarded_viser
+from tests.support import direct_websocket
 
 PROTOCOL = f"viser-v{viser.__version__}"
 
@@ -40,20 +39,6 @@ def test_console_page_and_websocket_relay(guarded) -> None:
         assert ws.accepted_subprotocol == PROTOCOL
         first = ws.receive_bytes()  # the server's opening messages (msgpack)
         assert len(first) > 0
-
-
-def direct_websocket(port: int, headers: dict[str, str]) -> int | None:
-    """Open Viser's port directly; the HTTP status it refused with, None if accepted."""
-    try:
-        with websockets.sync.client.connect(
-            f"ws://127.0.0.1:{port}/",
-            subprotocols=[PROTOCOL],
-            additional_headers=headers,
-            open_timeout=10,
-        ):
-            return None
-    except websockets.exceptions.InvalidStatus as e:
-        return e.response.status_code
 
 
 def test_viser_port_refuses_everyone_but_the_relay(guarded) -> None:

@@ -38,6 +38,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from app.devtools.benchmark import benchmark
 from calib.board import Board
 from calib.detect import Detection, detect_board
 from calib.detect_baseline import detect_board_baseline
@@ -240,14 +241,14 @@ def ratio_pairs() -> tuple[tuple[str, str], ...]:
     return (*pairs, ("real_found_ours", "real_found_baseline"))
 
 
-DESCRIPTION = (
+@benchmark(
+    "thermal-detect",
     "board detection under real-world thermal conditions (issue 15): calib.detect vs the "
     "plain OpenCV pipeline per condition, found / truth error / time, plus the real colour "
-    "images; --repeat N renders N seeds per condition (16 images each)"
+    "images; --repeat N renders N seeds per condition (16 images each)",
+    baselines=ratio_pairs(),
+    default_repeat=1,
 )
-"""The ``thermal-detect`` benchmark (registered by app.devtools.bench) in a sentence."""
-
-
 def thermal_detect(repeat: int) -> dict[str, float]:
     """``repeat`` seeds (0 .. repeat - 1) of :data:`POSES_PER_SEED` poses per condition,
     both thermal imagers (colour cameras for :data:`COLOUR_CONDITIONS`); each detector runs

@@ -4,7 +4,7 @@
 
 Renders the inspection scenario with :class:`~app.sources.simulated.SimulatedHeadSource`
 paced in real time (``--rate`` simulated seconds per second), encodes every frame
-(:func:`~app.sources.push.encode_frame`: colour JPEG, thermal and TOF 16-bit PNG) and
+(:func:`~app.sources.push.encode.encode_frame`: colour JPEG, thermal and TOF 16-bit PNG) and
 sends it; when the connection drops it reconnects every ``--retry`` seconds, the head
 keeps moving meanwhile and only the newest frames are sent afterwards. Prints the first
 frame of each sensor, then one line per second of what was sent; error replies of the
@@ -24,7 +24,7 @@ from collections.abc import Sequence
 from websockets.exceptions import InvalidStatus, InvalidURI, WebSocketException
 
 from app.server.routers.auth import TOKEN_ENV
-from app.sources.push import PushClient
+from app.sources.push.clients import PushClient
 from app.sources.simulated import SimulatedHeadSource
 
 

@@ -58,13 +58,6 @@ class FuseResult:
     damage: RecordingDamaged | None = None
 
 
-def _tof_sensor(rig: Rig) -> str:
-    tofs = rig.by_modality("tof")
-    if len(tofs) != 1:
-        raise ValueError(f"the rig must have exactly one sensor of modality 'tof', got {tofs}")
-    return tofs[0]
-
-
 def expected_sets(source: MessageReplay, rig: Rig) -> tuple[int | None, float | None]:
     """(number of reference colour frames, their rate in Hz) from the file's statistics."""
     ref = rig.eyes[EYE_ORDER[0]].color
@@ -92,8 +85,8 @@ def fuse_recording(
     out_dir = Path(out_dir)
     fusion = StereoFusion(rig)
     eyes = {e: rig.eyes[e] for e in EYE_ORDER}
-    tof = _tof_sensor(rig)
-    radiometry = {e.thermal: Radiometry.of(rig[e.thermal]) or Radiometry() for e in eyes.values()}
+    tof = fusion.tof
+    radiometry = {e.thermal: rig[e.thermal].radiometry or Radiometry() for e in eyes.values()}
     kelvin = {n: np.empty(rig[e.thermal].image_size[::-1], np.float32) for n, e in eyes.items()}
     ref = eyes[EYE_ORDER[0]].color
     sensors = [ref] + [s for e in eyes.values() for s in (e.color, e.thermal) if s != ref] + [tof]

@@ -48,6 +48,7 @@ from mcap.records import (
 )
 from mcap.stream_reader import breakup_chunk
 
+from app.errors import describe_error
 from app.recording.errors import RecordingError
 from app.recording.layout import METADATA_NAME as SEALED_BY
 
@@ -439,7 +440,7 @@ class McapIndex:
         except Exception as exc:
             raise McapDamage(
                 f"chunk of messages at {ref.start_ns / 1e9:.3f}-{ref.end_ns / 1e9:.3f} s "
-                f"(log time) is corrupted ({type(exc).__name__}: {exc})",
+                f"(log time) is corrupted ({describe_error(exc)})",
                 ref.offset,
                 ref.start_ns,
             ) from None

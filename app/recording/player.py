@@ -84,6 +84,9 @@ class MessageReplay(FrameSource):
             stream. Either way :attr:`damage` holds the exception.
         pair_tolerance_s: TOF distance and amplitude messages whose stamps differ by at
             most this much form one frame.
+        clock, sleep: the wall clock that paces ``realtime`` (seconds) and how to wait on
+            it; None: ``time.monotonic`` and a wait that pause, seek and rate changes cut
+            short (tests pass a simulated clock).
 
     Attributes:
         sensors: the sensors of the source (the rig's or the topic map's), including any
@@ -102,11 +105,15 @@ class MessageReplay(FrameSource):
         realtime: bool = True,
         on_damage: str = "raise",
         pair_tolerance_s: float = 0.001,
+        clock: Callable[[], float] | None = None,
+        sleep: Callable[[float], object] | None = None,
     ) -> None:
         if on_damage not in ("raise", "stop"):
             raise RecordingError(f"on_damage: expected 'raise' or 'stop', got {on_damage!r}")
         self.path = Path(path)
         self._cond = threading.Condition()
+        self._clock = clock or time.monotonic
+        self._sleep = sleep or self._cond.wait  # called holding the lock
         self._rate = self._check_rate(rate)
         self.loop = bool(loop)
         self.realtime = bool(realtime)
@@ -123,8 +130,18 @@ class MessageReplay(FrameSource):
         start = self.index.start_ns
         self._position = 0 if start is None else start
         self.sensors: list[str] = []
+        try:
+            self._opened()
+        except BaseException:
+            self.index.close()
+            raise
 
     # -- subclass hooks -------------------------------------------------------------------
+
+    def _opened(self) -> None:
+        """The end of ``__init__``, the file open (:attr:`index`): a subclass reads what it
+        needs of it here (rig, sensors); if this raises, the file is closed."""
+        return None
 
     @abstractmethod
     def _route(self, channel: Channel) -> Route | None:
@@ -245,7 +262,7 @@ class MessageReplay(FrameSource):
                 cursor = self.index.messages(target)
                 with self._cond:
                     self._position = target
-                    self._anchor = (target, time.monotonic())
+                    self._anchor = (target, self._clock())
                 pass_delivered = 1  # a seek counts as progress for the loop guard
             ready: list[tuple[Frame, int]] = []
             try:
@@ -367,13 +384,13 @@ class MessageReplay(FrameSource):
                     self._cond.wait()
                     continue
                 if self.realtime:
-                    now = time.monotonic()
+                    now = self._clock()
                     if self._anchor is None:
                         self._anchor = (due_ns, now)
                     anchor_ns, anchor_s = self._anchor
                     due_s = anchor_s + (due_ns - anchor_ns) / 1e9 / self._rate
                     if now < due_s:
-                        self._cond.wait(due_s - now)
+                        self._sleep(due_s - now)
                         continue
                     if now - due_s > MAX_LAG_S:
                         self._anchor = (due_ns, now)

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterable, Mapping
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -40,6 +39,7 @@ from calib.camera import Intrinsics
 from calib.errors import RigError
 from calib.rig import Eye, Rig, Sensor, rig_from_yaml
 from calib.transforms import invert, make_T
+from calib.units import kelvin_from_counts, metres_from_counts
 
 RIG_PROBE_S = 2.0
 """Without a rig attachment, calibration and transforms are looked for in this much of the
@@ -62,7 +62,7 @@ def thermal_kelvin(msg: Any) -> np.ndarray:
     """foxglove.RawImage thermal -> (H, W) float32 kelvin, NaN = no reading."""
     plane = decode_raw(msg)
     if msg.encoding in ("16UC1", "mono16"):
-        return values(plane, 0.01, invalid=(0,))
+        return kelvin_from_counts(plane)
     if msg.encoding == "32FC1":
         return values(plane)
     raise ValueError(f"thermal image: expected encoding 16UC1 or 32FC1, got {msg.encoding!r}")
@@ -72,7 +72,7 @@ def distance_metres(msg: Any) -> np.ndarray:
     """foxglove.RawImage TOF distance -> (H, W) float32 metres, NaN = invalid."""
     plane = decode_raw(msg)
     if msg.encoding in ("16UC1", "mono16"):
-        return values(plane, 0.001, invalid=(0,))
+        return metres_from_counts(plane)
     if msg.encoding == "32FC1":
         out = values(plane)
         out[~(out > 0)] = np.nan
@@ -116,7 +116,8 @@ class ReplaySource(MessageReplay):
 
     Args:
         path: the ``.mcap`` recording.
-        rate, loop, realtime, on_damage: see :class:`~app.recording.player.MessageReplay`.
+        rate, loop, realtime, on_damage, pair_tolerance_s, clock, sleep: keyword
+            arguments, see :class:`~app.recording.player.MessageReplay`.
 
     Attributes:
         rig: from the ``rig.yaml`` attachment, else rebuilt from the calibration and
@@ -130,42 +131,30 @@ class ReplaySource(MessageReplay):
     reported when the replay reaches it).
     """
 
-    def __init__(
-        self,
-        path: str | Path,
-        rate: float = 1.0,
-        loop: bool = False,
-        realtime: bool = True,
-        *,
-        on_damage: str = "raise",
-    ) -> None:
-        super().__init__(path, rate=rate, loop=loop, realtime=realtime, on_damage=on_damage)
-        try:
-            self._decoders = DecoderFactory()
-            self.metadata = dict(self.index.metadata.get(METADATA_NAME, {}))
-            self._calibrations: dict[str, Any] = {}
-            self._transforms: dict[str, tuple[str, np.ndarray]] = {}
-            self.rig_source: str | None = None
-            self.rig = self._rig_from_attachment()
-            if self.rig is None:
-                self.rig = self._rig_from_messages()
-            recorded = self.recorded_sensors
-            names = list(self.rig.names) if self.rig is not None else []
-            self.sensors = names + [s for s in recorded if s not in names]
-            for sensor in self.sensors:
-                parts = {
-                    kind
-                    for s, kind in self._frame_channels().values()
-                    if s == sensor and kind.startswith("tof_")
-                }
-                if parts:
-                    self._tof_parts[sensor] = parts
-            missing = [s for s in names if s not in recorded]
-            if missing and self.index.indexed_by == "summary":
-                self.notes.append(f"no frames of {missing} in the recording")
-        except BaseException:
-            self.index.close()
-            raise
+    def _opened(self) -> None:
+        """Reads the rig and the sensors (see the class docstring)."""
+        self._decoders = DecoderFactory()
+        self.metadata = dict(self.index.metadata.get(METADATA_NAME, {}))
+        self._calibrations: dict[str, Any] = {}
+        self._transforms: dict[str, tuple[str, np.ndarray]] = {}
+        self.rig_source: str | None = None
+        self.rig = self._rig_from_attachment()
+        if self.rig is None:
+            self.rig = self._rig_from_messages()
+        recorded = self.recorded_sensors
+        names = list(self.rig.names) if self.rig is not None else []
+        self.sensors = names + [s for s in recorded if s not in names]
+        for sensor in self.sensors:
+            parts = {
+                kind
+                for s, kind in self._frame_channels().values()
+                if s == sensor and kind.startswith("tof_")
+            }
+            if parts:
+                self._tof_parts[sensor] = parts
+        missing = [s for s in names if s not in recorded]
+        if missing and self.index.indexed_by == "summary":
+            self.notes.append(f"no frames of {missing} in the recording")
 
     # -- channels -------------------------------------------------------------------------
 

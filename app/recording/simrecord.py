@@ -47,7 +47,7 @@ POSE_HZ = 5.0
 # the sensor's image: a live render (with its clean picture), one frame from it (turn,
 # noise, encoding, writing), an accurate render with its frame, and a sensor's ray grid
 # (its first render: a live one undistorts a colour camera's rays on a coarse grid).
-# Measured with `trifuse record --source sim` and app/devtools/bench.py's `render`.
+# Measured with `trifuse record --source sim` and app/devtools/bench_sim.py's `render`.
 _LIVE_RENDER_S_PER_MPX = {"color": 0.13, "thermal": 0.12, "tof": 0.5}
 _LIVE_FRAME_S_PER_MPX = {"color": 0.022, "thermal": 0.03, "tof": 0.12}
 _EXACT_S_PER_MPX = {"color": 0.6, "thermal": 1.2, "tof": 0.8}

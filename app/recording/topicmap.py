@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from app.recording.errors import TopicMapError
+from app.storage.text import read_text
 from calib.numbers import check_finite
 from calib.yaml_text import YamlError, parse_yaml
 
@@ -164,12 +165,4 @@ def topic_map_from_yaml(text: str, where: str = "topic map") -> TopicMap:
 def load_topic_map(path: str | Path) -> TopicMap:
     """Read a topic-map file; TopicMapError names the file and the field."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise TopicMapError(f"{path}: cannot read topic map: {exc.strerror}") from None
-    except UnicodeDecodeError as exc:
-        raise TopicMapError(
-            f"{path}: topic map is not UTF-8 text: {exc.reason} at byte {exc.start}"
-        ) from None
-    return topic_map_from_yaml(text, str(path))
+    return topic_map_from_yaml(read_text(path, "topic map", TopicMapError), str(path))

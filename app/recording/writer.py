@@ -61,8 +61,8 @@ from app.recording.mcapindex import McapIndex
 from app.recording.sealed_file import SealedMcapFile
 from app.sources.frames import Frame, FrameSet
 from app.storage.atomic import fsync_dir, make_dirs, umask
-from app.storage.capture import encode_amplitude, encode_distance, encode_thermal
 from calib.rig import Rig, Sensor, rig_to_yaml
+from calib.units import encode_amplitude, encode_distance, encode_thermal
 
 THERMAL_ENCODINGS = ("16UC1", "32FC1")
 COMPRESSIONS = {"zstd": MCAPCompression.Zstd, "lz4": MCAPCompression.Lz4, "none": None}

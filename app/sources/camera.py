@@ -48,8 +48,10 @@ import numpy as np
 from app.sources.base import FrameSource
 from app.sources.frames import Frame
 from app.sources.slots import NewestFrameSlots
+from app.storage.text import read_text
 from calib.numbers import finite_float
 from calib.rig import Rig, modality_of_name
+from calib.units import KELVIN_PER_COUNT
 from calib.yaml_text import YamlError, parse_yaml
 
 CAMERA_CONFIG_FORMAT = "trifuse-cameras/1"
@@ -118,7 +120,7 @@ class CameraConfig:
     height: int | None = None
     fps: float | None = None
     fourcc: str | None = None
-    scale: float = 0.01
+    scale: float = KELVIN_PER_COUNT
     offset: float = 0.0
     max_rate_hz: float | None = None
     loop: bool = False
@@ -275,14 +277,7 @@ def cameras_config_from_dict(
 def load_cameras_config(path: str | Path) -> CamerasConfig:
     """Read a ``trifuse-cameras/1`` YAML file; CameraError messages start with its path."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise CameraError(f"{path}: cannot read camera config: {exc.strerror}") from None
-    except UnicodeDecodeError as exc:
-        raise CameraError(
-            f"{path}: camera config is not UTF-8 text: {exc.reason} at byte {exc.start}"
-        ) from None
+    text = read_text(path, "camera config", CameraError)
     try:
         data = parse_yaml(text)
     except YamlError as exc:

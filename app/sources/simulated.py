@@ -51,46 +51,28 @@ The cached images are shared by every frame that shows the pose and are read-onl
 array objects mean equal pictures (the console's fusion pipeline fuses a pose once).
 
 Render process: for the default scenario (or with ``render_process=True``) the poses are
-rendered in a separate process (``multiprocessing``, ``spawn``), not in a thread of this
-one: rendering is numpy work that holds the GIL much of the time, and a render thread
-delayed every other thread of a console (a 2 ms sleep overshot by 2 ms median, 6 ms p90)
-and took a core from it while the cache filled. The process renders at lower priority
-(:data:`RENDER_NICE`), so the stream and the viewer come first and rendering takes what
-CPU is left. The first pose, which the stream waits for, is still rendered in this process
-(two threads: no waiting for a new interpreter); the process starts at the same time
-when some pose is not on disk (about 1 s of start-up, then its ray grids, at low priority)
-and ends with the source. Like any ``spawn`` child it imports the parent's ``__main__``:
-a script that makes a source must guard its top level with ``if __name__ == "__main__":``.
+rendered in a separate, lower-priority process
+(:class:`~app.sources.sim.render_process.RenderProcess`, whose module says why). The first
+pose, which the stream waits for, is still rendered in this process (two threads: no
+waiting for a new interpreter); the process starts at the same time when some pose is not
+on disk (about 1 s of start-up, then its ray grids, at low priority) and ends with the
+source. Like any ``spawn`` child it imports the parent's ``__main__``: a script that makes
+a source must guard its top level with ``if __name__ == "__main__":``.
 
-Disk cache: rendered poses are also kept on disk, one ``.npz`` file per pose (about 8.4
-MB uncompressed for the default head), so a restarted console has every pose at once
-(loading one takes a few ms). The directory is :func:`default_cache_dir`
-(``$XDG_CACHE_HOME/trifuse/sim``, ``~/.cache/trifuse/sim``, or ``$TRIFUSE_SIM_CACHE``;
-``TRIFUSE_SIM_CACHE=off`` keeps none), one folder per scenario, named by a hash of the
-scenario (the default one by its seed and quality, another by its ``cache_key()``;
-scenarios without one are not cached on disk), the delivered sensors, the simulator's
-source code and the numpy and OpenCV versions; each file is named by its pose's scenario
-time. Files are written to a temporary name and renamed, so concurrent consoles share the
-folder safely; a file that cannot be read or holds the wrong shapes is deleted and the
-pose rendered again. Only the :data:`CACHE_KEEP` most recently used folders are kept.
+Disk cache: rendered poses are also kept on disk, one ``.npz`` file per pose, so a
+restarted console has every pose at once (:mod:`app.sources.sim.pose_cache`: where, how
+the files are named and shared; ``TRIFUSE_SIM_CACHE=off`` keeps none).
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
-import multiprocessing
 import os
-import shutil
 import threading
 import time
-import uuid
-import zipfile
 from collections import OrderedDict
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -100,32 +82,22 @@ import numpy as np
 from app.sources.base import FrameSource
 from app.sources.frames import Frame, FrameSet
 from app.sources.sim.live import RotationWarp
+from app.sources.sim.pose_cache import (
+    cache_folder,
+    load_pose,
+    pose_file,
+    sample_poses,
+    save_pose,
+    scenario_key,
+)
 from app.sources.sim.render import SensorTruth
+from app.sources.sim.render_process import RenderProcess, render_frames
 from calib.rig import Rig
 
 DEFAULT_RATES_HZ: dict[str, float] = {"color": 30.0, "thermal": 27.0, "tof": 15.0}
 """Frame rate per modality when ``rates_hz`` does not name a sensor."""
 
-_RENDER_COST = {"color": 1.0, "thermal": 0.2, "tof": 0.03}  # relative, to split the work
 _STAMP_MEMORY = 8192  # stamps whose pose is remembered for truth_at()
-
-RENDER_NICE = 10
-"""Niceness the render process takes once the stream is running (the first pose is
-rendered at normal priority: nothing can be shown before it)."""
-CACHE_ENV = "TRIFUSE_SIM_CACHE"
-"""Environment variable: the disk cache's directory, or ``off`` to keep no disk cache."""
-CACHE_KEEP = 4
-"""Scenario directories kept in the disk cache; older ones (least recently used) go."""
-_CACHE_FORMAT = 1
-# What the pictures depend on besides the scenario's parameters: the simulator's code.
-_SIM_CODE = (
-    "app/sources/sim/*.py",
-    "app/sources/frames.py",
-    "calib/board.py",
-    "calib/camera.py",
-    "calib/rig.py",
-    "calib/transforms.py",
-)
 
 
 class Scenario(Protocol):
@@ -172,268 +144,6 @@ class _Pose:
     truth: dict[str, SensorTruth] | None
 
 
-# -- the disk cache -------------------------------------------------------------------------
-
-
-def default_cache_dir() -> Path | None:
-    """Where rendered poses are kept across runs: ``$TRIFUSE_SIM_CACHE`` if set (None if
-    it is ``off``), else ``$XDG_CACHE_HOME/trifuse/sim`` or ``~/.cache/trifuse/sim``."""
-    env = os.environ.get(CACHE_ENV)
-    if env:
-        return None if env.lower() in ("off", "0", "no", "false") else Path(env)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "trifuse" / "sim"
-
-
-@lru_cache(maxsize=1)
-def _code_fingerprint() -> str:
-    """Hash of the simulator's source files and the numeric libraries' versions."""
-    root = Path(__file__).resolve().parents[2]
-    h = hashlib.sha256(f"{np.__version__} {cv2.__version__} {_CACHE_FORMAT}".encode())
-    for pattern in _SIM_CODE:
-        for path in sorted(root.glob(pattern)):
-            h.update(path.relative_to(root).as_posix().encode())
-            h.update(path.read_bytes())
-    return h.hexdigest()
-
-
-def _scenario_key(scenario: Any, default_seed: int | None) -> str | None:
-    """What identifies a scenario's pictures: the default scenario by its seed and quality,
-    another by its ``cache_key()``; None if it has none (no disk cache then)."""
-    if default_seed is not None:
-        return f"InspectionScenario(seed={default_seed}, live={getattr(scenario, 'live', False)})"
-    key_fn = getattr(scenario, "cache_key", None)
-    if key_fn is None:
-        return None
-    return f"{type(scenario).__module__}.{type(scenario).__qualname__}:{key_fn()!r}"
-
-
-def _prune_cache(base: Path, keep: Path) -> None:
-    """Remove all but the :data:`CACHE_KEEP` most recently used scenario directories (never
-    ``keep``) and temporary files older than an hour in ``keep``; best effort."""
-    try:
-        dirs = [d for d in base.iterdir() if d.is_dir() and d != keep]
-        dirs.sort(key=lambda d: d.stat().st_mtime, reverse=True)
-        for d in dirs[CACHE_KEEP - 1 :]:
-            shutil.rmtree(d, ignore_errors=True)
-        for tmp in keep.glob(".*.tmp"):
-            if time.time() - tmp.stat().st_mtime > 3600:
-                tmp.unlink(missing_ok=True)
-    except OSError:
-        pass
-
-
-def _save_pose(path: Path, frames: Mapping[str, Frame]) -> None:
-    """Write a pose's images to ``path`` (.npz, uncompressed) atomically: a temporary file
-    in the same directory, then a rename, so a reader never sees a partial file and
-    concurrent writers of the same pose simply replace each other's equal files."""
-    arrays: dict[str, np.ndarray] = {}
-    for name, f in frames.items():
-        arrays[f"{name}.image"] = f.image
-        if f.distance_m is not None:
-            arrays[f"{name}.distance"] = f.distance_m
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:12]}.tmp")
-    try:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
-def _check_image(rig: Rig, sensor: str, a: np.ndarray, distance: bool = False) -> bool:
-    w, h = rig[sensor].image_size
-    if rig[sensor].modality == "color" and not distance:
-        return a.dtype == np.uint8 and a.shape == (h, w, 3)
-    return a.dtype == np.float32 and a.shape == (h, w)
-
-
-def _load_pose(path: Path, rig: Rig, sensors: Sequence[str]) -> dict[str, Frame] | None:
-    """The frames of a cached pose, or None if the file is missing, unreadable or not what
-    ``rig``'s ``sensors`` deliver (a damaged file is removed, to be rendered again)."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            frames = {}
-            for s in sensors:
-                image = z[f"{s}.image"]
-                has_distance = f"{s}.distance" in z.files
-                distance = z[f"{s}.distance"] if has_distance else None
-                ok = _check_image(rig, s, image)
-                if rig[s].modality == "tof":
-                    ok = ok and distance is not None and _check_image(rig, s, distance, True)
-                if not ok:
-                    raise ValueError(f"{path}: {s}: unexpected image shape or type")
-                frames[s] = Frame(s, 0, image, distance)
-            return frames
-    except FileNotFoundError:
-        return None
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
-        try:
-            path.unlink(missing_ok=True)
-        except OSError:
-            pass
-        return None
-
-
-# -- rendering ------------------------------------------------------------------------------
-
-
-def _render_frames(
-    scenario: Any,
-    rig: Rig,
-    sensors: Sequence[str],
-    t_s: float,
-    workers: int,
-    stop: threading.Event | None = None,
-) -> dict[str, tuple[Frame, SensorTruth]]:
-    """Every sensor's frame and truth at scenario time ``t_s``, in ``workers`` threads
-    (the sensors split by cost); fewer entries if ``stop`` was set meanwhile."""
-    groups: list[list[str]] = [[] for _ in range(max(1, min(workers, len(sensors))))]
-    load = [0.0] * len(groups)
-    for s in sorted(sensors, key=lambda s: -_RENDER_COST[rig[s].modality]):
-        g = load.index(min(load))
-        groups[g].append(s)
-        load[g] += _RENDER_COST[rig[s].modality]
-    out: dict[str, tuple[Frame, SensorTruth]] = {}
-
-    def render(names: list[str]) -> None:
-        for name in names:
-            if stop is not None and stop.is_set():
-                return
-            frames, truth = scenario.render(t_s, [name])
-            out[name] = (frames[name], truth[name])
-
-    if len(groups) == 1:
-        render(groups[0])
-        return out
-    errors: list[BaseException] = []
-
-    def work(names: list[str]) -> None:
-        try:
-            render(names)
-        except BaseException as exc:
-            errors.append(exc)
-
-    threads = [threading.Thread(target=work, args=(g,), daemon=True) for g in groups]
-    for th in threads:
-        th.start()
-    for th in threads:
-        th.join()
-    if errors:
-        raise errors[0]
-    return out
-
-
-def _render_worker(
-    conn: Any, scenario: Any, seed: int, live: bool, sensors: list[str], warm_up: bool
-) -> None:
-    """The render process: renders the poses asked for, until the pipe closes.
-
-    A request is ``(pose, t_s, workers, path, low_priority)``. The pose is written to
-    ``path`` (answer ``("saved", pose)``) or, without a path or if writing fails, sent
-    back (``("frames", pose, {sensor: (image, distance)})``); an error is answered
-    ``("error", pose, message)``. With ``warm_up`` the process lowers its priority at once
-    and builds the renderer's ray grids before the first request.
-    """
-    if scenario is None:
-        from app.sources.sim.scenarios import InspectionScenario
-
-        scenario = InspectionScenario(seed=seed, live=live)
-    rig = scenario.rig
-    niced = False
-    if warm_up:
-        niced = True
-        try:
-            os.nice(RENDER_NICE)
-        except OSError:
-            pass
-        prepare = getattr(getattr(scenario, "renderer", None), "prepare", None)
-        if prepare is not None:
-            prepare(sensors)
-    while True:
-        try:
-            request = conn.recv()
-        except (EOFError, OSError):
-            return
-        if request is None:
-            return
-        pose, t_s, workers, path, low_priority = request
-        if low_priority and not niced:
-            niced = True
-            try:
-                os.nice(RENDER_NICE)
-            except OSError:
-                pass
-        try:
-            out = _render_frames(scenario, rig, sensors, t_s, workers)
-            frames = {name: f for name, (f, _) in out.items()}
-            if path is not None:
-                try:
-                    _save_pose(Path(path), frames)
-                    conn.send(("saved", pose))
-                    continue
-                except OSError:
-                    pass
-            conn.send(("frames", pose, {n: (f.image, f.distance_m) for n, f in frames.items()}))
-        except (EOFError, OSError, BrokenPipeError):
-            return
-        except Exception as exc:
-            try:
-                conn.send(("error", pose, f"{type(exc).__name__}: {exc}"))
-            except OSError:
-                return
-
-
-class _RenderProcess:
-    """A render process (``spawn``: a clean interpreter, no forked threads) and its pipe."""
-
-    def __init__(
-        self, scenario: Any, seed: int, live: bool, sensors: list[str], warm_up: bool = False
-    ) -> None:
-        ctx = multiprocessing.get_context("spawn")
-        self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(
-            target=_render_worker,
-            args=(child, scenario, seed, live, sensors, warm_up),
-            name="trifuse-sim-render",
-            daemon=True,
-        )
-        self._proc.start()
-        child.close()
-
-    def render(
-        self,
-        pose: int,
-        t_s: float,
-        workers: int,
-        path: Path | None,
-        low_priority: bool,
-        stop: threading.Event,
-    ) -> tuple | None:
-        """The answer to one request (see :func:`_render_worker`); None once ``stop``."""
-        self._conn.send((pose, t_s, workers, None if path is None else str(path), low_priority))
-        while not stop.is_set():
-            if self._conn.poll(0.1):
-                reply = self._conn.recv()
-                if reply[0] == "error":
-                    raise RuntimeError(f"render process: {reply[2]}")
-                return reply
-            if not self._proc.is_alive():
-                raise RuntimeError(f"render process ended (exit code {self._proc.exitcode})")
-        return None
-
-    def close(self) -> None:
-        try:
-            self._conn.send(None)
-        except OSError:
-            pass
-        self._conn.close()
-        self._proc.join(1.0)
-        if self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join(5.0)
-
-
 class SimulatedHeadSource(FrameSource):
     """A simulated head delivering each sensor at its own rate (see the module docstring).
 
@@ -463,8 +173,9 @@ class SimulatedHeadSource(FrameSource):
             per pose for the default head); otherwise :meth:`truth_at` renders it again.
         seed: seed of the default scenario.
         cache_dir: directory of the disk cache of rendered poses (see "Disk cache" in
-            the module docstring); None: :func:`default_cache_dir` for a scenario that can
-            be cached (the default one, or one with ``cache_key()``) without
+            the module docstring); None: the default directory
+            (:func:`~app.sources.sim.pose_cache.default_cache_dir`) for a scenario that
+            can be cached (the default one, or one with ``cache_key()``) without
             ``keep_truth``; False: no disk cache.
         render_process: render in a separate, lower-priority process instead of a
             thread of this one; None: for the default scenario without ``keep_truth``.
@@ -476,6 +187,9 @@ class SimulatedHeadSource(FrameSource):
             a scenario of your own only the turning applies (its quality is its own), and
             it needs a scenario where only the head turns (``T_world_rig``, no
             ``scene_key``).
+        clock, sleep: the wall clock that paces ``realtime`` (seconds) and how to wait on
+            it; None: ``time.monotonic`` and a wait that :meth:`close` cuts short (tests
+            pass a simulated clock).
 
     Attributes:
         rig: the scenario's ground-truth rig.
@@ -503,6 +217,8 @@ class SimulatedHeadSource(FrameSource):
         cache_dir: str | os.PathLike[str] | bool | None = None,
         render_process: bool | None = None,
         live: bool | None = None,
+        clock: Callable[[], float] | None = None,
+        sleep: Callable[[float], object] | None = None,
     ) -> None:
         default_seed = seed if scenario is None else None
         if live is None:
@@ -551,31 +267,17 @@ class SimulatedHeadSource(FrameSource):
         self.wait_for_render = wait_for_render
         self.keep_truth = keep_truth
         self.live = bool(live)
+        self._clock = clock or time.monotonic
+        self._sleep = sleep or (lambda s: self._stop.wait(s))
 
         # The cache: K samples of scenario time; samples with equal head poses share a pose.
         k = max(1, round(loop_s * render_hz))
         self.loop_s = k / render_hz
-        self._sample_t = [i / render_hz for i in range(k)]
-        self._sample_pose: list[int] = []
-        self._pose_t: list[float] = []  # representative scenario time of each pose
-        self._pose_T: list[np.ndarray | None] = []
-        pose_fn = getattr(scenario, "T_world_rig", None)
-        key_fn = getattr(scenario, "scene_key", None)
-        seen: dict[Any, int] = {}
-        for t in self._sample_t:
-            T = None if pose_fn is None else np.asarray(pose_fn(t), dtype=np.float64)
-            if key_fn is not None:
-                key = key_fn(t)
-            else:
-                key = None if T is None else tuple(np.round(T, 9).ravel().tolist())
-            match = seen.get(key) if key is not None else None
-            if match is None:
-                match = len(self._pose_t)
-                self._pose_t.append(t)
-                self._pose_T.append(T)
-                if key is not None:
-                    seen[key] = match
-            self._sample_pose.append(match)
+        samples = sample_poses(scenario, k, render_hz)
+        self._sample_t = samples.sample_t
+        self._sample_pose = samples.sample_pose
+        self._pose_t = samples.pose_t  # representative scenario time of each pose
+        self._pose_T = samples.pose_T
 
         self._poses: dict[int, _Pose] = {}
         # Live mode: pictures of poses not rendered yet, turned from a rendered one:
@@ -597,38 +299,17 @@ class SimulatedHeadSource(FrameSource):
         self.first_pose_s: float | None = None
 
         # Where poses come from: the disk cache, a render process or a render thread.
-        scenario_key = _scenario_key(scenario, default_seed)
-        base: Path | None = None
-        if cache_dir is None:
-            if scenario_key is not None and not keep_truth:
-                base = default_cache_dir()
-        elif cache_dir is not False:
-            if scenario_key is None:
-                raise ValueError(
-                    "cache_dir: only the default scenario or one with cache_key() can be "
-                    "cached on disk"
-                )
-            base = default_cache_dir() if cache_dir is True else Path(cache_dir)
-        self.cache_dir: Path | None = None
+        self.cache_dir: Path | None = cache_folder(
+            cache_dir, scenario_key(scenario, default_seed), self.sensors, keep_truth
+        )
         """This scenario's directory in the disk cache (None: no disk cache)."""
-        if base is not None:
-            assert scenario_key is not None
-            key = json.dumps([scenario_key, self.sensors, _code_fingerprint()])
-            folder = base / hashlib.sha256(key.encode()).hexdigest()[:24]
-            try:
-                folder.mkdir(parents=True, exist_ok=True)
-                os.utime(folder)
-                _prune_cache(base, folder)
-                self.cache_dir = folder
-            except OSError:
-                self.cache_dir = None
         if render_process is None:
             render_process = default_seed is not None and not keep_truth
         elif render_process and keep_truth:
             raise ValueError("render_process: not with keep_truth (truth stays in-process)")
         self._process_args = (None if default_seed is not None else scenario, seed, self.live)
         self.render_process = bool(render_process)
-        self._process: _RenderProcess | None = None
+        self._process: RenderProcess | None = None
         self._thread = threading.Thread(target=self._run, name="simulated-head-render", daemon=True)
         self._thread.start()
 
@@ -706,7 +387,7 @@ class SimulatedHeadSource(FrameSource):
             if self.render_process and not self._all_on_disk():
                 # Start the render process now, at low priority: its start-up (a new
                 # interpreter, the ray grids) overlaps the first pose.
-                self._process = _RenderProcess(*self._process_args, self.sensors, warm_up=True)
+                self._process = RenderProcess(*self._process_args, self.sensors, warm_up=True)
             # The first pose in this process: no waiting for the render process to start.
             self._obtain(self._sample_pose[0], workers=2, in_process=True)
             self.first_pose_s = time.perf_counter() - t0
@@ -749,7 +430,7 @@ class SimulatedHeadSource(FrameSource):
     def _pose_path(self, pose: int) -> Path | None:
         if self.cache_dir is None:
             return None
-        return self.cache_dir / f"pose-{round(self._pose_t[pose] * 1e6)}us.npz"
+        return pose_file(self.cache_dir, self._pose_t[pose])
 
     def _obtain(self, pose: int, workers: int, in_process: bool = False) -> bool:
         """Put ``pose`` in the cache: from the disk cache if it is there (False), else
@@ -757,39 +438,32 @@ class SimulatedHeadSource(FrameSource):
         ``in_process`` or there is none."""
         path = self._pose_path(pose)
         if path is not None:
-            frames = _load_pose(path, self.rig, self.sensors)
+            frames = load_pose(path, self.rig, self.sensors)
             if frames is not None:
                 self._store(pose, frames, None)
                 return False
         t_s = self._pose_t[pose]
         if in_process or not self.render_process:
-            out = _render_frames(self.scenario, self.rig, self.sensors, t_s, workers, self._stop)
+            out = render_frames(self.scenario, self.rig, self.sensors, t_s, workers, self._stop)
             if self._stop.is_set() or len(out) != len(self.sensors):
                 return True
             frames = {name: f for name, (f, _) in out.items()}
             if path is not None:
                 try:
-                    _save_pose(path, frames)
+                    save_pose(path, frames)
                 except OSError:
                     pass
             truth = {name: tr for name, (_, tr) in out.items()} if self.keep_truth else None
             self._store(pose, frames, truth)
             return True
         if self._process is None:
-            self._process = _RenderProcess(*self._process_args, self.sensors)
+            self._process = RenderProcess(*self._process_args, self.sensors)
         with self._cond:
             low = bool(self._poses)
-        reply = self._process.render(pose, t_s, workers, path, low, self._stop)
-        if reply is None:  # closed
+        rendered = self._process.render(pose, t_s, workers, path, low, self._stop, self.rig)
+        if rendered is None:  # closed
             return True
-        if reply[0] == "saved":
-            assert path is not None
-            frames = _load_pose(path, self.rig, self.sensors)
-            if frames is None:
-                raise RuntimeError(f"render process: {path} is unreadable right after writing")
-        else:
-            frames = {n: Frame(n, 0, image, dist) for n, (image, dist) in reply[2].items()}
-        self._store(pose, frames, None)
+        self._store(pose, rendered, None)
         return True
 
     def _store(
@@ -944,10 +618,10 @@ class SimulatedHeadSource(FrameSource):
         next_idx = dict.fromkeys(self.sensors, 0)
         served = dict.fromkeys(self.sensors, -1)  # when each sensor was last delivered
         n = 0
-        wall0 = time.monotonic()
+        wall0 = self._clock()
         while not self._stop.is_set():
             if self.realtime:
-                now_ns = self.start_ns + round((time.monotonic() - wall0) * self.speed * 1e9)
+                now_ns = self.start_ns + round((self._clock() - wall0) * self.speed * 1e9)
                 due = []
                 for s in self.sensors:
                     i = self._latest_index(s, now_ns)
@@ -955,7 +629,7 @@ class SimulatedHeadSource(FrameSource):
                         due.append((self.stamp_ns(s, i), served[s], order[s], s, i))
                 if not due:
                     nxt = min(self.stamp_ns(s, next_idx[s]) for s in self.sensors)
-                    self._stop.wait(max((nxt - now_ns) / 1e9 / self.speed, 0.0))
+                    self._sleep(max((nxt - now_ns) / 1e9 / self.speed, 0.0))
                     continue
                 # One frame, then look again: a slow consumer never gets a stale frame.
                 stamp, _, _, s, i = min(due)

@@ -17,9 +17,11 @@ In memory the images follow docs/CONVENTIONS.md: colour (H, W, 3) uint8 RGB, the
 (H, W) float32 kelvin, TOF amplitude (H, W) float32 and TOF radial distance (H, W) float32
 metres with NaN where invalid. BGR exists only at the OpenCV encode/decode calls.
 
-Every file is written atomically (temporary file in the same directory, fsync, rename) and a
-view appears complete or not at all (it is assembled in a hidden staging folder that is
-renamed into place). Reading is lazy: :func:`load_capture` checks the directory and the image
+This module holds the format and reads it. :mod:`app.storage.capture_writer` writes it:
+every file atomically (temporary file in the same directory, fsync, rename), and a view
+appears complete or not at all (it is assembled in a hidden staging folder that is renamed
+into place). :mod:`app.storage.ground_truth` reads and writes the ground truth files.
+Reading is lazy: :func:`load_capture` checks the directory and the image
 headers (sizes, bit depths) without decoding pixels; :meth:`CaptureView.frame` decodes one
 image when asked, so 30 views x 5 sensors cost the memory of what the caller keeps.
 """
@@ -28,41 +30,29 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
 import struct
-import tempfile
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import cv2
 import numpy as np
-import yaml
 
 from app.sources.frames import Frame, FrameSet
-from app.storage.atomic import atomic_write_bytes, fsync_dir, make_dirs, umask
-from app.storage.rigfile import load_rig, save_rig
+from app.storage.rigfile import load_rig
+from app.storage.text import read_text
 from calib.board import Board, board_from_dict
-from calib.rig import MODALITY_PREFIXES, Modality, Rig, modality_of_name, rig_to_yaml
-from calib.transforms import rigidity_problem
+from calib.rig import MODALITY_PREFIXES, Modality, Rig, modality_of_name
+from calib.units import kelvin_from_counts, metres_from_counts
 from calib.yaml_text import YamlError, parse_yaml
 
 BOARD_FILE = "board.yaml"
 RIG_FILE = "rig.yaml"
-GROUND_TRUTH_FILE = "ground_truth.yaml"
-GROUND_TRUTH_RIG_FILE = "ground_truth_rig.yaml"
-GROUND_TRUTH_FORMAT = "trifuse-ground-truth/1"
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 DISTANCE_SUFFIX = "_distance"
 """A TOF sensor's distance image is ``<sensor>_distance.png`` beside ``<sensor>.png``."""
-
-THERMAL_COUNTS_PER_K = 100.0
-"""Counts per kelvin of a 16-bit thermal PNG (centi-kelvin)."""
-DISTANCE_COUNTS_PER_M = 1000.0
-"""Counts per metre of a 16-bit distance PNG (millimetres)."""
-UINT16_MAX = 65535
 
 ThermalEncoding = Literal["centikelvin", "counts"]
 
@@ -101,316 +91,13 @@ def modality_from_name(sensor: str) -> Modality:
     return modality
 
 
-def _check_name(name: str, what: str) -> None:
+def check_name(name: str, what: str) -> None:
+    """CaptureError unless ``name`` (of a view or sensor: ``what``) can name a file."""
     if not isinstance(name, str) or not _NAME_RE.fullmatch(name):
         raise CaptureError(
             f"{what} {name!r}: expected a file name of letters, digits, '.', '_' or '-' "
             "not starting with '.', '_' or '-'"
         )
-
-
-# -- low-level file writing -----------------------------------------------------------------
-
-
-def _encode_png(image: np.ndarray, what: str) -> bytes:
-    ok, buf = cv2.imencode(".png", image)
-    if not ok:
-        raise CaptureError(f"{what}: OpenCV could not encode the image as PNG")
-    return buf.tobytes()
-
-
-def _write_same_or_fail(path: Path, text: str, what: str) -> Path:
-    """Write ``text`` unless ``path`` holds it already; refuse to replace other content."""
-    if path.exists():
-        try:
-            existing = path.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise CaptureError(f"{path}: exists and cannot be read: {exc.strerror}") from None
-        if existing == text:
-            return path
-        raise CaptureError(f"{path}: exists with a different {what}; refusing to overwrite it")
-    atomic_write_bytes(path, text.encode("utf-8"))
-    return path
-
-
-# -- encoding one sensor's images -----------------------------------------------------------
-
-
-def _check_image(
-    image: Any, sensor: str, modality: str, size: tuple[int, int] | None, what: str
-) -> np.ndarray:
-    """Check a frame's image array against the in-memory conventions and the rig's size."""
-    if not isinstance(image, np.ndarray):
-        raise CaptureError(f"{what}: expected a numpy array, got {type(image).__name__}")
-    if modality == "color":
-        if image.dtype != np.uint8 or not (
-            image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 3)
-        ):
-            raise CaptureError(
-                f"{what}: expected a colour image (H, W, 3) uint8 RGB or (H, W) "
-                f"uint8 grey, got shape {image.shape} {image.dtype}"
-            )
-    elif image.ndim != 2 or not (
-        np.issubdtype(image.dtype, np.floating) or np.issubdtype(image.dtype, np.integer)
-    ):
-        raise CaptureError(
-            f"{what}: expected a {modality} image (H, W) of numbers, "
-            f"got shape {image.shape} {image.dtype}"
-        )
-    if size is not None and (image.shape[1], image.shape[0]) != size:
-        raise CaptureError(
-            f"{what}: expected {size[0]}x{size[1]} (width x height) as the rig says for "
-            f"sensor {sensor!r}, got {image.shape[1]}x{image.shape[0]}"
-        )
-    return image
-
-
-def _to_uint16(values: np.ndarray, counts_per_unit: float) -> np.ndarray:
-    """``round(values * counts_per_unit)`` clipped to 0..65535 as uint16; NaN -> 0."""
-    v = np.asarray(values, dtype=np.float64) * counts_per_unit
-    v = np.where(np.isfinite(v), v, 0.0)
-    return np.clip(np.rint(v), 0, UINT16_MAX).astype(np.uint16)
-
-
-def encode_thermal(temperature_k: np.ndarray) -> np.ndarray:
-    """Kelvin (H, W) -> uint16 centi-kelvin (H, W): rounded, clipped to 0..655.35 K, NaN -> 0."""
-    return _to_uint16(temperature_k, THERMAL_COUNTS_PER_K)
-
-
-def encode_amplitude(amplitude: np.ndarray) -> np.ndarray:
-    """TOF amplitude (H, W) -> uint16 (H, W): rounded, clipped to 0..65535, NaN -> 0."""
-    return _to_uint16(amplitude, 1.0)
-
-
-def encode_distance(distance_m: np.ndarray) -> np.ndarray:
-    """Radial distance in metres (H, W) -> uint16 millimetres (H, W), 0 = invalid.
-
-    NaN, negative and zero distances become 0; distances beyond 65.535 m, which 16 bits
-    cannot hold, also become 0 (invalid) rather than being clipped to a wrong range.
-    """
-    mm = np.asarray(distance_m, dtype=np.float64) * DISTANCE_COUNTS_PER_M
-    valid = np.isfinite(mm) & (mm > 0) & (mm <= UINT16_MAX + 0.5)
-    out = np.zeros(mm.shape, dtype=np.uint16)
-    out[valid] = np.clip(np.rint(mm[valid]), 0, UINT16_MAX).astype(np.uint16)
-    return out
-
-
-def _encode_frame(
-    frame: Frame, sensor: str, modality: str, size: tuple[int, int] | None, where: str
-) -> dict[str, bytes]:
-    """PNG bytes of one sensor's frame, keyed by file name."""
-    what = f"{where}: sensor {sensor!r}"
-    image = _check_image(frame.image, sensor, modality, size, f"{what} image")
-    files: dict[str, bytes] = {}
-    if modality == "color":
-        bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image
-        files[f"{sensor}.png"] = _encode_png(bgr, what)
-    elif modality == "thermal":
-        if frame.distance_m is not None:
-            raise CaptureError(f"{what}: a thermal frame has no distance image, got one")
-        files[f"{sensor}.png"] = _encode_png(encode_thermal(image), what)
-    else:
-        files[f"{sensor}.png"] = _encode_png(encode_amplitude(image), what)
-        if frame.distance_m is not None:
-            dist = frame.distance_m
-            if not isinstance(dist, np.ndarray) or dist.shape != image.shape:
-                got = dist.shape if isinstance(dist, np.ndarray) else type(dist).__name__
-                raise CaptureError(
-                    f"{what}: expected distance_m of the amplitude's shape {image.shape}, got {got}"
-                )
-            files[f"{sensor}{DISTANCE_SUFFIX}.png"] = _encode_png(encode_distance(dist), what)
-    return files
-
-
-# -- writing --------------------------------------------------------------------------------
-
-
-def write_board(capture_dir: str | Path, board: Board) -> Path:
-    """Write ``board.yaml`` into ``capture_dir`` (created if needed); return its path.
-
-    Writing the same board again is a no-op; a different existing board raises CaptureError.
-    """
-    capture_dir = Path(capture_dir)
-    make_dirs(capture_dir)
-    text = yaml.safe_dump(board.to_dict(), sort_keys=False, default_flow_style=None)
-    return _write_same_or_fail(capture_dir / BOARD_FILE, text, "board")
-
-
-def write_rig(capture_dir: str | Path, rig: Rig) -> Path:
-    """Write the starting rig ``rig.yaml`` into ``capture_dir``; return its path.
-
-    Writing the same rig again is a no-op; a different existing rig raises CaptureError.
-    """
-    capture_dir = Path(capture_dir)
-    make_dirs(capture_dir)
-    return _write_same_or_fail(capture_dir / RIG_FILE, rig_to_yaml(rig), "rig")
-
-
-def write_view(capture_dir: str | Path, view_name: str, frames: FrameSet, rig: Rig) -> Path:
-    """Write one view (a folder of PNG images, one per sensor) and return the folder's path.
-
-    Args:
-        capture_dir: the capture directory (created if needed).
-        view_name: the folder name, e.g. ``"0001"``; an existing folder of that name raises
-            :class:`ViewExistsError` (a capture is never overwritten).
-        frames: the frames to write; every sensor must be in ``rig``. Colour (H, W, 3)
-            uint8 RGB (or (H, W) grey) -> 8-bit PNG; thermal kelvin -> 16-bit PNG in
-            centi-kelvin (rounded, clipped, NaN -> 0); TOF amplitude -> 16-bit ``<tof>.png``
-            (rounded, clipped) and, if ``distance_m`` is set, radial distance -> 16-bit
-            ``<tof>_distance.png`` in millimetres with 0 = invalid.
-        rig: gives each sensor's modality and image size (checked before anything is written).
-
-    The images are encoded first, then written into a hidden staging folder (each file
-    atomically) that is renamed to ``view_name``: a reader never sees half a view.
-    """
-    capture_dir = Path(capture_dir)
-    _check_name(view_name, "view name")
-    target = capture_dir / view_name
-    if target.exists():
-        raise ViewExistsError(
-            f"{target}: view exists already; refusing to overwrite a capture "
-            "(choose another view name)"
-        )
-    if not frames.frames:
-        raise CaptureError(f"view {view_name!r}: expected at least one frame, got none")
-
-    encoded: dict[str, bytes] = {}
-    for sensor, frame in frames.frames.items():
-        _check_name(sensor, "sensor name")
-        if sensor.endswith(DISTANCE_SUFFIX):
-            raise CaptureError(
-                f"sensor {sensor!r}: names ending in {DISTANCE_SUFFIX!r} are "
-                "reserved for TOF distance images"
-            )
-        if sensor not in rig:
-            raise CaptureError(
-                f"view {view_name!r}: sensor {sensor!r} is not in the rig (sensors: {rig.names})"
-            )
-        s = rig[sensor]
-        encoded.update(
-            _encode_frame(frame, sensor, s.modality, s.image_size, f"view {view_name!r}")
-        )
-
-    make_dirs(capture_dir)
-    staging = Path(tempfile.mkdtemp(prefix=f".{view_name}.", suffix=".partial", dir=capture_dir))
-    try:
-        staging.chmod(0o777 & ~umask())
-        for name, data in encoded.items():
-            atomic_write_bytes(staging / name, data)
-        fsync_dir(staging)
-        if target.exists():  # appeared while we were encoding
-            raise ViewExistsError(
-                f"{target}: view exists already; refusing to overwrite a "
-                "capture (choose another view name)"
-            )
-        os.rename(staging, target)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    fsync_dir(capture_dir)
-    return target
-
-
-def write_ground_truth(
-    capture_dir: str | Path,
-    rig: Rig,
-    views: Iterable[tuple[str, np.ndarray]],
-    board: Board,
-) -> tuple[Path, Path]:
-    """Write the simulator's ground truth: ``ground_truth_rig.yaml`` and ``ground_truth.yaml``.
-
-    Args:
-        capture_dir: the capture directory.
-        rig: the rig the views were rendered with (a normal rig file).
-        views: (view name, ``T_rig_board``) pairs; ``T_rig_board`` is the (4, 4) board pose in
-            the rig frame, metres.
-        board: the checkerboard.
-
-    Returns:
-        The paths of ``ground_truth.yaml`` and ``ground_truth_rig.yaml``. Existing files are
-        never replaced (CaptureError).
-    """
-    capture_dir = Path(capture_dir)
-    gt_path = capture_dir / GROUND_TRUTH_FILE
-    rig_path = capture_dir / GROUND_TRUTH_RIG_FILE
-    for p in (gt_path, rig_path):
-        if p.exists():
-            raise CaptureError(f"{p}: exists already; refusing to overwrite ground truth")
-    poses: dict[str, Any] = {}
-    for name, T in views:
-        _check_name(name, "view name")
-        problem = rigidity_problem(T)
-        if problem is not None:
-            raise CaptureError(f"view {name!r}: T_rig_board is not a rigid transform: {problem}")
-        if name in poses:
-            raise CaptureError(f"view {name!r}: listed twice in the ground truth")
-        poses[name] = {"T_rig_board": np.asarray(T, dtype=np.float64).tolist()}
-    data = {
-        "format": GROUND_TRUTH_FORMAT,
-        "rig": GROUND_TRUTH_RIG_FILE,
-        "board": board.to_dict(),
-        "views": poses,
-    }
-    save_rig(rig_path, rig, overwrite=True)
-    text = yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=100)
-    atomic_write_bytes(gt_path, text.encode("utf-8"))
-    return gt_path, rig_path
-
-
-@dataclass
-class GroundTruth:
-    """What the simulator rendered: the rig, the board and each view's board pose.
-
-    Attributes:
-        rig: the ground-truth rig.
-        board: the checkerboard.
-        T_rig_board: view name -> (4, 4) float64 board pose in the rig frame, metres.
-    """
-
-    rig: Rig
-    board: Board
-    T_rig_board: dict[str, np.ndarray] = field(default_factory=dict)
-
-
-def load_ground_truth(capture_dir: str | Path) -> GroundTruth:
-    """Read ``ground_truth.yaml`` (and the rig file it names); CaptureError names the defect."""
-    capture_dir = Path(capture_dir)
-    path = capture_dir / GROUND_TRUTH_FILE
-    data = _read_yaml(path, "ground truth")
-    if not isinstance(data, dict):
-        raise CaptureError(f"{path}: expected a mapping, got {type(data).__name__}")
-    expected = {"format", "rig", "board", "views"}
-    if set(data) != expected:
-        raise CaptureError(f"{path}: expected keys {sorted(expected)}, got {sorted(data, key=str)}")
-    if data["format"] != GROUND_TRUTH_FORMAT:
-        raise CaptureError(
-            f"{path}: field 'format': expected {GROUND_TRUTH_FORMAT!r}, got {data['format']!r}"
-        )
-    rig_name = data["rig"]
-    if not isinstance(rig_name, str) or Path(rig_name).name != rig_name:
-        raise CaptureError(f"{path}: field 'rig': expected a file name beside it, got {rig_name!r}")
-    rig = load_rig(capture_dir / rig_name)
-    try:
-        board = board_from_dict(data["board"])
-    except ValueError as exc:
-        raise CaptureError(f"{path}: field 'board': {exc}") from None
-    views = data["views"] or {}
-    if not isinstance(views, dict):
-        raise CaptureError(
-            f"{path}: field 'views': expected a mapping of view name to pose, "
-            f"got {type(views).__name__}"
-        )
-    poses: dict[str, np.ndarray] = {}
-    for name, entry in views.items():
-        if not isinstance(entry, dict) or set(entry) != {"T_rig_board"}:
-            raise CaptureError(
-                f"{path}: view {name!r}: expected {{T_rig_board: 4x4}}, got {entry!r}"
-            )
-        problem = rigidity_problem(entry["T_rig_board"])
-        if problem is not None:
-            raise CaptureError(f"{path}: view {name!r}: T_rig_board: {problem}")
-        poses[str(name)] = np.asarray(entry["T_rig_board"], dtype=np.float64)
-    return GroundTruth(rig=rig, board=board, T_rig_board=poses)
 
 
 # -- image headers --------------------------------------------------------------------------
@@ -572,10 +259,7 @@ def decode_thermal(info: ImageFile, encoding: ThermalEncoding = "centikelvin") -
     """
     image = _single_channel(_decode(info), info, "thermal")
     if image.dtype == np.uint16 and encoding == "centikelvin":
-        # float64 division, then one rounding to float32
-        kelvin = (image / THERMAL_COUNTS_PER_K).astype(np.float32)
-        kelvin[image == 0] = np.nan
-        return kelvin
+        return kelvin_from_counts(image)
     return image.astype(np.float32)
 
 
@@ -592,9 +276,7 @@ def decode_distance(info: ImageFile) -> np.ndarray:
             f"{info.path}: expected a 16-bit distance image in millimetres, got "
             f"{image.dtype} samples"
         )
-    metres = (image / DISTANCE_COUNTS_PER_M).astype(np.float32)
-    metres[image == 0] = np.nan
-    return metres
+    return metres_from_counts(image)
 
 
 # -- reading --------------------------------------------------------------------------------
@@ -750,17 +432,12 @@ class Capture:
         return "\n".join(lines)
 
 
-def _read_yaml(path: Path, what: str) -> Any:
+def read_yaml_file(path: Path, what: str) -> Any:
+    """The parsed YAML of a capture's ``what`` file (e.g. ``"board"``); CaptureError
+    naming the path when it is missing, unreadable, not UTF-8 or not YAML."""
     if not path.is_file():
         raise CaptureError(f"{path}: missing {what} file")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise CaptureError(f"{path}: cannot read {what} file: {exc.strerror}") from None
-    except UnicodeDecodeError as exc:
-        raise CaptureError(
-            f"{path}: {what} file is not UTF-8 text: {exc.reason} at byte {exc.start}"
-        ) from None
+    text = read_text(path, f"{what} file", CaptureError)
     try:
         return parse_yaml(text)
     except YamlError as exc:
@@ -781,7 +458,7 @@ def load_board(capture_dir: str | Path) -> Board:
 def load_board_file(path: str | Path) -> Board:
     """Read a board file (``board.yaml`` layout); CaptureError names the path and the defect."""
     path = Path(path)
-    data = _read_yaml(path, "board")
+    data = read_yaml_file(path, "board")
     try:
         return board_from_dict(data)
     except ValueError as exc:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from app.storage.atomic import atomic_write_text
+from app.storage.text import read_text
 from calib.errors import RigError
 from calib.rig import Rig, rig_from_yaml, rig_to_yaml
 
@@ -12,16 +13,7 @@ from calib.rig import Rig, rig_from_yaml, rig_to_yaml
 def load_rig(path: str | Path) -> Rig:
     """Load and validate a rig file; RigError messages start with the file's path."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise RigError(f"{path}: cannot read rig file: {exc.strerror}") from None
-    except UnicodeDecodeError as exc:
-        raise RigError(
-            f"{path}: rig file is not UTF-8 text: {exc.reason} at byte {exc.start}"
-        ) from None
-    except ValueError as exc:  # a path the OS cannot take (a NUL byte)
-        raise RigError(f"{path}: cannot read rig file: {exc}") from None
+    text = read_text(path, "rig file", RigError)
     try:
         return rig_from_yaml(text)
     except RigError as exc:

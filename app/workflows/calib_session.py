@@ -11,9 +11,9 @@ Layout of the session's work directory (docs/FORMATS.md "Calibration session")::
         0007-20261122T140312/
 
 Every view is written the moment it is taken (atomically: a view appears complete or not
-at all, see :func:`app.storage.capture.write_view`), so a crash or a kill loses nothing that was
-taken; a restarted session finds the views and saved rigs where they were. What a crash
-can leave behind is never taken for data: temporary files of interrupted writes
+at all, see :func:`app.storage.capture_writer.write_view`), so a crash or a kill loses
+nothing that was taken; a restarted session finds the views and saved rigs where they
+were. What a crash can leave behind is never taken for data: temporary files of interrupted writes
 (``.<name>.<random>.tmp``) are removed when the session opens again; a view whose staging
 folder (``captures/.<view>.<random>.partial``) was not renamed into place was never
 acknowledged and is not listed, but is kept (it may hold images) and named in
@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from app.errors import describe_error
 from app.sources.frames import FrameSet
 from app.storage.atomic import atomic_write_text, fsync_dir, make_dirs, remove_temporaries
 from app.storage.capture import (
@@ -51,10 +52,8 @@ from app.storage.capture import (
     load_board,
     load_capture,
     load_view,
-    write_board,
-    write_rig,
-    write_view,
 )
+from app.storage.capture_writer import write_board, write_rig, write_view
 from app.storage.rigfile import load_rig
 from app.workflows.calibration_run import DetectionRun, calibrate_capture
 from app.workflows.range_run import (
@@ -69,7 +68,8 @@ from calib.detect import Detection
 from calib.errors import CalibrationError
 from calib.polarity import detect_board_configured
 from calib.rig import Rig, rig_to_yaml
-from calib.rig_calibration import CalibrationOptions, CalibrationResult
+from calib.rig_calibration import CalibrationOptions
+from calib.rig_result import CalibrationResult
 
 CAPTURES = "captures"
 RIGS = "rigs"
@@ -77,7 +77,8 @@ DELETED = "deleted"
 _VIEW_RE = re.compile(r"^\d{4,}$")
 _VERSION_RE = re.compile(r"^rig-(\d{4,})\.yaml$")
 _VERSION_FILE_RE = re.compile(r"^rig-(\d{4,})\.")  # the rig or its report: number taken
-_STAGING_RE = re.compile(r"^\.\d{4,}\..+\.partial$")  # app.storage.capture.write_view's staging
+# app.storage.capture_writer.write_view's staging folders
+_STAGING_RE = re.compile(r"^\.\d{4,}\..+\.partial$")
 
 log = logging.getLogger(__name__)
 
@@ -466,7 +467,7 @@ class CalibrationSession:
         except (CalibrationError, CaptureError, KeyError, ValueError) as exc:
             job.error, job.state = str(exc), "failed"
         except Exception as exc:  # a defect: say so, keep the console running
-            job.error, job.state = f"{type(exc).__name__}: {exc}", "failed"
+            job.error, job.state = describe_error(exc), "failed"
         else:
             job.result, job.report, job.state = result, report, "done"
             job.stage, job.progress = "done", 1.0
@@ -603,7 +604,7 @@ class CalibrationSession:
         except (CaptureError, KeyError, ValueError) as exc:
             job.error, job.state = str(exc), "failed"
         except Exception as exc:  # a defect: say so, keep the console running
-            job.error, job.state = f"{type(exc).__name__}: {exc}", "failed"
+            job.error, job.state = describe_error(exc), "failed"
         else:
             job.run, job.report, job.state = run, build_range_report(run, capture), "done"
             job.stage, job.progress = "done", 1.0
@@ -637,4 +638,6 @@ def _board_text(board: Board) -> str:
 
 def radiometry_report(rig: Rig) -> dict[str, Any]:
     """The report saved beside a rig version that records the imagers' radiometry."""
-    return {"radiometry": {n: s.radiometry for n, s in rig.sensors.items() if s.radiometry}}
+    return {
+        "radiometry": {n: s.radiometry.to_dict() for n, s in rig.sensors.items() if s.radiometry}
+    }

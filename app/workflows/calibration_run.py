@@ -27,12 +27,8 @@ from calib.coverage import coverage
 from calib.detect import Detection
 from calib.errors import CalibrationError
 from calib.polarity import detect_board_configured
-from calib.rig_calibration import (
-    CalibrationOptions,
-    CalibrationResult,
-    SensorSpec,
-    calibrate_rig,
-)
+from calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
+from calib.rig_result import CalibrationResult
 
 Progress = Callable[[str, float], None]
 

@@ -216,10 +216,10 @@ def _round(x: float) -> float | None:
 
 
 def with_range_correction(rig: Rig, run: RangeRun) -> Rig:
-    """A copy of ``rig`` whose TOF carries the run's correction."""
-    sensors = dict(rig.sensors)
-    sensors[run.tof] = dataclasses.replace(sensors[run.tof], range_correction=run.model.to_dict())
-    return dataclasses.replace(rig, sensors=sensors)
+    """A copy of ``rig`` whose TOF carries the run's correction (:meth:`RangeCorrection.
+    rounded`, as rig files keep it)."""
+    rounded = run.model.rounded()
+    return rig.with_sensor(dataclasses.replace(rig[run.tof], range_correction=rounded))
 
 
 def build_range_report(run: RangeRun, capture: Capture | None = None) -> dict[str, Any]:

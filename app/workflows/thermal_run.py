@@ -59,8 +59,8 @@ def balance_source(
     eyes = {e: rig.eyes[e] for e in EYE_ORDER}
     left, right = eyes["left"].thermal, eyes["right"].thermal
     fusion = StereoFusion(rig)
-    tof = fusion.fusion["left"].forward.tof
-    radiometry = {s: Radiometry.of(rig[s]) or Radiometry() for s in (left, right)}
+    tof = fusion.tof
+    radiometry = {s: rig[s].radiometry or Radiometry() for s in (left, right)}
     flt = BalanceFilter(time_constant_s)
     run = ThermalRun(None, {})
     last_tof: int | None = None
@@ -99,11 +99,11 @@ def balance_source(
 def with_balance(rig: Rig, terms: dict[str, tuple[float, float]]) -> Rig:
     """A copy of ``rig`` whose imagers carry ``terms`` as their balance (their calibration
     and manual offsets kept)."""
-    sensors = dict(rig.sensors)
     for name, (gain, offset) in terms.items():
-        r = (Radiometry.of(sensors[name]) or Radiometry()).with_balance(gain, offset)
-        sensors[name] = dataclasses.replace(sensors[name], radiometry=r.to_dict())
-    return dataclasses.replace(rig, sensors=sensors)
+        sensor = rig[name]
+        r = (sensor.radiometry or Radiometry()).with_balance(gain, offset)
+        rig = rig.with_sensor(dataclasses.replace(sensor, radiometry=r))
+    return rig
 
 
 def format_thermal_summary(run: ThermalRun, rig: Rig) -> str:

@@ -19,6 +19,7 @@ import viser.uplot as uplot
 
 from app.server.runtime.board_watch import BoardSighting
 from app.server.runtime.context import ConsoleContext
+from app.server.runtime.demand import Hold
 from app.server.runtime.periodic import Periodic
 from app.workflows.calib_session import CalibrationSession, SessionError, ViewInfo
 from app.workflows.report_format import (
@@ -129,6 +130,8 @@ class CalibrationPanel(Periodic):
             self.save = gui.add_button("Save rig", disabled=True)
             self.version_pick = gui.add_dropdown("Saved rig", (NONE,))
             self.use = gui.add_button("Use this rig")
+        self._auto_hold: Hold | None = None  # the board search while auto-capture is on
+        self.auto.on_update(lambda _e: self._want_board(bool(self.auto.value)))
         self.capture.on_click(lambda _e: self._act(self._capture))
         self.delete.on_click(lambda _e: self._act(self._delete))
         self.run.on_click(lambda _e: self._act(self._calibrate))
@@ -187,6 +190,14 @@ class CalibrationPanel(Periodic):
             raise SessionError("choose a saved rig first")
         self.ctx.use_rig(self.session.load_version(name))
         return f"The console now fuses with **{name}**."
+
+    def _want_board(self, on: bool) -> None:
+        """Auto-capture needs the board search whether or not a browser is connected."""
+        if on and self._auto_hold is None:
+            self._auto_hold = self.ctx.demand.board.hold()
+        elif not on and self._auto_hold is not None:
+            self._auto_hold, hold = None, self._auto_hold
+            hold.release()
 
     def _on_sighting(self, s: BoardSighting) -> None:
         """Auto-capture (in the board watch's thread)."""

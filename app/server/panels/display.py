@@ -18,6 +18,7 @@ import re
 import cv2
 import numpy as np
 
+from app.errors import describe_error
 from app.server.runtime.board_watch import BoardSighting
 from app.server.runtime.context import ConsoleContext
 from app.server.runtime.periodic import Periodic
@@ -27,10 +28,10 @@ from app.sources.frames import Frame, FrameSet
 from app.storage.preview import to_display
 from app.workflows.calib_session import radiometry_report
 from calib.detect import Detection
+from fusion.compose import DIRECTIONS, DISPLAY_MODES
 from fusion.palettes import PALETTE_NAMES
 from fusion.span import level_from_span, span_from_level
 
-MODES = ("blend", "edges", "thermal", "threshold", "isotherm", "pip", "color")
 C_TO_K = 273.15
 
 FEED_WIDTH_PX = 320
@@ -171,13 +172,13 @@ class Panels(Periodic):
         gui = server.gui
         s = pipeline.settings
         with gui.add_folder("Fusion"):
-            self.mode = gui.add_dropdown("Mode", MODES, initial_value=s.mode)
+            self.mode = gui.add_dropdown("Mode", DISPLAY_MODES, initial_value=s.mode)
             self.opacity = gui.add_slider("Opacity", 0.0, 1.0, 0.05, s.opacity)
             self.edges = gui.add_slider("Edge strength", 0.0, 10.0, 0.5, s.edge_strength)
             self.thr_lo = gui.add_number("Threshold low (°C)", 40.0, step=0.5)
             self.thr_hi = gui.add_number("Threshold high (°C)", 40.0, step=0.5)
             self.thr_dir = gui.add_dropdown(
-                "Threshold shows", ("above", "below", "inside"), initial_value=s.threshold_direction
+                "Threshold shows", DIRECTIONS, initial_value=s.threshold_direction
             )
             self.iso_lo = gui.add_number("Isotherm low (°C)", 30.0, step=0.5)
             self.iso_hi = gui.add_number("Isotherm high (°C)", 40.0, step=0.5)
@@ -323,7 +324,7 @@ class Panels(Periodic):
         try:
             self.update_feeds(fs, watch.latest if watch.enabled else None)
         except Exception as exc:  # shown under the feeds; the panels keep updating
-            self.feeds_error.content = f"**Feeds:** {type(exc).__name__}: {exc}"
+            self.feeds_error.content = f"**Feeds:** {describe_error(exc)}"
         else:
             if self.feeds_error.content:
                 self.feeds_error.content = ""

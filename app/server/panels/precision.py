@@ -23,6 +23,7 @@ import numpy as np
 import viser
 import viser.uplot
 
+from app.errors import describe_error
 from app.server.runtime.context import ConsoleContext
 from app.server.runtime.periodic import Periodic
 from app.workflows.report_format import limit_distance_cell, pixel_cell, sensor_colour
@@ -281,7 +282,7 @@ class PrecisionPanel(Periodic):
         return self
 
     def _run(self) -> None:
-        self.tick()  # the first result without waiting a period
+        self.tick_once()  # the first result without waiting a period
         super()._run()
 
     def tick(self) -> None:
@@ -293,7 +294,7 @@ class PrecisionPanel(Periodic):
         try:
             self._update(rig)
         except Exception as exc:  # shown in the panel; the console keeps running
-            self.error = f"{type(exc).__name__}: {exc}"
+            self.error = describe_error(exc)
             self.result = None
             self.status.content = f"**Cannot analyse this rig:** {self.error}"
             self.table.content = ""
@@ -330,7 +331,7 @@ class PrecisionPanel(Periodic):
         try:
             self._show_plots()
         except Exception as exc:  # shown in the panel
-            self.status.content = f"**Cannot plot:** {type(exc).__name__}: {exc}"
+            self.status.content = f"**Cannot plot:** {describe_error(exc)}"
 
     def _remove_plots(self) -> None:
         for plot in self._plots:

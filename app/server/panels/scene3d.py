@@ -6,13 +6,13 @@ the scene's "up" is therefore -y):
 - every sensor of the displayed rig: its frame at ``T_rig_sensor`` and its frustum (vertical
   FOV from ``fy``, aspect W/H) as a wireframe in the modality's colour;
 - the sensors' live images on a panel just below the head, laid out as the sensors sit on
-  the head, each framed in its frustum's colour and named underneath (downscaled to at
-  most :data:`TEXTURE_MAX_W` pixels wide: colour as is, thermal in the pipeline's palette
-  over its span, TOF amplitude stretched grey), at ``texture_hz``;
+  the head, each framed in its frustum's colour and named underneath, at ``texture_hz``
+  (frames, frustums and images: :mod:`app.server.panels.scene_sensors`);
 - the TOF point cloud of the newest depth frame, coloured by the colour camera, by
   temperature (the thermal imager, in the pipeline's palette over its span) or by radial
-  distance, at ``rate_hz``;
-- the checkerboard at its live estimated pose ``T_rig_board`` (hidden while not seen);
+  distance, at ``rate_hz`` (:mod:`app.server.panels.scene_cloud`);
+- the checkerboard at its live estimated pose ``T_rig_board`` (hidden while not seen;
+  :mod:`app.server.panels.scene_board`);
 - in the "3D scene" GUI folder: the view buttons (overview, from the head, from above,
   from the side: each moves the camera of the browser that pressed it), which rig to
   display ("in use", "ground truth", saved versions; the list is re-read every
@@ -44,8 +44,9 @@ watch's newest pose (:attr:`~app.server.runtime.board_watch.BoardWatch.latest_po
 soon as the most trusted sensor has found it in a new picture), moved the moment the watch
 publishes it; the folder says when the picture it was found in is older than the cloud's.
 
-One thread (:class:`Periodic`) does all the pushing; GUI callbacks (Viser's thread) and
-the tick share a lock. Every step of a tick is guarded: a missing sensor, NaN depth or a
+One thread (:class:`Periodic`) does all the pushing, in the console only while a Viser
+client is connected (its ``demand``); GUI callbacks (Viser's thread) and the tick share a
+lock. Every step of a tick is guarded: a missing sensor, NaN depth or a
 bad rig shows nothing for that part and the error in the folder, and the thread goes on.
 """
 
@@ -56,44 +57,27 @@ import time
 from collections import deque
 from collections.abc import Callable
 
-import cv2
 import numpy as np
 import viser
-import viser.transforms as vtf
 
+from app.errors import describe_error
 from app.server.panels import scene_layout as layout
+from app.server.panels.scene_board import BoardMarker
+from app.server.panels.scene_cloud import coloured_cloud, temperature_span
+from app.server.panels.scene_sensors import SensorNodes, vertical_fov_rad, wxyz_of
 from app.server.runtime.context import ConsoleContext
 from app.server.runtime.periodic import Periodic
-from app.storage.preview import to_display
-from calib.board import Board
+from app.workflows.report_format import markdown_table
 from calib.rig import Rig, Sensor
 from calib.transforms import invert, pose_error
-from fusion.compose import auto_span, resolve_span
-from fusion.palettes import PALETTE_NAMES, apply_palette
+from fusion.compose import CLOUD_COLORINGS
 
-FRUSTUM_COLORS = {"color": (40, 120, 240), "thermal": (240, 90, 30), "tof": (40, 200, 90)}
 FRUSTUM_SIZE_RANGE_M = (0.05, 2.0)
 """The "Frustum size" slider: the frustums' depth, metres."""
-FRUSTUM_LINE_PX = 2.0
-"""Frustum and image-frame lines are this many screen pixels thick at any distance."""
 RIG_AXES_PER_DEPTH = 0.3
 """The rig frame's axes are this fraction of the frustum depth long (visible at the
 scene's scale; the sensors' own frames keep 15 mm axes)."""
-TEXTURE_MAX_W = 320
-"""Live images are downscaled to at most this width (pixels) before JPEG encoding."""
-TEXTURE_JPEG_QUALITY = 75
-CLOUD_MODES: tuple[str, ...] = ("color", "temperature", "depth")
-DEPTH_PALETTE = "rainbow" if "rainbow" in PALETTE_NAMES else PALETTE_NAMES[0]
-NAN_GREY = (128, 128, 128)
 IN_USE = "in use"
-BOARD_PX_PER_SQUARE = 16
-BOARD_PLATE_BEHIND_M = 0.003
-"""The board's checker plate is drawn this far behind the board plane (+z of the board
-frame, away from the cameras) so the cloud's points on the board stay visible."""
-BOARD_OUTLINE_RGB = (255, 220, 0)
-BOARD_LAG_SHOWN_S = 0.5
-"""The board's line in the folder says how much older its frames are than the cloud's
-from this lag on."""
 VIEW_BUTTONS = {
     "Overview": "overview",
     "View from head": "head",
@@ -107,109 +91,6 @@ FRAME_MEMORY_S = 45.0
 """The views frame the clouds of this many seconds (a panning head sweeps its cloud)..."""
 FRAME_SAMPLE_S = 2.0
 """... sampled this often."""
-C_TO_K = 273.15
-
-
-def wxyz_of(T: np.ndarray) -> np.ndarray:
-    """Quaternion (4,) ``(w, x, y, z)`` of the rotation of a (4, 4) or (3, 3) transform."""
-    return vtf.SO3.from_matrix(np.asarray(T, dtype=np.float64)[:3, :3]).wxyz
-
-
-def vertical_fov_rad(sensor: Sensor) -> float:
-    """The sensor's vertical field of view in radians (pinhole, from ``fy`` and height)."""
-    return float(2.0 * np.arctan2(sensor.height / 2.0, sensor.intrinsics.fy))
-
-
-def _downscale(image: np.ndarray, max_width: int) -> np.ndarray:
-    h, w = image.shape[:2]
-    if w <= max_width:
-        return image
-    size = (max_width, max(1, round(h * max_width / w)))
-    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-
-
-def _grey_stretch(image: np.ndarray) -> np.ndarray:
-    """(H, W) numbers -> (H, W, 3) uint8 grey, 1st..99th percentile stretched, NaN black."""
-    a = image.astype(np.float32, copy=False)
-    finite = np.isfinite(a)
-    if not finite.any():
-        return np.zeros((*a.shape, 3), np.uint8)
-    lo, hi = (float(v) for v in np.percentile(a[finite], [1, 99]))
-    scale = 255.0 / max(hi - lo, 1e-6)
-    grey = np.clip((np.nan_to_num(a, nan=lo) - lo) * scale, 0, 255).astype(np.uint8)
-    grey[~finite] = 0
-    return cv2.cvtColor(grey, cv2.COLOR_GRAY2RGB)
-
-
-def sensor_texture(
-    image: np.ndarray,
-    modality: str,
-    max_width: int = TEXTURE_MAX_W,
-    span_k: tuple[float, float] | None = None,
-    palette: str = "iron",
-) -> np.ndarray:
-    """A sensor image as a frustum texture: (h, w, 3) uint8 RGB with ``w <= max_width``.
-
-    Args:
-        image: colour (H, W, 3) uint8 RGB; thermal (H, W) float kelvin; TOF amplitude
-            (H, W) float (any unit).
-        modality: ``color``, ``thermal`` or ``tof`` (the logarithm of the amplitude is
-            stretched grey, 1st to 99th percentile).
-        span_k: thermal only: (low, high) kelvin of ``palette``; None: :func:`to_display`'s
-            own percentile stretch.
-    Raises:
-        ValueError: an image whose shape does not fit its modality.
-    """
-    a = np.asarray(image)
-    if a.ndim == 3 and a.shape[2] == 3 and modality == "color":
-        return np.ascontiguousarray(_downscale(a, max_width).astype(np.uint8, copy=False))
-    if a.ndim != 2:
-        raise ValueError(f"{modality} image: expected (H, W), got shape {a.shape}")
-    small = _downscale(a.astype(np.float32, copy=False), max_width)
-    if modality == "thermal":
-        if span_k is not None:
-            return apply_palette(small, span_k, palette, nan_color=(0, 0, 0))
-        return np.ascontiguousarray(to_display(small))
-    # TOF amplitude falls off with the square of the distance (and spans four decades):
-    # its logarithm shows the far walls as well as the near objects
-    return _grey_stretch(np.log1p(np.maximum(small, 0.0)))
-
-
-def board_checker_image(board: Board, px_per_square: int = BOARD_PX_PER_SQUARE) -> np.ndarray:
-    """The board's checkered area as (rows+1, cols+1) squares of ``px_per_square`` pixels,
-    (H, W, 3) uint8 RGB; pixel row 0 is the board's -y edge, column 0 its -x edge, and the
-    black squares are where :meth:`Board.is_black` says."""
-    nx, ny = board.squares
-    i = np.arange(nx * px_per_square) // px_per_square - 1  # square index along x
-    j = np.arange(ny * px_per_square) // px_per_square - 1  # along y
-    black = ((i[None, :] + j[:, None]) % 2) == 0
-    grey = np.where(black, 20, 235).astype(np.uint8)
-    return np.repeat(grey[..., None], 3, axis=2)
-
-
-def board_outline(board: Board) -> np.ndarray:
-    """The checkered area's edges as line segments (4, 2, 3) in the board frame, metres."""
-    sq = board.square_size_m
-    x0, y0 = -sq, -sq
-    x1, y1 = board.cols * sq, board.rows * sq
-    c = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
-    return np.stack([c, np.roll(c, -1, axis=0)], axis=1)
-
-
-def board_lag_s(sighting: object, newest: object) -> float:
-    """How much older (seconds) the frames a board sighting was found in are than the
-    ``newest`` frame set: 0 when the newest set shows the very image the pose came from
-    (a simulated head holding a pose, a paused replay: the board drawn is current)."""
-    frames = getattr(sighting, "frames", None)
-    then = getattr(frames, "frames", None)
-    now = getattr(newest, "frames", None)
-    if not isinstance(then, dict) or not isinstance(now, dict):
-        return 0.0
-    sensor = getattr(sighting, "pose_sensor", None)
-    seen, current = then.get(sensor), now.get(sensor)
-    if seen is not None and current is not None and seen.image is current.image:
-        return 0.0
-    return (newest.stamp_ns - frames.stamp_ns) / 1e9  # type: ignore[union-attr]
 
 
 def rig_difference_markdown(shown_label: str, shown: Rig, in_use: Rig) -> str:
@@ -217,32 +98,18 @@ def rig_difference_markdown(shown_label: str, shown: Rig, in_use: Rig) -> str:
     (px) of ``shown`` minus ``in_use`` (sensors absent from either rig are listed as such)."""
     if shown_label == IN_USE:
         return "Showing the rig in use."
-    lines = [
-        f"**{shown_label}** vs **{IN_USE}**",
-        "",
-        "| sensor | rot (deg) | trans (mm) | Δfx (px) |",
-        "| --- | ---: | ---: | ---: |",
-    ]
+    rows = []
     for name, s in shown.sensors.items():
         if name not in in_use.sensors:
-            lines.append(f"| {name} | not in use | | |")
+            rows.append([name, "not in use", "", ""])
             continue
         u = in_use.sensors[name]
         rot_deg, trans_m = pose_error(s.T_rig_sensor, u.T_rig_sensor)
         dfx = s.intrinsics.fx - u.intrinsics.fx
-        lines.append(f"| {name} | {rot_deg:.3f} | {trans_m * 1000:.1f} | {dfx:+.1f} |")
-    for name in in_use.sensors:
-        if name not in shown.sensors:
-            lines.append(f"| {name} | not in this rig | | |")
-    return "\n".join(lines)
-
-
-def frustum_scale(depth_m: float, fov_rad: float, aspect: float) -> float:
-    """Viser's ``scale`` of a camera frustum whose image plane lies ``depth_m`` metres in
-    front of its apex (Viser 1.1.1 normalises the frustum to unit volume before scaling:
-    its depth is ``scale / cbrt(tan(fov / 2)^2 * aspect / 3)``)."""
-    t = float(np.tan(fov_rad / 2.0))
-    return float(depth_m * np.cbrt(t * t * aspect / 3.0))
+        rows.append([name, f"{rot_deg:.3f}", f"{trans_m * 1000:.1f}", f"{dfx:+.1f}"])
+    rows += [[n, "not in this rig", "", ""] for n in in_use.sensors if n not in shown.sensors]
+    head = ["sensor", "rot (deg)", "trans (mm)", "Δfx (px)"]
+    return "\n".join([f"**{shown_label}** vs **{IN_USE}**", "", *markdown_table(head, rows)])
 
 
 def apply_camera(camera: object, pose: layout.CameraPose) -> None:
@@ -268,92 +135,6 @@ def viewport_of(
     except (AssertionError, AttributeError, TypeError, ValueError):
         return missing
     return (w, h) if w > 0 and h > 0 else missing
-
-
-_PLACEHOLDER = np.zeros((2, 2, 3), np.uint8)
-
-
-class _SensorNodes:
-    """One sensor's scene nodes: its frame (pose) with the frustum (wireframe), and on the
-    image panel below the head its live image, a frame in the frustum's colour and its
-    name under the image."""
-
-    def __init__(self, server: viser.ViserServer, root: str, sensor: Sensor) -> None:
-        node = f"{root}/{sensor.name}"
-        color = FRUSTUM_COLORS.get(sensor.modality, (200, 200, 200))
-        self.frame = server.scene.add_frame(node, axes_length=0.015, axes_radius=0.0008)
-        self.frustum = server.scene.add_camera_frustum(
-            f"{node}/frustum",
-            fov=vertical_fov_rad(sensor),
-            aspect=sensor.width / sensor.height,
-            scale=0.01,
-            thickness=FRUSTUM_LINE_PX,
-            thickness_units="screen",
-            color=color,
-        )
-        panel = f"/panel/{sensor.name}"  # under the panel's frame (its pose: Scene3D)
-        self.cell_node = server.scene.add_frame(panel, show_axes=False)
-        self.picture = server.scene.add_image(
-            f"{panel}/image",
-            _PLACEHOLDER,
-            render_width=0.01,
-            render_height=0.01,
-            format="jpeg",
-            jpeg_quality=TEXTURE_JPEG_QUALITY,
-            visible=False,
-        )
-        self.outline = server.scene.add_line_segments(
-            f"{panel}/outline",
-            np.zeros((4, 2, 3)),
-            color,
-            thickness=FRUSTUM_LINE_PX,
-            thickness_units="screen",
-        )
-        self.label = server.scene.add_label(f"{panel}/label", sensor.name, anchor="top-center")
-        self.modality = sensor.modality
-        self.depth_m = 0.0
-        self.cell: layout.Cell | None = None
-        self.shown_frame: object = None  # the Frame whose image the picture shows
-
-    def set_depth(self, depth_m: float) -> None:
-        """Frustum depth ``depth_m`` metres (apex to image plane)."""
-        self.depth_m = depth_m
-        self.frustum.scale = frustum_scale(depth_m, self.frustum.fov, self.frustum.aspect)
-
-    def set_cell(self, cell: layout.Cell) -> None:
-        """Put the live image, its frame and its name at ``cell`` of the image panel."""
-        self.cell = cell
-        centre = np.asarray(cell.center, dtype=np.float64)
-        self.cell_node.position = centre
-        self.picture.render_width = cell.width
-        self.picture.render_height = cell.height
-        self.outline.points = cell.outline().astype(np.float32)
-        self.label.position = layout.label_anchor(cell) - centre
-
-    def place(self, sensor: Sensor) -> None:
-        """Move to ``sensor.T_rig_sensor`` and take its FOV, aspect and modality."""
-        T = sensor.T_rig_sensor
-        self.frame.wxyz = wxyz_of(T)
-        self.frame.position = np.asarray(T[:3, 3], dtype=np.float64)
-        self.frustum.fov = vertical_fov_rad(sensor)
-        self.frustum.aspect = sensor.width / sensor.height
-        color = FRUSTUM_COLORS.get(sensor.modality, (200, 200, 200))
-        self.frustum.color = color
-        self.outline.colors = np.tile(np.asarray(color, np.uint8), (4, 2, 1))
-        self.modality = sensor.modality
-        self.set_depth(self.depth_m)
-        self.frame.visible = self.cell_node.visible = True
-
-    def show_image(self, image: np.ndarray | None) -> None:
-        """The live image (h, w, 3) uint8 on the panel, or none (the frame stays)."""
-        if image is None:
-            self.picture.visible = False
-        else:
-            self.picture.image = image
-            self.picture.visible = True
-
-    def hide(self) -> None:
-        self.frame.visible = self.cell_node.visible = False
 
 
 class Scene3D(Periodic):
@@ -390,7 +171,6 @@ class Scene3D(Periodic):
         self.errors: dict[str, str] = {}
         self.cloud_span: tuple[float, float] | None = None
         self._cloud_key: tuple | None = None
-        self._sighting: object = None
         self.box: layout.SceneBox | None = None
         self._recent: deque[tuple[float, np.ndarray]] = deque()  # (time, (M, 3) sample)
         self.user_sized = False
@@ -406,7 +186,7 @@ class Scene3D(Periodic):
             self._rigs: dict[str, Rig] = self._read_rigs()
         except Exception as exc:  # a bad saved rig must not stop the console
             self._rigs = {}
-            self.errors["rigs"] = f"{type(exc).__name__}: {exc}"
+            self.errors["rigs"] = describe_error(exc)
         self._rigs = self._rigs or {IN_USE: ctx.pipeline.rig}
         self.shown_label = IN_USE if IN_USE in self._rigs else next(iter(self._rigs))
         self.shown_rig: Rig = self._rigs[self.shown_label]
@@ -420,7 +200,9 @@ class Scene3D(Periodic):
             self.rig_choice = gui.add_dropdown(
                 "Rig shown", tuple(self._rigs), initial_value=self.shown_label
             )
-            self.cloud_mode = gui.add_dropdown("Cloud colour", CLOUD_MODES, initial_value="color")
+            self.cloud_mode = gui.add_dropdown(
+                "Cloud colour", CLOUD_COLORINGS, initial_value="color"
+            )
             self.point_size = gui.add_slider("Point size (mm)", 1.0, 30.0, 1.0, 8.0)
             self.textures_on = gui.add_checkbox("Live images", True)
             self.frustum_size = gui.add_slider(
@@ -434,7 +216,7 @@ class Scene3D(Periodic):
         self.rig_axes = server.scene.add_frame("/rig", axes_length=0.05, axes_radius=0.002)
         self.panel_node = server.scene.add_frame("/panel", show_axes=False)
         self.panel: layout.Panel | None = None
-        self.nodes: dict[str, _SensorNodes] = {}
+        self.nodes: dict[str, SensorNodes] = {}
         self.live = server.scene.add_frame("/live", show_axes=False)
         self.cloud = server.scene.add_point_cloud(
             "/live/tof_points",
@@ -444,7 +226,8 @@ class Scene3D(Periodic):
             precision="float32",
             visible=False,
         )
-        self.board_node = self._add_board(ctx.board)
+        self.board_marker = BoardMarker(server.scene, ctx.board, self.board_md)
+        self.board_node = self.board_marker.node
         self._show_rig(self.shown_label)
 
         for label, view in VIEW_BUTTONS.items():
@@ -480,35 +263,10 @@ class Scene3D(Periodic):
 
     # -- building ----------------------------------------------------------------------
 
-    def _add_board(self, board: Board) -> viser.FrameHandle:
-        """The board frame node (origin at the first inner corner) with its checker plate
-        and outline; hidden until a sighting gives its pose."""
-        scene = self.server.scene
-        node = scene.add_frame("/live/board", axes_length=0.05, axes_radius=0.002, visible=False)
-        w, h = board.size_m
-        sq = board.square_size_m
-        center = (-sq + w / 2.0, -sq + h / 2.0, BOARD_PLATE_BEHIND_M)
-        scene.add_image(
-            "/live/board/plate",
-            board_checker_image(board),
-            render_width=w,
-            render_height=h,
-            format="png",
-            position=center,
-        )
-        scene.add_line_segments(
-            "/live/board/outline",
-            board_outline(board),
-            BOARD_OUTLINE_RGB,
-            thickness=3.0,
-            thickness_units="screen",
-        )
-        return node
-
-    def _nodes_for(self, sensor: Sensor) -> _SensorNodes:
+    def _nodes_for(self, sensor: Sensor) -> SensorNodes:
         nodes = self.nodes.get(sensor.name)
         if nodes is None:
-            nodes = self.nodes[sensor.name] = _SensorNodes(self.server, "/rig", sensor)
+            nodes = self.nodes[sensor.name] = SensorNodes(self.server, "/rig", sensor)
         return nodes
 
     # -- helpers -----------------------------------------------------------------------
@@ -519,7 +277,7 @@ class Scene3D(Periodic):
             try:
                 fn()
             except Exception as exc:  # the scene must outlive any bad frame
-                self.errors[part] = f"{type(exc).__name__}: {exc}"
+                self.errors[part] = describe_error(exc)
             else:
                 self.errors.pop(part, None)
             text = "\n\n".join(f"**{k}:** {v}" for k, v in sorted(self.errors.items()))
@@ -733,27 +491,6 @@ class Scene3D(Periodic):
     def _on_point_size(self) -> None:
         self.cloud.point_size = float(self.point_size.value) / 1000.0
 
-    def _temperature_span(self, thermal_images: list[np.ndarray]) -> tuple[float, float] | None:
-        """The pipeline's span: fixed in its settings, else the last fused frame's span,
-        else the automatic span over ``thermal_images``."""
-        p = self.ctx.pipeline
-        if p.settings.span_k is not None:
-            return p.settings.span_k
-        span = getattr(p.fusion, "span_k", None)
-        if span is not None:
-            return span
-        return resolve_span(p.settings, thermal_images) if thermal_images else None
-
-    def _thermal_k(self, fs: object, sensor: str) -> np.ndarray | None:
-        """The imager's temperatures (H, W) kelvin through its radiometry (calibration,
-        balance, trim) as the fused picture shows them, or None."""
-        frame = fs.frames.get(sensor)  # type: ignore[attr-defined]
-        if frame is None:
-            return None
-        r = self.ctx.pipeline.radiometry.get(sensor)
-        image = np.asarray(frame.image, dtype=np.float32)
-        return image if r is None else r.apply(image)
-
     def update_cloud(self) -> None:
         """Push the newest TOF points (in the in-use rig's TOF frame, metres) coloured by
         the chosen mode; hidden while there is no depth. Skips unchanged inputs."""
@@ -770,45 +507,7 @@ class Scene3D(Periodic):
             a is b for a, b in zip(key, self._cloud_key, strict=True)
         ):
             return
-        eye_name = fusion.eyes[0]
-        eye = p.rig.eyes[eye_name]
-        n = len(points)
-        legend = ""
-        if mode == "color":
-            frame = fs.frames.get(eye.color)
-            if frame is None:
-                pts, rgb = points, np.full((n, 3), NAN_GREY, np.uint8)
-                legend = f"colour camera {eye.color} missing"
-            else:
-                pts, rgb = fusion.point_cloud({eye_name: frame.image}, {}, "color")
-                legend = f"from {eye.color}"
-            self.cloud_span = None
-        elif mode == "temperature":
-            thermals = {
-                e: t
-                for e in fusion.eyes
-                if (t := self._thermal_k(fs, p.rig.eyes[e].thermal)) is not None
-            }
-            span = self._temperature_span(list(thermals.values()))
-            if eye_name not in thermals or span is None:
-                pts, rgb = points, np.full((n, 3), NAN_GREY, np.uint8)
-                legend = f"thermal imager {eye.thermal} missing"
-            else:
-                palette = p.settings.palette
-                pts, rgb = fusion.point_cloud(
-                    {}, {eye_name: thermals[eye_name]}, "temperature", span, palette
-                )
-                legend = (
-                    f"from {eye.thermal}, {span[0] - C_TO_K:.1f} to {span[1] - C_TO_K:.1f} °C"
-                    f" ({palette})"
-                )
-            self.cloud_span = span
-        else:
-            r = np.linalg.norm(np.asarray(points, dtype=np.float64), axis=1)
-            span = auto_span(r, step=1, min_span_k=0.01, default=(0.0, 1.0))
-            pts, rgb = fusion.point_cloud({}, {}, "depth", span, DEPTH_PALETTE)
-            legend = f"radial distance {span[0]:.2f} to {span[1]:.2f} m ({DEPTH_PALETTE})"
-            self.cloud_span = span
+        pts, rgb, legend, self.cloud_span = coloured_cloud(p, fs, mode)
         pts = np.asarray(pts, dtype=np.float32)
         finite = np.isfinite(pts).all(axis=1)
         if not finite.all():
@@ -840,8 +539,8 @@ class Scene3D(Periodic):
 
     def update_textures(self) -> None:
         """Each displayed sensor's picture on the image panel shows its newest image
-        (<= TEXTURE_MAX_W px wide); a sensor without a frame in the newest set shows
-        none (its frame and name stay)."""
+        (:func:`~app.server.panels.scene_sensors.sensor_texture`); a sensor without a
+        frame in the newest set shows none (its frame and name stay)."""
         if not self.textures_on.value:
             return
         p = self.ctx.pipeline
@@ -854,63 +553,28 @@ class Scene3D(Periodic):
                 for n, f in frames.items()
                 if n in self.shown_rig and self.shown_rig[n].modality == "thermal"
             ]
-            span = self._temperature_span(thermals)
+            span = temperature_span(p, thermals)
         except (ValueError, KeyError, AttributeError):
             span = None
         palette = getattr(p.settings, "palette", "iron")
         for name, nodes in self.nodes.items():
-            frame = frames.get(name)
-            if frame is None or name not in self.shown_rig:
-                if nodes.shown_frame is not None:
-                    nodes.show_image(None)
-                    nodes.shown_frame = None
-                continue
-            if frame is nodes.shown_frame:
-                continue
-            try:
-                tex = sensor_texture(frame.image, nodes.modality, TEXTURE_MAX_W, span, palette)
-            except (ValueError, cv2.error) as exc:
-                self.errors[f"texture {name}"] = str(exc)
-                nodes.show_image(None)
-                nodes.shown_frame = None
-                continue
-            self.errors.pop(f"texture {name}", None)
-            nodes.show_image(tex)
-            nodes.shown_frame = frame
+            shown = frames.get(name) if name in self.shown_rig else None
+            why = nodes.show_frame(shown, span, palette)
+            if why is None:
+                self.errors.pop(f"texture {name}", None)
+            else:
+                self.errors[f"texture {name}"] = why
 
     # -- board -------------------------------------------------------------------------
 
     def update_board(self) -> None:
         """The board at the board watch's newest pose ``T_rig_board`` (rig in use; its
         ``latest_pose``, which may come before the other sensors' search ends), hidden
-        when that sighting has no pose; the folder says how far away, from which sensor,
-        who saw it and, from :data:`BOARD_LAG_SHOWN_S` on, how much older its frames are
-        than the cloud's."""
+        when that sighting has no pose (:meth:`BoardMarker.show
+        <app.server.panels.scene_board.BoardMarker.show>`)."""
         watch = self.ctx.board_watch
         latest = getattr(watch, "latest_pose", None) or getattr(watch, "latest", None)
-        lag_s = board_lag_s(latest, self.ctx.pipeline.latest_set)
-        if latest is self._sighting:
-            return
-        self._sighting = latest
-        T = None if latest is None else latest.T_rig_board
-        if T is None or np.shape(T) != (4, 4) or not np.isfinite(T).all():
-            self.board_node.visible = False
-            self.board_md.content = "Board: not detected"
-            return
-        T = np.asarray(T, dtype=np.float64)
-        self.board_node.wxyz = wxyz_of(T)
-        self.board_node.position = T[:3, 3].copy()
-        self.board_node.visible = True
-        dist = float(np.linalg.norm(T[:3, 3]))
-        text = f"Board: {dist:.2f} m away, pose from {getattr(latest, 'pose_sensor', '?')}"
-        seen = ", ".join(getattr(latest, "found", []) or [])
-        if not getattr(latest, "complete", True):
-            text += "; searching the other sensors"
-        elif seen:
-            text += f"; seen by {seen}"
-        if lag_s >= BOARD_LAG_SHOWN_S:  # detection is slower than the board may move
-            text += f" (in frames {lag_s:.1f} s older than the cloud)"
-        self.board_md.content = text
+        self.board_marker.show(latest, self.ctx.pipeline.latest_set)
 
     # -- the loop ----------------------------------------------------------------------
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, ConfigDict, Field
@@ -20,6 +20,8 @@ from app.server.runtime.thermal_balance import ThermalBalancer
 from calib.radiometry import MAX_TRIM_K
 from calib.rig import rig_to_dict
 from fusion.balance import BalanceEstimate
+from fusion.compose import DisplayMode, ThresholdDirection
+from fusion.palettes import PaletteName
 
 
 class FusionSettings(BaseModel):
@@ -27,11 +29,11 @@ class FusionSettings(BaseModel):
 
     model_config = ConfigDict(allow_inf_nan=False, extra="forbid")
 
-    mode: Literal["blend", "edges", "thermal", "threshold", "isotherm", "pip", "color"]
-    palette: Literal["iron", "rainbow", "white_hot", "black_hot", "arctic", "lava"]
+    mode: DisplayMode
+    palette: PaletteName
     opacity: float = Field(ge=0.0, le=1.0)
     threshold_k: tuple[float, float]
-    threshold_direction: Literal["above", "below", "inside"]
+    threshold_direction: ThresholdDirection
     isotherm_k: tuple[float, float]
     edge_strength: float = Field(ge=0.0, le=10.0)
     mark_fallback: bool
@@ -167,7 +169,9 @@ def make_api_router(pipeline: FusionPipeline, balancer: ThermalBalancer | None =
 
     @router.get("/thermal")
     def get_thermal() -> Thermal:
-        """Span, smoothing, each imager's radiometry and the live balance."""
+        """Span, smoothing, each imager's radiometry and the live balance (a client asking
+        for it is listening: the balance is measured for the next few seconds)."""
+        pipeline.touch_demand()
         return thermal()
 
     @router.put("/thermal", dependencies=[Depends(require_json)])

@@ -5,7 +5,7 @@ app) refuses a request whose body is larger than ``max_bytes`` with 413 and a JS
 ``detail``: at once when its ``Content-Length`` says so (the body is never read), and while
 a body without one (chunked) streams in, as soon as more than ``max_bytes`` arrived. Only
 HTTP requests are limited: WebSocket messages have their own limits (push ingest:
-``app.sources.push.DEFAULT_MAX_MESSAGE_BYTES`` and uvicorn's ``ws_max_size``).
+``app.sources.push.protocol.DEFAULT_MAX_MESSAGE_BYTES`` and uvicorn's ``ws_max_size``).
 
 :func:`require_json` is a route dependency: a route taking a JSON body answers 415 with
 what it expected when the body is sent as something else (form data, text, no type), and

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, ConfigDict, Field
@@ -36,6 +36,33 @@ from calib.rig import Rig, rig_to_dict
 # than a file name can hold is no name of this session either).
 _VIEW_NAME = re.compile(r"[0-9]{4,20}")
 _VERSION_NAME = re.compile(r"rig-[0-9]{4,20}")
+
+
+T = TypeVar("T")
+
+
+def _answer(
+    fn: Callable[[], T],
+    conflicts: tuple[type[Exception], ...] = (SessionError,),
+    not_found: bool = False,
+) -> T:
+    """``fn()``; its ``conflicts`` answer 409 with their message and, with ``not_found``,
+    a KeyError 404 with its message."""
+    try:
+        return fn()
+    except KeyError as exc:
+        if not not_found:
+            raise
+        raise HTTPException(404, exc.args[0]) from None
+    except conflicts as exc:
+        raise HTTPException(409, str(exc)) from None
+
+
+def _finished_report(job: CalibrationJob | RangeJob, what: str) -> dict[str, Any]:
+    """A finished job's report, else 404 naming ``what`` and the job's state."""
+    if job.state != "done" or job.report is None:
+        raise HTTPException(404, f"no finished {what} (state: {job.state})")
+    return job.report
 
 
 def _checked(name: str, pattern: re.Pattern[str], what: str, example: str) -> str:
@@ -114,17 +141,20 @@ def view_model(v: ViewInfo) -> View:
     )
 
 
+_JOB_FIELDS = ("state", "stage", "progress", "views", "error", "saved_as")
+"""What :class:`Job` and :class:`RangeStatus` take from their job as it is."""
+
+
+def _job_fields(job: CalibrationJob | RangeJob) -> dict[str, Any]:
+    return {name: getattr(job, name) for name in _JOB_FIELDS}
+
+
 def job_model(job: CalibrationJob) -> Job:
-    end = job.finished
+    end, start = job.finished, job.started
     return Job(
-        state=job.state,
-        stage=job.stage,
-        progress=job.progress,
-        views=job.views,
-        error=job.error,
+        **_job_fields(job),
         rms_px=job.result.rms_px if job.result is not None else None,
-        seconds=(end - job.started) if end is not None and job.started is not None else None,
-        saved_as=job.saved_as,
+        seconds=(end - start) if end is not None and start is not None else None,
     )
 
 
@@ -148,15 +178,8 @@ class RangeStart(BaseModel):
 
 
 def range_model(job: RangeJob) -> RangeStatus:
-    return RangeStatus(
-        state=job.state,
-        stage=job.stage,
-        progress=job.progress,
-        views=job.views,
-        error=job.error,
-        holdout=[e.to_dict() for e in job.run.holdout] if job.run is not None else None,
-        saved_as=job.saved_as,
-    )
+    holdout = [e.to_dict() for e in job.run.holdout] if job.run is not None else None
+    return RangeStatus(**_job_fields(job), holdout=holdout)
 
 
 def version_model(v: RigVersion) -> Version:
@@ -204,42 +227,57 @@ def make_session_router(
         frames = latest()
         if frames is None:
             raise HTTPException(409, "no frames yet: the source has not delivered any")
-        try:
-            return view_model(session.take(frames))
-        except SessionError as exc:
-            raise HTTPException(409, str(exc)) from None
+        return view_model(_answer(lambda: session.take(frames)))
 
     @router.delete("/captures/{name}")
     def delete_capture(name: str) -> dict[str, str]:
         """Move a view out of the capture (into the work directory's ``deleted/``)."""
         _checked(name, _VIEW_NAME, "view", "0001")
-        try:
-            moved = session.delete(name)
-        except KeyError as exc:
-            raise HTTPException(404, exc.args[0]) from None
-        except SessionError as exc:
-            raise HTTPException(409, str(exc)) from None
+        moved = _answer(lambda: session.delete(name), not_found=True)
         return {"deleted": name, "moved_to": str(moved)}
 
     @router.post("/calibrate", status_code=202)
     def start_calibration() -> Job:
         """Calibrate every captured view in the background; poll ``GET /api/calibrate``."""
-        try:
-            return job_model(session.start_calibration())
-        except SessionError as exc:
-            raise HTTPException(409, str(exc)) from None
+        return job_model(_answer(session.start_calibration))
 
-    @router.get("/calibrate")
-    def calibration_status() -> Job:
-        return job_model(session.job)
+    def job_routes(
+        path: str,
+        name: str,
+        job: Callable[[], CalibrationJob | RangeJob],
+        model: Callable[[Any], BaseModel],
+        status: type[BaseModel],
+        what: str,
+        report: str,
+    ) -> None:
+        """``GET path`` (``<name>_status``): the job's state; ``GET path/result``
+        (``<name>_result``): the report of the finished ``what`` (``report`` describes it),
+        404 before."""
+        router.add_api_route(
+            path,
+            lambda: model(job()),
+            methods=["GET"],
+            name=f"{name}_status",
+            response_model=status,
+        )
+        router.add_api_route(
+            f"{path}/result",
+            lambda: _finished_report(job(), what),
+            methods=["GET"],
+            name=f"{name}_result",
+            response_model=dict[str, Any],
+            description=report,
+        )
 
-    @router.get("/calibrate/result")
-    def calibration_result() -> dict[str, Any]:
-        """The finished calibration's report (``report.json`` layout, docs/FORMATS.md)."""
-        job = session.job
-        if job.state != "done" or job.report is None:
-            raise HTTPException(404, f"no finished calibration (state: {job.state})")
-        return job.report
+    job_routes(
+        "/calibrate",
+        "calibration",
+        lambda: session.job,
+        job_model,
+        Job,
+        "calibration",
+        "The finished calibration's report (``report.json`` layout, docs/FORMATS.md).",
+    )
 
     @router.post("/range", status_code=202, dependencies=[Depends(require_json)])
     def start_range(body: RangeStart | None = None) -> RangeStatus:
@@ -247,33 +285,23 @@ def make_session_router(
         board poses); poll ``GET /api/range``."""
         if rig_in_use is None:
             raise HTTPException(409, "no rig to calibrate the range with")
-        try:
-            job = session.start_range_calibration(
-                rig_in_use(), (body or RangeStart()).holdout_every
-            )
-        except SessionError as exc:
-            raise HTTPException(409, str(exc)) from None
-        return range_model(job)
+        every = (body or RangeStart()).holdout_every
+        return range_model(_answer(lambda: session.start_range_calibration(rig_in_use(), every)))
 
-    @router.get("/range")
-    def range_status() -> RangeStatus:
-        return range_model(session.range_job)
-
-    @router.get("/range/result")
-    def range_result() -> dict[str, Any]:
-        """The finished range calibration's report (``range.json`` layout)."""
-        job = session.range_job
-        if job.state != "done" or job.report is None:
-            raise HTTPException(404, f"no finished range calibration (state: {job.state})")
-        return job.report
+    job_routes(
+        "/range",
+        "range",
+        lambda: session.range_job,
+        range_model,
+        RangeStatus,
+        "range calibration",
+        "The finished range calibration's report (``range.json`` layout).",
+    )
 
     @router.post("/range/save", status_code=201)
     def save_range() -> Version:
         """Save the rig with the fitted range correction as a new rig version."""
-        try:
-            return version_model(session.save_range())
-        except SessionError as exc:
-            raise HTTPException(409, str(exc)) from None
+        return version_model(_answer(session.save_range))
 
     @router.post("/thermal/save", status_code=201)
     def save_radiometry() -> Version:
@@ -291,31 +319,18 @@ def make_session_router(
     @router.post("/rigs", status_code=201)
     def save_version() -> Version:
         """Save the finished calibration as a new rig version (never overwrites one)."""
-        try:
-            return version_model(session.save())
-        except SessionError as exc:
-            raise HTTPException(409, str(exc)) from None
+        return version_model(_answer(session.save))
 
     @router.get("/rigs/{name}")
     def get_version(name: str) -> dict[str, Any]:
         _checked(name, _VERSION_NAME, "saved rig", "rig-0001")
-        try:
-            return rig_to_dict(session.load_version(name))
-        except KeyError as exc:
-            raise HTTPException(404, exc.args[0]) from None
-        except RigError as exc:
-            raise HTTPException(409, str(exc)) from None
+        return rig_to_dict(_answer(lambda: session.load_version(name), (RigError,), True))
 
     @router.post("/rigs/{name}/use")
     def use_version(name: str) -> dict[str, str]:
         """Fuse with a saved rig from the next frame on."""
         _checked(name, _VERSION_NAME, "saved rig", "rig-0001")
-        try:
-            use_rig(session.load_version(name))
-        except KeyError as exc:
-            raise HTTPException(404, exc.args[0]) from None
-        except (RigError, ValueError) as exc:
-            raise HTTPException(409, str(exc)) from None
+        _answer(lambda: use_rig(session.load_version(name)), (RigError, ValueError), True)
         return {"in_use": name}
 
     return router

@@ -154,9 +154,11 @@ def make_source_router(
 
     @router.get("/status")
     def status() -> Status:
-        """The source, per-sensor rates, the fused stream, viewers and the recording."""
+        """The source, per-sensor rates, the fused stream, viewers and the recording. A
+        client asking for it is listening: the console fuses for the next few seconds."""
         if control is None:
             return Status(viewers=hub.viewers, frames_out=0, fps=0.0, missing={}, error=None)
+        control.pipeline.touch_demand()
         s = control.pipeline.status
         rates = control.stream_rates()
         return Status(

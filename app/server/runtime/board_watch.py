@@ -39,6 +39,10 @@ up to 3.8 s before; now no later than the cloud (median), 0.4 s at worst: BENCHM
   (:func:`board_in_image`).
 - While the last pass found the board nowhere, complete passes are ``idle_period_s``
   apart and the pose loop rests (a failed search costs the most).
+- **Only while someone looks.** Given a ``demand`` (:mod:`app.server.runtime.demand`), both
+  loops search only while it is wanted: in the console, while a Viser client is connected
+  (the Calibration panel, the feeds' corners, the 3D board) or auto-capture is on. A
+  search that failed the inspection room's every colour frame cost a quarter of a core.
 
 Which squares read hot or dark in a thermal or TOF image depends on the board
 (calib.polarity): the images are searched with ``board.yaml``'s polarity keys when it sets
@@ -61,6 +65,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from app.server.runtime.demand import Demand
 from app.server.runtime.periodic import Periodic
 from app.sources.frames import FrameSet
 from calib.board import Board
@@ -421,8 +426,12 @@ class _PoseLoop(Periodic):
     """The board watch's second thread: :meth:`BoardWatch.pose_tick` every ``poll_s``."""
 
     def __init__(self, watch: BoardWatch, poll_s: float) -> None:
-        super().__init__("board-pose", poll_s)
+        super().__init__("board-pose", poll_s, watch.demand)
         self.watch = watch
+
+    def record_error(self, exc: BaseException, where: str | None = None) -> str:
+        """Recorded as the watch's error."""
+        return self.watch.record_error(exc, where or "pose loop")
 
     def tick(self) -> None:
         self.watch.pose_tick()
@@ -453,6 +462,7 @@ class BoardWatch(Periodic):
             of its thread's time).
         poll_s: how often the loops look for a new frame set.
         detect: the detector (tests pass a stand-in).
+        demand: search only while it is wanted (None: always).
 
     Attributes:
         latest: the newest complete sighting (Feeds panel, auto-capture).
@@ -462,7 +472,8 @@ class BoardWatch(Periodic):
         timings: the last 600 complete passes' :class:`PassTiming`.
         pose_timings: the last 600 pose-loop passes' :class:`PassTiming` (``pass_s`` is
             the time to the pose).
-        error: the last pass's failure, or None.
+        last_error: the newest failure of a pass or a pose listener, or None
+            (:class:`~app.server.runtime.periodic.Periodic`).
 
     ``enabled`` may be set False to pause detection (nothing else changes).
     """
@@ -478,8 +489,9 @@ class BoardWatch(Periodic):
         duty: float = 0.5,
         poll_s: float = 0.05,
         detect: Detector = detect_board_configured,
+        demand: Demand | None = None,
     ) -> None:
-        super().__init__("board-watch", poll_s)
+        super().__init__("board-watch", poll_s, demand)
         if not (rate_hz > 0 and 0 < duty <= 1 and poll_s > 0):
             raise ValueError(
                 f"board watch: expected rate_hz > 0, 0 < duty <= 1 and poll_s > 0, got "
@@ -495,7 +507,6 @@ class BoardWatch(Periodic):
         self.latest: BoardSighting | None = None
         self.latest_pose: BoardSighting | None = None
         self.pose_listeners: list[Callable[[BoardSighting], None]] = []
-        self.error: str | None = None
         self.timings: deque[PassTiming] = deque(maxlen=600)
         self.pose_timings: deque[PassTiming] = deque(maxlen=600)
         self._looks = LookCache(board, detect)
@@ -540,7 +551,7 @@ class BoardWatch(Periodic):
             try:
                 listener(s)
             except Exception as exc:  # a listener's bug must not stop the detection
-                self.error = f"pose listener: {type(exc).__name__}: {exc}"
+                self.record_error(exc, "pose listener")
         return True
 
     def _pause_after(self, started: float, done: float) -> float:
@@ -617,21 +628,17 @@ class BoardWatch(Periodic):
                 if self._publish_pose(p):
                     self._pose_at = (time.monotonic() - started, self._age_s(p.frames))
 
-            try:
-                s = sighting(
-                    fs,
-                    self.rig,
-                    self.board,
-                    previous,
-                    self._pool,
-                    on_pose=early,
-                    full_search=allowed,
-                    detect=self.detect,
-                    looker=self._looks,
-                )
-            except Exception as exc:  # shown in the panel; the watch keeps running
-                self.error = f"{type(exc).__name__}: {exc}"
-                return
+            s = sighting(  # an exception is recorded by Periodic; the watch keeps running
+                fs,
+                self.rig,
+                self.board,
+                previous,
+                self._pool,
+                on_pose=early,
+                full_search=allowed,
+                detect=self.detect,
+                looker=self._looks,
+            )
             done = time.monotonic()
             self._next_start = self._pause_after(started, done)
             for name in allowed:
@@ -639,7 +646,6 @@ class BoardWatch(Periodic):
                 if det is not None and det.reason is not None:
                     if "(half resolution)" not in det.reason:
                         self._full_due[name] = done + FULL_SEARCH_PERIOD_S
-            self.error = None
             self.latest = s
             took = done - started
             if self._publish_pose(s) and self._pose_at is None and s.T_rig_board is not None:

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import viser
 
 from app.server.runtime.board_watch import BoardWatch
+from app.server.runtime.demand import ConsoleDemand
 from app.server.runtime.pipeline import FusionPipeline
 from app.server.runtime.stream import FrameHub
 from app.server.runtime.thermal_balance import ThermalBalancer
@@ -34,6 +35,8 @@ class ConsoleContext:
             truth"``, saved versions ...); the calibration session extends it.
         balancer: the thermal balance estimation (None: not running).
         save_rig: writes a rig (and its report) as the session's next rig version.
+        demand: who wants the console's background work now (fused pictures, the board
+            search, the GUI's updates): the parts hold or touch it (demand.py).
     """
 
     server: viser.ViserServer
@@ -47,6 +50,7 @@ class ConsoleContext:
     rig_choices: Callable[[], dict[str, Rig]] = field(default=lambda: {})
     balancer: ThermalBalancer | None = None
     save_rig: Callable[[Rig, dict], RigVersion] | None = None
+    demand: ConsoleDemand = field(default_factory=ConsoleDemand)
 
     def use_rig(self, rig: Rig) -> None:
         """Fuse with, detect with and show ``rig`` from now on (ValueError: wrong sensors)."""

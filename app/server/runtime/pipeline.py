@@ -29,6 +29,15 @@ pictures per second, :class:`app.server.runtime.rates.StreamRates`). Only arrays
 ``flags.writeable`` False count as unchanged, so a source that refills its buffers in place
 is fused every frame. Likewise, a TOF frame whose distance array is the previous one (same
 read-only object) does not recompute the mapping.
+
+Work on demand (:mod:`app.server.runtime.demand`): given a ``demand``, the pipeline fuses,
+maps depth and encodes only while it is wanted (a stream viewer, a Viser client, a REST
+client of the status). Otherwise it still drains the source and groups its frames into
+sets (``latest_set``, the missing sensors and the sensors' health stay current; the
+source never backs up), but makes no picture; the stream forgets its last picture (it
+would be stale). When the demand turns wanted, the newest frame set is fused at once (a
+new viewer waits at most one frame period; a paused replay shows its picture again), the
+depth from the newest TOF frame seen. Without a ``demand`` every frame set is fused.
 """
 
 from __future__ import annotations
@@ -44,9 +53,11 @@ from typing import Any
 import cv2
 import numpy as np
 
+from app.errors import describe_error
+from app.server.runtime.demand import Demand
 from app.server.runtime.stream import FrameHub
 from app.sources.base import FrameSetAssembler, FrameSource
-from app.sources.frames import FrameSet
+from app.sources.frames import Frame, FrameSet
 from calib.radiometry import Radiometry
 from calib.rig import Rig
 from fusion.compose import DisplaySettings
@@ -113,11 +124,13 @@ def _unchanged(a: np.ndarray | None, b: np.ndarray | None) -> bool:
 @dataclass
 class _Job:
     """One frame for the encoder: a BGR picture to encode, or None to publish the
-    previous JPEG again, with the frame's metadata."""
+    previous JPEG again, with the frame's metadata; or, with ``forget``, the stream
+    forgets its picture (the pipeline rests)."""
 
     meta: dict[str, Any]
     bgr: np.ndarray | None = None
     quality: int = 80
+    forget: bool = False
 
 
 class _StreamEncoder:
@@ -185,6 +198,10 @@ class _StreamEncoder:
             if job is None:
                 return
             try:
+                if job.forget:
+                    self._jpeg = None
+                    self.hub.forget()
+                    continue
                 if job.bgr is not None:
                     ok, buf = cv2.imencode(".jpg", job.bgr, [cv2.IMWRITE_JPEG_QUALITY, job.quality])
                     self._jpeg = buf.tobytes() if ok else None
@@ -193,14 +210,18 @@ class _StreamEncoder:
                     self.status.frames_out += 1
                     self.status.pictures_out += job.bgr is not None
             except Exception as exc:  # shown in the status; the next frame is tried
-                self.status.error = f"{type(exc).__name__}: {exc}"
+                self.status.error = describe_error(exc)
             finally:
                 if job.bgr is not None:
                     self._free.put(job.bgr)
 
 
 class FusionPipeline:
-    """Fuses a source's frames into the stereo stream, in background threads."""
+    """Fuses a source's frames into the stereo stream, in background threads.
+
+    Args:
+        demand: fuse only while it is wanted (see the module doc); None: always.
+    """
 
     def __init__(
         self,
@@ -210,8 +231,10 @@ class FusionPipeline:
         settings: DisplaySettings | None = None,
         jpeg_quality: int = 80,
         tolerance_s: float = 0.05,
+        demand: Demand | None = None,
     ) -> None:
         self.source, self.hub = source, hub
+        self.demand = demand
         self.settings = settings or DisplaySettings()
         self.jpeg_quality = jpeg_quality
         self.tolerance_s = tolerance_s
@@ -227,6 +250,11 @@ class FusionPipeline:
         self._stop = threading.Event()
         self._encoder = _StreamEncoder(hub, self.status, self._stop)
         self._thread = threading.Thread(target=self._run, name="fusion", daemon=True)
+        self._fuse_lock = threading.Lock()  # one frame set at a time (fusion, catch-up)
+        self._fused_set: FrameSet | None = None  # the last set handed to _publish
+        self._resting = False  # frame sets arrived unwanted: the stream was told to forget
+        if demand is not None:
+            demand.on_wanted.append(self._catch_up)
 
     def _init_rig(self, rig: Rig) -> None:
         """Everything that depends on the rig: the fusion, the frame-set assembly, the
@@ -234,7 +262,7 @@ class FusionPipeline:
         self.rig = rig
         self.fusion = StereoFusion(rig)
         left, right = rig.eyes["left"], rig.eyes["right"]
-        self.tof = self.fusion.fusion["left"].forward.tof
+        self.tof = self.fusion.tof
         sensors = [left.color, right.color, left.thermal, right.thermal, self.tof]
         self.assembler = FrameSetAssembler(
             sensors, reference=left.color, tolerance_s=self.tolerance_s, fallback=right.color
@@ -244,7 +272,7 @@ class FusionPipeline:
         # A rig's own radiometry replaces the imager's current one; without it, the live
         # balance and trims stay (e.g. a new geometric calibration keeps the balance).
         self.radiometry = {
-            s: Radiometry.of(rig[s]) or self.radiometry.get(s, Radiometry()) for s in thermals
+            s: rig[s].radiometry or self.radiometry.get(s, Radiometry()) for s in thermals
         }
         self._no_thermal = {
             e: np.full(rig[rig.eyes[e].thermal].image_size[::-1], np.nan, np.float32) for e in EYES
@@ -255,6 +283,7 @@ class FusionPipeline:
         for a in (*self._no_thermal.values(), *self._no_color.values()):
             a.flags.writeable = False
         self._last_tof_ns: int | None = None
+        self._newest_tof: Frame | None = None  # the newest TOF frame seen, fused or not
         self._last_distance: np.ndarray | None = None
         self._depth_version = 0  # counts mapping updates: part of what a picture is made of
         self._color_seen: dict[str, int] = {}  # eye -> stamp of the last set with its colour
@@ -286,27 +315,79 @@ class FusionPipeline:
         self._thread.join(timeout_s)
         self._encoder.close(timeout_s)
 
+    @property
+    def wanted(self) -> bool:
+        """Whether pictures are wanted now (always without a demand)."""
+        return self.demand is None or self.demand.wanted
+
+    def touch_demand(self) -> None:
+        """A request-response client wants pictures for the next few seconds
+        (:meth:`Demand.touch <app.server.runtime.demand.Demand.touch>`; REST routes)."""
+        if self.demand is not None:
+            self.demand.touch()
+
     def _run(self) -> None:
         try:
             for frame in self.source.frames():
                 if self._stop.is_set():
                     return
                 for fs in self.assembler.push(frame):
-                    self._publish(fs)
+                    self._arrived(fs)
         except Exception as exc:  # shown in the status, the server keeps running
-            self.status.error = f"{type(exc).__name__}: {exc}"
+            self.status.error = describe_error(exc)
         finally:
             self._encoder.close()
 
-    def _publish(self, fs: FrameSet) -> bool:
-        """Fuse one frame set and hand it to the encoder; False if it makes no picture."""
-        rig, self._pending_rig = self._pending_rig, None
-        if rig is not None:
-            self._init_rig(rig)
+    def _arrived(self, fs: FrameSet) -> None:
+        """A new frame set: noted always, fused while wanted."""
+        with self._fuse_lock:
+            rig, self._pending_rig = self._pending_rig, None
+            if rig is not None:
+                self._init_rig(rig)
+            self._note(fs)
+            if self.wanted:
+                self._publish(fs)
+            elif not self._resting:  # the last picture would soon be stale: forget it
+                self._resting, self._made_of = True, None
+                self._encoder.submit(_Job({}, forget=True))
+
+    def _catch_up(self) -> None:
+        """The demand turned wanted: fuse the newest frame set now, in a thread of its own
+        (the fusion thread may be waiting for the source: a paused replay)."""
+        if self._thread.is_alive() and not self._stop.is_set():
+            threading.Thread(target=self._fuse_newest, name="fusion-catch-up", daemon=True).start()
+
+    def _fuse_newest(self) -> None:
+        with self._fuse_lock:
+            fs = self.latest_set
+            if fs is not None and fs is not self._fused_set and self.wanted:
+                try:
+                    self._publish(fs)
+                except Exception as exc:  # shown in the status, like the fusion thread's
+                    self.status.error = describe_error(exc)
+
+    def _note(self, fs: FrameSet) -> None:
+        """What every frame set updates, fused or not: the newest set, the status, the
+        newest TOF frame, when each eye's colour camera was last in a set."""
         self.latest_set = fs
         self.status.missing = dict(fs.missing)
         self.status.last_stamp_ns = fs.stamp_ns
         tof = fs.frames.get(self.tof)
+        if tof is not None:
+            self._newest_tof = tof
+        eyes = self.rig.eyes
+        seen = [e for e in EYES if eyes[e].color in fs.frames]
+        if seen:
+            for e in EYES:
+                self._color_seen.setdefault(e, fs.stamp_ns)  # not yet: since the first set
+            for e in seen:
+                self._color_seen[e] = fs.stamp_ns
+
+    def _publish(self, fs: FrameSet) -> bool:
+        """Fuse one frame set (noted) and hand it to the encoder; False if it makes no
+        picture."""
+        self._fused_set, self._resting = fs, False
+        tof = self._newest_tof
         if tof is not None and tof.stamp_ns != self._last_tof_ns and tof.distance_m is not None:
             if not _unchanged(tof.distance_m, self._last_distance):
                 self.fusion.update_depth(tof.distance_m, tof.image)
@@ -318,10 +399,8 @@ class FusionPipeline:
         if not colors:
             return False
         for e in EYES:
-            seen = self._color_seen.setdefault(e, fs.stamp_ns)  # not yet: since the first set
-            if e in colors:
-                self._color_seen[e] = fs.stamp_ns
-            elif abs(fs.stamp_ns - seen) <= COLOR_GONE_S * 1e9:
+            seen = self._color_seen.get(e, fs.stamp_ns)
+            if e not in colors and abs(fs.stamp_ns - seen) <= COLOR_GONE_S * 1e9:
                 return False  # a late frame: wait for the next set rather than flash black
         colors = {e: colors.get(e, self._no_color[e]) for e in EYES}  # a dead camera: black
         thermals = {
@@ -389,7 +468,7 @@ class FusionPipeline:
             try:
                 meta["health"] = dict(notes())
             except Exception as exc:  # the picture goes out whatever the report does
-                meta["health"] = {"console": f"health unavailable: {type(exc).__name__}: {exc}"}
+                meta["health"] = {"console": f"health unavailable: {describe_error(exc)}"}
         return meta
 
     def kelvin(self, sensor: str, image: np.ndarray) -> np.ndarray:
@@ -422,7 +501,7 @@ class FusionPipeline:
 
     def rig_with_radiometry(self) -> Rig:
         """A copy of the rig in use whose thermal imagers carry their current radiometry."""
-        sensors = dict(self.rig.sensors)
+        rig = self.rig
         for name, r in self.radiometry.items():
-            sensors[name] = dataclasses.replace(sensors[name], radiometry=r.to_dict())
-        return dataclasses.replace(self.rig, sensors=sensors)
+            rig = rig.with_sensor(dataclasses.replace(rig[name], radiometry=r))
+        return rig

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import uvicorn
 
+from app.recording.open_source import OpenedSource, simulated_source
 from app.server.panels.calibration import CalibrationPanel
 from app.server.panels.display import Panels
 from app.server.panels.precision import PrecisionPanel
@@ -25,55 +26,13 @@ from app.server.routers.session_api import make_session_router
 from app.server.routers.viser_bridge import start_guarded_viser
 from app.server.runtime.board_watch import BoardWatch
 from app.server.runtime.context import ConsoleContext
+from app.server.runtime.demand import ConsoleDemand, hold_while_connected
 from app.server.runtime.pipeline import FusionPipeline
 from app.server.runtime.source_control import SourceControl, SourceTap
 from app.server.runtime.stream import FrameHub
 from app.server.runtime.thermal_balance import ThermalBalancer
-from app.sources.base import FrameSource
-from app.storage.rigfile import load_rig
 from app.workflows.calib_session import CalibrationSession
 from calib.board import Board
-from calib.rig import Rig
-
-SCENARIOS = ("inspection", "calibration")
-
-
-@dataclass
-class OpenedSource:
-    """A source for the console, the rig to fuse with, and what to tell the operator."""
-
-    source: FrameSource
-    rig: Rig
-    description: str
-    ground_truth_rig: Rig | None = None
-
-
-def simulated_source(scenario: str, board_poses: int = 40, hold_s: float = 3.0):
-    """The simulated head as the console shows it: ``(source, description)``.
-
-    Args:
-        scenario: ``inspection`` (the panning room, live quality) or ``calibration`` (the
-            heated board held at ``board_poses`` poses for ``hold_s`` seconds each, looping;
-            accurate quality).
-    """
-    from app.sources.simulated import SimulatedHeadSource
-
-    if scenario == "calibration":
-        from app.sources.sim.scenarios import CalibrationScenario
-
-        cal = CalibrationScenario(n_poses=board_poses, hold_s=hold_s)
-        src = SimulatedHeadSource(
-            cal, realtime=True, render_hz=1.0 / cal.hold_s, loop_s=cal.loop_s, start_ns=None
-        )
-        return src, (
-            f"the simulated head (calibration: {cal.n_poses} board poses, "
-            f"{cal.hold_s:g} s each, looping)"
-        )
-    if scenario == "inspection":
-        return SimulatedHeadSource(realtime=True, start_ns=None), (
-            "the simulated head (inspection room)"
-        )
-    raise ValueError(f"scenario: expected one of {', '.join(SCENARIOS)}, got {scenario!r}")
 
 
 def warm_simulator_cache(scenarios: dict[str, dict], timeout_s: float = 1800.0) -> None:
@@ -97,43 +56,6 @@ def warm_simulator_cache(scenarios: dict[str, dict], timeout_s: float = 1800.0) 
     finally:
         for src in sources:
             src.close()
-
-
-def open_source(
-    replay: str | None,
-    live: str | None,
-    push: bool,
-    rig_path: str | None,
-    scenario: str = "inspection",
-    board_poses: int = 40,
-    hold_s: float = 3.0,
-) -> OpenedSource:
-    """The source the console shows, its rig, and a one-line description (``board_poses``
-    and ``hold_s``: the simulated calibration scenario's, see :func:`simulated_source`)."""
-    rig = load_rig(rig_path) if rig_path else None
-    if replay:
-        from app.recording import ReplaySource
-
-        src = ReplaySource(Path(replay), loop=True, realtime=True)
-        rig = rig or src.rig
-        if rig is None:
-            src.close()
-            raise ValueError(f"{replay}: the recording holds no rig; give one with --rig")
-        return OpenedSource(src, rig, f"replay of {replay} (looping)")
-    if live:
-        from app.sources.camera import CameraSource
-
-        if rig is None:
-            raise ValueError("--live needs --rig RIG.yaml (cameras do not know their calibration)")
-        return OpenedSource(CameraSource(Path(live), rig=rig), rig, f"live cameras of {live}")
-    if push:
-        from app.sources.push import PushSource
-        from app.sources.sim.head import default_rig
-
-        rig = rig or default_rig()
-        return OpenedSource(PushSource(rig), rig, "frames pushed to /ingest")
-    src, what = simulated_source(scenario, board_poses, hold_s)
-    return OpenedSource(src, rig or src.rig, what, ground_truth_rig=src.rig)
 
 
 def bind_public_socket(host: str, port: int) -> socket.socket:
@@ -207,12 +129,17 @@ def serve(
     except BaseException:
         source.close()
         raise
-    hub = FrameHub()
+    demand = ConsoleDemand()  # who listens: the work is done only then (demand.py)
+    hub = FrameHub(demand.fusion)  # each stream viewer holds it
     tap = SourceTap(source)  # per-sensor rates and recording (source_control.py)
-    pipeline = FusionPipeline(tap, rig, hub).start()
+    pipeline = FusionPipeline(tap, rig, hub, demand=demand.fusion).start()
     server, viser_secret = start_guarded_viser()
-    watch = BoardWatch(lambda: pipeline.latest_set, rig, board)
-    balancer = ThermalBalancer(pipeline)
+    # A Viser client wants the GUI's updates, the fused depth and the balance (3D cloud,
+    # Thermal panel) and the board search (Calibration panel, feeds, 3D board): Viser does
+    # not tell which folder a browser has open.
+    hold_while_connected(server, demand.gui, demand.fusion, demand.board)
+    watch = BoardWatch(lambda: pipeline.latest_set, rig, board, demand=demand.board)
+    balancer = ThermalBalancer(pipeline)  # while demand.fusion is wanted
     ctx = ConsoleContext(
         server=server,
         source=source,
@@ -224,15 +151,21 @@ def serve(
         ground_truth_rig=opened.ground_truth_rig,
         balancer=balancer,
         save_rig=session.save_rig,
+        demand=demand,
     )
     control = SourceControl(pipeline, hub, opened.description, workdir)
+    panels = [
+        SourcePanel(ctx, control),  # first: the Source panel tops the GUI
+        CalibrationPanel(ctx, session),  # holds demand.board while auto-capture is on
+        Scene3D(ctx),
+        RangePanel(ctx, session),
+        Panels(ctx),
+    ]
+    for panel in panels:
+        panel.demand = demand.gui  # updated only while a Viser client is connected
     parts = [
-        SourcePanel(ctx, control).start(),  # first: the Source panel tops the GUI
-        CalibrationPanel(ctx, session).start(),
+        *(panel.start() for panel in panels),
         watch.start(),
-        Scene3D(ctx).start(),
-        RangePanel(ctx, session).start(),
-        Panels(ctx).start(),
         balancer.start(),
         PrecisionPanel(ctx).start(),
     ]
@@ -248,7 +181,8 @@ def serve(
         )
     )
     ws_max = None
-    from app.sources.push import PushSource, make_push_router, uvicorn_ws_max_size
+    from app.sources.push.router import make_push_router, uvicorn_ws_max_size
+    from app.sources.push.source import PushSource
 
     if isinstance(source, PushSource):
         app.include_router(make_push_router(source))

@@ -44,6 +44,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from app.errors import describe_error
 from app.recording.errors import RecordingError
 from app.recording.writer import RecordingWriter, recover_interrupted
 from app.server.runtime.pipeline import FusionPipeline
@@ -246,7 +247,7 @@ class _Session:
             try:
                 self._write(item)
             except Exception as exc:  # disk full, I/O error: keep what was written
-                self.error = f"{type(exc).__name__}: {exc}"
+                self.error = describe_error(exc)
                 log.error("recording stopped writing: %s", self.error)
                 self.accepting = False
                 with contextlib.suppress(Exception):
@@ -254,7 +255,7 @@ class _Session:
         try:
             self._finish_file()
         except Exception as exc:
-            self.error = self.error or f"{type(exc).__name__}: {exc}"
+            self.error = self.error or describe_error(exc)
             log.error("recording could not be finished: %s", self.error)
 
     # -- reporting ----------------------------------------------------------------------
@@ -273,19 +274,11 @@ class _Session:
         for f in self.files:
             with contextlib.suppress(OSError):
                 size += f.stat().st_size
-        return RecordingState(
-            available=True,
-            active=True,
-            path=path,
-            size_bytes=size,
-            duration_s=duration,
-            frames_written=written,
-            frames_dropped=self.dropped,
-            frames_rejected=self.rejected,
-            queued=self.queue.qsize(),
-            files=[str(f) for f in self.files],
-            error=self.error or self.last_reject,
-        )
+        state = RecordingState(True, True, path, size, duration, files=[str(f) for f in self.files])
+        state.frames_written, state.frames_dropped = written, self.dropped
+        state.frames_rejected, state.queued = self.rejected, self.queue.qsize()
+        state.error = self.error or self.last_reject
+        return state
 
 
 class Recorder:
@@ -475,7 +468,7 @@ class SourceState:
 def kind_of(source: FrameSource) -> SourceKind:
     """``replay`` (recordings, ROS 2 bags), ``simulated``, ``push`` or ``live``."""
     from app.recording.player import MessageReplay
-    from app.sources.push import PushSource
+    from app.sources.push.source import PushSource
     from app.sources.simulated import SimulatedHeadSource
 
     if isinstance(source, MessageReplay):

@@ -8,6 +8,9 @@ The hub measures the stream (:class:`app.server.runtime.rates.StreamRates`): fra
 new pictures per second over the last few seconds. Each frame's metadata carries these
 figures (``rates``), so the viewer shows the same numbers as the Source panel and
 ``/api/status``, next to the rate at which it receives frames itself.
+
+Each viewer holds the hub's :attr:`FrameHub.demand` while connected (:meth:`FrameHub.watching`):
+the console fuses and encodes only while someone listens (:mod:`app.server.runtime.demand`).
 """
 
 from __future__ import annotations
@@ -16,13 +19,15 @@ import asyncio
 import json
 import threading
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from fastapi.responses import StreamingResponse
 
+from app.server.runtime.demand import Demand
 from app.server.runtime.rates import StreamRates
 
 
@@ -36,9 +41,14 @@ class StreamFrame:
 
 
 class FrameHub:
-    """The newest frame, published from any thread, awaited from the server's loop."""
+    """The newest frame, published from any thread, awaited from the server's loop.
 
-    def __init__(self) -> None:
+    Args:
+        demand: what each viewer holds while connected (default: one of its own).
+    """
+
+    def __init__(self, demand: Demand | None = None) -> None:
+        self.demand = demand if demand is not None else Demand("stream")
         self._lock = threading.Lock()
         self._frame: StreamFrame | None = None
         self._seq = 0
@@ -68,9 +78,26 @@ class FrameHub:
             loop.call_soon_threadsafe(event.set)
         return frame
 
+    def forget(self) -> None:
+        """No frame until the next :meth:`publish` (the producer rests: its last frame
+        would be stale for a viewer arriving later)."""
+        with self._lock:
+            self._frame = None
+
     @property
     def latest(self) -> StreamFrame | None:
         return self._frame
+
+    @contextmanager
+    def watching(self) -> Iterator[None]:
+        """A viewer is connected for the block: counted in ``viewers``, holding
+        :attr:`demand`."""
+        self.viewers += 1
+        try:
+            with self.demand.hold():
+                yield
+        finally:
+            self.viewers -= 1
 
     async def frames(self, poll_s: float = 1.0) -> AsyncIterator[StreamFrame]:
         """The newest frame each time there is a newer one (skipping what was missed)."""
@@ -109,22 +136,19 @@ def make_stream_router(hub: FrameHub) -> APIRouter:
         # message) once drawn; only then is the newest frame sent. Transport buffers
         # cannot fill up with stale frames however slow the viewer or its network is.
         await ws.accept()
-        hub.viewers += 1
-        try:
-            async for frame in hub.frames():
-                await ws.send_text(json.dumps(frame.meta))
-                await ws.send_bytes(frame.jpeg)
-                await ws.receive_text()
-        except (WebSocketDisconnect, RuntimeError):
-            pass
-        finally:
-            hub.viewers -= 1
+        with hub.watching():
+            try:
+                async for frame in hub.frames():
+                    await ws.send_text(json.dumps(frame.meta))
+                    await ws.send_bytes(frame.jpeg)
+                    await ws.receive_text()
+            except (WebSocketDisconnect, RuntimeError):
+                pass
 
     @router.get("/stream.mjpg")
     async def _mjpeg() -> StreamingResponse:
         async def parts() -> AsyncIterator[bytes]:
-            hub.viewers += 1
-            try:
+            with hub.watching():
                 async for frame in hub.frames():
                     yield (
                         b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
@@ -133,8 +157,6 @@ def make_stream_router(hub: FrameHub) -> APIRouter:
                         + frame.jpeg
                         + b"\r\n"
                     )
-            finally:
-                hub.viewers -= 1
 
         return StreamingResponse(parts(), media_type="multipart/x-mixed-replace; boundary=frame")
 

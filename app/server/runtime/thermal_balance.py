@@ -55,7 +55,9 @@ class BalanceStatus:
 
 
 class ThermalBalancer(Periodic):
-    """Measures (and, when ``auto``, applies) the balance at ``rate_hz``.
+    """Measures (and, when ``auto``, applies) the balance at ``rate_hz``, while the
+    pipeline's pictures are wanted (its ``demand``: the balance changes only pictures, and
+    the depth it measures on is mapped only then).
 
     Attributes:
         auto: apply the filtered estimate continuously.
@@ -66,7 +68,7 @@ class ThermalBalancer(Periodic):
     def __init__(
         self, pipeline: FusionPipeline, rate_hz: float = 2.0, time_constant_s: float = 3.0
     ) -> None:
-        super().__init__("thermal-balance", 1.0 / rate_hz)
+        super().__init__("thermal-balance", 1.0 / rate_hz, pipeline.demand)
         self.pipeline = pipeline
         self.auto = False
         self.reference: str | None = None

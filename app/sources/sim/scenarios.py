@@ -43,6 +43,13 @@ def _quad(name: str, centre, rpy_deg, half_w: float, half_h: float, mat: Materia
     return Quad(name, mat, T, (-half_w, half_w, -half_h, half_h))
 
 
+def _box(name: str, mat: Material, centre, half_size, yaw_deg: float = 0.0) -> Box:
+    """A box of half sizes ``half_size`` (x, y, z, metres) centred at ``centre`` (world,
+    metres), turned by ``yaw_deg`` degrees about the vertical (y) axis."""
+    R = rotation_from_euler_deg(0, yaw_deg, 0) if yaw_deg else np.eye(3)
+    return Box(name, mat, make_T(R, centre), half_size)
+
+
 def _room(
     x: float, y_floor: float, y_ceil: float, z_front: float, z_back: float, wall_k: float
 ) -> list[Solid]:
@@ -348,6 +355,11 @@ def inspection_scene() -> Scene:
     solids = _room(3.5, 1.1, -1.6, -1.5, 8.2, 293.5)
     skin = Material((0.76, 0.57, 0.45), 310.15, 0.98, 0.45)
     cloth = Material((0.2, 0.28, 0.5), 306.0, 0.95, 0.4, pattern=(0.12, 0.15))
+    crate = Material((0.6, 0.42, 0.22), 294.5, 0.92, 0.5, pattern=(0.08, 0.2))
+    wood = Material((0.45, 0.3, 0.18), 294.0, 0.92, 0.4, pattern=(0.3, 0.15))
+    enamel = Material((0.92, 0.92, 0.95), 279.0, 0.9, 0.7)
+    radiator = Material((0.9, 0.9, 0.88), 333.0, 0.92, 0.6)
+    green = Material((0.3, 0.45, 0.3), 292.0, 0.93, 0.5, pattern=(0.25, 0.1))
     solids += [
         Cylinder("person_body", cloth, make_T(np.eye(3), (-0.7, 0.0, 3.0)), 0.2, (-0.45, 1.1)),
         Sphere("person_head", skin, (-0.7, -0.58, 3.0), 0.12),
@@ -358,37 +370,12 @@ def inspection_scene() -> Scene:
             0.06,
             (-3.4, 3.4),
         ),
-        Box(
-            "near_crate",
-            Material((0.6, 0.42, 0.22), 294.5, 0.92, 0.5, pattern=(0.08, 0.2)),
-            make_T(rotation_from_euler_deg(0, 25, 0), (0.45, 0.85, 0.85)),
-            (0.25, 0.25, 0.25),
-        ),
+        _box("near_crate", crate, (0.45, 0.85, 0.85), (0.25, 0.25, 0.25), yaw_deg=25),
         Sphere("kettle", Material((0.75, 0.75, 0.78), 341.0, 0.85, 0.6), (0.45, 0.45, 0.85), 0.14),
-        Box(
-            "table",
-            Material((0.45, 0.3, 0.18), 294.0, 0.92, 0.4, pattern=(0.3, 0.15)),
-            make_T(np.eye(3), (1.3, 0.7, 2.2)),
-            (0.45, 0.4, 0.35),
-        ),
-        Box(
-            "fridge",
-            Material((0.92, 0.92, 0.95), 279.0, 0.9, 0.7),
-            make_T(rotation_from_euler_deg(0, -10, 0), (2.2, 0.2, 5.6)),
-            (0.4, 0.9, 0.35),
-        ),
-        Box(
-            "radiator",
-            Material((0.9, 0.9, 0.88), 333.0, 0.92, 0.6),
-            make_T(np.eye(3), (-1.9, 0.45, 8.1)),
-            (0.6, 0.3, 0.06),
-        ),
-        Box(
-            "cabinet",
-            Material((0.3, 0.45, 0.3), 292.0, 0.93, 0.5, pattern=(0.25, 0.1)),
-            make_T(np.eye(3), (0.9, 0.3, 7.6)),
-            (0.5, 0.8, 0.3),
-        ),
+        _box("table", wood, (1.3, 0.7, 2.2), (0.45, 0.4, 0.35)),
+        _box("fridge", enamel, (2.2, 0.2, 5.6), (0.4, 0.9, 0.35), yaw_deg=-10),
+        _box("radiator", radiator, (-1.9, 0.45, 8.1), (0.6, 0.3, 0.06)),
+        _box("cabinet", green, (0.9, 0.3, 7.6), (0.5, 0.8, 0.3)),
         Cylinder(
             "pole",
             Material((0.7, 0.15, 0.1), 292.5, 0.95, 0.6),

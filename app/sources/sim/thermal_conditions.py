@@ -55,7 +55,20 @@ COUNTS_MAX = 16383
 
 
 @dataclass(frozen=True)
-class ThermalConditions:
+class ImagerSettings:
+    """The settings of the imager conditions, shared by :class:`ThermalConditions` (which
+    documents them) and :class:`ImagerThermal` (which applies them)."""
+
+    seed: int = 0
+    narcissus_k: float = 0.0
+    stripe_k: float = 0.0
+    raw_counts: bool = False
+    counts_per_k: float = 40.0
+    counts_at_room: float = 8192.0
+
+
+@dataclass(frozen=True)
+class ThermalConditions(ImagerSettings):
     """Switchable, seeded conditions of the heated board and the thermal imagers.
 
     Every field's default switches its condition off. Units: kelvin, metres, seconds.
@@ -84,18 +97,12 @@ class ThermalConditions:
         hot_objects: a hot pipe and a person beside the board.
     """
 
-    seed: int = 0
     uneven_heating_k: float = 0.0
     cooling_time_constant_s: float = 0.0
     view_interval_s: float = 20.0
     contrast_k: float | tuple[float, float] | None = None
     square_delta_k: float = 0.0
     diffusion_length_m: float = 0.0
-    narcissus_k: float = 0.0
-    stripe_k: float = 0.0
-    raw_counts: bool = False
-    counts_per_k: float = 40.0
-    counts_at_room: float = 8192.0
     partial_view: bool = False
     hot_objects: bool = False
 
@@ -282,16 +289,9 @@ def square_emissivities(material: object, board: Board) -> tuple[float, float]:
 
 
 @dataclass(frozen=True)
-class ImagerThermal:
+class ImagerThermal(ImagerSettings):
     """What a thermal imager adds to the scene's temperatures: vignetting/narcissus,
     fixed-pattern stripes and the raw-counts output (see :class:`ThermalConditions`)."""
-
-    seed: int = 0
-    narcissus_k: float = 0.0
-    stripe_k: float = 0.0
-    raw_counts: bool = False
-    counts_per_k: float = 40.0
-    counts_at_room: float = 8192.0
 
     def _rng(self, sensor: str) -> np.random.Generator:
         return np.random.default_rng([self.seed, 16, zlib.crc32(sensor.encode())])

@@ -1,0 +1,136 @@
+"""``trifuse calibrate``: every sensor's intrinsics and 6-DOF pose from a capture
+directory, optionally compared with a true rig."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from app.cli.args import EXIT_OK, PROG, Commands
+from app.cli.files import load_rig_arg, refuse_existing
+from app.cli.output import err, out, stage_progress
+
+if TYPE_CHECKING:
+    from app.storage.capture import Capture
+    from calib.rig import Rig
+
+
+def add_parser(commands: Commands) -> argparse.ArgumentParser:
+    """``calibrate CAPTURE_DIR --out RIG.yaml [--report] [--truth] ...``."""
+    cal = commands.add_parser(
+        "calibrate",
+        help="calibrate every sensor's intrinsics and 6-DOF pose from a capture directory",
+        description=(
+            "Detect the checkerboard in every image of CAPTURE_DIR (docs/FORMATS.md), "
+            "calibrate each sensor's intrinsics (Zhang) and then the whole rig jointly "
+            "(every sensor pose, every board pose and the intrinsics, robust loss, outlier "
+            "views and corners flagged and left out), and write the calibrated rig file "
+            "with 1-sigma uncertainties. Prints a summary: RMS per sensor, parameters with "
+            "their uncertainty, coverage of each image, outliers and rejected images."
+        ),
+    )
+    cal.add_argument("capture_dir", metavar="CAPTURE_DIR", help="the capture directory")
+    cal.add_argument(
+        "--out",
+        required=True,
+        metavar="RIG.yaml",
+        help="calibrated rig file to write (must not exist)",
+    )
+    cal.add_argument(
+        "--report",
+        metavar="REPORT.json",
+        help="also write the full report as JSON (must not exist): per sensor "
+        "RMS, views, intrinsics, distortion, pose and sigma; per view and sensor "
+        "the RMS and outlier flag; detections, coverage, outliers",
+    )
+    cal.add_argument(
+        "--reference",
+        metavar="NAME",
+        help="sensor whose frame is the rig frame (default: the TOF camera, "
+        "else the first sensor by name)",
+    )
+    cal.add_argument(
+        "--sensors",
+        metavar="A,B,...",
+        help="calibrate only these sensors (comma-separated; default: all)",
+    )
+    cal.add_argument(
+        "--fixed-intrinsics",
+        action="store_true",
+        help="keep each sensor's Zhang intrinsics in the joint refinement "
+        "(default: refine them with the poses)",
+    )
+    cal.add_argument(
+        "--truth",
+        metavar="TRUTH.yaml",
+        help="also compare the result with this rig (e.g. the capture's "
+        "ground_truth_rig.yaml), as 'trifuse compare' does; the report gains the comparison",
+    )
+    return cal
+
+
+def run(args: argparse.Namespace) -> int:
+    """Calibrate ``args.capture_dir``; write the rig (and report); compare with ``--truth``."""
+    from app.storage.capture import load_capture
+    from app.storage.rigfile import save_rig
+    from app.workflows.calibration_run import calibrate_capture, format_summary, write_report
+    from calib.rig_calibration import CalibrationOptions
+
+    rig_out, report_path = Path(args.out), Path(args.report) if args.report else None
+    for flag, path in (("--out", rig_out), ("--report", report_path)):
+        if path is not None and path.exists():
+            refuse_existing(flag, path)
+    truth = load_rig_arg(args.truth, "--truth") if args.truth else None
+    capture = load_capture(args.capture_dir)
+    if truth is not None:
+        check_truth_fits(truth, capture, args.truth)
+    out(capture.summary())
+    options = CalibrationOptions(
+        reference=args.reference, refine_intrinsics=not args.fixed_intrinsics
+    )
+    sensors = args.sensors.split(",") if args.sensors else None
+    result, report = calibrate_capture(capture, options, sensors, stage_progress())
+    out("")
+    out(format_summary(result, report))
+    if truth is not None:
+        from app.workflows.report_format import comparison_text
+        from calib.rig_compare import compare_rigs
+
+        try:
+            comparison = compare_rigs(result.rig(), truth)
+        except ValueError as exc:  # e.g. every sensor in common was left out
+            err(f"{PROG}: warning: not compared with --truth {args.truth}: {exc}")
+        else:
+            report["comparison"] = {"truth": str(args.truth), **comparison.as_dict()}
+            out("")
+            out(comparison_text(comparison, "the calibration", str(args.truth)))
+    save_rig(rig_out, result.rig())
+    out("")
+    out(f"rig written to {rig_out}")
+    if report_path is not None:
+        write_report(report_path, report)
+        out(f"report written to {report_path}")
+    return EXIT_OK
+
+
+def check_truth_fits(truth: Rig, capture: Capture, path: str) -> None:
+    """Before calibrating: ``--truth`` must share a sensor with the capture, of the same
+    modality and image size (else the comparison at the end would fail)."""
+    from app.workflows.calibration_run import sensor_specs
+
+    specs = sensor_specs(capture)
+    common = [n for n in truth.names if n in specs]
+    if not common:
+        raise ValueError(
+            f"--truth {path}: no sensor in common with {capture.path} "
+            f"(truth: {truth.names}; capture: {sorted(specs)})"
+        )
+    for n in common:
+        t, spec = truth[n], specs[n]
+        if (t.modality, t.image_size) != (spec.modality, tuple(spec.image_size)):
+            raise ValueError(
+                f"--truth {path}: sensor {n!r} is {t.modality} {t.image_size[0]}x"
+                f"{t.image_size[1]} there but {spec.modality} {spec.image_size[0]}x"
+                f"{spec.image_size[1]} in {capture.path}"
+            )

@@ -1,0 +1,107 @@
+"""The files a command reads and writes: rig files named on the command line, and outputs
+that are never overwritten (except a rig file rewritten in place, whose previous content is
+kept as a numbered backup)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, NoReturn
+
+from app.cli.args import UsageError
+from app.cli.output import out
+
+if TYPE_CHECKING:
+    from calib.rig import Rig
+
+
+def refuse_existing(flag: str, path: Path) -> NoReturn:
+    """The one refusal of every command whose output file or directory exists already."""
+    raise UsageError(f"{flag} {path}: exists; refusing to overwrite it (choose a new name)")
+
+
+def check_output_dir(out_dir: Path) -> None:
+    """``--out DIR`` must be a new or empty directory."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UsageError(
+            f"--out {out_dir}: exists and is not a directory; refusing to overwrite it "
+            "(choose a new directory)"
+        )
+    if out_dir.is_dir() and any(out_dir.iterdir()):
+        raise UsageError(
+            f"--out {out_dir}: directory exists and is not empty; refusing to write into it so "
+            "that nothing captured there is overwritten (choose a new directory)"
+        )
+
+
+def add_out_dir_argument(parser: argparse.ArgumentParser) -> None:
+    """``--out DIR`` of a command that writes a new directory (see :func:`check_output_dir`)."""
+    parser.add_argument(
+        "--out",
+        required=True,
+        metavar="DIR",
+        help="output directory; must not exist or be empty (nothing is ever overwritten)",
+    )
+
+
+def load_rig_arg(path: str, flag: str = "") -> Rig:
+    """A rig file given on the command line; its errors on one line (a YAML error's
+    message spans several), naming the option."""
+    from app.storage.rigfile import load_rig
+
+    try:
+        return load_rig(path)
+    except ValueError as exc:  # RigError
+        lines = (line.strip() for line in str(exc).splitlines())
+        text = " ".join(line for line in lines if line.strip("^"))
+        raise ValueError(f"{flag} {text}" if flag else text) from None
+
+
+def add_rig_out_argument(parser: argparse.ArgumentParser) -> None:
+    """``--out RIG.yaml`` of a command that updates the ``--rig`` file."""
+    parser.add_argument(
+        "--out",
+        required=True,
+        metavar="RIG.yaml",
+        help="rig file to write: a new file, or the --rig file itself (its previous "
+        "content is then kept as RIG.yaml.~N~)",
+    )
+
+
+def numbered_backup(path: Path) -> Path:
+    """``path.~N~`` with the first N not taken (GNU cp's numbered backups)."""
+    n = 1
+    while True:
+        candidate = path.with_name(f"{path.name}.~{n}~")
+        if not candidate.exists():
+            return candidate
+        n += 1
+
+
+def _same_file(a: Path, b: Path | None) -> bool:
+    return b is not None and a.exists() and b.exists() and a.resolve() == b.resolve()
+
+
+def check_rig_out(rig_out: Path, rig_path: Path | None, **others: str | None) -> None:
+    """``--out`` may be the ``--rig`` file itself (kept as a numbered backup); any other
+    existing output (``others``: option name without dashes -> path) is refused."""
+    outputs = [] if _same_file(rig_out, rig_path) else [("--out", rig_out)]
+    outputs += [(f"--{flag}", Path(p)) for flag, p in others.items() if p]
+    for flag, path in outputs:
+        if path.exists():
+            refuse_existing(flag, path)
+
+
+def write_rig_out(rig_out: Path, rig_path: Path | None, rig: Rig, what: str) -> None:
+    """Write the updated rig; when it replaces ``rig_path``, the old file stays as
+    ``RIG.yaml.~N~`` first."""
+    from app.storage.rigfile import save_rig
+
+    same = _same_file(rig_out, rig_path)
+    if same:
+        backup = numbered_backup(rig_out)
+        os.link(rig_out, backup)  # the rig as it was stays, under a new name
+        out(f"previous rig kept as {backup}")
+    save_rig(rig_out, rig, overwrite=same)
+    out(f"rig with {what} written to {rig_out}")

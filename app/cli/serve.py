@@ -1,0 +1,233 @@
+"""``trifuse serve``: the console on one port, after the refusals (sources that exclude each
+other, authentication, TLS, the port, the work directory) that come before anything starts."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING
+from urllib.parse import urlsplit
+
+from app.cli.args import (
+    EXIT_OK,
+    PROG,
+    Commands,
+    UsageError,
+    bounded_int,
+    bounded_seconds,
+    positive_int,
+)
+
+if TYPE_CHECKING:
+    from app.server.routers.auth import AuthConfig
+    from app.server.runtime.serve import TLSFiles
+    from calib.board import Board
+
+
+def add_parser(commands: Commands) -> argparse.ArgumentParser:
+    """``serve [--replay FILE | --live CONFIG | --push] [--rig] [--scenario] ...``."""
+    srv = commands.add_parser(
+        "serve",
+        help="start the console: fused stereo viewer, 3D scene, stream (one URL)",
+        description=(
+            "Start the console on one port: the operator's fused stereo viewer at /, the "
+            "stream (/stream WebSocket, /stream.mjpg), the Viser 3D console at /console/ "
+            "(rig frames, sensor frustums, live TOF point cloud) and the API under /api/ "
+            "(OpenAPI at /docs). Without a source option it runs on the simulated head."
+        ),
+    )
+    srv.add_argument("--replay", metavar="FILE", help="replay a recording (looping)")
+    srv.add_argument(
+        "--live",
+        metavar="CONFIG",
+        help="OpenCV cameras (docs/FORMATS.md 'Live camera configuration'; needs --rig)",
+    )
+    srv.add_argument(
+        "--push",
+        action="store_true",
+        help="take frames pushed by an on-robot driver at /ingest "
+        "(docs/FORMATS.md 'Push ingest protocol')",
+    )
+    srv.add_argument(
+        "--rig",
+        metavar="RIG.yaml",
+        help="the calibrated rig (default: the recording's or the simulated head's)",
+    )
+    srv.add_argument(
+        "--scenario",
+        choices=("inspection", "calibration"),
+        default="inspection",
+        help="what the simulated head sees: the inspection room, or the heated board "
+        "held at --board-poses poses for a calibration session (default: %(default)s)",
+    )
+    srv.add_argument(
+        "--board-poses",
+        type=bounded_int(1, 1000),
+        default=40,
+        metavar="N",
+        help="calibration scenario: how many board poses it cycles through (default: "
+        "%(default)s; each is rendered once, about 1.5 s of CPU)",
+    )
+    srv.add_argument(
+        "--hold",
+        type=bounded_seconds(0.5, 3600.0),
+        default=3.0,
+        metavar="S",
+        help="calibration scenario: seconds the board is held at each pose (default: "
+        "%(default)s; auto-capture needs it still for two searches)",
+    )
+    srv.add_argument(
+        "--workdir",
+        metavar="DIR",
+        default="trifuse-work",
+        help="where the calibration session keeps its captures and saved rig versions "
+        "(created if needed; reopened as it was on restart; default: ./%(default)s)",
+    )
+    srv.add_argument(
+        "--board",
+        metavar="BOARD.yaml",
+        help="the calibration checkerboard (docs/FORMATS.md; default: the simulated "
+        "head's 9 x 6 inner corners, 60 mm squares)",
+    )
+    srv.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to bind (default: %(default)s; e.g. 0.0.0.0 for every interface, "
+        "which needs a token)",
+    )
+    srv.add_argument("--port", type=positive_int, default=8000, help="port (default: %(default)s)")
+    srv.add_argument(
+        "--token",
+        help="the secret that opens the console (at least 16 characters; default: "
+        "$TRIFUSE_TOKEN, else a random one); printed in the console's URL, "
+        "exchanged by the browser for a session cookie; scripts send "
+        "'Authorization: token TOKEN'. Prefer TRIFUSE_TOKEN: arguments show in ps",
+    )
+    srv.add_argument(
+        "--no-token",
+        action="store_true",
+        help="no authentication: only on a loopback --host, for a single-user machine",
+    )
+    srv.add_argument(
+        "--allow-origin",
+        action="append",
+        default=[],
+        metavar="URL",
+        help="another origin (scheme://host[:port]) allowed to open WebSockets and send "
+        "changes, besides the console's own (repeatable)",
+    )
+    srv.add_argument("--certfile", metavar="PEM", help="TLS certificate (chain): serve HTTPS/WSS")
+    srv.add_argument("--keyfile", metavar="PEM", help="the certificate's private key")
+    return srv
+
+
+def load_board_arg(path: str | None) -> Board:
+    """The board of ``--board`` (a board.yaml), else the simulated head's board."""
+    if path is None:
+        from app.sources.sim.scenarios import CALIBRATION_BOARD
+
+        return CALIBRATION_BOARD
+    from app.storage.capture import load_board_file
+
+    return load_board_file(path)
+
+
+def serve_auth(args: argparse.Namespace) -> AuthConfig:
+    """The console's authentication from ``--token`` / ``TRIFUSE_TOKEN`` / ``--no-token``,
+    ``--host``, ``--allow-origin`` and TLS; UsageError for an unsafe or unusable choice."""
+    from app.server.routers.auth import TOKEN_ENV, AuthConfig, check_token, is_loopback, new_token
+
+    given = args.token if args.token is not None else os.environ.get(TOKEN_ENV)
+    if args.no_token:
+        if args.token is not None:
+            raise UsageError(f"{PROG} serve: --token and --no-token exclude each other")
+        if not is_loopback(args.host):
+            raise UsageError(
+                f"{PROG} serve: --host {args.host} --no-token: refusing to serve without a "
+                "token on a non-loopback address (anyone on the network could watch the "
+                "cameras and change the calibration); drop --no-token to use a token"
+            )
+        token = None
+    else:
+        try:
+            network = not is_loopback(args.host)
+            token = check_token(given, network) if given is not None else new_token()
+        except ValueError as e:
+            where = "--token" if args.token is not None else TOKEN_ENV
+            raise UsageError(f"{PROG} serve: {where}: {e}") from None
+    origins = set()
+    for origin in args.allow_origin:
+        parts = urlsplit(origin)
+        if parts.scheme not in ("http", "https") or not parts.netloc or parts.path.strip("/"):
+            raise UsageError(
+                f"{PROG} serve: --allow-origin {origin!r}: expected scheme://host[:port], "
+                "e.g. https://headset.local:8443"
+            )
+        origins.add(f"{parts.scheme}://{parts.netloc}".lower())
+    return AuthConfig(token, args.port, args.certfile is not None, frozenset(origins))
+
+
+def serve_tls(args: argparse.Namespace) -> TLSFiles | None:
+    """``--certfile``/``--keyfile`` checked by loading them, or None."""
+    from app.server.runtime.serve import TLSFiles
+
+    if (args.certfile is None) != (args.keyfile is None):
+        raise UsageError(f"{PROG} serve: --certfile and --keyfile go together")
+    if args.certfile is None:
+        return None
+    import ssl
+
+    try:
+        ssl.create_default_context(ssl.Purpose.CLIENT_AUTH).load_cert_chain(
+            args.certfile, args.keyfile
+        )
+    except (OSError, ssl.SSLError) as e:
+        raise UsageError(
+            f"{PROG} serve: cannot use --certfile {args.certfile} --keyfile {args.keyfile}: {e}"
+        ) from None
+    return TLSFiles(Path(args.certfile), Path(args.keyfile))
+
+
+def run(args: argparse.Namespace) -> int:
+    """Check everything, bind the port, lock the work directory, open the source, serve."""
+    from app.recording.open_source import open_source
+    from app.server.runtime.serve import bind_public_socket, serve
+    from app.storage.rigfile import load_rig
+    from app.storage.workdir_lock import WorkdirInUse, lock_workdir
+
+    auth = serve_auth(args)
+    tls = serve_tls(args)
+    chosen = [x for x in (args.replay, args.live, args.push or None) if x]
+    if len(chosen) > 1:
+        raise UsageError(f"{PROG} serve: choose one of --replay, --live, --push")
+    if args.scenario != "inspection" and chosen:
+        raise UsageError(f"{PROG} serve: --scenario is for the simulated head only")
+    if args.scenario != "calibration" and (args.board_poses, args.hold) != (40, 3.0):
+        raise UsageError(f"{PROG} serve: --board-poses and --hold are for --scenario calibration")
+    board = load_board_arg(args.board)
+    try:  # the port and the work directory first: refusals come before anything starts
+        sock = bind_public_socket(args.host, args.port)
+    except OSError as e:
+        raise UsageError(f"{PROG} serve: {e}") from None
+    try:
+        workdir = Path(args.workdir)
+        try:
+            lock = lock_workdir(workdir)
+        except WorkdirInUse as e:
+            raise UsageError(f"{PROG} serve: --workdir {e}") from None
+        with lock:
+            opened = open_source(
+                args.replay,
+                args.live,
+                args.push,
+                load_rig(args.rig) if args.rig else None,
+                loop=True,
+                scenario=args.scenario,
+                board_poses=args.board_poses,
+                hold_s=args.hold,
+            )
+            serve(opened, board, workdir, auth, args.host, tls, sock)
+    finally:
+        sock.close()
+    return EXIT_OK

@@ -1,0 +1,12 @@
+"""How the program words an exception it reports instead of raising (a status line, a
+panel, a log): one home for the text, so every report reads the same."""
+
+from __future__ import annotations
+
+
+def describe_error(exc: BaseException) -> str:
+    """``"<type name>: <message>"`` of ``exc`` (only the type name when the message is
+    empty), e.g. ``"ValueError: rig: no sensor 'tof'"``."""
+    text = str(exc)
+    name = type(exc).__name__
+    return f"{name}: {text}" if text else name

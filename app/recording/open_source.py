@@ -1,0 +1,125 @@
+"""Opening the source of frames a command names: a recording (``--replay``), OpenCV cameras
+(``--live``), frames pushed to ``/ingest`` (``--push``), or else the simulated head.
+
+``trifuse serve``, ``record``, ``fuse`` and ``balance-thermal`` all open their source here,
+so a source refuses the same way whichever command opens it. It lives beside the replay
+(``app.recording`` builds on ``app.sources``, not the other way round).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from app.sources.base import FrameSource
+from calib.rig import Rig
+
+if TYPE_CHECKING:
+    from app.sources.simulated import SimulatedHeadSource
+
+SCENARIOS = ("inspection", "calibration")
+"""What the simulated head can show (:func:`simulated_source`)."""
+
+
+@dataclass
+class OpenedSource:
+    """A source, the rig to fuse with, and what to tell the operator."""
+
+    source: FrameSource
+    rig: Rig
+    description: str
+    ground_truth_rig: Rig | None = None
+
+
+class NeedsRig(ValueError):
+    """Live cameras opened without a rig: they do not know their calibration."""
+
+
+def simulated_source(
+    scenario: str, board_poses: int = 40, hold_s: float = 3.0
+) -> tuple[SimulatedHeadSource, str]:
+    """The simulated head as the console shows it: ``(source, description)``.
+
+    Args:
+        scenario: ``inspection`` (the panning room, live quality) or ``calibration`` (the
+            heated board held at ``board_poses`` poses for ``hold_s`` seconds each, looping;
+            accurate quality).
+    """
+    from app.sources.simulated import SimulatedHeadSource
+
+    if scenario == "calibration":
+        from app.sources.sim.scenarios import CalibrationScenario
+
+        cal = CalibrationScenario(n_poses=board_poses, hold_s=hold_s)
+        src = SimulatedHeadSource(
+            cal, realtime=True, render_hz=1.0 / cal.hold_s, loop_s=cal.loop_s, start_ns=None
+        )
+        return src, (
+            f"the simulated head (calibration: {cal.n_poses} board poses, "
+            f"{cal.hold_s:g} s each, looping)"
+        )
+    if scenario == "inspection":
+        return SimulatedHeadSource(realtime=True, start_ns=None), (
+            "the simulated head (inspection room)"
+        )
+    raise ValueError(f"scenario: expected one of {', '.join(SCENARIOS)}, got {scenario!r}")
+
+
+def open_source(
+    replay: str | Path | None = None,
+    live: str | Path | None = None,
+    push: bool = False,
+    rig: Rig | None = None,
+    *,
+    realtime: bool = True,
+    loop: bool = False,
+    scenario: str = "inspection",
+    board_poses: int = 40,
+    hold_s: float = 3.0,
+    live_flag: str = "--live",
+) -> OpenedSource:
+    """The source named by ``--replay FILE``, ``--live CONFIG`` or ``--push`` (the first
+    given), else the simulated head's ``scenario``; with the rig to use (``rig`` if given,
+    else the recording's or the simulated head's).
+
+    Args:
+        replay: a recording (.mcap), replayed at its own pace (``realtime``) or as fast as
+            it is read, from the start again at its end when ``loop``.
+        live: a live camera configuration (docs/FORMATS.md); needs ``rig``.
+        push: frames pushed by an on-robot driver at ``/ingest`` (rig default: the
+            simulated head's).
+        rig: the rig given on the command line, or None.
+        scenario, board_poses, hold_s: the simulated head's, see :func:`simulated_source`.
+        live_flag: how the command names ``live`` in the error when ``rig`` is missing.
+
+    Raises:
+        ValueError: the recording holds no rig and none is given (the replay is closed
+            again); :class:`NeedsRig` for ``live`` without ``rig``; the sources' own errors
+            (a missing or damaged file, a camera that does not open).
+    """
+    if replay:
+        from app.recording.reader import ReplaySource
+
+        src = ReplaySource(Path(replay), loop=loop, realtime=realtime)
+        rig = rig or src.rig
+        if rig is None:
+            src.close()
+            raise ValueError(f"{replay}: the recording holds no rig; give one with --rig")
+        return OpenedSource(src, rig, f"replay of {replay}" + (" (looping)" if loop else ""))
+    if live:
+        from app.sources.camera import CameraSource
+
+        if rig is None:
+            raise NeedsRig(
+                f"{live_flag} needs --rig RIG.yaml (cameras do not know their calibration)"
+            )
+        return OpenedSource(CameraSource(Path(live), rig=rig), rig, f"live cameras of {live}")
+    if push:
+        from app.sources.push.source import PushSource
+        from app.sources.sim.head import default_rig
+
+        rig = rig or default_rig()
+        return OpenedSource(PushSource(rig), rig, "frames pushed to /ingest")
+    src, what = simulated_source(scenario, board_poses, hold_s)
+    return OpenedSource(src, rig or src.rig, what, ground_truth_rig=src.rig)

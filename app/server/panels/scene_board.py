@@ -1,0 +1,115 @@
+"""The checkerboard in the console's 3D scene: a frame node at the board watch's newest
+pose ``T_rig_board`` (board frame: origin at the first inner corner, +z away from the
+cameras, metres) carrying the checker plate and the outline, and the line that says where
+it is."""
+
+from __future__ import annotations
+
+import numpy as np
+import viser
+
+from app.server.panels.scene_sensors import wxyz_of
+from calib.board import Board
+
+BOARD_PX_PER_SQUARE = 16
+BOARD_PLATE_BEHIND_M = 0.003
+"""The board's checker plate is drawn this far behind the board plane (+z of the board
+frame, away from the cameras) so the cloud's points on the board stay visible."""
+BOARD_OUTLINE_RGB = (255, 220, 0)
+BOARD_LAG_SHOWN_S = 0.5
+"""The board's line in the folder says how much older its frames are than the cloud's
+from this lag on."""
+
+
+def board_checker_image(board: Board, px_per_square: int = BOARD_PX_PER_SQUARE) -> np.ndarray:
+    """The board's checkered area as (rows+1, cols+1) squares of ``px_per_square`` pixels,
+    (H, W, 3) uint8 RGB; pixel row 0 is the board's -y edge, column 0 its -x edge, and the
+    black squares are where :meth:`Board.is_black` says."""
+    nx, ny = board.squares
+    i = np.arange(nx * px_per_square) // px_per_square - 1  # square index along x
+    j = np.arange(ny * px_per_square) // px_per_square - 1  # along y
+    black = ((i[None, :] + j[:, None]) % 2) == 0
+    grey = np.where(black, 20, 235).astype(np.uint8)
+    return np.repeat(grey[..., None], 3, axis=2)
+
+
+def board_outline(board: Board) -> np.ndarray:
+    """The checkered area's edges as line segments (4, 2, 3) in the board frame, metres."""
+    sq = board.square_size_m
+    x0, y0 = -sq, -sq
+    x1, y1 = board.cols * sq, board.rows * sq
+    c = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+    return np.stack([c, np.roll(c, -1, axis=0)], axis=1)
+
+
+def board_lag_s(sighting: object, newest: object) -> float:
+    """How much older (seconds) the frames a board sighting was found in are than the
+    ``newest`` frame set: 0 when the newest set shows the very image the pose came from
+    (a simulated head holding a pose, a paused replay: the board drawn is current)."""
+    frames = getattr(sighting, "frames", None)
+    then = getattr(frames, "frames", None)
+    now = getattr(newest, "frames", None)
+    if not isinstance(then, dict) or not isinstance(now, dict):
+        return 0.0
+    sensor = getattr(sighting, "pose_sensor", None)
+    seen, current = then.get(sensor), now.get(sensor)
+    if seen is not None and current is not None and seen.image is current.image:
+        return 0.0
+    return (newest.stamp_ns - frames.stamp_ns) / 1e9  # type: ignore[union-attr]
+
+
+class BoardMarker:
+    """The board's node in the scene (under ``/live``: the rig in use) and its line in the
+    "3D scene" folder (``md``)."""
+
+    def __init__(self, scene: viser.SceneApi, board: Board, md: viser.GuiMarkdownHandle) -> None:
+        node = scene.add_frame("/live/board", axes_length=0.05, axes_radius=0.002, visible=False)
+        w, h = board.size_m
+        sq = board.square_size_m
+        scene.add_image(
+            "/live/board/plate",
+            board_checker_image(board),
+            render_width=w,
+            render_height=h,
+            format="png",
+            position=(-sq + w / 2.0, -sq + h / 2.0, BOARD_PLATE_BEHIND_M),
+        )
+        scene.add_line_segments(
+            "/live/board/outline",
+            board_outline(board),
+            BOARD_OUTLINE_RGB,
+            thickness=3.0,
+            thickness_units="screen",
+        )
+        self.node, self.md = node, md
+        self._sighting: object = None
+
+    def show(self, sighting: object, newest: object) -> None:
+        """The board at ``sighting``'s pose ``T_rig_board`` (a
+        :class:`~app.server.runtime.board_watch.BoardSighting`, or None), hidden when it
+        has none; the line says how far away, from which sensor, who saw it and, from
+        :data:`BOARD_LAG_SHOWN_S` on, how much older its frames are than the ``newest``
+        frame set. Nothing changes for the sighting shown already."""
+        lag_s = board_lag_s(sighting, newest)
+        if sighting is self._sighting:
+            return
+        self._sighting = sighting
+        T = getattr(sighting, "T_rig_board", None)
+        if T is None or np.shape(T) != (4, 4) or not np.isfinite(T).all():
+            self.node.visible = False
+            self.md.content = "Board: not detected"
+            return
+        T = np.asarray(T, dtype=np.float64)
+        self.node.wxyz = wxyz_of(T)
+        self.node.position = T[:3, 3].copy()
+        self.node.visible = True
+        dist = float(np.linalg.norm(T[:3, 3]))
+        text = f"Board: {dist:.2f} m away, pose from {getattr(sighting, 'pose_sensor', '?')}"
+        seen = ", ".join(getattr(sighting, "found", []) or [])
+        if not getattr(sighting, "complete", True):
+            text += "; searching the other sensors"
+        elif seen:
+            text += f"; seen by {seen}"
+        if lag_s >= BOARD_LAG_SHOWN_S:  # detection is slower than the board may move
+            text += f" (in frames {lag_s:.1f} s older than the cloud)"
+        self.md.content = text

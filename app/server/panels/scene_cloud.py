@@ -1,0 +1,88 @@
+"""The TOF point cloud of the console's 3D scene, coloured: by the colour camera, by
+temperature (the thermal imager through its radiometry, in the pipeline's palette over its
+span) or by radial distance."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from app.server.runtime.pipeline import FusionPipeline
+from app.sources.frames import FrameSet
+from fusion.compose import auto_span, resolve_span
+from fusion.palettes import PALETTE_NAMES
+
+DEPTH_PALETTE = "rainbow" if "rainbow" in PALETTE_NAMES else PALETTE_NAMES[0]
+NAN_GREY = (128, 128, 128)
+C_TO_K = 273.15
+
+
+def temperature_span(
+    pipeline: FusionPipeline, thermal_images: list[np.ndarray]
+) -> tuple[float, float] | None:
+    """The pipeline's span (kelvin): fixed in its settings, else the last fused frame's
+    span, else the automatic span over ``thermal_images`` (None without any)."""
+    settings = pipeline.settings
+    if settings.span_k is not None:
+        return settings.span_k
+    span = getattr(pipeline.fusion, "span_k", None)
+    if span is not None:
+        return span
+    return resolve_span(settings, thermal_images) if thermal_images else None
+
+
+def thermal_k(pipeline: FusionPipeline, fs: FrameSet, sensor: str) -> np.ndarray | None:
+    """The imager's temperatures (H, W) kelvin in frame set ``fs`` through its radiometry
+    (calibration, balance, trim) as the fused picture shows them, or None."""
+    frame = fs.frames.get(sensor)
+    if frame is None:
+        return None
+    r = pipeline.radiometry.get(sensor)
+    image = np.asarray(frame.image, dtype=np.float32)
+    return image if r is None else r.apply(image)
+
+
+def coloured_cloud(
+    pipeline: FusionPipeline, fs: FrameSet, mode: str
+) -> tuple[np.ndarray, np.ndarray, str, tuple[float, float] | None]:
+    """The pipeline's TOF points coloured by ``mode`` (``color``, ``temperature``,
+    ``depth``: :data:`fusion.compose.CLOUD_COLORINGS`) with frame set ``fs``.
+
+    Returns:
+        (points (N, 3) metres in the in-use rig's TOF frame, colours (N, 3) uint8 RGB
+        (:data:`NAN_GREY` where the colouring sensor is missing), the legend, the span
+        coloured (kelvin or metres; None for ``color``)).
+    """
+    fusion, rig = pipeline.fusion, pipeline.rig
+    points = fusion.points
+    n = len(points)
+    eye_name = fusion.eyes[0]
+    eye = rig.eyes[eye_name]
+    grey = np.full((n, 3), NAN_GREY, np.uint8)
+    if mode == "color":
+        frame = fs.frames.get(eye.color)
+        if frame is None:
+            return points, grey, f"colour camera {eye.color} missing", None
+        pts, rgb = fusion.point_cloud({eye_name: frame.image}, {}, "color")
+        return pts, rgb, f"from {eye.color}", None
+    if mode == "temperature":
+        thermals = {
+            e: t
+            for e in fusion.eyes
+            if (t := thermal_k(pipeline, fs, rig.eyes[e].thermal)) is not None
+        }
+        span = temperature_span(pipeline, list(thermals.values()))
+        if eye_name not in thermals or span is None:
+            return points, grey, f"thermal imager {eye.thermal} missing", span
+        palette = pipeline.settings.palette
+        pts, rgb = fusion.point_cloud(
+            {}, {eye_name: thermals[eye_name]}, "temperature", span, palette
+        )
+        legend = (
+            f"from {eye.thermal}, {span[0] - C_TO_K:.1f} to {span[1] - C_TO_K:.1f} °C ({palette})"
+        )
+        return pts, rgb, legend, span
+    r = np.linalg.norm(np.asarray(points, dtype=np.float64), axis=1)
+    span = auto_span(r, step=1, min_span_k=0.01, default=(0.0, 1.0))
+    pts, rgb = fusion.point_cloud({}, {}, "depth", span, DEPTH_PALETTE)
+    legend = f"radial distance {span[0]:.2f} to {span[1]:.2f} m ({DEPTH_PALETTE})"
+    return pts, rgb, legend, span
