@@ -1,8 +1,17 @@
-// The operator's stereo viewer: fused side-by-side frames from /stream (a JSON text message
-// with the frame's metadata, then the JPEG as a binary message, acknowledged once drawn so
-// the server always sends the newest frame), MJPEG as a fallback, a colour scale in each
-// eye (the metadata's palette and span), an overlay of frame rates, latency, display mode
+// The operator's stereo viewer: fused side-by-side frames, a colour scale in each eye (the
+// metadata's palette and span), an overlay of frame rates, data rate, latency, display mode
 // and the sensors that are not ok (the metadata's `health`), full screen, and WebXR.
+//
+// Two streams, picked with the "Stream" select (stored in localStorage; `?stream=jpeg|auto|
+// 8|4|2|1` in the URL overrides it for the page; the console's default preset,
+// GET /api/stream/settings, when neither says):
+// - video (auto or a preset in Mbit/s): /stream.video, H.264 decoded with WebCodecs
+//   (viewer-video.js); the console adapts the bitrate and picture size to the link;
+// - JPEG: /stream, a JSON text message with the frame's metadata, then the JPEG as a binary
+//   message, acknowledged once drawn so the server always sends the newest frame; MJPEG
+//   (/stream.mjpg) when the WebSocket cannot open.
+// Without WebCodecs (a plain-http page on another host, an old browser) or when the browser
+// cannot decode the stream's codec, the viewer uses JPEG and says why.
 //
 // Frame rates, all over the same sliding window (the metadata's `rates.window_s`, 3 s):
 // "received" counts the frames this browser drew; "stream" (frames the console published)
@@ -14,6 +23,7 @@ const ctx = canvas.getContext("2d");
 const overlay = document.getElementById("overlay");
 const frameBox = document.getElementById("frame");
 const scaleEls = [...document.querySelectorAll(".scale")];
+const streamSelect = document.getElementById("stream");
 const stats = {
   frames: 0,        // frames drawn since the page opened
   fps: 0,           // frames drawn per second over the window ("received")
@@ -24,9 +34,19 @@ const stats = {
   lastFrameAt: null,
   rates: null,      // the console's stream rates of the newest frame
   scale: null,      // the colour scale shown (null: hidden)
-  mode: "websocket",
+  mode: "websocket",  // the transport: "websocket" or "mjpeg"
+  codec: null,      // what the pictures arrive as: "H.264" or "JPEG" (null: none yet)
+  mbps: 0,          // Mbit/s of the stream's binary messages over the window
+  byteLog: [],      // [performance.now(), bytes] of the binary messages within the window
+  bitrateBps: null, // video: the console's bitrate target for this viewer (bit/s)
+  level: null,      // video: the ladder step in use ("8", "4", "2", "1")
+  coded: null,      // video: the coded picture, "WxH"
+  fpsTarget: null,  // video: the level's highest frame rate
+  choice: null,     // the Stream select's value: "auto", "8", "4", "2", "1" or "jpeg"
+  note: null,       // why the viewer shows JPEG although video was asked for
+  decodeErrors: 0,  // video decoder errors (each answered by a key frame request)
+  decodeMs: [],     // video: decode() to the decoded frame, ms, the newest 120 frames
 };
-let latestBitmap = null;
 window.trifuseStats = stats;  // read by the browser tests and the benchmark
 
 const DEFAULT_WINDOW_S = 3;
@@ -44,45 +64,78 @@ function receivedFps(now) {
   return stats.drawTimes.length * 1000 / Math.min(w, Math.max(now - stats.firstDraw, MIN_SPAN_S * 1000));
 }
 
-function connect() {
-  const proto = location.protocol === "https:" ? "wss:" : "ws:";
-  const ws = new WebSocket(`${proto}//${location.host}/stream`);
+// Every frame drawn, whatever its stream: the frame counts, latency, colour scale, overlay.
+function frameDrawn(frameMeta) {
+  const now = performance.now();
+  stats.frames += 1;
+  stats.drawTimes.push(now);
+  if (stats.firstDraw === null) stats.firstDraw = now;
+  stats.lastFrameAt = now;
+  if (!frameMeta) return;
+  stats.meta = frameMeta;
+  stats.latencyMs.push(Date.now() - frameMeta.sent_ns / 1e6);
+  if (stats.latencyMs.length > 120) stats.latencyMs.shift();
+  showScale(scaleOf(frameMeta));
+  const fresh = frameMeta.rates && (!stats.rates || stats.rates.at_ns !== frameMeta.rates.at_ns);
+  stats.rates = frameMeta.rates || null;
+  // the console's new figures at once, as the Source panel shows them; a new stream at once
+  if (fresh || stats.codec !== overlayCodec) showOverlay();
+}
+
+function bytesReceived(n) {
+  stats.byteLog.push([performance.now(), n]);
+}
+
+// Mbit/s of the binary messages over the window ending now (the same span as receivedFps).
+function receivedMbps(now) {
+  const w = windowS() * 1000;
+  while (stats.byteLog.length && stats.byteLog[0][0] <= now - w) stats.byteLog.shift();
+  if (stats.firstDraw === null) return 0;
+  const bytes = stats.byteLog.reduce((sum, e) => sum + e[1], 0);
+  return bytes * 8 / 1e6 / (Math.min(w, Math.max(now - stats.firstDraw, MIN_SPAN_S * 1000)) / 1000);
+}
+
+// -- the streams -----------------------------------------------------------------------------
+
+const CHOICES = ["auto", "8", "4", "2", "1", "jpeg"];
+const CHOICE_KEY = "trifuse.viewer.stream";
+let current = null;  // the stream open now: {kind: "video"|"jpeg", stop(), setPreset?(p)}
+
+function wsUrl(path) {
+  return `${location.protocol === "https:" ? "wss:" : "ws:"}//${location.host}${path}`;
+}
+
+function connectJpeg() {
+  const ws = new WebSocket(wsUrl("/stream"));
   ws.binaryType = "blob";
+  const conn = { kind: "jpeg", stopped: false, stop() { conn.stopped = true; ws.close(); } };
   let meta = null, opened = false;
   ws.onopen = () => { opened = true; };
   ws.onmessage = async (ev) => {
     if (typeof ev.data === "string") { meta = JSON.parse(ev.data); return; }
     const frameMeta = meta;
+    bytesReceived(ev.data.size);
     const bitmap = await createImageBitmap(ev.data);
+    if (conn.stopped) { bitmap.close(); return; }
     if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
       canvas.width = bitmap.width; canvas.height = bitmap.height;
       frameBox.style.setProperty("--ar", String(bitmap.width / bitmap.height));
     }
     ctx.drawImage(bitmap, 0, 0);
     ws.send("ack");  // flow control: the server sends the newest frame after this
-    if (latestBitmap) latestBitmap.close();
-    latestBitmap = bitmap;
-    const now = performance.now();
-    stats.frames += 1;
-    stats.drawTimes.push(now);
-    if (stats.firstDraw === null) stats.firstDraw = now;
-    stats.lastFrameAt = now;
-    if (frameMeta) {
-      stats.meta = frameMeta;
-      stats.latencyMs.push(Date.now() - frameMeta.sent_ns / 1e6);
-      if (stats.latencyMs.length > 120) stats.latencyMs.shift();
-      showScale(scaleOf(frameMeta));
-      const fresh = frameMeta.rates && (!stats.rates || stats.rates.at_ns !== frameMeta.rates.at_ns);
-      stats.rates = frameMeta.rates || null;
-      if (fresh) showOverlay();  // the console's new figures at once, as the Source panel shows them
-    }
+    bitmap.close();
+    stats.codec = "JPEG";
+    frameDrawn(frameMeta);
   };
   ws.onclose = () => {
+    if (conn.stopped) return;
     if (!opened) { useMjpeg(); return; }
-    setTimeout(connect, 1000);
+    setTimeout(() => { if (current === conn) current = connectJpeg(); }, 1000);
   };
+  return conn;
 }
 
+// MJPEG (/stream.mjpg) in a plain <img>, where the WebSocket cannot open: no metadata.
 function useMjpeg() {
   stats.mode = "mjpeg";
   canvas.style.display = "none";
@@ -90,6 +143,99 @@ function useMjpeg() {
   const img = document.getElementById("mjpeg");
   img.style.display = "block";
   img.src = "/stream.mjpg";
+}
+
+// Back from MJPEG to the canvas (the operator picked another stream).
+function leaveMjpeg() {
+  if (stats.mode !== "mjpeg") return;
+  stats.mode = "websocket";
+  const img = document.getElementById("mjpeg");
+  img.removeAttribute("src");
+  img.style.display = "none";
+  canvas.style.display = "";
+}
+
+// The video stream at `preset`; JPEG instead when the browser cannot decode it.
+function connectVideo(preset) {
+  const conn = { kind: "video", stopped: false };
+  const fallBack = (why) => {
+    stats.note = why;
+    if (current === conn) current = connectJpeg();
+  };
+  const stream = openVideoStream(preset, {
+    draw(frame, meta, decodeMs) {
+      // the canvas keeps its size (2560 x 960): a smaller level is scaled up to it
+      ctx.drawImage(frame, 0, 0, canvas.width, canvas.height);
+      stats.codec = "H.264";
+      stats.note = null;
+      stats.bitrateBps = meta.bitrate_bps;
+      stats.level = meta.level;
+      stats.fpsTarget = meta.fps_target;
+      stats.coded = `${meta.width}x${meta.height}`;
+      stats.decodeMs.push(decodeMs);
+      if (stats.decodeMs.length > 120) stats.decodeMs.shift();
+      frameDrawn(meta);
+    },
+    received: bytesReceived,
+    decodeError() { stats.decodeErrors += 1; },
+    unsupported: fallBack,
+    closed(info) {
+      if (conn.stopped) return;
+      if (!info.opened) { fallBack("the console has no video stream"); return; }
+      if (info.code === 1008 || info.code === 1011) {  // refused or failed: say why, use JPEG
+        fallBack(`video stream closed: ${info.reason || info.code}`);
+        return;
+      }
+      setTimeout(() => { if (current === conn) current = connectVideo(preset); }, 1000);
+    },
+  });
+  conn.stop = () => { conn.stopped = true; stream.stop(); };
+  conn.setPreset = (p) => { preset = p; stream.setPreset(p); };
+  return conn;
+}
+
+// Open the stream `choice` names: a preset change on an open video stream is a message on
+// it; a change between video and JPEG closes one stream and opens the other.
+function useStream(choice) {
+  stats.choice = choice;
+  const video = choice !== "jpeg" && videoSupported();
+  stats.note = choice !== "jpeg" && !video ? "no WebCodecs in this browser (it needs https or localhost)" : null;
+  if (current && current.kind === "video" && video) { current.setPreset(choice); return; }
+  if (current && current.kind === "jpeg" && !video) return;
+  if (current) current.stop();
+  leaveMjpeg();
+  stats.bitrateBps = null; stats.level = null; stats.coded = null; stats.fpsTarget = null;
+  current = video ? connectVideo(choice) : connectJpeg();
+}
+
+// The stream to open first: the URL's ?stream=, the operator's last pick, the console's
+// default preset, or auto.
+async function initialChoice() {
+  const fromUrl = new URLSearchParams(location.search).get("stream");
+  if (CHOICES.includes(fromUrl)) return fromUrl;
+  const stored = localStorage.getItem(CHOICE_KEY);
+  if (CHOICES.includes(stored)) return stored;
+  try {
+    const r = await fetch("/api/stream/settings");
+    if (r.ok) {
+      const body = await r.json();
+      if (CHOICES.includes(body.preset)) return body.preset;
+    }
+  } catch (e) { /* an older console: auto */ }
+  return "auto";
+}
+
+async function startStream() {
+  if (!videoSupported()) {
+    for (const opt of streamSelect.options) if (opt.value !== "jpeg") opt.disabled = true;
+  }
+  const choice = await initialChoice();
+  streamSelect.value = choice;
+  streamSelect.onchange = () => {
+    localStorage.setItem(CHOICE_KEY, streamSelect.value);
+    useStream(streamSelect.value);
+  };
+  useStream(choice);
 }
 
 function median(a) {
@@ -242,8 +388,21 @@ function ratesLine(now) {
   return `stream ${r.stream_fps.toFixed(1)} fps, new pictures ${r.new_fps.toFixed(1)} fps${why}`;
 }
 
+// The video stream's figures (the console's target for this viewer), or why there is none.
+function videoLine() {
+  if (stats.codec === "H.264" && stats.bitrateBps !== null) {
+    return `video: target ${(stats.bitrateBps / 1e6).toFixed(2)} Mbit/s, level ${stats.level} ` +
+      `(${stats.coded}, up to ${stats.fpsTarget} fps), stream ${stats.choice}, ` +
+      `decoding ${median(stats.decodeMs).toFixed(0)} ms\n`;
+  }
+  return stats.note ? `JPEG: ${stats.note}\n` : "";
+}
+
+let overlayCodec = null;  // the codec the overlay names
+
 function showOverlay() {
   const now = performance.now();
+  overlayCodec = stats.codec;
   stats.fps = receivedFps(now);
   if (stats.mode === "mjpeg") {
     overlay.textContent = "mjpeg: no frame information (rates, colour scale) without the WebSocket";
@@ -253,9 +412,11 @@ function showOverlay() {
   const scale = stats.scale ? `${stats.scale.palette}, ${stats.scale.auto ? "auto" : "manual"} span` : "no colour scale";
   // sensors that are not ok (silent, no frame yet, failing), one line each, from the frame's metadata
   const health = Object.values(m.health || {}).map((line) => `\n⚠ ${line}`).join("");
+  stats.mbps = receivedMbps(now);
   overlay.textContent =
-    `${stats.mode}: received ${stats.fps.toFixed(1)} fps, latency ${median(stats.latencyMs).toFixed(0)} ms\n` +
-    `console: ${ratesLine(now)}\nrates over the last ${windowS()} s; mode ${m.mode || "–"}, ${scale}` + health;
+    `${stats.codec || "–"} (${stats.mode}): received ${stats.fps.toFixed(1)} fps, ` +
+    `${stats.mbps.toFixed(2)} Mbit/s, latency ${median(stats.latencyMs).toFixed(0)} ms\n` +
+    videoLine() + `console: ${ratesLine(now)}\nrates over the last ${windowS()} s; mode ${m.mode || "–"}, ${scale}` + health;
 }
 setInterval(showOverlay, 500);
 
@@ -291,14 +452,14 @@ async function setupVr() {
     const onFrame = (t, frame) => {
       session.requestAnimationFrame(onFrame);
       const pose = frame.getViewerPose(space);
-      if (!pose || !latestBitmap) return;
-      if (shown !== latestBitmap) {  // compose each new picture once
-        shown = latestBitmap;
-        composite.width = shown.width; composite.height = shown.height;
-        g.drawImage(shown, 0, 0);
+      if (!pose || !stats.frames) return;
+      if (shown !== stats.frames) {  // compose each new picture once (JPEG or video: the page's canvas)
+        shown = stats.frames;
+        composite.width = canvas.width; composite.height = canvas.height;
+        g.drawImage(canvas, 0, 0);
         if (stats.scale) {
           if (rampRgb !== stats.scale.rgb) { ramp = rampCanvas(stats.scale.rgb); rampRgb = stats.scale.rgb; }
-          drawScales(g, stats.scale, shown.width, shown.height, ramp);
+          drawScales(g, stats.scale, canvas.width, canvas.height, ramp);
         }
         gl.bindTexture(gl.TEXTURE_2D, tex);
         gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA, gl.RGBA, gl.UNSIGNED_BYTE, composite);
@@ -336,5 +497,5 @@ function program(gl) {
   return { half: gl.getUniformLocation(prog, "half") };
 }
 
-connect();
+startStream();
 setupVr();

@@ -10,6 +10,8 @@ Tests check behaviour, not speed: code paced by the wall clock takes a simulated
 (``support.FakeClock``), waits are for a condition with a generous time-out
 (``support.wait_until``), and timings are measured by ``trifuse bench``."""
 
+import contextlib
+import io
 import sys
 from pathlib import Path
 
@@ -114,3 +116,15 @@ def simulated(tmp_path_factory: pytest.TempPathFactory) -> dict:
         "truth": load_rig(capture / "ground_truth_rig.yaml"),
         "report": json.loads(report_path.read_text()),
     }
+
+
+@pytest.fixture
+def server():
+    """A Viser server on a free loopback port, quiet, stopped after the test (the panels'
+    tests build their GUI on it)."""
+    import viser
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        srv = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    yield srv
+    srv.stop()

@@ -26,6 +26,7 @@ from typing import TypeVar
 import numpy as np
 import pytest
 
+from app.devtools.image_quality import psnr
 from app.recording import RecordingWriter
 from app.sources.base import FrameSource
 from app.sources.frames import Frame, FrameSet
@@ -230,12 +231,6 @@ def write_recording(path: Path, rig: Rig, frames: Iterable[Frame], **kw) -> Path
         for f in frames:
             w.write(f)
     return path
-
-
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    """Peak signal-to-noise ratio of two uint8 images, dB (inf when equal)."""
-    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
-    return float(10 * np.log10(255.0**2 / mse)) if mse else float("inf")
 
 
 def assert_same_frame(got: Frame, want: Frame) -> None:

@@ -203,6 +203,8 @@ class Console:
             return {"rate": 1.5}
         if key == ("POST", "/api/range"):
             return {"holdout_every": 4}
+        if key == ("PUT", "/api/stream/settings"):
+            return {"preset": "4"}
         raise KeyError(f"{route} takes a body: add a valid one to Console.valid_body")
 
     def snapshot(self) -> dict:
@@ -210,6 +212,7 @@ class Console:
         p = self.pipeline
         return {
             "settings": repr(p.settings),
+            "stream_preset": self.hub.stream_settings.preset,
             "radiometry": repr({n: r.to_dict() for n, r in p.radiometry.items()}),
             "rig": id(p.rig),
             "balance": (self.balancer.auto, self.balancer.reference),

@@ -4,9 +4,7 @@ reason when the board was not found)."""
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
 import re
 from types import SimpleNamespace
 
@@ -25,6 +23,7 @@ from app.server.panels.display import (
 )
 from app.server.panels.precision import PrecisionPanel, plot_data, short_names
 from app.server.runtime.board_watch import BoardSighting
+from app.server.runtime.video_encoder import StreamSettings
 from app.sources.frames import Frame, FrameSet
 from app.sources.sim.head import default_rig
 from app.workflows.report_format import limit_distance_cell, pixel_cell
@@ -35,14 +34,6 @@ from calib.rig import Rig
 from fusion.compose import DisplaySettings
 from fusion.precision import analyze_precision
 from tests.support import wait_until
-
-
-@pytest.fixture
-def server():
-    with contextlib.redirect_stdout(io.StringIO()):
-        srv = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    yield srv
-    srv.stop()
 
 
 def _wait_for(panel: PrecisionPanel, rig: Rig, after: int = 0) -> None:
@@ -271,6 +262,7 @@ def _panels(server: viser.ViserServer, sighting: BoardSighting | None) -> Panels
         board_watch=_Watch(sighting),
         balancer=None,
         save_rig=None,
+        stream_settings=StreamSettings(),
     )
     return Panels(ctx)
 

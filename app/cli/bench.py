@@ -9,9 +9,10 @@ from app.cli.output import out
 
 
 def _bench_names() -> str:
+    """Every benchmark with its description, for ``--help`` (``%`` escaped for argparse)."""
     from app.devtools.bench import REGISTRY
 
-    return ", ".join(f"{n} ({b.description})" for n, b in REGISTRY.items())
+    return ", ".join(f"{n} ({b.description})" for n, b in REGISTRY.items()).replace("%", "%%")
 
 
 def add_parser(commands: Commands) -> argparse.ArgumentParser:

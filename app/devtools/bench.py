@@ -24,6 +24,7 @@ from app.devtools import (
     bench_detect,
     bench_fusion,
     bench_idle,
+    bench_link,
     bench_motion,
     bench_recording,
     bench_sim,
@@ -44,6 +45,7 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     bench_sim.sim_live,
     bench_detect.thermal_detect,
     bench_idle.idle,
+    bench_link.link,
 )
 
 REGISTRY: dict[str, Benchmark] = {}

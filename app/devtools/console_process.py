@@ -87,7 +87,8 @@ class ConsoleProcess:
     that writes much more than the pipe holds would stall: prefer a log file).
 
     The constructor returns once the console printed its URL (``https`` under TLS, with
-    ``?token=`` unless it runs without one) and answers an HTTP request; after
+    ``?token=`` unless it runs without one; ``host``: the address to listen on, passed as
+    ``--host`` unless loopback) and answers an HTTP request; after
     ``timeout_s`` without that, or if the process ends, it stops the process and raises
     RuntimeError with what the console printed.
 
@@ -108,13 +109,16 @@ class ConsoleProcess:
         log_path: Path | None = None,
         port: int | None = None,
         timeout_s: float = 120.0,
+        host: str = HOST,
     ) -> None:
-        self.host = HOST
+        self.host = host
         self.port = port or free_port()
         self.log_path = log_path
         self._said = ""
         self._log_start = 0
         command = [sys.executable, "-c", SERVE_CODE, "serve", "--port", str(self.port), *args]
+        if host != HOST:
+            command += ["--host", host]
         common: dict[str, Any] = {
             "cwd": ROOT,
             "env": None if env is None else dict(env),
@@ -152,7 +156,8 @@ class ConsoleProcess:
     def _await_url(self, deadline: float) -> tuple[str, str | None]:
         """(base URL, token) from the line the console prints once it is set up (warnings,
         e.g. about an interrupted capture, may come before it)."""
-        printed = re.compile(rf"(https?://127\.0\.0\.1:{self.port})/(?:\?token=(\S+))?(?=\s)")
+        at = re.escape(f"{self.host}:{self.port}")
+        printed = re.compile(rf"(https?://{at})/(?:\?token=(\S+))?(?=\s)")
         while True:
             more = self._read_more()
             m = printed.search(self._said)

@@ -1,7 +1,8 @@
 """The console's Viser GUI panels: Fusion, Thermal and Feeds.
 
 Fusion and Thermal write the pipeline's display settings and per-imager offsets (taking
-effect on the next frame); Feeds shows each sensor's newest image (thermal colour-mapped,
+effect on the next frame; Fusion also the video stream's default preset,
+:mod:`app.server.panels.stream`); Feeds shows each sensor's newest image (thermal colour-mapped,
 TOF amplitude stretched) with the board watch's detected corners drawn on it (or, in a strip
 at the bottom, why the board was not found there), and the Thermal panel the live left-right
 temperature difference over points both imagers see (the same TOF point sampled in each).
@@ -19,6 +20,7 @@ import cv2
 import numpy as np
 
 from app.errors import describe_error
+from app.server.panels.stream import StreamPresetControl
 from app.server.runtime.board_watch import BoardSighting
 from app.server.runtime.context import ConsoleContext
 from app.server.runtime.periodic import Periodic
@@ -183,6 +185,7 @@ class Panels(Periodic):
             self.iso_lo = gui.add_number("Isotherm low (°C)", 30.0, step=0.5)
             self.iso_hi = gui.add_number("Isotherm high (°C)", 40.0, step=0.5)
             self.mark = gui.add_checkbox("Mark fallback depth", s.mark_fallback)
+            self.stream = StreamPresetControl(gui, ctx.stream_settings)
         with gui.add_folder("Thermal"):
             self.palette = gui.add_dropdown("Palette", PALETTE_NAMES, initial_value=s.palette)
             self.auto = gui.add_checkbox(
@@ -317,6 +320,7 @@ class Panels(Periodic):
         return f"Saved the radiometry with the rig in use as **{version.name}**."
 
     def tick(self) -> None:
+        self.stream.follow()
         fs = self.pipeline.latest_set
         if fs is None:
             return

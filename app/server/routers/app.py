@@ -17,11 +17,14 @@ from app.server.routers.auth import AuthConfig, AuthMiddleware
 from app.server.routers.docs_pages import add_docs_pages
 from app.server.routers.limits import add_body_limit
 from app.server.routers.source_api import make_source_router
+from app.server.routers.stream_api import make_stream_settings_router
 from app.server.routers.viser_bridge import make_viser_router
+from app.server.runtime.kept_frames import make_kept_frames_router
 from app.server.runtime.pipeline import FusionPipeline
 from app.server.runtime.source_control import SourceControl
 from app.server.runtime.stream import FrameHub, make_stream_router
 from app.server.runtime.thermal_balance import ThermalBalancer
+from app.server.runtime.video_stream import make_video_router
 
 STATIC = Path(__file__).resolve().parents[3] / "static"
 FAVICON = "favicon.svg"
@@ -73,6 +76,9 @@ def create_app(
         app.add_middleware(AuthMiddleware, config=auth)
     app.add_exception_handler(RequestValidationError, _invalid_request)
     app.include_router(make_stream_router(hub))
+    app.include_router(make_kept_frames_router(hub.kept))  # benchmarks only (kept_frames.py)
+    app.include_router(make_video_router(hub))  # /stream.video (video_stream.py)
+    app.include_router(make_stream_settings_router(hub))  # /api/stream/settings
     if viser_port is not None:
         app.include_router(make_viser_router(viser_port, viser_secret))
     app.mount("/static", StaticFiles(directory=STATIC), name="static")

@@ -9,6 +9,7 @@ receives (docs/FORMATS.md, "Console REST API"). Bad values get a 422 naming the 
 from __future__ import annotations
 
 import dataclasses
+import time
 from typing import Literal
 
 from fastapi import APIRouter, Depends, HTTPException
@@ -79,6 +80,49 @@ class SensorInfo(BaseModel):
     rate_hz: float = Field(0.0, description="frames per second it delivers (usable or not)")
 
 
+class VideoViewerInfo(BaseModel):
+    """One ``/stream.video`` viewer (app/server/runtime/video_stats.py)."""
+
+    preset: str = Field(description="the preset it asked for: auto, 8, 4, 2, 1")
+    level: str = Field(description="the ladder step in use (8, 4, 2, 1: its Mbit/s cap)")
+    codec: str = Field(description="WebCodecs codec string, e.g. avc1.42c032")
+    width: int = Field(description="coded picture width, px")
+    height: int = Field(description="coded picture height, px")
+    bitrate_bps: int = Field(description="the rate controller's target, bit/s")
+    fps_target: int = Field(description="the level's frame rate")
+    fps: float = Field(description="frames sent per second over the last 2 s")
+    delivered_bps: float = Field(description="bits acknowledged over the last second, per s")
+    rtt_ms: float | None = Field(description="the last frame's round trip, sent -> ack, ms")
+    min_rtt_ms: float | None = Field(description="the least round trip of the last 10 s, ms")
+    latency_ms: float | None = Field(
+        description="the last acknowledged frame's age at its ack, from its publication, ms"
+    )
+    encode_ms: float | None = Field(description="the last frame's encoding time, ms")
+    in_flight: int = Field(description="frames sent, not acknowledged")
+    window: int = Field(description="the most frames in flight")
+    frames_sent: int
+    keyframes: int
+    bytes_sent: int
+    congestion_events: int = Field(description="the controller's steps down")
+
+
+class StreamInfo(BaseModel):
+    """The stream's settings and its video viewers."""
+
+    default_preset: str = Field(description="the video preset of viewers that ask for none")
+    video: list[VideoViewerInfo] = Field(
+        default_factory=list, description="each /stream.video viewer's figures"
+    )
+
+
+def _stream(hub: FrameHub) -> StreamInfo:
+    now = time.monotonic()
+    return StreamInfo(
+        default_preset=hub.stream_settings.preset,
+        video=[VideoViewerInfo(**v.as_dict(now)) for v in list(hub.video_viewers)],
+    )
+
+
 class Status(BaseModel):
     """The console at a glance. ``viewers``, ``frames_out``, ``fps``, ``missing`` and
     ``error`` are the keys the first status route had."""
@@ -101,6 +145,9 @@ class Status(BaseModel):
     recording: RecordingInfo | None = None
     sensors: dict[str, SensorInfo] = Field(
         default_factory=dict, description="each sensor's health: state, reason, age, rate"
+    )
+    stream: StreamInfo | None = Field(
+        None, description="the stream's default video preset and its video viewers"
     )
 
 
@@ -157,7 +204,14 @@ def make_source_router(
         """The source, per-sensor rates, the fused stream, viewers and the recording. A
         client asking for it is listening: the console fuses for the next few seconds."""
         if control is None:
-            return Status(viewers=hub.viewers, frames_out=0, fps=0.0, missing={}, error=None)
+            return Status(
+                viewers=hub.viewers,
+                frames_out=0,
+                fps=0.0,
+                missing={},
+                error=None,
+                stream=_stream(hub),
+            )
         control.pipeline.touch_demand()
         s = control.pipeline.status
         rates = control.stream_rates()
@@ -172,6 +226,7 @@ def make_source_router(
             rates_hz=control.rates_hz(),
             recording=_recording(control.recording_state()),
             sensors={n: SensorInfo(**h.as_dict()) for n, h in control.sensor_health().items()},
+            stream=_stream(hub),
         )
 
     @router.post("/source/pause")

@@ -12,6 +12,7 @@ from app.server.runtime.demand import ConsoleDemand
 from app.server.runtime.pipeline import FusionPipeline
 from app.server.runtime.stream import FrameHub
 from app.server.runtime.thermal_balance import ThermalBalancer
+from app.server.runtime.video_encoder import StreamSettings
 from app.sources.base import FrameSource
 from app.workflows.calib_session import RigVersion
 from calib.board import Board
@@ -51,6 +52,12 @@ class ConsoleContext:
     balancer: ThermalBalancer | None = None
     save_rig: Callable[[Rig, dict], RigVersion] | None = None
     demand: ConsoleDemand = field(default_factory=ConsoleDemand)
+
+    @property
+    def stream_settings(self) -> StreamSettings:
+        """The video stream's console-wide settings (``preset``: of new viewers), the
+        hub's: ``/api/stream/settings`` and the GUI share them."""
+        return self.hub.stream_settings
 
     def use_rig(self, rig: Rig) -> None:
         """Fuse with, detect with and show ``rig`` from now on (ValueError: wrong sensors)."""

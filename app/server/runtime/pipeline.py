@@ -35,9 +35,13 @@ maps depth and encodes only while it is wanted (a stream viewer, a Viser client,
 client of the status). Otherwise it still drains the source and groups its frames into
 sets (``latest_set``, the missing sensors and the sensors' health stay current; the
 source never backs up), but makes no picture; the stream forgets its last picture (it
-would be stale). When the demand turns wanted, the newest frame set is fused at once (a
-new viewer waits at most one frame period; a paused replay shows its picture again), the
-depth from the newest TOF frame seen. Without a ``demand`` every frame set is fused.
+would be stale). While a video viewer is connected (:attr:`FrameHub.wants_bgr
+<app.server.runtime.stream.FrameHub.wants_bgr>`), each frame also carries the BGR picture
+(``StreamFrame.bgr``: the encoder thread's buffer, handed over read-only and replaced by a
+new one in the pool; a repeat carries the previous picture). When the demand turns wanted,
+the newest frame set is fused at once (a new viewer waits at most one frame period; a
+paused replay shows its picture again), the depth from the newest TOF frame seen.
+Without a ``demand`` every frame set is fused.
 """
 
 from __future__ import annotations
@@ -150,6 +154,8 @@ class _StreamEncoder:
         for _ in range(self.BUFFERS):
             self._free.put(None)  # allocated on first use, at the picture's shape
         self._jpeg: bytes | None = None
+        self.kept_bgr: np.ndarray | None = None
+        """The last picture published with its BGR (read-only; repeats carry it too)."""
         self._thread = threading.Thread(target=self._run, name="stream-encoder", daemon=True)
 
     def start(self) -> None:
@@ -199,21 +205,34 @@ class _StreamEncoder:
                 return
             try:
                 if job.forget:
-                    self._jpeg = None
+                    self._jpeg = self.kept_bgr = None
                     self.hub.forget()
                     continue
+                new = job.bgr is not None
                 if job.bgr is not None:
                     ok, buf = cv2.imencode(".jpg", job.bgr, [cv2.IMWRITE_JPEG_QUALITY, job.quality])
                     self._jpeg = buf.tobytes() if ok else None
+                    self.kept_bgr = self._keep(job)
                 if self._jpeg is not None:
-                    self.hub.publish(self._jpeg, job.meta, new=job.bgr is not None)
+                    self.hub.publish(self._jpeg, job.meta, new=new, bgr=self.kept_bgr)
                     self.status.frames_out += 1
-                    self.status.pictures_out += job.bgr is not None
+                    self.status.pictures_out += new
             except Exception as exc:  # shown in the status; the next frame is tried
                 self.status.error = describe_error(exc)
             finally:
                 if job.bgr is not None:
                     self._free.put(job.bgr)
+
+    def _keep(self, job: _Job) -> np.ndarray | None:
+        """While video viewers want the picture itself (:attr:`FrameHub.wants_bgr`), the
+        job's buffer goes out with the frame, read-only, and is never reused (a new one
+        takes its place in the pool: ``job.bgr`` becomes None); otherwise None."""
+        if job.bgr is None or not self.hub.wants_bgr:
+            return None
+        kept, job.bgr = job.bgr, None
+        kept.flags.writeable = False
+        self._free.put(None)  # allocated afresh by the next buffer()
+        return kept
 
 
 class FusionPipeline:
@@ -426,6 +445,7 @@ class FusionPipeline:
         previous = self._made_of
         if (
             previous is not None
+            and (self._encoder.kept_bgr is not None or not self.hub.wants_bgr)
             and previous[:4] == made_of[:4]
             and self.fusion.span_settled
             and all(_unchanged(a, b) for a, b in zip(made_of[4:], previous[4:], strict=True))

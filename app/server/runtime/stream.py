@@ -24,20 +24,29 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from fastapi.responses import StreamingResponse
 
 from app.server.runtime.demand import Demand
+from app.server.runtime.kept_frames import KeptFrames
 from app.server.runtime.rates import StreamRates
+from app.server.runtime.video_encoder import StreamSettings
+from app.server.runtime.video_stats import VideoViewerStats
 
 
 @dataclass(frozen=True)
 class StreamFrame:
-    """One encoded stereo frame and what the viewer overlays with it."""
+    """One encoded stereo frame and what the viewer overlays with it.
+
+    ``bgr``: the fused picture itself, (H, W, 3) uint8 BGR, read-only and never written
+    again (the video viewers encode it, :mod:`app.server.runtime.video_stream`); None
+    when no video viewer is connected (:attr:`FrameHub.wants_bgr`)."""
 
     seq: int
     jpeg: bytes
     meta: dict[str, Any] = field(default_factory=dict)
+    bgr: np.ndarray | None = None
 
 
 class FrameHub:
@@ -56,13 +65,28 @@ class FrameHub:
         self.viewers = 0
         self.rates = StreamRates()
         """Frames published and new pictures per second (read by the panel and routes)."""
+        self.stream_settings = StreamSettings()
+        """The default video preset of new ``/stream.video`` viewers (``ctx.stream_settings``)."""
+        self.video_viewers: list[VideoViewerStats] = []
+        """The ``/stream.video`` viewers' figures (``/api/status``), one per connection."""
+        self.kept = KeptFrames.from_env()
+        """The last pictures by seq, for benchmarks (None: off; kept_frames.py)."""
 
-    def publish(self, jpeg: bytes, meta: dict[str, Any], new: bool = True) -> StreamFrame:
+    @property
+    def wants_bgr(self) -> bool:
+        """Whether frames should carry their BGR picture (a video viewer is connected, or
+        pictures are kept for a benchmark: :attr:`kept`)."""
+        return bool(self.video_viewers) or self.kept is not None
+
+    def publish(
+        self, jpeg: bytes, meta: dict[str, Any], new: bool = True, bgr: np.ndarray | None = None
+    ) -> StreamFrame:
         """Make ``jpeg`` the newest frame (any thread). ``meta`` must be JSON-able.
 
         ``new``: the picture is new (False: the previous picture published again because
-        its input did not change). The frame's metadata gains ``seq``, ``sent_ns`` and
-        ``rates`` (:meth:`app.server.runtime.rates.RatesSnapshot.as_dict`)."""
+        its input did not change). ``bgr``: the picture (see :class:`StreamFrame`; the
+        caller never writes to it again). The frame's metadata gains ``seq``, ``sent_ns``
+        and ``rates`` (:meth:`app.server.runtime.rates.RatesSnapshot.as_dict`)."""
         self.rates.tick(new)
         rates = self.rates.snapshot().as_dict()
         with self._lock:
@@ -71,9 +95,12 @@ class FrameHub:
                 self._seq,
                 jpeg,
                 {**meta, "seq": self._seq, "sent_ns": time.time_ns(), "rates": rates},
+                bgr,
             )
             self._frame = frame
             waiters = list(self._waiters)
+        if self.kept is not None:
+            self.kept.add(frame.seq, frame.bgr)
         for loop, event in waiters:
             loop.call_soon_threadsafe(event.set)
         return frame
@@ -99,14 +126,23 @@ class FrameHub:
         finally:
             self.viewers -= 1
 
-    async def frames(self, poll_s: float = 1.0) -> AsyncIterator[StreamFrame]:
-        """The newest frame each time there is a newer one (skipping what was missed)."""
-        event = asyncio.Event()
+    @contextmanager
+    def notifying(self, event: asyncio.Event) -> Iterator[None]:
+        """Set ``event`` (in the running loop) at each :meth:`publish` during the block."""
         key = (asyncio.get_running_loop(), event)
         with self._lock:
             self._waiters.add(key)
-        last = 0
         try:
+            yield
+        finally:
+            with self._lock:
+                self._waiters.discard(key)
+
+    async def frames(self, poll_s: float = 1.0) -> AsyncIterator[StreamFrame]:
+        """The newest frame each time there is a newer one (skipping what was missed)."""
+        event = asyncio.Event()
+        last = 0
+        with self.notifying(event):
             while True:
                 frame = self._frame
                 if frame is not None and frame.seq > last:
@@ -119,9 +155,6 @@ class FrameHub:
                         await asyncio.wait_for(event.wait(), poll_s)
                     except TimeoutError:
                         pass
-        finally:
-            with self._lock:
-                self._waiters.discard(key)
 
 
 def make_stream_router(hub: FrameHub) -> APIRouter:
