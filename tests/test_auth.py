@@ -65,7 +65,7 @@ def client(tmp_path) -> Iterator[TestClient]:
 
 HIDDEN = [("GET", p) for p in ("/", "/console", "/console/", "/static/viewer.js", "/docs")]
 """Routes left out of the OpenAPI schema."""
-WEBSOCKETS = ("/stream", "/ingest", "/console", "/console/")
+WEBSOCKETS = ("/stream", "/stream.video", "/ingest", "/console", "/console/")
 
 
 def _requests(app: FastAPI) -> list[tuple[str, str]]:
