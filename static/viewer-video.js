@@ -1,9 +1,11 @@
 // The viewer's video path: /stream.video (docs/FORMATS.md, "The video stream") decoded with
 // WebCodecs. Per frame the server sends a JSON text message (the /stream metadata plus
 // codec, key, width, height, bitrate_bps, fps_target, preset, level), then the H.264 access
-// unit in Annex B as one binary message. This side answers {"ack": seq} once the frame is
-// drawn (every frame received, in order, also the ones it could not decode: the server
-// keeps a window of frames in flight), {"keyframe": true} after a decoder error, and
+// unit in Annex B as one binary message. This side answers {"ack": seq, "recv_ms": t} once
+// the frame is drawn (every frame received, in order, also the ones it could not decode: the
+// server keeps a window of frames in flight; t: when the frame arrived, performance.now(),
+// so that the server tells a queue on the link from a busy CPU here or there),
+// {"keyframe": true} after a decoder error, and
 // {"preset": P} when the operator picks another preset.
 //
 // Used by viewer.js (loaded after this file): `videoSupported()` and `openVideoStream()`.
@@ -35,13 +37,13 @@ function openVideoStream(preset, hooks) {
   let meta = null;          // the metadata of the next binary message
   let decoder = null, config = null;
   let needKey = true;       // drop delta chunks until the next key frame
-  const pending = new Map();  // seq -> {meta, t: performance.now() at decode()} decoding
+  const pending = new Map();  // seq -> {meta, t: performance.now() at decode(), recv} decoding
   let chain = Promise.resolve();  // messages handled one after the other, in order
   let checkedCodec = null;  // the codec isConfigSupported said yes to
   let failures = 0;         // decoder errors since the last frame decoded
 
   const send = (obj) => { if (ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify(obj)); };
-  const ack = (seq) => send({ ack: seq });
+  const ack = (seq, recv) => send(recv === undefined ? { ack: seq } : { ack: seq, recv_ms: recv });
 
   const onOutput = (frame) => {
     failures = 0;
@@ -53,7 +55,7 @@ function openVideoStream(preset, hooks) {
     } finally {
       frame.close();
     }
-    ack(seq);  // after drawing: acknowledges the older frames too
+    ack(seq, item && item.recv);  // after drawing: acknowledges the older frames too
   };
 
   const newDecoder = () => {
@@ -84,7 +86,7 @@ function openVideoStream(preset, hooks) {
     send({ keyframe: true });
   }
 
-  async function handle(data) {
+  async function handle(data, recv) {
     if (stopped) return;
     if (typeof data === "string") {
       try { meta = JSON.parse(data); } catch (e) { meta = null; }
@@ -106,7 +108,7 @@ function openVideoStream(preset, hooks) {
       }
       checkedCodec = m.codec;
     }
-    if (needKey && !m.key) { ack(m.seq); return; }  // undecodable until the next IDR
+    if (needKey && !m.key) { ack(m.seq, recv); return; }  // undecodable until the next IDR
     if (m.key) {
       const next = { codec: m.codec, codedWidth: m.width, codedHeight: m.height, optimizeForLatency: true };
       if (!decoder || decoder.state === "closed") { config = next; newDecoder(); }
@@ -118,7 +120,7 @@ function openVideoStream(preset, hooks) {
       needKey = false;
     }
     framed = true;
-    pending.set(m.seq, { meta: m, t: performance.now() });
+    pending.set(m.seq, { meta: m, t: performance.now(), recv });
     try {
       decoder.decode(new EncodedVideoChunk({ type: m.key ? "key" : "delta", timestamp: m.seq, data }));
     } catch (err) {
@@ -127,7 +129,10 @@ function openVideoStream(preset, hooks) {
   }
 
   ws.onopen = () => { opened = true; };
-  ws.onmessage = (ev) => { chain = chain.then(() => handle(ev.data)).catch(onError); };
+  ws.onmessage = (ev) => {
+    const recv = performance.now();
+    chain = chain.then(() => handle(ev.data, recv)).catch(onError);
+  };
   ws.onclose = (ev) => {
     const was = stopped;
     stopped = true;

@@ -23,7 +23,7 @@ from app.server.panels.display import (
 )
 from app.server.panels.precision import PrecisionPanel, plot_data, short_names
 from app.server.runtime.board_watch import BoardSighting
-from app.server.runtime.video_encoder import StreamSettings
+from app.server.runtime.video_presets import StreamSettings
 from app.sources.frames import Frame, FrameSet
 from app.sources.sim.head import default_rig
 from app.workflows.report_format import limit_distance_cell, pixel_cell

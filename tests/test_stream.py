@@ -5,6 +5,8 @@ colour scale (palette, span)."""
 from __future__ import annotations
 
 import json
+import threading
+import time
 from collections.abc import Iterator
 
 import cv2
@@ -14,9 +16,10 @@ from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
 from app.server.panels.source import stream_text
-from app.server.runtime.pipeline import FusionPipeline
+from app.server.runtime.pipeline import FusionPipeline, PipelineStatus, _Job, _StreamEncoder
 from app.server.runtime.rates import RatesSnapshot, StreamRates
-from app.server.runtime.stream import FrameHub, make_stream_router
+from app.server.runtime.stream import FrameHub, StreamFrame, make_stream_router
+from app.server.runtime.video_stats import VideoViewerStats
 from app.sources.base import FrameSource
 from app.sources.frames import Frame
 from fusion.compose import DisplaySettings
@@ -63,6 +66,63 @@ def test_mjpeg_fallback_streams_jpeg_parts() -> None:
             if b"\xff\xd9" in chunk:
                 break
         assert b"Content-Type: image/jpeg" in chunk and b"\xff\xd8" in chunk
+
+
+def test_jpeg_viewers_skip_frames_that_carry_no_jpeg() -> None:
+    """A frame published for video viewers alone has no JPEG: a JPEG viewer waits for the
+    next one that has, and counts as a JPEG viewer while connected."""
+    hub = FrameHub()
+    app = FastAPI()
+    app.include_router(make_stream_router(hub))
+    with TestClient(app) as client, client.websocket_connect("/stream") as ws:
+        hub.publish(None, {"k": 1}, bgr=np.zeros((2, 2, 3), np.uint8))
+        hub.publish(_jpeg(2), {"k": 2})
+        assert json.loads(ws.receive_text())["k"] == 2
+        ws.receive_bytes()
+        assert hub.jpeg_viewers == 1 and hub.wants_jpeg
+    assert hub.jpeg_viewers == 0
+
+
+def test_jpeg_is_encoded_only_while_a_jpeg_viewer_listens() -> None:
+    """With only a video viewer the encoder thread publishes the picture without a JPEG;
+    a JPEG viewer arriving gets one at the next frame, a repeated picture included."""
+    hub = FrameHub()
+    hub.video_viewers.append(VideoViewerStats(preset="auto"))
+    status, stop = PipelineStatus(), threading.Event()
+    encoder = _StreamEncoder(hub, status, stop)
+    encoder.start()
+
+    def publish(job: _Job) -> StreamFrame:
+        seq = hub.latest.seq if hub.latest is not None else 0
+        assert encoder.submit(job)
+        deadline = time.monotonic() + 30
+        while (hub.latest is None or hub.latest.seq == seq) and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert hub.latest is not None and hub.latest.seq == seq + 1, status.error
+        return hub.latest
+
+    def picture(value: int) -> _Job:
+        buf = encoder.buffer((16, 32, 3))
+        assert buf is not None
+        buf[:] = value
+        return _Job({}, buf)
+
+    try:
+        first = publish(picture(40))
+        assert first.jpeg is None and first.bgr is not None and int(first.bgr[0, 0, 0]) == 40
+        hub.jpeg_viewers += 1  # a JPEG viewer connects: the repeat brings the JPEG
+        again = publish(_Job({}))
+        shown = cv2.imdecode(np.frombuffer(again.jpeg, np.uint8), cv2.IMREAD_COLOR)
+        assert abs(int(shown[8, 16, 0]) - 40) <= 2
+        fresh = publish(picture(200))
+        shown = cv2.imdecode(np.frombuffer(fresh.jpeg, np.uint8), cv2.IMREAD_COLOR)
+        assert abs(int(shown[8, 16, 0]) - 200) <= 2 and fresh.bgr is not None
+        hub.jpeg_viewers -= 1
+        assert publish(picture(90)).jpeg is None
+    finally:
+        stop.set()
+        encoder.close()
+    assert status.error is None
 
 
 # -- the stream's rates ----------------------------------------------------------------------

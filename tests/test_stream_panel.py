@@ -4,7 +4,7 @@ console's default preset and follows a change made through ``/api/stream/setting
 from __future__ import annotations
 
 from app.server.panels.stream import AUTO_LABEL, StreamPresetControl, preset_labels
-from app.server.runtime.video_encoder import PRESETS, StreamSettings
+from app.server.runtime.video_presets import PRESETS, StreamSettings
 
 
 def test_labels_name_every_preset_with_its_level() -> None:

@@ -3,7 +3,9 @@
 A link is a FIFO queue of ``capacity`` bit/s with a base round trip: a frame waits for the
 frames before it, takes ``bits / capacity`` to cross, and its ack returns half a round trip
 later. The sender sends a frame of the controller's bitrate / fps whenever the controller
-lets it (the encoder hitting its target, +-20 % seeded noise). Simulated time only.
+lets it (the encoder hitting its target, +-20 % seeded noise). A busy machine holds acks
+back after the frames arrived (``ack_stalls``); a viewer that says when frames arrive
+(``one_way``) gives the controller their arrival on its own clock. Simulated time only.
 """
 
 from __future__ import annotations
@@ -14,7 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from app.server.runtime.video_encoder import LEVELS, MIN_BPS
+from app.recording.h264 import MIN_BPS
+from app.server.runtime.video_presets import LEVELS
 from app.server.runtime.video_rate import WINDOW, RateController
 
 STEP_S = 0.001
@@ -39,23 +42,30 @@ def simulate(
     duration_s: float,
     seed: int = 0,
     losses: tuple[tuple[float, float], ...] = (),
+    ack_stalls: tuple[tuple[float, float], ...] = (),
+    one_way: bool = False,
+    app_limit_bps: float = float("inf"),
 ) -> Trace:
     """Run the sender over the link for ``duration_s``; the controller's trace.
 
     ``losses``: ``(share, late_s)`` pairs: that share of the frames loses a packet and is
     delivered ``late_s`` late (TCP resends the packet while the link carries on); the frames
-    behind it wait for it (TCP delivers in order)."""
+    behind it wait for it (TCP delivers in order). ``ack_stalls``: ``(start, length)``: an
+    ack due in the stall goes at its end (the viewer's or the server's CPU was busy after
+    the frame arrived). ``one_way``: acks carry the frame's arrival, on a viewer clock
+    offset by 1000 s. ``app_limit_bps``: the encoder makes no more than this whatever the
+    target (a still scene)."""
     rng = np.random.default_rng(seed)
     trace = Trace()
     link_free = 0.0
     delivered = 0.0  # when the last frame sent reached the viewer
-    acks: list[tuple[float, int]] = []  # (t_ack, seq), in order (FIFO link)
+    acks: list[tuple[float, int, float]] = []  # (t_ack, seq, arrival), in order (FIFO)
     seq = 0
     for i in range(int(duration_s / STEP_S)):
         t = i * STEP_S
         while acks and acks[0][0] <= t:
-            t_ack, s = acks.pop(0)
-            ctl.on_ack(s, t_ack)
+            t_ack, s, arrival = acks.pop(0)
+            ctl.on_ack(s, t_ack, arrival + 1000.0 if one_way else None)
             trace.rtt.append((t_ack, ctl.last_rtt_s or 0.0))
         target = ctl.target(t)
         trace.t.append(t)
@@ -63,7 +73,8 @@ def simulate(
         trace.level.append(target.level.name)
         if ctl.can_send(t):
             seq += 1
-            nbytes = int(target.bitrate_bps / target.fps / 8 * rng.uniform(0.8, 1.2))
+            bps = min(target.bitrate_bps, app_limit_bps)
+            nbytes = int(bps / target.fps / 8 * rng.uniform(0.8, 1.2))
             ctl.on_sent(seq, nbytes, t)
             start = max(t + rtt_s / 2, link_free)
             link_free = start + nbytes * 8 / capacity(start)
@@ -75,7 +86,12 @@ def simulate(
                     break
                 draw -= share
             delivered = max(link_free + late, delivered)
-            acks.append((delivered + rtt_s / 2, seq))
+            t_ack = delivered + rtt_s / 2
+            for start_s, length_s in ack_stalls:
+                if start_s <= t_ack < start_s + length_s:
+                    t_ack = start_s + length_s
+            t_ack = max(t_ack, acks[-1][0] if acks else 0.0)
+            acks.append((t_ack, seq, delivered))
             trace.in_flight_max = max(trace.in_flight_max, ctl.in_flight)
     return trace
 
@@ -164,3 +180,101 @@ def test_bad_preset_and_window_rejected() -> None:
         RateController("16")
     with pytest.raises(ValueError, match="window"):
         RateController("auto", window=0)
+
+
+def busy_machine_stalls(seed: int, duration_s: float) -> tuple[tuple[float, float], ...]:
+    """A stall of 0.3-0.8 s about every 2 s: what a loaded 2-core machine did to the acks
+    (seen at load 6: round trips of 300 ms on a loopback link)."""
+    rng = np.random.default_rng(seed)
+    starts = np.cumsum(rng.uniform(1.0, 3.0, int(duration_s)))
+    return tuple((float(s), float(rng.uniform(0.3, 0.8))) for s in starts if s < duration_s)
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_a_still_scene_on_a_lossy_link_keeps_the_top_level(seed: int) -> None:
+    """The encoder makes 3 Mbit/s of an 8 Mbit/s target (a still scene) on the 10 Mbit/s
+    1 % loss link: a step down is sized by what the link carried while the queue stood,
+    not by the encoder's output, so the top level stays."""
+    ctl = RateController("auto")
+    losses = ((0.18, 0.060), (0.03, 0.26))
+    trace = simulate(
+        ctl, lambda t: 10e6, 0.060, 30.0, seed=seed, losses=losses, one_way=True, app_limit_bps=3e6
+    )
+    levels = trace.level[int(np.searchsorted(trace.t, 5.0)) :]
+    assert levels.count("8") >= 0.9 * len(levels)
+
+
+@pytest.mark.parametrize("seed", [7, 8])
+def test_late_acks_of_a_busy_machine_do_not_lower_the_bitrate(seed: int) -> None:
+    """No link limit (100 Mbit/s, 2 ms), acks held back by CPU stalls: a viewer that says
+    when frames arrive keeps the top bitrate (steps taken at a stall are undone); without
+    that, the same stalls read as congestion."""
+    stalls = busy_machine_stalls(seed, 30.0)
+    told = RateController("auto")
+    trace = simulate(told, lambda t: 100e6, 0.002, 30.0, seed=seed, ack_stalls=stalls, one_way=True)
+    late = [b for t, b in zip(trace.t, trace.bitrate, strict=True) if t > 3.0]
+    assert np.median(late) >= 0.9 * LEVELS[0].max_bps
+    assert told.undone_events >= 1
+    blind = RateController("auto")
+    trace_blind = simulate(blind, lambda t: 100e6, 0.002, 30.0, seed=seed, ack_stalls=stalls)
+    late_blind = [b for t, b in zip(trace_blind.t, trace_blind.bitrate, strict=True) if t > 3.0]
+    assert np.median(late_blind) < 0.9 * LEVELS[0].max_bps
+
+
+def test_one_way_delays_still_follow_a_capacity_drop() -> None:
+    def capacity(t: float) -> float:
+        return 3e6 if 10.0 <= t < 20.0 else 10e6
+
+    ctl = RateController("auto")
+    trace = simulate(ctl, capacity, 0.060, 40.0, seed=1, one_way=True)
+    assert trace.bitrate_at(9.9) >= 6e6
+    assert trace.bitrate_at(11.0) < 3e6
+    assert trace.bitrate_at(39.9) >= 6e6
+
+
+def test_a_link_stall_is_not_undone() -> None:
+    """Frames that reached the viewer late (the link stalled) keep the step down."""
+    ctl = RateController("auto")
+    ctl.on_sent(1, 30_000, 0.0)
+    ctl.on_ack(1, 0.02, recv_s=100.01)
+    for seq in range(2, 2 + WINDOW):
+        ctl.on_sent(seq, 30_000, 0.02 + seq * 0.033)
+    ctl.target(1.0)  # nothing acknowledged for ~0.9 s: a step down
+    stepped = ctl.bitrate_bps
+    assert stepped < LEVELS[0].max_bps
+    ctl.on_ack(2, 1.05, recv_s=101.0)  # it arrived a second late
+    assert ctl.bitrate_bps == stepped and ctl.undone_events == 0
+
+
+def test_a_stall_of_the_acks_alone_is_undone() -> None:
+    ctl = RateController("auto")
+    ctl.on_sent(1, 30_000, 0.0)
+    ctl.on_ack(1, 0.02, recv_s=100.01)
+    for seq in range(2, 2 + WINDOW):
+        ctl.on_sent(seq, 30_000, 0.02 + seq * 0.033)
+    ctl.target(1.0)
+    assert ctl.bitrate_bps < LEVELS[0].max_bps
+    ctl.on_ack(2, 1.05, recv_s=100.02 + 2 * 0.033 + 0.01)  # it had arrived at once
+    assert ctl.bitrate_bps == LEVELS[0].max_bps and ctl.undone_events == 1
+    assert ctl.level == LEVELS[0]
+
+
+def test_uneven_frames_are_paced_by_a_bucket_not_a_gap() -> None:
+    """Frames come in pairs 8 ms apart every 66.7 ms (30 frames/s on average, as a source
+    whose sensors are out of phase delivers them): at level 8 (30 frames/s) every one may
+    go; over a second never more than the rate plus the bucket."""
+    ctl = RateController("8", window=100)
+    sent = 0
+    for k in range(30):
+        for t in (k / 15, k / 15 + 0.008):
+            if ctl.can_send(t):
+                sent += 1
+                ctl.on_sent(sent, 30_000, t)
+    assert sent == 60
+    eager = RateController("8", window=100)  # a frame every millisecond for a second
+    n = 0
+    for i in range(1000):
+        if eager.can_send(i * 0.001):
+            n += 1
+            eager.on_sent(n, 30_000, i * 0.001)
+    assert n <= 30 + 2

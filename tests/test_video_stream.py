@@ -22,17 +22,12 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from app.devtools.image_quality import psnr, ssim
+from app.recording.h264 import VideoEncoder, codec_string, is_idr
 from app.server.routers.app import create_app
 from app.server.routers.auth import AuthConfig
 from app.server.runtime.pipeline import FusionPipeline
 from app.server.runtime.stream import FrameHub, StreamFrame
-from app.server.runtime.video_encoder import (
-    LEVEL_BY_NAME,
-    LEVELS,
-    VideoEncoder,
-    codec_string,
-    is_idr,
-)
+from app.server.runtime.video_presets import LEVEL_BY_NAME, LEVELS
 from app.server.runtime.video_rate import WINDOW
 from app.sources.base import FrameSource
 from app.sources.frames import Frame

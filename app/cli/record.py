@@ -21,6 +21,7 @@ from app.cli.args import (
 from app.cli.files import refuse_existing
 from app.cli.output import err, out
 from app.cli.record_output import record_summary, say_where
+from app.cli.record_video import add_video_arguments, attach_fused_video, video_summary
 
 
 def add_parser(commands: Commands) -> argparse.ArgumentParser:
@@ -41,7 +42,9 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
             "(about 7x slower than real time on 2 cores), with --exact every instant "
             "rendered accurately (about 130x); it says how long at the start and gives the "
             "time left as it goes; --source replay:FILE "
-            "re-records a recording (a damaged one up to the damage)."
+            "re-records a recording (a damaged one up to the damage). --fused-video also "
+            "keeps the fused stereo picture as H.264 video on /fused/video "
+            "(foxglove.CompressedVideo), which Foxglove plays."
         ),
     )
     rec.add_argument(
@@ -91,6 +94,7 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         metavar="Q",
         help="JPEG quality of the colour images, 1-100 (default: %(default)s)",
     )
+    add_video_arguments(rec)
     return rec
 
 
@@ -153,8 +157,11 @@ def _record(args: argparse.Namespace) -> int:
             + (f" for {args.duration:g} s" if args.duration else " until Ctrl-C")
         )
     damage = None
+    fuser = None
     with src, RecordingWriter(rec_out, opened.rig, jpeg_quality=args.jpeg_quality) as writer:
         say_where(writer)
+        if args.fused_video:
+            fuser = attach_fused_video(writer, args)
         try:
             for frame in src.frames():
                 if end_ns is not None and frame.stamp_ns >= end_ns:
@@ -165,6 +172,8 @@ def _record(args: argparse.Namespace) -> int:
         except RecordingDamaged as exc:
             damage = exc
     record_summary(rec_out, writer)
+    if fuser is not None:
+        video_summary(fuser)
     if damage is not None:
         err(f"{PROG}: warning: {damage}; the frames before it were recorded")
     return EXIT_OK

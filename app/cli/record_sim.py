@@ -12,8 +12,11 @@ import numpy as np
 from app.cli.args import EXIT_OK, PROG, UsageError
 from app.cli.output import err, out
 from app.cli.record_output import record_summary, say_where
+from app.cli.record_video import attach_fused_video, fused_video_cost_s, video_summary
 
 if TYPE_CHECKING:
+    from app.recording.video_track import FusedVideoFuser
+    from app.recording.writer import RecordingWriter
     from calib.rig import Rig
 
 
@@ -51,11 +54,16 @@ def record_sim(args: argparse.Namespace, rec_out: Path, rig: Rig | None) -> int:
             "each frame turned to its own instant's head pose with fresh noise "
             "(--exact renders every instant)"
         )
+    estimate_s = plan.estimate_s
+    if args.fused_video:
+        video_s = fused_video_cost_s(rig, plan.schedule)
+        estimate_s += video_s
+        how += f"; the fused video about {span(video_s)} of it"
     out(
         f"Recording {duration:g} s of the simulated head (inspection scenario, seed "
         f"{args.seed}): {len(plan.schedule)} instants, {plan.frames} frames, time "
         f"stamps at each sensor's rate; {how}. Estimated time: about "
-        f"{span(plan.estimate_s)} ({plan.estimate_s / duration:.0f}x real time) on a "
+        f"{span(estimate_s)} ({estimate_s / duration:.0f}x real time) on a "
         "quiet 2-core machine, more on a busy one; the progress lines give the time left."
     )
 
@@ -64,6 +72,13 @@ def record_sim(args: argparse.Namespace, rec_out: Path, rig: Rig | None) -> int:
             f"[{p.index}/{p.total}] t = {p.stamp_ns / 1e9:.4f} s: {', '.join(p.sensors)} "
             f"({p.seconds:.2f} s), elapsed {span(p.elapsed_s)}, ETA {span(p.eta_s)}"
         )
+
+    fusers: list[FusedVideoFuser] = []
+
+    def opened(writer: RecordingWriter) -> None:
+        say_where(writer)
+        if args.fused_video:
+            fusers.append(attach_fused_video(writer, args))
 
     try:
         writer = record_simulation(
@@ -74,11 +89,13 @@ def record_sim(args: argparse.Namespace, rec_out: Path, rig: Rig | None) -> int:
             jpeg_quality=args.jpeg_quality,
             progress=progress,
             plan=plan,
-            opened=say_where,
+            opened=opened,
         )
     except KeyboardInterrupt:
         if rec_out.exists():
             err(f"{PROG}: interrupted; what was recorded so far is in {rec_out}")
         raise
     record_summary(rec_out, writer)
+    for fuser in fusers:
+        video_summary(fuser)
     return EXIT_OK

@@ -117,6 +117,15 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         help="another origin (scheme://host[:port]) allowed to open WebSockets and send "
         "changes, besides the console's own (repeatable)",
     )
+    srv.add_argument(
+        "--console-bandwidth",
+        choices=("full", "low"),
+        default="full",
+        help="what the 3D console (/console/) sends to each browser: full (every TOF "
+        "point; about 6 Mbit/s) or low (a decimated cloud at 2 Hz, small images once a "
+        "second; about 1 Mbit/s, for a radio link); changeable in its 3D scene folder and "
+        "at /api/console/settings (default: %(default)s)",
+    )
     srv.add_argument("--certfile", metavar="PEM", help="TLS certificate (chain): serve HTTPS/WSS")
     srv.add_argument("--keyfile", metavar="PEM", help="the certificate's private key")
     return srv
@@ -227,7 +236,7 @@ def run(args: argparse.Namespace) -> int:
                 board_poses=args.board_poses,
                 hold_s=args.hold,
             )
-            serve(opened, board, workdir, auth, args.host, tls, sock)
+            serve(opened, board, workdir, auth, args.host, tls, sock, args.console_bandwidth)
     finally:
         sock.close()
     return EXIT_OK

@@ -33,6 +33,12 @@ from app.devtools.browser_console import (
     require_chromium,
     websocket_tap,
 )
+from app.devtools.console_bandwidth import (
+    ConsolePage,
+    get_console_bandwidth,
+    measure_console,
+    set_console_bandwidth,
+)
 from app.devtools.console_process import ConsoleProcess, prewarm_pose_cache
 from app.devtools.netem import EmulatedLink, LinkShape, emulated_link
 
@@ -47,13 +53,14 @@ SETTLE_S = 3.0
 """From the viewer's first frame to the window: the adaptive bitrate finds its level."""
 CONSOLE_SETTLE_S = 5.0
 CONSOLE_WINDOW_S = 15.0
+"""``/console/``'s measurement: seconds per bandwidth mode, after as many settling."""
 STALL_MS = 200.0
 """A gap between drawn frames longer than this counts as stall time."""
 KEEP_FRAMES = 100
 """Pictures the console keeps for the quality comparison (``TRIFUSE_BENCH_KEEP_FRAMES``)."""
-SAMPLES = 6
+SAMPLES = 10
 """Canvas samples per window, :data:`SAMPLE_EVERY_S` apart, compared with the server's."""
-SAMPLE_EVERY_S = 3.0
+SAMPLE_EVERY_S = 2.0
 TARGETS = {"fps": 25.0, "latency_ms": 150.0, "stall_ms": 1000.0, "ssim": 0.95}
 """The issue's targets for the video on the 10 Mbit/s link."""
 
@@ -238,25 +245,28 @@ def watch_stream(
         page.close()
 
 
-def watch_console(browser: Any, console: ConsoleProcess, link: EmulatedLink) -> dict[str, float]:
-    """``/console/`` in the link's namespace: megabytes received while it loads (its first
-    :data:`CONSOLE_SETTLE_S` seconds) and then per second over :data:`CONSOLE_WINDOW_S`."""
-    page = browser.new_page()
+def watch_together(
+    browser: Any, console: ConsoleProcess, link: EmulatedLink, window_s: float
+) -> dict[str, float]:
+    """The issue's "viewer plus console": ``/console/`` in its ``low`` bandwidth mode open
+    in the link's namespace while a video viewer (``?stream=auto``) is watched as by
+    :func:`watch_stream`, whose ``mbit_s`` then counts both pages (everything the link
+    carried); ``console_mbit_s``: the console page's WebSocket payload over the same time.
+    The console's mode is restored at the end."""
+    was = get_console_bandwidth(console.url, console.token)
+    set_console_bandwidth(console.url, console.token, "low")
+    page = ConsolePage(browser, console.url, console.token)
     try:
-        bytes0, start = link.received_bytes(), time.monotonic()
-        page.goto(f"{console.url}/console/?token={console.token}")
-        page.wait_for_timeout(CONSOLE_SETTLE_S * 1e3)
-        bytes1, t1 = link.received_bytes(), time.monotonic()
-        page.wait_for_timeout(CONSOLE_WINDOW_S * 1e3)
-        bytes2, t2 = link.received_bytes(), time.monotonic()
-        return {
-            "console_load_mb": (bytes1 - bytes0) / 1e6,
-            "console_load_s": t1 - start,
-            "console_mb_per_s": (bytes2 - bytes1) / (t2 - t1) / 1e6,
-            "console_mbit_s": (bytes2 - bytes1) * 8 / (t2 - t1) / 1e6,
-        }
+        page.page.wait_for_timeout(CONSOLE_SETTLE_S * 1e3)
+        start, t0 = len(page.tally.messages), time.monotonic()
+        figures = watch_stream(browser, console, link, STREAMS["video"], window_s)
+        stop, dt = len(page.tally.messages), time.monotonic() - t0
+        console_figures = page.tally.figures(start, stop, dt)
+        figures["console_mbit_s"] = console_figures["total_mbit_s"]
+        return figures
     finally:
         page.close()
+        set_console_bandwidth(console.url, console.token, was)
 
 
 def video_route_answers(console: ConsoleProcess) -> bool:
@@ -292,7 +302,8 @@ def _link_key(shape: LinkShape) -> str:
     "link",
     "the fused stream over an emulated radio link (10 Mbit/s 30 ms 1 %, 3 Mbit/s 60 ms 2 %), "
     "video against JPEG in headless Chromium inside a network namespace: fps, latency "
-    "capture to canvas, stalls, Mbit/s, SSIM/PSNR; /console/'s bandwidth (needs root; "
+    "capture to canvas, stalls, Mbit/s, SSIM/PSNR; video with /console/ (low bandwidth) "
+    "on the same link; /console/'s Mbit/s by kind in each bandwidth mode (needs root; "
     "--repeat N: N windows of 20 s per link and stream)",
     default_repeat=1,
 )
@@ -301,8 +312,11 @@ def link(repeat: int) -> dict[str, float]:
     ``video``: ``/stream.video`` where the console has it), ``repeat`` windows of
     :data:`WINDOW_S` seconds, each with a fresh viewer page (medians over the windows):
     :func:`watch_stream`'s figures, e.g. ``l10_video_fps``, ``l10_jpeg_latency_ms``.
-    ``console_*``: :func:`watch_console` on :data:`CONSOLE_LINK`. ``load_1min``: the
-    machine's load average before the first window."""
+    ``l10_together_*``: :func:`watch_together` on the first link (the video viewer with
+    the console open in its low bandwidth mode). ``console_*``:
+    :func:`app.devtools.console_bandwidth.measure_console` on :data:`CONSOLE_LINK` (each
+    mode's Mbit/s by kind). ``load_1min``: the machine's load average before the first
+    window."""
     check_repeat(repeat)
     require_chromium("link")
     from playwright.sync_api import sync_playwright
@@ -340,8 +354,16 @@ def link(repeat: int) -> dict[str, float]:
                         for key in runs[0]:
                             values = [r[key] for r in runs if key in r]
                             figures[f"{_link_key(shape)}_{name}_{key}"] = statistics.median(values)
+                net.shape(LINKS[0])
+                runs = [watch_together(browser, console, net, WINDOW_S) for _ in range(repeat)]
+                for key in runs[0]:
+                    values = [r[key] for r in runs if key in r]
+                    figures[f"{_link_key(LINKS[0])}_together_{key}"] = statistics.median(values)
                 net.shape(CONSOLE_LINK)
-                figures.update(watch_console(browser, console, net))
+                console_figures = measure_console(
+                    browser, console.url, console.token, CONSOLE_WINDOW_S, settle_s=CONSOLE_SETTLE_S
+                )
+                figures.update({f"console_{k}": v for k, v in console_figures.items()})
             except Exception as exc:
                 log = console.output()[-2000:]
                 raise RuntimeError(f"link: {exc}; the console's log:\n{log}") from exc

@@ -12,6 +12,13 @@ the sensor's name, its log time the frame's ``stamp_ns``.
 * ``calibration``: ``/<sensor>/calibration``, ``foxglove.CameraCalibration`` (K, D, size).
 * the rig: ``/tf``, ``foxglove.FrameTransform`` ``T_rig_<sensor>`` with parent ``rig``, and
   the rig file's text as the attachment ``rig.yaml``.
+
+Optionally (``trifuse record --fused-video``, the console's "Record fused video") the fused
+stereo picture as video: ``/fused/video`` (:data:`FUSED_VIDEO_TOPIC`),
+``foxglove.CompressedVideo``, ``format: h264``, one Annex B access unit per message, log time
+the picture's frame-set stamp, frame id the left eye's colour camera (the left half of the
+picture is drawn in its image; :mod:`app.recording.video_track`). It is no sensor stream:
+:func:`parse_topic` gives None for it and readers skip it.
 """
 
 from __future__ import annotations
@@ -48,6 +55,13 @@ SCHEMA_OF_KIND = {
     "tof_amplitude": "foxglove.RawImage",
     "calibration": "foxglove.CameraCalibration",
 }
+
+FUSED_VIDEO_TOPIC = "/fused/video"
+"""The fused stereo picture (left | right eye) as H.264."""
+FUSED_VIDEO_KIND = "fused_video"
+"""``trifuse.kind`` of the fused-video channel (it has no ``trifuse.sensor``)."""
+FUSED_VIDEO_SCHEMA = "foxglove.CompressedVideo"
+FUSED_VIDEO_FORMAT = "h264"
 
 _TOPIC_RE = re.compile(r"^/(?P<sensor>[^/]+)/(?P<stream>[a-z]+)$")
 

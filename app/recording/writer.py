@@ -13,12 +13,18 @@ second (``seal_period_s``) the chunk in progress is finished and put on disk wit
 reader (the ``mcap`` package, Foxglove) opens, with only complete records, holding all but
 the last second. :func:`recover_interrupted` (called when the console starts) finds such a
 file and keeps it under a visible name.
+
+A recording may also keep the fused stereo picture as H.264 (``/fused/video``,
+:meth:`RecordingWriter.add_fused_video`, :meth:`RecordingWriter.write_video`;
+:mod:`app.recording.video_track` makes it). Observers (:attr:`RecordingWriter.observers`)
+see every frame written and the file's end: ``trifuse record --fused-video`` fuses there.
 """
 
 from __future__ import annotations
 
 import contextlib
 import fcntl
+import logging
 import numbers
 import os
 import random
@@ -27,6 +33,7 @@ import string
 import time
 from pathlib import Path
 from types import TracebackType
+from typing import Protocol
 
 import cv2
 import foxglove
@@ -59,6 +66,7 @@ from app.recording.layout import (
 )
 from app.recording.mcapindex import McapIndex
 from app.recording.sealed_file import SealedMcapFile
+from app.recording.video_track import FusedVideoTrack, video_frame_id
 from app.sources.frames import Frame, FrameSet
 from app.storage.atomic import fsync_dir, make_dirs, umask
 from calib.rig import Rig, Sensor, rig_to_yaml
@@ -67,6 +75,20 @@ from calib.units import encode_amplitude, encode_distance, encode_thermal
 THERMAL_ENCODINGS = ("16UC1", "32FC1")
 COMPRESSIONS = {"zstd": MCAPCompression.Zstd, "lz4": MCAPCompression.Lz4, "none": None}
 _MAX_STAMP_NS = 2**63 - 1
+log = logging.getLogger(__name__)
+
+
+class FrameObserver(Protocol):
+    """Something that watches a recording being written (``RecordingWriter.observers``):
+    ``frame_written(frame)`` after each frame written (not the skipped repeats),
+    ``closing()`` when the file is about to be finished (not when it is aborted). It may
+    write to the recording (e.g. :meth:`RecordingWriter.write_video`); it should not
+    raise: if it does, the error is logged and the observer is dropped, the recording goes
+    on."""
+
+    def frame_written(self, frame: Frame) -> None: ...
+
+    def closing(self) -> None: ...
 
 
 def quaternion_from_rotation(R: np.ndarray) -> tuple[float, float, float, float]:
@@ -127,6 +149,7 @@ class RecordingWriter:
             compression and indexing).
         seal_period_s: at most this many seconds (wall clock) of frames are only in memory:
             then the chunk in progress is finished and the file sealed (see above).
+        fused_video: open the ``/fused/video`` track at once (:meth:`add_fused_video`).
 
     Frames are checked against the rig (sensor known, image size, dtype); a frame whose
     sensor and ``stamp_ns`` equal the last one written for that sensor is skipped (a frame
@@ -146,6 +169,7 @@ class RecordingWriter:
         calibration_period_s: float = 1.0,
         chunk_size: int = 1 << 20,
         seal_period_s: float = 1.0,
+        fused_video: bool = False,
     ) -> None:
         self.path = Path(path)
         if not isinstance(rig, Rig):
@@ -189,6 +213,9 @@ class RecordingWriter:
         self._last_stamp: dict[str, int] = {}
         self._next_calibration_ns: int | None = None
         self._closed = False
+        self.fused_video: FusedVideoTrack | None = None
+        """The ``/fused/video`` track, once :meth:`add_fused_video` opened it."""
+        self.observers: list[FrameObserver] = []
         self.seal_period_s = float(seal_period_s)
         self._next_seal = time.monotonic() + self.seal_period_s
 
@@ -227,6 +254,8 @@ class RecordingWriter:
             for name, s in rig.sensors.items():
                 self._make_channels(name, s)
             self._tf = FrameTransformChannel(TF_TOPIC, context=self._ctx)
+            if fused_video:
+                self.add_fused_video()
             self.seal()  # from the start the file on disk is an (empty) recording
         except BaseException:
             self._closed = True
@@ -301,7 +330,63 @@ class RecordingWriter:
         self.frames_written += 1
         self.first_ns = stamp if self.first_ns is None else min(self.first_ns, stamp)
         self.last_ns = stamp if self.last_ns is None else max(self.last_ns, stamp)
+        self._notify("frame_written", frame)
         return True
+
+    def _notify(self, what: str, *args: object) -> None:
+        """Call ``what`` of every observer; one that raises is logged and dropped."""
+        for observer in list(self.observers):
+            try:
+                getattr(observer, what)(*args)
+            except Exception:
+                log.exception("%s: an observer of the recording failed; dropped", self.path)
+                with contextlib.suppress(ValueError):
+                    self.observers.remove(observer)
+
+    # -- the fused video ------------------------------------------------------------------
+
+    def add_fused_video(
+        self, frame_id: str | None = None, metadata: dict[str, str] | None = None
+    ) -> FusedVideoTrack:
+        """Open the ``/fused/video`` track (``foxglove.CompressedVideo``, h264; once: a
+        second call returns the same track).
+
+        Args:
+            frame_id: the messages' frame id (default: the left eye's colour camera,
+                :func:`~app.recording.video_track.video_frame_id`).
+            metadata: more channel metadata (e.g. the encoder's settings).
+        """
+        if self._closed:
+            raise RuntimeError(f"{self.path}: the recording is closed")
+        if self.fused_video is None:
+            self.fused_video = FusedVideoTrack(
+                self._ctx, frame_id or video_frame_id(self.rig), metadata
+            )
+        return self.fused_video
+
+    def write_video(self, data: bytes, key: bool, stamp_ns: int) -> bool:
+        """Write one access unit of the fused video (H.264 Annex B; ``key``: an IDR with
+        its SPS and PPS) taken at ``stamp_ns``; False if the track refuses it (a delta
+        frame before the first key frame or after a refused unit, or a stamp not after the
+        last: :meth:`FusedVideoTrack.write <app.recording.video_track.FusedVideoTrack.write>`).
+
+        Raises RuntimeError without :meth:`add_fused_video` or after :meth:`close`,
+        RecordingError for a bad stamp or data that is not Annex B.
+        """
+        if self._closed:
+            raise RuntimeError(f"{self.path}: the recording is closed")
+        if self.fused_video is None:
+            raise RuntimeError(f"{self.path}: no fused-video track (call add_fused_video)")
+        stamp = _stamp(stamp_ns, "fused video")
+        written = self.fused_video.write(data, bool(key), stamp)
+        if written and time.monotonic() >= self._next_seal:
+            self.seal()
+        return written
+
+    @property
+    def video_frames_written(self) -> int:
+        """Access units written to ``/fused/video`` (0 without the track)."""
+        return 0 if self.fused_video is None else self.fused_video.written
 
     def _check_plane(self, a: object, s: Sensor, what: str) -> np.ndarray:
         w, h = s.image_size
@@ -409,6 +494,7 @@ class RecordingWriter:
         """
         if self._closed:
             return self.path
+        self._notify("closing")  # may still write (the fused video's last pictures)
         self._closed = True
         try:
             self._mcap.close()
@@ -439,7 +525,8 @@ class RecordingWriter:
         self._unlock()
 
     def _close_channels(self) -> None:
-        for channel in [*self._channels.values(), self._tf]:
+        video = [self.fused_video.channel] if self.fused_video is not None else []
+        for channel in [*self._channels.values(), self._tf, *video]:
             with contextlib.suppress(Exception):
                 channel.close()  # type: ignore[attr-defined]
 

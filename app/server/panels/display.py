@@ -9,12 +9,19 @@ temperature difference over points both imagers see (the same TOF point sampled 
 
 While the board watch's newest sighting is recent (:data:`SIGHTING_RECENT_S`), the feeds
 show the sighting's own frames, so that the corners sit on the image they were found in.
+
+The feeds follow the console's bandwidth mode (``ctx.bandwidth``, :data:`FEED_PROFILES`):
+``full`` 320 px wide, JPEG quality 75, twice a second; ``low`` 160 px, quality 50, once a
+second (about 40 % of the bytes per image, half as many images).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import re
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -22,7 +29,7 @@ import numpy as np
 from app.errors import describe_error
 from app.server.panels.stream import StreamPresetControl
 from app.server.runtime.board_watch import BoardSighting
-from app.server.runtime.context import ConsoleContext
+from app.server.runtime.context import BANDWIDTH_MODES, ConsoleBandwidth, ConsoleContext
 from app.server.runtime.periodic import Periodic
 from app.server.runtime.pipeline import FusionPipeline
 from app.server.runtime.thermal_balance import BalanceStatus
@@ -38,6 +45,31 @@ C_TO_K = 273.15
 
 FEED_WIDTH_PX = 320
 """Width of a feed thumbnail (the height keeps the sensor's aspect ratio)."""
+
+
+@dataclass(frozen=True)
+class FeedProfile:
+    """How the Feeds are sent in one bandwidth mode.
+
+    Attributes:
+        hz: feed updates per second at most (a feed whose frame is unchanged is not sent).
+        width_px: thumbnail width, pixels.
+        jpeg_quality: JPEG quality (0-100).
+    """
+
+    hz: float
+    width_px: int
+    jpeg_quality: int
+
+
+FEED_PROFILES = {
+    "full": FeedProfile(2.0, FEED_WIDTH_PX, 75),
+    "low": FeedProfile(1.0, FEED_WIDTH_PX // 2, 50),
+}
+"""The Feeds' profile of each mode of :data:`~app.server.runtime.context.BANDWIDTH_MODES`
+(five thumbnails of the simulated head: 26 kB per round in ``full``, 9 kB in ``low``)."""
+FEED_SLACK_S = 0.05
+"""The feeds are due this much early (the panel's ticks come a little late)."""
 
 SIGHTING_RECENT_S = 30.0
 """A board sighting whose frame set is at most this much older than the newest one is
@@ -164,11 +196,33 @@ def recent_sighting(sighting: BoardSighting | None, newest: FrameSet) -> bool:
 
 
 class Panels(Periodic):
-    """Builds the panels and refreshes the feeds and the left-right difference."""
+    """Builds the panels and refreshes the feeds and the left-right difference.
 
-    def __init__(self, ctx: ConsoleContext, feed_hz: float = 2.0) -> None:
+    Args:
+        ctx: the console's shared objects (``ctx.bandwidth``: the feeds' profile).
+        feed_hz: ticks per second (the feeds at most this often, or their profile's rate).
+        clock: monotonic seconds (tests pass their own).
+
+    Attributes:
+        bandwidth: the console's setting (``ctx.bandwidth``).
+        bandwidth_mode, profile: the bandwidth mode the feeds are sent in and its
+            :class:`FeedProfile`.
+    """
+
+    def __init__(
+        self,
+        ctx: ConsoleContext,
+        feed_hz: float = 2.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         super().__init__("panels", 1.0 / feed_hz)
         self.ctx = ctx
+        self.clock = clock
+        # a context without the setting (a test's) runs at full bandwidth
+        self.bandwidth: ConsoleBandwidth = getattr(ctx, "bandwidth", None) or ConsoleBandwidth()
+        self.bandwidth_mode = self.bandwidth.mode
+        self.profile = FEED_PROFILES[self.bandwidth_mode]
+        self._next_feeds = 0.0
         server, pipeline = ctx.server, ctx.pipeline
         self.server, self.pipeline = server, pipeline
         gui = server.gui
@@ -218,10 +272,12 @@ class Panels(Periodic):
                 "Save as rig version", hint="The rig in use with this radiometry, as rigs/rig-NNNN"
             )
             self.error = gui.add_markdown("")
-        with gui.add_folder("Feeds", expand_by_default=False):
+        with gui.add_folder("Feeds", expand_by_default=False) as self.feeds_folder:
             blank = np.zeros((90, 120, 3), np.uint8)
+            quality = self.profile.jpeg_quality
             self.feeds = {
-                name: gui.add_image(blank, label=name, format="jpeg") for name in pipeline.rig.names
+                name: gui.add_image(blank, label=name, format="jpeg", jpeg_quality=quality)
+                for name in pipeline.rig.names
             }
             self.feeds_error = gui.add_markdown("")
         # what each feed shows: (frame, detection), compared by identity
@@ -319,19 +375,45 @@ class Panels(Periodic):
         version = self.ctx.save_rig(rig, radiometry_report(rig))
         return f"Saved the radiometry with the rig in use as **{version.name}**."
 
+    def follow_bandwidth(self) -> None:
+        """Take the console's bandwidth mode (:attr:`bandwidth`) if it changed: the feeds'
+        images are made again at the new JPEG quality (Viser fixes it when an image is
+        made; same place in the folder) and sent again at the new width."""
+        mode = self.bandwidth.mode
+        if mode == self.bandwidth_mode or mode not in BANDWIDTH_MODES:
+            return
+        self.bandwidth_mode, self.profile = mode, FEED_PROFILES[mode]
+        gui = self.server.gui
+        with self.feeds_folder:
+            for name, old in list(self.feeds.items()):
+                self.feeds[name] = gui.add_image(
+                    old.image,
+                    label=old.label,
+                    format="jpeg",
+                    jpeg_quality=self.profile.jpeg_quality,
+                    order=old.order,
+                )
+                old.remove()
+        self._shown.clear()
+        self._next_feeds = 0.0
+
     def tick(self) -> None:
         self.stream.follow()
+        self.follow_bandwidth()
         fs = self.pipeline.latest_set
         if fs is None:
             return
         watch = self.ctx.board_watch
-        try:
-            self.update_feeds(fs, watch.latest if watch.enabled else None)
-        except Exception as exc:  # shown under the feeds; the panels keep updating
-            self.feeds_error.content = f"**Feeds:** {describe_error(exc)}"
-        else:
-            if self.feeds_error.content:
-                self.feeds_error.content = ""
+        now = self.clock()
+        if now >= self._next_feeds - FEED_SLACK_S:
+            self._next_feeds = now + 1.0 / self.profile.hz
+            try:
+                self.update_feeds(fs, watch.latest if watch.enabled else None)
+            except Exception as exc:  # shown under the feeds; the panels keep updating
+                self.feeds_error.content = f"**Feeds:** {describe_error(exc)}"
+            else:
+                if self.feeds_error.content:
+                    self.feeds_error.content = ""
         self._follow_auto_span()
         balancer = self.ctx.balancer
         if balancer is not None:
@@ -362,7 +444,7 @@ class Panels(Periodic):
             shown = self._shown.get(name)
             if shown is not None and shown[0] is frame and shown[1] is detection:
                 continue
-            handle.image = feed_image(frame, detection, self.ctx.board.cols)
+            handle.image = feed_image(frame, detection, self.ctx.board.cols, self.profile.width_px)
             self._shown[name] = (frame, detection)
 
 

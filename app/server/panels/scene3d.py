@@ -17,8 +17,20 @@ the scene's "up" is therefore -y):
   from the side: each moves the camera of the browser that pressed it), which rig to
   display ("in use", "ground truth", saved versions; the list is re-read every
   ``choices_period_s``), the cloud's colouring, the point size, the frustums' depth
-  ("Frustum size") and whether the live images are shown, and per sensor the displayed
-  rig's pose difference to the rig in use (rotation deg, translation mm).
+  ("Frustum size") and whether the live images are shown, the console's "Bandwidth"
+  (``full`` or ``low``: :data:`SCENE_PROFILES`; console-wide, ``ctx.bandwidth``, also
+  ``/api/console/settings`` and ``trifuse serve --console-bandwidth``), and per sensor
+  the displayed rig's pose difference to the rig in use (rotation deg, translation mm).
+
+Bandwidth (issue 18: the console beside the viewer's video over a 10 Mbit/s radio link):
+in ``full`` the cloud carries every valid TOF point (about 23k, float32: 15 bytes each with
+its colour) at up to ``rate_hz`` and the live images are 320 px wide at ``texture_hz``:
+about 6 Mbit/s, nearly all of it the cloud. ``low`` sends every 2nd pixel of every 2nd row
+of the TOF (at most :data:`LOW_CLOUD_MAX_POINTS` points, float16 positions: 9 bytes each)
+at 2 Hz, drawn twice as large so that the surface stays closed, and the images 160 px wide
+at JPEG quality 50 once a second: about 1 Mbit/s (``trifuse bench``'s console figures;
+:mod:`app.devtools.console_bandwidth` measures it per kind). The Feeds follow the same
+setting (:mod:`app.server.panels.display`).
 
 First sight (the layout and the views are :mod:`app.server.panels.scene_layout`'s pure functions;
 its docstring says why): the head is about 15 cm wide and the scene 0.5-8 m away, and the
@@ -56,6 +68,8 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import viser
@@ -63,9 +77,20 @@ import viser
 from app.errors import describe_error
 from app.server.panels import scene_layout as layout
 from app.server.panels.scene_board import BoardMarker
-from app.server.panels.scene_cloud import coloured_cloud, temperature_span
-from app.server.panels.scene_sensors import SensorNodes, vertical_fov_rad, wxyz_of
-from app.server.runtime.context import ConsoleContext
+from app.server.panels.scene_cloud import (
+    coloured_cloud,
+    decimate_cloud,
+    grid_stride,
+    temperature_span,
+)
+from app.server.panels.scene_sensors import (
+    TEXTURE_JPEG_QUALITY,
+    TEXTURE_MAX_W,
+    SensorNodes,
+    vertical_fov_rad,
+    wxyz_of,
+)
+from app.server.runtime.context import BANDWIDTH_MODES, ConsoleContext
 from app.server.runtime.periodic import Periodic
 from app.workflows.report_format import markdown_table
 from calib.rig import Rig, Sensor
@@ -91,6 +116,60 @@ FRAME_MEMORY_S = 45.0
 """The views frame the clouds of this many seconds (a panning head sweeps its cloud)..."""
 FRAME_SAMPLE_S = 2.0
 """... sampled this often."""
+TICK_SLACK_S = 0.05
+"""A part updated every ``period`` seconds is due again this much before (ticks come a
+little late: a part at half the tick rate would otherwise skip two ticks of three)."""
+
+
+@dataclass(frozen=True)
+class SceneProfile:
+    """What the 3D scene sends in one bandwidth mode.
+
+    Attributes:
+        cloud_hz: point cloud updates per second, at most (also bounded by the tick rate
+            and the TOF's frame rate: an unchanged cloud is not sent again).
+        cloud_max_points: decimate the cloud on the TOF grid to at most this many points
+            (:func:`~app.server.panels.scene_cloud.grid_stride`); None: every point.
+        cloud_precision: the positions on the wire: ``float32`` (4 bytes per coordinate,
+            sub-millimetre) or ``float16`` (2 bytes; steps of 2-4 mm at 2-8 m).
+        texture_hz: live image updates per second (each sends up to 5 JPEGs).
+        texture_max_w: the live images' width at most, pixels.
+        texture_jpeg_quality: their JPEG quality (0-100).
+    """
+
+    cloud_hz: float
+    cloud_max_points: int | None
+    cloud_precision: Literal["float16", "float32"]
+    texture_hz: float
+    texture_max_w: int
+    texture_jpeg_quality: int
+
+
+LOW_CLOUD_MAX_POINTS = 6400
+"""The low-bandwidth cloud's points at most: the TOF's 176 x 144 pixels at a stride of 2
+(6336 pixels)."""
+LOW_PROFILE = SceneProfile(
+    cloud_hz=2.0,
+    cloud_max_points=LOW_CLOUD_MAX_POINTS,
+    cloud_precision="float16",
+    texture_hz=1.0,
+    texture_max_w=TEXTURE_MAX_W // 2,
+    texture_jpeg_quality=50,
+)
+"""``low``: at most 57 kB per cloud update (6336 points x 9 bytes; 53 kB measured on the
+simulated room, whose 5.8k of them are valid) and about 10 kB per round of the five live
+images, against 366 kB (23k points x 15 bytes) and 26 kB in ``full``."""
+
+
+def scene_profiles(rate_hz: float = 4.0, texture_hz: float = 2.0) -> dict[str, SceneProfile]:
+    """The profile of each mode of :data:`BANDWIDTH_MODES`: ``full`` (every point, float32,
+    at ``rate_hz``; 320 px images at ``texture_hz``) and :data:`LOW_PROFILE`."""
+    full = SceneProfile(rate_hz, None, "float32", texture_hz, TEXTURE_MAX_W, TEXTURE_JPEG_QUALITY)
+    return {"full": full, "low": LOW_PROFILE}
+
+
+SCENE_PROFILES = scene_profiles()
+"""The 3D scene's profiles at its default rates."""
 
 
 def rig_difference_markdown(shown_label: str, shown: Rig, in_use: Rig) -> str:
@@ -141,16 +220,22 @@ class Scene3D(Periodic):
     """The 3D scene and its "3D scene" GUI folder; :meth:`start` runs the updates.
 
     Args:
-        ctx: the console's shared objects (server, pipeline, board, board watch, rigs).
-        rate_hz: ticks per second: point cloud and board pose at most this often.
-        texture_hz: live image updates per second (each pushes ~5 small JPEGs).
+        ctx: the console's shared objects (server, pipeline, board, board watch, rigs;
+            ``ctx.bandwidth``: the mode, followed each tick).
+        rate_hz: ticks per second: board pose at most this often, the point cloud too in
+            ``full`` (:func:`scene_profiles`).
+        texture_hz: live image updates per second in ``full`` (each pushes ~5 small JPEGs).
         choices_period_s: how often ``ctx.rigs()`` is re-read for the rig dropdown.
+        clock: monotonic seconds (tests pass their own).
 
     Attributes:
         box: the scene's extent from the first TOF cloud (None before it): what the views
             frame and the default frustum depth come from.
         user_sized: whether an operator has moved the "Frustum size" slider (then the
             first cloud leaves the frustum depth alone).
+        profiles: :class:`SceneProfile` of each bandwidth mode.
+        bandwidth_mode, profile: the bandwidth mode applied now and its profile.
+        cloud_stride: the cloud keeps every this-many-th TOF pixel in each direction.
     """
 
     def __init__(
@@ -159,15 +244,20 @@ class Scene3D(Periodic):
         rate_hz: float = 4.0,
         texture_hz: float = 2.0,
         choices_period_s: float = 2.0,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         super().__init__("scene3d", 1.0 / rate_hz)
         self.ctx = ctx
         self.server = server = ctx.server
-        self.texture_period_s = 1.0 / texture_hz
         self.choices_period_s = choices_period_s
+        self.clock = clock
         self._lock = threading.RLock()
-        self._next_texture = 0.0
+        self._next_cloud = self._next_texture = 0.0  # when they are due (clock)
         self._next_choices = 0.0
+        self.profiles = scene_profiles(rate_hz, texture_hz)
+        self.bandwidth_mode = ctx.bandwidth.mode
+        self.profile = self.profiles[self.bandwidth_mode]
+        self.cloud_stride = 1
         self.errors: dict[str, str] = {}
         self.cloud_span: tuple[float, float] | None = None
         self._cloud_key: tuple | None = None
@@ -205,6 +295,14 @@ class Scene3D(Periodic):
             )
             self.point_size = gui.add_slider("Point size (mm)", 1.0, 30.0, 1.0, 8.0)
             self.textures_on = gui.add_checkbox("Live images", True)
+            self.bandwidth_choice = gui.add_dropdown(
+                "Bandwidth",
+                BANDWIDTH_MODES,
+                initial_value=self.bandwidth_mode,
+                hint="What this console sends to every browser. low, for a radio link: "
+                "the cloud of every 2nd TOF pixel at 2 Hz, live images and feeds 160 px "
+                "wide once a second (about 1 Mbit/s against 6)",
+            )
             self.frustum_size = gui.add_slider(
                 "Frustum size (m)", *FRUSTUM_SIZE_RANGE_M, 0.01, first_depth
             )
@@ -239,6 +337,8 @@ class Scene3D(Periodic):
         self.point_size.on_update(lambda _e: self._guard("cloud", self._on_point_size))
         self.textures_on.on_update(lambda _e: self._guard("textures", self._on_textures))
         self.frustum_size.on_update(lambda _e: self._guard("rig", self._on_frustum_size))
+        self.bandwidth_choice.on_update(lambda _e: self._guard("bandwidth", self._on_bandwidth))
+        self._apply_bandwidth(self.bandwidth_mode)
 
         listeners = getattr(ctx.board_watch, "pose_listeners", None)
         if listeners is not None:  # the board moves the moment its pose is known
@@ -266,7 +366,8 @@ class Scene3D(Periodic):
     def _nodes_for(self, sensor: Sensor) -> SensorNodes:
         nodes = self.nodes.get(sensor.name)
         if nodes is None:
-            nodes = self.nodes[sensor.name] = SensorNodes(self.server, "/rig", sensor)
+            quality = self.profile.texture_jpeg_quality
+            nodes = self.nodes[sensor.name] = SensorNodes(self.server, "/rig", sensor, quality)
         return nodes
 
     # -- helpers -----------------------------------------------------------------------
@@ -283,6 +384,16 @@ class Scene3D(Periodic):
             text = "\n\n".join(f"**{k}:** {v}" for k, v in sorted(self.errors.items()))
             if self.error_md.content != text:
                 self.error_md.content = text
+
+    def _due(self, part: str, period_s: float, now: float) -> bool:
+        """Whether ``part`` (``cloud``, ``texture``: its ``_next_<part>`` time) is due at
+        ``now``, :data:`TICK_SLACK_S` early being in time; if so it is next due
+        ``period_s`` seconds later."""
+        attr = f"_next_{part}"
+        if now < getattr(self, attr) - TICK_SLACK_S:
+            return False
+        setattr(self, attr, now + period_s)
+        return True
 
     def _read_rigs(self) -> dict[str, Rig]:
         return dict(self.ctx.rigs())
@@ -489,7 +600,40 @@ class Scene3D(Periodic):
     # -- cloud -------------------------------------------------------------------------
 
     def _on_point_size(self) -> None:
-        self.cloud.point_size = float(self.point_size.value) / 1000.0
+        """The points' size: the slider's (mm) times the cloud's stride (a decimated cloud
+        is drawn with larger points, so that its surface stays as closed)."""
+        self.cloud.point_size = float(self.point_size.value) / 1000.0 * self.cloud_stride
+
+    # -- bandwidth ---------------------------------------------------------------------
+
+    def _on_bandwidth(self) -> None:
+        """The dropdown's mode becomes the console's and is applied."""
+        mode = str(self.bandwidth_choice.value)
+        self.ctx.bandwidth.mode = mode
+        self._apply_bandwidth(mode)
+
+    def follow_bandwidth(self) -> None:
+        """Apply the console's mode if it changed elsewhere (``/api/console/settings``) and
+        show it in the dropdown."""
+        mode = self.ctx.bandwidth.mode
+        if mode != self.bandwidth_mode:
+            self._apply_bandwidth(mode)
+        if self.bandwidth_choice.value != mode:
+            self.bandwidth_choice.value = mode
+
+    def _apply_bandwidth(self, mode: str) -> None:
+        """Take ``mode``'s profile: the cloud's stride and point size, the live images'
+        JPEG quality; cloud and images are sent again at the next tick."""
+        self.bandwidth_mode, self.profile = mode, self.profiles[mode]
+        limit = self.profile.cloud_max_points
+        tof = self.in_use[self._tof_name()] if self._tof_name() in self.in_use else None
+        self.cloud_stride = grid_stride(tof.image_size, limit) if limit and tof else 1
+        self._on_point_size()
+        for nodes in self.nodes.values():
+            nodes.set_jpeg_quality(self.profile.texture_jpeg_quality)
+            nodes.shown_frame = None  # made again at the new size
+        self._cloud_key = None
+        self._next_cloud = self._next_texture = 0.0
 
     def update_cloud(self) -> None:
         """Push the newest TOF points (in the in-use rig's TOF frame, metres) coloured by
@@ -517,11 +661,20 @@ class Scene3D(Periodic):
             self.cloud_md.content = "Cloud: no valid depth in the last TOF frame"
             self._cloud_key = key
             return
+        full_count = len(pts)
+        if self.cloud_stride > 1:
+            tof = p.fusion.rig[p.fusion.tof]
+            pts, rgb = decimate_cloud(pts, rgb, tof, self.cloud_stride)
         with self.server.atomic():
+            self.cloud.precision = self.profile.cloud_precision
             self.cloud.points = pts
             self.cloud.colors = np.ascontiguousarray(rgb, dtype=np.uint8)
             self.cloud.visible = True
-        self.cloud_md.content = f"Cloud: {len(pts):,} points, {mode}: {legend}"
+        text = f"Cloud: {len(pts):,} points, {mode}: {legend}"
+        if self.cloud_stride > 1:
+            s = self.cloud_stride
+            text += f" (low bandwidth: one TOF pixel in {s} x {s}, of {full_count:,} points)"
+        self.cloud_md.content = text
         self._cloud_key = key
         if self.box is None:
             self._set_first_sight(pts)
@@ -543,6 +696,7 @@ class Scene3D(Periodic):
         frame in the newest set shows none (its frame and name stay)."""
         if not self.textures_on.value:
             return
+        max_width = self.profile.texture_max_w
         p = self.ctx.pipeline
         fs = p.latest_set
         frames = fs.frames if fs is not None else {}
@@ -559,7 +713,7 @@ class Scene3D(Periodic):
         palette = getattr(p.settings, "palette", "iron")
         for name, nodes in self.nodes.items():
             shown = frames.get(name) if name in self.shown_rig else None
-            why = nodes.show_frame(shown, span, palette)
+            why = nodes.show_frame(shown, span, palette, max_width)
             if why is None:
                 self.errors.pop(f"texture {name}", None)
             else:
@@ -579,12 +733,15 @@ class Scene3D(Periodic):
     # -- the loop ----------------------------------------------------------------------
 
     def tick(self) -> None:
-        now = time.monotonic()
+        now = self.clock()
+        self._guard("bandwidth", self.follow_bandwidth)
         if now >= self._next_choices:
             self._next_choices = now + self.choices_period_s
             self._guard("rigs", self.refresh_rigs)
         self._guard("board", self.update_board)
-        self._guard("cloud", self.update_cloud)
-        if now >= self._next_texture:
-            self._next_texture = now + self.texture_period_s
+        profile = self.profile
+        every_tick = profile.cloud_hz * self.period_s >= 1.0  # full: the tick is the limit
+        if every_tick or self._due("cloud", 1.0 / profile.cloud_hz, now):
+            self._guard("cloud", self.update_cloud)
+        if self._due("texture", 1.0 / profile.texture_hz, now):
             self._guard("textures", self.update_textures)

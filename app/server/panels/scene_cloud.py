@@ -1,6 +1,8 @@
 """The TOF point cloud of the console's 3D scene, coloured: by the colour camera, by
 temperature (the thermal imager through its radiometry, in the pipeline's palette over its
-span) or by radial distance."""
+span) or by radial distance; for a slow link, decimated on the TOF's pixel grid
+(:func:`decimate_cloud`: every s-th pixel of every s-th row, so the cloud keeps the
+sensor's regular structure)."""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ import numpy as np
 
 from app.server.runtime.pipeline import FusionPipeline
 from app.sources.frames import FrameSet
+from calib.rig import Sensor
 from fusion.compose import auto_span, resolve_span
 from fusion.palettes import PALETTE_NAMES
 
@@ -86,3 +89,43 @@ def coloured_cloud(
     pts, rgb = fusion.point_cloud({}, {}, "depth", span, DEPTH_PALETTE)
     legend = f"radial distance {span[0]:.2f} to {span[1]:.2f} m ({DEPTH_PALETTE})"
     return pts, rgb, legend, span
+
+
+def grid_stride(image_size: tuple[int, int], max_points: int) -> int:
+    """The smallest stride ``s`` (pixels, >= 1) for which every ``s``-th pixel of every
+    ``s``-th row of an image of ``image_size`` (W, H) are at most ``max_points``, i.e.
+    ``ceil(W / s) * ceil(H / s) <= max_points`` (176 x 144 and 6400: 2, 6336 pixels)."""
+    w, h = image_size
+    if max_points < 1:
+        raise ValueError(f"max_points: expected at least 1, got {max_points}")
+    s = 1
+    while -(-w // s) * -(-h // s) > max_points:
+        s += 1
+    return s
+
+
+def decimate_cloud(
+    points: np.ndarray, colors: np.ndarray, tof: Sensor, stride: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The points of the TOF pixels in every ``stride``-th column of every ``stride``-th
+    row (columns and rows 0, s, 2s, ...), and their colours.
+
+    Args:
+        points: (N, 3) float metres in the TOF's frame, one per valid TOF pixel (the
+            invalid ones left out, so the grid position is recovered by projecting each
+            point back through ``tof``'s intrinsics: it lands on its pixel's centre).
+        colors: (N, 3) uint8 RGB, one per point.
+        tof: the TOF sensor the points were measured with.
+        stride: keep one pixel in ``stride`` in each direction (1: all).
+    Returns:
+        (M, 3) points and (M, 3) colours, M <= ``ceil(W / stride) * ceil(H / stride)``,
+        in their order in ``points``.
+    """
+    if stride <= 1 or len(points) == 0:
+        return points, colors
+    uv = tof.intrinsics.project(np.asarray(points, dtype=np.float64))
+    with np.errstate(invalid="ignore"):
+        col = np.rint(uv[:, 0])
+        row = np.rint(uv[:, 1])
+        keep = (np.fmod(col, stride) == 0) & (np.fmod(row, stride) == 0)
+    return points[keep], colors[keep]

@@ -1,8 +1,9 @@
 """The sensors in the console's 3D scene: each sensor's frame and frustum at its pose in
 the rig frame (OpenCV axes, metres), and its live image on the image panel below the head
 (:mod:`app.server.panels.scene_layout` places the panel), downscaled to at most
-:data:`TEXTURE_MAX_W` pixels wide: colour as is, thermal in the pipeline's palette over its
-span, TOF amplitude stretched grey."""
+:data:`TEXTURE_MAX_W` pixels wide (the 3D scene's low-bandwidth profile asks for less, and
+a lower JPEG quality): colour as is, thermal in the pipeline's palette over its span, TOF
+amplitude stretched grey."""
 
 from __future__ import annotations
 
@@ -103,10 +104,17 @@ _PLACEHOLDER = np.zeros((2, 2, 3), np.uint8)
 
 class SensorNodes:
     """One sensor's scene nodes: its frame (pose) with the frustum (wireframe), and on the
-    image panel below the head its live image, a frame in the frustum's colour and its
-    name under the image."""
+    image panel below the head its live image (JPEG of ``jpeg_quality``), a frame in the
+    frustum's colour and its name under the image."""
 
-    def __init__(self, server: viser.ViserServer, root: str, sensor: Sensor) -> None:
+    def __init__(
+        self,
+        server: viser.ViserServer,
+        root: str,
+        sensor: Sensor,
+        jpeg_quality: int = TEXTURE_JPEG_QUALITY,
+    ) -> None:
+        self.server = server
         node = f"{root}/{sensor.name}"
         color = FRUSTUM_COLORS.get(sensor.modality, (200, 200, 200))
         self.frame = server.scene.add_frame(node, axes_length=0.015, axes_radius=0.0008)
@@ -121,15 +129,8 @@ class SensorNodes:
         )
         panel = f"/panel/{sensor.name}"  # under the panel's frame (its pose: Scene3D)
         self.cell_node = server.scene.add_frame(panel, show_axes=False)
-        self.picture = server.scene.add_image(
-            f"{panel}/image",
-            _PLACEHOLDER,
-            render_width=0.01,
-            render_height=0.01,
-            format="jpeg",
-            jpeg_quality=TEXTURE_JPEG_QUALITY,
-            visible=False,
-        )
+        self.jpeg_quality = jpeg_quality
+        self.picture = self._add_picture(f"{panel}/image", 0.01, 0.01)
         self.outline = server.scene.add_line_segments(
             f"{panel}/outline",
             np.zeros((4, 2, 3)),
@@ -142,6 +143,30 @@ class SensorNodes:
         self.depth_m = 0.0
         self.cell: layout.Cell | None = None
         self.shown_frame: object = None  # the Frame whose image the picture shows
+
+    def _add_picture(self, name: str, width_m: float, height_m: float) -> viser.ImageHandle:
+        """The (hidden) live image node ``name``, ``width_m`` x ``height_m`` metres, encoded
+        at :attr:`jpeg_quality` (an existing node of that name is replaced)."""
+        return self.server.scene.add_image(
+            name,
+            _PLACEHOLDER,
+            render_width=width_m,
+            render_height=height_m,
+            format="jpeg",
+            jpeg_quality=self.jpeg_quality,
+            visible=False,
+        )
+
+    def set_jpeg_quality(self, quality: int) -> None:
+        """Encode the live image at JPEG ``quality`` (0-100) from now on: the image node is
+        made again (Viser fixes a node's quality when it is made), hidden until the next
+        :meth:`show_frame`."""
+        if quality == self.jpeg_quality:
+            return
+        self.jpeg_quality = quality
+        old = self.picture
+        self.picture = self._add_picture(old.name, old.render_width, old.render_height)
+        self.shown_frame = None
 
     def set_depth(self, depth_m: float) -> None:
         """Frustum depth ``depth_m`` metres (apex to image plane)."""
@@ -181,11 +206,17 @@ class SensorNodes:
             self.picture.visible = True
 
     def show_frame(
-        self, frame: Frame | None, span_k: tuple[float, float] | None, palette: str
+        self,
+        frame: Frame | None,
+        span_k: tuple[float, float] | None,
+        palette: str,
+        max_width: int = TEXTURE_MAX_W,
     ) -> str | None:
-        """The picture shows ``frame``'s image (None: no picture), made again only for a
-        new frame; returns why it cannot be shown (the picture is then hidden), else None.
-        ``span_k``, ``palette``: a thermal image's colours (:func:`sensor_texture`)."""
+        """The picture shows ``frame``'s image (None: no picture) at most ``max_width``
+        pixels wide, made again only for a new frame (or after :meth:`set_jpeg_quality`,
+        or with ``shown_frame`` set to None); returns why it cannot be shown (the picture
+        is then hidden), else None. ``span_k``, ``palette``: a thermal image's colours
+        (:func:`sensor_texture`)."""
         if frame is None:
             if self.shown_frame is not None:
                 self.show_image(None)
@@ -194,7 +225,7 @@ class SensorNodes:
         if frame is self.shown_frame:
             return None
         try:
-            tex = sensor_texture(frame.image, self.modality, TEXTURE_MAX_W, span_k, palette)
+            tex = sensor_texture(frame.image, self.modality, max_width, span_k, palette)
         except (ValueError, cv2.error) as exc:
             self.show_image(None)
             self.shown_frame = None

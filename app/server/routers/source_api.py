@@ -64,6 +64,16 @@ class RecordingInfo(BaseModel):
         "their last complete chunk)",
     )
     error: str | None = None
+    fused_video: bool = Field(
+        False, description="the recording keeps the fused stereo picture as H.264 (/fused/video)"
+    )
+    video_frames_written: int = Field(0, description="pictures written to /fused/video")
+    video_frames_skipped: int = Field(
+        0, description="new pictures the video did not keep (the encoder was behind)"
+    )
+    video_error: str | None = Field(
+        None, description="why the fused video stopped (the sensors were still recorded)"
+    )
 
 
 class SensorInfo(BaseModel):
@@ -104,6 +114,17 @@ class VideoViewerInfo(BaseModel):
     keyframes: int
     bytes_sent: int
     congestion_events: int = Field(description="the controller's steps down")
+    undone_events: int = Field(
+        0, description="steps down undone: the acknowledgements were late, not the frames"
+    )
+    last_congestion: str | None = Field(
+        None, description="why the last step down was taken: queue, stall or short"
+    )
+    queue_ms: float | None = Field(
+        None,
+        description="the last frame's delay above the least of the last 10 s (one-way when "
+        "the viewer says when frames arrive, else the round trip), ms",
+    )
 
 
 class StreamInfo(BaseModel):

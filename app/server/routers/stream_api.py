@@ -1,6 +1,6 @@
 """``GET/PUT /api/stream/settings``: the video stream's console-wide default preset.
 
-The preset (``auto``, ``8``, ``4``, ``2``, ``1``: app/server/runtime/video_encoder.py) of
+The preset (``auto``, ``8``, ``4``, ``2``, ``1``: app/server/runtime/video_presets.py) of
 ``/stream.video`` viewers that ask for none; the Fusion panel's dropdown shows the same
 setting (``ctx.stream_settings``). An unknown preset gets a 422 naming the choices.
 """
@@ -12,7 +12,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from app.server.routers.limits import require_json
 from app.server.runtime.stream import FrameHub
-from app.server.runtime.video_encoder import VideoPreset
+from app.server.runtime.video_presets import VideoPreset
 
 
 class StreamSettingsBody(BaseModel):

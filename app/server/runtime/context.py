@@ -12,11 +12,36 @@ from app.server.runtime.demand import ConsoleDemand
 from app.server.runtime.pipeline import FusionPipeline
 from app.server.runtime.stream import FrameHub
 from app.server.runtime.thermal_balance import ThermalBalancer
-from app.server.runtime.video_encoder import StreamSettings
+from app.server.runtime.video_presets import StreamSettings
 from app.sources.base import FrameSource
 from app.workflows.calib_session import RigVersion
 from calib.board import Board
 from calib.rig import Rig
+
+BANDWIDTH_MODES = ("full", "low")
+"""The 3D console's bandwidth modes: ``full`` (every point, images at 2 Hz) and ``low``
+(a decimated cloud at 2 Hz, small images at 1 Hz: the panels' profiles say exactly)."""
+
+
+class ConsoleBandwidth:
+    """What ``/console/`` may send: its bandwidth mode, console-wide (``ctx.bandwidth``; the
+    "3D scene" folder's Bandwidth dropdown, ``/api/console/settings``, ``trifuse serve
+    --console-bandwidth``). Setting a mode not in :data:`BANDWIDTH_MODES` raises
+    ValueError. Thread-safe (a plain attribute swap)."""
+
+    def __init__(self, mode: str = "full") -> None:
+        self._mode = "full"
+        self.mode = mode
+
+    @property
+    def mode(self) -> str:
+        return self._mode
+
+    @mode.setter
+    def mode(self, value: str) -> None:
+        if value not in BANDWIDTH_MODES:
+            raise ValueError(f"console bandwidth {value!r}: expected one of {BANDWIDTH_MODES}")
+        self._mode = value
 
 
 @dataclass
@@ -38,6 +63,8 @@ class ConsoleContext:
         save_rig: writes a rig (and its report) as the session's next rig version.
         demand: who wants the console's background work now (fused pictures, the board
             search, the GUI's updates): the parts hold or touch it (demand.py).
+        bandwidth: what ``/console/`` may send (``full`` or ``low``); the 3D scene and the
+            Feeds read it each update.
     """
 
     server: viser.ViserServer
@@ -52,6 +79,7 @@ class ConsoleContext:
     balancer: ThermalBalancer | None = None
     save_rig: Callable[[Rig, dict], RigVersion] | None = None
     demand: ConsoleDemand = field(default_factory=ConsoleDemand)
+    bandwidth: ConsoleBandwidth = field(default_factory=ConsoleBandwidth)
 
     @property
     def stream_settings(self) -> StreamSettings:

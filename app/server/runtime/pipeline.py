@@ -38,7 +38,10 @@ source never backs up), but makes no picture; the stream forgets its last pictur
 would be stale). While a video viewer is connected (:attr:`FrameHub.wants_bgr
 <app.server.runtime.stream.FrameHub.wants_bgr>`), each frame also carries the BGR picture
 (``StreamFrame.bgr``: the encoder thread's buffer, handed over read-only and replaced by a
-new one in the pool; a repeat carries the previous picture). When the demand turns wanted,
+new one in the pool; a repeat carries the previous picture), and the JPEG is encoded only
+while a JPEG viewer listens too (:attr:`FrameHub.wants_jpeg
+<app.server.runtime.stream.FrameHub.wants_jpeg>`; a repeat encodes it for a JPEG viewer
+that came meanwhile). When the demand turns wanted,
 the newest frame set is fused at once (a new viewer waits at most one frame period; a
 paused replay shows its picture again), the depth from the newest TOF frame seen.
 Without a ``demand`` every frame set is fused.
@@ -116,6 +119,14 @@ def scale_meta(settings: DisplaySettings, span_k: tuple[float, float] | None) ->
         "span_k": [float(span_k[0]), float(span_k[1])],
         "span_auto": settings.span_k is None,
     }
+
+
+def _encode_jpeg(bgr: np.ndarray, quality: int) -> bytes:
+    """``bgr`` ((H, W, 3) uint8) as JPEG of ``quality`` (RuntimeError if OpenCV fails)."""
+    ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise RuntimeError("OpenCV could not encode the fused picture as JPEG")
+    return buf.tobytes()
 
 
 def _unchanged(a: np.ndarray | None, b: np.ndarray | None) -> bool:
@@ -210,10 +221,12 @@ class _StreamEncoder:
                     continue
                 new = job.bgr is not None
                 if job.bgr is not None:
-                    ok, buf = cv2.imencode(".jpg", job.bgr, [cv2.IMWRITE_JPEG_QUALITY, job.quality])
-                    self._jpeg = buf.tobytes() if ok else None
+                    want = self.hub.wants_jpeg
+                    self._jpeg = _encode_jpeg(job.bgr, job.quality) if want else None
                     self.kept_bgr = self._keep(job)
-                if self._jpeg is not None:
+                elif self._jpeg is None and self.kept_bgr is not None and self.hub.wants_jpeg:
+                    self._jpeg = _encode_jpeg(self.kept_bgr, job.quality)  # a JPEG viewer came
+                if self._jpeg is not None or self.kept_bgr is not None:
                     self.hub.publish(self._jpeg, job.meta, new=new, bgr=self.kept_bgr)
                     self.status.frames_out += 1
                     self.status.pictures_out += new

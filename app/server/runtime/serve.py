@@ -22,10 +22,11 @@ from app.server.panels.source import SourcePanel
 from app.server.routers.app import create_app
 from app.server.routers.auth import AuthConfig
 from app.server.routers.connections import GuardedH11Protocol, quiet_repeated_logs
+from app.server.routers.console_api import make_console_settings_router
 from app.server.routers.session_api import make_session_router
 from app.server.routers.viser_bridge import start_guarded_viser
 from app.server.runtime.board_watch import BoardWatch
-from app.server.runtime.context import ConsoleContext
+from app.server.runtime.context import ConsoleBandwidth, ConsoleContext
 from app.server.runtime.demand import ConsoleDemand, hold_while_connected
 from app.server.runtime.pipeline import FusionPipeline
 from app.server.runtime.source_control import SourceControl, SourceTap
@@ -118,10 +119,12 @@ def serve(
     host: str = "127.0.0.1",
     tls: TLSFiles | None = None,
     sock: socket.socket | None = None,
+    console_bandwidth: str = "full",
 ) -> None:
     """Run the console until interrupted; the calibration session lives in ``workdir``.
     ``auth`` (auth.py) guards every route and WebSocket; its port is the one served, on
-    ``sock`` (:func:`bind_public_socket`) if given."""
+    ``sock`` (:func:`bind_public_socket`) if given. ``console_bandwidth``: the 3D
+    console's starting bandwidth mode (``full``, ``low``; context.py)."""
     port = auth.port
     source, rig = opened.source, opened.rig
     try:  # first: a work directory of another board or rig is refused before anything runs
@@ -152,6 +155,7 @@ def serve(
         balancer=balancer,
         save_rig=session.save_rig,
         demand=demand,
+        bandwidth=ConsoleBandwidth(console_bandwidth),
     )
     control = SourceControl(pipeline, hub, opened.description, workdir)
     panels = [
@@ -180,6 +184,7 @@ def serve(
             pipeline.rig_with_radiometry,
         )
     )
+    app.include_router(make_console_settings_router(ctx.bandwidth))  # /api/console/settings
     ws_max = None
     from app.sources.push.router import make_push_router, uvicorn_ws_max_size
     from app.sources.push.source import PushSource

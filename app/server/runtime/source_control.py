@@ -10,6 +10,16 @@ controls the Source panel and the REST API share.
   RecordingWriter``, docs/FORMATS.md "Recordings") in a background thread fed by a bounded
   queue. The pipeline never waits for the disk: when the queue is full the frame is dropped
   and counted. Stopping writes what is queued, finishes the file and gives it its name.
+- :class:`FusedVideoTap` (when the recording keeps the fused video: the Source panel's
+  "Record fused video", :attr:`SourceControl.fused_video`): the fused pictures the console
+  publishes (``StreamFrame.bgr``, handed over by the hub as each frame is published) are
+  encoded as H.264 in a worker thread (:class:`app.recording.video_track.FusedVideoEncoder`)
+  and the access units go through the recorder's queue to ``/fused/video``. It holds the
+  fusion's demand (the console fuses while it records) and never slows the pipeline: a
+  picture waits in a short inbox, the oldest dropped and counted when the encoder falls
+  behind; every picture it encodes reaches the writer (the P-frame chain stays whole; each
+  file of the recording begins with a key frame). A failure of the video is logged and
+  shown in the recording state; the sensor recording goes on without video.
 - :class:`SourceControl` is what the panel and the routes call: the state of the source,
   each sensor's health (:meth:`SourceControl.sensor_health`), replay controls (pause,
   resume, seek, rate) and recording start/stop.
@@ -44,9 +54,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
+
 from app.errors import describe_error
 from app.recording.errors import RecordingError
+from app.recording.video_track import FusedVideoEncoder, VideoSettings, VideoUnit, video_metadata
 from app.recording.writer import RecordingWriter, recover_interrupted
+from app.server.runtime.demand import Demand, Hold
 from app.server.runtime.pipeline import FusionPipeline
 from app.server.runtime.rates import RATE_WINDOW_S, RatesSnapshot, window_rate
 from app.server.runtime.sensor_health import (
@@ -56,7 +70,7 @@ from app.server.runtime.sensor_health import (
     expected_of,
     push_rejections,
 )
-from app.server.runtime.stream import FrameHub
+from app.server.runtime.stream import FrameHub, StreamFrame
 from app.sources.base import FrameSource
 from app.sources.frames import Frame
 from calib.rig import Rig
@@ -70,6 +84,11 @@ HEALTH_CACHE_S = 0.5
 """The health lines put in the stream's metadata are recomputed at most this often (s)."""
 RECORDINGS = "recordings"
 """The folder of the work directory that console recordings go to."""
+VIDEO_INBOX = 3
+"""Pictures waiting for the fused-video encoder at most (a burst of the pipeline's)."""
+VIDEO_AHEAD_S = 0.1
+"""A file's first video picture may be at most this much later than its newest sensor
+frame (a later one belongs to the time before a replay went back, seconds)."""
 
 
 class ControlError(RuntimeError):
@@ -141,6 +160,16 @@ class RecordingState:
     error: str | None = None
     interrupted: list[str] = field(default_factory=list)
     """Recordings a killed console left unfinished, kept under a new name at start-up."""
+    fused_video: bool = False
+    """The recording keeps the fused stereo picture as H.264 (``/fused/video``)."""
+    video_frames_written: int = 0
+    """Pictures written to ``/fused/video`` (all files of the recording)."""
+    video_frames_skipped: int = 0
+    """New pictures the console published that the video did not keep: dropped while the
+    encoder was behind (:class:`FusedVideoTap`), or refused to keep the chain whole (a new
+    file waits for a key frame)."""
+    video_error: str | None = None
+    """Why the fused video stopped (the sensor recording went on), or None."""
 
 
 _STOP = object()
@@ -153,11 +182,151 @@ def _duration_s(writer: RecordingWriter) -> float:
     return (writer.last_ns - writer.first_ns) / 1e9
 
 
+@dataclass(frozen=True)
+class FusedVideoSource:
+    """Where a recording's fused video comes from.
+
+    Attributes:
+        hub: the stream's frames; their ``bgr`` pictures are encoded (the tap is one of
+            ``hub.takers`` while it records, so that frames carry them).
+        demand: held while recording, so that the console fuses (None: it always does).
+        settings: the encoding (bitrate, key-frame interval).
+    """
+
+    hub: FrameHub
+    demand: Demand | None = None
+    settings: VideoSettings = field(default_factory=VideoSettings)
+
+
+class FusedVideoTap:
+    """Encodes the pictures a :class:`FrameHub` publishes, in a thread of its own, and hands
+    each access unit to ``deliver`` (see the module doc).
+
+    The hub calls :meth:`_take` with every frame it publishes (``hub.takers``, so frames
+    carry their BGR picture); a new picture waits in an inbox of :data:`VIDEO_INBOX`
+    pictures (a repeat of the previous picture is not new: the video shows it on), the
+    oldest dropped and counted when the encoder falls behind; the thread encodes them in
+    order.
+
+    Args:
+        source: the hub, the demand to hold, the encoding.
+        deliver: called with each :class:`VideoUnit` in the tap's thread; it may block;
+            False: stop.
+
+    Attributes:
+        encoded: pictures encoded and delivered; ``passed_over``: new pictures dropped
+            from the inbox (the encoder was behind); ``error``: why the tap stopped, or
+            None.
+    """
+
+    def __init__(self, source: FusedVideoSource, deliver: Callable[[VideoUnit], bool]) -> None:
+        self.source, self._deliver = source, deliver
+        self.encoder = FusedVideoEncoder(source.settings)
+        self.encoded = 0
+        self.passed_over = 0
+        self.error: str | None = None
+        self._inbox: deque[tuple[np.ndarray, int]] = deque()
+        self._last_bgr: np.ndarray | None = None  # the last picture taken (publishing thread)
+        self._lock = threading.Lock()  # the inbox; the hub's takers and the hold, released once
+        self._ready = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="recorder-video", daemon=True)
+        self._hold: Hold | None = None
+        self._taking = False
+
+    def start(self) -> FusedVideoTap:
+        """Take pictures from now on (frames carry them; the console fuses)."""
+        with self._lock:
+            if self.source.demand is not None:
+                self._hold = self.source.demand.hold()
+            self.source.hub.takers.append(self._take)
+            self._taking = True
+        self._thread.start()
+        return self
+
+    def _take(self, frame: StreamFrame) -> None:
+        """A frame published (the publishing thread: quick, never blocks)."""
+        bgr, stamp = frame.bgr, frame.meta.get("stamp_ns")
+        if bgr is None or bgr is self._last_bgr or not isinstance(stamp, int):
+            return  # no picture, or a repeat of the last one
+        self._last_bgr = bgr
+        with self._lock:
+            if len(self._inbox) >= VIDEO_INBOX:
+                self._inbox.popleft()
+                self.passed_over += 1
+            self._inbox.append((bgr, stamp))
+            self._ready.set()
+
+    def request_key(self) -> None:
+        """Make the next picture a key frame (the recording began a new file)."""
+        self.encoder.request_key()
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Take no more pictures, encode and deliver those waiting, end the thread, release
+        the hub and the demand. Idempotent."""
+        self._release()
+        with self._lock:
+            self._stop.set()
+            self._ready.set()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(timeout_s)
+
+    def _release(self) -> None:
+        with self._lock:
+            if self._taking:
+                self._taking = False
+                with contextlib.suppress(ValueError):
+                    self.source.hub.takers.remove(self._take)
+            hold, self._hold = self._hold, None
+        if hold is not None:
+            hold.release()
+
+    def _next(self) -> tuple[np.ndarray, int] | None:
+        """The oldest picture waiting (blocks); None once stopped and none is left."""
+        while True:
+            with self._lock:
+                if self._inbox:
+                    return self._inbox.popleft()
+                if self._stop.is_set():
+                    return None
+                self._ready.clear()
+            self._ready.wait(1.0)
+
+    def _run(self) -> None:
+        try:
+            while (item := self._next()) is not None:
+                unit = self.encoder.encode(*item)
+                if not self._deliver(unit):
+                    break
+                self.encoded += 1
+        except Exception as exc:  # the encoder, a picture: the sensor recording goes on
+            self.error = describe_error(exc)
+            log.error("the recording's fused video stopped: %s", self.error)
+        finally:
+            self._release()
+            with self._lock:
+                self._stop.set()
+                self._inbox.clear()
+            self.encoder.close()
+
+
 class _Session:
     """One recording from start to stop (possibly several files, see the module doc)."""
 
-    def __init__(self, directory: Path, rig: Rig, max_queue: int, writer_kw: dict) -> None:
+    def __init__(
+        self,
+        directory: Path,
+        rig: Rig,
+        max_queue: int,
+        writer_kw: dict,
+        video: FusedVideoSource | None = None,
+    ) -> None:
         self.directory, self.rig, self.writer_kw = directory, rig, writer_kw
+        self.video_source = video
+        self.tap: FusedVideoTap | None = None
+        self.video_written_before = 0  # pictures of the files already finished
+        self.video_refused = 0  # units the files refused (to keep the chain whole)
+        self.video_error: str | None = None  # the tap could not start
         self.queue: queue.Queue = queue.Queue(maxsize=max_queue)
         self.accepting = True
         self.dropped = 0
@@ -173,6 +342,28 @@ class _Session:
         self._open_next()  # errors (disk, permissions) reach the caller of start()
         self.thread = threading.Thread(target=self._run, name="recorder", daemon=True)
         self.thread.start()
+        if video is not None:
+            try:
+                self.tap = FusedVideoTap(video, self._put_video).start()
+            except Exception as exc:  # no video; the sensor recording goes on
+                self.video_error = describe_error(exc)
+                log.error("the recording's fused video could not start: %s", self.video_error)
+
+    def _put_video(self, unit: VideoUnit) -> bool:
+        """Queue an access unit (the tap's thread): waits for room, never drops one (the
+        chain behind it would break); False once the recording stops taking them."""
+        while self.accepting and self.thread.is_alive():
+            try:
+                self.queue.put(unit, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def stop_video(self) -> None:
+        """Stop taking pictures (before the queue gets its end mark)."""
+        if self.tap is not None:
+            self.tap.stop()
 
     # A new file: reserve a free name, then open the writer on it.
     def _open_next(self) -> None:
@@ -199,6 +390,10 @@ class _Session:
                 raise
             self._reservation = reservation
             self._last_stamp.clear()
+            if self.video_source is not None:
+                self.writer.add_fused_video(metadata=video_metadata(self.video_source.settings))
+                if self.tap is not None:
+                    self.tap.request_key()  # the new file's video starts with a key frame
             return
         raise FileExistsError(f"{self.directory}: no free recording name for {stem}")
 
@@ -212,6 +407,7 @@ class _Session:
                 self.files.append(writer.close())
                 self.written_before += writer.frames_written
                 self.duration_before_s += _duration_s(writer)
+                self.video_written_before += writer.video_frames_written
             else:
                 writer.abort()  # nothing recorded: no empty file
         finally:
@@ -237,6 +433,29 @@ class _Session:
             return
         self._last_stamp[frame.sensor] = frame.stamp_ns
 
+    def _write_video(self, unit: VideoUnit) -> None:
+        """Write an access unit to the current file's ``/fused/video``; a unit the file
+        refuses (a delta frame before its first key frame, a stamp not after the last, a
+        picture from before the replay went back) is counted, and the tap asked for a key
+        frame."""
+        if self.writer is None:
+            self._open_next()
+        writer = self.writer
+        assert writer is not None
+        track = writer.fused_video
+        if track is None:
+            return
+        ahead = (
+            track.awaiting_key
+            and writer.last_ns is not None
+            and unit.stamp_ns > writer.last_ns + VIDEO_AHEAD_S * 1e9
+        )
+        if not ahead and writer.write_video(unit.data, unit.key, unit.stamp_ns):
+            return
+        self.video_refused += 1
+        if track.awaiting_key and self.tap is not None:
+            self.tap.request_key()
+
     def _run(self) -> None:
         while True:
             item = self.queue.get()
@@ -245,7 +464,10 @@ class _Session:
             if self.error is not None:
                 continue  # a failed disk: drain without writing
             try:
-                self._write(item)
+                if isinstance(item, VideoUnit):
+                    self._write_video(item)
+                else:
+                    self._write(item)
             except Exception as exc:  # disk full, I/O error: keep what was written
                 self.error = describe_error(exc)
                 log.error("recording stopped writing: %s", self.error)
@@ -278,6 +500,18 @@ class _Session:
         state.frames_written, state.frames_dropped = written, self.dropped
         state.frames_rejected, state.queued = self.rejected, self.queue.qsize()
         state.error = self.error or self.last_reject
+        if self.video_source is not None:
+            tap = self.tap
+            state.fused_video = True
+            state.video_frames_written = self.video_written_before + (
+                writer.video_frames_written if writer is not None else 0
+            )
+            state.video_frames_skipped = self.video_refused + (tap.passed_over if tap else 0)
+            state.video_error = self.video_error or (tap.error if tap else None)
+            if state.error is None and state.video_error is not None:
+                state.error = (
+                    f"fused video stopped (the sensors are still recorded): {state.video_error}"
+                )
         return state
 
 
@@ -345,14 +579,15 @@ class Recorder:
             except queue.Full:
                 session.dropped += 1
 
-    def start(self, rig: Rig) -> RecordingState:
-        """Start a new recording of ``rig``'s sensors (ControlError if one runs)."""
+    def start(self, rig: Rig, video: FusedVideoSource | None = None) -> RecordingState:
+        """Start a new recording of ``rig``'s sensors (ControlError if one runs); with
+        ``video``, it also keeps the fused pictures as ``/fused/video``."""
         with self._control:
             if self._session is not None:
                 raise ControlError(
                     f"already recording to {self._session.state().path}; stop it first"
                 )
-            session = _Session(self.directory, rig, self.max_queue, dict(self.writer_kw))
+            session = _Session(self.directory, rig, self.max_queue, dict(self.writer_kw), video)
             with self._lock:
                 self._session = session
             return session.state()
@@ -364,6 +599,7 @@ class Recorder:
             session = self._session
             if session is None:
                 raise ControlError("not recording")
+            session.stop_video()  # the pictures waiting are encoded and queued
             with self._lock:
                 session.accepting = False
                 self._session = None
@@ -520,6 +756,10 @@ class SourceControl:
         if workdir is not None and self.tap is not None:
             self.recorder = self.tap.recorder or Recorder(Path(workdir) / RECORDINGS)
             self.tap.recorder = self.recorder
+        self.fused_video = False
+        """Recordings started from now on also keep the fused video (the Source panel's
+        "Record fused video"; ``POST /api/recording/start`` follows it)."""
+        self.video_settings = VideoSettings()
         self._notes: tuple[float, dict[str, str]] | None = None
         if self.tap is not None:
             self.tap.health.set_rig(pipeline.rig)  # frames must fit what fusion expects
@@ -654,10 +894,16 @@ class SourceControl:
 
     # -- recording ----------------------------------------------------------------------
 
-    def start_recording(self) -> RecordingState:
+    def start_recording(self, fused_video: bool | None = None) -> RecordingState:
+        """Start recording; ``fused_video`` (default :attr:`fused_video`): also keep the
+        fused pictures the console publishes as ``/fused/video``."""
         if self.recorder is None:
             raise ControlError(self.recording_state().error or "recording is unavailable")
-        return self.recorder.start(self._rig())
+        video = None
+        if self.fused_video if fused_video is None else fused_video:
+            demand = getattr(self.pipeline, "demand", None)
+            video = FusedVideoSource(self.hub, demand, self.video_settings)
+        return self.recorder.start(self._rig(), video)
 
     def stop_recording(self) -> RecordingState:
         if self.recorder is None:

@@ -10,7 +10,9 @@ figures (``rates``), so the viewer shows the same numbers as the Source panel an
 ``/api/status``, next to the rate at which it receives frames itself.
 
 Each viewer holds the hub's :attr:`FrameHub.demand` while connected (:meth:`FrameHub.watching`):
-the console fuses and encodes only while someone listens (:mod:`app.server.runtime.demand`).
+the console fuses and encodes only while someone listens (:mod:`app.server.runtime.demand`),
+and encodes JPEG only while a JPEG viewer listens or nobody takes the pictures themselves
+(:attr:`FrameHub.wants_jpeg`).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import asyncio
 import json
 import threading
 import time
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
@@ -31,7 +33,7 @@ from fastapi.responses import StreamingResponse
 from app.server.runtime.demand import Demand
 from app.server.runtime.kept_frames import KeptFrames
 from app.server.runtime.rates import StreamRates
-from app.server.runtime.video_encoder import StreamSettings
+from app.server.runtime.video_presets import StreamSettings
 from app.server.runtime.video_stats import VideoViewerStats
 
 
@@ -39,12 +41,14 @@ from app.server.runtime.video_stats import VideoViewerStats
 class StreamFrame:
     """One encoded stereo frame and what the viewer overlays with it.
 
-    ``bgr``: the fused picture itself, (H, W, 3) uint8 BGR, read-only and never written
-    again (the video viewers encode it, :mod:`app.server.runtime.video_stream`); None
-    when no video viewer is connected (:attr:`FrameHub.wants_bgr`)."""
+    ``jpeg``: the picture as JPEG; None while no JPEG viewer listens and the picture goes
+    as itself (:attr:`FrameHub.wants_jpeg`). ``bgr``: the fused picture itself, (H, W, 3)
+    uint8 BGR, read-only and never written again (the video viewers encode it,
+    :mod:`app.server.runtime.video_stream`); None when nobody takes it
+    (:attr:`FrameHub.wants_bgr`)."""
 
     seq: int
-    jpeg: bytes
+    jpeg: bytes | None
     meta: dict[str, Any] = field(default_factory=dict)
     bgr: np.ndarray | None = None
 
@@ -63,6 +67,8 @@ class FrameHub:
         self._seq = 0
         self._waiters: set[tuple[asyncio.AbstractEventLoop, asyncio.Event]] = set()
         self.viewers = 0
+        self.jpeg_viewers = 0
+        """Viewers of ``/stream`` and ``/stream.mjpg`` (counted in :attr:`viewers` too)."""
         self.rates = StreamRates()
         """Frames published and new pictures per second (read by the panel and routes)."""
         self.stream_settings = StreamSettings()
@@ -71,15 +77,30 @@ class FrameHub:
         """The ``/stream.video`` viewers' figures (``/api/status``), one per connection."""
         self.kept = KeptFrames.from_env()
         """The last pictures by seq, for benchmarks (None: off; kept_frames.py)."""
+        self.takers: list[Callable[[StreamFrame], None]] = []
+        """Called with every frame published, in the publishing thread (they must be quick),
+        by other takers of the pictures (a recording of the fused video, source_control.py):
+        while there is one, frames carry their BGR."""
 
     @property
     def wants_bgr(self) -> bool:
         """Whether frames should carry their BGR picture (a video viewer is connected, or
-        pictures are kept for a benchmark: :attr:`kept`)."""
-        return bool(self.video_viewers) or self.kept is not None
+        pictures are kept for a benchmark: :attr:`kept`, or taken: :attr:`takers`)."""
+        return bool(self.video_viewers) or self.kept is not None or bool(self.takers)
+
+    @property
+    def wants_jpeg(self) -> bool:
+        """Whether frames should carry a JPEG: a JPEG viewer is connected, or nobody takes
+        the pictures themselves (:attr:`wants_bgr`; JPEG is the stream's default). Encoding
+        it for video viewers alone would cost CPU a frame for nobody."""
+        return self.jpeg_viewers > 0 or not self.wants_bgr
 
     def publish(
-        self, jpeg: bytes, meta: dict[str, Any], new: bool = True, bgr: np.ndarray | None = None
+        self,
+        jpeg: bytes | None,
+        meta: dict[str, Any],
+        new: bool = True,
+        bgr: np.ndarray | None = None,
     ) -> StreamFrame:
         """Make ``jpeg`` the newest frame (any thread). ``meta`` must be JSON-able.
 
@@ -103,6 +124,8 @@ class FrameHub:
             self.kept.add(frame.seq, frame.bgr)
         for loop, event in waiters:
             loop.call_soon_threadsafe(event.set)
+        for take in list(self.takers):
+            take(frame)
         return frame
 
     def forget(self) -> None:
@@ -116,15 +139,17 @@ class FrameHub:
         return self._frame
 
     @contextmanager
-    def watching(self) -> Iterator[None]:
-        """A viewer is connected for the block: counted in ``viewers``, holding
-        :attr:`demand`."""
+    def watching(self, jpeg: bool = False) -> Iterator[None]:
+        """A viewer is connected for the block: counted in ``viewers`` (and with ``jpeg`` in
+        ``jpeg_viewers``), holding :attr:`demand`."""
         self.viewers += 1
+        self.jpeg_viewers += jpeg
         try:
             with self.demand.hold():
                 yield
         finally:
             self.viewers -= 1
+            self.jpeg_viewers -= jpeg
 
     @contextmanager
     def notifying(self, event: asyncio.Event) -> Iterator[None]:
@@ -138,19 +163,20 @@ class FrameHub:
             with self._lock:
                 self._waiters.discard(key)
 
-    async def frames(self, poll_s: float = 1.0) -> AsyncIterator[StreamFrame]:
-        """The newest frame each time there is a newer one (skipping what was missed)."""
+    async def jpeg_frames(self, poll_s: float = 1.0) -> AsyncIterator[tuple[StreamFrame, bytes]]:
+        """The newest frame that has a JPEG, with the JPEG, each time there is a newer one
+        (skipping what was missed)."""
         event = asyncio.Event()
         last = 0
         with self.notifying(event):
             while True:
                 frame = self._frame
-                if frame is not None and frame.seq > last:
+                if frame is not None and frame.seq > last and frame.jpeg is not None:
                     last = frame.seq
-                    yield frame
+                    yield frame, frame.jpeg
                     continue
                 event.clear()
-                if self._frame is None or self._frame.seq <= last:
+                if self._frame is frame:  # nothing newer since: wait for the next publish
                     try:
                         await asyncio.wait_for(event.wait(), poll_s)
                     except TimeoutError:
@@ -169,11 +195,11 @@ def make_stream_router(hub: FrameHub) -> APIRouter:
         # message) once drawn; only then is the newest frame sent. Transport buffers
         # cannot fill up with stale frames however slow the viewer or its network is.
         await ws.accept()
-        with hub.watching():
+        with hub.watching(jpeg=True):
             try:
-                async for frame in hub.frames():
+                async for frame, jpeg in hub.jpeg_frames():
                     await ws.send_text(json.dumps(frame.meta))
-                    await ws.send_bytes(frame.jpeg)
+                    await ws.send_bytes(jpeg)
                     await ws.receive_text()
             except (WebSocketDisconnect, RuntimeError):
                 pass
@@ -181,13 +207,13 @@ def make_stream_router(hub: FrameHub) -> APIRouter:
     @router.get("/stream.mjpg")
     async def _mjpeg() -> StreamingResponse:
         async def parts() -> AsyncIterator[bytes]:
-            with hub.watching():
-                async for frame in hub.frames():
+            with hub.watching(jpeg=True):
+                async for _frame, jpeg in hub.jpeg_frames():
                     yield (
                         b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
-                        + str(len(frame.jpeg)).encode()
+                        + str(len(jpeg)).encode()
                         + b"\r\n\r\n"
-                        + frame.jpeg
+                        + jpeg
                         + b"\r\n"
                     )
 

@@ -9,18 +9,32 @@ the viewer received over the last second. It answers what to send next
 go now (:meth:`RateController.can_send`: fewer than :attr:`RateController.window` frames
 unacknowledged, and not sooner than the level's frame period).
 
-Congestion is :data:`HIGH_IN_A_ROW` round trips in a row well above the recent minimum (a
+Each acknowledgement gives a delay sample: the frame's one-way delay when the viewer says
+when the frame arrived (``recv_s``, its own clock: the offset between the clocks is
+unknown but constant, so only the rise above the recent minimum counts), else its round
+trip. The one-way delay leaves out what happens after the frame arrived (the viewer
+decoding on a busy CPU, the acknowledgement's way back, the server's loop reading it late),
+which would otherwise read as a queue on a machine that is merely busy.
+
+Congestion is :data:`HIGH_IN_A_ROW` delays in a row well above the recent minimum (a
 queue builds on the link; a resent packet or the viewer's hiccup delays fewer frames),
 or a frame unacknowledged for much longer than the minimum round trip (the link stalled),
-or a full window with a quarter of the bitrate delivered or less (the link cannot carry it):
-the bitrate steps down at once, multiplicatively (to :data:`DECREASE` of itself, or of
-the throughput delivered, whichever is lower), at most once per round trip (a step
-waits for the acknowledgement of a frame sent after the previous one). A clear link
-(the last round trip near the minimum, room in the window) raises it additively,
-:data:`INCREASE_BPS_PER_S`, from :data:`HOLD_AFTER_DECREASE_S` after a decrease.
+or a full window with a quarter of what was sent delivered or less (the link cannot carry
+it): the bitrate steps down at once, multiplicatively (to :data:`DECREASE` of itself, or of
+what the link carried, whichever is lower: for a queue the rate of the acknowledgements
+that showed it, else the last second's throughput; never the encoder's output of a still
+scene, which is below the target), at most once per round trip (a step
+waits for the acknowledgement of a frame sent after the previous one). A step taken
+for a stall or a short window is undone when the acknowledgements that end it show that
+the frames had arrived without a queue (their one-way delays low: the acknowledgements,
+not the frames, were late), as TCP undoes a spurious timeout. A clear link (the last delay
+near the minimum, room in the window) raises it additively, :data:`INCREASE_BPS_PER_S`,
+from :data:`HOLD_AFTER_DECREASE_S` after a decrease.
 The bitrate stays between :data:`MIN_BPS` and the preset's cap. With preset ``auto`` the
 level follows the bitrate down the ladder at once and back up with hysteresis
-(:data:`UP_MARGIN`, :data:`UP_HOLD_S`).
+(:data:`UP_MARGIN`, :data:`UP_HOLD_S`). Frames are paced at the level's frame rate by a
+token bucket that holds :data:`BURST_FRAMES` (a source's frames come unevenly: a strict
+minimum gap would skip some that the rate allows).
 """
 
 from __future__ import annotations
@@ -28,13 +42,8 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
-from app.server.runtime.video_encoder import (
-    LEVEL_BY_NAME,
-    LEVELS,
-    MIN_BPS,
-    Level,
-    check_preset,
-)
+from app.recording.h264 import MIN_BPS, Level
+from app.server.runtime.video_presets import LEVEL_BY_NAME, LEVELS, check_preset
 
 WINDOW = 4
 """Frames in flight (sent, not yet acknowledged): 30 frames/s over a 100 ms round trip."""
@@ -46,18 +55,18 @@ INCREASE_BPS_PER_S = 500_000
 HOLD_AFTER_DECREASE_S = 1.5
 """No increase for this long after a decrease."""
 QUEUE_DELAY_S = 0.08
-"""Round trips more than ``max(QUEUE_DELAY_S, min_rtt / 2)`` above the minimum are high."""
+"""Delays more than ``max(QUEUE_DELAY_S, min_rtt / 2)`` above their minimum are high."""
 HIGH_IN_A_ROW = 3
-"""This many high round trips in a row, none falling, are congestion: a queue on the link
+"""This many high delays in a row, none falling, are congestion: a queue on the link
 delays every frame more than or as much as the one before. A packet that TCP resends
-delays the frames behind it too, but they arrive together, so their round trips fall
-frame by frame (each left later): a falling round trip starts the count again."""
+delays the frames behind it too, but they arrive together, so their delays fall
+frame by frame (each left later): a falling delay starts the count again."""
 FALL_S = 0.010
-"""A round trip shorter than the one before by more than this is falling."""
+"""A delay shorter than the one before by more than this is falling."""
 STALL_S = 0.5
 """A frame unacknowledged for ``max(STALL_S, 3 min_rtt)`` is congestion (the link stalled)."""
 SHORT_SHARE = 0.25
-"""With the window full, a throughput below this share of the bitrate is congestion."""
+"""With the window full, a throughput below this share of what was sent is congestion."""
 MIN_RTT_WINDOW_S = 10.0
 """The minimum round trip is the least of the last this many seconds."""
 THROUGHPUT_WINDOW_S = 1.0
@@ -66,6 +75,10 @@ UP_MARGIN = 1.25
 """``auto`` moves up a level when the bitrate exceeds the current level's cap this much."""
 UP_HOLD_S = 4.0
 """... and it has been on the current level this long (each change costs an IDR)."""
+BURST_FRAMES = 2.0
+"""The pacing bucket holds this many frames: after a gap, two frames may go back to back."""
+PACE_SLACK = 0.1
+"""A frame may go when the bucket holds ``1 - PACE_SLACK`` frames (timer jitter)."""
 
 
 @dataclass(frozen=True)
@@ -84,11 +97,20 @@ class _InFlight:
     t_sent: float
 
 
+@dataclass
+class _Undo:
+    """A step down for a stall or a short window, to undo if it proves spurious."""
+
+    bitrate_bps: float  # before the step
+    level: Level  # likewise
+    last_seq: int  # the newest frame sent when it was taken
+
+
 class RateController:
     """One viewer's bitrate and level (see the module doc).
 
     Args:
-        preset: ``auto`` or a level's name (:data:`app.server.runtime.video_encoder.PRESETS`;
+        preset: ``auto`` or a level's name (:data:`app.server.runtime.video_presets.PRESETS`;
             ValueError otherwise).
         window: the most frames in flight.
     """
@@ -99,8 +121,14 @@ class RateController:
         self.window = window
         self._in_flight: dict[int, _InFlight] = {}
         self._rtts: deque[tuple[float, float]] = deque()  # (t_ack, rtt), last MIN_RTT_WINDOW_S
+        self._delays: deque[tuple[float, float]] = deque()  # (t_ack, delay), likewise
+        self._one_way: bool | None = None  # delays are one-way (the viewer's recv_s)
+        self._last_delay: float | None = None
+        self._undo: _Undo | None = None
+        self._credit = BURST_FRAMES  # the pacing bucket, frames
+        self._credit_t: float | None = None
         self._acked: deque[tuple[float, int]] = deque()  # (t_ack, nbytes), last second
-        self._last_sent_t: float | None = None
+        self._sent: deque[tuple[float, int]] = deque()  # (t_sent, nbytes), last second
         self._first_sent_t: float | None = None
         self._last_seq = 0
         self._decrease_seq = 0  # a decrease waits for the ack of a frame sent after this
@@ -108,8 +136,12 @@ class RateController:
         self._update_t: float | None = None
         self._level_t = float("-inf")
         self.last_rtt_s: float | None = None
-        self._high_run = 0  # round trips in a row above the limit
+        self._high_run = 0  # delays in a row above the limit
         self.congestion_events = 0
+        self.undone_events = 0
+        self.last_congestion: str | None = None
+        """Why the last step down was taken: ``queue``, ``stall`` or ``short`` (module doc)."""
+        """Steps down undone: the acknowledgements, not the frames, were late."""
         self.set_preset(preset)
 
     # -- the sender's reports ---------------------------------------------------------------
@@ -125,15 +157,19 @@ class RateController:
 
     def on_sent(self, seq: int, nbytes: int, t: float) -> None:
         """Frame ``seq`` (increasing) of ``nbytes`` went out at ``t``."""
+        self._credit = self._credit_at(t) - 1.0
+        self._credit_t = t
         self._in_flight[seq] = _InFlight(nbytes, t)
+        self._sent.append((t, nbytes))
         if self._first_sent_t is None:
             self._first_sent_t = t
-        self._last_sent_t = t
         self._last_seq = max(self._last_seq, seq)
 
-    def on_ack(self, seq: int, t: float) -> None:
+    def on_ack(self, seq: int, t: float, recv_s: float | None = None) -> None:
         """The viewer acknowledged frame ``seq`` at ``t``; acknowledges every older frame too
-        (a viewer may skip an ack). Unknown or repeated ``seq``: ignored."""
+        (a viewer may skip an ack). Unknown or repeated ``seq``: ignored. ``recv_s``: when
+        the frame reached the viewer, seconds on the viewer's own clock (any origin, the
+        same for every ack of the viewer), if it says."""
         frame = self._in_flight.get(seq)
         if frame is None:
             return
@@ -141,13 +177,17 @@ class RateController:
             f = self._in_flight.pop(old)
             self._acked.append((t, f.nbytes))
         rtt = max(t - frame.t_sent, 0.0)
-        falling = self.last_rtt_s is not None and rtt < self.last_rtt_s - FALL_S
         self.last_rtt_s = rtt
         self._rtts.append((t, rtt))
+        if self._one_way is None:
+            self._one_way = recv_s is not None
+        delay = None
+        if self._one_way == (recv_s is not None):  # a viewer that changes its mind: rtt only
+            delay = rtt if recv_s is None else recv_s - frame.t_sent
+            self._delays.append((t, delay))
         self._trim(t)
-        self._high_run = self._high_run + 1 if rtt > self._queue_limit_s() and not falling else 0
-        if self._high_run >= HIGH_IN_A_ROW and seq > self._decrease_seq:
-            self._decrease(t)
+        if delay is not None:
+            self._on_delay(seq, delay, t)
 
     def reset_in_flight(self) -> None:
         """Forget the frames in flight (the viewer asked for a fresh start)."""
@@ -169,13 +209,29 @@ class RateController:
         """The least round trip of the last :data:`MIN_RTT_WINDOW_S` (0 before any)."""
         return min((r for _, r in self._rtts), default=0.0)
 
+    @property
+    def queue_delay_s(self) -> float | None:
+        """The last delay sample above the least of the last :data:`MIN_RTT_WINDOW_S`
+        (seconds; None before any)."""
+        if self._last_delay is None:
+            return None
+        return self._last_delay - self._base_delay()
+
     def delivered_bps(self, t: float) -> float:
         """Bits acknowledged over the last :data:`THROUGHPUT_WINDOW_S` (or since the first
         frame went, if that is less), per second."""
+        return self._rate_bps(self._acked, t)
+
+    def sent_bps(self, t: float) -> float:
+        """Bits sent over the same time, per second (what the encoder made: below the
+        target when the scene needs less)."""
+        return self._rate_bps(self._sent, t)
+
+    def _rate_bps(self, log: deque[tuple[float, int]], t: float) -> float:
         self._trim(t)
         first = self._first_sent_t if self._first_sent_t is not None else t
         span = min(THROUGHPUT_WINDOW_S, t - first)
-        return sum(n for _, n in self._acked) * 8 / span if span > 0 else 0.0
+        return sum(n for _, n in log) * 8 / span if span > 0 else 0.0
 
     def can_send(self, t: float) -> bool:
         """Whether a frame may go at ``t``: the window has room and the level's frame
@@ -187,9 +243,13 @@ class RateController:
         acknowledgement must come first)."""
         if len(self._in_flight) >= self.window:
             return None
-        if self._last_sent_t is None:
-            return 0.0
-        return max(0.0, 0.9 / self.level.fps - (t - self._last_sent_t))
+        return max(0.0, (1.0 - PACE_SLACK - self._credit_at(t)) / self.level.fps)
+
+    def _credit_at(self, t: float) -> float:
+        """The pacing bucket at ``t``: frames that may go at the level's frame rate."""
+        if self._credit_t is None:
+            return BURST_FRAMES
+        return min(BURST_FRAMES, self._credit + (t - self._credit_t) * self.level.fps)
 
     def target(self, t: float) -> Target:
         """The bitrate, level and frame rate to encode at ``t``; updates the bitrate (a
@@ -204,6 +264,24 @@ class RateController:
         return Target(int(self.bitrate_bps), self.level, self.level.fps)
 
     # -- inside -----------------------------------------------------------------------------
+
+    def _on_delay(self, seq: int, delay: float, t: float) -> None:
+        """One delay sample (frame ``seq``, acknowledged at ``t``): the queue rule, and the
+        verdict on a pending step down (:class:`_Undo`)."""
+        high = delay - self._base_delay() > self._queue_limit_s()
+        falling = self._last_delay is not None and delay < self._last_delay - FALL_S
+        self._last_delay = delay
+        undo = self._undo
+        if undo is not None and self._one_way:
+            if seq > undo.last_seq or high:
+                self._undo = None  # a frame sent after the step, or the link was late
+            elif undo.bitrate_bps > self.bitrate_bps:
+                self.bitrate_bps, self.level = undo.bitrate_bps, undo.level  # it was in time
+                self._undo = None
+                self.undone_events += 1
+        self._high_run = self._high_run + 1 if high and not falling else 0
+        if self._high_run >= HIGH_IN_A_ROW and seq > self._decrease_seq:
+            self._decrease(t, "queue")
 
     def _set_level(self, t: float) -> None:
         """The preset's level, or ``auto``'s: down at once to the lowest level whose cap
@@ -225,15 +303,21 @@ class RateController:
             self.level, self._level_t = best, t
 
     def _queue_limit_s(self) -> float:
-        """A round trip above this is congestion."""
-        m = self.min_rtt_s
-        return m + max(QUEUE_DELAY_S, m / 2)
+        """A delay more than this above :meth:`_base_delay` is high (seconds)."""
+        return max(QUEUE_DELAY_S, self.min_rtt_s / 2)
+
+    def _base_delay(self) -> float:
+        """The least delay sample of the last :data:`MIN_RTT_WINDOW_S`."""
+        return min((d for _, d in self._delays), default=0.0)
 
     def _clear(self) -> bool:
-        """The link shows no queue: the last round trip near the minimum, room in the
-        window."""
-        rtt = self.last_rtt_s
-        return rtt is not None and rtt <= self._queue_limit_s() and self.in_flight < self.window
+        """The link shows no queue: the last delay near the minimum, room in the window."""
+        d = self._last_delay
+        return (
+            d is not None
+            and d - self._base_delay() <= self._queue_limit_s()
+            and self.in_flight < self.window
+        )
 
     def _check_stall(self, t: float) -> None:
         if not self._in_flight:
@@ -241,15 +325,17 @@ class RateController:
         oldest = min(f.t_sent for f in self._in_flight.values())
         stall = max(STALL_S, 3 * self.min_rtt_s)
         stalled = t - oldest > stall
-        # a full window and a quarter of the bitrate delivered: the link cannot carry it
-        # (also where a standing queue has raised the minimum round trip)
+        # a full window and a quarter of what was sent delivered: the link cannot carry
+        # it (also where a standing queue has raised the minimum round trip)
         short = (
             len(self._in_flight) >= self.window
             and t - self._decrease_t > max(STALL_S, self.min_rtt_s)
-            and self.delivered_bps(t) < SHORT_SHARE * self.bitrate_bps
+            and self.delivered_bps(t) < SHORT_SHARE * self.sent_bps(t)
         )
         if (stalled and t - self._decrease_t > stall) or short:
-            self._decrease(t)
+            undo = self._undo or _Undo(self.bitrate_bps, self.level, self._last_seq)
+            self._decrease(t, "stall" if stalled else "short")
+            self._undo = _Undo(undo.bitrate_bps, undo.level, self._last_seq)
 
     def _queue_rate_bps(self) -> float:
         """What the link carried over the last :data:`HIGH_IN_A_ROW` acknowledgements (bit/s;
@@ -260,10 +346,12 @@ class RateController:
         span = recent[-1][0] - recent[0][0] if len(recent) > 1 else 0.0
         return sum(n for _, n in recent[1:]) * 8 / span if span > 0 else 0.0
 
-    def _decrease(self, t: float) -> None:
+    def _decrease(self, t: float, reason: str) -> None:
         delivered = self.delivered_bps(t)
-        if self._high_run >= HIGH_IN_A_ROW and self._queue_rate_bps() > 0:
-            delivered = min(delivered, self._queue_rate_bps())
+        if reason == "queue" and self._queue_rate_bps() > 0:
+            # while the queue stands, acks come at the link's rate: the last second's
+            # throughput is the encoder's (a still scene needs less than the target)
+            delivered = self._queue_rate_bps()
         new = DECREASE * self.bitrate_bps
         if delivered > 0:
             new = min(new, DECREASE * delivered)
@@ -272,10 +360,15 @@ class RateController:
         self._decrease_t = t
         self._update_t = t
         self.congestion_events += 1
+        self.last_congestion = reason
         self._set_level(t)
 
     def _trim(self, t: float) -> None:
         while self._rtts and self._rtts[0][0] < t - MIN_RTT_WINDOW_S:
             self._rtts.popleft()
+        while self._delays and self._delays[0][0] < t - MIN_RTT_WINDOW_S:
+            self._delays.popleft()
         while self._acked and self._acked[0][0] < t - THROUGHPUT_WINDOW_S:
             self._acked.popleft()
+        while self._sent and self._sent[0][0] < t - THROUGHPUT_WINDOW_S:
+            self._sent.popleft()

@@ -34,6 +34,10 @@ class VideoViewerStats:
         in_flight: frames sent and not acknowledged; ``window``: the most allowed.
         frames_sent, keyframes, bytes_sent: since the viewer connected.
         congestion_events: the controller's steps down.
+        undone_events: steps down undone (the acknowledgements were late, not the frames).
+        last_congestion: why the last step down was taken (``queue``, ``stall``, ``short``).
+        queue_ms: the last frame's delay above the least of the last 10 s, ms (one-way when
+            the viewer says when frames arrive, else the round trip).
     """
 
     preset: str
@@ -54,6 +58,9 @@ class VideoViewerStats:
     keyframes: int = 0
     bytes_sent: int = 0
     congestion_events: int = 0
+    undone_events: int = 0
+    queue_ms: float | None = None
+    last_congestion: str | None = None
     _sent_t: deque[float] = field(default_factory=deque, repr=False)
 
     def count_sent(self, t: float, nbytes: int, key: bool) -> None:

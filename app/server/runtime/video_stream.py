@@ -3,7 +3,8 @@
 Protocol (docs/FORMATS.md, "The video stream"): per frame a JSON text message (the
 ``/stream`` metadata plus ``codec``, ``key``, ``width``, ``height``, ``bitrate_bps``,
 ``fps_target``, ``preset``, ``level``), then one binary message, the access unit in
-Annex B. The viewer answers ``{"ack": SEQ}`` once it drew frame ``SEQ``,
+Annex B. The viewer answers ``{"ack": SEQ, "recv_ms": T}`` once it drew frame ``SEQ``
+(``T``: when the frame arrived, milliseconds on the viewer's clock; optional),
 ``{"keyframe": true}`` for an IDR (it also frees the window: the frames it could not
 decode will never be acknowledged), ``{"preset": "4"}`` to change its preset; anything else
 is ignored. ``?preset=`` unknown: the socket closes with 1008; none: the console's default
@@ -13,7 +14,7 @@ One :class:`VideoSession` per viewer: up to :data:`app.server.runtime.video_rate
 frames unacknowledged; a frame is encoded only when it may be sent, from the newest
 picture (skipped pictures are skipped before encoding, so the P-frame chain never
 breaks); encoding runs in a worker thread (``asyncio.to_thread``), one
-:class:`app.server.runtime.video_encoder.VideoEncoder` per viewer. The first frame, and
+:class:`app.recording.h264.VideoEncoder` per viewer. The first frame, and
 the first after a preset, level or size change or a keyframe request, is an IDR.
 """
 
@@ -22,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import math
 import time
 from collections.abc import Callable
 from typing import Any
@@ -30,8 +32,9 @@ import numpy as np
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from app.errors import describe_error
+from app.recording.h264 import EncodedFrame, VideoEncoder
 from app.server.runtime.stream import FrameHub, StreamFrame
-from app.server.runtime.video_encoder import PRESETS, EncodedFrame, VideoEncoder
+from app.server.runtime.video_presets import PRESETS
 from app.server.runtime.video_rate import WINDOW, RateController, Target
 from app.server.runtime.video_stats import VideoViewerStats
 
@@ -188,7 +191,7 @@ class VideoSession:
         now = self.clock()
         seq = data.get("ack")
         if isinstance(seq, int) and not isinstance(seq, bool):
-            self.ctl.on_ack(seq, now)
+            self.ctl.on_ack(seq, now, _seconds(data.get("recv_ms")))
             sent_ns = self._sent_ns.get(seq)
             if sent_ns is not None:
                 self.stats.latency_ms = (time.time_ns() - sent_ns) / 1e6
@@ -215,6 +218,17 @@ class VideoSession:
         s.min_rtt_ms = ctl.min_rtt_s * 1000 if ctl.last_rtt_s is not None else None
         s.in_flight = ctl.in_flight
         s.congestion_events = ctl.congestion_events
+        s.undone_events = ctl.undone_events
+        s.last_congestion = ctl.last_congestion
+        q = ctl.queue_delay_s
+        s.queue_ms = None if q is None else q * 1000
+
+
+def _seconds(ms: object) -> float | None:
+    """A finite number of milliseconds from the viewer, in seconds; None otherwise."""
+    if isinstance(ms, int | float) and not isinstance(ms, bool) and math.isfinite(ms):
+        return float(ms) / 1000
+    return None
 
 
 def make_video_router(hub: FrameHub) -> APIRouter:

@@ -1,29 +1,22 @@
-"""H.264 encoding of the fused stereo picture for ``/stream.video`` (docs/FORMATS.md).
+"""H.264 encoding of the fused stereo picture (libx264 through PyAV), for the video stream
+(``/stream.video``, :mod:`app.server.runtime.video_stream`) and the fused video of
+recordings (:mod:`app.recording.video_track`).
 
-The presets a viewer picks (:data:`PRESETS`), the ladder of levels the rate controller
-moves on (:data:`LEVELS`: bitrate cap, picture size, frame rate), the console-wide default
-preset (:class:`StreamSettings`) and one viewer's encoder (:class:`VideoEncoder`): PyAV's
-libx264, ultrafast / zerolatency, no B-frames, periodic intra refresh, the bitrate held by
-the VBV per second; its output is Annex B access units (start codes, SPS/PPS in-band
-before every IDR), what WebCodecs decodes when its config has no ``description``.
+A :class:`Level` says what to encode (picture size, frame rate, bitrate cap);
+:class:`VideoEncoder` encodes: ultrafast / zerolatency, no B-frames, periodic intra refresh,
+the bitrate held by the VBV; its output is Annex B access units (start codes, SPS/PPS
+in-band before every IDR), what WebCodecs decodes when its config has no ``description``
+and what Foxglove's ``foxglove.CompressedVideo`` carries.
 """
 
 from __future__ import annotations
 
-import threading
-import typing
 from dataclasses import dataclass
 from fractions import Fraction
-from typing import Literal
 
 import av
 import cv2
 import numpy as np
-
-VideoPreset = Literal["auto", "8", "4", "2", "1"]
-"""A viewer's choice: ``auto`` (the ladder follows the link) or a level's name (Mbit/s)."""
-PRESETS: tuple[str, ...] = typing.get_args(VideoPreset)
-DEFAULT_PRESET: VideoPreset = "auto"
 
 
 @dataclass(frozen=True)
@@ -43,56 +36,9 @@ class Level:
     fps: int
 
 
-LEVELS: tuple[Level, ...] = (
-    Level("8", 8_000_000, (2560, 960), 30),
-    Level("4", 4_000_000, (1920, 720), 30),
-    Level("2", 2_000_000, (1280, 480), 25),
-    Level("1", 1_000_000, (1280, 480), 15),
-)
-"""Highest first. ``auto`` uses the highest level whose ``max_bps`` the bitrate target
-reaches (the lowest below 1 Mbit/s); a fixed preset caps the bitrate at its level's."""
-LEVEL_BY_NAME: dict[str, Level] = {lv.name: lv for lv in LEVELS}
 MIN_BPS = 300_000
 """The controller's floor, bit/s (below the lowest level's cap: a congested link still
 gets a picture, at the lowest level)."""
-
-
-def check_preset(preset: str) -> VideoPreset:
-    """``preset`` if it is one of :data:`PRESETS` (ValueError naming them otherwise)."""
-    if preset not in PRESETS:
-        raise ValueError(f"unknown video preset {preset!r}: expected one of {list(PRESETS)}")
-    return typing.cast(VideoPreset, preset)
-
-
-def level_for(preset: str, bitrate_bps: float) -> Level:
-    """The level a viewer with ``preset`` uses at ``bitrate_bps``: a fixed preset's own;
-    ``auto``: the highest level whose cap the bitrate reaches (else the lowest)."""
-    if check_preset(preset) != "auto":
-        return LEVEL_BY_NAME[preset]
-    for lv in LEVELS:
-        if bitrate_bps >= lv.max_bps:
-            return lv
-    return LEVELS[-1]
-
-
-class StreamSettings:
-    """The console-wide video settings (``ctx.stream_settings``; ``/api/stream/settings``,
-    the GUI's dropdown). ``preset``: the preset of viewers that ask for none; setting an
-    unknown one raises ValueError. Thread-safe (a plain attribute swap)."""
-
-    def __init__(self, preset: str = DEFAULT_PRESET) -> None:
-        self._lock = threading.Lock()
-        self._preset: VideoPreset = check_preset(preset)
-
-    @property
-    def preset(self) -> VideoPreset:
-        return self._preset
-
-    @preset.setter
-    def preset(self, value: str) -> None:
-        checked = check_preset(value)
-        with self._lock:
-            self._preset = checked
 
 
 @dataclass(frozen=True)
