@@ -42,18 +42,26 @@ Rules common to all modes:
 - "Painted" pixels are those that show thermal information: every pixel with a reading in
   ``blend`` (opacity > 0), ``edges`` and ``thermal``; the selected ones in ``threshold``
   and ``isotherm``; the ones inside the rectangle in ``pip``; none in ``color``.
-- Fallback marking (``mark_fallback``): painted fallback pixels get a diagonal two-tone
-  hatch, 2 px lines every 8 px along the anti-diagonal, alternately darkened and lightened
-  by 48 grey levels (saturating). Decision: a hatch rather than desaturation, because the
-  temperature shown at a fallback pixel is a real reading (only its registration is
-  approximate), so its palette colour must stay readable between the lines; two tones so
-  the mark shows on black, white and mid-grey alike. Only painted pixels are marked: the
-  colour image itself does not depend on depth.
+- Fallback marking (``mark_fallback``): painted fallback pixels are veiled, their colour
+  moved :data:`FALLBACK_DESATURATION` of the way to its own grey (luma) and
+  :data:`FALLBACK_FADE` of the way to mid-grey: muted, a little less contrast, hue and
+  brightness still readable. Decision: the temperature shown at a fallback pixel is a real
+  reading (only its registration is approximate), so its palette colour must stay readable,
+  and the mark must not draw the eye more than the scene does (issue 19: the diagonal hatch
+  it replaces did). The veil changes a pixel by a small fraction of its value (a bound in
+  ``tests/test_agc.py``); a uniform grey at the veil's fixed point (mid-grey) does not
+  change. Only painted pixels are marked: the colour image itself does not depend on depth.
+  Pixels without a thermal view keep the plain colour image (above); the viewer's legend
+  names both.
 
 :class:`Composer` preallocates every full-frame buffer once; :meth:`Composer.compose`
 allocates no full-frame array in the steady state (OpenCV calls with ``dst=``, numpy with
 ``out=``). The colour range is one span shared by both eyes: a fixed ``span_k`` or
-:func:`auto_span` over both eyes' images (:func:`resolve_span`).
+:func:`auto_span` over both eyes' images (:func:`resolve_span`). Within it, palette colour
+follows the frame's AGC mapping (:mod:`fusion.agc`, ``settings.agc``): a
+:class:`fusion.agc.ToneMap` computed over both eyes and handed to ``compose`` for each eye
+(:class:`fusion.stereo.StereoFusion` does); without one, ``compose`` maps linearly over the
+span.
 
 The stereo pair: :func:`side_by_side` (left | right), :func:`stereo_halves` (compose each
 eye straight into its half), :func:`anaglyph` (red-cyan). :func:`point_colors` colours a
@@ -71,12 +79,21 @@ import numpy as np
 import numpy.typing as npt
 
 from calib.numbers import check_finite
+from fusion.agc import (
+    AGC_MODES,
+    DEFAULT_MAX_GAIN,
+    DEFAULT_PLATEAU,
+    AgcMode,
+    PaletteIndexer,
+    ToneMap,
+    check_max_gain,
+    check_plateau,
+)
 from fusion.palettes import (
     PALETTE_NAMES,
     PaletteName,
     _check_rgb,
     _colormap_into,
-    _index_into,
     check_span,
     palette_colors,
 )
@@ -115,10 +132,9 @@ CloudColoring = Literal["color", "temperature", "depth"]
 """What colours a point cloud (:func:`point_colors`)."""
 CLOUD_COLORINGS: tuple[CloudColoring, ...] = get_args(CloudColoring)
 
-#: Fallback hatch: period along the anti-diagonal (px), line width (px), grey shift.
-HATCH_PERIOD_PX = 8
-HATCH_WIDTH_PX = 2
-HATCH_SHIFT = 48
+#: Fallback veil: the share of the way to a pixel's own grey (luma), and to mid-grey.
+FALLBACK_DESATURATION = 0.35
+FALLBACK_FADE = 0.05
 #: Gain of the embossed detail at ``edge_strength`` 1.
 EDGE_GAIN = 2.0
 #: Box size of the low-pass subtracted from the luminance in ``edges`` mode.
@@ -211,9 +227,21 @@ class DisplaySettings:
         edge_strength: ``edges`` mode, 0 (no detail) .. 10; 1 is a natural look.
         pip_center: (x, y) centre of the ``pip`` rectangle as fractions of width and height.
         pip_size: (width, height) of the rectangle as fractions in (0, 1] (one number: both).
-        mark_fallback: hatch the painted pixels whose depth came from the fallback.
+        mark_fallback: veil (mute) the painted pixels whose depth came from the fallback.
         span_smoothing_s: time constant (seconds, >= 0) of the automatic span's smoothing
-            over frame time, so that colours do not flicker; 0 = none.
+            over frame time, so that colours do not flicker; 0 = none. The AGC table is
+            smoothed with the same time constant.
+        agc: how temperatures within the span become palette positions, one of
+            ``fusion.agc.AGC_MODES``: ``"plateau"`` (plateau equalization over both eyes),
+            ``"linear"`` (proportional to temperature) or ``"dde"`` (plateau-equalized base
+            plus amplified local detail); see :mod:`fusion.agc`. With a manual ``span_k``,
+            equalization works within it.
+        plateau: ``plateau``/``dde``: the largest share of the pixels one 0.1 K bin counts
+            with, in [1e-4, 1]; 1 is plain histogram equalization.
+        max_gain: ``plateau``/``dde``: the steepest the table may be, palette steps per
+            kelvin, in [1, 1000] (a thermal camera's "max gain": a flat scene is not
+            stretched into noise); an automatic span is at least ``255 / max_gain`` wide
+            under these modes (:func:`fusion.agc.gain_span`).
 
     Numbers in lists are normalised to tuples of floats, so settings compare and hash.
     """
@@ -234,6 +262,9 @@ class DisplaySettings:
     pip_size: tuple[float, float] | float = (0.5, 0.5)
     mark_fallback: bool = True
     span_smoothing_s: float = 1.0
+    agc: AgcMode = "plateau"
+    plateau: float = DEFAULT_PLATEAU
+    max_gain: float = DEFAULT_MAX_GAIN
 
     def __post_init__(self) -> None:
         def put(name: str, value: object) -> None:
@@ -295,6 +326,10 @@ class DisplaySettings:
                 f"got {smoothing:g}"
             )
         put("span_smoothing_s", smoothing)
+        if self.agc not in AGC_MODES:
+            raise ValueError(f"agc: expected one of {', '.join(AGC_MODES)}, got {self.agc!r}")
+        put("plateau", check_plateau(self.plateau))
+        put("max_gain", check_max_gain(self.max_gain))
 
 
 def pip_box(settings: DisplaySettings, width: int, height: int) -> tuple[int, int, int, int]:
@@ -392,15 +427,6 @@ def _describe(a: object) -> str:
     return type(a).__name__
 
 
-def _hatch(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Dark and light hatch masks (H, W) uint8 (255 on the lines)."""
-    d = (np.arange(height)[:, None] + np.arange(width)[None, :]) % HATCH_PERIOD_PX
-    half = HATCH_PERIOD_PX // 2
-    dark = np.where(d < HATCH_WIDTH_PX, 255, 0).astype(np.uint8)
-    light = np.where((d >= half) & (d < half + HATCH_WIDTH_PX), 255, 0).astype(np.uint8)
-    return dark, light
-
-
 class Composer:
     """Composes display pictures of one eye of a fixed size, with preallocated buffers.
 
@@ -427,7 +453,7 @@ class Composer:
         self._paint = np.zeros((h, w), np.uint8)
         self._mask = np.zeros((h, w), np.uint8)
         self._mask2 = np.zeros((h, w), np.uint8)
-        self._hatch_dark, self._hatch_light = _hatch(w, h)
+        self._indexer = PaletteIndexer(w, h)
 
     # -- checks ------------------------------------------------------------------------------
 
@@ -474,12 +500,12 @@ class Composer:
     def _palette(
         self,
         thermal: np.ndarray,
-        span: tuple[float, float],
+        tone: ToneMap,
         name: str,
         dst: np.ndarray,
         sl: tuple[slice, slice],
     ) -> None:
-        _index_into(thermal[sl], span[0], span[1], self._index[sl])
+        self._indexer.index_into(thermal, tone, self._index, sl)
         _colormap_into(self._index[sl], name, dst[sl])
 
     def _mark(
@@ -490,9 +516,11 @@ class Composer:
         box: tuple[int, int, int, int],
         fallback_box: tuple[int, int, int, int],
     ) -> None:
-        """Hatch the fallback pixels inside ``box`` (x0, y0, x1, y1), within ``paint``
-        (a 0/255 or bool-as-uint8 mask, None = all) if given. Work is limited to the
-        intersection with ``fallback_box``, the bounding box of the fallback pixels."""
+        """Veil the fallback pixels inside ``box`` (x0, y0, x1, y1), within ``paint``
+        (a 0/255 or bool-as-uint8 mask, None = all) if given: ``(1 - d - f) * c + d * Y +
+        f * 128`` (``d`` FALLBACK_DESATURATION, ``f`` FALLBACK_FADE, ``Y`` the pixel's
+        luma). Work is limited to the intersection with ``fallback_box``, the bounding box
+        of the fallback pixels. Uses ``_pal`` and ``_mask`` as scratch."""
         x0, y0 = max(box[0], fallback_box[0]), max(box[1], fallback_box[1])
         x1, y1 = min(box[2], fallback_box[2]), min(box[3], fallback_box[3])
         if x0 >= x1 or y0 >= y1:
@@ -501,13 +529,12 @@ class Composer:
         base = fallback[sl].view(np.uint8)
         if paint is not None:
             base = cv2.bitwise_and(base, paint[sl], dst=self._mask2[sl])
-        m = self._mask[sl]
         o = out[sl]
-        shift = (HATCH_SHIFT, HATCH_SHIFT, HATCH_SHIFT, 0)
-        cv2.bitwise_and(base, self._hatch_dark[sl], dst=m)
-        cv2.subtract(o, shift, dst=o, mask=m)
-        cv2.bitwise_and(base, self._hatch_light[sl], dst=m)
-        cv2.add(o, shift, dst=o, mask=m)
+        grey = cv2.cvtColor(o, cv2.COLOR_RGB2GRAY, dst=self._mask[sl])
+        veil = cv2.cvtColor(grey, cv2.COLOR_GRAY2RGB, dst=self._pal[sl])
+        d, f = FALLBACK_DESATURATION, FALLBACK_FADE
+        cv2.addWeighted(o, 1.0 - d - f, veil, d, 128.0 * f, dst=veil)
+        cv2.copyTo(veil, base, dst=o)
 
     def _restore_nan(self, out: np.ndarray, color: np.ndarray, sl: tuple[slice, slice]) -> bool:
         """Colour back on NaN pixels (within ``sl``); ``self._nan[sl]`` holds the NaN mask."""
@@ -533,6 +560,7 @@ class Composer:
         settings: DisplaySettings,
         span: tuple[float, float] | None = None,
         out: np.ndarray | None = None,
+        tone: ToneMap | None = None,
     ) -> np.ndarray:
         """One eye's display picture.
 
@@ -547,6 +575,10 @@ class Composer:
             out: (H, W, 3) uint8 to write into (a half of a side-by-side buffer from
                 :func:`stereo_halves` is fine; must not overlap the inputs). None: an
                 internal buffer, overwritten by the next call.
+            tone: the frame's AGC mapping from kelvin to palette index
+                (:class:`fusion.agc.ToneMap`, computed over both eyes so that they match);
+                it brings its own span (``span`` is then ignored). None: linear over
+                ``span``, whatever ``settings.agc`` says.
 
         Returns:
             ``out`` (or the internal buffer): (H, W, 3) uint8 RGB.
@@ -554,7 +586,11 @@ class Composer:
         if not isinstance(settings, DisplaySettings):
             raise ValueError(f"settings: expected DisplaySettings, got {type(settings).__name__}")
         out = self._check_inputs(color, thermal_k, fallback, out)
-        span = resolve_span(settings, thermal_k) if span is None else check_span(span)
+        if tone is None:
+            span = resolve_span(settings, thermal_k) if span is None else check_span(span)
+            tone = ToneMap.linear(span)
+        elif not isinstance(tone, ToneMap):
+            raise ValueError(f"tone: expected a ToneMap or None, got {type(tone).__name__}")
         mode = settings.mode
         full = (slice(None), slice(None))
         if mode == "color" or (mode == "blend" and settings.opacity == 0.0):
@@ -574,7 +610,7 @@ class Composer:
                 or (mode == "blend" and settings.opacity == 1.0)
                 or (mode == "edges" and settings.edge_strength == 0.0)
             )
-            self._palette(thermal_k, span, name, out if direct else self._pal, full)
+            self._palette(thermal_k, tone, name, out if direct else self._pal, full)
             if not direct and mode == "blend":
                 a = settings.opacity
                 cv2.addWeighted(self._pal, a, color, 1.0 - a, 0.0, dst=out)
@@ -590,7 +626,7 @@ class Composer:
             x0, y0, x1, y1 = pip_box(settings, self.width, self.height)
             np.copyto(out, color)
             sl = (slice(y0, y1), slice(x0, x1))
-            self._palette(thermal_k, span, name, self._pal, sl)
+            self._palette(thermal_k, tone, name, self._pal, sl)
             valid = np.isfinite(thermal_k[sl], out=self._valid[sl]).view(np.uint8)
             cv2.copyTo(self._pal[sl], valid, dst=out[sl])
             if mark:
@@ -624,7 +660,7 @@ class Composer:
         if mode == "isotherm" and settings.isotherm_color is not None:
             source = self._solid(settings.isotherm_color)
         else:
-            self._palette(thermal_k, span, name, self._pal, full)
+            self._palette(thermal_k, tone, name, self._pal, full)
             source = self._pal
         cv2.copyTo(source, paint, dst=out)
         if mark:

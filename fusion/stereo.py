@@ -3,9 +3,9 @@
 Per TOF frame, the TOF points are computed once (along the rays of one shared
 :class:`fusion.mapping.TofGrid`) and each eye's mapping is recomputed from them
 (:meth:`StereoFusion.update_depth`); per frame, each eye's thermal image is warped into its
-colour camera's pixels, one colour span is chosen for both eyes, and both pictures are
-composed straight into the halves of one preallocated side-by-side buffer (left | right)
-ready for encoding.
+colour camera's pixels, one colour span and one AGC table (:mod:`fusion.agc`) are chosen
+for both eyes, and both pictures are composed straight into the halves of one preallocated
+side-by-side buffer (left | right) ready for encoding.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from calib.rig import Rig
+from fusion.agc import ToneMap, ToneMapper, gain_span
 from fusion.compose import (
     CloudColoring,
     Composer,
@@ -41,7 +42,12 @@ class StereoFusion:
         tof: the name of the rig's TOF sensor, whose frames drive the mappings.
         grid: its rays, shared by every eye's mappings.
         fusion: eye -> its :class:`fusion.mapping.EyeFusion` (colour <- thermal, and back).
-        span_k: the (low, high) span of the last frame, kelvin, shared by both eyes.
+        span_k: the (low, high) span of the last frame, kelvin, shared by both eyes (an
+            automatic one under ``plateau``/``dde`` at least ``255 / settings.max_gain``
+            wide: :func:`fusion.agc.gain_span`).
+        tone: the last frame's AGC mapping (``settings.agc`` over both eyes, smoothed over
+            time by :attr:`tone_mapper`), shared by both eyes; its ``ticks_k`` label the
+            viewer's colour scale.
     """
 
     def __init__(
@@ -66,6 +72,8 @@ class StereoFusion:
         self.frame = np.zeros((h, w * len(eyes), 3), np.uint8)
         self.span_k: tuple[float, float] | None = None
         self.span_smoother = SpanSmoother()
+        self.tone_mapper = ToneMapper()
+        self.tone: ToneMap | None = None
         self._span_target: tuple[float, float] | None = None
         self._reverse_fresh: set[str] = set()
         tof = rig[self.tof]
@@ -114,8 +122,9 @@ class StereoFusion:
             colors: eye -> colour image (H, W, 3) uint8 RGB of its colour camera.
             thermals: eye -> thermal image (h, w) float32 kelvin of its thermal imager.
             settings: display mode, palette, span ...
-            stamp_ns: the frame's time: with it, an automatic span is smoothed over time
-                (``settings.span_smoothing_s``); without it, each frame gets its own.
+            stamp_ns: the frame's time: with it, an automatic span and the AGC table are
+                smoothed over time (``settings.span_smoothing_s``); without it, each frame
+                gets its own.
         Returns the internal frame buffer (overwritten by the next call).
         """
         if not self.ready:
@@ -123,6 +132,8 @@ class StereoFusion:
         for e in self.eyes:
             self.fusion[e].forward.warp(thermals[e], out=self.thermal_on_color[e])
         span = resolve_span(settings, [self.thermal_on_color[e] for e in self.eyes])
+        if settings.span_k is None and settings.agc != "linear":
+            span = gain_span(span, settings.max_gain)  # a flat scene: not stretched
         self._span_target = span
         if settings.span_k is None and stamp_ns is not None:
             self.span_smoother.time_constant_s = settings.span_smoothing_s
@@ -130,6 +141,15 @@ class StereoFusion:
         else:
             self.span_smoother.reset()
         self.span_k = span
+        self.tone = self.tone_mapper.update(
+            [self.thermal_on_color[e] for e in self.eyes],
+            settings.agc,
+            span,
+            settings.plateau,
+            settings.span_smoothing_s,
+            stamp_ns,
+            settings.max_gain,
+        )
         halves = stereo_halves(self.frame) if len(self.eyes) == 2 else (self.frame,)
         for e, half in zip(self.eyes, halves, strict=True):
             self.composers[e].compose(
@@ -139,15 +159,19 @@ class StereoFusion:
                 settings,
                 self.span_k,
                 out=half,
+                tone=self.tone,
             )
         return self.frame
 
     @property
     def span_settled(self) -> bool:
-        """Whether the span shown is the last frame's own (not still gliding towards it)."""
+        """Whether the span and the AGC table shown are the last frame's own (not still
+        gliding towards them)."""
         target, span = self._span_target, self.span_k
         if target is None or span is None:
             return True
+        if not self.tone_mapper.settled:
+            return False
         return max(abs(target[0] - span[0]), abs(target[1] - span[1])) < SPAN_SETTLED_K
 
     def anaglyph(self, out: np.ndarray | None = None) -> np.ndarray:

@@ -263,7 +263,10 @@ function decimalsOf(step) {
 }
 
 // What the scale shows for a frame's metadata, or null (no palette colour in the picture).
-// Ticks: the span's ends (°C, 0.1) and round values between them, away from the ends.
+// Ticks: the span's ends (°C, 0.1) and, with a linear AGC, round values between them, away
+// from the ends; under equalization (`agc` plateau or dde) the palette is not linear in
+// temperature, so the ticks sit at evenly spaced palette positions labelled with the
+// temperature there (the metadata's `palette_ticks_k`).
 function scaleOf(m) {
   if (!m || !m.palette || !m.span_k || !m.palette_rgb || m.palette_rgb.length !== 1536) return null;
   const low = m.span_k[0] - K0, high = m.span_k[1] - K0;
@@ -272,15 +275,24 @@ function scaleOf(m) {
     { frac: 1, label: high.toFixed(1), end: "high" },
     { frac: 0, label: low.toFixed(1), end: "low" },
   ];
-  const step = niceStep(high - low, 5);
-  const d = decimalsOf(step);
-  for (let k = Math.ceil(low / step); k * step < high; k += 1) {
-    const frac = (k * step - low) / (high - low);
-    if (frac > 0.09 && frac < 0.91) ticks.push({ frac, label: (k * step).toFixed(d), end: "" });
+  const agc = m.agc || "linear";
+  const at = m.palette_ticks_k;
+  if (agc !== "linear" && Array.isArray(at) && at.length > 2) {
+    for (let i = 1; i < at.length - 1; i += 1) {
+      ticks.push({ frac: i / (at.length - 1), label: (at[i] - K0).toFixed(1), end: "" });
+    }
+  } else {
+    const step = niceStep(high - low, 5);
+    const d = decimalsOf(step);
+    for (let k = Math.ceil(low / step); k * step < high; k += 1) {
+      const frac = (k * step - low) / (high - low);
+      if (frac > 0.09 && frac < 0.91) ticks.push({ frac, label: (k * step).toFixed(d), end: "" });
+    }
   }
   return {
-    key: `${m.palette}|${ticks.map((t) => t.label).join(",")}|${m.span_auto}`,
+    key: `${m.palette}|${agc}|${ticks.map((t) => t.label).join(",")}|${m.span_auto}|${m.mark_fallback}`,
     palette: m.palette, rgb: m.palette_rgb, lowC: low, highC: high, auto: !!m.span_auto, ticks,
+    agc, marking: !!m.mark_fallback,
   };
 }
 
@@ -409,14 +421,17 @@ function showOverlay() {
     return;
   }
   const m = stats.meta || {};
-  const scale = stats.scale ? `${stats.scale.palette}, ${stats.scale.auto ? "auto" : "manual"} span` : "no colour scale";
+  const sc = stats.scale;
+  const scale = sc ? `${sc.palette}, ${sc.auto ? "auto" : "manual"} span, ${sc.agc} AGC` : "no colour scale";
+  // the legend of the marking: what the muted and the uncoloured pixels mean
+  const legend = sc ? `\nplain colour: no thermal view${sc.marking ? "; muted colours: no TOF depth (registration approximate)" : ""}` : "";
   // sensors that are not ok (silent, no frame yet, failing), one line each, from the frame's metadata
   const health = Object.values(m.health || {}).map((line) => `\n⚠ ${line}`).join("");
   stats.mbps = receivedMbps(now);
   overlay.textContent =
     `${stats.codec || "–"} (${stats.mode}): received ${stats.fps.toFixed(1)} fps, ` +
     `${stats.mbps.toFixed(2)} Mbit/s, latency ${median(stats.latencyMs).toFixed(0)} ms\n` +
-    videoLine() + `console: ${ratesLine(now)}\nrates over the last ${windowS()} s; mode ${m.mode || "–"}, ${scale}` + health;
+    videoLine() + `console: ${ratesLine(now)}\nrates over the last ${windowS()} s; mode ${m.mode || "–"}, ${scale}` + legend + health;
 }
 setInterval(showOverlay, 500);
 
@@ -453,6 +468,7 @@ async function setupVr() {
       session.requestAnimationFrame(onFrame);
       const pose = frame.getViewerPose(space);
       if (!pose || !stats.frames) return;
+      if (window.trifuseSpot) window.trifuseSpot.xrFrame(frame, pose, space);  // gaze/controller (viewer-spot.js)
       if (shown !== stats.frames) {  // compose each new picture once (JPEG or video: the page's canvas)
         shown = stats.frames;
         composite.width = canvas.width; composite.height = canvas.height;
@@ -461,6 +477,7 @@ async function setupVr() {
           if (rampRgb !== stats.scale.rgb) { ramp = rampCanvas(stats.scale.rgb); rampRgb = stats.scale.rgb; }
           drawScales(g, stats.scale, canvas.width, canvas.height, ramp);
         }
+        if (window.trifuseSpot) window.trifuseSpot.drawXr(g, canvas.width, canvas.height);  // spot meter
         gl.bindTexture(gl.TEXTURE_2D, tex);
         gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA, gl.RGBA, gl.UNSIGNED_BYTE, composite);
       }

@@ -233,13 +233,14 @@ def write_recording(path: Path, rig: Rig, frames: Iterable[Frame], **kw) -> Path
     return path
 
 
-def assert_same_frame(got: Frame, want: Frame) -> None:
-    """``got`` is ``want`` as a recording keeps it: colour through JPEG (PSNR > 35 dB),
-    thermal to its 0.01 K and TOF distance to its 0.5 mm quantisation, NaN where NaN."""
+def assert_same_frame(got: Frame, want: Frame, min_psnr_db: float = 35.0) -> None:
+    """``got`` is ``want`` as a recording keeps it: colour through JPEG (PSNR above
+    ``min_psnr_db``), thermal to its 0.01 K and TOF distance to its 0.5 mm quantisation,
+    NaN where NaN."""
     assert (got.sensor, got.stamp_ns) == (want.sensor, want.stamp_ns)
     if want.image.ndim == 3:
         assert got.image.dtype == np.uint8 and got.image.shape == want.image.shape
-        assert psnr(got.image, want.image) > 35.0
+        assert psnr(got.image, want.image) > min_psnr_db
     elif want.distance_m is None:  # thermal: equal to the 0.01 K quantisation
         assert got.image.dtype == np.float32
         np.testing.assert_array_equal(encode_thermal(got.image), encode_thermal(want.image))

@@ -168,15 +168,23 @@ def test_viewer_colour_scale_shows_the_palette_and_span_in_each_eye(console, bro
             assert sc["caption"] == "auto" and sc["palette"] == meta["palette"]
             assert sc["hot"] == table[255].tolist() and sc["cold"] == table[0].tolist()
         assert left["ticks"] == right["ticks"] and len(left["ticks"]) >= 4  # ends + round values
+        # equalized (the default AGC): ticks at evenly spaced palette positions, labelled
+        # with the temperatures there (the metadata's palette_ticks_k)
+        assert meta["agc"] == fusion["agc"] == "plateau"
+        inner = [f"{k - 273.15:.1f}" for k in meta["palette_ticks_k"][1:-1]]
+        assert sorted(left["ticks"]) == sorted([left["high"], left["low"], *inner])
         # the same place in each eye: half the picture's width apart
         assert right["x"] - left["x"] == pytest.approx(s["canvas"]["w"] / 2, abs=1.0)
         assert (right["y"], right["h"]) == (left["y"], left["h"])
 
+        status, _ = console.request("/api/fusion", "PUT", {**fusion, "agc": "linear"})
+        assert status == 200
         status, _ = console.request("/api/thermal", "PUT", {"span_k": [293.15, 313.15]})
         assert status == 200
         page.wait_for_function(
             f"() => {_end_label('right', 'high')}.textContent === '40.0'"
-            f" && {_end_label('left', 'low')}.textContent === '20.0'",
+            f" && {_end_label('left', 'low')}.textContent === '20.0'"
+            " && window.trifuseStats.scale.agc === 'linear'",
         )
         s = page.evaluate(_SCALES)
         for sc in s["scales"]:

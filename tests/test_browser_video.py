@@ -156,7 +156,11 @@ def test_stream_select_switches_presets_and_to_jpeg(console, browser) -> None:
         s = _wait_codec(page, "H.264")
         assert (s["level"], s["coded"], s["w"], s["h"]) == ("1", "1280x480", 2560, 960)
         assert len(sockets) == opened  # the preset changed on the open socket
-        assert _VIDEO_LINE.search(s["overlay"])[6] == "1", s["overlay"]
+        # the overlay is redrawn twice a second: wait for the redraw after the change
+        page.wait_for_function(
+            "() => / level 1 \\(.*stream 1/.test(document.getElementById('overlay').textContent)"
+        )
+        assert _VIDEO_LINE.search(_stats(page)["overlay"])[6] == "1"
 
         page.goto(console.url + "/?stream=8")  # the URL wins over the stored "1"
         s = _wait_codec(page, "H.264")

@@ -45,6 +45,7 @@ from app.server.runtime.thermal_balance import ThermalBalancer
 from app.sources.frames import FrameSet
 from app.sources.sim.scenarios import CALIBRATION_BOARD
 from app.workflows.calib_session import CalibrationSession
+from fusion.compose import DisplaySettings
 from tests.support import small_rig, synth_frames, write_recording
 from tests.test_push import serve
 
@@ -159,6 +160,7 @@ class Console:
         self.frameset = FrameSet(max(f.stamp_ns for f in newest.values()), newest)
         self.session.take(self.frameset)
         self.session.save_rig(rig, {})
+        self._fuse_once(newest)
         app = create_app(self.hub, None, self.pipeline, self.control, self.balancer)
         app.include_router(
             make_session_router(
@@ -181,6 +183,16 @@ class Console:
                 for name in schema.get("properties", {})
             }
         )
+
+    def _fuse_once(self, newest: dict) -> None:
+        """One fused picture for the spot meter's routes (/api/spot, /api/area), which
+        answer 503 without one: fused here, since the pipeline does not run."""
+        fusion, eyes = self.pipeline.fusion, self.pipeline.rig.eyes
+        fusion.update_depth(newest["tof"].distance_m, newest["tof"].image)
+        colors = {e: newest[eyes[e].color].image for e in fusion.eyes}
+        thermals = {e: newest[eyes[e].thermal].image for e in fusion.eyes}
+        fusion.compose(colors, thermals, DisplaySettings())
+        self.pipeline.spots = self.pipeline.spot_meter.capture(self.frameset.stamp_ns)
 
     def valid_body(self, route: Route) -> object:
         """A body the route accepts (mutated by the tests; always the same, as hypothesis

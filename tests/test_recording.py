@@ -91,7 +91,9 @@ def test_real_scenario_frames_round_trip(tmp_path, rig):
         got = {f.sensor: f for f in src.frames()}
     assert set(got) == set(rig.names)
     for name, f in got.items():
-        assert_same_frame(f, fs[name])
+        # the room's 128 x 96 pictures are dense with sharp edges (two people, the window,
+        # the rack: 34.8 dB at worst, 35.6 before issue 19 added them): 34 dB here
+        assert_same_frame(f, fs[name], min_psnr_db=34.0)
 
 
 def test_frame_sets_of_a_replay(recorded, rig):

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from typing import Unpack
 
 from app.devtools import (
+    bench_agc,
     bench_calib,
     bench_detect,
     bench_fusion,
@@ -39,6 +40,7 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     bench_fusion.compose,
     bench_fusion.fuse,
     bench_fusion.fuse_accuracy,
+    bench_agc.agc,
     bench_recording.recording,
     bench_stream.stream,
     bench_motion.sim_first_minute,

@@ -37,6 +37,7 @@ from app.sources.frames import Frame, FrameSet
 from app.storage.preview import to_display
 from app.workflows.calib_session import radiometry_report
 from calib.detect import Detection
+from fusion.agc import AGC_MODES
 from fusion.compose import DIRECTIONS, DISPLAY_MODES
 from fusion.palettes import PALETTE_NAMES
 from fusion.span import level_from_span, span_from_level
@@ -238,7 +239,37 @@ class Panels(Periodic):
             )
             self.iso_lo = gui.add_number("Isotherm low (°C)", 30.0, step=0.5)
             self.iso_hi = gui.add_number("Isotherm high (°C)", 40.0, step=0.5)
-            self.mark = gui.add_checkbox("Mark fallback depth", s.mark_fallback)
+            self.agc = gui.add_dropdown(
+                "AGC",
+                AGC_MODES,
+                initial_value=s.agc,
+                hint="How temperatures become colours: linear over the span, plateau "
+                "equalization over both eyes (no temperature takes more than the plateau "
+                "share of the palette), or dde (equalized base plus amplified local detail)",
+            )
+            self.plateau = gui.add_slider(
+                "Plateau (%)",
+                0.1,
+                100.0,
+                0.1,
+                round(100.0 * s.plateau, 1),
+                hint="The largest share of the pixels one 0.1 K bin counts with "
+                "(100 %: plain histogram equalization)",
+            )
+            self.max_gain = gui.add_slider(
+                "Max gain (steps/K)",
+                1.0,
+                100.0,
+                1.0,
+                float(min(100, round(s.max_gain))),
+                hint="Plateau and dde: the most palette steps one kelvin may take, so that a "
+                "flat wall's noise and the imagers' offset are not stretched",
+            )
+            self.mark = gui.add_checkbox(
+                "Mark fallback depth",
+                s.mark_fallback,
+                hint="Mute the colours where the TOF had no depth (registration approximate)",
+            )
             self.stream = StreamPresetControl(gui, ctx.stream_settings)
         with gui.add_folder("Thermal"):
             self.palette = gui.add_dropdown("Palette", PALETTE_NAMES, initial_value=s.palette)
@@ -292,6 +323,9 @@ class Panels(Periodic):
             self.thr_dir,
             self.iso_lo,
             self.iso_hi,
+            self.agc,
+            self.plateau,
+            self.max_gain,
             self.mark,
             self.auto,
             self.level,
@@ -322,6 +356,9 @@ class Panels(Periodic):
                 threshold_direction=self.thr_dir.value,
                 isotherm_k=(self.iso_lo.value + C_TO_K, self.iso_hi.value + C_TO_K),
                 mark_fallback=bool(self.mark.value),
+                agc=self.agc.value,
+                plateau=float(self.plateau.value) / 100.0,
+                max_gain=float(self.max_gain.value),
                 span_k=None if self.auto.value else span,
                 span_smoothing_s=float(self.smoothing.value),
             )

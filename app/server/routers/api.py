@@ -19,13 +19,16 @@ from app.server.runtime.pipeline import FusionPipeline
 from app.server.runtime.thermal_balance import ThermalBalancer
 from calib.radiometry import MAX_TRIM_K
 from calib.rig import rig_to_dict
+from fusion.agc import MAX_MAX_GAIN, MIN_MAX_GAIN, MIN_PLATEAU, AgcMode
 from fusion.balance import BalanceEstimate
 from fusion.compose import DisplayMode, ThresholdDirection
 from fusion.palettes import PaletteName
 
 
 class FusionSettings(BaseModel):
-    """Display settings of the fused picture (temperatures in kelvin)."""
+    """Display settings of the fused picture (temperatures in kelvin). ``agc``,
+    ``plateau`` and ``max_gain`` (the AGC, :mod:`fusion.agc`) may be left out of a PUT:
+    they stay as they are."""
 
     model_config = ConfigDict(allow_inf_nan=False, extra="forbid")
 
@@ -37,6 +40,25 @@ class FusionSettings(BaseModel):
     isotherm_k: tuple[float, float]
     edge_strength: float = Field(ge=0.0, le=10.0)
     mark_fallback: bool
+    agc: AgcMode | None = Field(
+        default=None,
+        description="linear, plateau (equalization over both eyes) or dde (detail "
+        "enhancement); omitted: unchanged",
+    )
+    plateau: float | None = Field(
+        default=None,
+        ge=MIN_PLATEAU,
+        le=1.0,
+        description="plateau and dde: the largest share of the pixels one 0.1 K bin counts "
+        "with (1: plain histogram equalization); omitted: unchanged",
+    )
+    max_gain: float | None = Field(
+        default=None,
+        ge=MIN_MAX_GAIN,
+        le=MAX_MAX_GAIN,
+        description="plateau and dde: the steepest the mapping may be, palette steps per "
+        "kelvin (a flat scene is not stretched into noise); omitted: unchanged",
+    )
 
 
 class Radiometry(BaseModel):
@@ -137,12 +159,16 @@ def make_api_router(pipeline: FusionPipeline, balancer: ThermalBalancer | None =
             isotherm_k=s.isotherm_k,
             edge_strength=s.edge_strength,
             mark_fallback=s.mark_fallback,
+            agc=s.agc,
+            plateau=s.plateau,
+            max_gain=s.max_gain,
         )
 
     @router.put("/fusion", dependencies=[Depends(require_json)])
     def put_fusion(body: FusionSettings) -> FusionSettings:
         try:
-            pipeline.settings = dataclasses.replace(pipeline.settings, **body.model_dump())
+            changes = body.model_dump(exclude_none=True)
+            pipeline.settings = dataclasses.replace(pipeline.settings, **changes)
         except ValueError as exc:
             raise HTTPException(422, str(exc)) from None
         return get_fusion()

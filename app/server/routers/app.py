@@ -17,6 +17,7 @@ from app.server.routers.auth import AuthConfig, AuthMiddleware
 from app.server.routers.docs_pages import add_docs_pages
 from app.server.routers.limits import add_body_limit
 from app.server.routers.source_api import make_source_router
+from app.server.routers.spot_api import make_spot_router
 from app.server.routers.stream_api import make_stream_settings_router
 from app.server.routers.viser_bridge import make_viser_router
 from app.server.runtime.kept_frames import make_kept_frames_router
@@ -84,6 +85,7 @@ def create_app(
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     if pipeline is not None:
         app.include_router(make_api_router(pipeline, balancer))
+        app.include_router(make_spot_router(pipeline))  # /api/spot, /api/area (spot_api.py)
     # /api/status, /api/source/*, /api/recording/* (source_api.py)
     app.include_router(make_source_router(hub, pipeline, source_control))
 

@@ -15,8 +15,11 @@ When the left colour camera (which opens the frame sets) stops, the right one op
 when :attr:`FusionPipeline.sensor_notes` is set, ``health``: a line per sensor that is not
 ok (``{"thermal_right": "silent for 12 s"}``, :mod:`app.server.runtime.sensor_health`). For the
 viewer's colour scale it carries the palette and the span the picture was coloured with
-(:func:`scale_meta`: ``palette``, ``palette_rgb``, ``span_k``, ``span_auto``; null when the
-picture shows no palette colour).
+(:func:`scale_meta`: ``palette``, ``palette_rgb``, ``span_k``, ``span_auto``, the AGC mode
+``agc`` and ``palette_ticks_k``, the temperature at evenly spaced palette positions; null
+when the picture shows no palette colour). For the viewer's spot meter it carries each eye's hot
+and cold spot (``spots``: :meth:`fusion.spot.SpotFrame.extremes`); :attr:`FusionPipeline.spots`
+keeps the last picture's temperatures and depths for ``/api/spot`` and ``/api/area``.
 
 Repeated inputs are not fused again. A source may hand out the very same read-only array
 for several frames (the simulated head shows each rendered pose for many frames). When
@@ -67,8 +70,10 @@ from app.sources.base import FrameSetAssembler, FrameSource
 from app.sources.frames import Frame, FrameSet
 from calib.radiometry import Radiometry
 from calib.rig import Rig
+from fusion.agc import ToneMap
 from fusion.compose import DisplaySettings
 from fusion.palettes import palette
+from fusion.spot import SpotFrame, SpotMeter
 from fusion.stereo import StereoFusion
 
 EYES = ("left", "right")
@@ -106,18 +111,33 @@ def palette_hex(name: str) -> str:
     return palette(name).tobytes().hex()
 
 
-def scale_meta(settings: DisplaySettings, span_k: tuple[float, float] | None) -> dict[str, Any]:
+PALETTE_TICKS = 9
+"""The colour scale's ticks: palette positions 0, 1/8, ..., 1 (first entry to last)."""
+
+
+def scale_meta(
+    settings: DisplaySettings, span_k: tuple[float, float] | None, tone: ToneMap | None = None
+) -> dict[str, Any]:
     """What the viewer's colour scale needs (JSON-able): ``palette`` (name), ``palette_rgb``
     (:func:`palette_hex`), ``span_k`` ([low, high] kelvin: the palette's first entry is
-    ``low``, its last ``high``) and ``span_auto`` (the span follows the picture, or is the
-    operator's). All None when the picture shows no palette colour or there is no span."""
+    ``low``, its last ``high``), ``span_auto`` (the span follows the picture, or is the
+    operator's), ``agc`` (the AGC mode of ``tone``, the picture's mapping; "linear" without
+    one), ``palette_ticks_k`` (the temperatures, kelvin, at :data:`PALETTE_TICKS` evenly
+    spaced palette positions from the first entry to the last: non-linear under
+    equalization) and ``mark_fallback`` (the legend of the marking). All None when the
+    picture shows no palette colour or there is no span."""
     if span_k is None or not shows_palette(settings):
-        return {"palette": None, "palette_rgb": None, "span_k": None, "span_auto": None}
+        keys = ("palette", "palette_rgb", "span_k", "span_auto", "agc", "palette_ticks_k")
+        return {**dict.fromkeys(keys), "mark_fallback": None}
+    tone = tone or ToneMap.linear(span_k)
     return {
         "palette": settings.palette,
         "palette_rgb": palette_hex(settings.palette),
         "span_k": [float(span_k[0]), float(span_k[1])],
         "span_auto": settings.span_k is None,
+        "agc": tone.mode,
+        "palette_ticks_k": [round(t, 3) for t in tone.ticks_k(PALETTE_TICKS)],
+        "mark_fallback": settings.mark_fallback,
     }
 
 
@@ -293,6 +313,10 @@ class FusionPipeline:
         per-imager buffers; forgets the previous depth and picture."""
         self.rig = rig
         self.fusion = StereoFusion(rig)
+        self.spot_meter = SpotMeter(self.fusion)
+        self.spots: SpotFrame | None = None
+        """The spot meter's view of the last fused picture (``/api/spot``, the metadata's
+        ``spots``); None before the first, after a rig change and while resting."""
         left, right = rig.eyes["left"], rig.eyes["right"]
         self.tof = self.fusion.tof
         sensors = [left.color, right.color, left.thermal, right.thermal, self.tof]
@@ -380,7 +404,7 @@ class FusionPipeline:
             if self.wanted:
                 self._publish(fs)
             elif not self._resting:  # the last picture would soon be stale: forget it
-                self._resting, self._made_of = True, None
+                self._resting, self._made_of, self.spots = True, None, None
                 self._encoder.submit(_Job({}, forget=True))
 
     def _catch_up(self) -> None:
@@ -477,6 +501,8 @@ class FusionPipeline:
                 for e in EYES
             }
             rgb = self.fusion.compose(colors, kelvin, settings, fs.stamp_ns)
+        if path != "raw":  # the spot meter's copy of this picture's temperatures and depths
+            self.spots = self.spot_meter.capture(fs.stamp_ns)
         bgr = self._encoder.buffer(rgb.shape)
         if bgr is None:
             return False
@@ -493,9 +519,13 @@ class FusionPipeline:
         meta = {
             "stamp_ns": fs.stamp_ns,
             "mode": mode,
-            **scale_meta(settings, self.fusion.span_k if mode != "color" else None),
+            **scale_meta(
+                settings, self.fusion.span_k if mode != "color" else None, self.fusion.tone
+            ),
             "missing": sorted(fs.missing),
         }
+        if self.spots is not None and path != "raw":  # hot and cold spot per eye
+            meta["spots"] = self.spots.extremes()
         notes = self.sensor_notes
         if notes is not None:
             try:

@@ -3,8 +3,9 @@
 * ``calibration``: the head stands still (world = rig frame) and the heated board is
   held at poses that cover every sensor's image, corners included, 0.6-4 m away, tilted
   up to 45 degrees, in a lab with a warm radiator and a cold window behind it.
-* ``inspection``: a room with warm and cold objects 0.5-8 m away, a 37 C person, a hot
-  pipe and a kettle, the head panning slowly so parallax matters.
+* ``inspection``: a room with warm and cold objects 0.5-8 m away (:func:`inspection_scene`:
+  two people, a hot pipe, a kettle, warm electronics, a cold window, a wet patch on the
+  wall), the head panning slowly so parallax matters.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from app.sources.sim.head import default_rig
 from app.sources.sim.live import CleanImage, LiveDeveloper
 from app.sources.sim.render import HeadModel, Renderer, SensorTruth
 from app.sources.sim.scene import (
+    BlotchMaterial,
     Board,
     BoardMaterial,
     Box,
@@ -346,13 +348,44 @@ def kept_views(views: int, n: int) -> frozenset[int]:
     return frozenset(round(k * (views - 1) / (n - 1)) for k in range(n))
 
 
+INSPECTION_WALL_K = 293.5
+"""The inspection room's walls (20.35 C, 0.4 K warmer per metre towards the ceiling)."""
+PERSON2_SKIN_K = 307.15
+"""The second person's skin (34 C): ``person2_head``."""
+PERSON2_CLOTHES_K = 302.15
+"""The second person's clothes (29 C, cooler than the skin): ``person2_body``."""
+RACK_K = 315.15
+"""The electronics rack (42 C at its middle, 1.5 K warmer per metre upwards): ``rack``."""
+PSU_K = 318.15
+"""The power supply on the table (45 C): ``psu``."""
+WINDOW_K = 282.15
+"""The window's glass (9 C, emissivity 0.9: it reads about 283.4 K): ``window``."""
+WET_PATCH_K = 290.15
+"""The wet patch's core (17 C, about 3 K below the wall around it, which it fades into
+over its edge): ``wet_patch``."""
+
+
 def inspection_scene() -> Scene:
     """A room 7 m wide and 9.7 m deep with warm, hot and cold objects at 0.5-8 m.
 
     A thin pole 0.6 m in front of the head occludes the room differently for each sensor
-    (parallax and occlusion at their worst); a 37 C person stands at 3 m.
+    (parallax and occlusion at their worst). Solids by name (the render's truth labels
+    each pixel with its solid's index in ``scene.solids``; temperatures of the surface, an
+    imager reads ``(eps T^4 + (1 - eps) T_amb^4)^(1/4)``):
+
+    * ``person_body`` (33 C clothes) and ``person_head`` (37 C skin) at 3 m, left;
+    * ``person2_body`` (29 C clothes) and ``person2_head`` (34 C skin) at 3.5 m, in front
+      of the window's right end;
+    * ``hot_pipe`` (85 C) across the room under the ceiling, 4.5 m;
+    * ``kettle`` (68 C, low in front), ``radiator`` (60 C, behind the first person);
+    * ``rack`` (warm electronics, 42 C, warmer at the top) at the back left, 7.6 m, and
+      ``psu`` (45 C) on the ``table`` at the right;
+    * ``window`` (9 C glass) on the back wall above the ``cabinet``, 8.2 m;
+    * ``wet_patch`` (17 C core fading into the 20 C wall) low on the back wall between the
+      cabinet and the ``fridge`` (6 C);
+    * ``ice_ball`` (-2 C) low on the left, seen by the TOF only.
     """
-    solids = _room(3.5, 1.1, -1.6, -1.5, 8.2, 293.5)
+    solids = _room(3.5, 1.1, -1.6, -1.5, 8.2, INSPECTION_WALL_K)
     skin = Material((0.76, 0.57, 0.45), 310.15, 0.98, 0.45)
     cloth = Material((0.2, 0.28, 0.5), 306.0, 0.95, 0.4, pattern=(0.12, 0.15))
     crate = Material((0.6, 0.42, 0.22), 294.5, 0.92, 0.5, pattern=(0.08, 0.2))
@@ -385,7 +418,46 @@ def inspection_scene() -> Scene:
         ),
         Sphere("ice_ball", Material((0.85, 0.9, 0.95), 271.0, 0.96, 0.6), (-1.6, 0.85, 1.6), 0.25),
     ]
-    return Scene(solids, ambient_k=293.5, light_dir_world=(0.2, 1.0, 0.3))
+    solids += _inspection_additions()
+    return Scene(solids, ambient_k=INSPECTION_WALL_K, light_dir_world=(0.2, 1.0, 0.3))
+
+
+def _inspection_additions() -> list[Solid]:
+    """What the room holds for the display's equalization to show (issue 19): a second
+    person, warm electronics, a cold window and a wet patch (see :func:`inspection_scene`)."""
+    skin2 = Material((0.55, 0.38, 0.28), PERSON2_SKIN_K, 0.98, 0.45)
+    clothes2 = Material((0.5, 0.14, 0.12), PERSON2_CLOTHES_K, 0.95, 0.4, pattern=(0.1, 0.2))
+    rack = Material(
+        (0.16, 0.17, 0.19),
+        RACK_K,
+        0.9,
+        0.3,
+        pattern=(0.05, 0.35),
+        temperature_gradient_k_per_m=-1.5,
+    )
+    glass = Material((0.62, 0.76, 0.9), WINDOW_K, 0.9, 0.1)
+    # The wall around the patch: its temperature at the patch's height (0.4 K per metre
+    # warmer upwards from the wall's middle at y = -0.25 m), its plain colour.
+    wall_there_k = INSPECTION_WALL_K - 0.4 * (0.7 + 0.25)
+    wet = BlotchMaterial(
+        (0.42, 0.4, 0.36),
+        WET_PATCH_K,
+        0.96,
+        0.4,
+        surround_k=wall_there_k,
+        surround_rgb=(0.62, 0.6, 0.55),
+        half_axes_m=(0.32, 0.3),
+        centre_st_m=(0.0, 0.02),
+    )
+    return [
+        Cylinder("person2_body", clothes2, make_T(np.eye(3), (0.3, 0.0, 3.5)), 0.19, (-0.4, 1.1)),
+        Sphere("person2_head", skin2, (0.3, -0.52, 3.5), 0.115),
+        _box("rack", rack, (-2.9, 0.25, 7.6), (0.3, 0.85, 0.35)),
+        _box("psu", Material((0.25, 0.25, 0.27), PSU_K, 0.9, 0.4), (1.15, 0.24, 2.05),
+             (0.15, 0.06, 0.12), yaw_deg=15),
+        _quad("window", (0.5, -0.95, 8.18), (0, 0, 0), 0.75, 0.4, glass),
+        _quad("wet_patch", (2.0, 0.7, 8.19), (0, 0, 0), 0.38, 0.38, wet),
+    ]  # fmt: skip
 
 
 class InspectionScenario:

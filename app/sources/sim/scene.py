@@ -83,6 +83,46 @@ class Material:
 
 
 @dataclass
+class BlotchMaterial(Material):
+    """A soft-edged blotch on a surface, e.g. a wet, evaporatively cooled patch of wall.
+
+    Inside an irregular ellipse of half axes ``half_axes_m`` (surface coordinates, metres,
+    centred at ``centre_st_m``) the surface has ``temperature_k`` and ``albedo_rgb``; over
+    the outer ``edge_fraction`` of the radius it fades to ``surround_k`` and
+    ``surround_rgb`` (the surface it lies on), which it has outside the ellipse, so a quad
+    with this material blends into the wall behind it. The ellipse's rim wobbles by up to
+    ``wobble`` of its radius (a fixed sum of sines of the angle: no straight edge).
+    """
+
+    surround_k: float = 293.15
+    surround_rgb: tuple[float, float, float] = (0.62, 0.6, 0.55)
+    centre_st_m: tuple[float, float] = (0.0, 0.0)
+    half_axes_m: tuple[float, float] = (0.3, 0.3)
+    edge_fraction: float = 0.35
+    wobble: float = 0.12
+
+    def weight(self, st: np.ndarray) -> np.ndarray:
+        """(N,) float in [0, 1]: 1 inside the blotch, 0 outside, smooth over its edge."""
+        u = (st[:, 0] - self.centre_st_m[0]) / self.half_axes_m[0]
+        v = (st[:, 1] - self.centre_st_m[1]) / self.half_axes_m[1]
+        r = np.hypot(u, v)
+        a = np.arctan2(v, u)
+        rim = 1.0 + self.wobble * (0.6 * np.sin(3 * a + 0.4) + 0.4 * np.sin(5 * a + 1.9))
+        x = np.clip((rim - r) / (self.edge_fraction * rim), 0.0, 1.0)
+        return x * x * (3.0 - 2.0 * x)  # smoothstep
+
+    def albedo(self, st: np.ndarray) -> np.ndarray:
+        w = self.weight(st)[:, None].astype(np.float32)
+        inner = np.asarray(self.albedo_rgb, dtype=np.float32)
+        outer = np.asarray(self.surround_rgb, dtype=np.float32)
+        return outer + w * (inner - outer)
+
+    def temperature(self, st: np.ndarray) -> np.ndarray:
+        w = self.weight(st)
+        return self.surround_k + w * (self.temperature_k - self.surround_k)
+
+
+@dataclass
 class BoardMaterial(Material):
     """The heated calibration board: a laser-cut aluminium plate over black matte foil.
 

@@ -1,0 +1,255 @@
+"""The viewer's spot meter in a real browser (Debian's chromium driven by Playwright, against
+a real console): a click on the second person of the inspection room reads about 34 C and
+the distance the simulator's truth gives, a drag draws a box with its hottest and coldest
+point, the hot- and cold-spot markers follow the metadata, Clear removes the spot; the
+WebXR gaze and controller rays map to the pixels a picture drawn over each eye's view
+shows under them.
+
+The console replays a recording of one moment of the room (seed 0, t = 18 s, live quality;
+tests/test_spot.py's picture), so the picture stands still and its ground truth is known:
+a click lands where the truth says the person is. A screenshot goes to
+/tmp/shots/viewer-spot.png (docs/screenshots/spot-meter.png is a copy a person looked at).
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from app.sources.frames import Frame
+from app.sources.sim.scenarios import InspectionScenario
+from tests.browser_support import console_running, needs_chromium
+from tests.support import RATES_HZ, write_recording
+
+pytestmark = [needs_chromium, pytest.mark.slow]
+
+T_S = 18.0
+SHOT = Path("/tmp/shots/viewer-spot.png")
+DURATION_S = 1.0
+READING = re.compile(r"spot (-?\d+\.\d) °C, (\d+\.\d\d) m \(left (\d+), (\d+)\)")
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """The room's picture at T_S, its truth, and a recording of it (DURATION_S, every
+    sensor at its rate; the replay loops over it)."""
+    scenario = InspectionScenario(seed=0, live=True)
+    fs, truth = scenario.render(T_S)
+    frames = []
+    for name, f in fs.frames.items():
+        rate = RATES_HZ[scenario.rig[name].modality]
+        for i in range(int(DURATION_S * rate)):
+            stamp = fs.stamp_ns + i * 1_000_000_000 // rate
+            frames.append(Frame(name, stamp, f.image, f.distance_m))
+    frames.sort(key=lambda f: (f.stamp_ns, f.sensor))
+    path = tmp_path_factory.mktemp("spot") / "room.mcap"
+    write_recording(path, scenario.rig, frames)
+    names = [s.name for s in scenario.scene.solids]
+    return {"path": path, "truth": truth, "names": names}
+
+
+@pytest.fixture(scope="module")
+def console(room, tmp_path_factory: pytest.TempPathFactory):
+    workdir = tmp_path_factory.mktemp("spot-work")
+    with console_running(["--replay", str(room["path"]), "--workdir", str(workdir)]) as c:
+        yield c
+
+
+def _inner_centre(mask: np.ndarray, erode: int = 15) -> tuple[int, int]:
+    import cv2
+
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((erode, erode), np.uint8)).astype(bool)
+    ys, xs = np.nonzero(inner)
+    k = np.argmin((xs - xs.mean()) ** 2 + (ys - ys.mean()) ** 2)
+    return int(xs[k]), int(ys[k])
+
+
+def _hold_a_whole_picture(console: Any, page: Any) -> None:
+    """Pause the replay on a picture fused from every sensor, shown by the page (the first
+    frame set after a looping replay jumps back to its start lacks some sensors: not the
+    picture to hold)."""
+    for _ in range(30):
+        console.post("/api/source/pause")
+        time.sleep(0.5)  # the last frame set fused and published
+        areas = [console.get(f"/api/area?eye={e}") for e in ("left", "right")]
+        whole = all(a["thermal_pixels"] > 0.5 * a["pixels"] for a in areas)
+        if whole and not console.status()["missing"]:
+            page.wait_for_function(
+                "(s) => window.trifuseStats.meta && window.trifuseStats.meta.stamp_ns === s",
+                arg=areas[0]["stamp_ns"],
+            )
+            return
+        console.post("/api/source/resume")
+        time.sleep(0.3)
+    pytest.fail("the replay never paused on a picture of every sensor")
+
+
+def _client_xy(page: Any, eye: str, x: float, y: float) -> tuple[float, float]:
+    """Where on the page colour pixel (x, y) of ``eye`` is shown."""
+    r = page.evaluate(
+        "() => { const b = document.getElementById('spot-overlay').getBoundingClientRect();"
+        " return [b.left, b.top, b.width, b.height]; }"
+    )
+    left, top, width, height = r
+    half = width / 2
+    return (
+        left + (half if eye == "right" else 0) + (x + 0.5) * half / 1280,
+        top + (y + 0.5) * height / 960,
+    )
+
+
+def _overlay_rgba(page: Any, x: float, y: float) -> list[int]:
+    """The marker canvas's pixel at canvas coordinates (x, y)."""
+    return page.evaluate(
+        "([x, y]) => Array.from(document.getElementById('spot-overlay').getContext('2d')"
+        ".getImageData(Math.round(x), Math.round(y), 1, 1).data)",
+        [x, y],
+    )
+
+
+def test_click_box_markers_and_clear(console, browser, room) -> None:
+    page = browser.new_page(viewport={"width": 1400, "height": 640})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.goto(console.signin("/"))
+    page.wait_for_function(
+        "() => window.trifuseStats.frames > 3 && window.trifuseStats.meta"
+        " && window.trifuseStats.meta.spots && window.trifuseSpot"
+    )
+    _hold_a_whole_picture(console, page)
+    truth, names = room["truth"], room["names"]
+
+    # a click on the second person's face, in the left eye
+    head = truth["ccd_left"].solid == names.index("person2_head")
+    x, y = _inner_centre(head)
+    page.mouse.click(*_client_xy(page, "left", x, y))
+    page.wait_for_function("() => window.trifuseSpot.state.spotReading !== null")
+    state = page.evaluate("() => window.trifuseSpot.state")
+    spot, reading = state["spot"], state["spotReading"]
+    assert spot["eye"] == "left" and abs(spot["x"] - x) <= 1 and abs(spot["y"] - y) <= 1
+    assert reading["depth"] == "measured" and 33.0 < reading["temperature_c"] < 35.5
+    truth_m = float(truth["ccd_left"].range_m[spot["y"], spot["x"]])
+    assert abs(reading["distance_m"] - truth_m) < 0.2  # the TOF's error bound, test_spot.py
+    page.wait_for_function(
+        "() => /spot \\d+\\.\\d °C, \\d+\\.\\d\\d m/.test("
+        "document.getElementById('spot-readout').textContent)"
+    )
+    text = page.locator("#spot-readout").text_content()
+    m = READING.search(text)
+    assert m, text
+    assert 33.0 < float(m.group(1)) < 35.5 and abs(float(m.group(2)) - truth_m) < 0.2
+    # the spot is marked in both eyes, the other eye where the same point is
+    right = reading["eyes_px"]["right"]
+    assert truth["ccd_right"].solid[round(right[1]), round(right[0])] == names.index("person2_head")
+
+    # the hot-spot marker: a red triangle under the metadata's hot spot of each eye
+    meta = page.evaluate("() => window.trifuseStats.meta.spots")
+    for eye in ("left", "right"):
+        hot, cold = meta["hot"][eye], meta["cold"][eye]
+        assert names[truth[f"ccd_{eye}"].solid[hot["y"], hot["x"]]] == "hot_pipe"
+        assert names[truth[f"ccd_{eye}"].solid[cold["y"], cold["x"]]] == "window"
+        cx = (1280 if eye == "right" else 0) + hot["x"] + 0.5
+        q = 2560 / 100
+        r, g, b, a = _overlay_rgba(page, cx, hot["y"] + 0.5 + 1.0 * q)  # inside the triangle
+        assert a == 255 and r > 200 and g < 120 and b < 120, (eye, r, g, b, a)
+    assert "hot " in text and "cold " in text
+
+    # a box over the person's head and the window behind it: max on the head, min the window
+    x0, y0 = _client_xy(page, "left", x - 80, y - 70)
+    x1, y1 = _client_xy(page, "left", x + 80, y + 30)
+    page.mouse.move(x0, y0)
+    page.mouse.down()
+    page.mouse.move((x0 + x1) / 2, (y0 + y1) / 2, steps=4)
+    page.mouse.move(x1, y1, steps=4)
+    page.mouse.up()
+    page.wait_for_function("() => window.trifuseSpot.state.boxReading !== null")
+    box = page.evaluate("() => window.trifuseSpot.state.boxReading")
+    assert abs(box["x1"] - box["x0"] - 160) <= 2 and abs(box["y1"] - box["y0"] - 100) <= 2
+    assert names[truth["ccd_left"].solid[box["max"]["y"], box["max"]["x"]]] == "person2_head"
+    assert names[truth["ccd_left"].solid[box["min"]["y"], box["min"]["x"]]] == "window"
+    page.wait_for_function(
+        "() => /box max/.test(document.getElementById('spot-readout').textContent)"
+    )
+    assert page.evaluate("() => window.trifuseSpot.state.spot") is not None  # both at once
+
+    SHOT.parent.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(SHOT))
+
+    page.get_by_role("button", name="Clear spot").click()
+    state = page.evaluate("() => window.trifuseSpot.state")
+    assert state["spot"] is None and state["box"] is None
+    page.get_by_role("button", name="Hot/cold ✓").click()
+    assert page.evaluate("() => window.trifuseSpot.state.extremes") is False
+    assert errors == []
+    page.close()
+
+
+def _perspective(fov_y_deg: float, aspect: float, shift_x: float = 0.0) -> list[float]:
+    """A WebXR-style projection matrix (column-major, near 0.1, far 100), optionally with
+    an off-centre frustum (``shift_x``: straight ahead lands at NDC x = -shift_x, as on a
+    head-mounted display whose eyes look through their lenses off-centre)."""
+    f = 1 / np.tan(np.radians(fov_y_deg) / 2)
+    n, fa = 0.1, 100.0
+    m = np.zeros((4, 4))
+    m[0, 0], m[1, 1] = f / aspect, f
+    m[0, 2] = shift_x
+    m[2, 2], m[2, 3] = (fa + n) / (n - fa), 2 * fa * n / (n - fa)
+    m[3, 2] = -1.0
+    return m.T.ravel().tolist()  # column-major
+
+
+def test_xr_gaze_and_controller_rays_map_to_pixels(console, browser) -> None:
+    """The pure mapping of the WebXR pointer (a picture drawn over each eye's whole view):
+    the gaze is the middle of a symmetric view and off it by the projection's shift; a
+    controller's ray turned 10 degrees to the right lands where the projection puts it."""
+    page = browser.new_page(viewport={"width": 800, "height": 400})
+    page.goto(console.signin("/"))
+    page.wait_for_function("() => window.trifuseSpot")
+    aspect = 1280 / 960
+    sym, shifted = _perspective(90, aspect), _perspective(90, aspect, 0.1)
+    to_px = "([p, d]) => window.trifuseSpot.xrDirToPixel(p, d, 1280, 960)"
+    assert page.evaluate(to_px, [sym, [0, 0, -1]]) == pytest.approx([639.5, 479.5])
+    # an off-centre frustum puts straight ahead at NDC x = -0.1: 0.45 of the width
+    assert page.evaluate(to_px, [shifted, [0, 0, -1]]) == pytest.approx([0.45 * 1280 - 0.5, 479.5])
+    a = np.radians(10.0)
+    d = [float(np.sin(a)), 0.0, float(-np.cos(a))]
+    want_x = (np.tan(a) / aspect + 1) / 2 * 1280 - 0.5  # f = 1 at 90 degrees
+    assert page.evaluate(to_px, [sym, d]) == pytest.approx([want_x, 479.5], abs=1e-6)
+    assert page.evaluate(to_px, [sym, [0, 0, 1]]) is None  # behind
+    assert page.evaluate(to_px, [sym, [0, 1, -0.1]]) is None  # above the picture
+
+    # one XR frame with a fake session: the gaze, then a controller turned 10 degrees right
+    fake = """([proj, ctrl]) => {
+      const id = {x: 0, y: 0, z: 0, w: 1};
+      const views = ['left', 'right'].map((eye) => ({eye, projectionMatrix: proj,
+                                                      transform: {orientation: id}}));
+      const s = Math.sin(-ctrl / 2), c = Math.cos(-ctrl / 2);  // about y: + turns left
+      const src = {targetRayMode: 'tracked-pointer', targetRaySpace: 'ray'};
+      const session = {inputSources: ctrl === null ? [] : [src], addEventListener() {}};
+      const turned = {transform: {orientation: {x: 0, y: s, z: 0, w: c}}};
+      const frame = {session, getPose: () => turned};
+      return window.trifuseSpot.xrFrame(frame, {views, transform: {orientation: id}}, 'local');
+    }"""
+    gaze = page.evaluate(fake, [sym, None])
+    assert gaze["mode"] == "gaze"
+    assert gaze["px"]["left"] == pytest.approx([639.5, 479.5])
+    assert gaze["px"]["right"] == pytest.approx([639.5, 479.5])
+    ray = page.evaluate(fake, [sym, float(a)])
+    assert ray["mode"] == "controller"
+    assert ray["px"]["left"] == pytest.approx([want_x, 479.5], abs=1e-6)
+    # the reading under the XR pointer is fetched and drawn into the XR texture
+    page.wait_for_function("() => window.trifuseSpot.state.xrReading !== null")
+    drawn = page.evaluate(
+        "() => { const c = document.createElement('canvas'); c.width = 2560; c.height = 960;"
+        " const g = c.getContext('2d'); window.trifuseSpot.drawXr(g, 2560, 960);"
+        " const d = g.getImageData(0, 0, 2560, 960).data; let n = 0;"
+        " for (let i = 3; i < d.length; i += 4) n += d[i] > 0; return n; }"
+    )
+    assert drawn > 500  # crosshairs and labels in both eyes
+    page.close()
