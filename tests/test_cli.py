@@ -15,7 +15,9 @@ from app.cli import main
 from app.devtools import bench, benchmark
 
 ROOT = Path(__file__).resolve().parent.parent
-COMMANDS = ["simulate", "calibrate", "compare", "analyze", "record", "fuse", "serve", "bench"]
+COMMANDS = [
+    "simulate", "calibrate", "compare", "analyze", "record", "fuse", "map", "serve", "bench"
+]  # fmt: skip
 
 
 def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
@@ -41,6 +43,9 @@ def test_main_help_lists_every_command(capsys: pytest.CaptureFixture[str]) -> No
         (["simulate", "--help"], ["calibration"]),
         (["simulate", "calibration", "--help"], ["--views", "--out", "--seed", "--rig"]),
         (["bench", "--help"], ["--only", "--repeat", "render"]),
+        (["map", "--help"], ["--out", "--voxel", "--pose", "--map-file", "--force", "PLY"]),
+        (["record", "--help"], ["--scenario", "survey"]),
+        (["serve", "--help"], ["--scenario", "survey"]),
     ],
 )
 def test_command_help(
@@ -163,6 +168,8 @@ REFUSALS = [
     (["record", "--source", "replay:rec.mcap", "--out", "FILE"], "--out"),
     (["fuse", "rec.mcap", "--out", "DIR"], "--out"),
     (["fuse", "rec.mcap", "--out", "FILE"], "--out"),
+    (["map", "rec.mcap", "--out", "FILE"], "--out"),
+    (["map", "rec.mcap", "--out", "new.ply", "--map-file", "FILE"], "--map-file"),
 ]  # fmt: skip
 
 

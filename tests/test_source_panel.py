@@ -272,3 +272,29 @@ def test_rate_meter() -> None:
     rates = meter.rates_hz(["ccd_left", "tof", "thermal_left"], now_s=103.0)
     assert rates["ccd_left"] == pytest.approx(30.0, abs=1.0)
     assert rates["tof"] == 0.0 and rates["thermal_left"] == 0.0
+
+
+def test_the_head_pose_is_recorded_beside_each_tof_frame(rig, tmp_path) -> None:
+    """A source that knows the head's pose (the simulated head, a replay with poses):
+    each TOF frame's pose goes to /tf as world -> rig, and the recording gives it back."""
+    from app.recording.poses import read_poses
+    from calib.transforms import make_T, rotation_from_euler_deg
+
+    def pose(stamp_ns: int) -> np.ndarray:
+        t = stamp_ns * 1e-9
+        return make_T(rotation_from_euler_deg(0.0, 10.0 * t, 0.0), (0.1 * t, 0.0, 0.0))
+
+    recorder = Recorder(tmp_path / "rec")
+    recorder.head_pose = pose
+    recorder.start(rig)
+    rng = np.random.default_rng(3)
+    stamps = [1_000_000_000 + k * 66_000_000 for k in range(6)]
+    for s in stamps:
+        recorder.offer(synth_frame(rig, "tof", s, rng))
+        recorder.offer(synth_frame(rig, "thermal_left", s + 1000, rng))
+    (path,) = recorder.stop().files
+    poses = read_poses(path)
+    assert poses is not None
+    assert list(poses.stamps_ns) == stamps  # one per TOF frame, none for the others
+    for s, T in zip(stamps, poses.T_world_rig, strict=True):
+        np.testing.assert_allclose(T, pose(s), atol=1e-9)

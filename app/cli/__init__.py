@@ -27,6 +27,7 @@ from app.cli import (
     serve,
     simulate,
 )
+from app.cli import map as map_command
 from app.cli.args import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, PROG, Parser, UsageError
 
 __all__ = ["EXIT_FAILURE", "EXIT_OK", "EXIT_USAGE", "PROG", "UsageError", "build_parser", "main"]
@@ -42,6 +43,7 @@ COMMANDS = (
     analyze,
     record,
     fuse,
+    map_command,
 )
 """The command modules, in the order of ``trifuse --help``."""
 

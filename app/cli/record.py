@@ -22,6 +22,7 @@ from app.cli.files import refuse_existing
 from app.cli.output import err, out
 from app.cli.record_output import record_summary, say_where
 from app.cli.record_video import add_video_arguments, attach_fused_video, video_summary
+from app.recording.simrecord import SIM_SCENARIOS
 
 
 def add_parser(commands: Commands) -> argparse.ArgumentParser:
@@ -36,7 +37,9 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
             "(16UC1 mm, 0 = invalid) and amplitude on /tof/distance and /tof/amplitude, "
             "calibration per sensor, the rig as /tf transforms and as the attachment rig.yaml. "
             "Foxglove opens it as it is. --source sim renders the simulated head's "
-            "inspection scenario with time stamps at each sensor's rate (colour 30 Hz, "
+            "--scenario (the inspection room, or the survey: pan and tilt, then a 3 m "
+            "drive), with the head's pose per frame set (/tf, world -> rig), time stamps at "
+            "each sensor's rate (colour 30 Hz, "
             "thermal 27 Hz, TOF 15 Hz): by default head poses rendered at --pose-hz in the "
             "live quality, each frame turned to its own instant's pose with fresh noise "
             "(about 7x slower than real time on 2 cores), with --exact every instant "
@@ -68,6 +71,12 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         metavar="RIG.yaml",
         help="rig file: the head to simulate (default: the simulator's built-in head) or "
         "the rig to store (default: the replayed recording's)",
+    )
+    rec.add_argument(
+        "--scenario",
+        choices=SIM_SCENARIOS,
+        help="sim: what the simulated head sees: the inspection room (panning) or the "
+        "survey of it (pan and tilt, then a drive; 36 s) (default: inspection)",
     )
     rec.add_argument(
         "--seed", type=seed, default=0, metavar="N", help="simulator noise seed (default: 0)"
@@ -118,6 +127,7 @@ def _record(args: argparse.Namespace) -> int:
     """Record from ``--source`` into ``--out``; the simulated head in :mod:`app.cli.record_sim`."""
     from app.recording import RecordingDamaged, RecordingWriter
     from app.recording.open_source import NeedsRig, open_source
+    from app.recording.poses import read_poses
     from app.storage.rigfile import load_rig
 
     rec_out = Path(args.out)
@@ -128,7 +138,10 @@ def _record(args: argparse.Namespace) -> int:
     if source == "sim":
         from app.cli.record_sim import record_sim
 
+        args.scenario = args.scenario or "inspection"
         return record_sim(args, rec_out, rig)
+    if args.scenario is not None:
+        raise UsageError(f"{PROG} record: --scenario goes with --source sim")
     kind, _, arg = source.partition(":")
     if kind not in ("replay", "live") or not arg:
         raise UsageError(
@@ -158,6 +171,11 @@ def _record(args: argparse.Namespace) -> int:
         )
     damage = None
     fuser = None
+    # A replay keeps the recording's head poses (world -> rig), each before the frames of
+    # its time.
+    poses = read_poses(path, opened.rig.reference) if kind == "replay" else None
+    pose_list = [] if poses is None else list(zip(poses.stamps_ns, poses.T_world_rig, strict=True))
+    next_pose = 0
     with src, RecordingWriter(rec_out, opened.rig, jpeg_quality=args.jpeg_quality) as writer:
         say_where(writer)
         if args.fused_video:
@@ -166,6 +184,9 @@ def _record(args: argparse.Namespace) -> int:
             for frame in src.frames():
                 if end_ns is not None and frame.stamp_ns >= end_ns:
                     break
+                while next_pose < len(pose_list) and pose_list[next_pose][0] <= frame.stamp_ns:
+                    writer.write_pose(int(pose_list[next_pose][0]), pose_list[next_pose][1])
+                    next_pose += 1
                 writer.write(frame)
                 if writer.frames_written % 100 == 0:
                     out(f"  {writer.frames_written} frames")

@@ -1,5 +1,6 @@
-"""``trifuse record --source sim``: the simulated head's inspection scenario rendered into
-a recording, with the estimated time first and the time left as it goes."""
+"""``trifuse record --source sim``: the simulated head's inspection room or survey
+(``--scenario``) rendered into a recording, with the head's pose per instant, the
+estimated time first and the time left as it goes."""
 
 from __future__ import annotations
 
@@ -29,7 +30,8 @@ def span(seconds: float) -> str:
 
 def record_sim(args: argparse.Namespace, rec_out: Path, rig: Rig | None) -> int:
     """Record ``--duration`` s (default 2) of the simulated head (``rig``, default the
-    built-in head) into ``rec_out``, live mode at ``--pose-hz`` or ``--exact``."""
+    built-in head) in ``--scenario`` into ``rec_out``, live mode at ``--pose-hz`` or
+    ``--exact``."""
     from app.recording.simrecord import POSE_HZ, SimProgress, plan_simulation, record_simulation
     from app.sources.sim.head import default_rig
 
@@ -60,7 +62,7 @@ def record_sim(args: argparse.Namespace, rec_out: Path, rig: Rig | None) -> int:
         estimate_s += video_s
         how += f"; the fused video about {span(video_s)} of it"
     out(
-        f"Recording {duration:g} s of the simulated head (inspection scenario, seed "
+        f"Recording {duration:g} s of the simulated head ({args.scenario} scenario, seed "
         f"{args.seed}): {len(plan.schedule)} instants, {plan.frames} frames, time "
         f"stamps at each sensor's rate; {how}. Estimated time: about "
         f"{span(estimate_s)} ({estimate_s / duration:.0f}x real time) on a "
@@ -90,6 +92,7 @@ def record_sim(args: argparse.Namespace, rec_out: Path, rig: Rig | None) -> int:
             progress=progress,
             plan=plan,
             opened=opened,
+            scenario=args.scenario,
         )
     except KeyboardInterrupt:
         if rec_out.exists():

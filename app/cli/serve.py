@@ -18,6 +18,7 @@ from app.cli.args import (
     bounded_seconds,
     positive_int,
 )
+from app.recording.open_source import SCENARIOS
 
 if TYPE_CHECKING:
     from app.server.routers.auth import AuthConfig
@@ -56,10 +57,11 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
     )
     srv.add_argument(
         "--scenario",
-        choices=("inspection", "calibration"),
+        choices=SCENARIOS,
         default="inspection",
-        help="what the simulated head sees: the inspection room, or the heated board "
-        "held at --board-poses poses for a calibration session (default: %(default)s)",
+        help="what the simulated head sees: the inspection room, the heated board "
+        "held at --board-poses poses for a calibration session, or the survey of the room "
+        "for the 3D map (pan and tilt, then a 3 m drive) (default: %(default)s)",
     )
     srv.add_argument(
         "--board-poses",
@@ -125,6 +127,12 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         "point; about 6 Mbit/s) or low (a decimated cloud at 2 Hz, small images once a "
         "second; about 1 Mbit/s, for a radio link); changeable in its 3D scene folder and "
         "at /api/console/settings (default: %(default)s)",
+    )
+    srv.add_argument(
+        "--map",
+        action="store_true",
+        help="build the thermal 3D map from the start (the 3D console's Thermal map folder "
+        "and /api/map turn it on and off; maps are saved in WORKDIR/maps)",
     )
     srv.add_argument("--certfile", metavar="PEM", help="TLS certificate (chain): serve HTTPS/WSS")
     srv.add_argument("--keyfile", metavar="PEM", help="the certificate's private key")
@@ -236,7 +244,17 @@ def run(args: argparse.Namespace) -> int:
                 board_poses=args.board_poses,
                 hold_s=args.hold,
             )
-            serve(opened, board, workdir, auth, args.host, tls, sock, args.console_bandwidth)
+            serve(
+                opened,
+                board,
+                workdir,
+                auth,
+                args.host,
+                tls,
+                sock,
+                args.console_bandwidth,
+                build_map=args.map,
+            )
     finally:
         sock.close()
     return EXIT_OK

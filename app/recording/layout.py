@@ -12,6 +12,13 @@ the sensor's name, its log time the frame's ``stamp_ns``.
 * ``calibration``: ``/<sensor>/calibration``, ``foxglove.CameraCalibration`` (K, D, size).
 * the rig: ``/tf``, ``foxglove.FrameTransform`` ``T_rig_<sensor>`` with parent ``rig``, and
   the rig file's text as the attachment ``rig.yaml``.
+* the head's pose, where the source knows it (the simulated head; a robot's localisation):
+  ``/tf``, ``foxglove.FrameTransform`` ``T_world_rig`` with parent ``world``
+  (:data:`WORLD_FRAME`) and child ``rig``, one per frame set, its timestamp and log time the
+  frame set's stamp (:meth:`~app.recording.writer.RecordingWriter.write_pose`). Readers
+  (:mod:`app.recording.poses`) also accept the parents ``map`` and ``odom``
+  (:data:`POSE_PARENTS`) and, as the child, the rig's reference sensor (whose frame is the
+  rig frame).
 
 Optionally (``trifuse record --fused-video``, the console's "Record fused video") the fused
 stereo picture as video: ``/fused/video`` (:data:`FUSED_VIDEO_TOPIC`),
@@ -33,6 +40,11 @@ METADATA_NAME = "trifuse.recording"
 TF_TOPIC = "/tf"
 RIG_FRAME = "rig"
 """Parent frame id of the FrameTransforms: the rig frame (= the reference sensor's frame)."""
+WORLD_FRAME = "world"
+"""Parent frame id of the head's pose (``T_world_rig``, child :data:`RIG_FRAME`)."""
+POSE_PARENTS = (WORLD_FRAME, "map", "odom")
+"""Parent frame ids read as the head's pose, in order of preference (a recording with
+several uses the first)."""
 
 STREAMS = {
     "color": "image",

@@ -18,7 +18,7 @@ from calib.rig import Rig
 if TYPE_CHECKING:
     from app.sources.simulated import SimulatedHeadSource
 
-SCENARIOS = ("inspection", "calibration")
+SCENARIOS = ("inspection", "calibration", "survey")
 """What the simulated head can show (:func:`simulated_source`)."""
 
 
@@ -42,9 +42,12 @@ def simulated_source(
     """The simulated head as the console shows it: ``(source, description)``.
 
     Args:
-        scenario: ``inspection`` (the panning room, live quality) or ``calibration`` (the
+        scenario: ``inspection`` (the panning room, live quality), ``calibration`` (the
             heated board held at ``board_poses`` poses for ``hold_s`` seconds each, looping;
-            accurate quality).
+            accurate quality) or ``survey`` (the room surveyed for the 3D map: pan and
+            tilt, then a 3 m drive, looping every 36 s; live quality, head poses sampled
+            at 2 Hz and shown as rendered: the head moves, so a picture cannot stand in
+            for another by turning; ``truth_at(stamp).T_world_rig`` is the pose shown).
     """
     from app.sources.simulated import SimulatedHeadSource
 
@@ -58,6 +61,15 @@ def simulated_source(
         return src, (
             f"the simulated head (calibration: {cal.n_poses} board poses, "
             f"{cal.hold_s:g} s each, looping)"
+        )
+    if scenario == "survey":
+        from app.sources.sim.survey import SurveyScenario
+
+        survey = SurveyScenario(live=True)
+        src = SimulatedHeadSource(survey, realtime=True, start_ns=None, live=False)
+        return src, (
+            f"the simulated head (survey of the inspection room, {survey.pan_period_s:g} s, "
+            "looping)"
         )
     if scenario == "inspection":
         return SimulatedHeadSource(realtime=True, start_ns=None), (

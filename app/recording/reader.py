@@ -16,6 +16,7 @@ image=amplitude, distance_m=distance)``.
 from __future__ import annotations
 
 import re
+import threading
 from collections.abc import Iterable, Mapping
 from typing import Any
 
@@ -28,6 +29,7 @@ from app.recording.images import raw_plane, rgb_from_compressed, rgb_from_raw, v
 from app.recording.layout import (
     METADATA_NAME,
     MODALITY_OF_KIND,
+    POSE_PARENTS,
     RIG_ATTACHMENT,
     RIG_FRAME,
     TF_TOPIC,
@@ -35,6 +37,7 @@ from app.recording.layout import (
 )
 from app.recording.mcapindex import McapDamage
 from app.recording.player import MessageReplay, Route
+from app.recording.poses import RecordingPoses, read_poses
 from calib.camera import Intrinsics
 from calib.errors import RigError
 from calib.rig import Eye, Rig, Sensor, rig_from_yaml
@@ -127,6 +130,9 @@ class ReplaySource(MessageReplay):
             then any other sensor with frames.
         metadata: the ``trifuse.recording`` metadata (format, writer options).
 
+    :meth:`head_pose` gives the head's pose where the recording has it (``world -> rig``
+    on ``/tf``).
+
     Raises RecordingError if the file is not an MCAP recording (damage later in the file is
     reported when the replay reaches it).
     """
@@ -155,6 +161,25 @@ class ReplaySource(MessageReplay):
         missing = [s for s in names if s not in recorded]
         if missing and self.index.indexed_by == "summary":
             self.notes.append(f"no frames of {missing} in the recording")
+        self._poses: RecordingPoses | None = None
+        self._poses_read = False
+        self._poses_lock = threading.Lock()
+
+    # -- the head's pose ------------------------------------------------------------------
+
+    def head_pose(self, stamp_ns: int) -> np.ndarray | None:
+        """(4, 4) ``T_world_rig`` at ``stamp_ns`` from the recording's ``world -> rig``
+        transforms (:meth:`app.recording.poses.RecordingPoses.at`: that stamp's pose, or
+        interpolated between the poses around it), or None if the recording has none
+        there. The poses are read at the first call (the whole file once)."""
+        with self._poses_lock:
+            if not self._poses_read:
+                try:
+                    self._poses = read_poses(self.path, self.rig.reference if self.rig else None)
+                except RecordingError:
+                    self._poses = None
+                self._poses_read = True
+        return None if self._poses is None else self._poses.at(int(stamp_ns))
 
     # -- channels -------------------------------------------------------------------------
 
@@ -267,6 +292,8 @@ class ReplaySource(MessageReplay):
                 except Exception:
                     continue
                 if schema is not None and schema.name == "foxglove.FrameTransform":
+                    if msg.parent_frame_id in POSE_PARENTS:
+                        continue  # the head's pose, not the rig's
                     t, q = msg.translation, msg.rotation
                     T = make_T(_rotation(q.x, q.y, q.z, q.w), (t.x, t.y, t.z))
                     self._transforms.setdefault(msg.child_frame_id, (msg.parent_frame_id, T))

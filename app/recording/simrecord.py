@@ -5,7 +5,8 @@ all starting at t = 0; :func:`sim_schedule`), each distinct instant once with on
 sensors due then, so the recording's stamps, not the wall clock, carry the rates. What is
 rendered depends on the mode:
 
-* default (live): the inspection scenario in the live quality
+* default (live): the scenario (:data:`SIM_SCENARIOS`: the inspection room, or the survey
+  of :mod:`app.sources.sim.survey`) in the live quality
   (:class:`~app.sources.sim.render.Renderer` ``live=True``: no edge supersampling) at
   :data:`POSE_HZ` head poses per second, each sensor's picture rendered once per pose with
   a margin; every frame is that picture turned to the head's orientation at the frame's
@@ -13,6 +14,13 @@ rendered depends on the mode:
   The head moves smoothly at every sensor's rate; 3 s take about 10 s of CPU.
 * ``exact``: every instant rendered at its own time in the accurate quality (edge
   supersampling, the accurate sensor model), about 130x slower than real time.
+
+Every instant also gets the head's pose, ``T_world_rig`` on ``/tf``
+(:meth:`~app.recording.writer.RecordingWriter.write_pose`): the pose the instant's frames
+show (:func:`shown_pose`). In the exact mode that is the scenario's pose at the instant; in
+the live mode a picture is turned, not moved, so it shows the instant's orientation from
+the position of the rendered pose (the same for the inspection room, whose head only
+turns; up to 4 cm apart at 5 Hz while the survey's robot drives).
 
 :func:`plan_simulation` says beforehand what will be rendered and estimates the time from
 costs measured on the reference machine; :func:`record_simulation` reports progress with
@@ -38,6 +46,9 @@ if TYPE_CHECKING:
     from app.sources.sim.live import CleanImage
     from app.sources.sim.scenarios import InspectionScenario
 
+SIM_SCENARIOS = ("inspection", "survey")
+"""The scenarios :func:`record_simulation` renders: the panning inspection room, or its
+survey (:class:`~app.sources.sim.survey.SurveyScenario`: pan and tilt, then a drive)."""
 SIM_RATES_HZ = {"color": 30, "thermal": 27, "tof": 15}
 """Frame rates of the simulated head per modality."""
 POSE_HZ = 5.0
@@ -90,6 +101,38 @@ def head_model_for(rig: Rig):  # -> HeadModel | None
     if (model.range_error.width, model.range_error.height) == (w, h):
         return None
     return replace(model, range_error=replace(model.range_error, width=w, height=h))
+
+
+def sim_scenario(name: str, rig: Rig, seed: int = 0, live: bool = True) -> InspectionScenario:
+    """The scenario ``name`` (one of :data:`SIM_SCENARIOS`) with ``rig``'s sensors
+    (:func:`head_model_for`), noise seeded by ``seed``, in the live quality or not."""
+    from app.sources.sim.scenarios import InspectionScenario
+    from app.sources.sim.survey import SurveyScenario
+
+    kinds = {"inspection": InspectionScenario, "survey": SurveyScenario}
+    if name not in kinds:
+        raise ValueError(f"scenario: expected one of {', '.join(SIM_SCENARIOS)}, got {name!r}")
+    return kinds[name](rig=rig, model=head_model_for(rig), seed=seed, live=live)
+
+
+def shown_pose(scenario: InspectionScenario, stamp_ns: int, pose_hz: float | None) -> np.ndarray:
+    """(4, 4) ``T_world_rig`` that the frames of the instant ``stamp_ns`` show.
+
+    Args:
+        scenario: the scenario rendered.
+        stamp_ns: the instant, nanoseconds of scenario time.
+        pose_hz: the live mode's rate of rendered poses, or None (exact mode: every instant
+            rendered at its own pose).
+
+    Returns:
+        Exact mode: the scenario's pose at the instant. Live mode: its rotation at the
+        instant with the translation of the rendered pose (:func:`pose_index`) the frames
+        are turned from (turning a picture cannot move it).
+    """
+    T = np.array(scenario.T_world_rig(stamp_ns / 1e9), dtype=np.float64)
+    if pose_hz is not None:
+        T[:3, 3] = scenario.T_world_rig(pose_index(stamp_ns, pose_hz) / pose_hz)[:3, 3]
+    return T
 
 
 def pose_index(stamp_ns: int, pose_hz: float) -> int:
@@ -208,8 +251,10 @@ def record_simulation(
     progress: Callable[[SimProgress], None] | None = None,
     plan: SimRecordPlan | None = None,
     opened: Callable[[RecordingWriter], None] | None = None,
+    scenario: str = "inspection",
 ) -> RecordingWriter:
-    """Render the inspection scenario per :func:`plan_simulation` and record it at ``out``.
+    """Render the ``scenario`` (:data:`SIM_SCENARIOS`) per :func:`plan_simulation` and
+    record it at ``out``, with the head's pose per instant (:func:`shown_pose`).
 
     Live (default): each sensor's picture of the head pose nearest each instant
     (:func:`pose_index`) is rendered once, with a margin, and every frame is that picture
@@ -221,15 +266,13 @@ def record_simulation(
     KeyboardInterrupt keeps what was recorded so far (the file is finished and named) and
     propagates.
     """
-    from app.sources.sim.scenarios import InspectionScenario
-
     plan = plan or plan_simulation(rig, duration_s, exact=exact, pose_hz=pose_hz)
     live = not plan.exact
-    scenario = InspectionScenario(rig=rig, model=head_model_for(rig), seed=seed, live=live)
+    sim = sim_scenario(scenario, rig, seed, live)
     margins: dict[str, int] = {}
     if live:
         assert plan.pose_hz is not None
-        turn = scenario.max_turn_rad(0.5 / plan.pose_hz)
+        turn = sim.max_turn_rad(0.5 / plan.pose_hz)
         margins = {name: _margin_px(rig, name, turn) for name in rig.names}
     cleans: dict[str, tuple[int, CleanImage]] = {}
     total_cost = plan.estimate_s
@@ -243,9 +286,10 @@ def record_simulation(
         ):
             t0 = time.perf_counter()
             if live:
-                frames = _live_frames(scenario, rig, stamp, sensors, plan, margins, cleans, seed)
+                frames = _live_frames(sim, rig, stamp, sensors, plan, margins, cleans, seed)
             else:
-                frames = scenario.render(stamp / 1e9, sensors)[0].frames
+                frames = sim.render(stamp / 1e9, sensors)[0].frames
+            writer.write_pose(stamp, shown_pose(sim, stamp, plan.pose_hz))
             for name in sensors:
                 frame = frames[name]
                 if frame.stamp_ns != stamp:

@@ -62,6 +62,7 @@ from app.recording.layout import (
     RIG_ATTACHMENT,
     RIG_FRAME,
     TF_TOPIC,
+    WORLD_FRAME,
     topic_of,
 )
 from app.recording.mcapindex import McapIndex
@@ -70,6 +71,7 @@ from app.recording.video_track import FusedVideoTrack, video_frame_id
 from app.sources.frames import Frame, FrameSet
 from app.storage.atomic import fsync_dir, make_dirs, umask
 from calib.rig import Rig, Sensor, rig_to_yaml
+from calib.transforms import rigidity_problem
 from calib.units import encode_amplitude, encode_distance, encode_thermal
 
 THERMAL_ENCODINGS = ("16UC1", "32FC1")
@@ -153,9 +155,10 @@ class RecordingWriter:
 
     Frames are checked against the rig (sensor known, image size, dtype); a frame whose
     sensor and ``stamp_ns`` equal the last one written for that sensor is skipped (a frame
-    set repeats the slower sensors' frames). Use as a context manager: leaving the block
-    normally or by KeyboardInterrupt closes the recording (what was written is kept); any
-    other exception aborts it (no file appears).
+    set repeats the slower sensors' frames). Where the source knows the head's pose,
+    :meth:`write_pose` adds it per frame set (``T_world_rig`` on ``/tf``). Use as a
+    context manager: leaving the block normally or by KeyboardInterrupt closes the
+    recording (what was written is kept); any other exception aborts it (no file appears).
     """
 
     def __init__(
@@ -207,6 +210,8 @@ class RecordingWriter:
         self.thermal_encoding = thermal_encoding
         self.calibration_period_ns = round(calibration_period_s * 1e9)
         self.frames_written = 0
+        self.poses_written = 0
+        self._last_pose_ns: int | None = None
         self.duplicates_skipped = 0
         self.first_ns: int | None = None
         self.last_ns: int | None = None
@@ -331,6 +336,46 @@ class RecordingWriter:
         self.first_ns = stamp if self.first_ns is None else min(self.first_ns, stamp)
         self.last_ns = stamp if self.last_ns is None else max(self.last_ns, stamp)
         self._notify("frame_written", frame)
+        return True
+
+    def write_pose(self, stamp_ns: int, T_world_rig: np.ndarray) -> bool:
+        """Write the head's pose at a frame set's time: ``foxglove.FrameTransform`` on
+        ``/tf`` with parent ``world``, child ``rig``, timestamp and log time ``stamp_ns``
+        (docs/FORMATS.md, "The head's pose").
+
+        Args:
+            stamp_ns: the frame set's stamp (int nanoseconds).
+            T_world_rig: (4, 4) the rig frame's pose in the world frame (metres); checked
+                to be rigid.
+
+        Returns:
+            False if it repeats the last pose's stamp (skipped), else True.
+
+        Raises RecordingError for a bad stamp or a transform that is not rigid, and
+        RuntimeError after :meth:`close`.
+        """
+        if self._closed:
+            raise RuntimeError(f"{self.path}: the recording is closed")
+        stamp = _stamp(stamp_ns, "the head's pose")
+        problem = rigidity_problem(T_world_rig)
+        if problem is not None:
+            raise RecordingError(f"pose at {stamp} ns: T_world_rig: {problem}")
+        T = np.asarray(T_world_rig, dtype=np.float64)
+        if stamp == self._last_pose_ns:
+            return False
+        x, y, z, w = quaternion_from_rotation(T[:3, :3])
+        tf = FrameTransform(
+            timestamp=_timestamp(stamp),
+            parent_frame_id=WORLD_FRAME,
+            child_frame_id=RIG_FRAME,
+            translation=Vector3(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
+            rotation=Quaternion(x=x, y=y, z=z, w=w),
+        )
+        self._tf.log(tf, log_time=stamp)
+        self._last_pose_ns = stamp
+        self.poses_written += 1
+        if time.monotonic() >= self._next_seal:
+            self.seal()
         return True
 
     def _notify(self, what: str, *args: object) -> None:

@@ -662,6 +662,16 @@ class SimulatedHeadSource(FrameSource):
 
     # -- ground truth -------------------------------------------------------------------
 
+    def head_pose(self, stamp_ns: int) -> np.ndarray | None:
+        """(4, 4) ``T_world_rig`` of the frames delivered at ``stamp_ns`` (the scenario's
+        world frame; :meth:`truth_at` without its per-pixel part), or None if the
+        scenario does not say or nothing is rendered yet."""
+        try:
+            T = self.truth_at(stamp_ns, sensors=[]).T_world_rig
+        except RuntimeError:
+            return None
+        return None if T is None else np.array(T, dtype=np.float64)
+
     def truth_at(self, stamp_ns: int, sensors: Sequence[str] | None = None) -> SimTruth:
         """Ground truth of the frames delivered at ``stamp_ns``.
 

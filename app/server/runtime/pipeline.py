@@ -292,6 +292,9 @@ class FusionPipeline:
         self.tolerance_s = tolerance_s
         self.status = PipelineStatus()
         self.latest_set: FrameSet | None = None
+        self.set_listeners: list[Callable[[FrameSet], None]] = []
+        """Called (in the fusion thread) with every frame set as it arrives, fused or not
+        (e.g. the thermal map's worker): they must return quickly; a failure is theirs."""
         self.sensor_notes: Callable[[], dict[str, str]] | None = None
         """Sensor -> a line for each sensor that is not ok, put in each frame's metadata
         (``health``); set by the console (``SourceControl``). Called in the fusion thread:
@@ -426,6 +429,11 @@ class FusionPipeline:
         """What every frame set updates, fused or not: the newest set, the status, the
         newest TOF frame, when each eye's colour camera was last in a set."""
         self.latest_set = fs
+        for listener in list(self.set_listeners):
+            try:
+                listener(fs)
+            except Exception:  # a listener's failure is its own: the fusion goes on
+                pass
         self.status.missing = dict(fs.missing)
         self.status.last_stamp_ns = fs.stamp_ns
         tof = fs.frames.get(self.tof)

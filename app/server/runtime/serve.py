@@ -15,6 +15,7 @@ import uvicorn
 from app.recording.open_source import OpenedSource, simulated_source
 from app.server.panels.calibration import CalibrationPanel
 from app.server.panels.display import Panels
+from app.server.panels.map_panel import MapPanel
 from app.server.panels.precision import PrecisionPanel
 from app.server.panels.range import RangePanel
 from app.server.panels.scene3d import Scene3D
@@ -23,11 +24,13 @@ from app.server.routers.app import create_app
 from app.server.routers.auth import AuthConfig
 from app.server.routers.connections import GuardedH11Protocol, quiet_repeated_logs
 from app.server.routers.console_api import make_console_settings_router
+from app.server.routers.map_api import make_map_router
 from app.server.routers.session_api import make_session_router
 from app.server.routers.viser_bridge import start_guarded_viser
 from app.server.runtime.board_watch import BoardWatch
 from app.server.runtime.context import ConsoleBandwidth, ConsoleContext
 from app.server.runtime.demand import ConsoleDemand, hold_while_connected
+from app.server.runtime.map_worker import MapWorker
 from app.server.runtime.pipeline import FusionPipeline
 from app.server.runtime.source_control import SourceControl, SourceTap
 from app.server.runtime.stream import FrameHub
@@ -120,11 +123,14 @@ def serve(
     tls: TLSFiles | None = None,
     sock: socket.socket | None = None,
     console_bandwidth: str = "full",
+    build_map: bool = False,
 ) -> None:
     """Run the console until interrupted; the calibration session lives in ``workdir``.
     ``auth`` (auth.py) guards every route and WebSocket; its port is the one served, on
     ``sock`` (:func:`bind_public_socket`) if given. ``console_bandwidth``: the 3D
-    console's starting bandwidth mode (``full``, ``low``; context.py)."""
+    console's starting bandwidth mode (``full``, ``low``; context.py). ``build_map``:
+    build the thermal 3D map from the start (map_worker.py; else the operator turns it
+    on)."""
     port = auth.port
     source, rig = opened.source, opened.rig
     try:  # first: a work directory of another board or rig is refused before anything runs
@@ -158,11 +164,15 @@ def serve(
         bandwidth=ConsoleBandwidth(console_bandwidth),
     )
     control = SourceControl(pipeline, hub, opened.description, workdir)
+    mapper = MapWorker(
+        pipeline, getattr(source, "head_pose", None), workdir / "maps", enabled=build_map
+    )
     panels = [
         SourcePanel(ctx, control),  # first: the Source panel tops the GUI
         CalibrationPanel(ctx, session),  # holds demand.board while auto-capture is on
         Scene3D(ctx),
         RangePanel(ctx, session),
+        MapPanel(ctx, mapper),
         Panels(ctx),
     ]
     for panel in panels:
@@ -172,6 +182,7 @@ def serve(
         watch.start(),
         balancer.start(),
         PrecisionPanel(ctx).start(),
+        mapper.start(),
     ]
     parts.append(control)  # stopped first: a running recording is finished and kept
     app = create_app(hub, server.get_port(), pipeline, control, balancer, auth, viser_secret)
@@ -185,6 +196,7 @@ def serve(
         )
     )
     app.include_router(make_console_settings_router(ctx.bandwidth))  # /api/console/settings
+    app.include_router(make_map_router(mapper))  # /api/map (map_api.py)
     ws_max = None
     from app.sources.push.router import make_push_router, uvicorn_ws_max_size
     from app.sources.push.source import PushSource

@@ -320,8 +320,10 @@ class _Session:
         max_queue: int,
         writer_kw: dict,
         video: FusedVideoSource | None = None,
+        head_pose: Callable[[int], np.ndarray | None] | None = None,
     ) -> None:
         self.directory, self.rig, self.writer_kw = directory, rig, writer_kw
+        self.head_pose = head_pose  # the source's pose of the head, kept at each TOF frame
         self.video_source = video
         self.tap: FusedVideoTap | None = None
         self.video_written_before = 0  # pictures of the files already finished
@@ -432,6 +434,10 @@ class _Session:
             self.last_reject = str(exc)
             return
         self._last_stamp[frame.sensor] = frame.stamp_ns
+        if self.head_pose is not None and frame.distance_m is not None:  # a TOF frame
+            pose = self.head_pose(frame.stamp_ns)
+            if pose is not None:
+                self.writer.write_pose(frame.stamp_ns, pose)  # type: ignore[union-attr]
 
     def _write_video(self, unit: VideoUnit) -> None:
         """Write an access unit to the current file's ``/fused/video``; a unit the file
@@ -540,6 +546,9 @@ class Recorder:
         self._stopping: _Session | None = None  # finishing its file(s)
         self.last: RecordingState | None = None
         self.interrupted: list[Path] = self._recover()
+        self.head_pose: Callable[[int], np.ndarray | None] | None = None
+        """The source's head pose (``T_world_rig`` at a stamp, ns), written beside each TOF
+        frame (``/tf`` ``world -> rig``) so that a recording maps as the live head did."""
 
     def _recover(self) -> list[Path]:
         """Keep what recordings interrupted by a crash wrote (see the module doc)."""
@@ -587,7 +596,9 @@ class Recorder:
                 raise ControlError(
                     f"already recording to {self._session.state().path}; stop it first"
                 )
-            session = _Session(self.directory, rig, self.max_queue, dict(self.writer_kw), video)
+            session = _Session(
+                self.directory, rig, self.max_queue, dict(self.writer_kw), video, self.head_pose
+            )
             with self._lock:
                 self._session = session
             return session.state()
@@ -756,6 +767,7 @@ class SourceControl:
         if workdir is not None and self.tap is not None:
             self.recorder = self.tap.recorder or Recorder(Path(workdir) / RECORDINGS)
             self.tap.recorder = self.recorder
+            self.recorder.head_pose = getattr(self.tap.inner, "head_pose", None)
         self.fused_video = False
         """Recordings started from now on also keep the fused video (the Source panel's
         "Record fused video"; ``POST /api/recording/start`` follows it)."""

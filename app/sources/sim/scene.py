@@ -212,6 +212,11 @@ class Solid(ABC):
     def bounding_sphere(self) -> tuple[np.ndarray, float]:
         """Centre (3,) and radius (metres) of a sphere enclosing the solid."""
 
+    @abstractmethod
+    def closest(self, points: np.ndarray) -> np.ndarray:
+        """The point (N, 3) of the solid's surface nearest to each of ``points`` (N, 3),
+        world frame, metres (from inside or outside the solid)."""
+
     def hull_points(self) -> np.ndarray:
         """(N, 3) world points whose convex hull encloses the solid (the renderer's screen
         boxes come from them); by default the corners of the bounding sphere's cube."""
@@ -247,6 +252,10 @@ def _local(T_world_local: np.ndarray, origin: np.ndarray, dirs: np.ndarray):
     return o, apply_affine(R.T, dirs)
 
 
+def _to_world(T_world_local: np.ndarray, local: np.ndarray) -> np.ndarray:
+    return apply_affine(T_world_local[:3, :], local)
+
+
 def _to_local(T_world_local: np.ndarray, points: np.ndarray) -> np.ndarray:
     R, c = T_world_local[:3, :3], T_world_local[:3, 3]
     M = np.hstack([R.T, (-R.T @ c)[:, None]])
@@ -280,6 +289,14 @@ class Quad(Solid):
         local = _to_local(self.T_world_quad, points)
         normals = np.broadcast_to(-R[:, 2].astype(points.dtype), points.shape).copy()
         return normals, local[:, :2]
+
+    def closest(self, points: np.ndarray) -> np.ndarray:
+        local = _to_local(self.T_world_quad, points)
+        x0, x1, y0, y1 = self.extent
+        local[:, 0] = np.clip(local[:, 0], x0, x1)
+        local[:, 1] = np.clip(local[:, 1], y0, y1)
+        local[:, 2] = 0.0
+        return _to_world(self.T_world_quad, local)
 
     def hull_points(self) -> np.ndarray:
         x0, x1, y0, y1 = self.extent
@@ -328,6 +345,19 @@ class Box(Solid):
             np.stack([local[:, 0] + local[:, 2], local[:, 1]], axis=1),
         )
         return apply_affine(R, n_local), st
+
+    def closest(self, points: np.ndarray) -> np.ndarray:
+        local = _to_local(self.T_world_box, points)
+        h = np.asarray(self.half_size, dtype=local.dtype)
+        inside = (np.abs(local) <= h).all(axis=1)
+        out = np.clip(local, -h, h)
+        # From inside: onto the nearest face.
+        p = local[inside]
+        axis = np.argmin(h - np.abs(p), axis=1)
+        rows = np.arange(len(p))
+        p[rows, axis] = np.where(p[rows, axis] >= 0, 1.0, -1.0) * h[axis]
+        out[inside] = p
+        return _to_world(self.T_world_box, out)
 
     def hull_points(self) -> np.ndarray:
         h = tuple(float(x) for x in self.half_size)
@@ -385,6 +415,25 @@ class Cylinder(Solid):
         st = np.stack([np.arctan2(local[:, 0], local[:, 2]) * self.radius, local[:, 1]], axis=1)
         return apply_affine(R, n_local), st
 
+    def closest(self, points: np.ndarray) -> np.ndarray:
+        local = _to_local(self.T_world_cylinder, points)
+        y0, y1 = self.y_range
+        r = self.radius
+        x, y, z = local[:, 0], local[:, 1], local[:, 2]
+        rho = np.hypot(x, z)
+        safe = np.where(rho > 1e-12, rho, 1.0)
+        ux = np.where(rho > 1e-12, x / safe, 1.0)
+        uz = np.where(rho > 1e-12, z / safe, 0.0)
+        side = np.stack([r * ux, np.clip(y, y0, y1), r * uz], axis=1)
+        disc = np.minimum(rho, r)
+        candidates = [side] + [
+            np.stack([disc * ux, np.full_like(y, yc), disc * uz], axis=1) for yc in (y0, y1)
+        ]
+        d2 = np.stack([((c - local) ** 2).sum(axis=1) for c in candidates], axis=1)
+        best = np.argmin(d2, axis=1)
+        out = np.choose(best[:, None], candidates)
+        return _to_world(self.T_world_cylinder, out)
+
     def hull_points(self) -> np.ndarray:
         r = self.radius
         y0, y1 = self.y_range
@@ -428,6 +477,13 @@ class Sphere(Solid):
     def bounding_sphere(self) -> tuple[np.ndarray, float]:
         return np.asarray(self.centre, dtype=np.float64), self.radius
 
+    def closest(self, points: np.ndarray) -> np.ndarray:
+        c = np.asarray(self.centre, dtype=np.float64)
+        v = points - c
+        n = np.linalg.norm(v, axis=1, keepdims=True)
+        v = np.where(n > 1e-12, v / np.where(n > 1e-12, n, 1.0), (1.0, 0.0, 0.0))
+        return c + self.radius * v
+
 
 @dataclass
 class Scene:
@@ -441,3 +497,43 @@ class Scene:
         names = [s.name for s in self.solids]
         if len(set(names)) != len(names):
             raise ValueError(f"scene: solid names must be unique, got {names}")
+
+    def nearest_surface(
+        self, points: np.ndarray, chunk: int = 200_000
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The nearest surface of any solid to each of ``points`` (N, 3), world, metres.
+
+        Returns:
+            (distance (N,) metres, solid index (N,) int32 into ``solids``, the nearest
+            surface point (N, 3) world).
+        """
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        n = len(points)
+        dist = np.full(n, np.inf)
+        index = np.full(n, -1, dtype=np.int32)
+        nearest = np.zeros((n, 3))
+        for a in range(0, n, chunk):
+            p = points[a : a + chunk]
+            d, i, q = dist[a : a + chunk], index[a : a + chunk], nearest[a : a + chunk]
+            for k, solid in enumerate(self.solids):
+                c = solid.closest(p)
+                dk = np.linalg.norm(c - p, axis=1)
+                better = dk < d
+                d[better], i[better], q[better] = dk[better], k, c[better]
+        return dist, index, nearest
+
+    def apparent_temperature_k(self, index: np.ndarray, surface_points: np.ndarray) -> np.ndarray:
+        """What an ideal thermal imager reads (kelvin, (N,)) at ``surface_points`` (N, 3)
+        of the solids ``index`` (N,): ``(eps T^4 + (1 - eps) T_amb^4)^(1/4)``, the
+        renderer's radiometry without noise, blur or the imager's offset."""
+        out = np.full(len(index), np.nan)
+        for k in np.unique(index):
+            if k < 0:
+                continue
+            sel = index == k
+            solid = self.solids[int(k)]
+            _, st = solid.surface(surface_points[sel])
+            eps = solid.material.emissivity_at(st)
+            t = solid.material.temperature(st)
+            out[sel] = (eps * t**4 + (1.0 - eps) * self.ambient_k**4) ** 0.25
+        return out

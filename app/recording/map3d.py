@@ -1,0 +1,264 @@
+"""The thermal 3D map of recordings (``trifuse map``): every TOF frame into a
+:class:`~fusion.map_builder.MapBuilder`.
+
+The recordings are replayed as fast as they are read, one after the other, as one run.
+Each TOF frame with distances is added with:
+
+* the images of the rig's thermal imagers (through each imager's radiometry, as
+  ``trifuse fuse`` does: kelvin) and colour cameras nearest to it in time, at most
+  ``max_image_age_s`` away (a sensor without such a frame is left out of that frame: its
+  points take no value from it);
+* the head's pose: ``recording`` takes the recording's ``world -> rig`` transforms
+  (:mod:`app.recording.poses`: the pose of the TOF frame's stamp, or interpolated between
+  the poses around it; a frame without one is skipped and counted), ``estimate`` the pose
+  from the TOF clouds (KISS-ICP, :class:`~fusion.odometry.TofOdometry`; the world is the
+  rig frame at the first frame, and the recordings are taken as one continuous run in the
+  order given), ``auto`` the recording's poses when every recording has them, the estimate
+  when none has (a mix is refused: their world frames would not agree).
+"""
+
+from __future__ import annotations
+
+import re
+import time
+import typing
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from app.recording.errors import RecordingDamaged, RecordingError
+from app.recording.poses import TOLERANCE_S, RecordingPoses, read_poses
+from app.recording.reader import ReplaySource
+from app.sources.frames import Frame
+from calib.radiometry import Radiometry
+from calib.rig import Rig, rig_to_yaml
+from fusion.geometry import tof_sensor_name
+from fusion.map_builder import MapBuilder
+from fusion.voxel_map import MapSettings
+
+PoseMode = Literal["auto", "recording", "estimate"]
+POSE_MODES: tuple[str, ...] = typing.get_args(PoseMode)
+MAX_IMAGE_AGE_S = 0.1
+"""Default: a thermal or colour frame further than this from a TOF frame is not used for
+it, seconds."""
+
+
+@dataclass
+class MapRun:
+    """What :func:`build_map` did.
+
+    Attributes:
+        builder: the map builder (``builder.map`` is the map).
+        pose_source: ``recording`` (the recordings' poses) or ``estimate`` (from the
+            TOF clouds).
+        pose_frames: the frame names the recordings' poses came from (``world -> rig``),
+            None when estimated.
+        tof_frames: TOF frames with distances read.
+        integrated: TOF frames added to the map.
+        skipped: reason -> TOF frames not added.
+        images_missing: sensor -> TOF frames that had no image of it within the age limit.
+        damage: per damaged recording, the damage the replay stopped at.
+        notes: per recording, what reading its poses noted.
+        seconds: wall time of the build.
+    """
+
+    builder: MapBuilder
+    pose_source: str
+    pose_frames: str | None = None
+    tof_frames: int = 0
+    integrated: int = 0
+    skipped: dict[str, int] = field(default_factory=dict)
+    images_missing: dict[str, int] = field(default_factory=dict)
+    damage: list[RecordingDamaged] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+    def skip(self, reason: str) -> None:
+        self.skipped[reason] = self.skipped.get(reason, 0) + 1
+
+
+def open_recordings(paths: Sequence[Path], rig: Rig | None) -> tuple[list[ReplaySource], Rig]:
+    """Open every recording (as fast as it is read), with the rig to build with:
+    ``rig`` if given, else the recordings' (they must agree); checks that each has
+    frames of the rig's TOF. Returns (sources, rig); closes what it opened when it raises.
+
+    Raises:
+        RecordingError: a file is no recording; ValueError: no rig, rigs that differ, no
+            TOF in the rig or no TOF distances in a recording.
+    """
+    sources: list[ReplaySource] = []
+    try:
+        for path in paths:
+            sources.append(ReplaySource(path, realtime=False))
+        if rig is None:
+            rigs: list[tuple[Path, Rig]] = []
+            for src in sources:
+                if src.rig is None:
+                    raise ValueError(f"{src.path}: the recording holds no rig; give one with --rig")
+                rigs.append((src.path, src.rig))
+            first = rig_to_yaml(rigs[0][1])
+            for path, other in rigs[1:]:
+                if rig_to_yaml(other) != first:
+                    raise ValueError(
+                        f"{path}: its rig differs from that of {rigs[0][0]}; give the rig to "
+                        "build with (--rig)"
+                    )
+            rig = rigs[0][1]
+        tof = tof_sensor_name(rig)
+        for src in sources:
+            count = src.message_count(tof, "tof_distance")
+            if count == 0 or (count is None and tof not in src.recorded_sensors):
+                raise ValueError(
+                    f"{src.path}: no TOF distances of {tof!r} in the recording: nothing to map"
+                )
+        return sources, rig
+    except BaseException:
+        for src in sources:
+            src.close()
+        raise
+
+
+def choose_poses(
+    sources: Sequence[ReplaySource], rig: Rig, mode: str
+) -> list[RecordingPoses | None]:
+    """The poses of each recording the ``mode`` uses (all None when estimating).
+
+    Raises:
+        ValueError: an unknown mode; ``recording`` with a recording that has no poses;
+            ``auto`` with recordings of which some have poses and some not.
+    """
+    if mode not in POSE_MODES:
+        raise ValueError(f"pose: expected one of {', '.join(POSE_MODES)}, got {mode!r}")
+    if mode == "estimate":
+        return [None] * len(sources)
+    poses = [read_poses(src.path, rig.reference) for src in sources]
+    without = [str(src.path) for src, p in zip(sources, poses, strict=True) if p is None]
+    if mode == "recording" and without:
+        raise ValueError(
+            f"{without[0]}: no head poses in the recording (world -> rig on /tf); "
+            "estimate them from the TOF (--pose estimate)"
+        )
+    if without and len(without) < len(sources):
+        raise ValueError(
+            f"{without[0]}: no head poses in the recording (world -> rig on /tf), while "
+            "other recordings have them: their world frames would not agree; map them "
+            "apart, or estimate every pose (--pose estimate)"
+        )
+    return [None] * len(sources) if without else poses
+
+
+def build_map(
+    sources: Sequence[ReplaySource],
+    rig: Rig,
+    settings: MapSettings,
+    pose_mode: str = "auto",
+    progress: Callable[[int, int | None], None] | None = None,
+    max_image_age_s: float = MAX_IMAGE_AGE_S,
+) -> MapRun:
+    """Build the map of ``sources`` (see the module docstring).
+
+    Args:
+        sources: the recordings, replayed in this order (as fast as they are read).
+        rig: the rig (intrinsics, poses, range correction, radiometry).
+        settings: the map's settings.
+        pose_mode: ``auto``, ``recording`` or ``estimate`` (:func:`choose_poses`).
+        progress: called with (TOF frames done, TOF frames expected or None) after each.
+        max_image_age_s: see :data:`MAX_IMAGE_AGE_S`.
+
+    Damage in a recording ends its part of the map where it is (``damage`` says so).
+    """
+    t0 = time.perf_counter()
+    poses = choose_poses(sources, rig, pose_mode)
+    estimate = all(p is None for p in poses)
+    builder = MapBuilder(rig, settings, estimate_pose=estimate)
+    run = MapRun(builder, "estimate" if estimate else "recording")
+    if not estimate:
+        frames = sorted({f"{p.parent} -> {p.child}" for p in poses if p is not None})
+        run.pose_frames = ", ".join(frames)
+    for src, p in zip(sources, poses, strict=True):
+        if p is not None:
+            run.notes += [f"{src.path}: {note}" for note in p.notes]
+    counts = [src.message_count(builder.tof, "tof_distance") for src in sources]
+    expected = None if any(c is None for c in counts) else sum(counts)  # type: ignore[misc]
+    images = [n for n in rig.names if rig[n].modality in ("thermal", "color")]
+    radiometry = {
+        n: rig[n].radiometry or Radiometry() for n in images if rig[n].modality == "thermal"
+    }
+    age_ns = round(max_image_age_s * 1e9)
+
+    def add(tof: Frame, history: dict[str, deque[Frame]], rec_poses: RecordingPoses | None) -> None:
+        run.tof_frames += 1
+        integrate(tof, history, rec_poses)
+        if progress is not None:
+            progress(run.tof_frames, expected)
+
+    def integrate(
+        tof: Frame, history: dict[str, deque[Frame]], rec_poses: RecordingPoses | None
+    ) -> None:
+        chosen: dict[str, np.ndarray] = {}
+        for name in images:
+            best = min(history[name], key=lambda f: abs(f.stamp_ns - tof.stamp_ns), default=None)
+            if best is None or abs(best.stamp_ns - tof.stamp_ns) > age_ns:
+                run.images_missing[name] = run.images_missing.get(name, 0) + 1
+                continue
+            _check_size(best.image, rig, name)
+            if name in radiometry:
+                chosen[name] = radiometry[name].apply(best.image)
+            else:
+                chosen[name] = best.image
+        _check_size(tof.distance_m, rig, builder.tof)
+        T = None
+        if rec_poses is not None:
+            T = rec_poses.at(tof.stamp_ns)
+            if T is None:
+                run.skip(f"no head pose within {TOLERANCE_S * 1e3:g} ms in the recording")
+                return
+        try:
+            stats = builder.add(tof.stamp_ns / 1e9, tof.distance_m, chosen, T, tof.image)
+        except ValueError as exc:
+            if not estimate:
+                raise
+            # one reason per kind of failure, not per count ("odometry: N valid points...")
+            run.skip(f"the pose could not be estimated ({re.sub(r'[0-9]+', 'N', str(exc))})")
+            return
+        if stats is None:
+            run.skip("no pose")
+        else:
+            run.integrated += 1
+
+    for src, rec_poses in zip(sources, poses, strict=True):
+        history: dict[str, deque[Frame]] = {n: deque() for n in images}
+        pending: deque[Frame] = deque()
+        try:
+            for frame in src.frames():
+                if frame.sensor == builder.tof:
+                    if frame.distance_m is not None:
+                        pending.append(frame)
+                elif frame.sensor in history:
+                    history[frame.sensor].append(frame)
+                # A TOF frame is added once nothing nearer in time can come.
+                while pending and frame.stamp_ns > pending[0].stamp_ns + age_ns:
+                    add(pending.popleft(), history, rec_poses)
+                oldest = pending[0].stamp_ns if pending else frame.stamp_ns
+                for h in history.values():
+                    while h and h[0].stamp_ns < oldest - age_ns:
+                        h.popleft()
+        except RecordingDamaged as exc:
+            run.damage.append(exc)
+        while pending:
+            add(pending.popleft(), history, rec_poses)
+    run.seconds = time.perf_counter() - t0
+    return run
+
+
+def _check_size(image: np.ndarray, rig: Rig, sensor: str) -> None:
+    w, h = rig[sensor].image_size
+    if image.shape[:2] != (h, w):
+        raise RecordingError(
+            f"frame of {sensor!r} is {image.shape[1]}x{image.shape[0]}, but the rig says "
+            f"{w}x{h}: is this the recording's rig?"
+        )

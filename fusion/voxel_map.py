@@ -1,0 +1,417 @@
+"""A thermal 3D map: TOF points accumulated in a world frame as an evidence grid of voxels
+that remember temperature and colour (the method's outlook: "local maps with texture
+mapping using exactly the same techniques").
+
+Each TOF frame (:meth:`VoxelMap.integrate`) brings points in the TOF frame, the head pose
+``T_world_tof`` and, per point, the temperature and colour the fusion sampled for it
+(:mod:`fusion.point_attributes`). Per voxel the map keeps:
+
+* occupancy evidence in log-odds: a hit adds ``hit_logodds`` once per frame that has a point
+  in the voxel; a miss adds ``miss_logodds`` when a TOF ray passed through the voxel and
+  ended beyond it (free space). Misses are found by projection: a voxel in front of the
+  depth the TOF measured along its pixel's ray lies on that ray's free stretch, the same
+  test a ray traversal makes, at the cost of the voxels checked rather than of the steps
+  along 25 k rays. ``free_budget`` voxels are checked per frame, in turn, so the cost is
+  bounded whatever the map's size;
+* temperature: a recency-weighted mean (each frame's reading weighs ``max(1/n,
+  recency)``, so the first readings average and later ones follow change), the maximum, the
+  last reading and when it was seen;
+* colour: the same recency-weighted mean of RGB;
+* the number of points that fell in it.
+
+Memory is bounded by a maximum extent around the world origin (points beyond are dropped
+and counted) and a maximum number of voxels (new voxels beyond it are dropped and counted).
+Voxels are hashed (:class:`fusion.voxel_hash.VoxelHash`), so only observed space costs.
+
+Frames: ``T_world_tof`` (4, 4) maps TOF-frame points (metres) to the world frame.
+Temperatures in kelvin (NaN: not seen by a thermal imager); colours RGB in [0, 255].
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import cv2
+import numpy as np
+
+from calib.camera import Intrinsics
+from fusion.voxel_hash import VoxelHash
+
+
+@dataclass(frozen=True)
+class MapSettings:
+    """How the map is built.
+
+    Attributes:
+        voxel_m: voxel edge, metres.
+        max_extent_m: the map covers ``|x|, |y|, |z| <= max_extent_m`` around the world
+            origin, metres.
+        max_voxels: at most this many voxels are kept; new ones beyond it are dropped.
+        recency: the least weight a new temperature or colour reading has in a voxel's
+            mean (1: the last reading only; small: a long memory).
+        hit_logodds, miss_logodds: evidence added by a frame's hit and by a miss.
+        min_logodds, max_logodds: the evidence is clamped to this range (so that a voxel
+            can change its mind: a person who walks away is carved out again).
+        free_budget: voxels checked for free space per frame.
+        free_margin_m: a voxel counts as passed through when it lies at least this far,
+            plus ``free_margin_rel`` of the measured range, in front of the measured depth
+            (metres; None: two voxel edges).
+        free_margin_rel: see ``free_margin_m``.
+        occupied_logodds: a voxel is occupied above this evidence (1.0: two frames' hits
+            more than misses; one stray hit, e.g. a flying pixel, is not enough).
+    """
+
+    voxel_m: float = 0.03
+    max_extent_m: float = 40.0
+    max_voxels: int = 4_000_000
+    recency: float = 0.1
+    hit_logodds: float = 0.85
+    miss_logodds: float = -0.4
+    min_logodds: float = -2.0
+    max_logodds: float = 3.5
+    free_budget: int = 20_000
+    free_margin_m: float | None = None
+    free_margin_rel: float = 0.02
+    occupied_logodds: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("voxel_m", "max_extent_m", "recency", "hit_logodds"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: expected a positive number, got {v}")
+        if self.recency > 1:
+            raise ValueError(f"recency: expected a weight in (0, 1], got {self.recency}")
+        if not self.miss_logodds < 0:
+            raise ValueError(f"miss_logodds: expected a negative number, got {self.miss_logodds}")
+        if not self.min_logodds < 0 < self.max_logodds:
+            raise ValueError("min_logodds < 0 < max_logodds expected")
+        if self.max_voxels < 1 or self.free_budget < 0:
+            raise ValueError("max_voxels >= 1 and free_budget >= 0 expected")
+        if self.max_extent_m / self.voxel_m >= 1 << 19:
+            raise ValueError(
+                f"max_extent_m / voxel_m: at most {1 << 19} voxels each way, got "
+                f"{self.max_extent_m} / {self.voxel_m}"
+            )
+
+    @property
+    def margin_m(self) -> float:
+        return 2.0 * self.voxel_m if self.free_margin_m is None else self.free_margin_m
+
+
+@dataclass(frozen=True)
+class DepthImage:
+    """A TOF frame's measured radial distances and its camera model, for free space.
+
+    Attributes:
+        distance_m: (H, W) radial distance along each pixel's ray, metres, NaN invalid.
+        intrinsics: the TOF's intrinsics (pixel rays, distortion).
+    """
+
+    distance_m: np.ndarray
+    intrinsics: Intrinsics
+
+
+@dataclass
+class IntegrateStats:
+    """What one :meth:`VoxelMap.integrate` did (counts)."""
+
+    points: int = 0
+    voxels: int = 0
+    new_voxels: int = 0
+    outside_extent: int = 0
+    dropped_full: int = 0
+    free_checked: int = 0
+    carved: int = 0
+
+
+_FIELDS = {
+    # name: (dtype, columns, initial value)
+    "centre": (np.float32, 3, 0.0),
+    "hits": (np.uint32, 0, 0),
+    "logodds": (np.float32, 0, 0.0),
+    "temp_mean": (np.float32, 0, np.nan),
+    "temp_max": (np.float32, 0, np.nan),
+    "temp_last": (np.float32, 0, np.nan),
+    "temp_n": (np.uint32, 0, 0),
+    "last_seen": (np.float64, 0, np.nan),
+    "rgb": (np.float32, 3, np.nan),
+    "rgb_n": (np.uint32, 0, 0),
+}
+"""The per-voxel arrays, row n for the voxel of hash index n."""
+
+
+@dataclass
+class VoxelMap:
+    """The map (see the module docstring).
+
+    Attributes:
+        settings: how it is built.
+        path: the head's path: (stamp seconds, T_world_tof (4, 4)) per integrated frame.
+        stats: totals since the map was made or reset.
+    """
+
+    settings: MapSettings = field(default_factory=MapSettings)
+    path: list[tuple[float, np.ndarray]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything (the settings stay)."""
+        s = self.settings
+        self._half = int(np.ceil(s.max_extent_m / s.voxel_m))
+        self._side = 2 * self._half + 1
+        self._hash = VoxelHash()
+        self._arrays: dict[str, np.ndarray] = {}
+        self._resize(1 << 14)
+        self._cursor = 0
+        self.path = []
+        self.stats = IntegrateStats()
+        self.revision = 0
+        """Counts integrations and resets: a display redraws when it changes."""
+
+    # -- storage ------------------------------------------------------------------------
+
+    def _resize(self, rows: int) -> None:
+        n = self._hash.size
+        for name, (dtype, cols, init) in _FIELDS.items():
+            shape = (rows, cols) if cols else (rows,)
+            a = np.full(shape, init, dtype=dtype)
+            if name in self._arrays:
+                a[:n] = self._arrays[name][:n]
+            self._arrays[name] = a
+
+    def __len__(self) -> int:
+        """The number of voxels (occupied or not)."""
+        return self._hash.size
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        """The per-voxel array ``name`` (a view of the first ``len(map)`` rows):
+        ``centre`` (N, 3) world metres, ``hits``, ``logodds``, ``temp_mean``,
+        ``temp_max``, ``temp_last`` (kelvin), ``temp_n``, ``last_seen`` (seconds),
+        ``rgb`` (N, 3) float 0-255, ``rgb_n``."""
+        return self._arrays[name][: len(self)]
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the map's arrays and hash table, bytes."""
+        return self._hash.nbytes + sum(a.nbytes for a in self._arrays.values())
+
+    def occupied(self) -> np.ndarray:
+        """(N,) bool: voxels whose evidence says occupied (log-odds above
+        ``occupied_logodds``)."""
+        return self["logodds"] > self.settings.occupied_logodds
+
+    def keys_of(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The voxel keys (M,) int64 of the points (N, 3) inside the extent, and which
+        points (N,) bool those are."""
+        q = np.floor(np.asarray(points_world, dtype=np.float64) / self.settings.voxel_m)
+        inside = (np.abs(q) <= self._half).all(axis=1)
+        ijk = q[inside].astype(np.int64) + self._half
+        return (ijk[:, 0] * self._side + ijk[:, 1]) * self._side + ijk[:, 2], inside
+
+    def _centres(self, keys: np.ndarray) -> np.ndarray:
+        s = self._side
+        ijk = np.stack([keys // (s * s), (keys // s) % s, keys % s], axis=1) - self._half
+        return ((ijk + 0.5) * self.settings.voxel_m).astype(np.float32)
+
+    # -- integration --------------------------------------------------------------------
+
+    def integrate(
+        self,
+        T_world_tof: np.ndarray,
+        points_tof: np.ndarray,
+        stamp_s: float,
+        temperature_k: np.ndarray | None = None,
+        rgb: np.ndarray | None = None,
+        depth: DepthImage | None = None,
+    ) -> IntegrateStats:
+        """Add one TOF frame.
+
+        Args:
+            T_world_tof: (4, 4) the TOF's pose in the world frame.
+            points_tof: (N, 3) or (H, W, 3) points in the TOF frame, metres; NaN rows are
+                skipped.
+            stamp_s: the frame's time, seconds.
+            temperature_k: (N,) or (H, W) kelvin per point, NaN where no thermal imager
+                saw it; None: no temperatures.
+            rgb: (N, 3) or (H, W, 3) colour per point (0-255), NaN where no colour camera
+                saw it; None: no colours.
+            depth: the frame's distances for free space; None: hits only.
+
+        Returns:
+            What this frame did (also added to :attr:`stats`).
+        """
+        T = np.asarray(T_world_tof, dtype=np.float64)
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise ValueError(f"T_world_tof: expected a finite (4, 4) transform, got {T.shape}")
+        p = np.asarray(points_tof, dtype=np.float64).reshape(-1, 3)
+        n_all = len(p)
+        temps = None if temperature_k is None else np.asarray(temperature_k).reshape(-1)
+        cols = None if rgb is None else np.asarray(rgb).reshape(-1, 3)
+        for name, a in (("temperature_k", temps), ("rgb", cols)):
+            if a is not None and len(a) != n_all:
+                raise ValueError(f"{name}: expected {n_all} values (one per point), got {len(a)}")
+        valid = np.isfinite(p).all(axis=1)
+        pw = p[valid] @ T[:3, :3].T + T[:3, 3]
+        keys, inside = self.keys_of(pw)
+        st = IntegrateStats(points=int(valid.sum()), outside_extent=int((~inside).sum()))
+        rows = np.flatnonzero(valid)[inside]  # rows of points_tof that reach the map
+        if len(keys):
+            self._add_hits(keys, rows, temps, cols, stamp_s, st)
+        if depth is not None and self.settings.free_budget > 0 and len(self):
+            self._carve(np.linalg.inv(T), depth, st)
+        self.path.append((float(stamp_s), T.copy()))
+        self.revision += 1
+        for name, value in asdict(st).items():
+            setattr(self.stats, name, getattr(self.stats, name) + value)
+        return st
+
+    def _add_hits(
+        self,
+        keys: np.ndarray,
+        rows: np.ndarray,
+        temps: np.ndarray | None,
+        cols: np.ndarray | None,
+        stamp_s: float,
+        st: IntegrateStats,
+    ) -> None:
+        s = self.settings
+        uniq, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+        index = self._hash.lookup(uniq)
+        new = np.flatnonzero(index < 0)
+        room = s.max_voxels - len(self)
+        if len(new) > room:
+            st.dropped_full = int(len(new) - room)
+            new = new[:room]
+        if len(new):
+            if len(self) + len(new) > len(self._arrays["hits"]):
+                self._resize(max(2 * len(self._arrays["hits"]), len(self) + len(new)))
+            index[new] = self._hash.insert(uniq[new])
+            self._arrays["centre"][index[new]] = self._centres(uniq[new])
+        st.new_voxels = len(new)
+        kept = index >= 0
+        st.voxels = int(kept.sum())
+        v = index[kept]
+        a = self._arrays
+        a["hits"][v] += counts[kept].astype(np.uint32)
+        a["logodds"][v] = np.minimum(a["logodds"][v] + s.hit_logodds, s.max_logodds)
+        a["last_seen"][v] = stamp_s
+        if temps is not None:
+            t = temps[rows].astype(np.float64)
+            ok = np.isfinite(t)
+            mean, seen = _group_mean(inverse[ok], t[ok], len(uniq))
+            top = np.full(len(uniq), -np.inf)
+            np.maximum.at(top, inverse[ok], t[ok])
+            sel = seen & kept
+            vi = index[sel]
+            a["temp_n"][vi] += 1
+            w = np.maximum(1.0 / a["temp_n"][vi], s.recency).astype(np.float32)
+            old = np.nan_to_num(a["temp_mean"][vi])
+            a["temp_mean"][vi] = old + w * (mean[sel] - old)
+            a["temp_max"][vi] = np.fmax(a["temp_max"][vi], top[sel])
+            a["temp_last"][vi] = mean[sel]
+        if cols is not None:
+            c = cols[rows].astype(np.float64)
+            ok = np.isfinite(c).all(axis=1)
+            sel = None
+            means = []
+            for ch in range(3):
+                m, seen = _group_mean(inverse[ok], c[ok, ch], len(uniq))
+                means.append(m)
+                sel = seen & kept
+            assert sel is not None
+            vi = index[sel]
+            a["rgb_n"][vi] += 1
+            w = np.maximum(1.0 / a["rgb_n"][vi], s.recency).astype(np.float32)[:, None]
+            old = np.nan_to_num(a["rgb"][vi])
+            a["rgb"][vi] = old + w * (np.stack(means, axis=1)[sel] - old)
+
+    def _carve(self, T_tof_world: np.ndarray, depth: DepthImage, st: IntegrateStats) -> None:
+        """Misses for up to ``free_budget`` voxels (in turn) lying in front of the
+        measured depth along their pixel's ray."""
+        s = self.settings
+        n = len(self)
+        budget = min(s.free_budget, n)
+        if self._cursor >= n:
+            self._cursor = 0
+        sel = (np.arange(budget) + self._cursor) % n
+        self._cursor = (self._cursor + budget) % n
+        c = self._arrays["centre"][sel].astype(np.float64)
+        pt = c @ T_tof_world[:3, :3].T + T_tof_world[:3, 3]
+        front = pt[:, 2] > 0.05
+        sel, pt = sel[front], pt[front]
+        st.free_checked = len(sel)
+        uv = depth.intrinsics.project(pt)
+        h, w = depth.distance_m.shape
+        u = np.rint(uv[:, 0])
+        v = np.rint(uv[:, 1])
+        ok = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        sel, pt = sel[ok], pt[ok]
+        # The nearest depth of the pixel and its neighbours: a voxel of a slanted surface
+        # seen through the neighbouring pixel is not free space.
+        near = _nearest_depth(depth.distance_m)
+        d = near[v[ok].astype(np.intp), u[ok].astype(np.intp)]
+        r = np.linalg.norm(pt, axis=1)
+        with np.errstate(invalid="ignore"):
+            free = r < d - (s.margin_m + s.free_margin_rel * d)
+        carved = sel[free]
+        lo = self._arrays["logodds"]
+        lo[carved] = np.maximum(lo[carved] + s.miss_logodds, s.min_logodds)
+        st.carved = len(carved)
+
+    # -- reading ------------------------------------------------------------------------
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Copies of every per-voxel array (see :meth:`__getitem__`) plus ``keys`` (N,)
+        int64 and the path (``path_stamp_s`` (P,), ``path_T_world_tof`` (P, 4, 4))."""
+        out = {name: self[name].copy() for name in _FIELDS}
+        out["keys"] = self.keys_of(self["centre"].astype(np.float64))[0]
+        out["path_stamp_s"] = np.array([t for t, _ in self.path], dtype=np.float64)
+        out["path_T_world_tof"] = np.array([T for _, T in self.path], dtype=np.float64).reshape(
+            -1, 4, 4
+        )
+        return out
+
+    @classmethod
+    def from_arrays(cls, settings: MapSettings, arrays: dict[str, np.ndarray]) -> VoxelMap:
+        """A map from :meth:`arrays` (e.g. read back from a file)."""
+        m = cls(settings)
+        keys = np.asarray(arrays["keys"], dtype=np.int64)
+        n = len(keys)
+        if n > settings.max_voxels:
+            raise ValueError(f"map: {n} voxels, more than max_voxels {settings.max_voxels}")
+        if len(np.unique(keys)) != n:
+            raise ValueError("map: voxel keys repeat")
+        if n and (keys.min() < 0 or keys.max() >= m._side**3):
+            raise ValueError("map: voxel keys outside the extent of these settings")
+        m._resize(max(n, 1 << 14))
+        m._hash.insert(keys)
+        for name, (dtype, cols, _) in _FIELDS.items():
+            a = np.asarray(arrays[name])
+            want = (n, cols) if cols else (n,)
+            if a.shape != want:
+                raise ValueError(f"map: {name} has shape {a.shape}, expected {want}")
+            m._arrays[name][:n] = a.astype(dtype)
+        stamps = np.asarray(arrays.get("path_stamp_s", np.zeros(0)), dtype=np.float64)
+        poses = np.asarray(arrays.get("path_T_world_tof", np.zeros((0, 4, 4))), dtype=np.float64)
+        m.path = [(float(t), T) for t, T in zip(stamps, poses.reshape(-1, 4, 4), strict=True)]
+        m.revision = 1
+        return m
+
+
+def _group_mean(groups: np.ndarray, values: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of ``values`` per group id in ``groups`` (n groups), and which groups had any."""
+    total = np.bincount(groups, weights=values, minlength=n)
+    count = np.bincount(groups, minlength=n)
+    seen = count > 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return total / count, seen
+
+
+def _nearest_depth(distance_m: np.ndarray) -> np.ndarray:
+    """(H, W) the smallest valid distance in each pixel's 3 x 3 neighbourhood (NaN: none)."""
+    d = np.where(np.isfinite(distance_m), distance_m, np.inf).astype(np.float32)
+    near = cv2.erode(d, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    near[~np.isfinite(near)] = np.nan
+    return near

@@ -1,0 +1,93 @@
+"""The thermal 3D map in the console, in a real browser (Debian's chromium driven by
+Playwright): the "Thermal map" folder's Build map starts it, the map appears in the scene
+and grows, the hot-spot highlight counts what lies above 50 C, Pause holds it, Save writes
+the map file and the PLY, Reset empties it. Screenshots go to /tmp/shots (map-above.png,
+map-hot.png; docs/screenshots/ holds copies a person looked at)."""
+
+from __future__ import annotations
+
+import re
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.browser_support import console_running, needs_chromium
+from tests.test_browser_scene import drawn_fraction, open_scene, shot_when
+
+pytestmark = [needs_chromium, pytest.mark.slow]
+
+SHOTS = Path("/tmp/shots")
+
+
+def map_status(page) -> tuple[str, int]:
+    """(state, occupied voxels) as the folder's status line shows them."""
+    text = page.inner_text("body")
+    m = re.search(r"Map \((\w+)\): ([\d,]+) occupied voxels", text)
+    if m is None:
+        return "off", 0
+    return m.group(1), int(m.group(2).replace(",", ""))
+
+
+def wait_status(page, ok, what: str, timeout_s: float = 120.0) -> tuple[str, int]:
+    """Polls the status line until ``ok(state, occupied)``; returns them."""
+    end = time.monotonic() + timeout_s
+    while True:
+        state, n = map_status(page)
+        if ok(state, n):
+            return state, n
+        if time.monotonic() > end:
+            pytest.fail(f"timed out waiting for {what}: the map shows {state}, {n}")
+        page.wait_for_timeout(500)
+
+
+def test_the_map_appears_grows_highlights_pauses_saves_and_resets(browser, tmp_path) -> None:
+    SHOTS.mkdir(exist_ok=True)
+    workdir = tmp_path / "work"
+    with console_running(["--workdir", str(workdir)]) as console:
+        page = open_scene(browser, console.signin("/console/"))
+        page.get_by_text("Thermal map", exact=True).click()
+        page.get_by_text("Build map", exact=True).click()
+        _, first = wait_status(page, lambda s, n: s == "building" and n > 1000, "a map")
+        wait_status(page, lambda s, n: n > first * 1.05, "the map to grow")
+        page.get_by_role("button", name="View from above").click()
+        pixels = shot_when(
+            page, SHOTS / "map-above.png", lambda p: drawn_fraction(p) > 0.15, "the map drawn"
+        )
+        # purple-to-yellow iron colours of the room, not only the grey of the TOF cloud
+        b, g, r = (pixels[..., k].astype(int) for k in range(3))
+        assert ((b - g > 40) & (r - g > 20)).mean() > 0.02
+
+        page.get_by_text("Highlight hot spots", exact=True).click()
+        page.wait_for_function(
+            "() => /[\\d,]+ points at or above 50 °C/.test(document.body.innerText)"
+        )
+        above = int(
+            re.search(r"([\d,]+) points at or above 50", page.inner_text("body"))
+            .group(1)
+            .replace(",", "")
+        )
+        assert above > 0  # the pipe (85 C), the kettle (68 C), the radiator (60 C)
+        page.wait_for_timeout(1500)
+        page.screenshot(path=str(SHOTS / "map-hot.png"))
+
+        page.get_by_role("button", name="Pause", exact=True).click()
+        _state, held = wait_status(page, lambda s, n: s == "paused", "paused")
+        frames = console.get("/api/map")["frames"]
+        page.wait_for_timeout(2000)
+        assert console.get("/api/map")["frames"] == frames
+        assert map_status(page)[1] == held
+
+        page.get_by_role("button", name="Save map", exact=True).click()
+        page.wait_for_function("() => /Saved map-.*\\.map\\.npz/.test(document.body.innerText)")
+        saved = sorted((workdir / "maps").iterdir())
+        assert [p.suffix for p in saved] == [".npz", ".ply"]
+        from app.storage.map_file import load_map
+
+        loaded = load_map(saved[0])
+        assert int(loaded.occupied().sum()) == held
+
+        page.get_by_role("button", name="Reset map", exact=True).click()
+        wait_status(page, lambda s, n: n == 0, "an empty map")
+        status = console.get("/api/map")
+        assert status["occupied"] == 0 and status["frames"] == 0
