@@ -15,14 +15,16 @@ NaN in, NaN out, never a point at the origin or a pixel at (0, 0).
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
-from calib.camera import Intrinsics, monotonic_radius, pixel_rays
+from calib.camera import MAX_RAY_RADIUS, Intrinsics, monotonic_radius, pixel_rays
 from calib.rig import Rig
 from calib.transforms import transform_points
 
 __all__ = [
+    "Projector32",
     "in_image",
     "monotonic_radius",
     "project_to_sensor",
@@ -201,3 +203,47 @@ def in_image(pixels: npt.ArrayLike, width: int, height: int) -> np.ndarray:
     v = uv[..., 1]
     with np.errstate(invalid="ignore"):
         return (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5)
+
+
+class Projector32:
+    """Steps 3 and 4 for many points per frame, in float32: points of a source frame into
+    a sensor's pixels, as :func:`project_to_sensor` (to float32 precision, a few
+    thousandths of a pixel), about three times faster (the thermal map's per-frame work).
+
+    Args:
+        intrinsics: the sensor's intrinsics and distortion.
+        T_sensor_src: (4, 4) from the points' frame to the sensor's.
+    """
+
+    def __init__(self, intrinsics: Intrinsics, T_sensor_src: npt.ArrayLike) -> None:
+        self.intrinsics = intrinsics
+        self._M = np.asarray(T_sensor_src, dtype=np.float32)[:3, :]  # [R | t]
+        # Coefficients as Python floats, so that float32 arrays stay float32 (NEP 50).
+        self._k = [float(c) for c in intrinsics._coeffs]
+        self._r2_max = float(min(monotonic_radius(intrinsics), MAX_RAY_RADIUS) ** 2)
+
+    def __call__(
+        self, points: npt.ArrayLike, min_z: float = 0.05
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The points (N, 3) (source frame, metres) at least ``min_z`` in front of the
+        sensor and inside the fold of its distortion: their pixels (M, 2) float32, their
+        rows (M,) in ``points`` and their depths (M,) along the sensor's axis, metres.
+        Pixels outside the image are kept (see :func:`in_image`)."""
+        pts = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 1, 3)
+        P = cv2.transform(pts, self._M).reshape(-1, 3)  # numpy's 3-wide matmul is slower
+        z = P[:, 2]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            inv = 1.0 / z
+            x, y = P[:, 0] * inv, P[:, 1] * inv
+            r2 = x * x + y * y
+            rows = np.flatnonzero((z > min_z) & (r2 <= self._r2_max))
+        x, y, r2 = x[rows], y[rows], r2[rows]
+        # calib.camera.Intrinsics.distort: radial (k1 k2 k3 / k4 k5 k6) and tangential
+        k1, k2, p1, p2, k3, k4, k5, k6 = self._k
+        rad = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+        xy2 = 2.0 * x * y
+        intr = self.intrinsics
+        uv = np.empty((len(rows), 2), np.float32)
+        uv[:, 0] = (x * rad + p1 * xy2 + p2 * (r2 + 2.0 * x * x)) * intr.fx + intr.cx
+        uv[:, 1] = (y * rad + p1 * (r2 + 2.0 * y * y) + p2 * xy2) * intr.fy + intr.cy
+        return uv, rows, z[rows]

@@ -2,11 +2,14 @@
 (point-to-point ICP against a local voxel map, with a constant-velocity prediction and an
 adaptive correspondence threshold; PRBonn's ``kiss-icp`` package, C++ core).
 
-Chosen by measurement (BENCHMARKS.md, "Thermal 3D map"): on the simulated survey (543
-degrees of pan and tilt, 3 m of driving, 15 Hz) it keeps the rotation within a degree where
-OpenCV 5's frame-to-frame depth odometry (``cv2.Odometry``) drifts by 14-24 degrees; Open3D
-0.20 was not taken (a 105 MB wheel that imports plotly and dash at import). Translation
-drifts more (see the benchmark): where the robot reports its pose, use that.
+Chosen by measurement (docs/FINDINGS.md, "Registration for the thermal map"; BENCHMARKS.md,
+"Thermal 3D map"): on the simulated survey (543 degrees of pan and tilt, 3 m of driving,
+every frame at 15 Hz) it keeps the rotation within about a degree with a range-calibrated
+TOF (6 degrees at worst with the uncalibrated one), where OpenCV 5's frame-to-frame depth
+odometry (``cv2.Odometry``) drifts by 14-24 degrees; Open3D 0.20 was not taken (a 105 MB
+wheel that does not import without plotly and dash). The position is its weak side: it
+wanders by up to about 1 m over the survey, already while the head only turns (a narrow
+view of flat walls is not a LiDAR sweep). Where the robot reports its pose, that is used.
 
 Frames: the world frame is the TOF frame of the first cloud, carried by ``T_world_tof0``
 (e.g. the rig's ``T_rig_tof``, so that the world is the rig frame at the start).

@@ -19,8 +19,8 @@ from collections.abc import Mapping
 import cv2
 import numpy as np
 
-from calib.camera import MAX_RAY_RADIUS, monotonic_radius
 from calib.rig import Rig
+from fusion.geometry import Projector32
 
 _KERNEL = np.ones((3, 3), np.uint8)
 
@@ -38,12 +38,7 @@ class SensorSampler:
 
     def __init__(self, rig: Rig, sensor: str, tof: str, rel: float = 0.03) -> None:
         self.sensor = rig[sensor]
-        T = rig.T(sensor, tof)
-        self.R, self.t = T[:3, :3].astype(np.float32), T[:3, 3].astype(np.float32)
-        intr = self.sensor.intrinsics
-        # Beyond the fold of the distortion a point would land on a wrong pixel inside
-        # the image (calib.camera.Intrinsics.project): left out.
-        self._r2_max = float(min(monotonic_radius(intr), MAX_RAY_RADIUS) ** 2)
+        self._project = Projector32(self.sensor.intrinsics, rig.T(sensor, tof))
         self.rel = rel
         # One cell ~ one TOF pixel as the sensor sees it (TOF and sensor angular pitch).
         self.cell = max(1, round(self.sensor.intrinsics.fx / rig[tof].intrinsics.fx))
@@ -54,20 +49,11 @@ class SensorSampler:
     def project(self, points_tof: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The points (N, 3) that land inside the image, before occlusion: their pixels
         (M, 2) float32, their rows (M,) in ``points_tof`` and their depths (M,) along the
-        sensor's axis (metres), through the sensor's distortion; points
-        behind it or beyond the fold of its distortion are left out."""
-        P = points_tof.astype(np.float32, copy=False) @ self.R.T + self.t
-        z = P[:, 2]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            r2 = (P[:, 0] ** 2 + P[:, 1] ** 2) / (z * z)
-            front = np.flatnonzero((z > 0.05) & (r2 <= self._r2_max))
-        intr = self.sensor.intrinsics
-        uv = intr.distort(P[front, :2] / z[front, None]).astype(np.float32)
-        uv[:, 0] = uv[:, 0] * intr.fx + intr.cx
-        uv[:, 1] = uv[:, 1] * intr.fy + intr.cy
+        sensor's axis (metres) (:class:`fusion.geometry.Projector32`)."""
+        uv, rows, z = self._project(points_tof)
         w, h = self.sensor.image_size
         ok = (uv[:, 0] > -0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] > -0.5) & (uv[:, 1] < h - 0.5)
-        return uv[ok], front[ok], z[front[ok]]
+        return uv[ok], rows[ok], z[ok]
 
     def visible_pixels(self, points_tof: np.ndarray) -> np.ndarray:
         """(N, 2) float32 pixel of each point in the sensor; NaN where the point is
@@ -134,19 +120,19 @@ class PointAttributes:
         """Per point (N,) temperature (kelvin, NaN unseen) and (N, 3) colour (RGB 0-255,
         NaN unseen) from ``images``: sensor name -> thermal image in kelvin (H, W) or
         colour image (H, W, 3) uint8 RGB. Sensors missing from ``images`` are skipped."""
-        pts = np.asarray(points_tof, dtype=np.float64).reshape(-1, 3)
+        pts = np.asarray(points_tof, dtype=np.float32).reshape(-1, 3)
         n = len(pts)
-        sums = {"thermal": np.zeros(n), "color": np.zeros((n, 3))}
-        counts = {"thermal": np.zeros(n), "color": np.zeros(n)}
+        sums = {"thermal": np.zeros(n, np.float32), "color": np.zeros((n, 3), np.float32)}
+        counts = {"thermal": np.zeros(n, np.float32), "color": np.zeros(n, np.float32)}
         for name, sampler in self.samplers.items():
             image = images.get(name)
             if image is None:
                 continue
             kind = self.modality[name]
             v = sampler.sample(pts, np.asarray(image))
-            ok = np.isfinite(v) if v.ndim == 1 else np.isfinite(v).all(axis=1)
-            sums[kind][ok] += v[ok]
-            counts[kind][ok] += 1
+            ok = np.isfinite(v) if v.ndim == 1 else np.isfinite(v[:, 0])
+            sums[kind] += np.where(ok if v.ndim == 1 else ok[:, None], v, 0.0)
+            counts[kind] += ok
         with np.errstate(invalid="ignore", divide="ignore"):
             temperature = sums["thermal"] / counts["thermal"]
             colour = sums["color"] / counts["color"][:, None]

@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 
 from calib.camera import Intrinsics
+from fusion.geometry import Projector32
 from fusion.voxel_hash import VoxelHash
 
 
@@ -252,15 +253,15 @@ class VoxelMap:
         for name, a in (("temperature_k", temps), ("rgb", cols)):
             if a is not None and len(a) != n_all:
                 raise ValueError(f"{name}: expected {n_all} values (one per point), got {len(a)}")
-        valid = np.isfinite(p).all(axis=1)
-        pw = p[valid] @ T[:3, :3].T + T[:3, 3]
+        valid = np.isfinite(p[:, 0]) & np.isfinite(p[:, 1]) & np.isfinite(p[:, 2])
+        pw = cv2.transform(p[valid].reshape(-1, 1, 3), T[:3, :]).reshape(-1, 3)
         keys, inside = self.keys_of(pw)
         st = IntegrateStats(points=int(valid.sum()), outside_extent=int((~inside).sum()))
         rows = np.flatnonzero(valid)[inside]  # rows of points_tof that reach the map
         if len(keys):
             self._add_hits(keys, rows, temps, cols, stamp_s, st)
         if depth is not None and self.settings.free_budget > 0 and len(self):
-            self._carve(np.linalg.inv(T), depth, st)
+            self._carve(T, depth, st)
         self.path.append((float(stamp_s), T.copy()))
         self.revision += 1
         for name, value in asdict(st).items():
@@ -297,37 +298,45 @@ class VoxelMap:
         a["hits"][v] += counts[kept].astype(np.uint32)
         a["logodds"][v] = np.minimum(a["logodds"][v] + s.hit_logodds, s.max_logodds)
         a["last_seen"][v] = stamp_s
+        n = len(uniq)
         if temps is not None:
-            t = temps[rows].astype(np.float64)
+            t = temps[rows]
             ok = np.isfinite(t)
-            mean, seen = _group_mean(inverse[ok], t[ok], len(uniq))
-            top = np.full(len(uniq), -np.inf)
-            np.maximum.at(top, inverse[ok], t[ok])
-            sel = seen & kept
+            g, t = inverse[ok], t[ok].astype(np.float64)
+            count = np.bincount(g, minlength=n)
+            sel = (count > 0) & kept
+            mean = np.bincount(g, weights=t, minlength=n)[sel] / count[sel]
+            top = np.full(n, -np.inf)
+            np.maximum.at(top, g, t)
             vi = index[sel]
-            a["temp_n"][vi] += 1
-            w = np.maximum(1.0 / a["temp_n"][vi], s.recency).astype(np.float32)
-            old = np.nan_to_num(a["temp_mean"][vi])
-            a["temp_mean"][vi] = old + w * (mean[sel] - old)
+            self._blend("temp_mean", "temp_n", vi, mean)
             a["temp_max"][vi] = np.fmax(a["temp_max"][vi], top[sel])
-            a["temp_last"][vi] = mean[sel]
+            a["temp_last"][vi] = mean
         if cols is not None:
-            c = cols[rows].astype(np.float64)
-            ok = np.isfinite(c).all(axis=1)
-            sel = None
-            means = []
-            for ch in range(3):
-                m, seen = _group_mean(inverse[ok], c[ok, ch], len(uniq))
-                means.append(m)
-                sel = seen & kept
-            assert sel is not None
-            vi = index[sel]
-            a["rgb_n"][vi] += 1
-            w = np.maximum(1.0 / a["rgb_n"][vi], s.recency).astype(np.float32)[:, None]
-            old = np.nan_to_num(a["rgb"][vi])
-            a["rgb"][vi] = old + w * (np.stack(means, axis=1)[sel] - old)
+            c = cols[rows]
+            ok = np.isfinite(c[:, 0])
+            g, c = inverse[ok], c[ok].astype(np.float64)
+            count = np.bincount(g, minlength=n)
+            sel = (count > 0) & kept
+            mean = (
+                np.stack(
+                    [np.bincount(g, weights=c[:, ch], minlength=n)[sel] for ch in range(3)], axis=1
+                )
+                / count[sel, None]
+            )
+            self._blend("rgb", "rgb_n", index[sel], mean)
 
-    def _carve(self, T_tof_world: np.ndarray, depth: DepthImage, st: IntegrateStats) -> None:
+    def _blend(self, name: str, count_name: str, rows: np.ndarray, reading: np.ndarray) -> None:
+        """The recency-weighted mean: each reading weighs ``max(1 / n, recency)``."""
+        a = self._arrays
+        a[count_name][rows] += 1
+        w = np.maximum(1.0 / a[count_name][rows], self.settings.recency).astype(np.float32)
+        if reading.ndim == 2:
+            w = w[:, None]
+        old = np.nan_to_num(a[name][rows])
+        a[name][rows] = old + w * (reading - old)
+
+    def _carve(self, T_world_tof: np.ndarray, depth: DepthImage, st: IntegrateStats) -> None:
         """Misses for up to ``free_budget`` voxels (in turn) lying in front of the
         measured depth along their pixel's ray."""
         s = self.settings
@@ -337,22 +346,20 @@ class VoxelMap:
             self._cursor = 0
         sel = (np.arange(budget) + self._cursor) % n
         self._cursor = (self._cursor + budget) % n
-        c = self._arrays["centre"][sel].astype(np.float64)
-        pt = c @ T_tof_world[:3, :3].T + T_tof_world[:3, 3]
-        front = pt[:, 2] > 0.05
-        sel, pt = sel[front], pt[front]
-        st.free_checked = len(sel)
-        uv = depth.intrinsics.project(pt)
+        project = Projector32(depth.intrinsics, np.linalg.inv(T_world_tof))
+        uv, rows, _ = project(self._arrays["centre"][sel])
+        st.free_checked = len(rows)
         h, w = depth.distance_m.shape
         u = np.rint(uv[:, 0])
         v = np.rint(uv[:, 1])
-        ok = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        sel, pt = sel[ok], pt[ok]
+        ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        sel = sel[rows[ok]]
         # The nearest depth of the pixel and its neighbours: a voxel of a slanted surface
         # seen through the neighbouring pixel is not free space.
         near = _nearest_depth(depth.distance_m)
         d = near[v[ok].astype(np.intp), u[ok].astype(np.intp)]
-        r = np.linalg.norm(pt, axis=1)
+        c = self._arrays["centre"][sel] - T_world_tof[:3, 3].astype(np.float32)
+        r = np.sqrt((c * c).sum(axis=1))
         with np.errstate(invalid="ignore"):
             free = r < d - (s.margin_m + s.free_margin_rel * d)
         carved = sel[free]
@@ -398,15 +405,6 @@ class VoxelMap:
         m.path = [(float(t), T) for t, T in zip(stamps, poses.reshape(-1, 4, 4), strict=True)]
         m.revision = 1
         return m
-
-
-def _group_mean(groups: np.ndarray, values: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Mean of ``values`` per group id in ``groups`` (n groups), and which groups had any."""
-    total = np.bincount(groups, weights=values, minlength=n)
-    count = np.bincount(groups, minlength=n)
-    seen = count > 0
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return total / count, seen
 
 
 def _nearest_depth(distance_m: np.ndarray) -> np.ndarray:

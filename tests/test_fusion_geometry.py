@@ -373,3 +373,27 @@ def test_in_image_boundaries() -> None:
         in_image(np.zeros(3), 10, 5)
     with pytest.raises(ValueError, match="width: expected a positive integer, got 0"):
         in_image(pixels, 0, 5)
+
+
+@pytest.mark.parametrize("sensor", OTHERS)
+def test_the_float32_projector_agrees_with_project_to_sensor(sensor: str) -> None:
+    """Projector32 (the thermal map's per-frame projection) against the float64 chain:
+    the same points kept (in front, inside the distortion's fold), the same pixels to
+    float32 precision."""
+    from fusion.geometry import Projector32
+
+    rng = np.random.default_rng(21)
+    pts = rng.uniform((-6.0, -4.0, -2.0), (6.0, 4.0, 9.0), size=(20_000, 3))
+    pts[:50] = np.nan
+    want = project_to_sensor(pts, RIG, sensor)
+    uv, rows, z = Projector32(RIG[sensor].intrinsics, RIG.T(sensor, "tof"))(pts)
+    P = transform_points(RIG.T(sensor, "tof"), pts)
+    expected = np.flatnonzero(np.isfinite(want[:, 0]) & (P[:, 2] > 0.05))
+    np.testing.assert_array_equal(rows, expected)
+    # a few thousandths of a pixel in the image; float32's 7 digits far outside it
+    np.testing.assert_allclose(uv, want[rows], rtol=1e-5, atol=5e-3)
+    w, h = RIG[sensor].image_size
+    inside = in_image(want[rows], w, h)
+    assert inside.sum() > 1000
+    np.testing.assert_allclose(uv[inside], want[rows][inside], atol=5e-3)
+    np.testing.assert_allclose(z, P[rows, 2], rtol=1e-5)
