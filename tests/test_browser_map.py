@@ -10,6 +10,7 @@ import re
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.browser_support import console_running, needs_chromium
@@ -91,3 +92,56 @@ def test_the_map_appears_grows_highlights_pauses_saves_and_resets(browser, tmp_p
         wait_status(page, lambda s, n: n == 0, "an empty map")
         status = console.get("/api/map")
         assert status["occupied"] == 0 and status["frames"] == 0
+
+
+def big_map_file(path: Path, n: int = 1_000_000) -> int:
+    """A saved map of about ``n`` occupied 2 cm voxels (the walls, floor and ceiling of a
+    24 x 3 x 24 m hall, 1 m thick), warm spots included; returns the occupied count."""
+    from app.storage.map_file import save_map
+    from fusion.voxel_map import MapSettings, VoxelMap
+
+    rng = np.random.default_rng(4)
+    m = VoxelMap(MapSettings(voxel_m=0.02, max_voxels=2 * n))
+    pts = rng.uniform(-12.0, 12.0, size=(n, 3))
+    axis = rng.integers(0, 3, n)
+    pts[np.arange(n), axis] = np.where(rng.random(n) < 0.5, -12.0, 12.0) + rng.uniform(-0.5, 0.5, n)
+    pts[:, 1] *= 0.125
+    temps = rng.uniform(290.0, 300.0, n)
+    temps[:2000] = 340.0
+    for _ in range(2):  # two hits: occupied
+        m.integrate(np.eye(4), pts, 0.0, temps)
+    save_map(path, m)
+    return int(m.occupied().sum())
+
+
+def test_a_map_of_a_million_voxels_loads_and_the_scene_stays_interactive(browser, tmp_path) -> None:
+    workdir = tmp_path / "work"
+    (workdir / "maps").mkdir(parents=True)
+    occupied = big_map_file(workdir / "maps" / "hall.map.npz")
+    assert occupied > 900_000
+    with console_running(["--workdir", str(workdir)]) as console:
+        page = open_scene(browser, console.signin("/console/"))
+        page.get_by_text("Thermal map", exact=True).click()
+        page.get_by_label("Saved maps").click()
+        page.get_by_role("option", name="hall", exact=True).click()
+        page.get_by_role("button", name="Load map", exact=True).click()
+        page.wait_for_function(
+            "() => /shown as [\\d,]+ cells of \\d+ voxels/.test(document.body.innerText)",
+            timeout=120_000,
+        )
+        text = page.inner_text("body")
+        shown = int(re.search(r"shown as ([\d,]+) cells", text).group(1).replace(",", ""))
+        assert 0 < shown <= 300_000
+        assert map_status(page) == ("paused", occupied)
+        # the browser still answers: a view button moves its camera and the picture changes
+        page.get_by_role("button", name="View from above").click()
+        above = shot_when(
+            page, SHOTS / "map-million.png", lambda p: drawn_fraction(p) > 0.2, "the hall drawn"
+        )
+        page.get_by_role("button", name="View from side").click()
+        shot_when(
+            page,
+            SHOTS / "map-million-side.png",
+            lambda p: np.abs(p.astype(int) - above.astype(int)).mean() > 5,
+            "the view to move",
+        )

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from app.cli.args import EXIT_OK, PROG, Commands, add_every_argument
 from app.cli.files import add_out_dir_argument, check_output_dir
-from app.cli.output import err, out, progress_bar
+from app.cli.output import err, frame_progress, out
 from fusion.compose import DISPLAY_MODES
 
 
@@ -55,16 +55,7 @@ def run(args: argparse.Namespace) -> int:
     opened = open_source(args.recording, rig=given, realtime=False)
     with opened.source as src:
         out_dir.mkdir(parents=True, exist_ok=True)
-        tty = sys.stderr.isatty()
-        shown = [-1]
-
-        def progress(done: int, total: int | None) -> None:
-            tenth = (10 * done // total) if total else done // 100
-            if tty:
-                print(f"\r{progress_bar(done, total)}", end="", file=sys.stderr, flush=True)
-            elif tenth != shown[0]:
-                shown[0] = tenth
-                err(progress_bar(done, total))
+        progress = frame_progress()
 
         out(
             f"Fusing {args.recording} ({src.duration_s:.3f} s) in {args.mode} mode "
@@ -72,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
             f"into {out_dir}/"
         )
         result = fuse_recording(src, opened.rig, out_dir, settings, args.every, progress)
-        if tty:
+        if sys.stderr.isatty():  # end the bar's line
             print(file=sys.stderr)
     out(f"Wrote {result.frames} fused frames to {out_dir}/ (000000.jpg ..., frames.csv)")
     if result.video is not None:

@@ -11,7 +11,7 @@ import numpy as np
 
 from app.cli.args import EXIT_OK, PROG, Commands, UsageError, positive_float
 from app.cli.files import load_rig_arg
-from app.cli.output import err, out, progress_bar
+from app.cli.output import err, frame_progress, out
 from app.recording.map3d import MAX_IMAGE_AGE_S, POSE_MODES
 from app.storage.map_file import MAP_SUFFIX
 
@@ -145,16 +145,7 @@ def run(args: argparse.Namespace) -> int:
     settings = MapSettings(voxel_m=args.voxel)
     rig = load_rig_arg(args.rig, "--rig") if args.rig else None
     sources, rig = open_recordings(inputs, rig)
-    tty = sys.stderr.isatty()
-    shown = [-1]
-
-    def progress(done: int, total: int | None) -> None:
-        tenth = (10 * done // total) if total else done // 100
-        if tty:
-            print(f"\r{progress_bar(done, total)}", end="", file=sys.stderr, flush=True)
-        elif tenth != shown[0]:
-            shown[0] = tenth
-            err(progress_bar(done, total))
+    progress = frame_progress()
 
     try:
         total_s = sum(src.duration_s for src in sources)
@@ -164,7 +155,7 @@ def run(args: argparse.Namespace) -> int:
             f"{'as --pose auto finds it' if args.pose == 'auto' else f'by --pose {args.pose}'}"
         )
         result = build_map(sources, rig, settings, args.pose, progress)
-        if tty:
+        if sys.stderr.isatty():  # end the bar's line
             print(file=sys.stderr)
     finally:
         for src in sources:

@@ -36,3 +36,21 @@ def progress_bar(done: int, total: int | None, width: int = 30) -> str:
         return f"[{'?' * width}] {done} frames"
     filled = min(width, round(width * done / total))
     return f"[{'#' * filled}{'.' * (width - filled)}] {done}/{total} frames"
+
+
+def frame_progress() -> Callable[[int, int | None], None]:
+    """A progress callback ``(frames done, total or None)``: a bar redrawn in place on a
+    terminal, else a line each time it enters a new tenth (every 100 frames without a
+    total), on stderr."""
+    tty = sys.stderr.isatty()
+    shown = [-1]
+
+    def progress(done: int, total: int | None) -> None:
+        tenth = (10 * done // total) if total else done // 100
+        if tty:
+            print(f"\r{progress_bar(done, total)}", end="", file=sys.stderr, flush=True)
+        elif tenth != shown[0]:
+            shown[0] = tenth
+            err(progress_bar(done, total))
+
+    return progress

@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from app.recording.errors import RecordingDamaged
+from app.recording.errors import RecordingDamaged, RecordingError
 from app.recording.player import MessageReplay
 from app.sources.base import frame_sets
 from app.storage.atomic import atomic_write_bytes, atomic_write_text, fsync_dir
@@ -126,8 +126,8 @@ def fuse_recording(
                 result.skipped[reason] = result.skipped.get(reason, 0) + 1
             else:
                 for eye in eyes.values():
-                    _check_size(fs[eye.color].image, rig, eye.color)
-                    _check_size(fs[eye.thermal].image, rig, eye.thermal)
+                    check_frame_size(fs[eye.color].image, rig, eye.color)
+                    check_frame_size(fs[eye.thermal].image, rig, eye.thermal)
                 colors = {e: fs[eye.color].image for e, eye in eyes.items()}
                 thermals = {
                     e: radiometry[eye.thermal].apply(fs[eye.thermal].image, out=kelvin[e])
@@ -164,10 +164,12 @@ def fuse_recording(
     return result
 
 
-def _check_size(image: np.ndarray, rig: Rig, sensor: str) -> None:
+def check_frame_size(image: np.ndarray, rig: Rig, sensor: str) -> None:
+    """RecordingError (a ValueError) unless ``image`` has ``sensor``'s size in ``rig``: a
+    recording replayed with another head's rig."""
     w, h = rig[sensor].image_size
     if image.shape[:2] != (h, w):
-        raise ValueError(
+        raise RecordingError(
             f"frame of {sensor!r} is {image.shape[1]}x{image.shape[0]}, but the rig says "
             f"{w}x{h}: is this the recording's rig?"
         )

@@ -30,7 +30,8 @@ from typing import Literal
 
 import numpy as np
 
-from app.recording.errors import RecordingDamaged, RecordingError
+from app.recording.errors import RecordingDamaged
+from app.recording.fuse import check_frame_size
 from app.recording.poses import TOLERANCE_S, RecordingPoses, read_poses
 from app.recording.reader import ReplaySource
 from app.sources.frames import Frame
@@ -205,12 +206,12 @@ def build_map(
             if best is None or abs(best.stamp_ns - tof.stamp_ns) > age_ns:
                 run.images_missing[name] = run.images_missing.get(name, 0) + 1
                 continue
-            _check_size(best.image, rig, name)
+            check_frame_size(best.image, rig, name)
             if name in radiometry:
                 chosen[name] = radiometry[name].apply(best.image)
             else:
                 chosen[name] = best.image
-        _check_size(tof.distance_m, rig, builder.tof)
+        check_frame_size(tof.distance_m, rig, builder.tof)
         T = None
         if rec_poses is not None:
             T = rec_poses.at(tof.stamp_ns)
@@ -253,12 +254,3 @@ def build_map(
             add(pending.popleft(), history, rec_poses)
     run.seconds = time.perf_counter() - t0
     return run
-
-
-def _check_size(image: np.ndarray, rig: Rig, sensor: str) -> None:
-    w, h = rig[sensor].image_size
-    if image.shape[:2] != (h, w):
-        raise RecordingError(
-            f"frame of {sensor!r} is {image.shape[1]}x{image.shape[0]}, but the rig says "
-            f"{w}x{h}: is this the recording's rig?"
-        )
