@@ -64,7 +64,8 @@ def test_the_ply_holds_the_occupied_voxels_as_an_independent_reader_sees_them(
     assert ply.text is False and ply.byte_order == "<"
     vertex = ply["vertex"]
     assert [p.name for p in vertex.properties] == [
-        "x", "y", "z", "red", "green", "blue", "temperature", "temperature_max", "observations"
+        "x", "y", "z", "red", "green", "blue", "temperature", "temperature_max", "observations",
+        "quality",
     ]  # fmt: skip
     kinds = {p.name: p.val_dtype for p in vertex.properties}
     assert kinds["x"] == "f4" and kinds["red"] == "u1" and kinds["observations"] == "u4"
@@ -83,6 +84,9 @@ def test_the_ply_holds_the_occupied_voxels_as_an_independent_reader_sees_them(
         v["temperature_max"], voxel_map["temp_max"][occ] - 273.15, atol=1e-4, equal_nan=True
     )
     assert np.isnan(v["temperature"]).sum() == np.isnan(voxel_map["temp_mean"][occ]).sum() > 0
+    seen_t = np.isfinite(v["temperature"])  # MeshLab's scalar: no NaN, absolute zero
+    np.testing.assert_array_equal(v["quality"][seen_t], v["temperature"][seen_t])
+    assert (v["quality"][~seen_t] == np.float32(-273.15)).all()
     rgb = voxel_map["rgb"][occ]
     seen = np.isfinite(rgb).all(axis=1)
     got = np.stack([v["red"], v["green"], v["blue"]], 1)

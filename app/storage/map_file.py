@@ -7,8 +7,11 @@ trifuse loads again (docs/FORMATS.md, "Thermal 3D map").
   colour camera saw the voxel), ``float temperature`` and ``float temperature_max`` (the
   recency-weighted mean and the maximum, degrees Celsius, NaN where no thermal imager saw
   the voxel) and ``uint observations`` (TOF points that fell in the voxel), with
-  ``comment`` lines naming trifuse, the voxel size and the units. CloudCompare, MeshLab and
-  Open3D read it (in CloudCompare a NaN scalar is "no value").
+  ``comment`` lines naming trifuse, the voxel size and the units, and ``float quality``
+  again the mean temperature, the one per-vertex scalar MeshLab reads (pymeshlab 2025.7
+  drops other properties), -273.15 instead of NaN (MeshLab's Colorize by vertex quality
+  aborts on a NaN). CloudCompare, MeshLab and Open3D read it (in CloudCompare a NaN
+  scalar is "no value").
 * :func:`save_map` / :func:`load_map`: every voxel (occupied or not) with all it knows,
   the head's path and the map's settings, as a NumPy ``.npz`` (no pickles) tagged
   ``format = trifuse-map/1``; :func:`load_map` checks it and raises :class:`MapFileError`
@@ -49,10 +52,13 @@ PLY_VERTEX = np.dtype(
         ("temperature", "<f4"),
         ("temperature_max", "<f4"),
         ("observations", "<u4"),
+        ("quality", "<f4"),
     ]
 )
-"""One PLY vertex as written (packed, little-endian): 27 bytes."""
+"""One PLY vertex as written (packed, little-endian): 31 bytes."""
 _PLY_TYPES = {"<f4": "float", "u1": "uchar", "<u4": "uint"}
+NO_QUALITY = np.float32(-KELVIN_AT_0_C)
+"""``quality`` of a voxel no thermal imager saw: -273.15 (a NaN crashes MeshLab)."""
 NO_COLOUR = 128
 """The grey (each channel) of a voxel no colour camera saw."""
 
@@ -93,6 +99,9 @@ def ply_vertices(voxel_map: VoxelMap) -> np.ndarray:
     out["temperature"] = voxel_map["temp_mean"][occ] - np.float32(KELVIN_AT_0_C)
     out["temperature_max"] = voxel_map["temp_max"][occ] - np.float32(KELVIN_AT_0_C)
     out["observations"] = voxel_map["hits"][occ]
+    # MeshLab reads only this name as a scalar, and its Colorize by vertex quality aborts
+    # on NaN (pymeshlab 2025.7): absolute zero stands for "no reading" there
+    out["quality"] = np.where(np.isfinite(out["temperature"]), out["temperature"], NO_QUALITY)
     return out
 
 
