@@ -16,7 +16,7 @@ from app.devtools import bench, benchmark
 
 ROOT = Path(__file__).resolve().parent.parent
 COMMANDS = [
-    "simulate", "calibrate", "compare", "analyze", "record", "fuse", "map", "serve", "bench"
+    "simulate", "calibrate", "compare", "rig", "analyze", "record", "fuse", "map", "serve", "bench"
 ]  # fmt: skip
 
 

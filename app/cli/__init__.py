@@ -24,6 +24,7 @@ from app.cli import (
     compare,
     fuse,
     record,
+    rig,
     serve,
     simulate,
 )
@@ -36,6 +37,7 @@ COMMANDS = (
     simulate,
     calibrate,
     compare,
+    rig,
     calibrate_range,
     balance_thermal,
     serve,

@@ -134,6 +134,18 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         help="build the thermal 3D map from the start (the 3D console's Thermal map folder "
         "and /api/map turn it on and off; maps are saved in WORKDIR/maps)",
     )
+    srv.add_argument(
+        "--foxglove-port",
+        type=bounded_int(1, 65535),
+        metavar="N",
+        help="also publish the live sensor images, the fused pair (H.264), the rig's "
+        "transforms and calibrations, the TOF point cloud and the sensor health to Foxglove "
+        "(foxglove-sdk's WebSocket server; the topics and schemas of a recording, "
+        "docs/FORMATS.md 'Foxglove live') at ws://127.0.0.1:N. It has no authentication: "
+        "the console's token does not guard it, so it always binds 127.0.0.1, whatever "
+        "--host says; from another machine use an SSH tunnel (ssh -L N:127.0.0.1:N robot). "
+        "Any local user or web page can read it (docs/SECURITY.md)",
+    )
     srv.add_argument("--certfile", metavar="PEM", help="TLS certificate (chain): serve HTTPS/WSS")
     srv.add_argument("--keyfile", metavar="PEM", help="the certificate's private key")
     return srv
@@ -228,6 +240,13 @@ def run(args: argparse.Namespace) -> int:
     except OSError as e:
         raise UsageError(f"{PROG} serve: {e}") from None
     try:
+        if args.foxglove_port is not None:
+            from app.server.runtime.foxglove_live import check_foxglove_port
+
+            try:
+                check_foxglove_port(args.foxglove_port)
+            except OSError as e:
+                raise UsageError(f"{PROG} serve: {e}") from None
         workdir = Path(args.workdir)
         try:
             lock = lock_workdir(workdir)
@@ -254,6 +273,7 @@ def run(args: argparse.Namespace) -> int:
                 sock,
                 args.console_bandwidth,
                 build_map=args.map,
+                foxglove_port=args.foxglove_port,
             )
     finally:
         sock.close()

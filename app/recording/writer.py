@@ -18,6 +18,10 @@ A recording may also keep the fused stereo picture as H.264 (``/fused/video``,
 :meth:`RecordingWriter.add_fused_video`, :meth:`RecordingWriter.write_video`;
 :mod:`app.recording.video_track` makes it). Observers (:attr:`RecordingWriter.observers`)
 see every frame written and the file's end: ``trifuse record --fused-video`` fuses there.
+
+The messages are built by module functions (:func:`sensor_channels`, :func:`frame_messages`,
+:func:`calibration_message`, :func:`transform_message`) that the console's live Foxglove
+server shares (:mod:`app.server.runtime.foxglove_live`): live and recorded, the same bytes.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ import random
 import re
 import string
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
 from typing import Protocol
@@ -129,6 +134,150 @@ def _stamp(value: object, sensor: str) -> int:
             f"frame of {sensor!r}: stamp_ns: expected 0 <= stamp_ns < 2**63, got {stamp}"
         )
     return stamp
+
+
+# -- the messages (shared with the console's live Foxglove server, foxglove_live.py) ---------
+
+
+def channel_kinds(s: Sensor, thermal_encoding: str = "16UC1") -> list[tuple[str, type, str]]:
+    """(kind, foxglove channel class, ``trifuse.unit``) of each channel a sensor has in a
+    recording, its calibration last (:data:`app.recording.layout.SCHEMA_OF_KIND`)."""
+    kinds: list[tuple[str, type, str]]
+    if s.modality == "color":
+        kinds = [("color", CompressedImageChannel, "rgb")]
+    elif s.modality == "thermal":
+        unit = "centikelvin" if thermal_encoding == "16UC1" else "kelvin"
+        kinds = [("thermal", RawImageChannel, unit)]
+    else:
+        kinds = [
+            ("tof_distance", RawImageChannel, "millimetre"),
+            ("tof_amplitude", RawImageChannel, "amplitude"),
+        ]
+    return [*kinds, ("calibration", CameraCalibrationChannel, "pixel")]
+
+
+def sensor_channels(
+    context: foxglove.Context, s: Sensor, thermal_encoding: str = "16UC1"
+) -> dict[tuple[str, str], object]:
+    """A sensor's channels in ``context``, keyed by (sensor, kind): topics
+    (:func:`~app.recording.layout.topic_of`), schemas and metadata (``trifuse.sensor``,
+    ``trifuse.kind``, ``trifuse.unit``) as a recording has them."""
+    name = s.name
+    return {
+        (name, kind): cls(
+            topic_of(name, kind),
+            context=context,
+            metadata={"trifuse.sensor": name, "trifuse.kind": kind, "trifuse.unit": unit},
+        )
+        for kind, cls, unit in channel_kinds(s, thermal_encoding)
+    }
+
+
+def check_plane(a: object, s: Sensor, what: str) -> np.ndarray:
+    """``a`` if it is a (H, W) array of numbers of the sensor's size, else RecordingError."""
+    w, h = s.image_size
+    if not isinstance(a, np.ndarray) or a.shape != (h, w):
+        got = a.shape if isinstance(a, np.ndarray) else type(a).__name__
+        raise RecordingError(
+            f"frame of {s.name!r}: {what}: expected an array of shape ({h}, {w}) "
+            f"(the rig's {w}x{h}), got {got}"
+        )
+    if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+        raise RecordingError(f"frame of {s.name!r}: {what}: expected numbers, got dtype {a.dtype}")
+    return a
+
+
+def frame_messages(
+    frame: Frame,
+    s: Sensor,
+    stamp: int,
+    jpeg_quality: int = 90,
+    thermal_encoding: str = "16UC1",
+    wanted: Callable[[str], bool] | None = None,
+) -> list[tuple[str, object]]:
+    """(kind, message) of each stream of a sensor's frame taken at ``stamp`` (ns): a
+    colour image as JPEG ``foxglove.CompressedImage``, a thermal image as
+    ``foxglove.RawImage`` (``16UC1`` centi-kelvin or ``32FC1`` kelvin), a TOF frame's
+    distance (if it has one) and amplitude as ``16UC1`` RawImages; frame id the sensor.
+
+    The frame is checked against the sensor first (RecordingError: wrong type or size);
+    ``wanted(kind)`` False leaves that message out (not encoded: nobody takes it).
+    """
+    name = s.name
+    ts = _timestamp(stamp)
+    w, h = s.image_size
+    want = wanted or (lambda _kind: True)
+    if s.modality == "color":
+        img = frame.image
+        if (
+            not isinstance(img, np.ndarray)
+            or img.dtype != np.uint8
+            or img.shape not in ((h, w, 3), (h, w))
+        ):
+            got = f"{img.dtype} {img.shape}" if isinstance(img, np.ndarray) else type(img).__name__
+            raise RecordingError(
+                f"frame of {name!r}: expected a colour image uint8 ({h}, {w}, 3) RGB, got {got}"
+            )
+        if not want("color"):
+            return []
+        bgr = cv2.cvtColor(img, cv2.COLOR_RGB2BGR) if img.ndim == 3 else img
+        ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+        if not ok:
+            raise RecordingError(f"frame of {name!r}: OpenCV could not encode it as JPEG")
+        msg = CompressedImage(timestamp=ts, frame_id=name, data=buf.tobytes(), format="jpeg")
+        return [("color", msg)]
+    if frame.distance_m is not None and s.modality != "tof":
+        raise RecordingError(f"frame of {name!r}: a {s.modality} frame has no distance_m")
+    image = check_plane(frame.image, s, "image")
+    if s.modality == "thermal":
+        if not want("thermal"):
+            return []
+        if thermal_encoding == "16UC1":
+            raw = _raw(ts, name, encode_thermal(image), "16UC1")
+        else:
+            raw = _raw(ts, name, image.astype("<f4"), "32FC1")
+        return [("thermal", raw)]
+    out: list[tuple[str, object]] = []
+    if frame.distance_m is not None:
+        distance = check_plane(frame.distance_m, s, "distance_m")
+        if want("tof_distance"):
+            out.append(("tof_distance", _raw(ts, name, encode_distance(distance))))
+    if want("tof_amplitude"):
+        out.append(("tof_amplitude", _raw(ts, name, encode_amplitude(image))))
+    return out
+
+
+def calibration_message(s: Sensor, stamp: int) -> CameraCalibration:
+    """The sensor's ``foxglove.CameraCalibration`` (K, D, size; frame id the sensor)."""
+    i = s.intrinsics
+    model, d = distortion_model(i.distortion)
+    K = [float(v) for v in i.K.ravel()]
+    P = [i.fx, 0.0, i.cx, 0.0, 0.0, i.fy, i.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+    return CameraCalibration(
+        timestamp=_timestamp(stamp),
+        frame_id=s.name,
+        width=int(s.image_size[0]),
+        height=int(s.image_size[1]),
+        distortion_model=model,
+        D=d,
+        K=K,
+        R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        P=P,
+    )
+
+
+def transform_message(T: np.ndarray, parent: str, child: str, stamp: int) -> FrameTransform:
+    """A ``foxglove.FrameTransform`` of the (4, 4) pose ``T`` of ``child`` in ``parent``:
+    ``T_rig_<sensor>`` (parent :data:`~app.recording.layout.RIG_FRAME`) or the head's pose
+    ``T_world_rig`` (parent :data:`~app.recording.layout.WORLD_FRAME`)."""
+    x, y, z, w = quaternion_from_rotation(T[:3, :3])
+    return FrameTransform(
+        timestamp=_timestamp(stamp),
+        parent_frame_id=parent,
+        child_frame_id=child,
+        translation=Vector3(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
+        rotation=Quaternion(x=x, y=y, z=z, w=w),
+    )
 
 
 class RecordingWriter:
@@ -273,28 +422,7 @@ class RecordingWriter:
         self._file.close()  # closing the descriptor releases the lock
 
     def _make_channels(self, name: str, s: Sensor) -> None:
-        def meta(kind: str, unit: str) -> dict[str, str]:
-            return {"trifuse.sensor": name, "trifuse.kind": kind, "trifuse.unit": unit}
-
-        ctx = self._ctx
-        kinds: list[tuple[str, type, str]]
-        if s.modality == "color":
-            kinds = [("color", CompressedImageChannel, "rgb")]
-        elif s.modality == "thermal":
-            unit = "centikelvin" if self.thermal_encoding == "16UC1" else "kelvin"
-            kinds = [("thermal", RawImageChannel, unit)]
-        else:
-            kinds = [
-                ("tof_distance", RawImageChannel, "millimetre"),
-                ("tof_amplitude", RawImageChannel, "amplitude"),
-            ]
-        for kind, cls, unit in kinds:
-            self._channels[(name, kind)] = cls(
-                topic_of(name, kind), context=ctx, metadata=meta(kind, unit)
-            )
-        self._channels[(name, "calibration")] = CameraCalibrationChannel(
-            topic_of(name, "calibration"), context=ctx, metadata=meta("calibration", "pixel")
-        )
+        self._channels.update(sensor_channels(self._ctx, s, self.thermal_encoding))
 
     # -- writing --------------------------------------------------------------------------
 
@@ -324,7 +452,12 @@ class RecordingWriter:
             self.duplicates_skipped += 1
             return False
         s = self.rig[sensor]
-        messages = self._encode(frame, s, stamp)  # checks everything before writing anything
+        messages = [  # checks everything before writing anything
+            (self._channels[(sensor, kind)], msg)
+            for kind, msg in frame_messages(
+                frame, s, stamp, self.jpeg_quality, self.thermal_encoding
+            )
+        ]
         if self._next_calibration_ns is None or stamp >= self._next_calibration_ns:
             self._write_calibration(stamp)
         for channel, msg in messages:
@@ -363,15 +496,7 @@ class RecordingWriter:
         T = np.asarray(T_world_rig, dtype=np.float64)
         if stamp == self._last_pose_ns:
             return False
-        x, y, z, w = quaternion_from_rotation(T[:3, :3])
-        tf = FrameTransform(
-            timestamp=_timestamp(stamp),
-            parent_frame_id=WORLD_FRAME,
-            child_frame_id=RIG_FRAME,
-            translation=Vector3(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
-            rotation=Quaternion(x=x, y=y, z=z, w=w),
-        )
-        self._tf.log(tf, log_time=stamp)
+        self._tf.log(transform_message(T, WORLD_FRAME, RIG_FRAME, stamp), log_time=stamp)
         self._last_pose_ns = stamp
         self.poses_written += 1
         if time.monotonic() >= self._next_seal:
@@ -433,93 +558,11 @@ class RecordingWriter:
         """Access units written to ``/fused/video`` (0 without the track)."""
         return 0 if self.fused_video is None else self.fused_video.written
 
-    def _check_plane(self, a: object, s: Sensor, what: str) -> np.ndarray:
-        w, h = s.image_size
-        if not isinstance(a, np.ndarray) or a.shape != (h, w):
-            got = a.shape if isinstance(a, np.ndarray) else type(a).__name__
-            raise RecordingError(
-                f"frame of {s.name!r}: {what}: expected an array of shape ({h}, {w}) "
-                f"(the rig's {w}x{h}), got {got}"
-            )
-        if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
-            raise RecordingError(
-                f"frame of {s.name!r}: {what}: expected numbers, got dtype {a.dtype}"
-            )
-        return a
-
-    def _encode(self, frame: Frame, s: Sensor, stamp: int) -> list[tuple[object, object]]:
-        name = s.name
-        ts = _timestamp(stamp)
-        w, h = s.image_size
-        if s.modality == "color":
-            img = frame.image
-            if (
-                not isinstance(img, np.ndarray)
-                or img.dtype != np.uint8
-                or img.shape not in ((h, w, 3), (h, w))
-            ):
-                got = (
-                    f"{img.dtype} {img.shape}"
-                    if isinstance(img, np.ndarray)
-                    else type(img).__name__
-                )
-                raise RecordingError(
-                    f"frame of {name!r}: expected a colour image uint8 ({h}, {w}, 3) RGB, got {got}"
-                )
-            bgr = cv2.cvtColor(img, cv2.COLOR_RGB2BGR) if img.ndim == 3 else img
-            ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
-            if not ok:
-                raise RecordingError(f"frame of {name!r}: OpenCV could not encode it as JPEG")
-            msg = CompressedImage(timestamp=ts, frame_id=name, data=buf.tobytes(), format="jpeg")
-            return [(self._channels[(name, "color")], msg)]
-        if frame.distance_m is not None and s.modality != "tof":
-            raise RecordingError(f"frame of {name!r}: a {s.modality} frame has no distance_m")
-        image = self._check_plane(frame.image, s, "image")
-        if s.modality == "thermal":
-            if self.thermal_encoding == "16UC1":
-                raw = _raw(ts, name, encode_thermal(image), "16UC1")
-            else:
-                raw = _raw(ts, name, image.astype("<f4"), "32FC1")
-            return [(self._channels[(name, "thermal")], raw)]
-        out: list[tuple[object, object]] = []
-        if frame.distance_m is not None:
-            distance = self._check_plane(frame.distance_m, s, "distance_m")
-            out.append(
-                (self._channels[(name, "tof_distance")], _raw(ts, name, encode_distance(distance)))
-            )
-        out.append(
-            (self._channels[(name, "tof_amplitude")], _raw(ts, name, encode_amplitude(image)))
-        )
-        return out
-
     def _write_calibration(self, stamp: int) -> None:
-        ts = _timestamp(stamp)
         for name, s in self.rig.sensors.items():
-            i = s.intrinsics
-            model, d = distortion_model(i.distortion)
-            K = [float(v) for v in i.K.ravel()]
-            P = [i.fx, 0.0, i.cx, 0.0, 0.0, i.fy, i.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
-            cal = CameraCalibration(
-                timestamp=ts,
-                frame_id=name,
-                width=int(s.image_size[0]),
-                height=int(s.image_size[1]),
-                distortion_model=model,
-                D=d,
-                K=K,
-                R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-                P=P,
-            )
+            cal = calibration_message(s, stamp)
             self._channels[(name, "calibration")].log(cal, log_time=stamp)  # type: ignore[attr-defined]
-            T = s.T_rig_sensor
-            x, y, z, w = quaternion_from_rotation(T[:3, :3])
-            tf = FrameTransform(
-                timestamp=ts,
-                parent_frame_id=RIG_FRAME,
-                child_frame_id=name,
-                translation=Vector3(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
-                rotation=Quaternion(x=x, y=y, z=z, w=w),
-            )
+            tf = transform_message(s.T_rig_sensor, RIG_FRAME, name, stamp)
             self._tf.log(tf, log_time=stamp)
         self._next_calibration_ns = stamp + self.calibration_period_ns
 

@@ -18,10 +18,11 @@ from app.server.panels.display import Panels
 from app.server.panels.map_panel import MapPanel
 from app.server.panels.precision import PrecisionPanel
 from app.server.panels.range import RangePanel
+from app.server.panels.rig_files import RigFilesPanel
 from app.server.panels.scene3d import Scene3D
 from app.server.panels.source import SourcePanel
 from app.server.routers.app import create_app
-from app.server.routers.auth import AuthConfig
+from app.server.routers.auth import AuthConfig, is_loopback
 from app.server.routers.connections import GuardedH11Protocol, quiet_repeated_logs
 from app.server.routers.console_api import make_console_settings_router
 from app.server.routers.map_api import make_map_router
@@ -30,6 +31,7 @@ from app.server.routers.viser_bridge import start_guarded_viser
 from app.server.runtime.board_watch import BoardWatch
 from app.server.runtime.context import ConsoleBandwidth, ConsoleContext
 from app.server.runtime.demand import ConsoleDemand, hold_while_connected
+from app.server.runtime.foxglove_live import FoxgloveLive
 from app.server.runtime.map_worker import MapWorker
 from app.server.runtime.pipeline import FusionPipeline
 from app.server.runtime.source_control import SourceControl, SourceTap
@@ -124,13 +126,16 @@ def serve(
     sock: socket.socket | None = None,
     console_bandwidth: str = "full",
     build_map: bool = False,
+    foxglove_port: int | None = None,
 ) -> None:
     """Run the console until interrupted; the calibration session lives in ``workdir``.
     ``auth`` (auth.py) guards every route and WebSocket; its port is the one served, on
     ``sock`` (:func:`bind_public_socket`) if given. ``console_bandwidth``: the 3D
     console's starting bandwidth mode (``full``, ``low``; context.py). ``build_map``:
     build the thermal 3D map from the start (map_worker.py; else the operator turns it
-    on)."""
+    on). ``foxglove_port``: also publish the live frames, transforms, calibrations, fused
+    video, TOF cloud and health on foxglove-sdk's WebSocket server at 127.0.0.1:PORT
+    (foxglove_live.py; OSError in one line if the port is taken)."""
     port = auth.port
     source, rig = opened.source, opened.rig
     try:  # first: a work directory of another board or rig is refused before anything runs
@@ -164,6 +169,15 @@ def serve(
         bandwidth=ConsoleBandwidth(console_bandwidth),
     )
     control = SourceControl(pipeline, hub, opened.description, workdir)
+    live = None
+    if foxglove_port is not None:  # before the parts start: a refused port leaves nothing
+        try:
+            live = FoxgloveLive(control, foxglove_port)
+        except BaseException:
+            pipeline.stop()
+            session.close()
+            server.stop()
+            raise
     mapper = MapWorker(
         pipeline, getattr(source, "head_pose", None), workdir / "maps", enabled=build_map
     )
@@ -175,6 +189,7 @@ def serve(
         MapPanel(ctx, mapper),
         Panels(ctx),
     ]
+    RigFilesPanel(ctx)  # the rig in robotics formats: export and import (no periodic work)
     for panel in panels:
         panel.demand = demand.gui  # updated only while a Viser client is connected
     parts = [
@@ -184,6 +199,8 @@ def serve(
         PrecisionPanel(ctx).start(),
         mapper.start(),
     ]
+    if live is not None:
+        parts.append(live.start())
     parts.append(control)  # stopped first: a running recording is finished and kept
     app = create_app(hub, server.get_port(), pipeline, control, balancer, auth, viser_secret)
     app.include_router(
@@ -211,6 +228,17 @@ def serve(
     )
     if auth.token is None:
         print("no token: anyone on this machine can use the console (--no-token)", flush=True)
+    if live is not None:
+        away = (
+            ""
+            if is_loopback(host)
+            else f"; from another machine: ssh -L {live.port}:127.0.0.1:{live.port} this host"
+        )
+        print(
+            f"Foxglove live on {live.url} (Foxglove: Open connection, Foxglove WebSocket; "
+            f"127.0.0.1 only, not guarded by the token: docs/SECURITY.md{away})",
+            flush=True,
+        )
     config = uvicorn.Config(
         app,
         host=host,

@@ -1,0 +1,129 @@
+"""The console's "Rig files" folder (issue 21): the rig in use exported in a robotics
+format (ROS camera_info, Kalibr camchain, OpenCV FileStorage, URDF) as a zip the browser
+downloads, and a rig imported from such files (a single file or a zip) saved as the
+session's next rig version, which the Calibration panel's Saved rig then offers to use.
+
+What a format cannot hold, or what imported files did not say, is listed under the
+buttons (calib.rig_formats).
+"""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from collections.abc import Mapping
+from pathlib import PurePosixPath
+
+from app.errors import describe_error
+from app.server.runtime.context import ConsoleContext
+from calib.errors import RigError
+from calib.rig import Rig
+from calib.rig_formats import IMPORT_FORMATS, RIG_FORMATS, export_rig, import_rig
+
+MAX_UPLOAD_BYTES = 4 << 20
+"""Rig files are small: a larger upload is refused."""
+
+
+def zip_files(files: Mapping[str, str]) -> bytes:
+    """The files (relative path -> text) as a zip archive."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+        for name, text in sorted(files.items()):
+            z.writestr(name, text)
+    return buf.getvalue()
+
+
+def uploaded_files(name: str, content: bytes) -> dict[str, str]:
+    """An upload as files (name -> text): the members of a zip, or the one file."""
+    if len(content) > MAX_UPLOAD_BYTES:
+        raise ValueError(f"{name}: {len(content)} bytes; rig files are at most {MAX_UPLOAD_BYTES}")
+    if zipfile.is_zipfile(io.BytesIO(content)):
+        out = {}
+        with zipfile.ZipFile(io.BytesIO(content)) as z:
+            for info in z.infolist():
+                if info.is_dir() or info.file_size > MAX_UPLOAD_BYTES:
+                    continue
+                out[PurePosixPath(info.filename).name] = z.read(info).decode("utf-8")
+        if not out:
+            raise ValueError(f"{name}: an empty zip")
+        return out
+    try:
+        return {PurePosixPath(name).name: content.decode("utf-8")}
+    except UnicodeDecodeError:
+        raise ValueError(f"{name}: not a text file or a zip") from None
+
+
+def parse_eyes(text: str) -> dict[str, tuple[str, str]]:
+    """``left=ccd_left:thermal_left,right=ccd_right:thermal_right`` -> {eye: (colour,
+    thermal)}; empty text: no eyes."""
+    eyes = {}
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        eye, sep, pair = part.partition("=")
+        color, sep2, thermal = pair.partition(":")
+        if not (sep and sep2 and eye.strip() and color.strip() and thermal.strip()):
+            raise ValueError(f"eyes: expected EYE=COLOUR:THERMAL[,...], got {part!r}")
+        eyes[eye.strip()] = (color.strip(), thermal.strip())
+    return eyes
+
+
+def eyes_text(rig: Rig) -> str:
+    """The rig's eyes as :func:`parse_eyes` reads them."""
+    return ",".join(f"{name}={e.color}:{e.thermal}" for name, e in rig.eyes.items())
+
+
+class RigFilesPanel:
+    """Builds the Rig files folder (no periodic work: everything happens on a click)."""
+
+    def __init__(self, ctx: ConsoleContext) -> None:
+        self.ctx = ctx
+        gui = ctx.server.gui
+        with gui.add_folder("Rig files", expand_by_default=False):
+            gui.add_markdown(
+                "The rig in use for ROS, Kalibr, OpenCV or a URDF, and a rig from their "
+                "files (one file or a zip), saved as the next rig version."
+            )
+            self.fmt = gui.add_dropdown("Format", RIG_FORMATS, initial_value="ros")
+            self.export_button = gui.add_button("Export rig in use")
+            self.eyes = gui.add_text("Eyes (import)", eyes_text(ctx.pipeline.rig))
+            self.upload = gui.add_upload_button("Import rig files", mime_type="*/*")
+            self.message = gui.add_markdown("")
+        self.export_button.on_click(lambda e: self._act(lambda: self.export(e.client)))
+        self.upload.on_upload(lambda e: self._act(lambda: self.import_upload(e.target.value)))
+
+    def _act(self, action) -> None:
+        try:
+            self.message.content = action() or ""
+        except (RigError, ValueError, KeyError, OSError) as exc:
+            self.message.content = f"**Not done:** {describe_error(exc)}"
+
+    def export(self, client) -> str:
+        """Send the rig in use in the chosen format to ``client`` as a zip."""
+        fmt = self.fmt.value
+        exported = export_rig(self.ctx.pipeline.rig, fmt)
+        client.send_file_download(
+            f"rig-{fmt}.zip", zip_files(exported.files), save_immediately=True
+        )
+        return _listed(f"Exported {len(exported.files)} file(s) in {fmt}.", exported.lost)
+
+    def import_upload(self, upload) -> str:
+        """Import an uploaded file or zip in the chosen format; save it as a rig version."""
+        fmt = self.fmt.value
+        if fmt not in IMPORT_FORMATS:
+            raise ValueError(f"{fmt}: export only (import: {', '.join(IMPORT_FORMATS)})")
+        if self.ctx.save_rig is None:
+            raise ValueError("this console has no calibration session to save rigs in")
+        files = uploaded_files(upload.name, upload.content)
+        imported = import_rig(files, fmt, eyes=parse_eyes(self.eyes.value) or None)
+        report = {"imported_from": upload.name, "format": fmt, "lost": imported.lost}
+        version = self.ctx.save_rig(imported.rig, report)
+        return _listed(
+            f"Imported {upload.name} ({fmt}) as **{version.name}**: pick it in the "
+            "Calibration panel's Saved rig and Use this rig.",
+            imported.lost,
+        )
+
+
+def _listed(head: str, lost: list[str]) -> str:
+    if not lost:
+        return head
+    return head + "\n\nNot carried over:\n" + "\n".join(f"- {x}" for x in lost)
