@@ -38,11 +38,11 @@ import numpy as np
 from calib.errors import RigError
 from calib.rig import Rig, Sensor
 from calib.rig_formats import Exported, Imported
-from calib.rig_formats.common import extras_lost
-from calib.rig_formats.ros_format import (
+from calib.rig_formats.common import (
     ImportedCamera,
     assemble_rig,
     check_modalities_option,
+    extras_lost,
     eyes_from_option,
     modality_for,
     sensor_name_for,
