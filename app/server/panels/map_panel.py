@@ -121,9 +121,9 @@ class MapPanel(Periodic):
         return "The map is empty again."
 
     def _on_save(self) -> str:
-        path = self.worker.save()
+        path, ply = self.worker.save()
         self.saved.options = tuple(self.worker.saved()) or ("(none)",)
-        return f"Saved {path.name} and {path.name.replace('.map.npz', '.ply')} in {path.parent}"
+        return f"Saved {path.name} and {ply.name} in {path.parent}"
 
     def _on_load(self) -> str:
         name = self.saved.value

@@ -84,9 +84,9 @@ def make_map_router(worker: MapWorker) -> APIRouter:
     def save_map(body: MapSave) -> MapSaved:
         """Save the map (map file and PLY) in the work directory's maps/."""
         try:
-            path = worker.save(body.name)
+            path, ply = worker.save(body.name)
         except (OSError, ValueError) as exc:
             raise HTTPException(status_code=409, detail=describe_error(exc)) from None
-        return MapSaved(map_file=str(path), ply=str(path.with_name(path.name[:-8] + ".ply")))
+        return MapSaved(map_file=str(path), ply=str(ply))
 
     return router

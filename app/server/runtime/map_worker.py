@@ -27,12 +27,12 @@ import numpy as np
 from app.errors import describe_error
 from app.server.runtime.pipeline import FusionPipeline
 from app.sources.frames import FrameSet
-from app.storage.map_file import load_map, save_map, write_ply
+from app.storage.map_file import MAP_SUFFIX, load_map, save_map, write_ply
 from fusion.map_builder import MapBuilder
 from fusion.voxel_map import MapSettings, VoxelMap
 
-MAP_SUFFIX = ".map.npz"
-PosePredicate = Callable[[int], np.ndarray | None]
+HeadPose = Callable[[int], np.ndarray | None]
+"""stamp (ns) -> ``T_world_rig`` (4, 4), or None where unknown."""
 
 
 @dataclass(frozen=True)
@@ -65,7 +65,7 @@ class MapWorker:
     def __init__(
         self,
         pipeline: FusionPipeline,
-        head_pose: PosePredicate | None,
+        head_pose: HeadPose | None,
         maps_dir: Path,
         settings: MapSettings | None = None,
         enabled: bool = False,
@@ -124,9 +124,9 @@ class MapWorker:
             self.costs_ms.clear()
             self.T_world_rig = None
 
-    def save(self, name: str | None = None) -> Path:
+    def save(self, name: str | None = None) -> tuple[Path, Path]:
         """Save the map as ``<maps_dir>/<name>.map.npz`` and a PLY beside it; a name in
-        use gets a numbered suffix. Returns the map file's path."""
+        use gets a numbered suffix. Returns the paths of the map file and the PLY."""
         stem = name or datetime.now(UTC).strftime("map-%Y%m%d-%H%M%S")
         if not stem or "/" in stem or stem.startswith("."):
             raise ValueError(f"name: expected a plain file name, got {name!r}")
@@ -137,11 +137,11 @@ class MapWorker:
         ).exists():
             k += 1
             stem = f"{base}-{k}"
-        path = self.maps_dir / f"{stem}{MAP_SUFFIX}"
+        path, ply = self.maps_dir / f"{stem}{MAP_SUFFIX}", self.maps_dir / f"{stem}.ply"
         with self.lock:
             save_map(path, self.map)
-            write_ply(self.maps_dir / f"{stem}.ply", self.map)
-        return path
+            write_ply(ply, self.map)
+        return path, ply
 
     def saved(self) -> list[str]:
         """Names of the saved maps (newest first)."""
