@@ -367,6 +367,98 @@ class VoxelMap:
         lo[carved] = np.maximum(lo[carved] + s.miss_logodds, s.min_logodds)
         st.carved = len(carved)
 
+    # -- merging ------------------------------------------------------------------------
+
+    def merge(self, other: VoxelMap) -> IntegrateStats:
+        """Add another map built from frames that came after this map's (in place).
+
+        A long recording is mapped in consecutive pieces (perhaps on different machines)
+        and the pieces merged in their order: ``merged = piece0; merged.merge(piece1);
+        merged.merge(piece2); ...``. The result is deterministic (the same maps give the
+        same arrays, row order included) and reads as if ``other``'s frames had been
+        integrated after this map's:
+
+        * voxels: ``other``'s voxels this map lacks are appended in ``other``'s row order;
+          those beyond ``max_voxels`` (the last ones in that order) are dropped and
+          counted (``dropped_full``);
+        * ``hits``, ``temp_n``, ``rgb_n``: summed; ``logodds``: summed, clamped to
+          ``[min_logodds, max_logodds]``;
+        * ``temp_mean``, ``rgb``: the recency-weighted means combined as if ``other``'s
+          readings were blended after this map's: ``lam * a + (1 - lam) * b`` with ``lam =
+          prod_{k=1..n_b} (1 - max(1 / (n_a + k), recency))`` (see
+          :func:`_prior_weight`), ``a``, ``n_a`` this map's mean and count, ``b``, ``n_b``
+          the other's (NaN where neither saw the voxel);
+        * ``temp_max``: the larger; ``temp_last``: ``other``'s where it has a reading,
+          else this map's; ``last_seen`` (seconds): ``other``'s where it saw the voxel,
+          else this map's;
+        * :attr:`path`: this map's then ``other``'s (copies of its (4, 4) poses);
+          :attr:`stats`: the field-wise sum of both, plus this merge's ``dropped_full``
+          (so ``stats.new_voxels`` counts a voxel once per map that made it);
+          :attr:`revision` goes up by one; the free-space cursor stays.
+
+        Merging differs slightly from integrating every frame into one map:
+
+        * free space seen in ``other``'s frames does not carve voxels only this map has
+          (and the free-space budget took voxels in turn in each piece separately);
+        * ``logodds`` is clamped once, after the sum, not after each frame;
+        * a mean is exactly the sequential one while ``n_a + n_b <= 1 / recency`` (the
+          weighting is then a plain running mean); beyond that ``b`` weighed ``other``'s
+          own first readings ``1 / k`` where a sequential build gives ``max(1 / (n_a +
+          k), recency)``, so ``other``'s early readings count a little more;
+        * float32 rounding: the means agree to a few float32 units in the last place.
+
+        Args:
+            other: a map with the same settings; it is not changed (``other`` is not
+                ``self``).
+
+        Returns:
+            ``voxels`` (``len(other)``), ``new_voxels`` (appended) and ``dropped_full``
+            (``other``'s voxels left out: the map was full); the other counts are 0.
+
+        Raises:
+            ValueError: the settings differ, or ``other`` is this map.
+        """
+        if other is self:
+            raise ValueError("merge: a map cannot be merged into itself")
+        if self.settings != other.settings:
+            a, b = asdict(self.settings), asdict(other.settings)
+            diff = ", ".join(f"{k} {a[k]!r} != {b[k]!r}" for k in a if a[k] != b[k])
+            raise ValueError(f"merge: the maps' settings differ ({diff})")
+        s = self.settings
+        keys = other.keys_of(other["centre"].astype(np.float64))[0]
+        index = self._hash.lookup(keys)
+        new = np.flatnonzero(index < 0)  # rows of other, in its order
+        room = s.max_voxels - len(self)
+        st = IntegrateStats(voxels=len(other))
+        if len(new) > room:
+            st.dropped_full = int(len(new) - room)
+            new = new[:room]
+        if len(new):
+            if len(self) + len(new) > len(self._arrays["hits"]):
+                self._resize(max(2 * len(self._arrays["hits"]), len(self) + len(new)))
+            index[new] = self._hash.insert(keys[new])
+            self._arrays["centre"][index[new]] = other["centre"][new]
+        st.new_voxels = len(new)
+        src = np.flatnonzero(index >= 0)  # rows of other that reach this map
+        v = index[src]  # their rows here (distinct: other's keys are)
+        a = self._arrays
+        o = {name: other[name][src] for name in _FIELDS if name != "centre"}
+        a["hits"][v] += o["hits"]
+        a["logodds"][v] = np.clip(a["logodds"][v] + o["logodds"], s.min_logodds, s.max_logodds)
+        for mean, count in (("temp_mean", "temp_n"), ("rgb", "rgb_n")):
+            n_a, n_b = a[count][v], o[count]
+            a[mean][v] = _merge_means(a[mean][v], n_a, o[mean], n_b, s.recency)
+            a[count][v] = n_a + n_b
+        a["temp_max"][v] = np.fmax(a["temp_max"][v], o["temp_max"])
+        a["temp_last"][v] = np.where(o["temp_n"] > 0, o["temp_last"], a["temp_last"][v])
+        a["last_seen"][v] = np.where(np.isfinite(o["last_seen"]), o["last_seen"], a["last_seen"][v])
+        self.path = self.path + [(t, T.copy()) for t, T in other.path]
+        for name, value in asdict(other.stats).items():
+            setattr(self.stats, name, getattr(self.stats, name) + value)
+        self.stats.dropped_full += st.dropped_full
+        self.revision += 1
+        return st
+
     # -- reading ------------------------------------------------------------------------
 
     def arrays(self) -> dict[str, np.ndarray]:
@@ -405,6 +497,42 @@ class VoxelMap:
         m.path = [(float(t), T) for t, T in zip(stamps, poses.reshape(-1, 4, 4), strict=True)]
         m.revision = 1
         return m
+
+
+def _prior_weight(n_a: np.ndarray, n_b: np.ndarray, recency: float) -> np.ndarray:
+    """The weight (float64, broadcast shape) left to a recency-weighted mean of ``n_a``
+    readings after ``n_b`` more are blended in (see :meth:`VoxelMap._blend`):
+    ``prod_{k=1..n_b} (1 - max(1 / (n_a + k), recency))``, in closed form.
+
+    The first ``k1`` steps, those with ``n_a + k <= 1 / recency``, weigh ``1 / (n_a + k)``
+    and their factors ``(n_a + k - 1) / (n_a + k)`` telescope to ``n_a / (n_a + k1)``; the
+    remaining ``n_b - k1`` weigh ``recency``: ``(1 - recency) ** (n_b - k1)``. (Where ``1 /
+    (n_a + k)`` equals ``recency`` up to rounding, both forms give the same factor.) 1 where
+    ``n_b`` is 0; 0 where ``n_a`` is 0 and ``n_b`` is not.
+    """
+    n_a = np.asarray(n_a, dtype=np.float64)
+    n_b = np.asarray(n_b, dtype=np.float64)
+    k1 = np.clip(np.floor(1.0 / recency) - n_a, 0.0, n_b)
+    head = np.divide(n_a, n_a + k1, out=np.ones(np.broadcast(n_a, k1).shape), where=k1 > 0)
+    return head * (1.0 - recency) ** (n_b - k1)
+
+
+def _merge_means(
+    a: np.ndarray, n_a: np.ndarray, b: np.ndarray, n_b: np.ndarray, recency: float
+) -> np.ndarray:
+    """Recency-weighted means ``a`` (N,) or (N, C) float32 of ``n_a`` (N,) readings and
+    ``b`` of ``n_b`` later ones, combined (float32): ``lam * a + (1 - lam) * b`` with
+    ``lam`` from :func:`_prior_weight`; ``a`` where ``n_b`` is 0, ``b`` where ``n_a`` is 0
+    (NaN where both are)."""
+    lam = _prior_weight(n_a, n_b, recency)
+    if a.ndim == 2:
+        lam = lam[:, None]
+    with np.errstate(invalid="ignore"):
+        out = (lam * a + (1.0 - lam) * b).astype(np.float32)
+    only_a, only_b = n_b == 0, (n_a == 0) & (n_b > 0)
+    out[only_a] = a[only_a]
+    out[only_b] = b[only_b]
+    return out
 
 
 def _nearest_depth(distance_m: np.ndarray) -> np.ndarray:

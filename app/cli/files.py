@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
+from urllib.parse import unquote, urlsplit
 
 from app.cli.args import UsageError
 from app.cli.output import out
@@ -105,3 +107,32 @@ def write_rig_out(rig_out: Path, rig_path: Path | None, rig: Rig, what: str) -> 
         out(f"previous rig kept as {backup}")
     save_rig(rig_out, rig, overwrite=same)
     out(f"rig with {what} written to {rig_out}")
+
+
+def recording_paths(arguments: list[str]) -> list[Path]:
+    """The recordings named: files as given (``file://`` URLs as their path), directories
+    as every ``*.mcap`` in them (sorted by name). UsageError for a path that does not
+    exist, a directory without recordings, or another URL scheme (an object store is read
+    where it is mounted)."""
+    paths: list[Path] = []
+    for text in arguments:
+        scheme = re.match(r"^([a-zA-Z][a-zA-Z0-9+.-]*)://", text)
+        if scheme and scheme.group(1).lower() == "file":
+            text = unquote(urlsplit(text).path)
+        elif scheme:
+            raise UsageError(
+                f"{text}: {scheme.group(1)}:// URLs are not read directly; mount the store "
+                "(e.g. s3fs, mountpoint-s3, gcsfuse) at the same path on every machine and "
+                "give that path"
+            )
+        p = Path(text)
+        if p.is_dir():
+            found = sorted(q for q in p.glob("*.mcap") if q.is_file())
+            if not found:
+                raise UsageError(f"{p}: a directory without recordings (*.mcap)")
+            paths += found
+        elif p.exists():
+            paths.append(p)
+        else:
+            raise UsageError(f"{p}: no such recording")
+    return paths

@@ -1,4 +1,4 @@
-"""``trifuse fuse``: a whole recording fused offline into JPEG frames and a video."""
+"""``trifuse fuse``: recordings fused offline into JPEG frames and a video each."""
 
 from __future__ import annotations
 
@@ -6,28 +6,38 @@ import argparse
 import sys
 from pathlib import Path
 
-from app.cli.args import EXIT_OK, PROG, Commands, add_every_argument
-from app.cli.files import add_out_dir_argument, check_output_dir
+from app.cli.args import EXIT_OK, PROG, Commands, UsageError, add_every_argument
+from app.cli.cluster import add_cluster_arguments, open_runner, pieces_text
+from app.cli.files import add_out_dir_argument, check_output_dir, load_rig_arg, recording_paths
 from app.cli.output import err, frame_progress, out
 from fusion.compose import DISPLAY_MODES
 
 
 def add_parser(commands: Commands) -> argparse.ArgumentParser:
-    """``fuse RECORDING --out DIR [--rig] [--mode] [--every]``."""
+    """``fuse RECORDING [RECORDING ...] --out DIR [--rig] [--mode] [--every] [--ray]
+    [--chunk-s]``."""
     fuse = commands.add_parser(
         "fuse",
-        help="fuse a whole recording offline into JPEG frames and a video",
+        help="fuse recordings offline into JPEG frames and a video (here or on a Ray cluster)",
         description=(
-            "Replay RECORDING as fast as possible, update the thermal-to-colour mapping of "
-            "both eyes with every TOF frame, compose the side-by-side stereo picture of "
+            "Replay each RECORDING as fast as possible, update the thermal-to-colour mapping "
+            "of both eyes with every TOF frame, compose the side-by-side stereo picture of "
             "every N-th left-colour frame set, and write the pictures as DIR/000000.jpg ... "
             "plus DIR/frames.csv (time stamps) and DIR/fused.mp4 (OpenCV mp4v, if that codec "
-            "is available). Progress goes to stderr."
+            "is available). With several recordings (or a directory of them) each one's "
+            "pictures go to DIR/<recording's name>/. Recordings are fused in pieces of "
+            "--chunk-s seconds, here one after the other or as Ray tasks (--ray). Progress "
+            "goes to stderr."
         ),
     )
-    fuse.add_argument("recording", metavar="RECORDING", help="the recording (.mcap)")
     fuse.add_argument(
-        "--rig", metavar="RIG.yaml", help="rig file (default: the rig stored in the recording)"
+        "recordings",
+        nargs="+",
+        metavar="RECORDING",
+        help="a recording (.mcap), or a directory: every .mcap in it, by name",
+    )
+    fuse.add_argument(
+        "--rig", metavar="RIG.yaml", help="rig file (default: the rig stored in each recording)"
     )
     add_out_dir_argument(fuse)
     fuse.add_argument(
@@ -38,46 +48,72 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         "(default: %(default)s)",
     )
     add_every_argument(fuse, "compose every N-th colour frame set")
+    add_cluster_arguments(fuse)
     return fuse
 
 
-def run(args: argparse.Namespace) -> int:
-    """Fuse the recording into ``--out``; say what was written and what was skipped."""
-    from app.recording.fuse import VIDEO_NAME, fuse_recording
-    from app.recording.open_source import open_source
-    from app.storage.rigfile import load_rig
-    from fusion.compose import DisplaySettings
-
+def output_dirs(args: argparse.Namespace, inputs: list[Path]) -> list[Path]:
+    """``--out`` for one recording named as a file, else ``--out/<name>`` per recording
+    (names must differ); each must be new or empty."""
     out_dir = Path(args.out)
     check_output_dir(out_dir)
-    settings = DisplaySettings(mode=args.mode)
-    given = load_rig(args.rig) if args.rig else None
-    opened = open_source(args.recording, rig=given, realtime=False)
-    with opened.source as src:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        progress = frame_progress()
+    if len(inputs) == 1 and not Path(args.recordings[0]).is_dir():
+        return [out_dir]
+    dirs = [out_dir / p.stem for p in inputs]
+    for d, p in zip(dirs, inputs, strict=True):
+        same = [q for q, e in zip(inputs, dirs, strict=True) if e == d and q != p]
+        if same:
+            raise UsageError(
+                f"{p} and {same[0]}: recordings of the same name would share {d}; fuse them apart"
+            )
+    return dirs
 
+
+def run(args: argparse.Namespace) -> int:
+    """Fuse the recordings into ``--out``; say what was written and what was skipped."""
+    from app.recording.fuse import VIDEO_NAME
+    from app.recording.jobs import plan_fuse_job, run_fuse_job
+    from app.storage.atomic import make_dirs
+    from fusion.compose import DisplaySettings
+
+    inputs = recording_paths(args.recordings)
+    dirs = output_dirs(args, inputs)
+    settings = DisplaySettings(mode=args.mode)
+    given = load_rig_arg(args.rig, "--rig") if args.rig else None
+    planned = plan_fuse_job(
+        list(zip(inputs, dirs, strict=True)), given, settings, args.every, args.chunk_s
+    )
+    every = "every frame set" if args.every == 1 else f"one frame set in {args.every}"
+    pieces = sum(len(p.pieces) for p in planned)
+    with open_runner(args) as runner:
+        for d in dirs:
+            make_dirs(d)
         out(
-            f"Fusing {args.recording} ({src.duration_s:.3f} s) in {args.mode} mode "
-            f"({'every frame set' if args.every == 1 else f'one frame set in {args.every}'}) "
-            f"into {out_dir}/"
+            f"Fusing {len(inputs)} recording{'s' * (len(inputs) > 1)} in {args.mode} mode "
+            f"({every}), {pieces} piece{'s' * (pieces > 1)} ({pieces_text(args.chunk_s)}; "
+            f"{runner.name}) into {Path(args.out)}/"
         )
-        result = fuse_recording(src, opened.rig, out_dir, settings, args.every, progress)
+        results = run_fuse_job(planned, settings, args.every, runner, frame_progress())
         if sys.stderr.isatty():  # end the bar's line
             print(file=sys.stderr)
-    out(f"Wrote {result.frames} fused frames to {out_dir}/ (000000.jpg ..., frames.csv)")
-    if result.video is not None:
-        out(f"Video: {result.video} ({result.fps:.2f} frames/s, mp4v)")
-    else:
-        out(f"No video ({VIDEO_NAME}): {result.video_problem}; the JPEG frames are written")
-    for reason, n in result.skipped.items():
-        out(f"  skipped {n} frame sets: {reason}")
-    if result.damage is not None:
-        err(f"{PROG}: warning: {result.damage}; the frames before it were fused")
-    if result.frames == 0:
+    for plan, result in zip(planned, results, strict=True):
+        name = f"{plan.recording}: " if len(planned) > 1 else ""
+        written = f"{result.frames} fused frames to {plan.out_dir}/ (000000.jpg ..., frames.csv)"
+        out(f"{name}Wrote {written}")
+        if result.video is not None:
+            out(f"Video: {result.video} ({result.fps:.2f} frames/s, mp4v)")
+        else:
+            out(f"No video ({VIDEO_NAME}): {result.video_problem}; the JPEG frames are written")
+        for reason, n in result.skipped.items():
+            out(f"  skipped {n} frame sets: {reason}")
+        for damage in result.damage:
+            err(f"{PROG}: warning: {damage}; the frames before it were fused")
+    empty = [(p, r) for p, r in zip(planned, results, strict=True) if r.frames == 0]
+    if empty:
+        plan, result = empty[0]
         skipped = "; ".join(f"{n} frame sets: {r}" for r, n in result.skipped.items())
         raise ValueError(
-            f"{args.recording}: no frame set could be fused"
+            f"{plan.recording}: no frame set could be fused"
             + (f" ({skipped})" if skipped else " (the recording holds no complete frame set)")
         )
     return EXIT_OK

@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from app.cli.args import EXIT_OK, PROG, Commands, UsageError, positive_float
-from app.cli.files import load_rig_arg
+from app.cli.cluster import add_cluster_arguments, open_runner, pieces_text
+from app.cli.files import load_rig_arg, recording_paths
 from app.cli.output import err, frame_progress, out
 from app.recording.map3d import MAX_IMAGE_AGE_S, POSE_MODES
 from app.storage.map_file import MAP_SUFFIX
@@ -78,26 +79,8 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         action="store_true",
         help="replace the PLY and the map file if they exist (never a recording)",
     )
+    add_cluster_arguments(cmd)
     return cmd
-
-
-def recording_paths(arguments: list[str]) -> list[Path]:
-    """The recordings named: files as given, directories as every ``*.mcap`` in them
-    (sorted by name). UsageError for a path that does not exist or a directory without
-    recordings."""
-    paths: list[Path] = []
-    for text in arguments:
-        p = Path(text)
-        if p.is_dir():
-            found = sorted(q for q in p.glob("*.mcap") if q.is_file())
-            if not found:
-                raise UsageError(f"{p}: a directory without recordings (*.mcap)")
-            paths += found
-        elif p.exists():
-            paths.append(p)
-        else:
-            raise UsageError(f"{p}: no such recording")
-    return paths
 
 
 def output_paths(args: argparse.Namespace) -> tuple[Path, Path]:
@@ -135,7 +118,8 @@ def extent_text(centres: np.ndarray) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Build the map of the recordings; write the PLY and the map file; say what was done."""
-    from app.recording.map3d import build_map, open_recordings
+    from app.recording.jobs import run_map_job
+    from app.recording.map3d import open_recordings
     from app.storage.map_file import save_map, write_ply
     from fusion.voxel_map import MapSettings
 
@@ -148,19 +132,21 @@ def run(args: argparse.Namespace) -> int:
     progress = frame_progress()
 
     try:
-        total_s = sum(src.duration_s for src in sources)
-        names = ", ".join(str(p) for p in inputs)
-        out(
-            f"Mapping {names} ({total_s:.3f} s) with {args.voxel:g} m voxels, the head's pose "
-            f"{'as --pose auto finds it' if args.pose == 'auto' else f'by --pose {args.pose}'}"
-        )
-        result = build_map(sources, rig, settings, args.pose, progress)
-        if sys.stderr.isatty():  # end the bar's line
-            print(file=sys.stderr)
+        with open_runner(args) as runner:
+            total_s = sum(src.duration_s for src in sources)
+            names = ", ".join(str(p) for p in inputs)
+            pose = "as --pose auto finds it" if args.pose == "auto" else f"by --pose {args.pose}"
+            out(
+                f"Mapping {names} ({total_s:.3f} s) with {args.voxel:g} m voxels, the head's "
+                f"pose {pose}, in pieces ({pieces_text(args.chunk_s)}; {runner.name})"
+            )
+            result = run_map_job(sources, rig, settings, args.pose, args.chunk_s, runner, progress)
+            if sys.stderr.isatty():  # end the bar's line
+                print(file=sys.stderr)
     finally:
         for src in sources:
             src.close()
-    m = result.builder.map
+    m = result.map
     if result.integrated == 0:
         skipped = "; ".join(f"{n} frames: {r}" for r, n in result.skipped.items())
         raise ValueError(

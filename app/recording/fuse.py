@@ -1,26 +1,30 @@
-"""Offline fusion of a whole recording (``trifuse fuse``): JPEG frames and a video.
+"""Offline fusion of recordings (``trifuse fuse``): JPEG frames and a video.
 
-The recording is replayed as fast as possible and grouped into frame sets around the left
-eye's colour frames (:func:`app.sources.base.frame_sets`). Each new TOF frame updates both
-eyes' mappings (:meth:`fusion.stereo.StereoFusion.update_depth`, with the rig's range
-correction); every ``every``-th set with both eyes' colour and thermal frames (through the
-rig's radiometry) is composed into the side-by-side picture, which
-is written as ``DIR/NNNNNN.jpg`` and appended to ``DIR/fused.mp4`` (OpenCV ``mp4v``, when
-that codec is at hand). ``DIR/frames.csv`` lists each picture's time stamps.
+A recording is fused in pieces (:mod:`app.recording.pieces`; one piece unless it is longer
+than the job's ``chunk_s``), each replayed as fast as possible and grouped into frame sets
+around the left eye's colour frames (:func:`app.sources.base.frame_sets`). Each new TOF
+frame updates both eyes' mappings (:meth:`fusion.stereo.StereoFusion.update_depth`, with
+the rig's range correction); every ``every``-th set with both eyes' colour and thermal
+frames (through the rig's radiometry) is composed into the side-by-side picture
+(:func:`fuse_piece`, pure of files: it runs where the job sends it). :class:`FusedWriter`
+writes the pieces' pictures in order as ``DIR/NNNNNN.jpg``, ``DIR/frames.csv`` (each
+picture's time stamps) and ``DIR/fused.mp4`` (OpenCV ``mp4v`` per piece, joined).
 """
 
 from __future__ import annotations
 
-import math
 import os
-from collections.abc import Callable
+import tempfile
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import av
 import cv2
 import numpy as np
 
 from app.recording.errors import RecordingDamaged, RecordingError
+from app.recording.pieces import FusePiece
 from app.recording.player import MessageReplay
 from app.sources.base import frame_sets
 from app.storage.atomic import atomic_write_bytes, atomic_write_text, fsync_dir
@@ -34,8 +38,44 @@ JPEG_QUALITY = 90
 
 
 @dataclass
+class FusedFrame:
+    """One fused picture of a piece.
+
+    Attributes:
+        jpeg: the side-by-side picture, JPEG (quality :data:`JPEG_QUALITY`).
+        stamp_ns: the frame set's (left colour frame's) stamp.
+        tof_stamp_ns: the stamp of the TOF frame the mapping came from.
+    """
+
+    jpeg: bytes
+    stamp_ns: int
+    tof_stamp_ns: int | None
+
+
+@dataclass
+class PieceEnd:
+    """The last item of a piece (:func:`fuse_piece`): its video and its counts.
+
+    Attributes:
+        video: the piece's pictures as an mp4v video (bytes), None if there is none.
+        video_problem: why there is no video.
+        sets: frame sets of the piece's range seen.
+        tof_updates: TOF frames used to update the mapping (warm-up included).
+        skipped: reason -> count of sets chosen for composing but not composed.
+        damage: the recording's damage, if the replay stopped at one.
+    """
+
+    video: bytes | None = None
+    video_problem: str | None = None
+    sets: int = 0
+    tof_updates: int = 0
+    skipped: dict[str, int] = field(default_factory=dict)
+    damage: RecordingDamaged | None = None
+
+
+@dataclass
 class FuseResult:
-    """What :func:`fuse_recording` did.
+    """What :class:`FusedWriter` wrote for one recording.
 
     Attributes:
         frames: pictures written (JPEGs, and video frames if ``video``).
@@ -45,7 +85,7 @@ class FuseResult:
         video: the video's path, or None.
         video_problem: why there is no video.
         fps: the video's frame rate.
-        damage: the recording's damage, if the replay stopped at one.
+        damage: the recording's damage met by each piece that stopped at one.
     """
 
     frames: int = 0
@@ -55,34 +95,38 @@ class FuseResult:
     video: Path | None = None
     video_problem: str | None = None
     fps: float = 30.0
-    damage: RecordingDamaged | None = None
+    damage: list[RecordingDamaged] = field(default_factory=list)
 
 
-def expected_sets(source: MessageReplay, rig: Rig) -> tuple[int | None, float | None]:
-    """(number of reference colour frames, their rate in Hz) from the file's statistics."""
+def video_fps(source: MessageReplay, rig: Rig, every: int) -> float:
+    """The fused video's frame rate: the reference colour frames' rate (from the file's
+    statistics; 30 Hz if unknown) over ``every``."""
     ref = rig.eyes[EYE_ORDER[0]].color
     count = getattr(source, "message_count", lambda *_: None)(ref, "color")
     rate = (count - 1) / source.duration_s if count and count > 1 and source.duration_s else None
-    return count, rate
+    return (rate or 30.0) / every
 
 
-def fuse_recording(
+def fuse_piece(
     source: MessageReplay,
     rig: Rig,
-    out_dir: str | Path,
+    piece: FusePiece,
     settings: DisplaySettings,
     every: int = 1,
-    progress: Callable[[int, int | None], None] | None = None,
-) -> FuseResult:
-    """Fuse ``source`` (replayed as fast as possible) into ``out_dir`` (must exist, empty).
+    progress: Callable[[int], None] | None = None,
+) -> Iterator[FusedFrame | PieceEnd]:
+    """Fuse one piece of ``source`` (:mod:`app.recording.pieces`): a
+    :class:`FusedFrame` per picture, in order, then a :class:`PieceEnd`.
 
-    ``progress(pictures_done, pictures_expected_or_None)`` is called after each set
-    considered for composing. Damage in the recording ends the fusion where it is; the
-    result's ``damage`` says so (nothing is raised for it).
+    The replay starts at ``piece.seek_ns`` and numbers the frame sets from
+    ``piece.first_set``; sets before ``piece.start_set`` only update the mapping and the
+    display's smoothing; every ``every``-th set (by its number in the recording) from there
+    to ``piece.end_set`` is composed. ``progress(pictures considered)`` is called after
+    each set considered for composing. Damage in the recording ends the piece where it is
+    (``PieceEnd.damage``; nothing is raised for it).
     """
     if every < 1:
         raise ValueError(f"every: expected a positive integer, got {every}")
-    out_dir = Path(out_dir)
     fusion = StereoFusion(rig)
     eyes = {e: rig.eyes[e] for e in EYE_ORDER}
     tof = fusion.tof
@@ -91,28 +135,33 @@ def fuse_recording(
     ref = eyes[EYE_ORDER[0]].color
     sensors = [ref] + [s for e in eyes.values() for s in (e.color, e.thermal) if s != ref] + [tof]
     source.realtime = False
-    count, rate = expected_sets(source, rig)
-    expected = math.ceil(count / every) if count else None
-    result = FuseResult(fps=(rate or 30.0) / every)
+    end = PieceEnd()
     w, h = fusion.size
-    video_tmp = out_dir / f".{VIDEO_NAME}.partial.mp4"
+    fd, video_name = tempfile.mkstemp(prefix="trifuse-piece-", suffix=".mp4")
+    os.close(fd)
+    video_tmp = Path(video_name)
+    fps = video_fps(source, rig, every)
     video = cv2.VideoWriter(
-        str(video_tmp), cv2.VideoWriter_fourcc(*"mp4v"), result.fps, (w * len(eyes), h)
+        str(video_tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w * len(eyes), h)
     )
     if not video.isOpened():
         video = None
-        result.video_problem = "OpenCV has no mp4v encoder here"
-        video_tmp.unlink(missing_ok=True)
-    rows = ["index,stamp_ns,tof_stamp_ns"]
+        end.video_problem = "OpenCV has no mp4v encoder here"
     last_tof: int | None = None
     bgr = np.empty((h, w * len(eyes), 3), np.uint8)
+    considered = pictures = 0
+    if piece.seek_ns is not None:
+        source.seek(piece.seek_ns)
     try:
-        for i, fs in enumerate(frame_sets(source, sensors, reference=ref)):
-            result.sets += 1
+        for i, fs in enumerate(frame_sets(source, sensors, reference=ref), piece.first_set):
+            if piece.end_set is not None and i >= piece.end_set:
+                break
             if tof in fs and fs[tof].stamp_ns != last_tof and fs[tof].distance_m is not None:
                 fusion.update_depth(fs[tof].distance_m, fs[tof].image)
                 last_tof = fs[tof].stamp_ns
-                result.tof_updates += 1
+                end.tof_updates += 1
+            warming = i < piece.start_set
+            end.sets += not warming
             if i % every:
                 continue
             missing = [s for s in sensors[:-1] if s not in fs]
@@ -123,7 +172,8 @@ def fuse_recording(
             else:
                 reason = None
             if reason is not None:
-                result.skipped[reason] = result.skipped.get(reason, 0) + 1
+                if not warming:
+                    end.skipped[reason] = end.skipped.get(reason, 0) + 1
             else:
                 for eye in eyes.values():
                     check_frame_size(fs[eye.color].image, rig, eye.color)
@@ -134,34 +184,119 @@ def fuse_recording(
                     for e, eye in eyes.items()
                 }
                 picture = fusion.compose(colors, thermals, settings, fs.stamp_ns)
+                if warming:
+                    continue
                 cv2.cvtColor(picture, cv2.COLOR_RGB2BGR, dst=bgr)
                 ok, jpg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
                 if not ok:
                     raise RuntimeError("OpenCV could not encode a fused frame as JPEG")
-                atomic_write_bytes(out_dir / f"{result.frames:06d}.jpg", jpg.tobytes(), False)
                 if video is not None:
                     video.write(bgr)
-                rows.append(f"{result.frames},{fs.stamp_ns},{last_tof}")
-                result.frames += 1
-            if progress is not None:
-                progress(result.frames + sum(result.skipped.values()), expected)
+                pictures += 1
+                yield FusedFrame(jpg.tobytes(), fs.stamp_ns, last_tof)
+            if not warming:
+                considered += 1
+                if progress is not None:
+                    progress(considered)
     except RecordingDamaged as exc:
-        result.damage = exc
+        end.damage = exc
     finally:
         if video is not None:
             video.release()
-    atomic_write_text(out_dir / "frames.csv", "\n".join(rows) + "\n", overwrite=False)
-    if video is not None:
-        if result.frames:
-            with video_tmp.open("rb") as f:  # durable before it gets its name
-                os.fsync(f.fileno())
-            os.replace(video_tmp, out_dir / VIDEO_NAME)
-            fsync_dir(out_dir)
-            result.video = out_dir / VIDEO_NAME
-        else:
+        try:
+            if video is not None and pictures:
+                end.video = video_tmp.read_bytes()
+        finally:
             video_tmp.unlink(missing_ok=True)
-            result.video_problem = "no frames were fused"
-    return result
+    if video is not None and not pictures:
+        end.video_problem = "no frames were fused"
+    yield end
+
+
+class FusedWriter:
+    """Writes the pictures of one recording's pieces, given in order, into ``out_dir``
+    (which must exist, empty): ``NNNNNN.jpg`` numbered across the pieces, ``frames.csv``
+    and ``fused.mp4`` (the pieces' videos joined without re-encoding, by PyAV). Every file
+    is written once, atomically; the video is joined and renamed into place at
+    :meth:`close`.
+    """
+
+    def __init__(self, out_dir: str | Path, fps: float) -> None:
+        self.out_dir = Path(out_dir)
+        self.result = FuseResult(fps=fps)
+        self._rows = ["index,stamp_ns,tof_stamp_ns"]
+        self._segments: list[Path] = []
+        self._video_problems: list[str] = []
+
+    def add(self, item: FusedFrame | PieceEnd) -> None:
+        """Write a picture, or take a piece's end (its video waits in a hidden file)."""
+        r = self.result
+        if isinstance(item, FusedFrame):
+            atomic_write_bytes(self.out_dir / f"{r.frames:06d}.jpg", item.jpeg, False)
+            self._rows.append(f"{r.frames},{item.stamp_ns},{item.tof_stamp_ns}")
+            r.frames += 1
+            return
+        r.sets += item.sets
+        r.tof_updates += item.tof_updates
+        for reason, n in item.skipped.items():
+            r.skipped[reason] = r.skipped.get(reason, 0) + n
+        if item.damage is not None:
+            r.damage.append(item.damage)
+        if item.video is not None:
+            segment = self.out_dir / f".{VIDEO_NAME}.part{len(self._segments):04d}.mp4"
+            atomic_write_bytes(segment, item.video, False)
+            self._segments.append(segment)
+        elif item.video_problem is not None:
+            self._video_problems.append(item.video_problem)
+
+    def abort(self) -> None:
+        """The job stopped: remove the pieces' videos (the pictures written stay)."""
+        for segment in self._segments:
+            segment.unlink(missing_ok=True)
+
+    def close(self) -> FuseResult:
+        """Write ``frames.csv`` and the video; returns what was written."""
+        r = self.result
+        atomic_write_text(self.out_dir / "frames.csv", "\n".join(self._rows) + "\n", False)
+        try:
+            if self._segments:
+                joined = self.out_dir / f".{VIDEO_NAME}.partial.mp4"
+                join_videos(self._segments, joined)
+                with joined.open("rb") as f:  # durable before it gets its name
+                    os.fsync(f.fileno())
+                os.replace(joined, self.out_dir / VIDEO_NAME)
+                fsync_dir(self.out_dir)
+                r.video = self.out_dir / VIDEO_NAME
+            else:
+                r.video_problem = (self._video_problems or ["no frames were fused"])[0]
+        finally:
+            self.abort()
+        return r
+
+
+def join_videos(segments: Sequence[Path], out: Path) -> None:
+    """Join mp4 videos of one codec and size into ``out`` without re-encoding: the
+    packets of each follow those of the one before, their time stamps shifted."""
+    with av.open(str(out), "w", format="mp4") as joined:
+        stream = None
+        offset = 0
+        for path in segments:
+            with av.open(str(path)) as part:
+                src = part.streams.video[0]
+                if stream is None:
+                    stream = joined.add_stream_from_template(src)
+                elif src.time_base != stream.time_base:
+                    raise ValueError(f"{path}: another time base than the first piece's video")
+                end = offset
+                for packet in part.demux(src):
+                    if packet.dts is None:  # the demuxer's empty end-of-stream packet
+                        continue
+                    packet.pts += offset
+                    packet.dts += offset
+                    end = max(end, packet.pts + packet.duration)
+                    packet.stream = stream
+                    joined.mux(packet)
+                offset = end
 
 
 def check_frame_size(image: np.ndarray, rig: Rig, sensor: str) -> None:

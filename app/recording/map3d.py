@@ -32,6 +32,7 @@ import numpy as np
 
 from app.recording.errors import RecordingDamaged
 from app.recording.fuse import check_frame_size
+from app.recording.pieces import MapPiece, MapSpan, open_task_recording
 from app.recording.poses import TOLERANCE_S, RecordingPoses, read_poses
 from app.recording.reader import ReplaySource
 from app.sources.frames import Frame
@@ -39,10 +40,12 @@ from calib.radiometry import Radiometry
 from calib.rig import Rig, rig_to_yaml
 from fusion.geometry import tof_sensor_name
 from fusion.map_builder import MapBuilder
-from fusion.voxel_map import MapSettings
+from fusion.voxel_map import MapSettings, VoxelMap
 
 PoseMode = Literal["auto", "recording", "estimate"]
 POSE_MODES: tuple[str, ...] = typing.get_args(PoseMode)
+POSE_PROBE_S = 10.0
+"""How far into a recording :func:`choose_poses` looks for the head's poses first, seconds."""
 MAX_IMAGE_AGE_S = 0.1
 """Default: a thermal or colour frame further than this from a TOF frame is not used for
 it, seconds."""
@@ -50,10 +53,10 @@ it, seconds."""
 
 @dataclass
 class MapRun:
-    """What :func:`build_map` did.
+    """What a map job (or one of its pieces: :func:`map_piece`) did.
 
     Attributes:
-        builder: the map builder (``builder.map`` is the map).
+        map: the map.
         pose_source: ``recording`` (the recordings' poses) or ``estimate`` (from the
             TOF clouds).
         pose_frames: the frame names the recordings' poses came from (``world -> rig``),
@@ -64,10 +67,10 @@ class MapRun:
         images_missing: sensor -> TOF frames that had no image of it within the age limit.
         damage: per damaged recording, the damage the replay stopped at.
         notes: per recording, what reading its poses noted.
-        seconds: wall time of the build.
+        seconds: wall time (of a piece: its own; of a job: the whole job's).
     """
 
-    builder: MapBuilder
+    map: VoxelMap
     pose_source: str
     pose_frames: str | None = None
     tof_frames: int = 0
@@ -80,6 +83,20 @@ class MapRun:
 
     def skip(self, reason: str) -> None:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
+
+    def absorb(self, later: MapRun) -> None:
+        """Add the next piece's map (:meth:`fusion.voxel_map.VoxelMap.merge`) and counts."""
+        self.map.merge(later.map)
+        self.tof_frames += later.tof_frames
+        self.integrated += later.integrated
+        counts = ((self.skipped, later.skipped), (self.images_missing, later.images_missing))
+        for mine, theirs in counts:
+            for key, n in theirs.items():
+                mine[key] = mine.get(key, 0) + n
+        self.damage += later.damage
+        self.notes += [n for n in later.notes if n not in self.notes]
+        frames = {f for f in (self.pose_frames, later.pose_frames) if f}
+        self.pose_frames = ", ".join(sorted(frames)) or None
 
 
 def open_recordings(paths: Sequence[Path], rig: Rig | None) -> tuple[list[ReplaySource], Rig]:
@@ -123,10 +140,19 @@ def open_recordings(paths: Sequence[Path], rig: Rig | None) -> tuple[list[Replay
         raise
 
 
+def _poses_at_start(src: ReplaySource, reference: str) -> RecordingPoses | None:
+    """The recording's poses of its first :data:`POSE_PROBE_S` seconds, else of the whole
+    file (read only when the start has none)."""
+    start = src.start_ns
+    probe = read_poses(src.path, reference, (start, start + round(POSE_PROBE_S * 1e9)))
+    return probe if probe is not None else read_poses(src.path, reference)
+
+
 def choose_poses(
     sources: Sequence[ReplaySource], rig: Rig, mode: str
 ) -> list[RecordingPoses | None]:
-    """The poses of each recording the ``mode`` uses (all None when estimating).
+    """Whether each recording has poses, as the ``mode`` uses them: a recording's poses of
+    its first seconds (:func:`_poses_at_start`), None for each when estimating.
 
     Raises:
         ValueError: an unknown mode; ``recording`` with a recording that has no poses;
@@ -136,7 +162,7 @@ def choose_poses(
         raise ValueError(f"pose: expected one of {', '.join(POSE_MODES)}, got {mode!r}")
     if mode == "estimate":
         return [None] * len(sources)
-    poses = [read_poses(src.path, rig.reference) for src in sources]
+    poses = [_poses_at_start(src, rig.reference) for src in sources]
     without = [str(src.path) for src, p in zip(sources, poses, strict=True) if p is None]
     if mode == "recording" and without:
         raise ValueError(
@@ -152,39 +178,30 @@ def choose_poses(
     return [None] * len(sources) if without else poses
 
 
-def build_map(
-    sources: Sequence[ReplaySource],
+def map_piece(
+    piece: MapPiece,
     rig: Rig,
     settings: MapSettings,
-    pose_mode: str = "auto",
-    progress: Callable[[int, int | None], None] | None = None,
+    estimate: bool,
+    progress: Callable[[int], None] | None = None,
     max_image_age_s: float = MAX_IMAGE_AGE_S,
 ) -> MapRun:
-    """Build the map of ``sources`` (see the module docstring).
+    """Build the map of one piece of a map job (:mod:`app.recording.pieces`; see the
+    module docstring).
 
     Args:
-        sources: the recordings, replayed in this order (as fast as they are read).
+        piece: the spans of recordings to add, in order.
         rig: the rig (intrinsics, poses, range correction, radiometry).
         settings: the map's settings.
-        pose_mode: ``auto``, ``recording`` or ``estimate`` (:func:`choose_poses`).
-        progress: called with (TOF frames done, TOF frames expected or None) after each.
+        estimate: estimate the head's pose from the TOF clouds (else the recordings').
+        progress: called with the TOF frames of the piece done after each.
         max_image_age_s: see :data:`MAX_IMAGE_AGE_S`.
 
-    Damage in a recording ends its part of the map where it is (``damage`` says so).
+    Damage in a recording ends its span where it is (``damage`` says so).
     """
     t0 = time.perf_counter()
-    poses = choose_poses(sources, rig, pose_mode)
-    estimate = all(p is None for p in poses)
     builder = MapBuilder(rig, settings, estimate_pose=estimate)
-    run = MapRun(builder, "estimate" if estimate else "recording")
-    if not estimate:
-        frames = sorted({f"{p.parent} -> {p.child}" for p in poses if p is not None})
-        run.pose_frames = ", ".join(frames)
-    for src, p in zip(sources, poses, strict=True):
-        if p is not None:
-            run.notes += [f"{src.path}: {note}" for note in p.notes]
-    counts = [src.message_count(builder.tof, "tof_distance") for src in sources]
-    expected = None if any(c is None for c in counts) else sum(counts)  # type: ignore[misc]
+    run = MapRun(builder.map, "estimate" if estimate else "recording")
     images = [n for n in rig.names if rig[n].modality in ("thermal", "color")]
     radiometry = {
         n: rig[n].radiometry or Radiometry() for n in images if rig[n].modality == "thermal"
@@ -195,7 +212,7 @@ def build_map(
         run.tof_frames += 1
         integrate(tof, history, rec_poses)
         if progress is not None:
-            progress(run.tof_frames, expected)
+            progress(run.tof_frames)
 
     def integrate(
         tof: Frame, history: dict[str, deque[Frame]], rec_poses: RecordingPoses | None
@@ -213,8 +230,8 @@ def build_map(
                 chosen[name] = best.image
         check_frame_size(tof.distance_m, rig, builder.tof)
         T = None
-        if rec_poses is not None:
-            T = rec_poses.at(tof.stamp_ns)
+        if not estimate:
+            T = rec_poses.at(tof.stamp_ns) if rec_poses is not None else None
             if T is None:
                 run.skip(f"no head pose within {TOLERANCE_S * 1e3:g} ms in the recording")
                 return
@@ -231,26 +248,52 @@ def build_map(
         else:
             run.integrated += 1
 
-    for src, rec_poses in zip(sources, poses, strict=True):
-        history: dict[str, deque[Frame]] = {n: deque() for n in images}
-        pending: deque[Frame] = deque()
-        try:
-            for frame in src.frames():
-                if frame.sensor == builder.tof:
-                    if frame.distance_m is not None:
-                        pending.append(frame)
-                elif frame.sensor in history:
-                    history[frame.sensor].append(frame)
-                # A TOF frame is added once nothing nearer in time can come.
-                while pending and frame.stamp_ns > pending[0].stamp_ns + age_ns:
-                    add(pending.popleft(), history, rec_poses)
-                oldest = pending[0].stamp_ns if pending else frame.stamp_ns
-                for h in history.values():
-                    while h and h[0].stamp_ns < oldest - age_ns:
-                        h.popleft()
-        except RecordingDamaged as exc:
-            run.damage.append(exc)
-        while pending:
-            add(pending.popleft(), history, rec_poses)
+    frames_of_poses: set[str] = set()
+    for span in piece.spans:
+        with open_task_recording(span.recording) as src:
+            rec_poses = None
+            if not estimate:
+                rec_poses = read_poses(src.path, rig.reference, _log_range(src, span))
+                if rec_poses is not None:
+                    frames_of_poses.add(f"{rec_poses.parent} -> {rec_poses.child}")
+                    run.notes += [f"{src.path}: {note}" for note in rec_poses.notes]
+            history: dict[str, deque[Frame]] = {n: deque() for n in images}
+            pending: deque[Frame] = deque()
+            seen = 0  # TOF distance frames read in this span
+            last = None if span.add_tof is None else span.skip_tof + span.add_tof
+            if span.seek_ns is not None:
+                src.seek(span.seek_ns)
+            try:
+                for frame in src.frames():
+                    if frame.sensor == builder.tof and frame.distance_m is not None:
+                        seen += 1
+                        if span.skip_tof < seen and (last is None or seen <= last):
+                            pending.append(frame)
+                    elif frame.sensor in history:
+                        history[frame.sensor].append(frame)
+                    # A TOF frame is added once nothing nearer in time can come.
+                    while pending and frame.stamp_ns > pending[0].stamp_ns + age_ns:
+                        add(pending.popleft(), history, rec_poses)
+                    if last is not None and seen > last and not pending:
+                        break
+                    oldest = pending[0].stamp_ns if pending else frame.stamp_ns
+                    for h in history.values():
+                        while h and h[0].stamp_ns < oldest - age_ns:
+                            h.popleft()
+            except RecordingDamaged as exc:
+                run.damage.append(exc)
+            while pending:
+                add(pending.popleft(), history, rec_poses)
+    run.pose_frames = ", ".join(sorted(frames_of_poses)) or None
     run.seconds = time.perf_counter() - t0
     return run
+
+
+def _log_range(src: ReplaySource, span: MapSpan) -> tuple[int, int] | None:
+    """The log times whose poses a span needs, a second's margin each side (None: all)."""
+    if span.seek_ns is None and span.end_ns is None:
+        return None
+    margin = 1_000_000_000
+    lo = src.start_ns if span.seek_ns is None else span.seek_ns
+    hi = src.end_ns if span.end_ns is None else span.end_ns
+    return lo - margin, hi + margin

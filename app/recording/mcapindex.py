@@ -27,10 +27,11 @@ import io
 import os
 import struct
 import zlib
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import EndOfFile
 from mcap.opcode import Opcode
@@ -41,6 +42,7 @@ from mcap.records import (
     Chunk,
     ChunkIndex,
     Message,
+    MessageIndex,
     Metadata,
     MetadataIndex,
     Schema,
@@ -83,6 +85,8 @@ class ChunkRef:
         length: the record's content length (after the 9-byte prefix).
         start_ns, end_ns: log time of its first and last message.
         message: for a message written outside any chunk, the message itself.
+        message_index_offsets: channel id -> offset of the chunk's message index record
+            for that channel (from the summary's chunk index; empty when scanned).
     """
 
     offset: int
@@ -90,6 +94,7 @@ class ChunkRef:
     start_ns: int
     end_ns: int
     message: Message | None = None
+    message_index_offsets: dict[int, int] = field(default_factory=dict)
 
 
 @dataclass
@@ -280,6 +285,7 @@ class McapIndex:
                         ci.chunk_length - _PREFIX,
                         ci.message_start_time,
                         ci.message_end_time,
+                        message_index_offsets=dict(ci.message_index_offsets),
                     )
                 )
             elif opcode == Opcode.ATTACHMENT_INDEX:
@@ -463,6 +469,34 @@ class McapIndex:
                 ref.offset,
                 message.log_time,
             )
+
+    def log_times(self, channel_ids: Collection[int]) -> np.ndarray | None:
+        """(N,) int64 sorted log times (ns) of every message on ``channel_ids``, read from
+        the chunks' message indexes (a few small reads per chunk, no chunk is
+        decompressed); None when the file has no such index (it was scanned, or its writer
+        wrote none) or an index record is damaged."""
+        wanted = set(channel_ids)
+        if self.indexed_by != "summary" or self.message_counts is None:
+            return None
+        times: list[int] = []
+        for c in self.chunks:
+            if c.message is not None:
+                return None
+            for cid, offset in c.message_index_offsets.items():
+                if cid not in wanted:
+                    continue
+                try:
+                    opcode, content = self._record_at(offset)
+                    if opcode != Opcode.MESSAGE_INDEX:
+                        return None
+                    index = MessageIndex.read(ReadDataStream(io.BytesIO(content)))
+                except (McapDamage, EndOfFile, struct.error):
+                    return None
+                times += [t for t, _ in index.records]
+        expected = sum(self.message_counts.get(cid, 0) for cid in wanted)
+        if len(times) != expected:
+            return None  # some chunks carry no index of the channel
+        return np.sort(np.asarray(times, dtype=np.int64))
 
     def schema_of(self, channel: Channel) -> Schema | None:
         return self.schemas.get(channel.schema_id) if channel.schema_id else None

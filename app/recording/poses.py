@@ -127,7 +127,9 @@ def _pose_matrix(msg: Any) -> np.ndarray | None:
     return T
 
 
-def read_poses(path: str | Path, reference: str | None = None) -> RecordingPoses | None:
+def read_poses(
+    path: str | Path, reference: str | None = None, log_range: tuple[int, int] | None = None
+) -> RecordingPoses | None:
     """Every ``world -> rig`` pose of the recording at ``path`` (see the module
     docstring), or None if it has none.
 
@@ -135,6 +137,8 @@ def read_poses(path: str | Path, reference: str | None = None) -> RecordingPoses
         path: the recording (.mcap).
         reference: the rig's reference sensor, also read as the child (default: the
             ``reference`` of the recording's ``trifuse.recording`` metadata, if any).
+        log_range: ``(first, last)`` log times (ns): only the transforms logged between
+            them are read (only the chunks that hold such messages); None: all.
 
     Returns:
         The poses sorted by stamp (of repeated stamps, the first), or None. A damaged file
@@ -155,8 +159,13 @@ def read_poses(path: str | Path, reference: str | None = None) -> RecordingPoses
         notes: list[str] = []
         bad = 0
         try:
+            lo, hi = log_range if log_range is not None else (None, None)
             for ref in index.chunks:
+                if lo is not None and (ref.end_ns < lo or ref.start_ns > hi):
+                    continue
                 for message in index.read_chunk(ref):
+                    if lo is not None and not lo <= message.log_time <= hi:
+                        continue
                     channel = index.channels[message.channel_id]
                     schema = index.schema_of(channel)
                     if schema is None or schema.name not in _TRANSFORM_SCHEMAS:

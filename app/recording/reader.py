@@ -223,6 +223,15 @@ class ReplaySource(MessageReplay):
             if self._kind_of(ch) == (sensor, kind)
         )
 
+    def log_times(self, sensor: str, kind: str) -> np.ndarray | None:
+        """(N,) int64 sorted log times (ns) of one sensor's stream, from the file's message
+        indexes (:meth:`~app.recording.mcapindex.McapIndex.log_times`); None if the file
+        has none."""
+        ids = [
+            cid for cid, ch in self.index.channels.items() if self._kind_of(ch) == (sensor, kind)
+        ]
+        return self.index.log_times(ids) if ids else None
+
     def _decoder(self, channel: Channel) -> Any:
         schema = self.index.schema_of(channel)
         dec = self._decoders.decoder_for(channel.message_encoding, schema)
