@@ -217,8 +217,9 @@ class RayRunner:
             ``auto``), or None: a new Ray instance on this machine, with ``num_cpus``
             (default: all).
         num_cpus: CPUs of the local instance.
-        on_worker: called with ``(task number, host, pid)`` when a task's worker first
-            reports (diagnostics; the tests kill that worker).
+        on_worker: called with ``(task number, host, pid)`` when a task reports from a
+            worker it had not reported from (its first run, or a run again after its
+            worker was lost): diagnostics; the tests kill that worker.
 
     Raises:
         ImportError: Ray is not installed (the ``[ray]`` extra).
@@ -271,7 +272,7 @@ class RayRunner:
         remote = _remote(ray)
         tracker = remote.tracker.remote()
         job = JobProgress(expected, progress)
-        seen: set[int] = set()
+        seen: set[tuple[int, str, int]] = set()
         taken: set[int] = set()
         window = 2 * self.cpus
         queued: deque[tuple[int, Any]] = deque()
@@ -286,8 +287,8 @@ class RayRunner:
                 ready, _ = ray.wait([ref], timeout=REPORT_INTERVAL_S)
                 done, pids = ray.get(tracker.snapshot.remote())
                 for k, (host, pid) in pids.items():
-                    if k not in seen:
-                        seen.add(k)
+                    if (k, host, pid) not in seen:
+                        seen.add((k, host, pid))
                         if self.on_worker is not None:
                             self.on_worker(k, host, pid)
                 for k, n in done.items():

@@ -38,7 +38,7 @@ from app.recording.reader import ReplaySource
 DEFAULT_CHUNK_S = 30.0
 """Seconds of recording per piece (``--chunk-s``)."""
 
-MIN_WARMUP_S = 2.0
+MIN_WARMUP_S = 0.5
 WARMUP_TIME_CONSTANTS = 4.0
 """A fusion piece replays ``max(MIN_WARMUP_S, WARMUP_TIME_CONSTANTS x span_smoothing_s)``
 before its range (``exp(-4)``: 2 % of the span's change is left)."""
