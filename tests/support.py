@@ -344,3 +344,29 @@ def direct_websocket(port: int, headers: dict[str, str]) -> int | None:
             return None
     except websockets.exceptions.InvalidStatus as e:
         return e.response.status_code
+
+
+def record_survey_archive(directory: Path, seeds: Iterable[int], duration_s: float) -> list[Path]:
+    """Recordings ``mission<seed>.mcap`` of the simulated survey (the head pans, its poses
+    recorded) at a tenth of the real resolutions (:func:`small_rig`), made by ``trifuse
+    record``: the archive an offline job (fuse, map) runs over."""
+    from app.cli import main
+    from app.storage.rigfile import save_rig
+
+    rig_path = save_rig(directory / "rig.yaml", small_rig())
+    out = []
+    for seed in seeds:
+        path = directory / f"mission{seed}.mcap"
+        argv = ["record", "--source", "sim", "--scenario", "survey", "--duration", str(duration_s)]
+        assert main([*argv, "--rig", str(rig_path), "--seed", str(seed), "--out", str(path)]) == 0
+        out.append(path)
+    return out
+
+
+def directory_bytes(directory: Path) -> dict[str, bytes]:
+    """Every file under ``directory`` (hidden ones too) by relative path, with its bytes."""
+    return {
+        str(p.relative_to(directory)): p.read_bytes()
+        for p in sorted(directory.rglob("*"))
+        if p.is_file()
+    }

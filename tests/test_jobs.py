@@ -17,9 +17,8 @@ from app.recording import ReplaySource
 from app.recording.fuse import FusedWriter, PieceEnd, fuse_piece
 from app.recording.jobs import LocalRunner, plan_fuse_job, run_fuse_job
 from app.recording.pieces import FusePiece, plan_fuse, plan_map, ranges
-from app.storage.rigfile import save_rig
 from fusion.compose import DisplaySettings
-from tests.support import small_rig
+from tests.support import directory_bytes, record_survey_archive, small_rig
 
 DURATION_S = 3.0
 
@@ -28,25 +27,7 @@ DURATION_S = 3.0
 def recordings(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
     """Two 3 s recordings of the simulated survey (the head pans) at a tenth of the real
     resolutions: 90 colour frame sets and 45 TOF frames each, with the head's poses."""
-    d = tmp_path_factory.mktemp("archive")
-    rig_path = save_rig(d / "rig.yaml", small_rig())
-    out = []
-    for seed in (3, 4):
-        path = d / f"mission{seed}.mcap"
-        argv = ["record", "--source", "sim", "--scenario", "survey"]
-        argv += ["--duration", str(DURATION_S), "--rig", str(rig_path), "--seed", str(seed)]
-        assert main([*argv, "--out", str(path)]) == 0
-        out.append(path)
-    return out
-
-
-def files(directory: Path) -> dict[str, bytes]:
-    """Every file under ``directory`` by relative path, with its bytes."""
-    return {
-        str(p.relative_to(directory)): p.read_bytes()
-        for p in sorted(directory.rglob("*"))
-        if p.is_file()
-    }
+    return record_survey_archive(tmp_path_factory.mktemp("archive"), (3, 4), DURATION_S)
 
 
 def test_ranges_cover_every_index_once_in_pieces_of_chunk_seconds() -> None:
@@ -132,7 +113,7 @@ def test_split_fusion_writes_the_unsplit_sets_and_stamps(
         [result] = run_fuse_job([planned], settings, 1, LocalRunner())
         assert result.frames == 90 - result.skipped.get("no TOF frame yet", 0)
         out[chunk_s] = d
-    whole, split = files(out[0.0]), files(out[1.0])
+    whole, split = directory_bytes(out[0.0]), directory_bytes(out[1.0])
     assert sorted(whole) == sorted(split)
     assert whole["frames.csv"] == split["frames.csv"]
     with ReplaySource(recordings[0], realtime=False) as src:

@@ -164,18 +164,20 @@ def _remote(ray: Any) -> _Remote:
 
 
 class _Tracker:
-    """A Ray actor: each task's latest progress and the process running it."""
+    """A Ray actor: each task's latest progress and the processes that ran it."""
 
     def __init__(self) -> None:
         self.done: dict[int, int] = {}
-        self.pids: dict[int, tuple[str, int]] = {}
+        self.workers: dict[int, list[tuple[str, int]]] = {}
 
     def report(self, task: int, done: int, host: str, pid: int) -> None:
         self.done[task] = done
-        self.pids[task] = (host, pid)
+        ran = self.workers.setdefault(task, [])
+        if (host, pid) not in ran:
+            ran.append((host, pid))
 
-    def snapshot(self) -> tuple[dict[int, int], dict[int, tuple[str, int]]]:
-        return dict(self.done), dict(self.pids)
+    def snapshot(self) -> tuple[dict[int, int], dict[int, list[tuple[str, int]]]]:
+        return dict(self.done), {k: list(v) for k, v in self.workers.items()}
 
 
 def _ray_task(
@@ -189,6 +191,7 @@ def _ray_task(
     import socket
 
     import cv2
+    import ray
 
     if version() != driver_version:
         raise RuntimeError(
@@ -205,7 +208,7 @@ def _ray_task(
             last[0] = now
             tracker.report.remote(number, done, host, pid)
 
-    tracker.report.remote(number, 0, host, pid)
+    ray.get(tracker.report.remote(number, 0, host, pid))  # known before the task can die
     return list(fn(task, report))
 
 
@@ -285,12 +288,13 @@ class RayRunner:
                     submitted += 1
                 number, ref = queued[0]
                 ready, _ = ray.wait([ref], timeout=REPORT_INTERVAL_S)
-                done, pids = ray.get(tracker.snapshot.remote())
-                for k, (host, pid) in pids.items():
-                    if (k, host, pid) not in seen:
-                        seen.add((k, host, pid))
-                        if self.on_worker is not None:
-                            self.on_worker(k, host, pid)
+                done, workers = ray.get(tracker.snapshot.remote())
+                for k, ran in workers.items():
+                    for host, pid in ran:
+                        if (k, host, pid) not in seen:
+                            seen.add((k, host, pid))
+                            if self.on_worker is not None:
+                                self.on_worker(k, host, pid)
                 for k, n in done.items():
                     if k not in taken and job.done.get(k) != n:
                         job.report(k, n)

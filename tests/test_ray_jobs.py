@@ -1,0 +1,144 @@
+"""Offline jobs on a Ray cluster (issue 22): a head and two one-CPU worker nodes started
+here (``ray.cluster_utils.Cluster``), two short simulated recordings fused and mapped in
+pieces, the output compared byte for byte with the local run's; a worker killed in the
+middle of a piece; a recording a node cannot read."""
+
+from __future__ import annotations
+
+import os
+import signal
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import ray
+from ray.cluster_utils import Cluster
+
+from app.cli import main
+from app.recording import jobs
+from app.recording.jobs import RayRunner, plan_fuse_job, run_fuse_job
+from fusion.compose import DisplaySettings
+from tests.support import directory_bytes, record_survey_archive
+
+CHUNK = ["--chunk-s", "1"]  # 3 pieces per 3 s recording
+
+
+@pytest.fixture(scope="module")
+def cluster() -> Iterator[Cluster]:
+    """A head without CPUs for tasks and two worker nodes of one CPU each."""
+    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 0})
+    try:
+        for _ in range(2):
+            c.add_node(num_cpus=1)
+        c.wait_for_nodes()
+        ray.init(address=c.address, include_dashboard=False, log_to_driver=False)
+        yield c
+    finally:
+        ray.shutdown()
+        c.shutdown()
+
+
+@pytest.fixture(scope="module")
+def archive(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Two 3 s recordings of the simulated survey with the head's poses."""
+    return record_survey_archive(tmp_path_factory.mktemp("archive"), (5, 6), 3.0)
+
+
+@pytest.fixture(scope="module")
+def local_fused(archive: list[Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The archive fused here (``trifuse fuse DIR --out OUT --chunk-s 1``)."""
+    out = tmp_path_factory.mktemp("local") / "fused"
+    assert main(["fuse", str(archive[0].parent), "--out", str(out), *CHUNK]) == 0
+    return out
+
+
+def test_fuse_and_map_on_the_cluster_write_the_local_bytes(
+    cluster: Cluster,
+    archive: list[Path],
+    local_fused: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    capsys.readouterr()
+    out = tmp_path / "fused"
+    argv = ["fuse", str(archive[0].parent), "--out", str(out), *CHUNK, "--ray", cluster.address]
+    assert main(argv) == 0
+    printed = capsys.readouterr()
+    assert f"6 pieces (1 s each; Ray at {cluster.address})" in printed.out
+    total = sum(1 for _ in local_fused.rglob("*.jpg"))
+    assert f"{total}/{total} frames" in printed.err  # one bar over the whole job
+    got, want = directory_bytes(out), directory_bytes(local_fused)
+    assert sorted(got) == sorted(want) and len(want) == total + 4  # + frames.csv, video
+    assert got == want
+
+    maps = {}
+    for where in ("local", "ray"):
+        ply = tmp_path / f"{where}.ply"
+        extra = ["--ray", cluster.address] if where == "ray" else []
+        assert main(["map", *map(str, archive), "--out", str(ply), *CHUNK, *extra]) == 0
+        maps[where] = (ply.read_bytes(), ply.with_suffix(".map.npz").read_bytes())
+    assert "Mapped 90 of 90 TOF frames" in capsys.readouterr().out
+    assert maps["ray"] == maps["local"]
+
+
+def test_a_worker_killed_in_a_piece_is_run_again_and_nothing_is_written_twice(
+    cluster: Cluster,
+    archive: list[Path],
+    local_fused: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The second piece of the first recording kills its own worker process (SIGKILL, as
+    the kernel's OOM killer would) after 5 pictures, once; Ray runs it again on a new
+    worker. The driver takes each piece's results once and writes every file once (it
+    never overwrites: a second write would raise), so the output is the local run's."""
+    marker = tmp_path / "killed"
+    victim = str(archive[0].resolve())
+    fuse_task = jobs.fuse_task
+
+    def dying(task: jobs.FuseTask, report):  # pickled by value to the workers
+        first = False
+        if task.piece.recording == victim and task.piece.number == 1:
+            try:
+                os.close(os.open(marker, os.O_CREAT | os.O_EXCL))
+                first = True
+            except FileExistsError:
+                pass
+        for n, item in enumerate(fuse_task(task, report)):
+            if first and n == 5:
+                os.kill(os.getpid(), signal.SIGKILL)
+            yield item
+
+    monkeypatch.setattr(jobs, "fuse_task", dying)
+    workers: dict[int, set[int]] = {}
+    out = tmp_path / "fused"
+    dirs = [out / p.stem for p in archive]
+    for d in dirs:
+        d.mkdir(parents=True)
+    settings = DisplaySettings()
+    planned = plan_fuse_job(list(zip(archive, dirs, strict=True)), None, settings, 1, 1.0)
+    runner = RayRunner(
+        cluster.address, on_worker=lambda k, _h, pid: workers.setdefault(k, set()).add(pid)
+    )
+    results = run_fuse_job(planned, settings, 1, runner)
+    assert marker.exists()  # the worker was killed
+    assert len(workers[1]) == 2  # piece 1 reported from a second worker: run again
+    assert all(len(pids) == 1 for k, pids in workers.items() if k != 1)
+    assert [r.frames for r in results] == [
+        sum(1 for _ in (local_fused / p.stem).glob("*.jpg")) for p in archive
+    ]
+    assert directory_bytes(out) == directory_bytes(local_fused)
+
+
+def test_a_recording_a_node_cannot_read_stops_the_job_saying_so(
+    cluster: Cluster, archive: list[Path], tmp_path: Path
+) -> None:
+    gone = tmp_path / "gone.mcap"
+    gone.write_bytes(archive[0].read_bytes())
+    d = tmp_path / "out"
+    d.mkdir()
+    planned = plan_fuse_job([(gone, d)], None, DisplaySettings(), 1, 1.0)
+    gone.unlink()  # planned here, not there where the pieces run
+    with pytest.raises(FileNotFoundError, match=r"cannot be read on .*at the same path"):
+        run_fuse_job(planned, DisplaySettings(), 1, RayRunner(cluster.address))
+    assert list(d.iterdir()) == []  # nothing written, no video parts left
