@@ -60,6 +60,10 @@ def open_runner(args: argparse.Namespace) -> Iterator[Runner]:
     except ImportError as exc:
         raise UsageError(str(exc)) from None
     except ConnectionError as exc:
-        raise UsageError(f"--ray {args.ray}: cannot connect to the cluster ({exc})") from None
+        raise UsageError(
+            f"--ray {args.ray}: cannot connect to the cluster ({exc}); is its head running, "
+            "and if it uses Ray's token authentication, does this machine have its token "
+            "(RAY_AUTH_MODE=token, and the head's ~/.ray/auth_token here or RAY_AUTH_TOKEN)?"
+        ) from None
     with runner:
         yield runner

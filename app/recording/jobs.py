@@ -239,16 +239,11 @@ class RayRunner:
         self.on_worker = on_worker
         self._started = False
         if not ray.is_initialized():
-            kwargs: dict[str, Any] = {
-                "include_dashboard": False,
-                "log_to_driver": False,
-                "logging_level": logging.WARNING,
-                "configure_logging": False,
-            }
+            quiet = {"log_to_driver": False, "logging_level": logging.WARNING}
             if address:
-                ray.init(address=address, **kwargs)
+                ray.init(address=address, **quiet)
             else:
-                ray.init(address="local", num_cpus=num_cpus, **kwargs)
+                ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, **quiet)
             self._started = True
         self.cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
 
