@@ -268,6 +268,24 @@ class VoxelMap:
             setattr(self.stats, name, getattr(self.stats, name) + value)
         return st
 
+    def _rows_of(self, keys: np.ndarray, st: IntegrateStats) -> np.ndarray:
+        """(N,) rows here of the distinct voxel ``keys`` (N,), adding the new ones in their
+        order while ``max_voxels`` leaves room (-1: dropped; ``st.new_voxels`` and
+        ``st.dropped_full`` count them)."""
+        index = self._hash.lookup(keys)
+        new = np.flatnonzero(index < 0)
+        room = self.settings.max_voxels - len(self)
+        if len(new) > room:
+            st.dropped_full = int(len(new) - room)
+            new = new[:room]
+        if len(new):
+            if len(self) + len(new) > len(self._arrays["hits"]):
+                self._resize(max(2 * len(self._arrays["hits"]), len(self) + len(new)))
+            index[new] = self._hash.insert(keys[new])
+            self._arrays["centre"][index[new]] = self._centres(keys[new])
+        st.new_voxels = len(new)
+        return index
+
     def _add_hits(
         self,
         keys: np.ndarray,
@@ -279,18 +297,7 @@ class VoxelMap:
     ) -> None:
         s = self.settings
         uniq, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-        index = self._hash.lookup(uniq)
-        new = np.flatnonzero(index < 0)
-        room = s.max_voxels - len(self)
-        if len(new) > room:
-            st.dropped_full = int(len(new) - room)
-            new = new[:room]
-        if len(new):
-            if len(self) + len(new) > len(self._arrays["hits"]):
-                self._resize(max(2 * len(self._arrays["hits"]), len(self) + len(new)))
-            index[new] = self._hash.insert(uniq[new])
-            self._arrays["centre"][index[new]] = self._centres(uniq[new])
-        st.new_voxels = len(new)
+        index = self._rows_of(uniq, st)
         kept = index >= 0
         st.voxels = int(kept.sum())
         v = index[kept]
@@ -392,8 +399,9 @@ class VoxelMap:
           else this map's; ``last_seen`` (seconds): ``other``'s where it saw the voxel,
           else this map's;
         * :attr:`path`: this map's then ``other``'s (copies of its (4, 4) poses);
-          :attr:`stats`: the field-wise sum of both, plus this merge's ``dropped_full``
-          (so ``stats.new_voxels`` counts a voxel once per map that made it);
+          :attr:`stats`: the field-wise sum of both, but ``new_voxels`` counts the voxels
+          this merge appended (not those ``other`` made that this map had) and
+          ``dropped_full`` adds this merge's;
           :attr:`revision` goes up by one; the free-space cursor stays.
 
         Merging differs slightly from integrating every frame into one map:
@@ -426,19 +434,8 @@ class VoxelMap:
             raise ValueError(f"merge: the maps' settings differ ({diff})")
         s = self.settings
         keys = other.keys_of(other["centre"].astype(np.float64))[0]
-        index = self._hash.lookup(keys)
-        new = np.flatnonzero(index < 0)  # rows of other, in its order
-        room = s.max_voxels - len(self)
         st = IntegrateStats(voxels=len(other))
-        if len(new) > room:
-            st.dropped_full = int(len(new) - room)
-            new = new[:room]
-        if len(new):
-            if len(self) + len(new) > len(self._arrays["hits"]):
-                self._resize(max(2 * len(self._arrays["hits"]), len(self) + len(new)))
-            index[new] = self._hash.insert(keys[new])
-            self._arrays["centre"][index[new]] = other["centre"][new]
-        st.new_voxels = len(new)
+        index = self._rows_of(keys, st)  # other's voxels new here are added in its order
         src = np.flatnonzero(index >= 0)  # rows of other that reach this map
         v = index[src]  # their rows here (distinct: other's keys are)
         a = self._arrays
@@ -455,6 +452,7 @@ class VoxelMap:
         self.path = self.path + [(t, T.copy()) for t, T in other.path]
         for name, value in asdict(other.stats).items():
             setattr(self.stats, name, getattr(self.stats, name) + value)
+        self.stats.new_voxels += st.new_voxels - other.stats.new_voxels
         self.stats.dropped_full += st.dropped_full
         self.revision += 1
         return st
