@@ -314,6 +314,11 @@ class RayRunner:
             return ray.get(ref)
         except ray.exceptions.RayTaskError as exc:
             cause = exc.cause
+            if isinstance(cause, ImportError):
+                raise RuntimeError(
+                    f"piece {number}: a node cannot import what the task needs ({cause}): "
+                    f"install trifuse {version()} (and its dependencies) on every node"
+                ) from None
             if isinstance(cause, Exception):
                 raise cause from None
             raise
