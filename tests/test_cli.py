@@ -226,7 +226,7 @@ def test_record_suggests_the_commands_that_use_the_recording(
     serve = build_parser().parse_args(shlex.split(suggested[0])[1:])
     fuse = build_parser().parse_args(shlex.split(suggested[1])[1:])
     assert serve.command == "serve" and Path(serve.replay) == out
-    assert fuse.command == "fuse" and Path(fuse.recording) == out
+    assert fuse.command == "fuse" and [Path(p) for p in fuse.recordings] == [out]
 
 
 def test_analyze_prints_tof_pixels_rounded(

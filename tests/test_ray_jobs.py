@@ -117,10 +117,9 @@ def test_a_worker_killed_in_a_piece_is_run_again_and_nothing_is_written_twice(
         d.mkdir(parents=True)
     settings = DisplaySettings()
     planned = plan_fuse_job(list(zip(archive, dirs, strict=True)), None, settings, 1, 1.0)
-    runner = RayRunner(
-        cluster.address, on_worker=lambda k, _h, pid: workers.setdefault(k, set()).add(pid)
-    )
-    results = run_fuse_job(planned, settings, 1, runner)
+    seen = lambda k, _host, pid: workers.setdefault(k, set()).add(pid)  # noqa: E731
+    with RayRunner(cluster.address, on_worker=seen) as runner:
+        results = run_fuse_job(planned, settings, 1, runner)
     assert marker.exists()  # the worker was killed
     assert len(workers[1]) == 2  # piece 1 reported from a second worker: run again
     assert all(len(pids) == 1 for k, pids in workers.items() if k != 1)
@@ -139,6 +138,9 @@ def test_a_recording_a_node_cannot_read_stops_the_job_saying_so(
     d.mkdir()
     planned = plan_fuse_job([(gone, d)], None, DisplaySettings(), 1, 1.0)
     gone.unlink()  # planned here, not there where the pieces run
-    with pytest.raises(FileNotFoundError, match=r"cannot be read on .*at the same path"):
-        run_fuse_job(planned, DisplaySettings(), 1, RayRunner(cluster.address))
+    with (
+        RayRunner(cluster.address) as runner,
+        pytest.raises(FileNotFoundError, match=r"cannot be read on .*at the same path"),
+    ):
+        run_fuse_job(planned, DisplaySettings(), 1, runner)
     assert list(d.iterdir()) == []  # nothing written, no video parts left

@@ -54,9 +54,8 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
 
 def output_dirs(args: argparse.Namespace, inputs: list[Path]) -> list[Path]:
     """``--out`` for one recording named as a file, else ``--out/<name>`` per recording
-    (names must differ); each must be new or empty."""
+    (names must differ)."""
     out_dir = Path(args.out)
-    check_output_dir(out_dir)
     if len(inputs) == 1 and not Path(args.recordings[0]).is_dir():
         return [out_dir]
     dirs = [out_dir / p.stem for p in inputs]
@@ -76,6 +75,7 @@ def run(args: argparse.Namespace) -> int:
     from app.storage.atomic import make_dirs
     from fusion.compose import DisplaySettings
 
+    check_output_dir(Path(args.out))  # refusals first: the inputs need not exist for them
     inputs = recording_paths(args.recordings)
     dirs = output_dirs(args, inputs)
     settings = DisplaySettings(mode=args.mode)

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
+from app.progress_actor import JobTracker
 from app.recording.fuse import (
     FusedFrame,
     FusedWriter,
@@ -158,26 +159,9 @@ def _remote(ray: Any) -> _Remote:
     if _REMOTE is None:
         _REMOTE = _Remote(
             ray.remote(num_cpus=1, max_retries=MAX_RETRIES, retry_exceptions=False)(_ray_task),
-            ray.remote(num_cpus=0)(_Tracker),
+            ray.remote(num_cpus=0)(JobTracker),
         )
     return _REMOTE
-
-
-class _Tracker:
-    """A Ray actor: each task's latest progress and the processes that ran it."""
-
-    def __init__(self) -> None:
-        self.done: dict[int, int] = {}
-        self.workers: dict[int, list[tuple[str, int]]] = {}
-
-    def report(self, task: int, done: int, host: str, pid: int) -> None:
-        self.done[task] = done
-        ran = self.workers.setdefault(task, [])
-        if (host, pid) not in ran:
-            ran.append((host, pid))
-
-    def snapshot(self) -> tuple[dict[int, int], dict[int, list[tuple[str, int]]]]:
-        return dict(self.done), {k: list(v) for k, v in self.workers.items()}
 
 
 def _ray_task(
@@ -246,9 +230,13 @@ class RayRunner:
                 ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, **quiet)
             self._started = True
         self.cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
+        self._tracker: Any = None
 
     def close(self) -> None:
         """Shut down the Ray instance this runner started (a cluster it joined stays)."""
+        if self._tracker is not None:
+            self.ray.kill(self._tracker)
+            self._tracker = None
         if self._started:
             self.ray.shutdown()
             self._started = False
@@ -268,7 +256,10 @@ class RayRunner:
     ) -> Iterator[Iterable[R]]:
         ray = self.ray
         remote = _remote(ray)
-        tracker = remote.tracker.remote()
+        if self._tracker is None:
+            self._tracker = remote.tracker.remote()
+        tracker = self._tracker
+        ray.get(tracker.reset.remote())
         job = JobProgress(expected, progress)
         seen: set[tuple[int, str, int]] = set()
         taken: set[int] = set()
@@ -304,7 +295,6 @@ class RayRunner:
         finally:
             for _, ref in queued:
                 ray.cancel(ref, force=True)
-            ray.kill(tracker)
 
     def _result(self, ref: Any, number: int) -> list[Any]:
         """The task's results; its own error (e.g. a recording that cannot be read) as
