@@ -144,3 +144,22 @@ def test_a_recording_a_node_cannot_read_stops_the_job_saying_so(
     ):
         run_fuse_job(planned, DisplaySettings(), 1, runner)
     assert list(d.iterdir()) == []  # nothing written, no video parts left
+
+
+def test_a_damaged_recording_fuses_on_the_cluster_as_here(
+    cluster: Cluster, archive: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A recording cut short (no index: one piece) comes back with its damage from the
+    task: the same pictures and the same warning as here."""
+    cut = tmp_path / "cut.mcap"
+    data = archive[0].read_bytes()
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    printed = {}
+    for where in ("local", "ray"):
+        extra = ["--ray", cluster.address] if where == "ray" else []
+        assert main(["fuse", str(cut), "--out", str(tmp_path / where), *extra]) == 0
+        printed[where] = capsys.readouterr().err
+        assert "warning: " in printed[where] and "recording damaged" in printed[where]
+    warning = [line for line in printed["local"].splitlines() if "warning" in line]
+    assert warning == [line for line in printed["ray"].splitlines() if "warning" in line]
+    assert directory_bytes(tmp_path / "ray") == directory_bytes(tmp_path / "local")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 
@@ -42,6 +43,7 @@ class RecordingDamaged(RecordingError):
         self.reason = reason
         self.offset = offset
         self.stamp_ns = stamp_ns
+        self.start_ns = start_ns
         self.frames_delivered = frames_delivered
         where = f" at byte {offset}" if offset is not None else ""
         if stamp_ns is not None and start_ns is not None:
@@ -52,6 +54,16 @@ class RecordingDamaged(RecordingError):
             f"{self.path}: recording damaged{where} ({when}{frames_delivered} frames "
             f"replayed before it): {reason}"
         )
+
+    def __reduce__(self) -> tuple[object, ...]:
+        """Pickled with its keyword arguments (a piece's damage comes back from a Ray task)."""
+        kwargs = {
+            "offset": self.offset,
+            "stamp_ns": self.stamp_ns,
+            "start_ns": self.start_ns,
+            "frames_delivered": self.frames_delivered,
+        }
+        return (functools.partial(type(self), **kwargs), (self.path, self.reason))
 
 
 class TopicMapError(RecordingError):

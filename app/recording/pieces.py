@@ -13,8 +13,10 @@ that had to be scanned: cut short, or its summary damaged) is one piece.
 * Fusion (:class:`FusePiece`): the stream is the left eye's colour frames, one frame set
   each. A piece composes the sets of its range and first replays ``warmup_s`` before it
   without writing, so that the automatic span and AGC table, smoothed over time, and the
-  TOF mapping are settled when it starts (the smoothing's remaining difference to an unsplit
-  run is ``exp(-warmup / time constant)`` of the span's change at the piece's start).
+  TOF mapping are settled when it starts. The span's remaining difference to an unsplit run
+  is ``exp(-warmup / time constant)`` of its change at the warm-up's start; the AGC table,
+  renormalised every frame, settles more slowly (a picture or two after a piece's start
+  can differ by a grey level or two on average: ``tests/test_jobs.py``).
 * Map (:class:`MapPiece`): the stream is the TOF's distance frames. A piece adds the TOF
   frames of its range; it reads from ``2 * max_image_age`` before the first one, so that
   every TOF frame finds the same nearest thermal and colour images as in an unsplit run.
@@ -41,7 +43,8 @@ DEFAULT_CHUNK_S = 30.0
 MIN_WARMUP_S = 0.5
 WARMUP_TIME_CONSTANTS = 4.0
 """A fusion piece replays ``max(MIN_WARMUP_S, WARMUP_TIME_CONSTANTS x span_smoothing_s)``
-before its range (``exp(-4)``: 2 % of the span's change is left)."""
+seconds before its range (``exp(-4)``: 2 % of the span's change is left; at least the
+TOF frames and the other sensors' frames that the first sets need)."""
 
 
 def warmup_s(span_smoothing_s: float) -> float:
