@@ -182,6 +182,11 @@ def test_without_the_ray_extra_ray_is_refused_and_local_runs(
     assert not (tmp_path / "a").exists()  # refused before anything was written
     assert main([*argv, "--out", str(tmp_path / "b")]) == 0
     assert len(list((tmp_path / "b").glob("*.jpg"))) == 3
+    # --ray before the recordings takes the first as its address: said so, not tried
+    capsys.readouterr()
+    names = [str(p) for p in recordings]
+    assert main(["fuse", "--ray", *names, "--out", str(tmp_path / "c")]) == 2
+    assert "put --ray after the recordings" in capsys.readouterr().err
 
 
 def test_an_unreadable_recording_names_the_machine(recordings: list[Path], tmp_path: Path) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from app.cli.args import UsageError, non_negative
@@ -55,6 +56,11 @@ def open_runner(args: argparse.Namespace) -> Iterator[Runner]:
     if args.ray is None:
         yield LocalRunner()
         return
+    if args.ray != LOCAL_RAY and (args.ray.endswith(".mcap") or Path(args.ray).exists()):
+        raise UsageError(
+            f"--ray {args.ray}: that is a file, not a cluster's address; put --ray after the "
+            "recordings (or give it an address: --ray HOST:PORT)"
+        )
     try:
         runner = RayRunner(None if args.ray == LOCAL_RAY else args.ray)
     except ImportError as exc:
