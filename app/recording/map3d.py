@@ -1,8 +1,10 @@
 """The thermal 3D map of recordings (``trifuse map``): every TOF frame into a
 :class:`~fusion.map_builder.MapBuilder`.
 
-The recordings are replayed as fast as they are read, one after the other, as one run.
-Each TOF frame with distances is added with:
+A map job (:func:`app.recording.jobs.run_map_job`) splits the recordings into pieces
+(:mod:`app.recording.pieces`); :func:`map_piece` replays a piece's spans as fast as they
+are read, each piece into a map of its own, and the job merges the pieces' maps in order
+(:meth:`MapRun.absorb`). Each TOF frame with distances is added with:
 
 * the images of the rig's thermal imagers (through each imager's radiometry, as
   ``trifuse fuse`` does: kelvin) and colour cameras nearest to it in time, at most
