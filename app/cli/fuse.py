@@ -58,14 +58,15 @@ def output_dirs(args: argparse.Namespace, inputs: list[Path]) -> list[Path]:
     out_dir = Path(args.out)
     if len(inputs) == 1 and not Path(args.recordings[0]).is_dir():
         return [out_dir]
-    dirs = [out_dir / p.stem for p in inputs]
-    for d, p in zip(dirs, inputs, strict=True):
-        same = [q for q, e in zip(inputs, dirs, strict=True) if e == d and q != p]
-        if same:
+    named: dict[Path, Path] = {}  # output directory -> its recording
+    for p in inputs:
+        d = out_dir / p.stem
+        if d in named:
             raise UsageError(
-                f"{p} and {same[0]}: recordings of the same name would share {d}; fuse them apart"
+                f"{named[d]} and {p}: recordings of the same name would share {d}; fuse them apart"
             )
-    return dirs
+        named[d] = p
+    return list(named)
 
 
 def run(args: argparse.Namespace) -> int:

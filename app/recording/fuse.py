@@ -226,7 +226,7 @@ class FusedWriter:
         self.result = FuseResult(fps=fps)
         self._rows = ["index,stamp_ns,tof_stamp_ns"]
         self._segments: list[Path] = []
-        self._video_problems: list[str] = []
+        self._video_problem: str | None = None  # the first piece's without a video
 
     def add(self, item: FusedFrame | PieceEnd) -> None:
         """Write a picture, or take a piece's end (its video waits in a hidden file)."""
@@ -247,7 +247,7 @@ class FusedWriter:
             atomic_write_bytes(segment, item.video, False)
             self._segments.append(segment)
         elif item.video_problem is not None:
-            self._video_problems.append(item.video_problem)
+            self._video_problem = self._video_problem or item.video_problem
 
     def abort(self) -> None:
         """The job stopped: remove the pieces' videos (the pictures written stay)."""
@@ -268,7 +268,7 @@ class FusedWriter:
                 fsync_dir(self.out_dir)
                 r.video = self.out_dir / VIDEO_NAME
             else:
-                r.video_problem = (self._video_problems or ["no frames were fused"])[0]
+                r.video_problem = self._video_problem or "no frames were fused"
         finally:
             self.abort()
         return r

@@ -26,6 +26,7 @@ object store mounted at that path). Object store URLs are not read directly.
 
 from __future__ import annotations
 
+import functools
 import importlib.metadata
 import logging
 import os
@@ -143,25 +144,11 @@ def version() -> str:
     return importlib.metadata.version("trifuse")
 
 
-@dataclass
-class _Remote:
-    """The Ray task and progress actor, made once per process."""
-
-    task: Any
-    tracker: Any
-
-
-_REMOTE: _Remote | None = None
-
-
-def _remote(ray: Any) -> _Remote:
-    global _REMOTE
-    if _REMOTE is None:
-        _REMOTE = _Remote(
-            ray.remote(num_cpus=1, max_retries=MAX_RETRIES, retry_exceptions=False)(_ray_task),
-            ray.remote(num_cpus=0)(JobTracker),
-        )
-    return _REMOTE
+@functools.cache
+def _remote(ray: Any) -> tuple[Any, Any]:
+    """The Ray task and the progress actor's class, made once per process."""
+    task = ray.remote(num_cpus=1, max_retries=MAX_RETRIES, retry_exceptions=False)(_ray_task)
+    return task, ray.remote(num_cpus=0)(JobTracker)
 
 
 def _ray_task(
@@ -255,9 +242,9 @@ class RayRunner:
         progress: Progress | None = None,
     ) -> Iterator[Iterable[R]]:
         ray = self.ray
-        remote = _remote(ray)
+        task, tracker_class = _remote(ray)
         if self._tracker is None:
-            self._tracker = remote.tracker.remote()
+            self._tracker = tracker_class.remote()
         tracker = self._tracker
         ray.get(tracker.reset.remote())
         job = JobProgress(expected, progress)
@@ -269,7 +256,7 @@ class RayRunner:
         try:
             while queued or submitted < len(tasks):
                 while submitted < len(tasks) and len(queued) < window:
-                    ref = remote.task.remote(fn, tasks[submitted], submitted, tracker, version())
+                    ref = task.remote(fn, tasks[submitted], submitted, tracker, version())
                     queued.append((submitted, ref))
                     submitted += 1
                 number, ref = queued[0]
