@@ -17,6 +17,7 @@ import html
 import numpy as np
 import viser.uplot as uplot
 
+from app.server.markdown_text import md_cells, md_text
 from app.server.runtime.board_watch import BoardSighting
 from app.server.runtime.context import ConsoleContext
 from app.server.runtime.demand import Hold
@@ -82,7 +83,7 @@ def views_html(views: list[ViewInfo], sensors: list[str]) -> str:
             mark = "…" if found is None else ("✓" if found else "✗")
             color = "#2ca02c" if found else ("#888" if found is None else "#d62728")
             marks.append(f"<td title='{title}' style='color:{color}'>{mark}</td>")
-        rows.append(f"<tr><td>{v.name}</td>{''.join(marks)}</tr>")
+        rows.append(f"<tr><td>{html.escape(v.name)}</td>{''.join(marks)}</tr>")
     return (
         f"<p style='font-size:0.85em;margin:0'>{len(views)} views</p>"
         "<div style='max-height:220px;overflow-y:auto'>"
@@ -152,21 +153,21 @@ class CalibrationPanel(Periodic):
         try:
             self.message.content = action() or ""
         except (SessionError, KeyError, RigError, ValueError) as exc:
-            self.message.content = f"**Not done:** {exc.args[0] if exc.args else exc}"
+            self.message.content = f"**Not done:** {md_text(exc.args[0] if exc.args else exc)}"
         self._dirty = True
 
     def _capture(self) -> str:
         fs = self.ctx.pipeline.latest_set
         if fs is None:
             raise SessionError("no frames yet")
-        return f"Captured view {self.session.take(fs).name}."
+        return f"Captured view {md_text(self.session.take(fs).name)}."
 
     def _delete(self) -> str:
         name = self.view_pick.value
         if name == NONE:
             raise SessionError("choose a view first")
         moved = self.session.delete(name)
-        return f"Deleted view {name} (kept in {moved})."
+        return f"Deleted view {md_text(name)} (kept in {md_text(moved)})."
 
     def _calibrate(self) -> str:
         self.session.start_calibration()
@@ -178,18 +179,18 @@ class CalibrationPanel(Periodic):
             raise SessionError("choose a view first")
         self.session.delete(name)
         self.session.start_calibration()
-        return f"Dropped view {name}; calibrating again."
+        return f"Dropped view {md_text(name)}; calibrating again."
 
     def _save(self) -> str:
         v = self.session.save()
-        return f"Saved **{v.name}** ({v.path})."
+        return f"Saved **{md_text(v.name)}** ({md_text(v.path)})."
 
     def _use(self) -> str:
         name = self.version_pick.value.split(" ")[0]
         if name == NONE:
             raise SessionError("choose a saved rig first")
         self.ctx.use_rig(self.session.load_version(name))
-        return f"The console now fuses with **{name}**."
+        return f"The console now fuses with **{md_text(name)}**."
 
     def _want_board(self, on: bool) -> None:
         """Auto-capture needs the board search whether or not a browser is connected."""
@@ -210,9 +211,9 @@ class CalibrationPanel(Periodic):
         try:
             view = self.session.take(s.frames)
         except SessionError as exc:
-            self.message.content = f"**Auto-capture failed:** {exc}"
+            self.message.content = f"**Auto-capture failed:** {md_text(exc)}"
             return
-        self.message.content = f"Auto-captured view {view.name} ({why})."
+        self.message.content = f"Auto-captured view {md_text(view.name)} ({md_text(why)})."
 
     def _rig_choices(self) -> dict[str, Rig]:
         """Saved versions by label; each file is read once (versions are never rewritten)."""
@@ -237,7 +238,7 @@ class CalibrationPanel(Periodic):
             self.seen.content = "Board: not seen"
             return
         state = "steady" if s.steady else "moving"
-        self.seen.content = f"Board ({state}): seen by {', '.join(found)}"
+        self.seen.content = f"Board ({state}): seen by {md_text(', '.join(found))}"
 
     def tick(self) -> None:
         if not self._dirty:
@@ -284,12 +285,12 @@ class CalibrationPanel(Periodic):
         if job.state == "idle":
             self.stage.content = ""
         elif running:
-            self.stage.content = f"Calibrating {len(job.views)} views: {job.stage}"
+            self.stage.content = f"Calibrating {len(job.views)} views: {md_text(job.stage)}"
         elif job.state == "failed":
-            self.stage.content = f"**Calibration failed:** {job.error}"
+            self.stage.content = f"**Calibration failed:** {md_text(job.error)}"
         else:
             took = (job.finished or 0) - (job.started or 0)
-            saved = f", saved as **{job.saved_as}**" if job.saved_as else ""
+            saved = f", saved as **{md_text(job.saved_as)}**" if job.saved_as else ""
             self.stage.content = f"Calibrated {len(job.views)} views in {took:.0f} s{saved}."
         self.save.disabled = job.state != "done" or job.saved_as is not None
         done = job.state == "done" and job.result is not None
@@ -308,7 +309,7 @@ class CalibrationPanel(Periodic):
         against the ground truth."""
         truth = self.ctx.ground_truth_rig
         lines = [
-            f"Overall RMS **{result.rms_px:.3f} px**, reference {result.reference}.",
+            f"Overall RMS **{result.rms_px:.3f} px**, reference {md_text(result.reference)}.",
             "",
             "| sensor | views | RMS px | σ fx px | σ rot ° | σ trans mm |",
             "|---|---|---|---|---|---|",
@@ -318,25 +319,26 @@ class CalibrationPanel(Periodic):
             rot = float(np.linalg.norm(sig.get("rotation_deg", [0, 0, 0])))
             trans = 1000 * float(np.linalg.norm(sig.get("translation_m", [0, 0, 0])))
             lines.append(
-                f"| {name} | {s.views_used}/{s.views_detected} | {s.rms_px:.3f} | "
+                f"| {md_text(name)} | {s.views_used}/{s.views_detected} | {s.rms_px:.3f} | "
                 f"{sig.get('fx', 0.0):.2f} | {rot:.3f} | {trans:.2f} |"
             )
         if result.polarity:
             pol = {n: p.as_dict() for n, p in result.polarity.items()}
             lines += [
                 "",
-                f"**Board polarity per sensor** ({polarity_panel_note(pol)}):",
+                f"**Board polarity per sensor** ({md_text(polarity_panel_note(pol))}):",
                 "",
-                *markdown_table(POLARITY_PANEL_HEAD, polarity_panel_rows(pol)),
+                *markdown_table(POLARITY_PANEL_HEAD, md_cells(polarity_panel_rows(pol))),
             ]
         if result.excluded_sensors:
             lines.append("")
             lines += [
-                f"- **{s} not calibrated:** {why}" for s, why in result.excluded_sensors.items()
+                f"- **{md_text(s)} not calibrated:** {md_text(why)}"
+                for s, why in result.excluded_sensors.items()
             ]
         if result.notes:
             lines.append("")
-            lines += [f"- Note: {note}" for note in result.notes]
+            lines += [f"- Note: {md_text(note)}" for note in result.notes]
         if truth is not None:
             lines += ["", *self._truth_md(result.rig(), truth)]
         return "\n".join(lines)
@@ -349,14 +351,15 @@ class CalibrationPanel(Periodic):
         try:
             cmp = compare_rigs(rig, truth)
         except ValueError as exc:
-            return [f"Not compared with the ground truth: {exc}"]
+            return [f"Not compared with the ground truth: {md_text(exc)}"]
         reference = truth.reference if truth.reference in cmp.intrinsics else rig.reference
         return [
-            f"Error against the simulated head's ground truth (poses relative to {reference}):",
+            "Error against the simulated head's ground truth (poses relative to "
+            f"{md_text(reference)}):",
             "",
-            *markdown_table(TRUTH_HEAD, truth_rows(cmp, reference)),
+            *markdown_table(TRUTH_HEAD, md_cells(truth_rows(cmp, reference))),
             "",
-            verdict_line(cmp),
+            md_text(verdict_line(cmp)),
         ]
 
     def _chart(self, result) -> None:

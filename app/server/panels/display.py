@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 
 from app.errors import describe_error
+from app.server.markdown_text import md_text
 from app.server.panels.stream import StreamPresetControl
 from app.server.runtime.board_watch import BoardSighting
 from app.server.runtime.context import BANDWIDTH_MODES, ConsoleBandwidth, ConsoleContext
@@ -365,7 +366,7 @@ class Panels(Periodic):
             for name, handle in self.offsets.items():
                 self.pipeline.set_manual_offset(name, float(handle.value))
         except ValueError as exc:
-            self.error.content = f"**Not applied:** {exc}"
+            self.error.content = f"**Not applied:** {md_text(exc)}"
             return
         self.error.content = ""
         self.pipeline.settings = settings
@@ -391,7 +392,7 @@ class Panels(Periodic):
         try:
             self.error.content = action() or ""
         except (KeyError, ValueError, OSError) as exc:
-            self.error.content = f"**Not done:** {exc.args[0] if exc.args else exc}"
+            self.error.content = f"**Not done:** {md_text(exc.args[0] if exc.args else exc)}"
 
     def _balance_now(self) -> str:
         if self.ctx.balancer is None:
@@ -410,7 +411,7 @@ class Panels(Periodic):
             raise ValueError("no calibration session to save into")
         rig = self.pipeline.rig_with_radiometry()
         version = self.ctx.save_rig(rig, radiometry_report(rig))
-        return f"Saved the radiometry with the rig in use as **{version.name}**."
+        return f"Saved the radiometry with the rig in use as **{md_text(version.name)}**."
 
     def follow_bandwidth(self) -> None:
         """Take the console's bandwidth mode (:attr:`bandwidth`) if it changed: the feeds'
@@ -447,7 +448,7 @@ class Panels(Periodic):
             try:
                 self.update_feeds(fs, watch.latest if watch.enabled else None)
             except Exception as exc:  # shown under the feeds; the panels keep updating
-                self.feeds_error.content = f"**Feeds:** {describe_error(exc)}"
+                self.feeds_error.content = f"**Feeds:** {md_text(describe_error(exc))}"
             else:
                 if self.feeds_error.content:
                     self.feeds_error.content = ""
@@ -492,16 +493,16 @@ def balance_text(status: BalanceStatus, auto: bool, pipeline: FusionPipeline) ->
     """The balance state, markdown: what is applied, what the newest frames say and why a
     refused estimate changed nothing."""
     applied = ", ".join(
-        f"{name} {r.balance_offset_k:+.2f} K"
+        f"{md_text(name)} {r.balance_offset_k:+.2f} K"
         + (f" x{r.balance_gain:.3f}" if r.balance_gain != 1 else "")
         for name, r in pipeline.radiometry.items()
     )
     lines = [f"Balance applied: {applied} ({'automatic' if auto else 'manual'})"]
     e, f = status.estimate, status.filtered
     if status.waiting:
-        lines.append(f"Estimate: {status.waiting}")
+        lines.append(f"Estimate: {md_text(status.waiting)}")
     elif e is not None and not e.ok:
-        lines.append(f"Estimate refused, balance unchanged: {e.reason}")
+        lines.append(f"Estimate refused, balance unchanged: {md_text(e.reason)}")
     elif f is not None:
         gain = f"gain {f.gain:.3f}" if f.gain_fitted else "offset only"
         lines.append(

@@ -19,6 +19,7 @@ import time
 import numpy as np
 
 from app.errors import describe_error
+from app.server.markdown_text import md_text
 from app.server.panels.scene_sensors import wxyz_of
 from app.server.runtime.context import ConsoleContext
 from app.server.runtime.map_worker import MapWorker
@@ -101,7 +102,7 @@ class MapPanel(Periodic):
         try:
             self.message.content = action() or ""
         except (OSError, ValueError) as exc:
-            self.message.content = f"**Not done:** {describe_error(exc)}"
+            self.message.content = f"**Not done:** {md_text(describe_error(exc))}"
 
     def _on_build(self) -> str:
         self.worker.set_enabled(self.build.value)
@@ -123,7 +124,7 @@ class MapPanel(Periodic):
     def _on_save(self) -> str:
         path, ply = self.worker.save()
         self.saved.options = tuple(self.worker.saved()) or ("(none)",)
-        return f"Saved {path.name} and {ply.name} in {path.parent}"
+        return f"Saved {md_text(path.name)} and {md_text(ply.name)} in {md_text(path.parent)}"
 
     def _on_load(self) -> str:
         name = self.saved.value
@@ -132,7 +133,7 @@ class MapPanel(Periodic):
         self.worker.load(name)
         self.pause.label = "Resume"
         self._redraw_now()
-        return f"Showing {name} (paused: Resume adds what the head sees now)."
+        return f"Showing {md_text(name)} (paused: Resume adds what the head sees now)."
 
     def _redraw_now(self) -> None:
         self._drawn = None
@@ -205,10 +206,10 @@ class MapPanel(Periodic):
         lines = [
             f"Map ({state}): **{s['occupied']:,}** occupied voxels of {s['voxel_m'] * 100:.0f} "
             f"cm{lod}; {s['frames']} TOF frames ({s['skipped']} skipped), {cost} a frame, "
-            f"{s['memory_mb']} MB; pose: {s['pose_source'] or '–'}",
+            f"{s['memory_mb']} MB; pose: {md_text(s['pose_source'] or '–')}",
         ]
         if self.highlight.value:
             lines.append(f"{self.above:,} points at or above {self.threshold_c.value:.0f} °C")
         if s["last_error"]:
-            lines.append(f"**Last error:** {s['last_error']}")
+            lines.append(f"**Last error:** {md_text(s['last_error'])}")
         return "\n\n".join(lines)

@@ -24,6 +24,7 @@ import viser
 import viser.uplot
 
 from app.errors import describe_error
+from app.server.markdown_text import md_text
 from app.server.runtime.context import ConsoleContext
 from app.server.runtime.periodic import Periodic
 from app.workflows.report_format import limit_distance_cell, pixel_cell, sensor_colour
@@ -121,9 +122,13 @@ def table_markdown(result: PrecisionResult) -> str:
     nbsp = "\u00a0"
     out = [
         f"Radial distance [m] below which the shift exceeds **{before.threshold_px:g} px** "
-        f"(TOF `{before.tof}`, {lo:g}–{hi:g} m; – never, ≥{hi:.2f} everywhere)."
+        f"(TOF {md_text(before.tof)}, {lo:g}–{hi:g} m; – never, ≥{hi:.2f} everywhere)."
     ]
-    head = "| error | | " + " | ".join(short[n].replace(" ", nbsp) for n in before.sensors) + " |"
+    head = (
+        "| error | | "
+        + " | ".join(md_text(short[n]).replace(" ", nbsp) for n in before.sensors)
+        + " |"
+    )
     rule = "|:--|:-:|" + "--:|" * len(before.sensors)
     rows_of = (
         (f"{before.distance_error_m * 1000:g}{nbsp}mm", before.distance_error),
@@ -142,7 +147,9 @@ def table_markdown(result: PrecisionResult) -> str:
                 first = name if coord == "x" else ""
                 lines.append(f"| {first} | {coord} | " + " | ".join(cells) + " |")
         out.append("\n".join(lines))
-    legend = ", ".join(f"{short[n]} = `{n}`" for n in before.sensors if short[n] != n)
+    legend = ", ".join(
+        f"{md_text(short[n])} = {md_text(n)}" for n in before.sensors if short[n] != n
+    )
     out.append(
         f"Rows: TOF distance error before range calibration ({before.distance_error_m * 1000:g}"
         f" mm), after it ({after.distance_error_m * 1000:g} mm), TOF pixel error along x "
@@ -296,7 +303,7 @@ class PrecisionPanel(Periodic):
         except Exception as exc:  # shown in the panel; the console keeps running
             self.error = describe_error(exc)
             self.result = None
-            self.status.content = f"**Cannot analyse this rig:** {self.error}"
+            self.status.content = f"**Cannot analyse this rig:** {md_text(self.error)}"
             self.table.content = ""
             self._remove_plots()
         self.analysed = rig
@@ -331,7 +338,7 @@ class PrecisionPanel(Periodic):
         try:
             self._show_plots()
         except Exception as exc:  # shown in the panel
-            self.status.content = f"**Cannot plot:** {describe_error(exc)}"
+            self.status.content = f"**Cannot plot:** {md_text(describe_error(exc))}"
 
     def _remove_plots(self) -> None:
         for plot in self._plots:

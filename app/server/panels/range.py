@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 
+from app.server.markdown_text import md_text
 from app.server.runtime.context import ConsoleContext
 from app.server.runtime.periodic import Periodic
 from app.workflows.calib_session import CalibrationSession, SessionError
@@ -71,7 +72,7 @@ class RangePanel(Periodic):
         try:
             self.message.content = action() or ""
         except (SessionError, KeyError, RigError, ValueError) as exc:
-            self.message.content = f"**Not done:** {exc.args[0] if exc.args else exc}"
+            self.message.content = f"**Not done:** {md_text(exc.args[0] if exc.args else exc)}"
 
     def _start(self) -> str:
         self.session.start_range_calibration(self.ctx.pipeline.rig)
@@ -79,14 +80,14 @@ class RangePanel(Periodic):
 
     def _save(self) -> str:
         v = self.session.save_range()
-        return f"Saved **{v.name}** ({v.path})."
+        return f"Saved **{md_text(v.name)}** ({md_text(v.path)})."
 
     def _use(self) -> str:
         name = self.session.range_job.saved_as
         if name is None:
             raise SessionError("save the rig first")
         self.ctx.use_rig(self.session.load_version(name))
-        return f"The console now fuses with **{name}** (TOF distances corrected)."
+        return f"The console now fuses with **{md_text(name)}** (TOF distances corrected)."
 
     def tick(self) -> None:
         job = self.session.range_job
@@ -99,9 +100,9 @@ class RangePanel(Periodic):
         self.progress.visible = running
         self.progress.value = 100.0 * job.progress
         if job.state == "failed":
-            self.stage.content = f"**Range calibration failed:** {job.error}"
+            self.stage.content = f"**Range calibration failed:** {md_text(job.error)}"
         elif running:
-            self.stage.content = f"Range calibration: {job.stage}"
+            self.stage.content = f"Range calibration: {md_text(job.stage)}"
         elif job.state == "done" and job.run is not None:
             run = job.run
             lo, hi = run.model.distance_range_m

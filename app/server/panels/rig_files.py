@@ -11,17 +11,35 @@ from __future__ import annotations
 
 import io
 import zipfile
+import zlib
 from collections.abc import Mapping
 from pathlib import PurePosixPath
 
 from app.errors import describe_error
+from app.server.markdown_text import md_text
 from app.server.runtime.context import ConsoleContext
 from calib.errors import RigError
 from calib.rig import Rig
 from calib.rig_formats import IMPORT_FORMATS, RIG_FORMATS, export_rig, import_rig
 
 MAX_UPLOAD_BYTES = 4 << 20
-"""Rig files are small: a larger upload is refused."""
+"""Rig files are small: a larger upload is refused (the relay in front of Viser refuses it
+before Viser buffers it, app.server.routers.viser_bridge)."""
+MAX_MEMBERS = 64
+"""Entries (files and folders) a zip may hold."""
+MAX_UNPACKED_BYTES = 8 << 20
+"""The bytes all of a zip's files may unpack to together, counted as they are read (the
+sizes a zip declares are not trusted)."""
+ZIP_METHODS = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflated"}
+"""The compression methods taken. Python's zipfile inflates deflate in bounded steps but
+bzip2 and LZMA in one call of any size: a 77 kB zip of bzip2 members grew the console by
+1.8 GiB."""
+_READ_BYTES = 64 << 10
+_ZIP_SIGNATURES = (b"PK\x03\x04", b"PK\x05\x06", b"PK\x07\x08")
+
+
+class UploadError(ValueError):
+    """An upload the Rig files folder does not take (what was expected, what arrived)."""
 
 
 def zip_files(files: Mapping[str, str]) -> bytes:
@@ -34,23 +52,68 @@ def zip_files(files: Mapping[str, str]) -> bytes:
 
 
 def uploaded_files(name: str, content: bytes) -> dict[str, str]:
-    """An upload as files (name -> text): the members of a zip, or the one file."""
+    """An upload as files (base name -> UTF-8 text): the members of a zip, or the one file.
+
+    Raises:
+        UploadError: more than :data:`MAX_UPLOAD_BYTES`; a zip with more than
+            :data:`MAX_MEMBERS` entries, a member compressed otherwise than
+            :data:`ZIP_METHODS`, encrypted, itself a zip or not UTF-8, files unpacking to
+            more than :data:`MAX_UNPACKED_BYTES` together, a damaged or empty zip; a
+            single file that is not UTF-8.
+    """
     if len(content) > MAX_UPLOAD_BYTES:
-        raise ValueError(f"{name}: {len(content)} bytes; rig files are at most {MAX_UPLOAD_BYTES}")
-    if zipfile.is_zipfile(io.BytesIO(content)):
-        out = {}
-        with zipfile.ZipFile(io.BytesIO(content)) as z:
-            for info in z.infolist():
-                if info.is_dir() or info.file_size > MAX_UPLOAD_BYTES:
-                    continue
-                out[PurePosixPath(info.filename).name] = z.read(info).decode("utf-8")
-        if not out:
-            raise ValueError(f"{name}: an empty zip")
-        return out
+        raise UploadError(f"{name}: {len(content)} bytes; rig files are at most {MAX_UPLOAD_BYTES}")
+    if not zipfile.is_zipfile(io.BytesIO(content)):
+        try:
+            return {PurePosixPath(name).name: content.decode("utf-8")}
+        except UnicodeDecodeError:
+            raise UploadError(f"{name}: not a text file or a zip") from None
     try:
-        return {PurePosixPath(name).name: content.decode("utf-8")}
-    except UnicodeDecodeError:
-        raise ValueError(f"{name}: not a text file or a zip") from None
+        with zipfile.ZipFile(io.BytesIO(content)) as z:
+            out = _zip_members(name, z)
+    except UploadError:
+        raise
+    # what zipfile raises for damaged archives (ValueError: "negative seek value", a
+    # name that is not UTF-8; NotImplementedError: flags or versions it cannot read)
+    except (zipfile.BadZipFile, EOFError, zlib.error, ValueError, NotImplementedError) as exc:
+        raise UploadError(f"{name}: a damaged zip ({exc})") from None
+    if not out:
+        raise UploadError(f"{name}: an empty zip")
+    return out
+
+
+def _zip_members(name: str, z: zipfile.ZipFile) -> dict[str, str]:
+    infos = z.infolist()
+    if len(infos) > MAX_MEMBERS:
+        raise UploadError(f"{name}: a zip of {len(infos)} entries; at most {MAX_MEMBERS}")
+    out, total = {}, 0
+    for info in infos:
+        if info.is_dir():
+            continue
+        member = f"{name}: {info.filename}"
+        if info.compress_type not in ZIP_METHODS:
+            raise UploadError(
+                f"{member}: compression method {info.compress_type}; expected "
+                f"{' or '.join(ZIP_METHODS.values())}"
+            )
+        if info.flag_bits & 0x1:
+            raise UploadError(f"{member}: encrypted; expected a plain zip")
+        data = bytearray()
+        with z.open(info) as f:
+            while chunk := f.read(_READ_BYTES):
+                total += len(chunk)
+                if total > MAX_UNPACKED_BYTES:
+                    raise UploadError(
+                        f"{name}: its files unpack to more than {MAX_UNPACKED_BYTES} bytes"
+                    )
+                data += chunk
+        if bytes(data[:4]) in _ZIP_SIGNATURES:
+            raise UploadError(f"{member}: a zip inside the zip; expected rig files")
+        try:
+            out[PurePosixPath(info.filename).name] = data.decode("utf-8")
+        except UnicodeDecodeError:
+            raise UploadError(f"{member}: not a UTF-8 text file") from None
+    return out
 
 
 def parse_eyes(text: str) -> dict[str, tuple[str, str]]:
@@ -94,7 +157,7 @@ class RigFilesPanel:
         try:
             self.message.content = action() or ""
         except (RigError, ValueError, KeyError, OSError) as exc:
-            self.message.content = f"**Not done:** {describe_error(exc)}"
+            self.message.content = f"**Not done:** {md_text(describe_error(exc))}"
 
     def export(self, client) -> str:
         """Send the rig in use in the chosen format to ``client`` as a zip."""
@@ -103,7 +166,7 @@ class RigFilesPanel:
         client.send_file_download(
             f"rig-{fmt}.zip", zip_files(exported.files), save_immediately=True
         )
-        return _listed(f"Exported {len(exported.files)} file(s) in {fmt}.", exported.lost)
+        return _listed(f"Exported {len(exported.files)} file(s) in {md_text(fmt)}.", exported.lost)
 
     def import_upload(self, upload) -> str:
         """Import an uploaded file or zip in the chosen format; save it as a rig version."""
@@ -117,8 +180,8 @@ class RigFilesPanel:
         report = {"imported_from": upload.name, "format": fmt, "lost": imported.lost}
         version = self.ctx.save_rig(imported.rig, report)
         return _listed(
-            f"Imported {upload.name} ({fmt}) as **{version.name}**: pick it in the "
-            "Calibration panel's Saved rig and Use this rig.",
+            f"Imported {md_text(upload.name)} ({md_text(fmt)}) as **{md_text(version.name)}**: "
+            "pick it in the Calibration panel's Saved rig and Use this rig.",
             imported.lost,
         )
 
@@ -126,4 +189,4 @@ class RigFilesPanel:
 def _listed(head: str, lost: list[str]) -> str:
     if not lost:
         return head
-    return head + "\n\nNot carried over:\n" + "\n".join(f"- {x}" for x in lost)
+    return head + "\n\nNot carried over:\n" + "\n".join(f"- {md_text(x)}" for x in lost)

@@ -75,6 +75,7 @@ import numpy as np
 import viser
 
 from app.errors import describe_error
+from app.server.markdown_text import md_text
 from app.server.panels import scene_layout as layout
 from app.server.panels.scene_board import BoardMarker
 from app.server.panels.scene_cloud import (
@@ -180,15 +181,19 @@ def rig_difference_markdown(shown_label: str, shown: Rig, in_use: Rig) -> str:
     rows = []
     for name, s in shown.sensors.items():
         if name not in in_use.sensors:
-            rows.append([name, "not in use", "", ""])
+            rows.append([md_text(name), "not in use", "", ""])
             continue
         u = in_use.sensors[name]
         rot_deg, trans_m = pose_error(s.T_rig_sensor, u.T_rig_sensor)
         dfx = s.intrinsics.fx - u.intrinsics.fx
-        rows.append([name, f"{rot_deg:.3f}", f"{trans_m * 1000:.1f}", f"{dfx:+.1f}"])
-    rows += [[n, "not in this rig", "", ""] for n in in_use.sensors if n not in shown.sensors]
+        rows.append([md_text(name), f"{rot_deg:.3f}", f"{trans_m * 1000:.1f}", f"{dfx:+.1f}"])
+    rows += [
+        [md_text(n), "not in this rig", "", ""] for n in in_use.sensors if n not in shown.sensors
+    ]
     head = ["sensor", "rot (deg)", "trans (mm)", "Δfx (px)"]
-    return "\n".join([f"**{shown_label}** vs **{IN_USE}**", "", *markdown_table(head, rows)])
+    return "\n".join(
+        [f"**{md_text(shown_label)}** vs **{IN_USE}**", "", *markdown_table(head, rows)]
+    )
 
 
 def apply_camera(camera: object, pose: layout.CameraPose) -> None:
@@ -381,7 +386,9 @@ class Scene3D(Periodic):
                 self.errors[part] = describe_error(exc)
             else:
                 self.errors.pop(part, None)
-            text = "\n\n".join(f"**{k}:** {v}" for k, v in sorted(self.errors.items()))
+            text = "\n\n".join(
+                f"**{md_text(k)}:** {md_text(v)}" for k, v in sorted(self.errors.items())
+            )
             if self.error_md.content != text:
                 self.error_md.content = text
 
@@ -670,7 +677,7 @@ class Scene3D(Periodic):
             self.cloud.points = pts
             self.cloud.colors = np.ascontiguousarray(rgb, dtype=np.uint8)
             self.cloud.visible = True
-        text = f"Cloud: {len(pts):,} points, {mode}: {legend}"
+        text = f"Cloud: {len(pts):,} points, {md_text(mode)}: {md_text(legend)}"
         if self.cloud_stride > 1:
             s = self.cloud_stride
             text += f" (low bandwidth: one TOF pixel in {s} x {s}, of {full_count:,} points)"

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import viser
 
+from app.server.markdown_text import md_text
 from app.server.panels.scene_sensors import wxyz_of
 from calib.board import Board
 
@@ -104,12 +105,13 @@ class BoardMarker:
         self.node.position = T[:3, 3].copy()
         self.node.visible = True
         dist = float(np.linalg.norm(T[:3, 3]))
-        text = f"Board: {dist:.2f} m away, pose from {getattr(sighting, 'pose_sensor', '?')}"
+        pose_sensor = md_text(getattr(sighting, "pose_sensor", "?"))
+        text = f"Board: {dist:.2f} m away, pose from {pose_sensor}"
         seen = ", ".join(getattr(sighting, "found", []) or [])
         if not getattr(sighting, "complete", True):
             text += "; searching the other sensors"
         elif seen:
-            text += f"; seen by {seen}"
+            text += f"; seen by {md_text(seen)}"
         if lag_s >= BOARD_LAG_SHOWN_S:  # detection is slower than the board may move
             text += f" (in frames {lag_s:.1f} s older than the cloud)"
         self.md.content = text

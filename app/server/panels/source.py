@@ -24,6 +24,7 @@ from pathlib import Path
 
 import viser
 
+from app.server.markdown_text import md_text
 from app.server.runtime.context import ConsoleContext
 from app.server.runtime.periodic import Periodic
 from app.server.runtime.rates import RatesSnapshot
@@ -60,18 +61,18 @@ def _short(path: str | None) -> str:
 def recording_text(r: RecordingState) -> str:
     """The recording's line(s) in the panel (markdown)."""
     if not r.available:
-        return f"Recording unavailable: {r.error}"
+        return f"Recording unavailable: {md_text(r.error)}"
     if r.active:
         head = "Finishing" if r.stopping else "**● Recording**"
         text = (
-            f"{head} `{_short(r.path)}`  \n{human_bytes(r.size_bytes)}, "
+            f"{head} {md_text(_short(r.path))}  \n{human_bytes(r.size_bytes)}, "
             f"{r.duration_s:.1f} s, {r.frames_written} frames"
         )
         if r.frames_dropped:
             text += f", **{r.frames_dropped} dropped** (the writer fell behind)"
         text += video_text(r)
     elif r.files:
-        names = ", ".join(f"`{_short(f)}`" for f in r.files)
+        names = ", ".join(md_text(_short(f)) for f in r.files)
         text = (
             f"Saved {names}  \n{human_bytes(r.size_bytes)}, {r.duration_s:.1f} s, "
             f"{r.frames_written} frames"
@@ -84,7 +85,7 @@ def recording_text(r: RecordingState) -> str:
     if r.frames_rejected:
         text += f"  \n{r.frames_rejected} frames not in the rig were skipped"
     if r.error:
-        text += f"  \n**Error:** {r.error}"
+        text += f"  \n**Error:** {md_text(r.error)}"
     return text
 
 
@@ -128,7 +129,7 @@ def stream_text(
 def health_text(health: dict[str, SensorHealth]) -> str:
     """One markdown line per sensor that is not ok (e.g. ``thermal_right: silent for
     12 s``); '' when all are."""
-    return "  \n".join(f"⚠ {h.line()}" for h in health.values() if not h.ok)
+    return "  \n".join(f"⚠ {md_text(h.line())}" for h in health.values() if not h.ok)
 
 
 class SourcePanel(Periodic):
@@ -151,7 +152,9 @@ class SourcePanel(Periodic):
         gui = server.gui
         state = control.source_state()
         with gui.add_folder("Source"):
-            self.what = gui.add_markdown(f"**{state.kind}**: {control.description}")
+            self.what = gui.add_markdown(
+                f"**{md_text(state.kind)}**: {md_text(control.description)}"
+            )
             self.play = self.position = self.rate = None
             if control.is_replay:
                 duration = state.duration_s or 0.0
@@ -210,7 +213,7 @@ class SourcePanel(Periodic):
             st = self.control.source_state()
             st = self.control.resume() if st.paused else self.control.pause()
         except ControlError as exc:
-            self.message.content = f"**Not done:** {exc}"
+            self.message.content = f"**Not done:** {md_text(exc)}"
             return
         self._show_paused(bool(st.paused))
 
@@ -222,7 +225,7 @@ class SourcePanel(Periodic):
             duration = self.control.source_state().duration_s or 0.0
             self.control.seek(min(max(float(self.position.value), 0.0), duration))
         except (ControlError, ValueError) as exc:
-            self.message.content = f"**Not done:** {exc}"
+            self.message.content = f"**Not done:** {md_text(exc)}"
 
     def _on_rate(self, event: viser.GuiEvent) -> None:
         if event.client is None or self.rate is None:
@@ -231,7 +234,7 @@ class SourcePanel(Periodic):
         try:
             self.control.set_rate(float(self.rate.value))
         except (ControlError, ValueError) as exc:
-            self.message.content = f"**Not done:** {exc}"
+            self.message.content = f"**Not done:** {md_text(exc)}"
 
     def _on_record_video(self, _event: viser.GuiEvent) -> None:
         self.control.fused_video = bool(self.record_video.value)
@@ -245,7 +248,7 @@ class SourcePanel(Periodic):
                 state = self.control.start_recording()
             self.message.content = ""
         except (ControlError, OSError, ValueError) as exc:
-            self.message.content = f"**Not done:** {exc}"
+            self.message.content = f"**Not done:** {md_text(exc)}"
             state = self.control.recording_state()
         finally:
             self.record.disabled = self.control.recorder is None
@@ -278,7 +281,7 @@ class SourcePanel(Periodic):
         status = c.pipeline.status
         rates = c.rates_hz()
         lines = ["| sensor | Hz |", "| :--- | ---: |"]
-        lines += [f"| {name} | {hz:.1f} |" for name, hz in rates.items()]
+        lines += [f"| {md_text(name)} | {hz:.1f} |" for name, hz in rates.items()]
         text = "\n".join(lines) if rates else "No per-sensor rates (the source is not tapped)"
         sick = health_text(c.sensor_health())
         if sick:
@@ -288,13 +291,13 @@ class SourcePanel(Periodic):
         )
         if status.missing:
             text += "\n\nMissing: " + "; ".join(
-                f"{name} ({why})" for name, why in sorted(status.missing.items())
+                f"{md_text(name)} ({md_text(why)})" for name, why in sorted(status.missing.items())
             )
         if status.error:
-            text += f"\n\n**Error:** {status.error}"
+            text += f"\n\n**Error:** {md_text(status.error)}"
         notes = getattr(c.source, "notes", None)
         if notes:
-            text += "\n\nNotes: " + "; ".join(str(n) for n in notes)
+            text += "\n\nNotes: " + "; ".join(md_text(n) for n in notes)
         return text
 
     def tick(self) -> None:
