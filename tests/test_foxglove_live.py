@@ -9,9 +9,14 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import json
 import socket
+import socketserver
 import struct
+import subprocess
+import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -25,6 +30,7 @@ from mcap.reader import make_reader
 from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory
 
+from app.devtools.procfs import parse_proc_status
 from app.recording import RecordingWriter
 from app.recording.layout import FUSED_VIDEO_SCHEMA, FUSED_VIDEO_TOPIC, topic_of
 from app.recording.video_track import FusedVideoEncoder, nal_types
@@ -33,8 +39,13 @@ from app.server.runtime.foxglove_live import (
     HEALTH_SCHEMA_NAME,
     HEALTH_TOPIC,
     LOOPBACK,
+    MAX_CLIENT_MESSAGE_BYTES,
+    MAX_CLIENTS,
+    MAX_WAITING,
+    MESSAGE_BACKLOG,
     SUBPROTOCOL,
     FoxgloveLive,
+    _Gate,
     check_foxglove_port,
     points_topic,
     start_foxglove_server,
@@ -47,6 +58,7 @@ from app.sources.sim.scenarios import InspectionScenario
 from app.sources.simulated import SimulatedHeadSource
 from tests.support import run_cli, synth_frame, wait_until
 
+ROOT = Path(__file__).resolve().parent.parent
 RECV_S = 60.0
 """Longest wait for one message (the first pose renders in a few seconds)."""
 
@@ -112,15 +124,18 @@ class FoxgloveClient:
 
     async def message(self) -> tuple[str, int, Any]:
         """The next message data: (topic, log time ns, decoded message)."""
+        topic, log_time, payload = await self.raw_message()
+        return topic, log_time, self.decode(topic, payload)
+
+    async def raw_message(self) -> tuple[str, int, bytes]:
+        """The next message data: (topic, log time ns, payload)."""
         while True:
             data = await asyncio.wait_for(self.ws.recv(), RECV_S)
             if isinstance(data, str):
                 continue  # status and the like
             opcode, sid, log_time = struct.unpack_from("<BIQ", data)
-            if opcode != 1 or sid not in self.subscriptions:
-                continue
-            topic = self.subscriptions[sid]
-            return topic, log_time, self.decode(topic, bytes(data[13:]))
+            if opcode == 1 and sid in self.subscriptions:
+                return self.subscriptions[sid], log_time, bytes(data[13:])
 
     def decode(self, topic: str, payload: bytes) -> Any:
         ch = self.channels[topic]
@@ -302,6 +317,9 @@ def listening_addresses(port: int) -> set[str]:
 def test_the_server_listens_on_loopback_only_and_a_port_in_use_is_one_line(console) -> None:
     port = console.live.port
     assert listening_addresses(port) == {"0100007F"}  # 127.0.0.1, nothing else
+    # the SDK's own server, behind the port's relay: an address of 127.0.0.0/8 only
+    (inner,) = listening_addresses(console.live.server.port)
+    assert inner.endswith("7F") and len(inner) == 8, inner  # /proc writes 127.a.b.c as c b a 7F
     for refuse in (check_foxglove_port, lambda p: start_foxglove_server(p, _context())):
         with pytest.raises(OSError, match=f"--foxglove-port {port} on 127.0.0.1 is in use") as e:
             refuse(port)
@@ -326,3 +344,282 @@ def test_serve_refuses_a_foxglove_port_in_use_before_anything_starts(tmp_path, c
     assert code == 2 and err.count("\n") == 1
     assert f"--foxglove-port {port} on 127.0.0.1 is in use" in err
     assert not (tmp_path / "w").exists()  # refused before the work directory was made
+
+
+# -- the limits (issue 29) ------------------------------------------------------------------
+
+CAPS_CHILD = [sys.executable, "-c", "from tests.foxglove_caps_support import main; main()"]
+"""The Foxglove port on a synthetic full-size head in a process of its own (its memory)."""
+ROUND_S = 4.0
+"""How long the stalled clients hold their places in each round."""
+
+
+@contextlib.contextmanager
+def _port_in_a_process() -> Iterator[tuple[int, str]]:
+    """(pid, url) of :data:`CAPS_CHILD`'s Foxglove port."""
+    proc = subprocess.Popen(
+        CAPS_CHILD, cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert proc.stdout is not None
+        yield proc.pid, f"ws://{LOOPBACK}:{int(proc.stdout.readline())}"
+    finally:
+        assert proc.stdin is not None
+        proc.stdin.close()
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _rss_mb(pid: int) -> float:
+    return parse_proc_status(Path(f"/proc/{pid}/status").read_text())[0]
+
+
+async def _stalled_client(url: str) -> FoxgloveClient:
+    """A client that subscribes to every channel and then takes nothing (its library
+    stops reading the socket once it holds one message)."""
+    ws = await websockets.connect(url, subprotocols=[SUBPROTOCOL], max_size=None, max_queue=1)
+    client = FoxgloveClient(ws)
+    await client.read_advertise()
+    await client.subscribe(list(client.channels))
+    return client
+
+
+@pytest.mark.slow
+def test_clients_that_never_read_cannot_fill_the_consoles_memory() -> None:
+    """Issue 29: 16 clients that subscribed to everything and never read took the console
+    from 0.6 to 2.15 GiB. Now, on a full-size head: beside one reading client, MAX_CLIENTS
+    - 1 stalled clients get in and the next one is refused at once (503); while they hold
+    their places the console's memory grows by at most twice their queues (MESSAGE_BACKLOG
+    of the largest message each, plus the relay's buffers), and the reader goes on
+    receiving new messages; after they leave it does not grow, and a second round of them
+    costs no more than the first."""
+    thermal = topic_of("thermal_left", "thermal")
+
+    async def read_for(reader: FoxgloveClient, pid: int, seconds: float) -> SimpleNamespace:
+        """Read for ``seconds``: messages per topic, the largest payload, the newest log
+        time of the thermal images, and the peak resident memory (MB) meanwhile."""
+        got = SimpleNamespace(counts=dict.fromkeys(reader.channels, 0), largest=0, stamps=[])
+        got.peak_mb = _rss_mb(pid)
+        end = time.monotonic() + seconds
+        next_sample = 0.0
+        while (now := time.monotonic()) < end:
+            topic, log_time, payload = await reader.raw_message()
+            got.counts[topic] += 1
+            got.largest = max(got.largest, 13 + len(payload))
+            if topic == thermal:
+                got.stamps.append(log_time)
+            if now >= next_sample:
+                next_sample = now + 0.2
+                got.peak_mb = max(got.peak_mb, _rss_mb(pid))
+        return got
+
+    async def scenario(pid: int, url: str) -> None:
+        async with await _connect(url) as ws:
+            reader = FoxgloveClient(ws)
+            await reader.read_advertise()
+            await reader.subscribe(list(reader.channels))
+            warm = await read_for(reader, pid, 4.0)  # every encoder has started
+            assert all(warm.counts.values()), warm.counts
+            base_mb = _rss_mb(pid)
+            peaks = []
+            for _round in range(2):
+                stalled = [await _stalled_client(url) for _ in range(MAX_CLIENTS - 1)]
+                started = time.monotonic()
+                with pytest.raises(websockets.InvalidStatus) as refused:
+                    await _connect(url)
+                assert refused.value.response.status_code == 503
+                assert f"{MAX_CLIENTS} clients at most".encode() in refused.value.response.body
+                assert time.monotonic() - started < 5.0  # at once, not after a time-out
+
+                held = await read_for(reader, pid, ROUND_S)
+                # the reader got fresh thermal images all along (stamps move on)
+                assert len(held.stamps) >= ROUND_S, held.counts
+                assert held.stamps[-1] > held.stamps[0]
+                largest = max(warm.largest, held.largest)
+                queues_mb = (MAX_CLIENTS - 1) * (MESSAGE_BACKLOG * largest + 2**20) / 2**20
+                growth_mb = held.peak_mb - base_mb
+                assert growth_mb < 2 * queues_mb, (growth_mb, queues_mb, largest)
+                peaks.append(held.peak_mb)
+
+                for client in stalled:
+                    client.ws.transport.abort()
+                after = await read_for(reader, pid, 2.0)
+                assert after.counts[thermal] > 0
+                assert after.peak_mb < held.peak_mb + 16, (after.peak_mb, held.peak_mb)
+            assert peaks[1] < peaks[0] + 16, peaks  # no leak from round to round
+
+    with _port_in_a_process() as (pid, url):
+        asyncio.run(scenario(pid, url))
+
+
+@pytest.mark.slow
+def test_a_client_cannot_make_the_server_gather_a_long_message() -> None:
+    """foxglove-sdk gathers a client's message up to 64 MiB (8 clients sending 56 MiB
+    each took the console up by about 0.5 GB). Now MAX_CLIENTS - 1 clients that each send an
+    unfinished message in 1 MiB frames are cut off at MAX_CLIENT_MESSAGE_BYTES, the
+    console's memory does not grow by their 32 MiB each, and their places are free again."""
+    frame = _client_frame(1, bytes(MAX_CLIENT_MESSAGE_BYTES), fin=False)
+    more = _client_frame(0, bytes(MAX_CLIENT_MESSAGE_BYTES), fin=False)
+
+    async def scenario(pid: int, url: str) -> None:
+        base_mb = _rss_mb(pid)
+        senders = []
+        for _ in range(MAX_CLIENTS - 1):
+            ws = await websockets.connect(url, subprotocols=[SUBPROTOCOL], max_queue=1)
+            ws.transport.write(frame + more * 31)  # 32 MiB, never finished
+            senders.append(ws)
+        for ws in senders:
+            await asyncio.wait_for(ws.wait_closed(), RECV_S)
+        grown_mb = _rss_mb(pid) - base_mb
+        assert grown_mb < 16, grown_mb
+        async with await _connect(url) as ws:  # the places are free again
+            assert HEALTH_TOPIC in await FoxgloveClient(ws).read_advertise()
+
+    with _port_in_a_process() as (pid, url):
+        asyncio.run(scenario(pid, url))
+
+
+class _EndlessServer(socketserver.ThreadingTCPServer):
+    """Stands for the SDK's server behind the gate: to each connection it sends ``HEAD:``,
+    the request head it got, then 64 KiB blocks without end (there is always data for the
+    client), and reads what comes after the head; it closes a connection at its end of
+    file. ``live``: its connections not yet closed; ``received``: the bytes read after the
+    heads, in all."""
+
+    daemon_threads = True
+    BLOCK = bytes(range(256)) * 256
+
+    def __init__(self) -> None:
+        super().__init__((LOOPBACK, 0), self._Handler)
+        self.live = self.received = 0
+        self.lock = threading.Lock()  # the counts, kept by the connections' threads
+
+    class _Handler(socketserver.BaseRequestHandler):
+        def handle(self) -> None:
+            server, sock = self.server, self.request
+            assert isinstance(server, _EndlessServer)
+            with server.lock:
+                server.live += 1
+            try:
+                head = b""
+                while not head.endswith(b"\r\n\r\n"):
+                    head += sock.recv(1)
+                sock.sendall(b"HEAD:" + head)
+                threading.Thread(target=self._read, daemon=True).start()
+                while True:
+                    sock.sendall(_EndlessServer.BLOCK)
+            except OSError:
+                pass
+            finally:
+                with server.lock:
+                    server.live -= 1
+
+        def _read(self) -> None:
+            server = self.server
+            assert isinstance(server, _EndlessServer)
+            with contextlib.suppress(OSError):
+                while data := self.request.recv(1 << 16):
+                    with server.lock:
+                        server.received += len(data)
+                self.request.shutdown(socket.SHUT_RDWR)  # the end of file: as the SDK does
+
+
+def _client_frame(opcode: int, payload: bytes, fin: bool = True) -> bytes:
+    """A client's WebSocket frame (RFC 6455), masked with zeros (the payload as it is)."""
+    n = len(payload)
+    if n < 126:
+        size = bytes([0x80 | n])
+    elif n < 1 << 16:
+        size = bytes([0x80 | 126]) + n.to_bytes(2, "big")
+    else:
+        size = bytes([0x80 | 127]) + n.to_bytes(8, "big")
+    return bytes([(0x80 if fin else 0) | opcode]) + size + bytes(4) + payload
+
+
+def _gate_client(port: int, head: bool = True) -> socket.socket:
+    sock = socket.create_connection((LOOPBACK, port), timeout=10)
+    if head:
+        sock.sendall(b"GET / HTTP/1.1\r\nHost: foxglove\r\n\r\n")
+    return sock
+
+
+def _closed(sock: socket.socket) -> bool:
+    """Whether the other side closed ``sock`` within 64 MiB of data (far more than the
+    gate's buffers hold)."""
+    left = 64 << 20
+    try:
+        while data := sock.recv(1 << 20):
+            left -= len(data)
+            if left < 0:
+                return False
+    except ConnectionResetError:
+        pass
+    return True
+
+
+def test_the_gate_caps_clients_and_waiting_connections_and_drops_stalled_ones() -> None:
+    """The relay in front of the SDK's server, with 2 places, a 3 s head time-out and a
+    3 s stall: two clients that never read get in, a third gets 503; MAX_WAITING
+    connections that send no head wait, one more is closed at once (while they still
+    wait), they after the time-out; the stalled clients are disconnected and their
+    connections to the server closed, which frees their places; a client that reads gets
+    the server's bytes as sent, and the server its messages; a client message over
+    MAX_CLIENT_MESSAGE_BYTES ends the connection before the server gets more of it."""
+    upstream = _EndlessServer()
+    threading.Thread(target=upstream.serve_forever, daemon=True).start()
+    gate = _Gate(0, upstream.server_address[:2], max_clients=2, handshake_s=3.0, stall_s=3.0)
+    gate.start()
+    sockets: list[socket.socket] = []
+    try:
+        sockets += [_gate_client(gate.port), _gate_client(gate.port)]
+        wait_until(lambda: gate.clients == 2 and upstream.live == 2, "two relayed clients")
+        third = _gate_client(gate.port)
+        assert third.recv(1024).startswith(b"HTTP/1.1 503 Service Unavailable\r\n")
+        assert _closed(third) and gate.refused == 1
+
+        waiting = [_gate_client(gate.port, head=False) for _ in range(MAX_WAITING)]
+        sockets += waiting
+        wait_until(lambda: gate.waiting == MAX_WAITING, "the connections without a head")
+        assert _closed(_gate_client(gate.port, head=False)) and gate.refused == 2
+        assert gate.waiting == MAX_WAITING  # closed at once: the others still wait
+        assert all(_closed(sock) for sock in waiting)  # after the head time-out
+        assert gate.waiting == 0
+
+        # the stalled clients' places and their connections to the server are freed
+        wait_until(lambda: gate.clients == 0 and upstream.live == 0, "the stalled clients out")
+        assert all(_closed(sock) for sock in sockets[:2])
+
+        reader = _gate_client(gate.port)
+        sockets.append(reader)
+        want = b"HEAD:GET / HTTP/1.1\r\nHost: foxglove\r\n\r\n" + _EndlessServer.BLOCK * 8
+        got = b""
+        while len(got) < len(want):
+            got += reader.recv(len(want) - len(got))
+        assert got == want and gate.clients == 1
+
+        # messages up to MAX_CLIENT_MESSAGE_BYTES go through as they are, a longer one ends
+        # the connection before the server gets more than the limit of it
+        part = _client_frame(1, b"x" * (MAX_CLIENT_MESSAGE_BYTES // 2), fin=False)
+        ok = part + _client_frame(0, b"y" * (MAX_CLIENT_MESSAGE_BYTES // 2)) + _client_frame(9, b"")
+        before = upstream.received
+        reader.sendall(ok * 3)
+        wait_until(lambda: upstream.received - before == 3 * len(ok), "the messages upstream")
+        big = _gate_client(gate.port)
+        sockets.append(big)
+        wait_until(lambda: gate.clients == 2, "the second client in")
+        before = upstream.received
+        with contextlib.suppress(OSError):  # the gate may close it while it sends
+            big.sendall(part + part + part)
+        assert _closed(big)
+        wait_until(lambda: gate.clients == 1, "the long message's connection closed")
+        # the server got the first two frames (the limit), nothing of the third
+        wait_until(lambda: upstream.received - before == 2 * len(part), "the first two frames")
+    finally:
+        gate.stop()
+        upstream.shutdown()
+        upstream.server_close()
+        for sock in sockets:
+            sock.close()
