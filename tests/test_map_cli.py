@@ -209,3 +209,54 @@ def test_bad_input_is_one_line_and_exit_2(
         assert message in err and len(err.strip().splitlines()) == 1, (args, err)
         assert "Traceback" not in err and err.startswith("trifuse"), err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "no_tof.mcap", "text.mcap"]
+
+
+@pytest.mark.parametrize("damage", ["killed", "cut short"])
+def test_a_damaged_recording_is_mapped_as_fuse_and_record_read_it(
+    survey: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], damage: str
+) -> None:
+    """Issues 29 and 33: a recording left by a killed ``record`` (sealed, no summary
+    section) or cut short. ``map`` reads it as ``fuse`` and ``record --source replay:`` do
+    (it used to say "no TOF distances ... nothing to map"): it maps every TOF frame before
+    the damage and names the damage in the same words."""
+    bad = tmp_path / "bad.mcap"
+    if damage == "killed":  # what a SIGKILL leaves: the file as sealed up to then
+        poses = read_poses(survey)
+        assert poses is not None
+        with ReplaySource(survey, realtime=False) as src:
+            assert src.rig is not None
+            w = RecordingWriter(tmp_path / "never.mcap", src.rig)
+            k = 0
+            for f in src.frames():
+                if f.stamp_ns - src.start_ns > 1.2e9:
+                    break
+                while k < len(poses) and poses.stamps_ns[k] <= f.stamp_ns:
+                    w.write_pose(int(poses.stamps_ns[k]), poses.T_world_rig[k])
+                    k += 1
+                w.write(f)
+            w.seal()
+            shutil.copy(w.temp_path, bad)
+            w.abort()
+        said = "not finished"
+    else:
+        data = survey.read_bytes()
+        bad.write_bytes(data[: len(data) * 2 // 5])
+        said = "truncated"
+    with ReplaySource(bad, realtime=False, on_damage="stop") as src:
+        assert src.index.indexed_by == "scan" and src.message_count("tof", "tof_distance") is None
+        tof = sum(f.sensor == "tof" and f.distance_m is not None for f in src.frames())
+        assert src.damage is not None and said in str(src.damage)
+        named = str(src.damage)
+    assert 10 <= tof < 45
+
+    code, out, err = run(["map", str(bad), "--out", str(tmp_path / "m.ply")], capsys)
+    assert code == 0, err
+    assert f"Mapped {tof} of {tof} TOF frames" in out
+    assert f"trifuse: warning: {named}; the frames before it were mapped" in err
+    code, out, err = run(["fuse", str(bad), "--out", str(tmp_path / "f")], capsys)
+    assert code == 0, err
+    assert f"trifuse: warning: {named}; the frames before it were fused" in err
+    again = tmp_path / "again.mcap"
+    code, out, err = run(["record", "--source", f"replay:{bad}", "--out", str(again)], capsys)
+    assert code == 0, err
+    assert f"trifuse: warning: {named}; the frames before it were recorded" in err

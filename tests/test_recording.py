@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import re
 import threading
@@ -20,6 +21,7 @@ from app.recording import (
     RecordingWriter,
     ReplaySource,
 )
+from app.recording.mcapindex import MAX_CHUNK_BYTES
 from app.recording.player import MAX_LAG_S
 from app.recording.simrecord import (
     head_model_for,
@@ -28,6 +30,7 @@ from app.recording.simrecord import (
     record_simulation,
     sim_schedule,
 )
+from app.recording.writer import MAX_CHUNK_SIZE, MAX_MESSAGE_BYTES
 from app.sources.base import frame_sets
 from app.sources.frames import Frame, FrameSet
 from app.storage.rigfile import save_rig
@@ -120,6 +123,25 @@ def test_rig_rebuilt_from_calibration_messages(recorded, rig, monkeypatch):
         assert got[name].image_size == rig[name].image_size
         assert got[name].intrinsics == rig[name].intrinsics
         np.testing.assert_allclose(got[name].T_rig_sensor, rig[name].T_rig_sensor, atol=1e-12)
+
+
+def test_calibration_messages_of_no_real_camera_make_no_rig(tmp_path, rig, monkeypatch):
+    import app.recording.reader as reader
+
+    monkeypatch.setattr(reader, "RIG_ATTACHMENT", "absent.yaml")
+    absurd = dataclasses.replace(rig["ccd_left"].intrinsics, fx=1e300)
+    bad = dataclasses.replace(
+        rig,
+        sensors={
+            **rig.sensors,
+            "ccd_left": dataclasses.replace(rig["ccd_left"], intrinsics=absurd),
+        },
+    )
+    path = tmp_path / "absurd.mcap"
+    write_recording(path, bad, synth_frames(rig, 0.1, seed=4))
+    with ReplaySource(path, realtime=False) as src:
+        assert src.rig is None
+        assert any("ccd_left" in n and "do not make a rig" in n for n in src.notes), src.notes
 
 
 def test_tof_without_distance_and_32FC1_thermal(tmp_path, rig):
@@ -247,6 +269,27 @@ def test_writer_checks_frames(tmp_path, rig):
         assert w.frames_written == 0
     with pytest.raises(RecordingError, match="jpeg_quality"):
         RecordingWriter(tmp_path / "b.mcap", rig, jpeg_quality=0)
+
+
+def test_the_writer_keeps_its_chunks_within_what_a_reader_takes(tmp_path, rig):
+    """A chunk holds at most ``chunk_size`` plus one message; both are bounded so that
+    every chunk written is under the reader's cap (issue 29: chunks larger are refused)."""
+    assert MAX_CHUNK_SIZE + MAX_MESSAGE_BYTES < MAX_CHUNK_BYTES
+    with pytest.raises(
+        RecordingError, match=f"chunk_size: expected an integer 1024..{MAX_CHUNK_SIZE}"
+    ):
+        RecordingWriter(tmp_path / "a.mcap", rig, chunk_size=MAX_CHUNK_SIZE + 1)
+    s = rig["ccd_left"]
+    big = Rig(
+        sensors={**rig.sensors, "ccd_left": dataclasses.replace(s, image_size=(8000, 6000))},
+        reference=rig.reference,
+        eyes=rig.eyes,
+    )
+    with pytest.raises(
+        RecordingError, match="'ccd_left': its 8000x6000 color frames take up to 144000000 bytes"
+    ):
+        RecordingWriter(tmp_path / "a.mcap", big)
+    assert list(tmp_path.iterdir()) == []  # refused before any file
 
 
 def test_write_set_skips_repeated_frames(tmp_path, rig):

@@ -73,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     """Fuse the recordings into ``--out``; say what was written and what was skipped."""
     from app.recording.fuse import VIDEO_NAME
     from app.recording.jobs import plan_fuse_job, run_fuse_job
+    from app.recording.player import skips_text
     from app.storage.atomic import make_dirs
     from fusion.compose import DisplaySettings
 
@@ -107,12 +108,18 @@ def run(args: argparse.Namespace) -> int:
             out(f"No video ({VIDEO_NAME}): {result.video_problem}; the JPEG frames are written")
         for reason, n in result.skipped.items():
             out(f"  skipped {n} frame sets: {reason}")
+        if result.frames:  # else the error below says it
+            for line in skips_text(result.messages_skipped):
+                err(f"{PROG}: warning: {name}{line}")
         for damage in result.damage:
             err(f"{PROG}: warning: {damage}; the frames before it were fused")
     empty = [(p, r) for p, r in zip(planned, results, strict=True) if r.frames == 0]
     if empty:
         plan, result = empty[0]
-        skipped = "; ".join(f"{n} frame sets: {r}" for r, n in result.skipped.items())
+        skipped = "; ".join(
+            [f"{n} frame sets: {r}" for r, n in result.skipped.items()]
+            + skips_text(result.messages_skipped)
+        )
         raise ValueError(
             f"{plan.recording}: no frame set could be fused"
             + (f" ({skipped})" if skipped else " (the recording holds no complete frame set)")

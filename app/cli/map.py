@@ -120,6 +120,7 @@ def run(args: argparse.Namespace) -> int:
     """Build the map of the recordings; write the PLY and the map file; say what was done."""
     from app.recording.jobs import run_map_job
     from app.recording.map3d import open_recordings
+    from app.recording.player import skips_text
     from app.storage.map_file import save_map, write_ply
     from fusion.voxel_map import MapSettings
 
@@ -147,12 +148,19 @@ def run(args: argparse.Namespace) -> int:
         for src in sources:
             src.close()
     m = result.map
+    for damage in result.damage:
+        err(f"{PROG}: warning: {damage}; the frames before it were mapped")
     if result.integrated == 0:
-        skipped = "; ".join(f"{n} frames: {r}" for r, n in result.skipped.items())
+        skipped = "; ".join(
+            [f"{n} frames: {r}" for r, n in result.skipped.items()]
+            + skips_text(result.messages_skipped)
+        )
         raise ValueError(
             f"{names}: no TOF frame could be mapped"
             + (f" ({skipped})" if skipped else " (no TOF frame with distances)")
         )
+    for line in skips_text(result.messages_skipped):
+        err(f"{PROG}: warning: {line}")
     pose = (
         f"the recordings' poses ({result.pose_frames})"
         if result.pose_source == "recording"
@@ -184,8 +192,6 @@ def run(args: argparse.Namespace) -> int:
     out(f"Wrote {ply} ({occupied.sum()} points) and the map file {map_file}")
     for note in result.notes:
         err(f"{PROG}: note: {note}")
-    for damage in result.damage:
-        err(f"{PROG}: warning: {damage}; the frames before it were mapped")
     if not occupied.any():
         err(f"{PROG}: warning: no voxel is occupied (seen in enough frames): the PLY is empty")
     return EXIT_OK

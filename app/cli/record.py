@@ -195,6 +195,11 @@ def _record(args: argparse.Namespace) -> int:
     record_summary(rec_out, writer)
     if fuser is not None:
         video_summary(fuser)
+    if kind == "replay":
+        from app.recording.player import skips_text
+
+        for line in skips_text(src.skipped):  # type: ignore[attr-defined]
+            err(f"{PROG}: warning: {line}; the other frames were recorded")
     if damage is not None:
         err(f"{PROG}: warning: {damage}; the frames before it were recorded")
     return EXIT_OK

@@ -66,5 +66,11 @@ class RecordingDamaged(RecordingError):
         return (functools.partial(type(self), **kwargs), (self.path, self.reason))
 
 
+class ImageSizeError(RecordingError):
+    """An image in a recording whose header gives another size than the rig's for its
+    sensor (or, without a rig, more pixels than any rig describes): refused before it is
+    decoded. The message says what the image claims and what was expected."""
+
+
 class TopicMapError(RecordingError):
     """A topic map (YAML) with a defect; the message names the file and the field."""

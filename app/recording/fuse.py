@@ -6,9 +6,11 @@ around the left eye's colour frames (:func:`app.sources.base.frame_sets`). Each 
 frame updates both eyes' mappings (:meth:`fusion.stereo.StereoFusion.update_depth`, with
 the rig's range correction); every ``every``-th set with both eyes' colour and thermal
 frames (through the rig's radiometry) is composed into the side-by-side picture
-(:func:`fuse_piece`, pure of files: it runs where the job sends it). :class:`FusedWriter`
-writes the pieces' pictures in order as ``DIR/NNNNNN.jpg``, ``DIR/frames.csv`` (each
-picture's time stamps) and ``DIR/fused.mp4`` (OpenCV ``mp4v`` per piece, joined).
+(:func:`fuse_piece`, pure of files: it runs where the job sends it); the messages the
+replay skips (undecodable, or an image of another size than the rig's:
+:mod:`app.recording.player`) are counted per piece and sensor. :class:`FusedWriter` writes
+the pieces' pictures in order as ``DIR/NNNNNN.jpg``, ``DIR/frames.csv`` (each picture's
+time stamps) and ``DIR/fused.mp4`` (OpenCV ``mp4v`` per piece, joined).
 """
 
 from __future__ import annotations
@@ -23,9 +25,9 @@ import av
 import cv2
 import numpy as np
 
-from app.recording.errors import RecordingDamaged, RecordingError
+from app.recording.errors import RecordingDamaged
 from app.recording.pieces import FusePiece
-from app.recording.player import MessageReplay
+from app.recording.player import MessageReplay, Skips, add_skips, skips_between
 from app.sources.base import frame_sets
 from app.storage.atomic import atomic_write_bytes, atomic_write_text, fsync_dir
 from calib.radiometry import Radiometry
@@ -62,6 +64,8 @@ class PieceEnd:
         sets: frame sets of the piece's range seen.
         tof_updates: TOF frames used to update the mapping (warm-up included).
         skipped: reason -> count of sets chosen for composing but not composed.
+        messages_skipped: sensor -> reason -> messages of the piece's range the replay
+            skipped.
         damage: the recording's damage, if the replay stopped at one.
     """
 
@@ -70,6 +74,7 @@ class PieceEnd:
     sets: int = 0
     tof_updates: int = 0
     skipped: dict[str, int] = field(default_factory=dict)
+    messages_skipped: Skips = field(default_factory=dict)
     damage: RecordingDamaged | None = None
 
 
@@ -82,6 +87,7 @@ class FuseResult:
         sets: colour reference frame sets seen.
         tof_updates: TOF frames used to update the mapping.
         skipped: reason -> count of sets chosen for composing but not composed.
+        messages_skipped: sensor -> reason -> messages the replay skipped.
         video: the video's path, or None.
         video_problem: why there is no video.
         fps: the video's frame rate.
@@ -92,6 +98,7 @@ class FuseResult:
     sets: int = 0
     tof_updates: int = 0
     skipped: dict[str, int] = field(default_factory=dict)
+    messages_skipped: Skips = field(default_factory=dict)
     video: Path | None = None
     video_problem: str | None = None
     fps: float = 30.0
@@ -122,8 +129,11 @@ def fuse_piece(
     ``piece.first_set``; sets before ``piece.start_set`` only update the mapping and the
     display's smoothing; every ``every``-th set (by its number in the recording) from there
     to ``piece.end_set`` is composed. ``progress(pictures considered)`` is called after
-    each set considered for composing. Damage in the recording ends the piece where it is
-    (``PieceEnd.damage``; nothing is raised for it).
+    each set considered for composing. Frames are checked against ``rig``'s sizes
+    (:meth:`~app.recording.player.MessageReplay.expect`); the messages skipped from the
+    piece's first set written on are counted (``PieceEnd.messages_skipped``; those of the
+    warm-up belong to the piece before). Damage in the recording ends the piece where it is
+    (``PieceEnd.damage``, without its traceback; nothing is raised for it).
     """
     if every < 1:
         raise ValueError(f"every: expected a positive integer, got {every}")
@@ -135,6 +145,8 @@ def fuse_piece(
     ref = eyes[EYE_ORDER[0]].color
     sensors = [ref] + [s for e in eyes.values() for s in (e.color, e.thermal) if s != ref] + [tof]
     source.realtime = False
+    source.expect(rig)
+    counted_from: Skips | None = {} if piece.start_set <= piece.first_set else None
     end = PieceEnd()
     w, h = fusion.size
     fd, video_name = tempfile.mkstemp(prefix="trifuse-piece-", suffix=".mp4")
@@ -156,6 +168,8 @@ def fuse_piece(
         for i, fs in enumerate(frame_sets(source, sensors, reference=ref), piece.first_set):
             if piece.end_set is not None and i >= piece.end_set:
                 break
+            if counted_from is None and i >= piece.start_set:
+                counted_from = source.skipped
             if tof in fs and fs[tof].stamp_ns != last_tof and fs[tof].distance_m is not None:
                 fusion.update_depth(fs[tof].distance_m, fs[tof].image)
                 last_tof = fs[tof].stamp_ns
@@ -175,9 +189,6 @@ def fuse_piece(
                 if not warming:
                     end.skipped[reason] = end.skipped.get(reason, 0) + 1
             else:
-                for eye in eyes.values():
-                    check_frame_size(fs[eye.color].image, rig, eye.color)
-                    check_frame_size(fs[eye.thermal].image, rig, eye.thermal)
                 colors = {e: fs[eye.color].image for e, eye in eyes.items()}
                 thermals = {
                     e: radiometry[eye.thermal].apply(fs[eye.thermal].image, out=kelvin[e])
@@ -199,7 +210,7 @@ def fuse_piece(
                 if progress is not None:
                     progress(considered)
     except RecordingDamaged as exc:
-        end.damage = exc
+        end.damage = exc.with_traceback(None)  # its frames would keep the piece's buffers
     finally:
         if video is not None:
             video.release()
@@ -210,6 +221,7 @@ def fuse_piece(
             video_tmp.unlink(missing_ok=True)
     if video is not None and not pictures:
         end.video_problem = "no frames were fused"
+    end.messages_skipped = skips_between(counted_from, source.skipped)  # not the warm-up's
     yield end
 
 
@@ -240,6 +252,7 @@ class FusedWriter:
         r.tof_updates += item.tof_updates
         for reason, n in item.skipped.items():
             r.skipped[reason] = r.skipped.get(reason, 0) + n
+        add_skips(r.messages_skipped, item.messages_skipped)
         if item.damage is not None:
             r.damage.append(item.damage)
         if item.video is not None:
@@ -297,14 +310,3 @@ def join_videos(segments: Sequence[Path], out: Path) -> None:
                     packet.stream = stream
                     joined.mux(packet)
                 offset = end
-
-
-def check_frame_size(image: np.ndarray, rig: Rig, sensor: str) -> None:
-    """RecordingError (a ValueError) unless ``image`` has ``sensor``'s size in ``rig``: a
-    recording replayed with another head's rig."""
-    w, h = rig[sensor].image_size
-    if image.shape[:2] != (h, w):
-        raise RecordingError(
-            f"frame of {sensor!r} is {image.shape[1]}x{image.shape[0]}, but the rig says "
-            f"{w}x{h}: is this the recording's rig?"
-        )

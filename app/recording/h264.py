@@ -88,7 +88,8 @@ def is_idr(annexb: bytes) -> bool:
 
 
 class VideoEncoder:
-    """One viewer's H.264 encoder (libx264 through PyAV): ultrafast, zerolatency, no
+    """An H.264 encoder (libx264 through PyAV; the stream's viewers on one rung share one,
+    :mod:`app.server.runtime.video_stream`): ultrafast, zerolatency, no
     B-frames, intra refresh every :data:`KEYINT_S`, ABR at ``bitrate_bps`` held by a VBV
     of :data:`VBV_S`; BT.601 limited range (tagged in the VUI).
 
@@ -189,5 +190,6 @@ class VideoEncoder:
         return EncodedFrame(data, idr, w, h, self.codec)
 
     def close(self) -> None:
-        """Release the encoder (frames still inside it are dropped)."""
+        """Release the encoder (frames still inside it are dropped); an encode running in
+        another thread finishes first (it holds the codec context until then)."""
         self._ctx = None  # type: ignore[assignment]

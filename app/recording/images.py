@@ -2,14 +2,26 @@
 
 Raw images follow the ROS / Foxglove encodings (``mono8``, ``mono16``, ``16UC1``,
 ``16SC1``, ``32FC1``, ``rgb8``, ``bgr8``, ``rgba8``, ``bgra8``); rows may be padded
-(``step``) and 16/32-bit samples big-endian. Compressed images are anything OpenCV decodes
-(JPEG, PNG, 16-bit PNG). BGR appears only at the OpenCV calls.
+(``step``) and 16/32-bit samples big-endian. Compressed images are JPEG or PNG (8- or
+16-bit). BGR appears only at the OpenCV calls.
+
+Sizes before pixels: every decoder takes the size the rig gives the image's sensor
+(``size``, ``(width, height)``) and compares it with what the image claims (a raw image's
+width and height, a JPEG's frame header, a PNG's IHDR chunk) before anything is allocated:
+another size raises :class:`~app.recording.errors.ImageSizeError`. Without a rig the claim
+may not exceed :data:`calib.rig.MAX_IMAGE_PIXELS`. A compressed image of any other format
+is refused (OpenCV would decode a dozen more, each with its own header to trust).
 """
 
 from __future__ import annotations
 
+import struct
+
 import cv2
 import numpy as np
+
+from app.recording.errors import ImageSizeError
+from calib.rig import MAX_IMAGE_PIXELS
 
 # encoding -> (numpy dtype, channels)
 RAW_ENCODINGS: dict[str, tuple[str, int]] = {
@@ -27,11 +39,90 @@ RAW_ENCODINGS: dict[str, tuple[str, int]] = {
 }
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+_JPEG_STANDALONE = {0x01, 0xD8, *range(0xD0, 0xD8)}
+
+
+def check_size(what: str, width: int, height: int, size: tuple[int, int] | None) -> None:
+    """ImageSizeError unless a ``what`` (``"JPEG"``, ``"raw image"`` ...) of ``width`` x
+    ``height`` pixels has the rig's ``size`` (width, height), or, with ``size`` None, at
+    most :data:`calib.rig.MAX_IMAGE_PIXELS` pixels."""
+    if size is not None:
+        if (width, height) != tuple(size):
+            raise ImageSizeError(
+                f"{what} of {width}x{height} pixels, the rig says {size[0]}x{size[1]}"
+            )
+    elif width * height > MAX_IMAGE_PIXELS:
+        raise ImageSizeError(
+            f"{what} of {width}x{height} pixels: more than the {MAX_IMAGE_PIXELS} pixels of "
+            "the largest image a rig describes"
+        )
+
+
+def compressed_size(data: bytes) -> tuple[str, int, int]:
+    """``(format, width, height)`` of a compressed image from its header (``"JPEG"``: the
+    first frame header; ``"PNG"``: the IHDR chunk), nothing decoded. ValueError for any
+    other format, or a header without a size."""
+    if data[:8] == _PNG_SIGNATURE:
+        if len(data) < 24 or data[12:16] != b"IHDR":
+            raise ValueError("corrupt PNG: no IHDR chunk after the signature")
+        width, height = struct.unpack_from(">II", data, 16)
+        return "PNG", width, height
+    if data[:2] != b"\xff\xd8":
+        raise ValueError(
+            f"compressed image: expected JPEG or PNG, the first bytes are {bytes(data[:8])!r}"
+        )
+    i, n = 2, len(data)
+    while i + 4 <= n:
+        if data[i] != 0xFF:
+            break
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in _JPEG_STANDALONE:
+            i += 2
+            continue
+        if marker in (0xD9, 0xDA):  # end of image, start of scan: no frame header before
+            break
+        (length,) = struct.unpack_from(">H", data, i + 2)
+        if marker in _JPEG_SOF:
+            if length < 8 or i + 9 > n:
+                break
+            height, width = struct.unpack_from(">HH", data, i + 5)
+            return "JPEG", width, height
+        if length < 2:
+            break
+        i += 2 + length
+    raise ValueError("corrupt JPEG: no frame header (width, height) before its data")
+
+
+def _decode_compressed(data: bytes, flags: int, size: tuple[int, int] | None) -> np.ndarray:
+    """OpenCV's decoding of a JPEG/PNG whose header was checked against ``size`` first."""
+    fmt, width, height = compressed_size(data)
+    check_size(fmt, width, height, size)
+    if width == 0 or height == 0:
+        raise ValueError(f"corrupt {fmt}: its header says {width}x{height} pixels")
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    if image is None or image.shape[:2] != (height, width):
+        raise ValueError(f"corrupt or unreadable {fmt} ({len(data)} bytes)")
+    return image
+
+
 def raw_plane(
-    data: bytes, width: int, height: int, step: int, encoding: str, big_endian: bool = False
+    data: bytes,
+    width: int,
+    height: int,
+    step: int,
+    encoding: str,
+    big_endian: bool = False,
+    size: tuple[int, int] | None = None,
 ) -> np.ndarray:
     """The pixels of a raw image as (H, W) or (H, W, C) in their own dtype (a view where
-    possible). ValueError for an unknown encoding or a size that does not add up."""
+    possible). ImageSizeError unless ``width`` x ``height`` is the rig's ``size`` (see
+    :func:`check_size`); ValueError for an unknown encoding or a size that does not add up."""
+    check_size("raw image", width, height, size)
     if encoding not in RAW_ENCODINGS:
         raise ValueError(f"unsupported encoding {encoding!r} (supported: {sorted(RAW_ENCODINGS)})")
     kind, channels = RAW_ENCODINGS[encoding]
@@ -72,24 +163,21 @@ def rgb_from_raw(plane: np.ndarray, encoding: str) -> np.ndarray:
     return np.array(plane[:, :, :3], order="C")
 
 
-def rgb_from_compressed(data: bytes) -> np.ndarray:
-    """(H, W, 3) uint8 RGB of a JPEG/PNG (grey is replicated); ValueError if corrupt."""
-    buf = np.frombuffer(data, np.uint8)
-    image = cv2.imdecode(buf, cv2.IMREAD_COLOR_RGB) if buf.size else None
-    if image is None:
-        raise ValueError(f"corrupt or unreadable compressed image ({len(data)} bytes)")
-    return image
+def rgb_from_compressed(data: bytes, size: tuple[int, int] | None = None) -> np.ndarray:
+    """(H, W, 3) uint8 RGB of a JPEG/PNG (grey is replicated), its header checked against
+    the rig's ``size`` first (:func:`check_size`); ValueError if corrupt."""
+    return _decode_compressed(data, cv2.IMREAD_COLOR_RGB, size)
 
 
-def plane_from_compressed(data: bytes, format: str = "") -> np.ndarray:
+def plane_from_compressed(
+    data: bytes, format: str = "", size: tuple[int, int] | None = None
+) -> np.ndarray:
     """(H, W) of a single-channel compressed image (8- or 16-bit PNG ...), values as
-    stored. ROS ``compressedDepth`` payloads (a 12-byte header before the PNG) are accepted."""
+    stored, its header checked against the rig's ``size`` first (:func:`check_size`). ROS
+    ``compressedDepth`` payloads (a 12-byte header before the PNG) are accepted."""
     if "compresseddepth" in format.lower().replace(" ", "") and data[:4] != b"\x89PNG":
         data = data[12:]
-    buf = np.frombuffer(data, np.uint8)
-    image = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
-    if image is None:
-        raise ValueError(f"corrupt or unreadable compressed image ({len(data)} bytes)")
+    image = _decode_compressed(data, cv2.IMREAD_UNCHANGED, size)
     if image.ndim == 3:
         if not (
             np.array_equal(image[:, :, 0], image[:, :, 1])

@@ -27,6 +27,7 @@ object store mounted at that path). Object store URLs are not read directly.
 from __future__ import annotations
 
 import functools
+import importlib
 import importlib.metadata
 import logging
 import os
@@ -183,13 +184,47 @@ def _ray_task(
     return list(fn(task, report))
 
 
+def _init_on_loopback(ray: Any, **options: Any) -> None:
+    """``ray.init`` of a new single-node instance whose every port listens on 127.0.0.1.
+
+    Ray's servers (GCS, raylet, agents, workers, the driver's) listen on every interface
+    unless the node's address is 127.0.0.1, and ``ray.init`` replaces 127.0.0.1 with the
+    machine's reachable address except in Ray's single-node mode
+    (``ray._private.ray_constants.ENABLE_RAY_CLUSTER`` false, as on Windows and macOS; its
+    variable ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0`` counts only before Ray is imported).
+    The mode is on while the instance starts and put back after (a later job's driver in
+    this process may have to be reachable from a cluster). Every node must then be at
+    127.0.0.1, else the instance is shut down and RuntimeError raised: a Ray version that
+    changed this would otherwise listen on every interface unnoticed.
+
+    Args:
+        ray: the ``ray`` module.
+        options: ``ray.init``'s other arguments (``address`` is ``local``).
+    """
+    constants = importlib.import_module("ray._private.ray_constants")
+    before = constants.ENABLE_RAY_CLUSTER
+    constants.ENABLE_RAY_CLUSTER = False
+    try:
+        ray.init(address="local", **options)
+    finally:
+        constants.ENABLE_RAY_CLUSTER = before
+    addresses = {node["NodeManagerAddress"] for node in ray.nodes()}
+    if addresses != {"127.0.0.1"}:
+        ray.shutdown()
+        raise RuntimeError(
+            f"Ray's local instance took the address {sorted(addresses)}, not 127.0.0.1: it "
+            "would listen on every interface; this Ray version needs another way to keep it "
+            "on loopback"
+        )
+
+
 class RayRunner:
     """Runs the tasks as Ray tasks (see the module docstring).
 
     Args:
         address: a running cluster's address (``HOST:PORT``, ``ray://HOST:PORT`` or
             ``auto``), or None: a new Ray instance on this machine, with ``num_cpus``
-            (default: all).
+            (default: all), every port of it on loopback only (:func:`_init_on_loopback`).
         num_cpus: CPUs of the local instance.
         on_worker: called with ``(task number, host, pid)`` when a task reports from a
             worker it had not reported from (its first run, or a run again after its
@@ -214,7 +249,7 @@ class RayRunner:
             if address:
                 ray.init(address=address, **quiet)
             else:
-                ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, **quiet)
+                _init_on_loopback(ray, num_cpus=num_cpus, include_dashboard=False, **quiet)
             self._started = True
         self.cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
         self._tracker: Any = None

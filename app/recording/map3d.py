@@ -17,6 +17,11 @@ are read, each piece into a map of its own, and the job merges the pieces' maps 
   rig frame at the first frame, and the recordings are taken as one continuous run in the
   order given), ``auto`` the recording's poses when every recording has them, the estimate
   when none has (a mix is refused: their world frames would not agree).
+
+The recordings are read as ``trifuse fuse`` reads them (:class:`~app.recording.reader.
+ReplaySource`): a recording cut short or left by a killed ``record`` (no summary section)
+gives the frames before its damage, which the run names (``damage``); messages the replay
+skips (undecodable, or an image of another size than the rig's) are counted per sensor.
 """
 
 from __future__ import annotations
@@ -33,8 +38,8 @@ from typing import Literal
 import numpy as np
 
 from app.recording.errors import RecordingDamaged
-from app.recording.fuse import check_frame_size
 from app.recording.pieces import MapPiece, MapSpan, open_task_recording
+from app.recording.player import Skips, add_skips, skips_between
 from app.recording.poses import TOLERANCE_S, RecordingPoses, read_poses
 from app.recording.reader import ReplaySource
 from app.sources.frames import Frame
@@ -67,6 +72,7 @@ class MapRun:
         integrated: TOF frames added to the map.
         skipped: reason -> TOF frames not added.
         images_missing: sensor -> TOF frames that had no image of it within the age limit.
+        messages_skipped: sensor -> reason -> messages the replays skipped.
         damage: per damaged recording, the damage the replay stopped at.
         notes: per recording, what reading its poses noted.
         seconds: wall time (of a piece: its own; of a job: the whole job's).
@@ -79,6 +85,7 @@ class MapRun:
     integrated: int = 0
     skipped: dict[str, int] = field(default_factory=dict)
     images_missing: dict[str, int] = field(default_factory=dict)
+    messages_skipped: Skips = field(default_factory=dict)
     damage: list[RecordingDamaged] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     seconds: float = 0.0
@@ -95,6 +102,7 @@ class MapRun:
         for mine, theirs in counts:
             for key, n in theirs.items():
                 mine[key] = mine.get(key, 0) + n
+        add_skips(self.messages_skipped, later.messages_skipped)
         self.damage += later.damage
         self.notes += [n for n in later.notes if n not in self.notes]
         frames = {f for f in (self.pose_frames, later.pose_frames) if f}
@@ -103,8 +111,10 @@ class MapRun:
 
 def open_recordings(paths: Sequence[Path], rig: Rig | None) -> tuple[list[ReplaySource], Rig]:
     """Open every recording (as fast as it is read), with the rig to build with:
-    ``rig`` if given, else the recordings' (they must agree); checks that each has
-    frames of the rig's TOF. Returns (sources, rig); closes what it opened when it raises.
+    ``rig`` if given, else the recordings' (they must agree); checks that none has, by its
+    statistics, no TOF distances (a recording without statistics, cut short or left by a
+    killed ``record``, is read to find out, as ``trifuse fuse`` reads it). Returns
+    (sources, rig); closes what it opened when it raises.
 
     Raises:
         RecordingError: a file is no recording; ValueError: no rig, rigs that differ, no
@@ -130,8 +140,7 @@ def open_recordings(paths: Sequence[Path], rig: Rig | None) -> tuple[list[Replay
             rig = rigs[0][1]
         tof = tof_sensor_name(rig)
         for src in sources:
-            count = src.message_count(tof, "tof_distance")
-            if count == 0 or (count is None and tof not in src.recorded_sensors):
+            if src.message_count(tof, "tof_distance") == 0:
                 raise ValueError(
                     f"{src.path}: no TOF distances of {tof!r} in the recording: nothing to map"
                 )
@@ -199,7 +208,10 @@ def map_piece(
         progress: called with the TOF frames of the piece done after each.
         max_image_age_s: see :data:`MAX_IMAGE_AGE_S`.
 
-    Damage in a recording ends its span where it is (``damage`` says so).
+    Frames are checked against ``rig``'s sizes (:meth:`~app.recording.player.
+    MessageReplay.expect`); the messages skipped in a span's range (from its first TOF frame
+    added to the one after its last) are counted. Damage in a recording ends its span where
+    it is (``damage`` says so).
     """
     t0 = time.perf_counter()
     builder = MapBuilder(rig, settings, estimate_pose=estimate)
@@ -225,12 +237,10 @@ def map_piece(
             if best is None or abs(best.stamp_ns - tof.stamp_ns) > age_ns:
                 run.images_missing[name] = run.images_missing.get(name, 0) + 1
                 continue
-            check_frame_size(best.image, rig, name)
             if name in radiometry:
                 chosen[name] = radiometry[name].apply(best.image)
             else:
                 chosen[name] = best.image
-        check_frame_size(tof.distance_m, rig, builder.tof)
         T = None
         if not estimate:
             T = rec_poses.at(tof.stamp_ns) if rec_poses is not None else None
@@ -253,6 +263,7 @@ def map_piece(
     frames_of_poses: set[str] = set()
     for span in piece.spans:
         with open_task_recording(span.recording) as src:
+            src.expect(rig)
             rec_poses = None
             if not estimate:
                 rec_poses = read_poses(src.path, rig.reference, _log_range(src, span))
@@ -263,12 +274,18 @@ def map_piece(
             pending: deque[Frame] = deque()
             seen = 0  # TOF distance frames read in this span
             last = None if span.add_tof is None else span.skip_tof + span.add_tof
+            counted_from: Skips | None = {} if span.seek_ns is None else None
+            counted_to: Skips | None = None
             if span.seek_ns is not None:
                 src.seek(span.seek_ns)
             try:
                 for frame in src.frames():
                     if frame.sensor == builder.tof and frame.distance_m is not None:
                         seen += 1
+                        if counted_from is None and seen > span.skip_tof:
+                            counted_from = src.skipped
+                        if counted_to is None and last is not None and seen > last:
+                            counted_to = src.skipped
                         if span.skip_tof < seen and (last is None or seen <= last):
                             pending.append(frame)
                     elif frame.sensor in history:
@@ -283,9 +300,11 @@ def map_piece(
                         while h and h[0].stamp_ns < oldest - age_ns:
                             h.popleft()
             except RecordingDamaged as exc:
-                run.damage.append(exc)
+                run.damage.append(exc.with_traceback(None))  # its frames hold the span's
             while pending:
                 add(pending.popleft(), history, rec_poses)
+            counted_to = src.skipped if counted_to is None else counted_to
+            add_skips(run.messages_skipped, skips_between(counted_from, counted_to))
     run.pose_frames = ", ".join(sorted(frames_of_poses)) or None
     run.seconds = time.perf_counter() - t0
     return run

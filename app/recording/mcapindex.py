@@ -18,6 +18,14 @@ is damaged and reads everything before that point:
 are merged by their time ranges, as the ``mcap`` reader does), checking every chunk's CRC;
 the first unreadable chunk, or the end of a truncated file, raises :class:`McapDamage`
 after every message before it in time was yielded.
+
+Nothing a file declares is trusted with memory or time: a chunk (compressed, or as it
+declares itself uncompressed) larger than :data:`MAX_CHUNK_BYTES` is damage before any of
+it is read; it is decompressed into at most its declared size (zstd's and lz4's own frame
+headers are not believed) and must come out exactly that long; its records are walked by
+this module, and anything but schemas, channels and messages in it (e.g. a run of zero
+bytes) is damage, not skipped. An exception about damage holds no reference to the
+chunk's bytes.
 """
 
 from __future__ import annotations
@@ -31,7 +39,9 @@ from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import lz4.frame
 import numpy as np
+import zstandard
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import EndOfFile
 from mcap.opcode import Opcode
@@ -39,7 +49,6 @@ from mcap.records import (
     Attachment,
     AttachmentIndex,
     Channel,
-    Chunk,
     ChunkIndex,
     Message,
     MessageIndex,
@@ -48,7 +57,6 @@ from mcap.records import (
     Schema,
     Statistics,
 )
-from mcap.stream_reader import breakup_chunk
 
 from app.errors import describe_error
 from app.recording.errors import RecordingError
@@ -61,8 +69,33 @@ _FOOTER_SIZE = _PREFIX + _FOOTER_LENGTH
 _KNOWN_OPCODES = {int(op) for op in Opcode}
 _COMPRESSIONS = ("", "zstd", "lz4")
 _UNFINISHED = 2**64 - 1  # the record length a streaming writer puts first, then fixes
+MAX_CHUNK_BYTES = 64 * 2**20
+"""The most a chunk may hold, compressed and uncompressed (bytes of its records); so may a
+message outside chunks. A larger one is damage, found before it is read. trifuse's writer
+ends a chunk once it passes ``chunk_size`` (1 MiB by default, at most 16 MiB: see
+:data:`app.recording.writer.MAX_CHUNK_SIZE`) and refuses a rig whose frames could make a
+message over :data:`app.recording.writer.MAX_MESSAGE_BYTES` (a 1280 x 960 JPEG is about
+0.3 MB, a raw 16-bit 382 x 288 thermal frame 0.2 MB); rosbag2 ends its chunks at 768 KiB.
+Reading a chunk of this size costs about three times it in memory (the record, its
+decompressed records, the messages)."""
+MAX_CHUNK_RECORDS = 200_000
+"""The most records a chunk may hold, and at most one per byte it takes in the file (plus
+:data:`RECORDS_FLOOR`): a chunk of millions of identical tiny messages, a few kilobytes
+compressed, would cost seconds of CPU and hundreds of MB of message objects each. A
+legitimate chunk holds far fewer: trifuse's densest (16 MiB of head poses) about 130,000,
+rosbag2's 768 KiB at most about 25,000; real messages take several bytes each compressed."""
+RECORDS_FLOOR = 4096
+"""Records any chunk may hold, whatever its size in the file."""
 ATTACHMENT_LIMIT = 64 * 2**20
-"""Attachments larger than this are indexed but not read while scanning."""
+"""The largest attachment or metadata record read, bytes (the default limit of
+:meth:`McapIndex.attachment`)."""
+_CHUNK_HEAD = struct.Struct("<QQQII")  # start, end, uncompressed size and CRC, compression
+_MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
+_CHUNK_RECORDS = (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE)
+
+
+class _Corrupt(ValueError):
+    """What is wrong inside one chunk (becomes a McapDamage outside any except block)."""
 
 
 class McapDamage(Exception):
@@ -187,12 +220,19 @@ class McapIndex:
         f.seek(offset)
         return f.read(n)
 
-    def _record_at(self, offset: int) -> tuple[int, bytes]:
-        """(opcode, content) of the record at ``offset``; McapDamage if it is cut short."""
+    def _record_at(self, offset: int, limit: int | None = None) -> tuple[int, bytes]:
+        """(opcode, content) of the record at ``offset``; McapDamage if it is cut short or
+        its content is longer than ``limit`` bytes (then nothing of it is read)."""
         prefix = self._read_at(offset, _PREFIX)
         if len(prefix) < _PREFIX:
             raise McapDamage("the file ends inside a record's header: truncated", offset)
         opcode, length = struct.unpack("<BQ", prefix)
+        if limit is not None and length > limit:
+            raise McapDamage(
+                f"a record of {length} bytes, more than the {limit} bytes one may have here: "
+                "corrupted",
+                offset,
+            )
         if offset + _PREFIX + length > self.size:
             raise McapDamage(
                 f"a record of {length} bytes runs past the end of the file: truncated or corrupted",
@@ -299,7 +339,7 @@ class McapIndex:
             pos += _PREFIX + length
         self.chunks.sort(key=lambda c: c.offset)
         for mi in metadata_indexes:
-            opcode, content = self._record_at(mi.offset)
+            opcode, content = self._record_at(mi.offset, ATTACHMENT_LIMIT)
             if opcode != Opcode.METADATA:
                 raise ValueError(f"metadata index points at a record of type {opcode}")
             md = Metadata.read(ReadDataStream(io.BytesIO(content)))
@@ -372,6 +412,12 @@ class McapIndex:
             self.chunks.append(ChunkRef(pos, length, start, end))
             return False
         if opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE, Opcode.METADATA):
+            if length > MAX_CHUNK_BYTES:
+                raise McapDamage(
+                    f"a {Opcode(opcode).name.lower()} record of {length} bytes, more than "
+                    f"{MAX_CHUNK_BYTES // 2**20} MiB: corrupted",
+                    pos,
+                )
             content = self.file.read(length)
             stream = ReadDataStream(io.BytesIO(content))
             if self._register(opcode, stream):
@@ -409,13 +455,13 @@ class McapIndex:
         """Log time of the last message, None if there are none."""
         return max((c.end_ns for c in self.chunks), default=None)
 
-    def attachment(self, name: str) -> bytes | None:
+    def attachment(self, name: str, limit: int = ATTACHMENT_LIMIT) -> bytes | None:
         """The data of the attachment ``name`` (None if absent); McapDamage if its CRC or
-        its record is damaged."""
+        its record is damaged, or the record is longer than ``limit`` bytes."""
         ai = self.attachments.get(name)
         if ai is None:
             return None
-        opcode, content = self._record_at(ai.offset)
+        opcode, content = self._record_at(ai.offset, limit)
         if opcode != Opcode.ATTACHMENT:
             raise McapDamage(f"attachment {name!r}: no attachment record there", ai.offset)
         if len(content) < 4:
@@ -433,32 +479,106 @@ class McapIndex:
 
     def read_chunk(self, ref: ChunkRef) -> list[Message]:
         """The messages of one chunk (or the loose message); learns its schemas and
-        channels. McapDamage when the chunk cannot be read or fails its CRC."""
+        channels. McapDamage when the chunk cannot be read, is larger than
+        :data:`MAX_CHUNK_BYTES`, fails its CRC or holds anything but schemas, channels and
+        messages (see the module docstring)."""
         if ref.message is not None:
             self._check_channel(ref.message, ref)
             return [ref.message]
-        opcode, content = self._record_at(ref.offset)
-        if opcode != Opcode.CHUNK or len(content) != ref.length:
-            raise McapDamage("expected a chunk record here: the file is corrupted", ref.offset)
+        problem = None
         try:
-            chunk = Chunk.read(ReadDataStream(io.BytesIO(content)))
-            records = breakup_chunk(chunk, validate_crc=True)
-        except Exception as exc:
+            messages = self._chunk_messages(ref)
+        except _Corrupt as exc:
+            problem = str(exc)
+        if problem is not None:  # raised here, so that nothing keeps the chunk's bytes
             raise McapDamage(
                 f"chunk of messages at {ref.start_ns / 1e9:.3f}-{ref.end_ns / 1e9:.3f} s "
-                f"(log time) is corrupted ({describe_error(exc)})",
+                f"(log time) {problem}",
                 ref.offset,
                 ref.start_ns,
-            ) from None
-        out = []
-        for r in records:
-            if isinstance(r, Message):
-                self._check_channel(r, ref)
-                out.append(r)
-            elif isinstance(r, Channel):
-                self.channels.setdefault(r.id, r)
-            elif isinstance(r, Schema):
-                self.schemas.setdefault(r.id, r)
+            )
+        for m in messages:
+            self._check_channel(m, ref)
+        return messages
+
+    def _chunk_messages(self, ref: ChunkRef) -> list[Message]:
+        """Read, check and decompress one chunk record; _Corrupt says what is wrong."""
+        cap = MAX_CHUNK_BYTES
+        if ref.length > cap + 4096:  # its header, then at most the cap of records
+            raise _Corrupt(
+                f"is a record of {ref.length} bytes, more than a chunk may hold "
+                f"({cap // 2**20} MiB): corrupted"
+            )
+        opcode, content = self._record_at(ref.offset, ref.length)
+        if opcode != Opcode.CHUNK or len(content) != ref.length:
+            raise _Corrupt("is not where the index says: the file is corrupted")
+        if len(content) < _CHUNK_HEAD.size:
+            raise _Corrupt("is cut short: corrupted")
+        _start, _end, size, crc, name_len = _CHUNK_HEAD.unpack_from(content)
+        at = _CHUNK_HEAD.size + name_len
+        if at + 8 > len(content):
+            raise _Corrupt("has a damaged header: corrupted")
+        compression = content[_CHUNK_HEAD.size : at].decode("utf-8", "replace")
+        (records_len,) = struct.unpack_from("<Q", content, at)
+        if records_len > len(content) - at - 8:
+            raise _Corrupt(f"claims {records_len} bytes of records, more than its record holds")
+        if size > cap:
+            raise _Corrupt(
+                f"declares {size} bytes of records uncompressed, more than a chunk may hold "
+                f"({cap // 2**20} MiB): corrupted"
+            )
+        data = _decompress(compression, memoryview(content)[at + 8 : at + 8 + records_len], size)
+        del content
+        if crc != 0 and zlib.crc32(data) != crc:
+            raise _Corrupt("fails its CRC: corrupted")
+        return self._chunk_records(data, min(MAX_CHUNK_RECORDS, RECORDS_FLOOR + records_len))
+
+    def _chunk_records(self, data: bytes, most: int) -> list[Message]:
+        """The messages among a chunk's decompressed records (schemas and channels are
+        learnt); _Corrupt at any other record, one that runs past the end, or more than
+        ``most`` records."""
+        out: list[Message] = []
+        pos, n, count = 0, len(data), 0
+        while pos < n:
+            count += 1
+            if count > most:
+                raise _Corrupt(
+                    f"holds more than {most} records (a chunk may hold {RECORDS_FLOOR} plus "
+                    f"one per byte it takes in the file, at most {MAX_CHUNK_RECORDS}): "
+                    "corrupted or hostile"
+                )
+            if n - pos < _PREFIX:
+                raise _Corrupt("ends inside a record's header: corrupted")
+            opcode, length = struct.unpack_from("<BQ", data, pos)
+            start, pos = pos + _PREFIX, pos + _PREFIX + length
+            if pos > n:
+                raise _Corrupt(f"holds a record of {length} bytes that runs past its end")
+            if opcode not in _CHUNK_RECORDS:
+                raise _Corrupt(
+                    f"holds a record of type 0x{opcode:02x} (a chunk holds schemas, channels "
+                    "and messages only): corrupted"
+                )
+            if opcode == Opcode.MESSAGE:
+                if length < _MESSAGE_HEAD.size:
+                    raise _Corrupt(f"holds a message record of {length} bytes: corrupted")
+                channel_id, sequence, log_time, publish_time = _MESSAGE_HEAD.unpack_from(
+                    data, start
+                )
+                body = data[start + _MESSAGE_HEAD.size : pos]
+                out.append(Message(channel_id, log_time, body, publish_time, sequence))
+                continue
+            try:
+                stream = ReadDataStream(io.BytesIO(data[start:pos]))
+                if opcode == Opcode.SCHEMA:
+                    schema = Schema.read(stream)
+                    self.schemas.setdefault(schema.id, schema)
+                else:
+                    channel = Channel.read(stream)
+                    self.channels.setdefault(channel.id, channel)
+            except (EndOfFile, struct.error, UnicodeDecodeError) as exc:
+                raise _Corrupt(
+                    f"holds a damaged schema or channel ({type(exc).__name__})"
+                ) from None
         return out
 
     def _check_channel(self, message: Message, ref: ChunkRef) -> None:
@@ -532,3 +652,28 @@ class McapIndex:
             yield item
         if self.damage is not None:
             raise McapDamage(self.damage.reason, self.damage.offset, last)
+
+
+def _decompress(compression: str, data: memoryview, size: int) -> bytes:
+    """A chunk's records, decompressed into at most ``size`` (its declared uncompressed
+    size) bytes and exactly that many; _Corrupt otherwise."""
+    if compression not in _COMPRESSIONS:
+        raise _Corrupt(f"has an unknown compression {compression!r}: corrupted")
+    try:
+        if compression == "zstd":
+            declared = zstandard.frame_content_size(data)
+            if declared not in (size, -1):  # -1: the frame does not say
+                raise _Corrupt(f"holds a zstd frame of {declared} bytes, but declares {size}")
+            out = zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+        elif compression == "lz4":
+            out = lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=size + 1)
+        else:
+            out = bytes(data)
+    except (zstandard.ZstdError, RuntimeError) as exc:
+        raise _Corrupt(f"cannot be decompressed ({describe_error(exc)}): corrupted") from None
+    if len(out) != size:
+        more = "more than " if len(out) > size else ""
+        raise _Corrupt(
+            f"decompresses to {more}{min(len(out), size)} bytes, but declares {size}: corrupted"
+        )
+    return out

@@ -118,6 +118,7 @@ def open_source(
         if rig is None:
             src.close()
             raise ValueError(f"{replay}: the recording holds no rig; give one with --rig")
+        src.expect(rig)  # frames of another size are skipped (counted), never delivered
         return OpenedSource(src, rig, f"replay of {replay}" + (" (looping)" if loop else ""))
     if live:
         from app.sources.camera import CameraSource

@@ -10,6 +10,13 @@ Timeline: ``start_ns``, ``end_ns``, ``position_ns`` and :meth:`MessageReplay.see
 messages' log time, which pacing follows too. A frame's ``stamp_ns`` is its acquisition
 time: for trifuse recordings the same number, for ROS 2 bags the message header's stamp.
 
+Bad messages are skipped, not fatal: a frame message that does not decode, or whose image
+has another size than the rig gives its sensor (checked from its header, before its pixels
+are decoded: :mod:`app.recording.images`), is left out and counted per sensor and reason
+(:attr:`MessageReplay.skipped`, and :meth:`MessageReplay.stats` for the console's sensor
+health); the replay goes on. Damage to the file itself (a truncated or corrupted chunk)
+ends the replay (:class:`~app.recording.errors.RecordingDamaged`).
+
 Thread use: one thread iterates :meth:`MessageReplay.frames`; :meth:`pause`,
 :meth:`resume`, :meth:`seek` and the ``rate`` setter may be called from any thread and take
 effect before the next frame is delivered.
@@ -26,14 +33,17 @@ from abc import abstractmethod
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from mcap.records import Channel, Message
 
-from app.recording.errors import RecordingDamaged, RecordingError
+from app.errors import describe_error
+from app.recording.errors import ImageSizeError, RecordingDamaged, RecordingError
 from app.recording.mcapindex import McapDamage, McapIndex
 from app.sources.base import FrameSource
 from app.sources.frames import Frame
+from calib.rig import Rig
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +54,10 @@ from where it is, slower) instead of delivering a burst of late frames."""
 PAIR_WINDOW_NS = 50_000_000
 """A TOF half (distance or amplitude) whose partner has not come within this log time is
 delivered alone."""
+MAX_SKIP_REASONS = 8
+"""Distinct reasons counted per sensor in :attr:`MessageReplay.skipped`; further ones are
+counted under :data:`OTHER_REASONS`."""
+OTHER_REASONS = "other problems"
 
 
 @dataclass(frozen=True)
@@ -54,12 +68,25 @@ class Route:
         sensor: the sensor id.
         kind: ``color``, ``thermal``, ``tof_distance``, ``tof_amplitude``, or another
             (non-frame) kind the subclass handles itself (``calibration``, ``camera_info``).
-        decode: message -> (stamp_ns, array); raises on a malformed message.
+        decode: ``(message, size=None)`` -> (stamp_ns, array); ``size`` is the (width,
+            height) the rig gives the sensor (None: unknown), which an image must have
+            (:class:`~app.recording.errors.ImageSizeError` before its pixels are decoded);
+            raises on a malformed message.
     """
 
     sensor: str
     kind: str
-    decode: Callable[[Message], tuple[int, np.ndarray]]
+    decode: Callable[..., tuple[int, np.ndarray]]
+
+
+@dataclass
+class _Skips:
+    """One sensor's skipped messages (see :attr:`MessageReplay.skipped`)."""
+
+    reasons: dict[str, int] = field(default_factory=dict)
+    since_delivered: int = 0
+    last_s: float | None = None  # time.monotonic()
+    last_reason: str = ""
 
 
 @dataclass
@@ -67,6 +94,42 @@ class _TofHalf:
     stamp_ns: int
     log_ns: int
     parts: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+Skips = dict[str, dict[str, int]]
+"""sensor -> reason -> messages skipped (:attr:`MessageReplay.skipped`)."""
+
+
+def add_skips(into: Skips, more: Skips, sign: int = 1) -> None:
+    """Add (``sign`` -1: subtract) the counts ``more`` to ``into``; zeros are dropped."""
+    for sensor, reasons in more.items():
+        mine = into.setdefault(sensor, {})
+        for reason, n in reasons.items():
+            mine[reason] = mine.get(reason, 0) + sign * n
+            if not mine[reason]:
+                del mine[reason]
+        if not mine:
+            del into[sensor]
+
+
+def skips_between(before: Skips | None, after: Skips) -> Skips:
+    """The messages skipped from the snapshot ``before`` (None: counting never began, so
+    nothing) to ``after`` (:attr:`MessageReplay.skipped` taken at two moments)."""
+    if before is None:
+        return {}
+    out = {s: dict(r) for s, r in after.items()}
+    add_skips(out, before, -1)
+    return out
+
+
+def skips_text(skips: Skips) -> list[str]:
+    """One line per sensor and reason: ``3 messages of ccd_left skipped: JPEG of
+    30000x30000 pixels, the rig says 1280x960``."""
+    return [
+        f"{n} message{'s' * (n != 1)} of {sensor} skipped: {reason}"
+        for sensor, reasons in skips.items()
+        for reason, n in reasons.items()
+    ]
 
 
 class MessageReplay(FrameSource):
@@ -92,7 +155,12 @@ class MessageReplay(FrameSource):
         sensors: the sensors of the source (the rig's or the topic map's), including any
             the file has no frames of (``FrameSet.missing`` then reports them).
         rig: the rig, when the file (or the caller) gives one.
+        frame_sizes: sensor -> (width, height) every frame of it must have (from the rig:
+            :meth:`expect`); a sensor not in it may have any size up to
+            :data:`calib.rig.MAX_IMAGE_PIXELS`.
         damage: the damage met by the last iteration, else None.
+        skipped: sensor -> reason -> messages skipped (see the module docstring), over
+            every iteration since the source was opened.
         notes: non-fatal problems found when opening (damaged summary, missing topics).
     """
 
@@ -125,6 +193,8 @@ class MessageReplay(FrameSource):
         self._anchor: tuple[int, float] | None = None  # (log ns, monotonic s)
         self._routes: dict[int, Route | None] = {}
         self._tof_parts: dict[str, set[str]] = {}
+        self.frame_sizes: dict[str, tuple[int, int]] = {}
+        self._skips: dict[str, _Skips] = {}
         self.index = McapIndex.open(self.path)
         self.notes: list[str] = list(self.index.notes)
         start = self.index.start_ns
@@ -150,6 +220,59 @@ class MessageReplay(FrameSource):
     def _side_message(self, route: Route, message: Message) -> None:
         """A message of a non-frame kind (calibration, camera info); ignored by default."""
         return None
+
+    # -- what frames must be, and what was skipped --------------------------------------
+
+    def expect(self, rig: Rig | None) -> None:
+        """Check every frame against ``rig``'s image sizes from now on (None: against
+        nothing but the largest size a rig may describe)."""
+        self.frame_sizes = {} if rig is None else {n: rig[n].image_size for n in rig.names}
+
+    @property
+    def skipped(self) -> Skips:
+        """sensor -> reason -> messages skipped (a copy)."""
+        with self._cond:
+            return {s: dict(k.reasons) for s, k in self._skips.items()}
+
+    def stats(self) -> dict[str, Any]:
+        """``{"rejected_by_sensor": {sensor: {"since_accepted", "last_rejected_s",
+        "last_error"}}}``: per sensor, the messages skipped since its last frame delivered,
+        when the latest was skipped (``time.monotonic()``) and why (the push ingest's
+        shape, which the console's sensor health reads)."""
+        with self._cond:
+            return {
+                "rejected_by_sensor": {
+                    s: {
+                        "since_accepted": k.since_delivered,
+                        "last_rejected_s": k.last_s,
+                        "last_error": k.last_reason,
+                    }
+                    for s, k in self._skips.items()
+                }
+            }
+
+    def _skip(self, sensor: str, exc: Exception) -> None:
+        """Count a message of ``sensor`` that was left out, and why."""
+        if isinstance(exc, ImageSizeError):
+            reason = str(exc)
+        else:
+            reason = f"cannot be decoded ({describe_error(exc)})"
+            reason = reason if len(reason) <= 200 else reason[:199] + "…"
+        with self._cond:
+            k = self._skips.setdefault(sensor, _Skips())
+            key = reason
+            if key not in k.reasons and len(k.reasons) >= MAX_SKIP_REASONS:
+                key = OTHER_REASONS
+            k.reasons[key] = k.reasons.get(key, 0) + 1
+            k.since_delivered += 1
+            k.last_s = time.monotonic()
+            k.last_reason = reason
+
+    def _delivered(self, sensor: str) -> None:
+        k = self._skips.get(sensor)
+        if k is not None and k.since_delivered:
+            with self._cond:
+                k.since_delivered = 0
 
     # -- time line ------------------------------------------------------------------------
 
@@ -242,7 +365,7 @@ class MessageReplay(FrameSource):
 
     def frames(self) -> Iterator[Frame]:
         """Frames in log-time order from the start (or the pending seek target); see the
-        class docstring for damage, pacing and looping."""
+        class docstring for damage, pacing and looping, the module's for skipping."""
         self.damage = None
         with self._cond:
             start = self._pending_seek if self._pending_seek is not None else self.start_ns
@@ -252,7 +375,7 @@ class MessageReplay(FrameSource):
         delivered = 0
         pass_delivered = 0
         pending: dict[str, _TofHalf] = {}
-        cursor = self.index.messages(start)
+        cursor: Iterator[Message] = self.index.messages(start)
         while True:
             with self._cond:
                 target = self._pending_seek
@@ -264,16 +387,31 @@ class MessageReplay(FrameSource):
                     self._position = target
                     self._anchor = (target, self._clock())
                 pass_delivered = 1  # a seek counts as progress for the loop guard
-            ready: list[tuple[Frame, int]] = []
+            damage: tuple[str, int | None, int | None] | None = None
             try:
-                msg = next(cursor)
+                msg: Message | None = next(cursor)
             except StopIteration:
+                msg = None
+            except McapDamage as exc:  # only its facts leave this block (not its frames)
+                msg, damage = None, (exc.reason, exc.offset, exc.stamp_ns)
+            if damage is not None:
+                cursor = iter(())  # the chunks read so far go
+                for s, h in sorted(pending.items(), key=lambda kv: kv[1].log_ns):
+                    frame, _due = self._tof_frame(s, h)
+                    delivered += 1
+                    self._delivered(s)
+                    yield frame
+                pending.clear()
+                self._damaged(*damage, delivered)
+                return
+            if msg is None:
                 ready = [self._tof_frame(s, h) for s, h in pending.items()]
                 pending.clear()
                 ready.sort(key=lambda fr: fr[1])
                 for frame, due in ready:
                     if self._wait(due):
                         delivered += 1
+                        self._delivered(frame.sensor)
                         yield frame
                 if self.loop and pass_delivered and self._pending_seek is None:
                     pass_delivered = 0
@@ -284,13 +422,6 @@ class MessageReplay(FrameSource):
                     continue
                 if self._pending_seek is not None:
                     continue
-                return
-            except McapDamage as exc:
-                for s, h in sorted(pending.items(), key=lambda kv: kv[1].log_ns):
-                    frame, due = self._tof_frame(s, h)
-                    delivered += 1
-                    yield frame
-                self._damaged(exc.reason, exc.offset, exc.stamp_ns, delivered)
                 return
             route = self._route_of(msg.channel_id)
             if route is None:
@@ -304,27 +435,16 @@ class MessageReplay(FrameSource):
                     )
                 continue
             try:
-                stamp, data = route.decode(msg)
+                stamp, data = route.decode(msg, self.frame_sizes.get(route.sensor))
             except Exception as exc:
-                topic = self.index.channels[msg.channel_id].topic
-                for s, h in sorted(pending.items(), key=lambda kv: kv[1].log_ns):
-                    frame, due = self._tof_frame(s, h)
-                    delivered += 1
-                    yield frame
-                self._damaged(
-                    f"message on {topic} at log time {msg.log_time / 1e9:.6f} s cannot be "
-                    f"decoded ({exc})",
-                    None,
-                    msg.log_time,
-                    delivered,
-                )
-                return
-            ready = self._collect(route, stamp, data, msg.log_time, pending)
-            for frame, due in ready:
+                self._skip(route.sensor, exc)
+                continue
+            for frame, due in self._collect(route, stamp, data, msg.log_time, pending):
                 if not self._wait(due):
                     break  # a seek came: drop what was decoded before it
                 delivered += 1
                 pass_delivered += 1
+                self._delivered(frame.sensor)
                 yield frame
 
     def _route_of(self, channel_id: int) -> Route | None:

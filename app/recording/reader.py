@@ -40,7 +40,7 @@ from app.recording.player import MessageReplay, Route
 from app.recording.poses import RecordingPoses, read_poses
 from calib.camera import Intrinsics
 from calib.errors import RigError
-from calib.rig import Eye, Rig, Sensor, rig_from_yaml
+from calib.rig import Eye, Rig, Sensor, check_physical, rig_from_yaml
 from calib.transforms import invert, make_T
 from calib.units import kelvin_from_counts, metres_from_counts
 
@@ -56,14 +56,19 @@ def _stamp(msg: Any, message: Message) -> int:
     return stamp if stamp > 0 else message.log_time
 
 
-def decode_raw(msg: Any) -> np.ndarray:
-    """The pixels of a foxglove.RawImage in their stored dtype."""
-    return raw_plane(msg.data, msg.width, msg.height, msg.step, msg.encoding)
+Size = tuple[int, int] | None
+"""The (width, height) an image must have (the rig's), None: any up to the rig limit."""
 
 
-def thermal_kelvin(msg: Any) -> np.ndarray:
+def decode_raw(msg: Any, size: Size = None) -> np.ndarray:
+    """The pixels of a foxglove.RawImage in their stored dtype; its width and height are
+    checked against ``size`` first (:func:`app.recording.images.check_size`)."""
+    return raw_plane(msg.data, msg.width, msg.height, msg.step, msg.encoding, size=size)
+
+
+def thermal_kelvin(msg: Any, size: Size = None) -> np.ndarray:
     """foxglove.RawImage thermal -> (H, W) float32 kelvin, NaN = no reading."""
-    plane = decode_raw(msg)
+    plane = decode_raw(msg, size)
     if msg.encoding in ("16UC1", "mono16"):
         return kelvin_from_counts(plane)
     if msg.encoding == "32FC1":
@@ -71,9 +76,9 @@ def thermal_kelvin(msg: Any) -> np.ndarray:
     raise ValueError(f"thermal image: expected encoding 16UC1 or 32FC1, got {msg.encoding!r}")
 
 
-def distance_metres(msg: Any) -> np.ndarray:
+def distance_metres(msg: Any, size: Size = None) -> np.ndarray:
     """foxglove.RawImage TOF distance -> (H, W) float32 metres, NaN = invalid."""
-    plane = decode_raw(msg)
+    plane = decode_raw(msg, size)
     if msg.encoding in ("16UC1", "mono16"):
         return metres_from_counts(plane)
     if msg.encoding == "32FC1":
@@ -83,19 +88,19 @@ def distance_metres(msg: Any) -> np.ndarray:
     raise ValueError(f"TOF distance: expected encoding 16UC1 or 32FC1, got {msg.encoding!r}")
 
 
-def amplitude(msg: Any) -> np.ndarray:
+def amplitude(msg: Any, size: Size = None) -> np.ndarray:
     """foxglove.RawImage TOF amplitude -> (H, W) float32."""
-    plane = decode_raw(msg)
+    plane = decode_raw(msg, size)
     if plane.ndim != 2:
         raise ValueError(f"TOF amplitude: expected a single-channel image, got {msg.encoding!r}")
     return plane.astype(np.float32)
 
 
-def color_rgb(msg: Any) -> np.ndarray:
+def color_rgb(msg: Any, size: Size = None) -> np.ndarray:
     """foxglove.CompressedImage (JPEG/PNG) or RawImage (rgb8, bgr8, mono8) -> RGB uint8."""
     if hasattr(msg, "format"):
-        return rgb_from_compressed(msg.data)
-    return rgb_from_raw(decode_raw(msg), msg.encoding)
+        return rgb_from_compressed(msg.data, size)
+    return rgb_from_raw(decode_raw(msg, size), msg.encoding)
 
 
 _DECODERS = {
@@ -147,6 +152,7 @@ class ReplaySource(MessageReplay):
         self.rig = self._rig_from_attachment()
         if self.rig is None:
             self.rig = self._rig_from_messages()
+        self.expect(self.rig)
         recorded = self.recorded_sensors
         names = list(self.rig.names) if self.rig is not None else []
         self.sensors = names + [s for s in recorded if s not in names]
@@ -253,9 +259,9 @@ class ReplaySource(MessageReplay):
         proto = self._decoder(channel)
         convert = _DECODERS[kind]
 
-        def decode(message: Message) -> tuple[int, np.ndarray]:
+        def decode(message: Message, size: Size = None) -> tuple[int, np.ndarray]:
             msg = proto(message.data)
-            return _stamp(msg, message), convert(msg)
+            return _stamp(msg, message), convert(msg, size)
 
         return Route(sensor, kind, decode)
 
@@ -389,4 +395,5 @@ def rig_from_calibrations(
             intr,
             T,  # type: ignore[arg-type]
         )
+        check_physical(built[name])  # a recording's calibration is input, as a rig file is
     return Rig(sensors=built, reference=reference, eyes=_eyes({n: modalities[n] for n in names}))

@@ -85,21 +85,21 @@ def _header_stamp(msg: Any) -> int:
     return int(st.sec) * 1_000_000_000 + int(st.nanosec)
 
 
-def convert_image(msg: Any, datatype: str, spec: TopicSpec) -> np.ndarray:
-    """A decoded Image / CompressedImage -> the program's array for ``spec.kind``."""
-    if spec.kind == "color":
-        if datatype == COMPRESSED:
-            return rgb_from_compressed(bytes(msg.data))
-        plane = raw_plane(
-            bytes(msg.data), msg.width, msg.height, msg.step, msg.encoding, bool(msg.is_bigendian)
-        )
-        return rgb_from_raw(plane, msg.encoding)
+def convert_image(
+    msg: Any, datatype: str, spec: TopicSpec, size: tuple[int, int] | None = None
+) -> np.ndarray:
+    """A decoded Image / CompressedImage -> the program's array for ``spec.kind``; the
+    image's size (its header) is checked against ``size`` (the rig's, or None: at most the
+    largest a rig describes) before it is decoded."""
     if datatype == COMPRESSED:
-        plane = plane_from_compressed(bytes(msg.data), msg.format)
+        if spec.kind == "color":
+            return rgb_from_compressed(bytes(msg.data), size)
+        plane = plane_from_compressed(bytes(msg.data), msg.format, size)
     else:
-        plane = raw_plane(
-            bytes(msg.data), msg.width, msg.height, msg.step, msg.encoding, bool(msg.is_bigendian)
-        )
+        be = bool(msg.is_bigendian)
+        plane = raw_plane(bytes(msg.data), msg.width, msg.height, msg.step, msg.encoding, be, size)
+        if spec.kind == "color":
+            return rgb_from_raw(plane, msg.encoding)
         if plane.ndim != 2:
             raise ValueError(f"{spec.kind}: expected a single-channel image, got {msg.encoding!r}")
     out = values(plane, spec.scale, spec.offset, spec.invalid)
@@ -169,6 +169,7 @@ class Ros2BagSource(MessageReplay):
             self.rig = rig
             if rig is not None:
                 self._check_rig(rig)
+            self.expect(rig)
             self._decoders = DecoderFactory()
             self.camera_info: dict[str, tuple[Intrinsics, tuple[int, int]]] = {}
             for sensor in self.sensors:
@@ -221,14 +222,14 @@ class Ros2BagSource(MessageReplay):
             )
         use_header = self.topic_map.stamp == "header"
 
-        def decode(message: Message) -> tuple[int, Any]:
+        def decode(message: Message, size: tuple[int, int] | None = None) -> tuple[int, Any]:
             msg = cdr(message.data)
             stamp = _header_stamp(msg) if use_header else 0
             if stamp <= 0:
                 stamp = message.log_time
             if spec.kind == "camera_info":
                 return stamp, msg
-            return stamp, convert_image(msg, datatype, spec)
+            return stamp, convert_image(msg, datatype, spec, size)
 
         return Route(spec.sensor, spec.kind, decode)
 

@@ -70,7 +70,7 @@ from app.recording.layout import (
     WORLD_FRAME,
     topic_of,
 )
-from app.recording.mcapindex import McapIndex
+from app.recording.mcapindex import MAX_CHUNK_BYTES, McapIndex
 from app.recording.sealed_file import SealedMcapFile
 from app.recording.video_track import FusedVideoTrack, video_frame_id
 from app.sources.frames import Frame, FrameSet
@@ -81,6 +81,23 @@ from calib.units import encode_amplitude, encode_distance, encode_thermal
 
 THERMAL_ENCODINGS = ("16UC1", "32FC1")
 COMPRESSIONS = {"zstd": MCAPCompression.Zstd, "lz4": MCAPCompression.Lz4, "none": None}
+MAX_CHUNK_SIZE = 16 * 2**20
+"""The largest ``chunk_size`` a writer takes, bytes."""
+MAX_MESSAGE_BYTES = MAX_CHUNK_BYTES - MAX_CHUNK_SIZE - 2**20
+"""The largest frame message a writer may have to write (a raw frame's pixels, or a colour
+frame's uncompressed size, which bounds its JPEG): a chunk (at most ``chunk_size`` plus one
+message) then stays within what a reader takes (:data:`app.recording.mcapindex.
+MAX_CHUNK_BYTES`). A rig whose sensors' frames are larger is refused."""
+
+
+def largest_message_bytes(s: Sensor, thermal_encoding: str = "16UC1") -> int:
+    """Bytes of a sensor's largest frame message as :func:`frame_messages` writes it (for
+    colour, its RGB size, more than its JPEG takes)."""
+    w, h = s.image_size
+    per_pixel = {"color": 3, "thermal": 2 if thermal_encoding == "16UC1" else 4, "tof": 2}
+    return w * h * per_pixel[s.modality]
+
+
 _MAX_STAMP_NS = 2**63 - 1
 log = logging.getLogger(__name__)
 
@@ -344,8 +361,21 @@ class RecordingWriter:
             raise RecordingError(
                 f"calibration_period_s: expected a positive number, got {calibration_period_s!r}"
             )
-        if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1024:
-            raise RecordingError(f"chunk_size: expected an integer >= 1024, got {chunk_size!r}")
+        if (
+            isinstance(chunk_size, bool)
+            or not isinstance(chunk_size, int)
+            or not 1024 <= chunk_size <= MAX_CHUNK_SIZE
+        ):
+            raise RecordingError(
+                f"chunk_size: expected an integer 1024..{MAX_CHUNK_SIZE}, got {chunk_size!r}"
+            )
+        for s in rig.sensors.values():
+            if largest_message_bytes(s, thermal_encoding) > MAX_MESSAGE_BYTES:
+                raise RecordingError(
+                    f"sensor {s.name!r}: its {s.image_size[0]}x{s.image_size[1]} {s.modality} "
+                    f"frames take up to {largest_message_bytes(s, thermal_encoding)} bytes, "
+                    f"more than a recording's message may ({MAX_MESSAGE_BYTES})"
+                )
         if not (np.isfinite(seal_period_s) and seal_period_s > 0):
             raise RecordingError(
                 f"seal_period_s: expected a positive number, got {seal_period_s!r}"

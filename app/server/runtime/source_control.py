@@ -820,13 +820,14 @@ class SourceControl:
 
     def sensor_health(self, now_s: float | None = None) -> dict[str, SensorHealth]:
         """Each sensor's health (:mod:`app.server.runtime.sensor_health`): the frames the tap saw,
-        the push ingest's rejections, camera readers' states; empty without a tap."""
+        the push ingest's rejections, a replay's skipped messages, camera readers' states;
+        empty without a tap."""
         if self.tap is None:
             return {}
         src = self.source
         rejections: dict[str, Rejections] = {}
         devices: dict[str, tuple[str, str]] = {}
-        if self.kind == "push":
+        if self.kind in ("push", "replay"):  # a replay's skipped messages count as rejected
             rejections = push_rejections(src.stats())  # type: ignore[attr-defined]
         status = getattr(src, "status", None)
         if self.kind == "live" and callable(status):
