@@ -16,6 +16,7 @@ is NaN, never a wrong ray.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 
@@ -30,6 +31,36 @@ MAX_RAY_RADIUS = 1e4
 """Largest normalised radius ``sqrt(x^2 + y^2)`` (x = X/Z, y = Y/Z) that projects: a ray
 within 0.006 degrees of the image plane (or a point on it, where ``Z`` is a rounding error
 such as 1e-17) is seen by no lens, and its powers overflow the distortion polynomial."""
+
+PHYSICAL_FOV_DEG = (0.1, 179.0)
+"""The field of view across the image that a focal length may give, degrees, as the pinhole
+model reads it (``2 atan(width / (2 fx))``, likewise height and fy): from a long
+telephoto's to beyond a fisheye's (whose rational model has a focal length of about a
+quarter of the image's width: 127 degrees by this reading). A rig file beyond is refused
+(:func:`physical_problem`)."""
+MAX_PRINCIPAL_POINT_OFFSET = 1.0
+"""How far outside the image the principal point may lie, in image widths (cx) and heights
+(cy): a crop of a larger sensor can move it off the image, not further. Or else within
+:data:`MAX_AXIS_ANGLE_DEG` of the image centre's direction."""
+MAX_AXIS_ANGLE_DEG = 30.0
+"""How far the optical axis may point from the image centre's direction, degrees, as the
+pinhole model reads it (``atan(|cx - (width - 1) / 2| / fx)``, likewise cy): a telephoto's
+principal point is barely observable, and OpenCV puts it up to about 6 image sizes away
+from two views (up to about 7 degrees) of a 0.5- to 2-degree lens."""
+MAX_DISTORTION_TERM = 1e6
+"""The largest magnitude of a distortion term at the image's farthest corner: ``|k1| r^2``,
+``|k2| r^4``, ``|k3| r^6`` (likewise k4 k5 k6 of the denominator) and ``|p1| r``, ``|p2| r``
+(the tangential shift over the radius), ``r`` that corner's normalised radius as the pinhole
+model reads it. Dimensionless, so it means the same for every lens; a coefficient's size
+alone does not: a narrow lens's coefficients grow as its corner radius shrinks (OpenCV
+gives a 2-degree telephoto k's beyond 1e6 from two views, and there a k3 of 1e6 moves the
+corner by a tenth of a pixel). OpenCV's fits keep every term below about 6e3, also where
+the rational model's numerator and denominator terms nearly cancel (OpenCV's sample
+photographs, tests/data/opencv-left-9x6, two at a time). k1 = 1e300 overflows."""
+_TERM_POWERS = (2, 4, 1, 1, 6, 2, 4, 6)
+"""The power of the corner radius in each coefficient's term (OpenCV's order)."""
+COEFFICIENT_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+"""The distortion coefficients in OpenCV's order."""
 
 # Normalised radii scanned for the fold of the distortion: step 1e-3 up to 2 (63 degrees off
 # axis), then geometric up to MAX_RAY_RADIUS.
@@ -210,6 +241,79 @@ class Intrinsics:
         rays[..., 2] = 1.0
         rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
         return rays
+
+
+def corner_radius(intrinsics: Intrinsics, image_size: tuple[int, int]) -> float:
+    """The normalised radius ``hypot((u - cx) / fx, (v - cy) / fy)`` of the image corner
+    (the outer edge of a corner pixel) farthest from the principal point, as the pinhole
+    model reads it (no distortion applied): the scale of the distortion terms
+    (:data:`MAX_DISTORTION_TERM`).
+
+    Args:
+        intrinsics: the camera.
+        image_size: (width, height), pixels.
+    """
+    width, height = image_size
+    i = intrinsics
+    dx = max(abs(-0.5 - i.cx), abs(width - 0.5 - i.cx)) / i.fx
+    dy = max(abs(-0.5 - i.cy), abs(height - 0.5 - i.cy)) / i.fy
+    return math.hypot(dx, dy)
+
+
+def physical_problem(intrinsics: Intrinsics, image_size: tuple[int, int]) -> tuple[str, str] | None:
+    """The first parameter that no real camera with an image of ``image_size`` has, and why.
+
+    Bounds: the field of view of fx across the width and of fy across the height within
+    :data:`PHYSICAL_FOV_DEG`; the principal point at most
+    :data:`MAX_PRINCIPAL_POINT_OFFSET` image sizes outside the image or
+    :data:`MAX_AXIS_ANGLE_DEG` off the image centre's direction; every distortion
+    term at most :data:`MAX_DISTORTION_TERM` at the image's farthest corner. Beyond them a
+    projection overflows or every pixel's ray is a rounding error.
+
+    Args:
+        intrinsics: the camera.
+        image_size: (width, height), pixels (positive).
+
+    Returns:
+        ``(parameter, reason)``: the parameter's name (``fx``, ``fy``, ``cx``, ``cy`` or a
+        coefficient's, e.g. ``k1``) and a sentence giving its value and the bound; None
+        when every parameter is within the bounds.
+    """
+    i = intrinsics
+    width, height = image_size
+    lo, hi = PHYSICAL_FOV_DEG
+    for name, f, side, across in (("fx", i.fx, width, "width"), ("fy", i.fy, height, "height")):
+        fov = math.degrees(2.0 * math.atan2(side / 2.0, f))
+        if not lo <= fov <= hi:
+            f_lo, f_hi = (side / (2.0 * math.tan(math.radians(a) / 2.0)) for a in (hi, lo))
+            return name, (
+                f"{f:g} px gives a field of view of {fov:.4g} degrees across the {side}-pixel "
+                f"{across}; expected {lo:g} to {hi:g} degrees ({name} from {f_lo:.4g} to "
+                f"{f_hi:.4g} px)"
+            )
+    m, angle = MAX_PRINCIPAL_POINT_OFFSET, MAX_AXIS_ANGLE_DEG
+    for name, c, f, side, across in (
+        ("cx", i.cx, i.fx, width, "width"),
+        ("cy", i.cy, i.fy, height, "height"),
+    ):
+        centre = (side - 1) / 2.0
+        reach = max((m + 0.5) * side, f * math.tan(math.radians(angle)))
+        if not abs(c - centre) <= reach:
+            return name, (
+                f"{c:g} px; expected {centre - reach:.6g} to {centre + reach:.6g} px (at most "
+                f"{m:g} image {across} outside the image, or {angle:g} degrees off the image "
+                "centre's direction)"
+            )
+    r = corner_radius(intrinsics, image_size)
+    for name, k, power in zip(COEFFICIENT_NAMES, intrinsics.distortion, _TERM_POWERS, strict=False):
+        scale = r**power
+        if not abs(k) * scale <= MAX_DISTORTION_TERM:
+            return name, (
+                f"{name} = {k:g} makes a term of {abs(k) * scale:.3g} at the image's farthest "
+                f"corner (normalised radius {r:.4g}); expected at most {MAX_DISTORTION_TERM:g} "
+                f"(|{name}| at most {MAX_DISTORTION_TERM / scale:.4g})"
+            )
+    return None
 
 
 @lru_cache(maxsize=64)

@@ -18,7 +18,7 @@ from typing import Any, Literal, get_args
 import numpy as np
 import yaml
 
-from calib.camera import DISTORTION_LENGTHS, Intrinsics
+from calib.camera import COEFFICIENT_NAMES, DISTORTION_LENGTHS, Intrinsics, physical_problem
 from calib.errors import RigError
 from calib.numbers import check_finite
 from calib.radiometry import Radiometry
@@ -55,6 +55,8 @@ def modality_of_name(sensor: str) -> Modality | None:
 _TOP_KEYS = {"format", "reference", "eyes", "sensors"}
 MAX_IMAGE_PIXELS = 50_000_000
 """Largest sensor image a rig may describe (width x height): 50 megapixels."""
+MIN_IMAGE_SIDE = 8
+"""Smallest width and height of a sensor image a rig may describe, pixels."""
 _SENSOR_REQUIRED = ("modality", "image_size", "intrinsics", "distortion", "T_rig_sensor")
 _SENSOR_OPTIONAL = ("uncertainty", "range_correction", "radiometry")
 _INTRINSIC_KEYS = ("fx", "fy", "cx", "cy")
@@ -228,6 +230,47 @@ def _plain(value: Any, where: str) -> Any:
     raise RigError(f"{where}: unsupported value {value!r}")
 
 
+def _check_image_size(name: str, size: tuple[int, int]) -> None:
+    """RigError unless both sides are at least MIN_IMAGE_SIDE and the image has at most
+    MAX_IMAGE_PIXELS."""
+    shown = f"{size[0]}x{size[1]}"
+    shown = shown if len(shown) <= 24 else shown[:21] + "..."
+    if min(size) < MIN_IMAGE_SIDE:
+        raise RigError(
+            f"{_where(name, 'image_size')}: {shown}; expected at least {MIN_IMAGE_SIDE} pixels "
+            "each way"
+        )
+    if size[0] * size[1] > MAX_IMAGE_PIXELS:
+        raise RigError(
+            f"{_where(name, 'image_size')}: {shown} is {size[0] * size[1] // 1_000_000} "
+            f"megapixels; expected at most {MAX_IMAGE_PIXELS // 1_000_000} (every per-frame "
+            "buffer of the fusion and the simulator is that large)"
+        )
+
+
+def _check_intrinsics(name: str, intrinsics: Intrinsics, size: tuple[int, int]) -> None:
+    """RigError naming the field, its value and the bound unless the intrinsics are
+    physical for that image size (:func:`calib.camera.physical_problem`)."""
+    problem = physical_problem(intrinsics, size)
+    if problem is not None:
+        parameter, why = problem
+        field = "distortion" if parameter in COEFFICIENT_NAMES else f"intrinsics.{parameter}"
+        raise RigError(f"{_where(name, field)}: {why}")
+
+
+def check_physical(sensor: Sensor) -> None:
+    """RigError naming the sensor, the field, its value and the bound unless the sensor's
+    image size (MIN_IMAGE_SIDE each way, at most MAX_IMAGE_PIXELS) and intrinsics
+    (:func:`calib.camera.physical_problem`) are a real camera's.
+
+    Every rig file and imported rig is checked so (:func:`sensor_from_dict`); a rig that a
+    calibration computes is not refused for them (calib.diagnosis judges Zhang's results
+    and excludes a sensor with the reason).
+    """
+    _check_image_size(sensor.name, sensor.image_size)
+    _check_intrinsics(sensor.name, sensor.intrinsics, sensor.image_size)
+
+
 def sensor_from_dict(name: str, data: Any) -> Sensor:
     """Build a :class:`Sensor` from its rig-file mapping; raise RigError naming the field."""
     d = _mapping(data, f"sensor {name!r}")
@@ -249,14 +292,8 @@ def sensor_from_dict(name: str, data: Any) -> Sensor:
             f"{_where(name, 'image_size')}: expected [width, height] as two positive "
             f"integers, got {size!r}"
         )
-    if size[0] * size[1] > MAX_IMAGE_PIXELS:
-        shown = f"{size[0]}x{size[1]}"
-        shown = shown if len(shown) <= 24 else shown[:21] + "..."
-        raise RigError(
-            f"{_where(name, 'image_size')}: {shown} is {size[0] * size[1] // 1_000_000} "
-            f"megapixels; expected at most {MAX_IMAGE_PIXELS // 1_000_000} (every per-frame "
-            "buffer of the fusion and the simulator is that large)"
-        )
+    image_size = (size[0], size[1])
+    _check_image_size(name, image_size)
 
     intr = _mapping(d["intrinsics"], _where(name, "intrinsics"))
     _check_keys(intr, _INTRINSIC_KEYS, (), _where(name, "intrinsics"))
@@ -275,6 +312,7 @@ def sensor_from_dict(name: str, data: Any) -> Sensor:
         )
     dist_vals = tuple(_number(c, _where(name, "distortion")) for c in dist)
     intrinsics = Intrinsics(vals["fx"], vals["fy"], vals["cx"], vals["cy"], dist_vals)
+    _check_intrinsics(name, intrinsics, image_size)
 
     T_raw = d["T_rig_sensor"]
     if not (
@@ -296,7 +334,6 @@ def sensor_from_dict(name: str, data: Any) -> Sensor:
         else None
         for k in _SENSOR_OPTIONAL
     }
-    image_size = (size[0], size[1])
     return Sensor(
         name,
         modality,

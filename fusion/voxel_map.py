@@ -29,14 +29,46 @@ Temperatures in kelvin (NaN: not seen by a thermal imager); colours RGB in [0, 2
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import asdict, dataclass, field
 
 import cv2
 import numpy as np
 
 from calib.camera import Intrinsics
+from calib.numbers import finite_float
 from fusion.geometry import Projector32
 from fusion.voxel_hash import VoxelHash
+
+MAX_VOXELS = 50_000_000
+"""The largest ``max_voxels``: about 5.4 GB of memory when full (60 bytes of arrays and at
+most 48 of hash table a voxel)."""
+MAX_EXTENT_M = 100_000.0
+"""The largest ``max_extent_m``, metres (100 km)."""
+MAX_ABS_LOGODDS = 100.0
+"""The largest magnitude of any log-odds setting (a probability within 1e-43 of 0 or 1)."""
+
+
+def _check_number(name: str, value: object, lo: float, hi: float, sign: int = 0) -> None:
+    """ValueError naming the setting and its bounds unless ``value`` is a finite number
+    from ``lo`` to ``hi``; ``sign`` 1: above 0 (not 0) up to ``hi``; -1: below 0 (not 0)
+    down to ``lo``."""
+    v = finite_float(value)
+    if v is not None and lo <= v <= hi and (sign == 0 or v * sign > 0):
+        return
+    bounds = {
+        1: f"a positive number at most {hi:g}",
+        -1: f"a negative number at least {lo:g}",
+        0: f"a number from {lo:g} to {hi:g}",
+    }[sign]
+    raise ValueError(f"{name}: expected {bounds}, got {value!r:.40}")
+
+
+def _check_count(name: str, value: object, lo: int, hi: int) -> None:
+    """ValueError naming the setting and its bounds unless ``value`` is an integer in
+    ``[lo, hi]``."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not lo <= value <= hi:
+        raise ValueError(f"{name}: expected an integer from {lo} to {hi}, got {value!r:.40}")
 
 
 @dataclass(frozen=True)
@@ -76,18 +108,20 @@ class MapSettings:
     occupied_logodds: float = 1.0
 
     def __post_init__(self) -> None:
-        for name in ("voxel_m", "max_extent_m", "recency", "hit_logodds"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"{name}: expected a positive number, got {v}")
-        if self.recency > 1:
-            raise ValueError(f"recency: expected a weight in (0, 1], got {self.recency}")
-        if not self.miss_logodds < 0:
-            raise ValueError(f"miss_logodds: expected a negative number, got {self.miss_logodds}")
-        if not self.min_logodds < 0 < self.max_logodds:
-            raise ValueError("min_logodds < 0 < max_logodds expected")
-        if self.max_voxels < 1 or self.free_budget < 0:
-            raise ValueError("max_voxels >= 1 and free_budget >= 0 expected")
+        _check_number("max_extent_m", self.max_extent_m, 0.0, MAX_EXTENT_M, sign=1)
+        _check_number("voxel_m", self.voxel_m, 0.0, self.max_extent_m, sign=1)
+        _check_count("max_voxels", self.max_voxels, 1, MAX_VOXELS)
+        _check_number("recency", self.recency, 0.0, 1.0, sign=1)
+        bound = MAX_ABS_LOGODDS
+        _check_number("hit_logodds", self.hit_logodds, 0.0, bound, sign=1)
+        _check_number("miss_logodds", self.miss_logodds, -bound, 0.0, sign=-1)
+        _check_number("min_logodds", self.min_logodds, -bound, 0.0, sign=-1)
+        _check_number("max_logodds", self.max_logodds, 0.0, bound, sign=1)
+        _check_number("occupied_logodds", self.occupied_logodds, -bound, bound)
+        _check_count("free_budget", self.free_budget, 0, MAX_VOXELS)
+        if self.free_margin_m is not None:
+            _check_number("free_margin_m", self.free_margin_m, 0.0, self.max_extent_m)
+        _check_number("free_margin_rel", self.free_margin_rel, 0.0, 1.0)
         if self.max_extent_m / self.voxel_m >= 1 << 19:
             raise ValueError(
                 f"max_extent_m / voxel_m: at most {1 << 19} voxels each way, got "

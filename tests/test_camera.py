@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import re
+import warnings
 
 import cv2
 import numpy as np
@@ -10,7 +13,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from calib.camera import MAX_RAY_RADIUS, Intrinsics, pixel_grid
+from calib.camera import (
+    MAX_DISTORTION_TERM,
+    MAX_RAY_RADIUS,
+    PHYSICAL_FOV_DEG,
+    Intrinsics,
+    corner_radius,
+    physical_problem,
+    pixel_grid,
+)
+from fusion.geometry import Projector32
 
 # Deterministic property tests: same examples every run.
 PROPERTY = settings(derandomize=True, database=None, deadline=None, max_examples=150)
@@ -250,3 +262,121 @@ def test_scaled_by_two_and_half() -> None:
     assert intr.scaled(2.0).scaled(0.5) == intr
     with pytest.raises(ValueError, match="focal length must be positive"):
         intr.scaled(-1.0)
+
+
+# -- physical bounds ---------------------------------------------------------------------
+
+
+def _at_fov(fov_deg: float, side: int) -> float:
+    """The focal length (px) that gives ``fov_deg`` across ``side`` pixels."""
+    return side / (2.0 * math.tan(math.radians(fov_deg) / 2.0))
+
+
+TERM_POWERS = (2, 4, 1, 1, 6, 2, 4, 6)  # of the corner radius, k1 k2 p1 p2 k3 k4 k5 k6
+
+
+def _reach(side: int, f: float) -> float:
+    """How far the principal point may lie from the image centre (pixels): 1.5 image sizes
+    (one outside the image), or 30 degrees off the axis."""
+    return max(1.5 * side, f * math.tan(math.radians(30.0)))
+
+
+@pytest.mark.parametrize("size", [(8, 8), (640, 480)])
+@pytest.mark.parametrize("fov_deg", PHYSICAL_FOV_DEG)
+@pytest.mark.parametrize("centre", ["middle", "edge before", "edge beyond"])
+@pytest.mark.parametrize(
+    "signs",
+    [
+        (0,) * 5,
+        (1, 0, 0, 0, 0),
+        (-1, 0, 0, 0, 0),
+        (0, 0, 0, 0, -1),
+        (0, 0, 1, -1, 1),
+        (1,) * 8,
+        (1, -1) * 4,
+    ],
+    ids=["none", "k1+", "k1-", "k3-", "p1p2k3", "all+", "alternating"],
+)
+def test_a_camera_at_the_edge_of_every_bound_still_sees_without_overflow(
+    size: tuple[int, int], fov_deg: float, centre: str, signs: tuple[int, ...]
+) -> None:
+    """At the edges of the bounds (field of view 0.1 or 179 degrees, the principal point
+    an image size outside the image or, for the telephoto, 30 degrees off its centre's
+    direction, every chosen distortion term 1e6 at the image's corner: k3 from 1e-11 for
+    the widest to 3e23 for the telephoto) pixels unproject to rays that project back to
+    them, with no overflow warning, also in the fusion's float32 (which loses up to a tenth
+    of a pixel there), and so do points up to 80 degrees off the axis; beyond the
+    distortion's fold the rays are NaN, as for any camera. (Beyond the bounds, k1 = 1e300
+    overflows, and fx = 1e300 puts every point 1e299 pixels away: no spot reading.)"""
+    w, h = size
+    fx, fy = _at_fov(fov_deg, w), _at_fov(fov_deg, h)
+    side = {"middle": 0.0, "edge before": -1.0, "edge beyond": 1.0}[centre] * (1 - 1e-12)
+    cx, cy = ((n - 1) / 2 + side * _reach(n, f) for n, f in ((w, fx), (h, fy)))
+    pinhole = Intrinsics(fx, fy, cx, cy)
+    r = corner_radius(pinhole, size)
+    edge = MAX_DISTORTION_TERM * (1 - 1e-9)  # (a rounding below the bound)
+    distortion = tuple(s * edge / r**p for s, p in zip(signs, TERM_POWERS, strict=False))
+    intr = dataclasses.replace(pinhole, distortion=distortion)
+    assert physical_problem(intr, size) is None
+    u, v = np.meshgrid(np.linspace(0, w - 1, 9), np.linspace(0, h - 1, 9))
+    pixels = np.stack([u.ravel(), v.ravel()], axis=1)
+    angle = np.radians(np.linspace(0.0, 80.0, 9))
+    off_axis = np.stack([np.sin(angle), np.zeros_like(angle), np.cos(angle)], axis=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rays = intr.unproject(pixels)
+        back = intr.project(rays)
+        seen = np.isfinite(back).all(axis=1)  # NaN rays, and rays within the fold's margin
+        # (to 1e-5 px: a 0.1-degree lens has fx = 3.7e5 px, and tangential terms of 1e6 at
+        # its corner cost Newton a few digits; every other case is within 2e-8 px)
+        np.testing.assert_allclose(back[seen], pixels[seen], atol=1e-5)
+        if seen.any():  # (cv2.transform of no points is None)
+            uv32, rows, _ = Projector32(intr, np.eye(4))(100.0 * rays[seen])
+            assert len(rows) == seen.sum() and np.isfinite(uv32).all()
+            np.testing.assert_allclose(uv32, back[seen], atol=0.1)
+        far = intr.project(off_axis)
+        far32, rows32, _ = Projector32(intr, np.eye(4))(10.0 * off_axis)
+        assert np.isfinite(far32).all()
+        np.testing.assert_array_equal(rows32, np.flatnonzero(np.isfinite(far).all(axis=1)))
+    if centre == "middle":
+        assert seen[len(pixels) // 2]  # the principal point's own pixel
+    if not any(signs):
+        assert seen.all()
+        # float32 to its resolution at these pixel values (1/64 px where the principal
+        # point lies 2e5 px away, as a 0.1-degree lens 30 degrees off may have it)
+        resolution = float(np.spacing(np.float32(max(abs(cx), abs(cy), w, h))))
+        np.testing.assert_allclose(uv32, pixels, atol=max(1e-3, 4 * resolution))
+
+
+def test_the_physical_bounds_name_the_parameter_and_the_bound() -> None:
+    size = (640, 480)
+    good = Intrinsics(_at_fov(60.0, 640), _at_fov(48.0, 480), 319.5, 239.5)
+    assert physical_problem(good, size) is None
+    for change, parameter, reason in [
+        ({"fx": 1e300}, "fx", r"1e\+300 px gives a field of view of 3\.667e-296 degrees across"),
+        ({"fy": _at_fov(179.5, 480)}, "fy", r"of 179\.5 degrees across the 480-pixel height"),
+        ({"fx": _at_fov(0.09, 640)}, "fx", r"of 0\.09 degrees .* \(fx from 2\.793 to 3\.667e\+05"),
+        ({"cx": -641.0}, "cx", r"-641 px; expected -640\.5 to 1279\.5 px \(at most 1 image width "),
+        ({"cy": 960.0}, "cy", r"960 px; expected -480\.5 to 959\.5 px .* or 30 degrees off the"),
+        # a telephoto's principal point may lie farther: 30 degrees off
+        (
+            {"fx": 1e5, "cx": 319.5 + 57736.0},
+            "cx",
+            r"58055\.5 px; expected -57415\.5 to 58054\.5 px",
+        ),
+        (
+            {"distortion": (0.0, 0.0, 0.0, 0.0, -7e6)},
+            "k3",
+            r"k3 = -7e\+06 makes a term of 1\.05e\+06 at the image's farthest corner \(normalised "
+            r"radius 0\.7291\); expected at most 1e\+06 \(\|k3\| at most 6\.658e\+06\)",
+        ),
+        (
+            {"distortion": (0.0, 0.0, 3e6, 0.0, 0.0)},
+            "p1",
+            r"p1 = 3e\+06 makes a term of 2\.19e\+06",
+        ),
+        ({"distortion": (0.0,) * 7 + (1e300,)}, "k6", r"k6 = 1e\+300 makes a term of 1\.5e\+299"),
+    ]:
+        problem = physical_problem(dataclasses.replace(good, **change), size)
+        assert problem is not None and problem[0] == parameter, change
+        assert re.search(reason, problem[1]), problem

@@ -5,8 +5,14 @@ middle of a piece; a recording a node cannot read."""
 
 from __future__ import annotations
 
+import importlib
+import ipaddress
 import os
 import signal
+import socket
+import subprocess
+import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -15,6 +21,7 @@ import ray
 from ray.cluster_utils import Cluster
 
 from app.cli import main
+from app.devtools.procfs import child_pids
 from app.recording import jobs
 from app.recording.jobs import RayRunner, plan_fuse_job, run_fuse_job
 from fusion.compose import DisplaySettings
@@ -163,3 +170,121 @@ def test_a_damaged_recording_fuses_on_the_cluster_as_here(
     warning = [line for line in printed["local"].splitlines() if "warning" in line]
     assert warning == [line for line in printed["ray"].splitlines() if "warning" in line]
     assert directory_bytes(tmp_path / "ray") == directory_bytes(tmp_path / "local")
+
+
+# -- a private Ray instance listens on loopback only ------------------------------------------
+
+
+def _tree(root: int) -> set[int]:
+    """``root`` and every live process below it (children, their children, ...)."""
+    found, todo = set(), [root]
+    while todo:
+        pid = todo.pop()
+        found.add(pid)
+        todo += [child for child in child_pids(pid) if child not in found]
+    return found
+
+
+def _listening(pid: int) -> set[tuple[str, int, str]]:
+    """(address, port, process name) of every TCP socket the process ``pid`` listens on
+    (its socket inodes in /proc; empty once it has ended)."""
+    inodes = set()
+    try:
+        name = Path(f"/proc/{pid}/comm").read_text().strip()
+        fds = list(Path(f"/proc/{pid}/fd").iterdir())
+        tables = {v6: Path(f"/proc/{pid}/net/tcp{'6' if v6 else ''}").read_text() for v6 in (0, 1)}
+    except OSError:  # ended meanwhile
+        return set()
+    for fd in fds:
+        try:
+            target = os.readlink(fd)
+        except OSError:  # closed meanwhile
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    out = set()
+    for v6, text in tables.items():
+        for line in text.splitlines()[1:]:
+            fields = line.split()
+            if fields[3] == "0A" and fields[9] in inodes:  # 0A: LISTEN
+                raw, port = fields[1].rsplit(":", 1)
+                packed = bytes.fromhex(raw)
+                if v6:  # four little-endian 32-bit words
+                    words = [packed[i : i + 4][::-1] for i in range(0, 16, 4)]
+                    address = socket.inet_ntop(socket.AF_INET6, b"".join(words))
+                else:
+                    address = socket.inet_ntop(socket.AF_INET, packed[::-1])
+                out.add((address, int(port, 16), name))
+    return out
+
+
+def _loopback(address: str) -> bool:
+    """127.0.0.0/8, ::1, or an IPv4 loopback address mapped into IPv6 (::ffff:127.0.0.1)."""
+    ip = ipaddress.ip_address(address)
+    mapped = ip.ipv4_mapped if isinstance(ip, ipaddress.IPv6Address) else None
+    return ip.is_loopback or (mapped is not None and mapped.is_loopback)
+
+
+def test_a_private_ray_instance_listens_on_loopback_only(
+    archive: list[Path], tmp_path: Path
+) -> None:
+    """``trifuse fuse RECORDING --ray`` (no address) in a process of its own: every TCP
+    socket that any of its processes (the driver, GCS, raylet, agents, workers) listens on
+    while the job runs is on loopback, and the job fuses. (Before: the driver, GCS, raylet
+    and workers listened on ``*``, every interface, and the runtime environment agent on
+    the machine's address; ``ss -ltnp`` showed the same.)"""
+    out, log = tmp_path / "fused", tmp_path / "stderr.txt"
+    code = "import sys; from app.cli import main; sys.exit(main(sys.argv[1:]))"
+    with log.open("w") as stderr:  # (a file: a pipe nobody reads while polling can fill)
+        job = subprocess.Popen(
+            [sys.executable, "-c", code, "fuse", str(archive[0]), "--out", str(out), "--ray"],
+            cwd=Path(__file__).resolve().parent.parent,
+            stdout=subprocess.DEVNULL,
+            stderr=stderr,
+        )
+    seen: set[tuple[str, int, str]] = set()
+    deadline = time.monotonic() + 180
+    try:
+        while job.poll() is None and time.monotonic() < deadline:
+            for pid in _tree(job.pid):
+                seen |= _listening(pid)
+            time.sleep(0.2)
+    finally:
+        if job.poll() is None:  # past the deadline: SIGTERM, so that Ray is shut down
+            job.terminate()
+    assert job.wait(timeout=60) == 0, log.read_text()
+    names = {name for _, _, name in seen}
+    assert {"gcs_server", "raylet"} <= names and len(seen) >= 4, seen  # Ray ran, and was seen
+    assert all(_loopback(address) for address, _, _ in seen), seen
+    assert (out / "frames.csv").read_text().count("\n") > 1  # pictures were fused
+
+
+def test_the_loopback_start_is_checked_and_leaves_ray_as_it_was() -> None:
+    """Ray's single-node mode is on while the instance starts and put back after; an
+    instance whose node took another address (a Ray that picks it otherwise) is shut down
+    and refused, not used."""
+    constants = importlib.import_module("ray._private.ray_constants")
+    before = constants.ENABLE_RAY_CLUSTER
+    calls: list[tuple] = []
+
+    class FakeRay:
+        address = "127.0.0.1"
+
+        def init(self, **options: object) -> None:
+            calls.append(("init", constants.ENABLE_RAY_CLUSTER, options))
+
+        def nodes(self) -> list[dict[str, str]]:
+            return [{"NodeManagerAddress": self.address}]
+
+        def shutdown(self) -> None:
+            calls.append(("shutdown",))
+
+    fake = FakeRay()
+    jobs._init_on_loopback(fake, num_cpus=1)
+    assert calls == [("init", False, {"address": "local", "num_cpus": 1})]
+    assert constants.ENABLE_RAY_CLUSTER == before
+    fake.address = "192.0.2.2"
+    with pytest.raises(RuntimeError, match=r"address \['192\.0\.2\.2'\], not 127\.0\.0\.1"):
+        jobs._init_on_loopback(fake)
+    assert calls[1:] == [("init", False, {"address": "local"}), ("shutdown",)]
+    assert constants.ENABLE_RAY_CLUSTER == before

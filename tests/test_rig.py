@@ -5,20 +5,32 @@ from __future__ import annotations
 import copy
 import dataclasses
 import itertools
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 import yaml
 
 from app.sources.sim.head import default_rig
 from app.storage.rigfile import load_rig, save_rig
-from calib.camera import Intrinsics
+from calib.camera import MAX_DISTORTION_TERM, Intrinsics, corner_radius
+from calib.diagnosis import FIELD_OF_VIEW_DEG, MAX_ASPECT_DEVIATION
 from calib.errors import RigError
 from calib.radiometry import Radiometry
-from calib.rig import Eye, Rig, Sensor, rig_from_dict, rig_from_yaml, rig_to_dict, rig_to_yaml
+from calib.rig import (
+    Eye,
+    Rig,
+    Sensor,
+    check_physical,
+    rig_from_dict,
+    rig_from_yaml,
+    rig_to_dict,
+    rig_to_yaml,
+)
 from calib.transforms import invert, make_T
 
 BASE = rig_to_dict(default_rig())
@@ -272,6 +284,57 @@ MALFORMED = [
         _set("sensors", "tof", "intrinsics", "fx", value=float("nan")),
         F.format("tof", "intrinsics.fx") + "expected a finite number",
     ),
+    # physical bounds: each refused naming the sensor, the field, its value and the bound
+    case(
+        "fx-1e300",
+        _set("sensors", "ccd_left", "intrinsics", "fx", value=1e300),
+        F.format("ccd_left", "intrinsics.fx") + r"1e\+300 px gives a field of view of 7\.334e-296 "
+        r"degrees across the 1280-pixel width; expected 0\.1 to 179 degrees \(fx from 5\.585 to "
+        r"7\.334e\+05 px\)",
+    ),
+    case(
+        "fy-tiny",
+        _set("sensors", "thermal_right", "intrinsics", "fy", value=1e-3),
+        F.format("thermal_right", "intrinsics.fy") + r"0\.001 px gives a field of view of 180 "
+        "degrees across the 288-pixel height",
+    ),
+    case(
+        "cx-far",
+        _set("sensors", "tof", "intrinsics", "cx", value=1e6),
+        F.format("tof", "intrinsics.cx")
+        + r"1e\+06 px; expected -176\.5 to 351\.5 px \(at most 1 image width outside the image, "
+        r"or 30 degrees off the image centre's direction\)",
+    ),
+    case(
+        "cy-far",
+        _set("sensors", "tof", "intrinsics", "cy", value=-145.0),
+        F.format("tof", "intrinsics.cy") + r"-145 px; expected -144\.5 to 287\.5 px",
+    ),
+    case(
+        "k1-1e300",
+        _set("sensors", "ccd_right", "distortion", 0, value=1e300),
+        F.format("ccd_right", "distortion")
+        + r"k1 = 1e\+300 makes a term of 3\.61e\+299 at the image's "
+        r"farthest corner \(normalised radius 0\.601\); expected at most 1e\+06 \(\|k1\| at most "
+        r"2\.769e\+06\)",
+    ),
+    case(
+        "k6-rational",
+        _set("sensors", "ccd_right", "distortion", value=[0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -3e7]),
+        F.format("ccd_right", "distortion")
+        + r"k6 = -3e\+07 makes a term of 1\.41e\+06 .* \(\|k6\| "
+        r"at most 2\.123e\+07\)",
+    ),
+    case(
+        "image_size-1x1",
+        _set("sensors", "tof", "image_size", value=[1, 1]),
+        F.format("tof", "image_size") + "1x1; expected at least 8 pixels each way",
+    ),
+    case(
+        "image_size-thin",
+        _set("sensors", "ccd_left", "image_size", value=[7, 960]),
+        F.format("ccd_left", "image_size") + "7x960; expected at least 8 pixels each way",
+    ),
     # non-numeric values
     case(
         "fx-string",
@@ -488,3 +551,120 @@ def test_modality_of_a_sensor_name() -> None:
     assert modality_of_name("CCD_left") == "color" and modality_of_name("rgb") == "color"
     assert modality_of_name("LWIR_2") == "thermal" and modality_of_name("depth0") == "tof"
     assert modality_of_name("imu") is None and modality_of_name("") is None
+
+
+# -- physical bounds: what calibrations produce stays loadable ---------------------------------
+
+
+PHOTOS = Path(__file__).resolve().parent / "data" / "opencv-left-9x6"
+BOARD_9X6 = np.zeros((54, 3), np.float32)
+BOARD_9X6[:, :2] = np.mgrid[0:9, 0:6].T.reshape(-1, 2) * 0.025
+TERM_POWERS = (2, 4, 1, 1, 6, 2, 4, 6)  # of the corner radius, k1 k2 p1 p2 k3 k4 k5 k6
+
+
+def _load_calibrated(K: np.ndarray, dist: np.ndarray, size: tuple[int, int]) -> Intrinsics:
+    """The intrinsics of a rig file whose ccd_left holds OpenCV's result ``K``, ``dist``
+    for ``size``, loaded (RigError if refused)."""
+    fx, fy, cx, cy = (float(K[i, j]) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
+    d = copy.deepcopy(BASE)
+    d["sensors"]["ccd_left"].update(
+        image_size=list(size),
+        intrinsics={"fx": fx, "fy": fy, "cx": cx, "cy": cy},
+        distortion=dist.ravel()[:8].tolist(),
+    )
+    return rig_from_yaml(yaml.safe_dump(d))["ccd_left"].intrinsics
+
+
+def _largest_term(intr: Intrinsics, size: tuple[int, int]) -> float:
+    """The largest distortion term at the image's farthest corner (what the bound limits)."""
+    r = corner_radius(intr, size)
+    return max(abs(c) * r**p for c, p in zip(intr.distortion, TERM_POWERS, strict=False))
+
+
+def test_every_two_view_rational_calibration_of_real_photographs_loads() -> None:
+    """OpenCV's rational model on every pair of OpenCV's 13 sample photographs (its least
+    constrained calibrations: numerator and denominator coefficients that nearly cancel,
+    up to 1.6e4) and on all 13: each result is within the physical bounds, and a rig file
+    holding it loads; the largest term at the image's corner (5.9e3) is within a hundredth
+    of the bound. (A bound of 1e3 on the coefficients would refuse 8 of these.)"""
+    corners = []
+    for photo in sorted(PHOTOS.glob("*.jpg")):
+        grey = cv2.imread(str(photo), cv2.IMREAD_GRAYSCALE)
+        found, c = cv2.findChessboardCorners(grey, (9, 6))
+        assert found, photo
+        criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 1e-3)
+        corners.append(cv2.cornerSubPix(grey, c, (11, 11), (-1, -1), criteria))
+    views = [*itertools.combinations(range(len(corners)), 2), tuple(range(len(corners)))]
+    loaded = []
+    for chosen in views:
+        _rms, K, dist, _r, _t = cv2.calibrateCamera(
+            [BOARD_9X6] * len(chosen), [corners[i] for i in chosen], (640, 480), None, None,
+            flags=cv2.CALIB_RATIONAL_MODEL,
+        )  # fmt: skip
+        loaded.append(_load_calibrated(K, dist, (640, 480)))
+    largest = [max(map(abs, intr.distortion)) for intr in loaded]
+    assert len(largest) == 79 and max(largest) > 1e4
+    assert sum(k > 1e3 for k in largest) >= 5  # (8 with OpenCV 5.0.0.93)
+    assert max(_largest_term(intr, (640, 480)) for intr in loaded) < MAX_DISTORTION_TERM / 100
+
+
+def _telephoto_calibration(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's rational model from two views of the 9 x 6 board by a 2-degree telephoto
+    (1280 x 960, fx 36660 px), the board filling about half the image, corners with 0.5 px
+    of noise: (K, distortion)."""
+    rng = np.random.default_rng(seed)
+    w, h, half_fov = 1280, 960, math.radians(1.0)
+    f = w / (2.0 * math.tan(half_fov))
+    K = np.array([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]])
+    seen: list[np.ndarray] = []
+    while len(seen) < 2:
+        z = 0.1 / math.tan(half_fov) * rng.uniform(0.8, 1.6)
+        reach = 0.3 * z * math.tan(half_fov)
+        t = np.array([rng.uniform(-reach, reach) - 0.1, rng.uniform(-reach, reach) - 0.0625, z])
+        uv, _ = cv2.projectPoints(BOARD_9X6.astype(np.float64), rng.normal(0, 0.4, 3), t, K, None)
+        uv = uv.reshape(-1, 2)
+        if (uv >= 0).all() and (uv <= (w - 1, h - 1)).all():
+            seen.append((uv + rng.normal(0.0, 0.5, uv.shape)).astype(np.float32))
+    _rms, K, dist, _r, _t = cv2.calibrateCamera(
+        [BOARD_9X6] * 2, seen, (w, h), None, None, flags=cv2.CALIB_RATIONAL_MODEL
+    )
+    return K, dist
+
+
+def test_what_opencv_calibrates_of_a_telephoto_loads() -> None:
+    """A narrow lens's coefficients grow as its corner radius shrinks, and its principal
+    point is barely observable: 40 seeded two-view calibrations of a 2-degree telephoto
+    give coefficients beyond 1e6 and principal points more than an image width outside the
+    image (which bounds on the coefficients and on image sizes alone would refuse), yet
+    every distortion term at the image's corner stays a hundredth of the bound, the
+    principal point within 10 degrees of the axis, and every result loads."""
+    size = (1280, 960)
+    loaded = [_load_calibrated(*_telephoto_calibration(seed), size) for seed in range(40)]
+    assert max(max(map(abs, intr.distortion)) for intr in loaded) > 1e6  # (seed 9: 2.9e6)
+    assert max(abs(intr.cx - 639.5) / 1280 for intr in loaded) > 1.5
+    assert max(math.atan(abs(intr.cx - 639.5) / intr.fx) for intr in loaded) < math.radians(10)
+    assert max(_largest_term(intr, size) for intr in loaded) < MAX_DISTORTION_TERM / 100
+
+
+def test_what_the_calibration_screening_lets_through_loads() -> None:
+    """calib.diagnosis lets Zhang's intrinsics through with a horizontal field of view of
+    2 to 170 degrees, the principal point in the image and fy within 20 % of fx; the bounds
+    of a rig file are wider, so every rig a calibration saves loads again."""
+    lo, hi = FIELD_OF_VIEW_DEG
+    for w, h in [(8, 8), (176, 144), (1280, 960), (480, 640)]:
+        for fov in (lo, hi):
+            fx = w / (2.0 * math.tan(math.radians(fov) / 2.0))
+            for fy in (fx * (1 - MAX_ASPECT_DEVIATION), fx * (1 + MAX_ASPECT_DEVIATION)):
+                for cx, cy in [(-0.5, -0.5), (w - 0.5, h - 0.5)]:
+                    sensor = Sensor("cam", "color", (w, h), Intrinsics(fx, fy, cx, cy), np.eye(4))
+                    check_physical(sensor)
+
+
+def test_check_physical_refuses_a_sensor_built_in_code() -> None:
+    tof = default_rig()["tof"]
+    check_physical(tof)
+    with pytest.raises(RigError, match=r"^sensor 'tof': field 'image_size': 1x1; expected at"):
+        check_physical(dataclasses.replace(tof, image_size=(1, 1)))
+    far = dataclasses.replace(tof.intrinsics, fx=1e300)
+    with pytest.raises(RigError, match=r"^sensor 'tof': field 'intrinsics\.fx': 1e\+300 px"):
+        check_physical(dataclasses.replace(tof, intrinsics=far))

@@ -26,8 +26,11 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+import math
+import re
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -78,6 +81,22 @@ _ARRAYS = (
     "path_T_world_tof",
 )
 """The arrays of a map file (:meth:`fusion.voxel_map.VoxelMap.arrays`)."""
+_ENTRIES = ("format", "settings", "info", *_ARRAYS)
+"""Every entry a map file may hold (``info`` may be absent)."""
+_TEXT_CHARS = {"settings": 16_384, "info": 1_000_000}
+"""The most characters of each text entry."""
+MAX_JSON_DEPTH = 100
+"""The deepest nesting of JSON arrays and objects in ``settings`` and ``info``."""
+_NPY_HEADERS = {
+    (1, 0): np.lib.format.read_array_header_1_0,
+    (2, 0): np.lib.format.read_array_header_2_0,
+}
+_JSON_STRING = re.compile(r'"(?:[^"\\]++|\\.)*+"?', re.DOTALL)
+"""A JSON string, or an unterminated one up to the end of the text (JSON's parser stops
+there). Every match starts at a quote and succeeds, and possessive quantifiers keep no
+backtracking state, so the scan is linear in time and needs no memory per escape (a
+pattern that needs the closing quote retries from every escaped quote of an unterminated
+string: a million characters of ``\\"`` take 1.5 hours; one that backtracks, 57 MiB)."""
 
 
 class MapFileError(ValueError):
@@ -171,95 +190,211 @@ def save_map(
     return atomic_write_bytes(path, buf.getvalue(), overwrite)
 
 
-def _open(path: Path) -> dict[str, np.ndarray]:
-    """Every array of the .npz at ``path``, checked to be a trifuse map file."""
-    try:
-        z = np.load(path, allow_pickle=False)
-        if not isinstance(z, np.lib.npyio.NpzFile):
-            raise MapFileError(f"{path}: not a trifuse map file (expected a .npz archive)")
-        with z:
-            if "format" not in z.files:
+class _Archive:
+    """A map file's zip archive whose entries are checked from their ``.npy`` headers
+    before any is read: only the known entries, stored uncompressed (as :func:`save_map`
+    writes them), each holding the bytes its header declares. Every array read is thus no
+    larger than its share of the file."""
+
+    def __init__(self, path: Path, zf: zipfile.ZipFile) -> None:
+        self.path = path
+        self.zf = zf
+        size = path.stat().st_size
+        self.entries: dict[str, zipfile.ZipInfo] = {}
+        infos = zf.infolist()
+        unknown = [i.filename for i in infos if i.filename.removesuffix(".npy") not in _ENTRIES]
+        if unknown:
+            raise MapFileError(
+                f"{path}: not a trifuse map file: unknown entries {unknown[:5]} (a "
+                f"{MAP_FORMAT} file holds {', '.join(_ENTRIES)}, as .npy)"
+            )
+        for info in infos:
+            name = info.filename.removesuffix(".npy")
+            if name in self.entries:
+                raise MapFileError(f"{path}: malformed map file: {info.filename} appears twice")
+            if info.compress_type != zipfile.ZIP_STORED or info.file_size != info.compress_size:
                 raise MapFileError(
-                    f"{path}: not a trifuse map file (no 'format' entry; expected {MAP_FORMAT!r})"
+                    f"{path}: malformed map file: {info.filename} is not stored uncompressed "
+                    "(as save_map writes it)"
                 )
-            fmt = z["format"]
-            if fmt.shape != () or fmt.dtype.kind != "U" or str(fmt) != MAP_FORMAT:
-                raise MapFileError(f"{path}: format {fmt!s:.40}, expected {MAP_FORMAT!r}")
-            missing = [n for n in (*_ARRAYS, "settings") if n not in z.files]
-            if missing:
-                raise MapFileError(f"{path}: malformed map file: no {', '.join(missing)}")
-            return {name: z[name] for name in z.files}
+            if info.header_offset + info.compress_size > size:
+                raise MapFileError(f"{path}: malformed map file: the file ends inside {name}")
+            self.entries[name] = info
+        if "format" not in self.entries:
+            raise MapFileError(
+                f"{path}: not a trifuse map file (no 'format' entry; expected {MAP_FORMAT!r})"
+            )
+        shape, dtype = self.header("format")
+        short_text = shape == () and dtype.kind == "U" and dtype.itemsize <= 4 * len(MAP_FORMAT)
+        fmt = str(self.read("format")) if short_text else f"{dtype} {shape}"
+        if fmt != MAP_FORMAT:
+            raise MapFileError(f"{path}: format {fmt:.40}, expected {MAP_FORMAT!r}")
+        missing = [n for n in (*_ARRAYS, "settings") if n not in self.entries]
+        if missing:
+            raise MapFileError(f"{path}: malformed map file: no {', '.join(missing)}")
+
+    def header(self, name: str) -> tuple[tuple[int, ...], np.dtype]:
+        """The shape and dtype that entry ``name`` declares (its ``.npy`` header);
+        MapFileError for Python objects (pickles), a header of another version, or an
+        entry that holds fewer bytes than the array it declares."""
+        info = self.entries[name]
+        with self.zf.open(info) as f:
+            version = np.lib.format.read_magic(f)
+            if version not in _NPY_HEADERS:
+                raise MapFileError(
+                    f"{self.path}: malformed map file: {name} is a .npy of version {version}"
+                )
+            shape, _fortran, dtype = _NPY_HEADERS[version](f)
+            start = f.tell()
+        if dtype.hasobject:
+            raise MapFileError(
+                f"{self.path}: not a readable map file ({name} holds Python objects: pickles "
+                "are never loaded)"
+            )
+        nbytes = math.prod(shape) * dtype.itemsize
+        if start + nbytes > info.file_size:
+            raise MapFileError(
+                f"{self.path}: malformed map file: {name} declares {shape} {dtype} "
+                f"({nbytes} bytes), but holds {info.file_size - start} bytes"
+            )
+        return shape, dtype
+
+    def read(self, name: str) -> np.ndarray:
+        """The array of entry ``name`` (after :meth:`header` checked it)."""
+        with self.zf.open(self.entries[name]) as f:
+            return np.lib.format.read_array(f, allow_pickle=False)
+
+    def text(self, name: str) -> str:
+        """The text entry ``name`` (``settings``, ``info``): a () str array of at most
+        :data:`_TEXT_CHARS` characters."""
+        shape, dtype = self.header(name)
+        if shape != () or dtype.kind != "U":
+            raise MapFileError(f"{self.path}: malformed map file: {name} is not a JSON text")
+        if dtype.itemsize // 4 > _TEXT_CHARS[name]:
+            raise MapFileError(
+                f"{self.path}: malformed map file: {name} holds {dtype.itemsize // 4} "
+                f"characters, more than {_TEXT_CHARS[name]}"
+            )
+        return str(self.read(name))
+
+    def json_object(self, name: str) -> dict[str, object]:
+        """The JSON object of the text entry ``name``, nested at most
+        :data:`MAX_JSON_DEPTH` levels."""
+        text = self.text(name)
+        where = f"{self.path}: malformed map file: {name}"
+        if _json_depth(text) > MAX_JSON_DEPTH:
+            raise MapFileError(f"{where}: nested deeper than {MAX_JSON_DEPTH} levels")
+        try:
+            value = json.loads(text)
+        except ValueError as exc:  # JSONDecodeError, an integer of too many digits
+            raise MapFileError(f"{where}: {exc}") from None
+        if not isinstance(value, dict):
+            raise MapFileError(f"{where}: expected a JSON object, got {type(value).__name__}")
+        return value
+
+
+def _json_depth(text: str) -> int:
+    """The deepest nesting of arrays and objects in JSON ``text`` (brackets in strings
+    do not count), without parsing it (Python's parser recurses)."""
+    codes = np.frombuffer(_JSON_STRING.sub("", text).encode("utf-8"), dtype=np.uint8)
+    steps = np.isin(codes, (ord("["), ord("{"))).astype(np.int64)
+    steps -= np.isin(codes, (ord("]"), ord("}")))
+    return int(np.cumsum(steps).max(initial=0))
+
+
+@contextmanager
+def _archive(path: Path) -> Iterator[_Archive]:
+    """The map file at ``path`` (:class:`_Archive`); every failure inside, a MemoryError
+    included, becomes a MapFileError naming the file."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            yield _Archive(path, zf)
     except MapFileError:
         raise
     except FileNotFoundError:
         raise MapFileError(f"{path}: no such map file") from None
     except IsADirectoryError:
         raise MapFileError(f"{path}: a directory, not a map file") from None
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+    except zipfile.BadZipFile as exc:
+        raise MapFileError(
+            f"{path}: not a readable map file (expected a .npz archive: {exc})"
+        ) from None
+    except MemoryError:
+        raise MapFileError(f"{path}: too large to load in this machine's memory") from None
+    except (ValueError, OSError, EOFError, KeyError, RecursionError) as exc:
         raise MapFileError(f"{path}: not a readable map file ({exc})") from None
 
 
-def _settings(path: Path, text: np.ndarray) -> MapSettings:
-    if text.shape != () or text.dtype.kind != "U":
-        raise MapFileError(f"{path}: malformed map file: settings is not a JSON text")
+def _settings(archive: _Archive) -> MapSettings:
+    values = archive.json_object("settings")
     try:
-        values = json.loads(str(text))
-        if not isinstance(values, dict):
-            raise TypeError(f"expected an object, got {type(values).__name__}")
         known = {f.name for f in dataclasses.fields(MapSettings)}
         unknown = sorted(set(values) - known)
         if unknown:
             raise TypeError(f"unknown settings {unknown}")
         return MapSettings(**values)
-    except (json.JSONDecodeError, TypeError, ValueError) as exc:
-        raise MapFileError(f"{path}: malformed map file: settings: {exc}") from None
+    except (TypeError, ValueError) as exc:
+        raise MapFileError(f"{archive.path}: malformed map file: settings: {exc}") from None
+
+
+def _check_arrays(archive: _Archive, settings: MapSettings) -> None:
+    """Check every array's declared shape and dtype (before any is read): numbers, N
+    voxels (at most ``settings.max_voxels``) in every per-voxel array, P poses."""
+    where = f"{archive.path}: malformed map file"
+    headers = {name: archive.header(name) for name in _ARRAYS}
+    for name, (_shape, dtype) in headers.items():
+        if dtype.kind not in "fiu" or dtype.itemsize > 8:
+            raise MapFileError(f"{where}: {name} holds {dtype}, not numbers")
+    keys = headers["keys"][0]
+    if len(keys) != 1 or headers["keys"][1].kind not in "iu":
+        raise MapFileError(f"{where}: keys must be (N,) integers, got {keys}")
+    n = keys[0]
+    if n > settings.max_voxels:
+        raise MapFileError(f"{where}: {n} voxels, more than max_voxels {settings.max_voxels}")
+    for name, (shape, _dtype) in headers.items():
+        if not name.startswith("path_") and shape not in ((n,), (n, 3)):
+            raise MapFileError(f"{where}: {name} has shape {shape}, expected ({n},) or ({n}, 3)")
+    stamps, poses = headers["path_stamp_s"][0], headers["path_T_world_tof"][0]
+    if len(stamps) != 1 or poses != (stamps[0], 4, 4):
+        raise MapFileError(
+            f"{where}: path_stamp_s {stamps} and path_T_world_tof {poses} do not match "
+            "(expected (P,) and (P, 4, 4))"
+        )
 
 
 def load_map(path: str | Path) -> VoxelMap:
     """The map saved by :func:`save_map`.
 
+    Every entry's shape and type are checked from its header before any array is read
+    (:class:`_Archive`), so a file never makes this allocate more than it holds.
+
     Raises:
-        MapFileError: a missing file, not a .npz, another format, missing arrays, arrays
-            of the wrong shape or type, settings that do not make a :class:`MapSettings`,
-            voxel keys that repeat or do not match the voxel centres.
+        MapFileError: a missing file, not a .npz, another format, unknown, compressed or
+            missing entries, arrays of the wrong shape or type, settings that do not make a
+            :class:`MapSettings` (each within its bounds) or nest too deep, more voxels
+            than ``max_voxels``, voxel keys that repeat or do not match the voxel centres,
+            a file too large for the memory.
     """
     path = Path(path)
-    content = _open(path)
-    settings = _settings(path, content["settings"])
-    arrays = {name: content[name] for name in _ARRAYS}
-    for name, a in arrays.items():
-        if a.dtype.kind not in "fiu":
-            raise MapFileError(f"{path}: malformed map file: {name} holds {a.dtype}, not numbers")
-    keys = arrays["keys"]
-    if keys.ndim != 1 or keys.dtype.kind not in "iu":
-        raise MapFileError(f"{path}: malformed map file: keys must be (N,) integers")
-    stamps, poses = arrays["path_stamp_s"], arrays["path_T_world_tof"]
-    if stamps.ndim != 1 or poses.shape != (len(stamps), 4, 4):
-        raise MapFileError(
-            f"{path}: malformed map file: path_stamp_s {stamps.shape} and path_T_world_tof "
-            f"{poses.shape} do not match (expected (P,) and (P, 4, 4))"
-        )
-    try:
-        voxel_map = VoxelMap.from_arrays(settings, arrays)
-    except ValueError as exc:
-        raise MapFileError(f"{path}: malformed map file: {exc}") from None
-    centre = voxel_map["centre"].astype(np.float64)
-    if len(centre) and not np.array_equal(voxel_map.keys_of(centre)[0], keys.astype(np.int64)):
-        raise MapFileError(f"{path}: malformed map file: the voxel keys do not match the centres")
-    return voxel_map
+    with _archive(path) as archive:
+        settings = _settings(archive)
+        _check_arrays(archive, settings)
+        arrays = {name: archive.read(name) for name in _ARRAYS}
+        try:
+            voxel_map = VoxelMap.from_arrays(settings, arrays)
+        except ValueError as exc:
+            raise MapFileError(f"{path}: malformed map file: {exc}") from None
+        centre = voxel_map["centre"].astype(np.float64)
+        keys = arrays["keys"].astype(np.int64)
+        if len(centre) and not np.array_equal(voxel_map.keys_of(centre)[0], keys):
+            raise MapFileError(
+                f"{path}: malformed map file: the voxel keys do not match the centres"
+            )
+        return voxel_map
 
 
 def read_map_info(path: str | Path) -> dict[str, object]:
-    """What made the map (the ``info`` given to :func:`save_map`; {} if none)."""
-    path = Path(path)
-    content = _open(path)
-    text = content.get("info")
-    if text is None:
-        return {}
-    try:
-        info = json.loads(str(text))
-    except json.JSONDecodeError as exc:
-        raise MapFileError(f"{path}: malformed map file: info: {exc}") from None
-    if not isinstance(info, dict):
-        raise MapFileError(f"{path}: malformed map file: info is not a JSON object")
-    return info
+    """What made the map (the ``info`` given to :func:`save_map`; {} if none). Reads only
+    the ``format`` and ``info`` entries."""
+    with _archive(Path(path)) as archive:
+        return archive.json_object("info") if "info" in archive.entries else {}
