@@ -14,7 +14,15 @@ import pytest
 from app.cli import main
 from app.devtools import bench_soak, soak_report
 from app.devtools.procfs import parse_proc_cpu_s, parse_proc_status, sample_process
-from app.devtools.soak_report import Phase, SoakConfig, Window, slope_per_minute, summarize
+from app.devtools.soak_report import (
+    Phase,
+    SoakConfig,
+    VideoLoadConfig,
+    VideoStep,
+    Window,
+    slope_per_minute,
+    summarize,
+)
 from app.devtools.stream_clients import MjpegParts
 
 # -- the slope fit --------------------------------------------------------------------------
@@ -262,6 +270,72 @@ def test_cli_help_names_the_soak(capsys: pytest.CaptureFixture[str]):
     assert "--soak" in out and "--soak-seconds" in out and "--viewers" in out
 
 
+# -- the video stream's viewers (--soak --video) ----------------------------------------------
+
+
+def _video_step(viewers: int, fps: float, rss_after: float = 600.0, **kw) -> VideoStep:
+    args = {
+        "viewer_fps": (fps,) * viewers,
+        "console_fps": fps,
+        "status_ms": (5.0, 9.0, math.nan),
+        "latency_ms": 20.0,
+        "server_cpu_pct": 100.0,
+        "rss_before_mb": 580.0,
+        "rss_during_mb": (640.0, 690.0),
+        "rss_after_mb": rss_after,
+        "rungs": 1,
+        "levels": {"8": viewers},
+    }
+    args.update(kw)
+    return VideoStep(viewers, **args)
+
+
+def test_video_step_figures_and_medians_of_runs():
+    step = _video_step(3, 20.0, viewer_fps=(20.0, 15.0, 18.0))
+    f = step.figures()
+    assert (f["fps_median"], f["fps_min"], f["console_fps"]) == (18.0, 15.0, 20.0)
+    assert (f["status_ms_median"], f["status_ms_max"]) == (7.0, 9.0)  # NaN: no answer
+    assert (f["rss_before_mb"], f["rss_during_max_mb"], f["rss_after_mb"]) == (580, 690, 600)
+    runs = [
+        [_video_step(1, 24.0), _video_step(10, 20.0, rss_after=610.0)],
+        [_video_step(1, 22.0), _video_step(10, 16.0, rss_after=650.0)],
+        [_video_step(1, 23.0), _video_step(10, 18.0, rss_after=630.0)],
+    ]
+    medians = soak_report.video_medians(runs)
+    assert [n for n, _ in medians] == [1, 10]
+    assert medians[0][1]["fps_median"] == 23.0
+    assert medians[1][1]["fps_median"] == 18.0 and medians[1][1]["rss_after_mb"] == 630.0
+    row = soak_report.format_video_row(10, medians[1][1], "10x8")
+    assert row.split()[:4] == ["10", "18.00", "18.00", "18.00"] and row.endswith("10x8")
+    assert len(row.split()) == len(soak_report.VIDEO_HEAD.split())
+    failed = soak_report.format_video_row(1, _video_step(1, 0.0, errors=1).figures())
+    assert failed.endswith("ERRORS 1")
+
+
+def test_cli_runs_the_video_load(monkeypatch: pytest.MonkeyPatch):
+    seen = []
+    monkeypatch.setattr(bench_soak, "run_video_load_cli", lambda cfg: seen.append(cfg) or 0)
+    assert main(["bench", "--soak", "--video"]) == 0
+    assert seen[-1] == VideoLoadConfig(counts=(1, 10, 50), step_s=30.0, runs=1)
+    argv = ["bench", "--soak", "--video", "2,5", "--soak-seconds", "12", "--repeat", "3"]
+    assert main(argv) == 0
+    assert seen[-1] == VideoLoadConfig(counts=(2, 5), step_s=12.0, runs=3)
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["bench", "--video"], "--video goes with --soak"),
+        (["bench", "--soak", "--video", "--viewers", "3"], "--video goes with --soak"),
+        (["bench", "--soak", "--video", "1,0"], "expected positive integers"),
+        (["bench", "--soak", "--video", "ten"], "expected positive integers"),
+    ],
+)
+def test_cli_refuses_video_load(argv, message, capsys: pytest.CaptureFixture[str]):
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
+
+
 # -- the machinery, end to end ----------------------------------------------------------------
 
 
@@ -320,3 +394,20 @@ def test_short_soak_against_a_console():
     assert text.splitlines()[0] == soak_report.TABLE_HEAD
     assert "criteria:" in text and text.splitlines()[-1].startswith(("PASS", "FAIL"))
     assert any(line.startswith("baseline: ") for line in lines)
+
+
+@pytest.mark.slow
+def test_short_video_load_against_a_console():
+    """Seconds: one viewer, then two, of /stream.video on a real console; every figure is
+    there and every viewer got frames (no performance assertions)."""
+    cfg = VideoLoadConfig(counts=(1, 2), step_s=2.0, settle_s=0.5, after_s=1.0, prewarm=False)
+    lines: list[str] = []
+    (steps,) = bench_soak.run_video_load(cfg, lines.append)
+    assert [s.viewers for s in steps] == [1, 2]
+    for step in steps:
+        assert step.errors == 0 and len(step.viewer_fps) == step.viewers
+        assert min(step.viewer_fps) > 0 and step.console_fps > 0
+        assert step.rss_before_mb > 0 and step.rss_after_mb > 0 and step.rss_during_mb
+        assert step.status_ms and all(ms > 0 for ms in step.status_ms)
+        assert sum(step.levels.values()) == step.viewers and step.rungs >= 1
+    assert soak_report.VIDEO_HEAD in lines

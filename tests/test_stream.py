@@ -18,7 +18,12 @@ from fastapi.testclient import TestClient
 from app.server.panels.source import stream_text
 from app.server.runtime.pipeline import FusionPipeline, PipelineStatus, _Job, _StreamEncoder
 from app.server.runtime.rates import RatesSnapshot, StreamRates
-from app.server.runtime.stream import FrameHub, StreamFrame, make_stream_router
+from app.server.runtime.stream import (
+    MAX_MESSAGE_CHARS,
+    FrameHub,
+    StreamFrame,
+    make_stream_router,
+)
 from app.server.runtime.video_stats import VideoViewerStats
 from app.sources.base import FrameSource
 from app.sources.frames import Frame
@@ -51,6 +56,27 @@ def test_slow_viewer_gets_the_newest_frame_not_a_backlog() -> None:
         assert json.loads(ws.receive_text())["k"] == 20
         ws.receive_bytes()
         assert hub.viewers == 1
+
+
+def test_an_ack_may_be_binary_but_not_huge() -> None:
+    """Any small message acknowledges a frame, text or binary; one over
+    MAX_MESSAGE_CHARS (16 MiB here) closes the socket with 1009 and its reason."""
+    hub = FrameHub()
+    app = FastAPI()
+    app.include_router(make_stream_router(hub))
+    with TestClient(app) as client, client.websocket_connect("/stream") as ws:
+        hub.publish(_jpeg(1), {"k": 1})
+        assert json.loads(ws.receive_text())["k"] == 1
+        ws.receive_bytes()
+        ws.send_bytes(b"ack")
+        hub.publish(_jpeg(2), {"k": 2})
+        assert json.loads(ws.receive_text())["k"] == 2
+        ws.receive_bytes()
+        ws.send_text("a" * (16 << 20))
+        message = ws.receive()
+        assert message["type"] == "websocket.close" and message["code"] == 1009
+        assert f"at most {MAX_MESSAGE_CHARS}" in message["reason"]
+    assert hub.viewers == 0
 
 
 def test_mjpeg_fallback_streams_jpeg_parts() -> None:

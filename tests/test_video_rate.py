@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from app.recording.h264 import MIN_BPS
-from app.server.runtime.video_presets import LEVELS
-from app.server.runtime.video_rate import WINDOW, RateController
+from app.server.runtime.video_presets import LEVELS, RUNG_STEP, Rung, rung_for
+from app.server.runtime.video_rate import DECREASE, STALL_S, WINDOW, RateController
 
 STEP_S = 0.001
 
@@ -278,3 +278,36 @@ def test_uneven_frames_are_paced_by_a_bucket_not_a_gap() -> None:
             n += 1
             eager.on_sent(n, 30_000, i * 0.001)
     assert n <= 30 + 2
+
+
+def test_a_viewer_behind_its_shared_encoder_steps_down_once_per_stall_time() -> None:
+    """Frames dropped for a viewer that fell behind (video_stream.py): a step down, then
+    none for STALL_S (the viewer waits for a key frame meanwhile), then another."""
+    ctl = RateController("auto")
+    ctl.on_dropped(1.0)
+    first = ctl.bitrate_bps
+    assert first == DECREASE * LEVELS[0].max_bps and ctl.last_congestion == "late"
+    ctl.on_dropped(1.0 + STALL_S / 2)
+    assert ctl.bitrate_bps == first and ctl.congestion_events == 1
+    ctl.on_dropped(1.0 + 2 * STALL_S)
+    assert ctl.bitrate_bps == DECREASE * first and ctl.congestion_events == 2
+
+
+def test_rungs_of_the_shared_encoders() -> None:
+    """A viewer's encoder runs at its level's cap times a power of RUNG_STEP, the highest
+    not above the controller's target, never below MIN_BPS; one congestion step is one
+    rung down, so a handful of rungs per level."""
+    top = LEVELS[0]
+    assert rung_for(top, 9e6) == rung_for(top, 8e6) == Rung(top, 8_000_000)
+    assert rung_for(top, 7.99e6).bitrate_bps == round(8e6 * RUNG_STEP)
+    assert rung_for(top, 8e6 * RUNG_STEP).bitrate_bps == round(8e6 * RUNG_STEP)
+    assert rung_for(top, 8e6 * DECREASE).bitrate_bps == round(8e6 * RUNG_STEP)  # one step
+    assert rung_for(top, 0.0).bitrate_bps == rung_for(top, MIN_BPS).bitrate_bps == MIN_BPS
+    rng = np.random.default_rng(29)
+    rungs = set()
+    for b in rng.uniform(MIN_BPS, 8e6, 2000):
+        r = rung_for(top, b)
+        assert MIN_BPS <= r.bitrate_bps <= b + 1 and r.level == top
+        assert r.bitrate_bps == MIN_BPS or r.bitrate_bps / RUNG_STEP > b  # the highest
+        rungs.add(r.bitrate_bps)
+    assert len(rungs) <= 12

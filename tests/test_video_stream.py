@@ -245,7 +245,11 @@ def test_default_preset_route_and_status_figures(app_hub) -> None:
     assert r.status_code == 422 and "preset" in r.text
     assert client.put("/api/stream/settings", json={"preset": "2"}).json() == {"preset": "2"}
     assert hub.stream_settings.preset == "2"
-    assert client.get("/api/status").json()["stream"] == {"default_preset": "2", "video": []}
+    assert client.get("/api/status").json()["stream"] == {
+        "default_preset": "2",
+        "video": [],
+        "video_encoders": 0,
+    }
     with client.websocket_connect("/stream.video") as ws:
         viewer = Viewer(ws)
         wait_until(lambda: hub.wants_bgr, "the viewer registered")
@@ -262,8 +266,11 @@ def test_default_preset_route_and_status_figures(app_hub) -> None:
         assert v["frames_sent"] == 3 and v["keyframes"] == 1 and v["window"] == WINDOW
         assert 0 < v["bitrate_bps"] <= 2_000_000 and v["rtt_ms"] >= 0
         assert v["bytes_sent"] > 0 and v["encode_ms"] > 0
+        assert client.get("/api/status").json()["stream"]["video_encoders"] == 1
     wait_until(lambda: not hub.video_viewers, "the viewer gone")
-    assert client.get("/api/status").json()["stream"]["video"] == []
+    wait_until(lambda: not hub.video_encoders, "the encoder closed")
+    stream = client.get("/api/status").json()["stream"]
+    assert stream["video"] == [] and stream["video_encoders"] == 0
 
 
 def test_the_video_stream_needs_the_token() -> None:

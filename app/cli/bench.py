@@ -15,8 +15,22 @@ def _bench_names() -> str:
     return ", ".join(f"{n} ({b.description})" for n, b in REGISTRY.items()).replace("%", "%%")
 
 
+def _viewer_counts(text: str) -> tuple[int, ...]:
+    """``N,N,...`` viewers at once, each a positive integer."""
+    try:
+        counts = tuple(int(p) for p in text.split(","))
+    except ValueError:
+        counts = ()
+    if not counts or min(counts) < 1:
+        raise argparse.ArgumentTypeError(
+            f"expected positive integers such as 1,10,50, got {text!r}"
+        )
+    return counts
+
+
 def add_parser(commands: Commands) -> argparse.ArgumentParser:
-    """``bench [--only NAME] [--repeat N]`` or ``bench --soak [--soak-seconds] [--viewers]``."""
+    """``bench [--only NAME] [--repeat N]`` or ``bench --soak [--soak-seconds] [--viewers]
+    [--video [N,N,...]]``."""
     bench = commands.add_parser(
         "bench",
         help="run the benchmarks and print median timings (and ratios to baselines)",
@@ -54,6 +68,17 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         metavar="N",
         help="fast viewers during the soak, besides the slow readers (default: 10)",
     )
+    bench.add_argument(
+        "--video",
+        nargs="?",
+        const=(1, 10, 50),
+        type=_viewer_counts,
+        metavar="N,N,...",
+        help="with --soak: viewers of the video stream instead (BENCHMARKS.md 'Video "
+        "viewers'): N viewers at once for each N (default 1,10,50), --soak-seconds each "
+        "(default 30), --repeat runs (default 1); their and the console's frame rates, "
+        "/api/status answer times, the console's memory before, during and after",
+    )
     return bench
 
 
@@ -61,6 +86,16 @@ def run(args: argparse.Namespace) -> int:
     """Run the soak, or each benchmark (all, or ``--only``) and print its figures."""
     from app.devtools.bench import REGISTRY, run_benchmark, run_soak_command
 
+    if args.video:
+        if not args.soak or args.only or args.viewers:
+            raise UsageError(f"{PROG} bench: --video goes with --soak (no --only, --viewers)")
+        from app.devtools import bench_soak
+
+        return bench_soak.run_video_load_cli(
+            bench_soak.VideoLoadConfig(
+                counts=args.video, step_s=args.soak_seconds or 30.0, runs=args.repeat or 1
+            )
+        )
     if args.soak:
         if args.only or args.repeat:
             raise UsageError(f"{PROG} bench: --soak runs alone (no --only, --repeat)")

@@ -56,6 +56,17 @@ Criteria (:data:`CRITERIA`; exit 1 if one fails):
   8.4 MB a pose: the run says nothing about leaks;
 - every viewer stays connected, every fast viewer receives frames in every window and
   each slow reader gets data.
+
+``trifuse bench --soak --video`` (:func:`run_video_load`) measures the video stream
+instead (issue 29, "Load"): a console as above, warmed up by one viewer; then for each
+count N of :attr:`VideoLoadConfig.counts` (default 1, 10, 50), N viewers of
+``/stream.video`` at once (:class:`app.devtools.stream_clients.VideoViewer`: acks each
+frame as it arrives, does not decode), for ``step_s`` after they all have a frame and
+``settle_s`` more: each viewer's frames per second, the console's own rate (frames
+published), the answer time of ``/api/status`` asked every second, the latency, the
+console's CPU, its RSS before the viewers came, while they watched and ``after_s`` after
+they left, and the (level, bitrate) rungs the viewers were on. No criteria: the figures
+are for BENCHMARKS.md; exit 1 only if a viewer failed.
 """
 
 from __future__ import annotations
@@ -75,20 +86,26 @@ from app.devtools.soak_report import (
     CRITERIA,
     SLOW_KINDS,
     TABLE_HEAD,
+    VIDEO_HEAD,
     Phase,
     SoakConfig,
     SoakReport,
+    VideoLoadConfig,
+    VideoStep,
     Window,
     format_row,
     format_summary,
+    format_video_row,
     median_of,
     summarize,
+    video_medians,
 )
 from app.devtools.stream_clients import (
     FastViewer,
     SlowMjpegReader,
     SlowWsViewer,
     StreamClient,
+    VideoViewer,
     cancel,
     wait_first_frames,
 )
@@ -269,3 +286,139 @@ def run_soak_cli(cfg: SoakConfig) -> int:
     out("")
     out(format_summary(report))
     return 0 if report.ok else 1
+
+
+# -- the video stream's viewers -----------------------------------------------------------
+
+
+async def _status_ms(console: ConsoleProcess) -> float:
+    """How long ``GET /api/status`` takes to answer, ms (NaN: no answer within 30 s)."""
+    t0 = time.perf_counter()
+    try:
+        await asyncio.to_thread(console.request, "/api/status", "GET", None, 30.0)
+    except (OSError, ValueError):
+        return math.nan
+    return (time.perf_counter() - t0) * 1000
+
+
+def _video_url(console: ConsoleProcess, preset: str) -> str:
+    return f"{console.url.replace('http', 'ws', 1)}/stream.video?preset={preset}"
+
+
+async def video_step(console: ConsoleProcess, cfg: VideoLoadConfig, n: int) -> VideoStep:
+    """``n`` video viewers at once (see the module doc); the step's figures."""
+    rss_before = sample_process(console.pid).rss_mb
+    viewers = [VideoViewer(_video_url(console, cfg.preset), console.token) for _ in range(n)]
+    tasks = [asyncio.create_task(v.run()) for v in viewers]
+    try:
+        await wait_first_frames(viewers, cfg.start_timeout_s)
+        await asyncio.sleep(cfg.settle_s)
+        frames0 = [v.frames for v in viewers]
+        for v in viewers:
+            v.latencies_ms.clear()
+        published0 = (await _frames_out(console))[0]
+        cpu0, t0 = sample_process(console.pid).cpu_s, time.monotonic()
+        status: list[float] = []
+        rss: list[float] = []
+        k = 0
+        while time.monotonic() - t0 < cfg.step_s:
+            status.append(await _status_ms(console))
+            rss.append(sample_process(console.pid).rss_mb)
+            k += 1
+            await asyncio.sleep(max(0.0, t0 + k * cfg.status_every_s - time.monotonic()))
+        dt = time.monotonic() - t0
+        fps = tuple((v.frames - f0) / dt for v, f0 in zip(viewers, frames0, strict=True))
+        published = (await _frames_out(console))[0]
+        cpu = sample_process(console.pid).cpu_s
+        latencies = [x for v in viewers for x in v.latencies_ms]
+        levels: dict[str, int] = {}
+        for v in viewers:
+            levels[v.level] = levels.get(v.level, 0) + 1
+        rungs = len({(v.level, v.bitrate_bps) for v in viewers})
+    finally:
+        await cancel(tasks)
+    await asyncio.sleep(cfg.after_s)
+    return VideoStep(
+        viewers=n,
+        viewer_fps=fps,
+        console_fps=(published - published0) / dt,
+        status_ms=tuple(status),
+        latency_ms=statistics.median(latencies) if latencies else math.nan,
+        server_cpu_pct=100.0 * (cpu - cpu0) / dt,
+        rss_before_mb=rss_before,
+        rss_during_mb=tuple(rss),
+        rss_after_mb=sample_process(console.pid).rss_mb,
+        rungs=rungs,
+        levels=dict(sorted(levels.items())),
+        errors=sum(1 for v in viewers if v.error),
+    )
+
+
+def _levels(levels: dict[str, int]) -> str:
+    return " ".join(f"{n}x{name}" for name, n in levels.items())
+
+
+async def video_load(
+    console: ConsoleProcess, cfg: VideoLoadConfig, out: Callable[[str], None] = print
+) -> list[VideoStep]:
+    """One run against a running console: a warm-up viewer, then each step; a row each."""
+    warm = VideoViewer(_video_url(console, cfg.preset), console.token)
+    task = asyncio.create_task(warm.run())
+    try:
+        await wait_first_frames([warm], cfg.start_timeout_s)
+        await asyncio.sleep(2 * cfg.settle_s)  # the console loads its poses meanwhile
+    finally:
+        await cancel([task])
+    await asyncio.sleep(cfg.after_s)
+    out(VIDEO_HEAD)
+    steps = []
+    for n in cfg.counts:
+        step = await video_step(console, cfg, n)
+        out(format_video_row(n, step.figures(), _levels(step.levels)))
+        steps.append(step)
+    return steps
+
+
+def run_video_load(
+    cfg: VideoLoadConfig, out: Callable[[str], None] = print
+) -> list[list[VideoStep]]:
+    """``cfg.runs`` runs, each on a console of its own (started and stopped here)."""
+    if not cfg.counts or min(cfg.counts) < 1 or cfg.step_s <= 0 or cfg.runs < 1:
+        raise ValueError("video load: counts, step_s and runs must be positive")
+    if cfg.prewarm:
+        t = time.monotonic()
+        poses = prewarm_pose_cache()
+        out(f"pose cache: {poses} poses on disk ({time.monotonic() - t:.1f} s)")
+    runs = []
+    for r in range(cfg.runs):
+        with tempfile.TemporaryDirectory(prefix="trifuse-video-load-") as tmp:
+            console = ConsoleProcess(
+                ["--scenario", "inspection", "--workdir", str(Path(tmp) / "work")],
+                log_path=Path(tmp) / "serve.log",
+                timeout_s=cfg.start_timeout_s,
+            )
+            with console:
+                out(f"run {r + 1}/{cfg.runs}: console pid {console.pid}, port {console.port}")
+                try:
+                    runs.append(asyncio.run(video_load(console, cfg, out)))
+                except BaseException:
+                    out(f"console log:\n{console.output()[-2000:]}")
+                    raise
+    return runs
+
+
+def run_video_load_cli(cfg: VideoLoadConfig) -> int:
+    """``trifuse bench --soak --video``: rows as they come, then the medians over the runs;
+    0, or 1 if a viewer failed."""
+
+    def out(line: str) -> None:
+        print(line, flush=True)
+
+    out(f"video load: {cfg.describe()}")
+    runs = run_video_load(cfg, out)
+    out("")
+    out(f"median of {len(runs)} run(s):")
+    out(VIDEO_HEAD)
+    for n, figures in video_medians(runs):
+        out(format_video_row(n, figures))
+    return 1 if any(step.errors for run in runs for step in run) else 0

@@ -357,3 +357,121 @@ def summarize(
         ),
     ]
     return fig, criteria
+
+
+# -- the video stream's viewers (``trifuse bench --soak --video``) --------------------------
+
+
+@dataclass(frozen=True)
+class VideoLoadConfig:
+    """What ``trifuse bench --soak --video`` runs: for each count of :attr:`counts`, that
+    many viewers of ``/stream.video`` at once (each acknowledges every frame as it arrives),
+    measured for :attr:`step_s`; ``runs`` times, a fresh console each time."""
+
+    counts: tuple[int, ...] = (1, 10, 50)
+    """Viewers at once, one step each, in this order."""
+    step_s: float = 30.0
+    """Each step's measuring time, seconds."""
+    runs: int = 1
+    """Repeats of the whole run (the summary gives the median of each figure)."""
+    preset: str = "auto"
+    """The viewers' preset (``?preset=``)."""
+    settle_s: float = 5.0
+    """After every viewer got its first frame, before measuring."""
+    after_s: float = 15.0
+    """After the viewers left, before the console's memory is read again."""
+    status_every_s: float = 1.0
+    """``/api/status`` is asked this often while measuring (its answer time is a figure)."""
+    prewarm: bool = True
+    """Fill the disk cache of rendered poses before the console starts."""
+    start_timeout_s: float = 180.0
+    """The console must answer, and every viewer have a frame, within this many seconds."""
+
+    def describe(self) -> str:
+        return (
+            f"/stream.video viewers {', '.join(map(str, self.counts))} (preset {self.preset}),"
+            f" {self.step_s:g} s each after {self.settle_s:g} s to settle; memory again "
+            f"{self.after_s:g} s after they left; {self.runs} run(s)"
+        )
+
+
+@dataclass(frozen=True)
+class VideoStep:
+    """One step: ``viewers`` at once. Frame rates are over the measuring time.
+
+    Attributes:
+        viewer_fps: each viewer's frames per second.
+        console_fps: frames the console published per second (its own rate).
+        status_ms: each ``/api/status`` answer time, ms (NaN: no answer).
+        latency_ms: median from publication (``sent_ns``) to a viewer having the frame, ms.
+        server_cpu_pct: the console's CPU, % of one core.
+        rss_before_mb, rss_after_mb: the console's RSS before the viewers came and
+            ``after_s`` after they left, MB.
+        rss_during_mb: its RSS samples while they watched, MB.
+        rungs: distinct (level, bitrate) of the viewers' last frames: the encoders in use
+            when viewers share them (one per viewer before they did).
+        levels: viewers per level of their last frame.
+        errors: viewers that ended with an error.
+    """
+
+    viewers: int
+    viewer_fps: tuple[float, ...]
+    console_fps: float
+    status_ms: tuple[float, ...]
+    latency_ms: float
+    server_cpu_pct: float
+    rss_before_mb: float
+    rss_during_mb: tuple[float, ...]
+    rss_after_mb: float
+    rungs: int
+    levels: dict[str, int]
+    errors: int = 0
+
+    def figures(self) -> dict[str, float]:
+        """The step in numbers (the medians of runs are taken over these)."""
+        status = [s for s in self.status_ms if s == s]
+        return {
+            "fps_median": median_of(list(self.viewer_fps)),
+            "fps_min": min(self.viewer_fps, default=math.nan),
+            "console_fps": self.console_fps,
+            "status_ms_median": median_of(status),
+            "status_ms_max": max(status, default=math.nan),
+            "latency_ms": self.latency_ms,
+            "server_cpu_pct": self.server_cpu_pct,
+            "rss_before_mb": self.rss_before_mb,
+            "rss_during_max_mb": max(self.rss_during_mb, default=math.nan),
+            "rss_after_mb": self.rss_after_mb,
+            "rungs": float(self.rungs),
+            "errors": float(self.errors),
+        }
+
+
+VIDEO_HEAD = (
+    f"{'viewers':>7} {'fps_med':>7} {'fps_min':>7} {'console':>7} {'status_ms':>11} "
+    f"{'lat_ms':>6} {'cpu%':>5} {'rss_before':>10} {'rss_max':>7} {'rss_after':>9} "
+    f"{'rungs':>5}  levels"
+)
+
+
+def format_video_row(viewers: int, f: dict[str, float], levels: str = "") -> str:
+    """One line of the video table: a step's :meth:`VideoStep.figures` (or their medians)."""
+    status = f"{f['status_ms_median']:.0f}/{f['status_ms_max']:.0f}"
+    errors = f"  ERRORS {f['errors']:.0f}" if f["errors"] else ""
+    return (
+        f"{viewers:7d} {f['fps_median']:7.2f} {f['fps_min']:7.2f} {f['console_fps']:7.2f} "
+        f"{status:>11} {f['latency_ms']:6.0f} {f['server_cpu_pct']:5.0f} "
+        f"{f['rss_before_mb']:10.0f} {f['rss_during_max_mb']:7.0f} {f['rss_after_mb']:9.0f} "
+        f"{f['rungs']:5.0f}  {levels}{errors}"
+    ).rstrip()
+
+
+def video_medians(runs: Sequence[Sequence[VideoStep]]) -> list[tuple[int, dict[str, float]]]:
+    """For each viewer count, the median over ``runs`` of each figure (a run: its steps in
+    the order of the counts)."""
+    if not runs:
+        return []
+    out = []
+    for i, step in enumerate(runs[0]):
+        per_run = [run[i].figures() for run in runs if len(run) > i]
+        out.append((step.viewers, {k: median_of([f[k] for f in per_run]) for k in per_run[0]}))
+    return out

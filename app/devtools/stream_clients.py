@@ -1,6 +1,7 @@
 """Clients of the console's fused stream for the stream soak and the ``idle`` benchmark: a
-viewer that keeps up (:class:`FastViewer`), and two slow readers that make the server wait
-(:class:`SlowWsViewer`, :class:`SlowMjpegReader`; see app/devtools/bench_soak.py).
+viewer that keeps up (:class:`FastViewer`), two slow readers that make the server wait
+(:class:`SlowWsViewer`, :class:`SlowMjpegReader`; see app/devtools/bench_soak.py), and a
+viewer of the video stream that keeps up (:class:`VideoViewer`).
 
 Each runs as an asyncio task (``await client.run()``) until cancelled; it counts what it
 received and keeps the error that ended it, if any.
@@ -122,6 +123,49 @@ class FastViewer(StreamClient):
                 self.latencies_ms.append((time.time_ns() - json.loads(meta)["sent_ns"]) / 1e6)
                 self._got_frame(len(jpeg))
                 await ws.send("ack")
+
+
+class VideoViewer(StreamClient):
+    """A viewer of ``/stream.video`` (``url``, with its ``?preset=``) that acknowledges each
+    frame as soon as it has it, saying when it arrived (``recv_ms``), as the browser does
+    after drawing; it does not decode. ``latencies_ms``: per frame, from the server
+    publishing it (``sent_ns``) to having it; ``level`` and ``bitrate_bps``: of the last
+    frame; ``keyframes``: IDRs received."""
+
+    kind = "video"
+
+    def __init__(self, url: str, token: str | None) -> None:
+        super().__init__()
+        self.url, self.token = url, token
+        self.latencies_ms: list[float] = []
+        self.level = ""
+        self.bitrate_bps = 0
+        self.keyframes = 0
+
+    async def _receive(self) -> None:
+        from websockets.asyncio.client import connect
+
+        headers = {"Authorization": f"token {self.token}"} if self.token else {}
+        async with connect(
+            self.url,
+            additional_headers=headers,
+            proxy=None,
+            compression=None,
+            max_size=None,
+            open_timeout=60,
+        ) as ws:
+            while True:
+                text = await ws.recv()
+                unit = await ws.recv()
+                recv_ms = time.monotonic() * 1000
+                if not isinstance(text, str) or not isinstance(unit, bytes):
+                    raise RuntimeError("expected a JSON text message, then an access unit")
+                meta = json.loads(text)
+                self.latencies_ms.append((time.time_ns() - meta["sent_ns"]) / 1e6)
+                self.level, self.bitrate_bps = meta["level"], meta["bitrate_bps"]
+                self.keyframes += bool(meta["key"])
+                self._got_frame(len(unit))
+                await ws.send(json.dumps({"ack": meta["seq"], "recv_ms": recv_ms}))
 
 
 def _small_socket(rcvbuf: int) -> socket.socket:

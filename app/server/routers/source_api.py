@@ -134,6 +134,9 @@ class StreamInfo(BaseModel):
     video: list[VideoViewerInfo] = Field(
         default_factory=list, description="each /stream.video viewer's figures"
     )
+    video_encoders: int = Field(
+        0, description="H.264 encoders running: one per level and bitrate that viewers watch"
+    )
 
 
 def _stream(hub: FrameHub) -> StreamInfo:
@@ -141,6 +144,7 @@ def _stream(hub: FrameHub) -> StreamInfo:
     return StreamInfo(
         default_preset=hub.stream_settings.preset,
         video=[VideoViewerInfo(**v.as_dict(now)) for v in list(hub.video_viewers)],
+        video_encoders=len(hub.video_encoders),
     )
 
 

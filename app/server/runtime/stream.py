@@ -13,6 +13,11 @@ Each viewer holds the hub's :attr:`FrameHub.demand` while connected (:meth:`Fram
 the console fuses and encodes only while someone listens (:mod:`app.server.runtime.demand`),
 and encodes JPEG only while a JPEG viewer listens or nobody takes the pictures themselves
 (:attr:`FrameHub.wants_jpeg`).
+
+What a viewer sends back is small and rare (an ack a frame): :class:`ViewerMessages` refuses
+a message over :data:`MAX_MESSAGE_CHARS` (close 1009) and a viewer sending more than
+:data:`MAX_MESSAGES_PER_S` (close 1008) before anything parses it, so that one viewer
+cannot hold the server's loop (docs/SECURITY.md).
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
@@ -35,6 +40,61 @@ from app.server.runtime.kept_frames import KeptFrames
 from app.server.runtime.rates import StreamRates
 from app.server.runtime.video_presets import StreamSettings
 from app.server.runtime.video_stats import VideoViewerStats
+
+if TYPE_CHECKING:
+    from app.server.runtime.video_presets import Rung
+
+MAX_MESSAGE_CHARS = 1024
+"""The longest message a stream viewer may send, characters (text) or bytes: an ack is
+about 40, ``{"preset": "auto"}`` 18."""
+MAX_MESSAGES_PER_S = 200.0
+"""Messages a viewer may send per second, over a burst of as many (a viewer acks at most
+once per frame: 30 a second)."""
+MESSAGE_TOO_BIG = 1009
+POLICY_VIOLATION = 1008
+
+
+class ViewerMessageRefused(ValueError):
+    """A viewer's message over the limits; ``code``: the WebSocket close code to send."""
+
+    def __init__(self, code: int, reason: str) -> None:
+        super().__init__(reason)
+        self.code = code
+
+
+class ViewerMessages:
+    """The limits on what one stream viewer sends: at most :data:`MAX_MESSAGE_CHARS` a
+    message, at most :data:`MAX_MESSAGES_PER_S` messages a second (a token bucket of as
+    many). Checked before anything parses the message.
+
+    Args:
+        clock: monotonic seconds.
+    """
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self.clock = clock
+        self._tokens = MAX_MESSAGES_PER_S
+        self._t = clock()
+
+    def admit(self, message: dict[str, Any]) -> str | None:
+        """The text of an ASGI ``websocket.receive`` message (None for a binary one) if it
+        is within the limits; :class:`ViewerMessageRefused` otherwise."""
+        text, data = message.get("text"), message.get("bytes")
+        size = len(text) if text is not None else len(data) if data is not None else 0
+        if size > MAX_MESSAGE_CHARS:
+            unit = "characters" if text is not None else "bytes"
+            raise ViewerMessageRefused(
+                MESSAGE_TOO_BIG, f"message of {size} {unit}: at most {MAX_MESSAGE_CHARS} (an ack)"
+            )
+        now = self.clock()
+        self._tokens = min(MAX_MESSAGES_PER_S, self._tokens + (now - self._t) * MAX_MESSAGES_PER_S)
+        self._t = now
+        if self._tokens < 1.0:
+            raise ViewerMessageRefused(
+                POLICY_VIOLATION, f"too many messages: at most {MAX_MESSAGES_PER_S:g} a second"
+            )
+        self._tokens -= 1.0
+        return text
 
 
 @dataclass(frozen=True)
@@ -75,6 +135,10 @@ class FrameHub:
         """The default video preset of new ``/stream.video`` viewers (``ctx.stream_settings``)."""
         self.video_viewers: list[VideoViewerStats] = []
         """The ``/stream.video`` viewers' figures (``/api/status``), one per connection."""
+        self.video_encoders: dict[Rung, Any] = {}
+        """The ``/stream.video`` encoders open now (``video_stream.SharedEncoder``: that
+        module imports this one), one per rung that viewers watch
+        (:mod:`app.server.runtime.video_stream` opens and closes them on the server's loop)."""
         self.kept = KeptFrames.from_env()
         """The last pictures by seq, for benchmarks (None: off; kept_frames.py)."""
         self.takers: list[Callable[[StreamFrame], None]] = []
@@ -127,6 +191,16 @@ class FrameHub:
         for take in list(self.takers):
             take(frame)
         return frame
+
+    def repeat(self) -> StreamFrame | None:
+        """Publish the newest frame again, as a repeat (``new`` False: the same picture,
+        JPEG and metadata, a new ``seq``); None without one. For a video encoder whose new
+        viewer needs a key frame while no new picture comes (a paused replay)."""
+        frame = self._frame
+        if frame is None:
+            return None
+        meta = {k: v for k, v in frame.meta.items() if k not in ("seq", "sent_ns", "rates")}
+        return self.publish(frame.jpeg, meta, new=False, bgr=frame.bgr)
 
     def forget(self) -> None:
         """No frame until the next :meth:`publish` (the producer rests: its last frame
@@ -185,22 +259,30 @@ class FrameHub:
 
 def make_stream_router(hub: FrameHub) -> APIRouter:
     """``/stream`` (WebSocket: per frame a JSON text message, then the JPEG as binary; the
-    viewer answers each frame with a text message, ``"ack"``, before the next is sent) and
-    ``/stream.mjpg`` (multipart/x-mixed-replace for a plain ``<img>``)."""
+    viewer answers each frame with a message, ``"ack"``, before the next is sent; one over
+    :data:`MAX_MESSAGE_CHARS` closes the socket with 1009) and ``/stream.mjpg``
+    (multipart/x-mixed-replace for a plain ``<img>``)."""
     router = APIRouter()
 
     @router.websocket("/stream")
     async def _ws(ws: WebSocket) -> None:
-        # Flow control: one frame in flight. The viewer acknowledges each frame (any text
+        # Flow control: one frame in flight. The viewer acknowledges each frame (any
         # message) once drawn; only then is the newest frame sent. Transport buffers
-        # cannot fill up with stale frames however slow the viewer or its network is.
+        # cannot fill up with stale frames however slow the viewer or its network is, and
+        # a viewer's messages are read no faster than frames are sent.
         await ws.accept()
+        limits = ViewerMessages()
         with hub.watching(jpeg=True):
             try:
                 async for frame, jpeg in hub.jpeg_frames():
                     await ws.send_text(json.dumps(frame.meta))
                     await ws.send_bytes(jpeg)
-                    await ws.receive_text()
+                    message = await ws.receive()
+                    if message["type"] == "websocket.disconnect":
+                        return
+                    limits.admit(message)
+            except ViewerMessageRefused as exc:
+                await close_quietly(ws, exc.code, str(exc))
             except (WebSocketDisconnect, RuntimeError):
                 pass
 
@@ -220,3 +302,12 @@ def make_stream_router(hub: FrameHub) -> APIRouter:
         return StreamingResponse(parts(), media_type="multipart/x-mixed-replace; boundary=frame")
 
     return router
+
+
+async def close_quietly(ws: WebSocket, code: int, reason: str) -> None:
+    """Close ``ws`` with ``code`` and ``reason`` (cut to 120 characters: a close frame holds
+    123 bytes), unless it is closed already."""
+    try:
+        await ws.close(code=code, reason=reason[:120])
+    except (RuntimeError, WebSocketDisconnect):
+        pass

@@ -1,16 +1,19 @@
 """The video stream's presets (``/stream.video``, docs/FORMATS.md): what a viewer picks
 (:data:`PRESETS`), the ladder of levels the rate controller moves on (:data:`LEVELS`:
-bitrate cap, picture size, frame rate) and the console-wide default preset
-(:class:`StreamSettings`). The encoder is :class:`app.recording.h264.VideoEncoder`.
+bitrate cap, picture size, frame rate), the rungs the viewers' encoders run at
+(:func:`rung_for`: viewers on one rung share one encoder) and the console-wide default
+preset (:class:`StreamSettings`). The encoder is :class:`app.recording.h264.VideoEncoder`.
 """
 
 from __future__ import annotations
 
+import math
 import threading
 import typing
+from dataclasses import dataclass
 from typing import Literal
 
-from app.recording.h264 import Level
+from app.recording.h264 import MIN_BPS, Level
 
 VideoPreset = Literal["auto", "8", "4", "2", "1"]
 """A viewer's choice: ``auto`` (the ladder follows the link) or a level's name (Mbit/s)."""
@@ -44,6 +47,35 @@ def level_for(preset: str, bitrate_bps: float) -> Level:
         if bitrate_bps >= lv.max_bps:
             return lv
     return LEVELS[-1]
+
+
+RUNG_STEP = 0.7
+"""The bitrates an encoder runs at on a level: the level's cap times a power of this
+(8, 5.6, 3.9 ... Mbit/s on level ``8``), down to :data:`app.recording.h264.MIN_BPS`. One
+congestion step of the rate controller (``video_rate.DECREASE``, the same factor) moves a
+viewer one rung down."""
+
+
+@dataclass(frozen=True)
+class Rung:
+    """What one shared encoder of ``/stream.video`` makes: ``level`` (picture size, frame
+    rate) at ``bitrate_bps`` (bit/s). Viewers on the same rung get the same access units."""
+
+    level: Level
+    bitrate_bps: int
+
+
+def rung_for(level: Level, bitrate_bps: float) -> Rung:
+    """The rung of a viewer whose rate controller aims at ``bitrate_bps`` (bit/s) on
+    ``level``: the highest ``level.max_bps * RUNG_STEP**k`` (k = 0, 1, ...) not above it,
+    and not below :data:`app.recording.h264.MIN_BPS`."""
+    cap = level.max_bps
+    if bitrate_bps >= cap:
+        return Rung(level, cap)
+    if bitrate_bps <= MIN_BPS:
+        return Rung(level, MIN_BPS)
+    k = math.ceil(math.log(bitrate_bps / cap) / math.log(RUNG_STEP) - 1e-9)
+    return Rung(level, max(MIN_BPS, round(cap * RUNG_STEP**k)))
 
 
 class StreamSettings:

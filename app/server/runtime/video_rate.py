@@ -16,20 +16,21 @@ trip. The one-way delay leaves out what happens after the frame arrived (the vie
 decoding on a busy CPU, the acknowledgement's way back, the server's loop reading it late),
 which would otherwise read as a queue on a machine that is merely busy.
 
-Congestion is :data:`HIGH_IN_A_ROW` delays in a row well above the recent minimum (a
-queue builds on the link; a resent packet or the viewer's hiccup delays fewer frames),
-or a frame unacknowledged for much longer than the minimum round trip (the link stalled),
-or a full window with a quarter of what was sent delivered or less (the link cannot carry
-it): the bitrate steps down at once, multiplicatively (to :data:`DECREASE` of itself, or of
-what the link carried, whichever is lower: for a queue the rate of the acknowledgements
-that showed it, else the last second's throughput; never the encoder's output of a still
-scene, which is below the target), at most once per round trip (a step
-waits for the acknowledgement of a frame sent after the previous one). A step taken
-for a stall or a short window is undone when the acknowledgements that end it show that
-the frames had arrived without a queue (their one-way delays low: the acknowledgements,
-not the frames, were late), as TCP undoes a spurious timeout. A clear link (the last delay
-near the minimum, room in the window) raises it additively, :data:`INCREASE_BPS_PER_S`,
-from :data:`HOLD_AFTER_DECREASE_S` after a decrease.
+Congestion is :data:`HIGH_IN_A_ROW` delays in a row well above the recent minimum (a queue
+builds on the link; a resent packet or the viewer's hiccup delays fewer frames), or a
+frame unacknowledged for much longer than the minimum round trip (the link stalled), or a
+full window with a quarter of what was sent delivered or less (the link cannot carry it),
+or the viewer falling behind its shared encoder (:meth:`RateController.on_dropped`: its
+frames waiting to be sent were dropped): the bitrate steps down at once, multiplicatively
+(to :data:`DECREASE` of itself, or of what the link carried, whichever is lower: for a
+queue the rate of the acknowledgements that showed it, else the last second's throughput;
+never the encoder's output of a still scene, which is below the target), at most once per
+round trip (a step waits for the acknowledgement of a frame sent after the previous one).
+A step taken for a stall or a short window is undone when the acknowledgements that end it
+show that the frames had arrived without a queue (their one-way delays low: the
+acknowledgements, not the frames, were late), as TCP undoes a spurious timeout. A clear
+link (the last delay near the minimum, room in the window) raises it additively,
+:data:`INCREASE_BPS_PER_S`, from :data:`HOLD_AFTER_DECREASE_S` after a decrease.
 The bitrate stays between :data:`MIN_BPS` and the preset's cap. With preset ``auto`` the
 level follows the bitrate down the ladder at once and back up with hysteresis
 (:data:`UP_MARGIN`, :data:`UP_HOLD_S`). Frames are paced at the level's frame rate by a
@@ -139,9 +140,10 @@ class RateController:
         self._high_run = 0  # delays in a row above the limit
         self.congestion_events = 0
         self.undone_events = 0
-        self.last_congestion: str | None = None
-        """Why the last step down was taken: ``queue``, ``stall`` or ``short`` (module doc)."""
         """Steps down undone: the acknowledgements, not the frames, were late."""
+        self.last_congestion: str | None = None
+        """Why the last step down was taken: ``queue``, ``stall``, ``short`` or ``late``
+        (module doc)."""
         self.set_preset(preset)
 
     # -- the sender's reports ---------------------------------------------------------------
@@ -188,6 +190,13 @@ class RateController:
         self._trim(t)
         if delay is not None:
             self._on_delay(seq, delay, t)
+
+    def on_dropped(self, t: float) -> None:
+        """The viewer fell behind the encoder it shares with others: the frames waiting to
+        be sent to it were dropped at ``t`` (it waits for the next key frame). Congestion
+        (``late``): the bitrate steps down, at most once per :data:`STALL_S`."""
+        if t - self._decrease_t > STALL_S:
+            self._decrease(t, "late")
 
     def reset_in_flight(self) -> None:
         """Forget the frames in flight (the viewer asked for a fresh start)."""

@@ -35,7 +35,8 @@ class VideoViewerStats:
         frames_sent, keyframes, bytes_sent: since the viewer connected.
         congestion_events: the controller's steps down.
         undone_events: steps down undone (the acknowledgements were late, not the frames).
-        last_congestion: why the last step down was taken (``queue``, ``stall``, ``short``).
+        last_congestion: why the last step down was taken (``queue``, ``stall``, ``short``,
+            ``late``: behind its shared encoder).
         queue_ms: the last frame's delay above the least of the last 10 s, ms (one-way when
             the viewer says when frames arrive, else the round trip).
     """
