@@ -237,3 +237,24 @@ def test_damaged_zips_are_refused_as_upload_errors() -> None:
     with pytest.raises(UploadError, match="at most 4194304"):
         uploaded_files("big.yaml", bytes(MAX_UPLOAD_BYTES + 1))
     assert uploaded_files("dir/rig.yaml", b"a: 1\n") == {"rig.yaml": "a: 1\n"}
+
+
+def test_a_deep_opencv_rig_is_refused_and_the_panel_imports_the_next(server) -> None:
+    """The issue's 372-byte zip: an OpenCV rig nested 40,000 levels deep killed the console
+    (cv2.FileStorage segfaults). Through the panel it is one line, and the panel goes on
+    (imports run in a child process: app.workflows.rig_import)."""
+    saved: list = []
+    panel, _ = panel_with(server, saved)
+    panel.fmt.value = "opencv"
+    deep = "%YAML:1.0\nrig: " + "[" * 40_000 + "]" * 40_000 + "\n"
+    upload = SimpleNamespace(name="deep.zip", content=zip_files({"rig.yml": deep}))
+    assert len(upload.content) < 1000
+    panel._act(lambda: panel.import_upload(upload))
+    assert "Not done" in panel.message.content and "nest" in panel.message.content
+    assert saved == []
+    sent = {}
+    panel.export(SimpleNamespace(send_file_download=lambda n, d, **_kw: sent.update({n: d})))
+    panel._act(
+        lambda: panel.import_upload(SimpleNamespace(name="ok.zip", content=sent["rig-opencv.zip"]))
+    )
+    assert "rig-0001" in panel.message.content and len(saved) == 1

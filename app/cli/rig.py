@@ -4,7 +4,8 @@ speak (ROS ``camera_info`` + URDF, Kalibr camchain, OpenCV ``FileStorage``) and 
 
 Both say what the other side cannot hold: the export what the format lost, the import what
 the files did not say and how it was filled in. Nothing is overwritten without ``--force``,
-and never the file read.
+and never the file read. The files are read in a child process
+(``app.workflows.rig_import``): one that crashes a parser is one line and exit status 2.
 """
 
 from __future__ import annotations
@@ -316,7 +317,7 @@ def run_export(args: argparse.Namespace) -> int:
 def run_import(args: argparse.Namespace) -> int:
     """Read the files, write the rig file; say what the files did not say."""
     from app.storage.rigfile import save_rig
-    from calib.rig_formats import import_rig
+    from app.workflows.rig_import import import_rig_isolated
 
     out_path = Path(args.out)
     if out_path.is_dir():
@@ -342,7 +343,7 @@ def run_import(args: argparse.Namespace) -> int:
         },
     )
     files = read_inputs(in_path)
-    imported = import_rig(files, args.format, **options)
+    imported = import_rig_isolated(files, args.format, **options)  # a crash is one line
     save_rig(out_path, imported.rig, overwrite=args.force)
     rig = imported.rig
     eyes = ", ".join(f"{e}: {p.color} + {p.thermal}" for e, p in rig.eyes.items()) or "none"

@@ -21,8 +21,9 @@ A sensor may not be called ``rig`` (its file would be ``rig.yml``).
 :func:`import_` reads such files back, and also plain files from OpenCV's calibration
 sample (unknown keys such as ``avg_reprojection_error`` are ignored) when the options say
 what they lack. Lost: radiometry, range correction and uncertainty. Text is parsed with
-``cv2.FileStorage`` (YAML, XML or JSON, as OpenCV detects it); matrices are checked for
-their size before OpenCV allocates them.
+``cv2.FileStorage`` (YAML, XML or JSON, as OpenCV detects it) once
+:mod:`calib.rig_formats.filestorage_text` has found it cannot crash it (nesting, size);
+matrices are checked for their size and element type before OpenCV allocates them.
 """
 
 from __future__ import annotations
@@ -47,15 +48,17 @@ from calib.rig_formats.common import (
     modality_for,
     sensor_name_for,
 )
+from calib.rig_formats.filestorage_text import check_filestorage_text
 from calib.transforms import invert, make_T, rigidity_problem
 
 INDEX_FILE = "rig.yml"
 """The file that lists the sensors, the reference and the eyes."""
 SENSOR_SUFFIX = ".yml"
-MAX_TEXT_CHARS = 10_000_000
-"""Longest file read (10 MB; a sensor's file is under a kilobyte)."""
 _MAX_MATRIX_SIDE = 16
 """Largest rows or cols of a matrix read (checked before OpenCV allocates it)."""
+_MATRIX_TYPES = ("d", "f")
+"""A matrix's element types read (``dt``): OpenCV would saturate 1333.0 to 255 as ``u``
+or read one element as many with ``3d``."""
 _CV_PARSE_RE = re.compile(r"\((\d+)\): (.*?)'?$")
 """OpenCV's parse errors end ``... in function '<text>(<line>): <reason>'``."""
 _READ = cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY
@@ -154,13 +157,10 @@ def export(rig: Rig) -> Exported:
 
 
 def _open(text: str, source: str) -> cv2.FileStorage:
-    """``text`` as a FileStorage to read; RigError naming ``source`` for what OpenCV refuses."""
-    if not isinstance(text, str):
-        raise RigError(f"{source}: expected text, got {type(text).__name__}")
-    if len(text) > MAX_TEXT_CHARS:
-        raise RigError(f"{source}: {len(text)} characters; expected at most {MAX_TEXT_CHARS}")
-    if not text.strip() or "\x00" in text:
-        raise RigError(f"{source}: not an OpenCV FileStorage file (empty or binary)")
+    """``text`` as a FileStorage to read; RigError naming ``source`` for text that could
+    harm OpenCV's parser (checked first, :func:`check_filestorage_text`) or that OpenCV
+    refuses."""
+    check_filestorage_text(text, source)
     try:
         fs = cv2.FileStorage(text, _READ)
     except (cv2.error, SystemError) as exc:  # OpenCV's parse errors surface as SystemError
@@ -238,6 +238,12 @@ def _matrix(
     if shapes is not None and tuple(dims) not in shapes:
         wanted = " or ".join(f"{r} x {c}" for r, c in shapes)
         raise RigError(f"{where}: expected {wanted}, got {dims[0]} x {dims[1]}")
+    dt = node.getNode("dt")
+    if not dt.isString() or dt.string() not in _MATRIX_TYPES:
+        raise RigError(
+            f"{where}: dt: expected one of {list(_MATRIX_TYPES)} (doubles or floats), got "
+            f"{dt.string() if dt.isString() else _describe(dt)!r}"
+        )
     try:
         mat = node.mat()
     except (cv2.error, SystemError) as exc:

@@ -18,9 +18,10 @@ from pathlib import PurePosixPath
 from app.errors import describe_error
 from app.server.markdown_text import md_text
 from app.server.runtime.context import ConsoleContext
+from app.workflows.rig_import import import_rig_isolated
 from calib.errors import RigError
 from calib.rig import Rig
-from calib.rig_formats import IMPORT_FORMATS, RIG_FORMATS, export_rig, import_rig
+from calib.rig_formats import IMPORT_FORMATS, RIG_FORMATS, export_rig
 
 MAX_UPLOAD_BYTES = 4 << 20
 """Rig files are small: a larger upload is refused (the relay in front of Viser refuses it
@@ -176,7 +177,8 @@ class RigFilesPanel:
         if self.ctx.save_rig is None:
             raise ValueError("this console has no calibration session to save rigs in")
         files = uploaded_files(upload.name, upload.content)
-        imported = import_rig(files, fmt, eyes=parse_eyes(self.eyes.value) or None)
+        # in a child process: OpenCV's and libyaml's parsers are native code
+        imported = import_rig_isolated(files, fmt, eyes=parse_eyes(self.eyes.value) or None)
         report = {"imported_from": upload.name, "format": fmt, "lost": imported.lost}
         version = self.ctx.save_rig(imported.rig, report)
         return _listed(

@@ -118,7 +118,7 @@ class VideoViewerInfo(BaseModel):
         0, description="steps down undone: the acknowledgements were late, not the frames"
     )
     last_congestion: str | None = Field(
-        None, description="why the last step down was taken: queue, stall or short"
+        None, description="why the last step down was taken: queue, stall, short or late"
     )
     queue_ms: float | None = Field(
         None,
