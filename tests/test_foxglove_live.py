@@ -35,17 +35,19 @@ from app.recording import RecordingWriter
 from app.recording.layout import FUSED_VIDEO_SCHEMA, FUSED_VIDEO_TOPIC, topic_of
 from app.recording.video_track import FusedVideoEncoder, nal_types
 from app.server.runtime.demand import ConsoleDemand
-from app.server.runtime.foxglove_live import (
-    HEALTH_SCHEMA_NAME,
-    HEALTH_TOPIC,
+from app.server.runtime.foxglove_gate import (
     LOOPBACK,
     MAX_CLIENT_MESSAGE_BYTES,
     MAX_CLIENTS,
     MAX_WAITING,
+    FoxgloveGate,
+)
+from app.server.runtime.foxglove_live import (
+    HEALTH_SCHEMA_NAME,
+    HEALTH_TOPIC,
     MESSAGE_BACKLOG,
     SUBPROTOCOL,
     FoxgloveLive,
-    _Gate,
     check_foxglove_port,
     points_topic,
     start_foxglove_server,
@@ -570,7 +572,7 @@ def test_the_gate_caps_clients_and_waiting_connections_and_drops_stalled_ones() 
     MAX_CLIENT_MESSAGE_BYTES ends the connection before the server gets more of it."""
     upstream = _EndlessServer()
     threading.Thread(target=upstream.serve_forever, daemon=True).start()
-    gate = _Gate(0, upstream.server_address[:2], max_clients=2, handshake_s=3.0, stall_s=3.0)
+    gate = FoxgloveGate(0, upstream.server_address[:2], max_clients=2, handshake_s=3.0, stall_s=3.0)
     gate.start()
     sockets: list[socket.socket] = []
     try:
