@@ -191,9 +191,8 @@ def read_poses(
         except McapDamage as exc:
             notes.append(f"poses read up to the damage at byte {exc.offset}: {exc.reason}")
         if index.damage is not None and not notes:
-            notes.append(
-                f"the file is damaged at byte {index.damage.offset}: {index.damage.reason}"
-            )
+            damage = index.damage
+            notes.append(f"poses read up to the damage at byte {damage.offset}: {damage.reason}")
         if bad:
             notes.append(f"{bad} transforms skipped (undecodable, or a zero quaternion)")
     finally:
