@@ -13,11 +13,15 @@
 - Capture directories: a small three-sensor rig, its board and a view of known values.
 - Calibration: the accuracy targets, a rig with sensors mounted upside down.
 - Viser: opening its port directly, as a browser or an attacker would.
+- Memory: :func:`measure_in_child`, one call's peak memory and time in a fresh interpreter.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
@@ -370,3 +374,37 @@ def directory_bytes(directory: Path) -> dict[str, bytes]:
         for p in sorted(directory.rglob("*"))
         if p.is_file()
     }
+
+
+_MEASURE = """
+import json, resource, sys, time
+exec(sys.argv[1])
+base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+start = time.perf_counter()
+try:
+    outcome = str(eval(sys.argv[2]))
+except {error} as exc:
+    outcome = str(exc)
+took = time.perf_counter() - start
+grew = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base
+print(json.dumps({{"outcome": outcome, "grew_mib": grew / 1024, "took_s": took}}))
+"""
+
+
+def measure_in_child(setup: str, call: str, error: str, timeout_s: float = 120.0) -> dict:
+    """Run ``setup`` (statements: imports, reading input) and then evaluate ``call`` (an
+    expression) in a fresh interpreter at the repository's root; ``{"outcome": str(its
+    value) or the message of the ``error`` it raised (an exception name ``setup`` made
+    available), "grew_mib": the peak resident memory added by the call (ru_maxrss), MiB,
+    "took_s": its wall time}``. Any other exception fails the test with the child's
+    traceback."""
+    child = subprocess.run(
+        [sys.executable, "-c", _MEASURE.format(error=error), setup, call],
+        cwd=Path(__file__).resolve().parent.parent,
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+    )
+    if child.returncode != 0:
+        pytest.fail(f"the child failed:\n{child.stderr}")
+    return json.loads(child.stdout)

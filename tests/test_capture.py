@@ -244,7 +244,7 @@ def test_corrupt_png_found_when_indexing(capture: tuple[Path, Rig, FrameSet]) ->
     path, _, _ = capture
     bad = path / "0001" / "tof.png"
     bad.write_bytes(b"this is not an image at all")
-    with pytest.raises(CaptureError, match="not an image: expected a PNG or JPEG") as exc:
+    with pytest.raises(CaptureError, match="not an image: expected JPEG or PNG") as exc:
         load_capture(path)
     assert str(bad) in str(exc.value)
 

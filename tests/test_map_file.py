@@ -29,6 +29,7 @@ from app.storage.map_file import (
 )
 from calib.transforms import make_T, rotation_from_euler_deg
 from fusion.voxel_map import MapSettings, VoxelMap
+from tests.support import measure_in_child
 
 VOXEL = 0.05
 
@@ -364,21 +365,6 @@ HOSTILE = {
     ),
 }
 
-PEAK_CHILD = """
-import json, resource, sys, time
-from app.storage import map_file
-base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-start = time.perf_counter()
-try:
-    getattr(map_file, sys.argv[2])(sys.argv[1])
-    outcome = "loaded"
-except map_file.MapFileError as exc:
-    outcome = str(exc)
-took = time.perf_counter() - start
-grew = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base
-print(json.dumps({"outcome": outcome, "grew_mib": grew / 1024, "took_s": took}))
-"""
-
 
 @pytest.mark.parametrize("hostile", list(HOSTILE))
 def test_hostile_map_files_are_refused_at_once_in_bounded_memory(
@@ -391,15 +377,11 @@ def test_hostile_map_files_are_refused_at_once_in_bounded_memory(
     with the first pattern tried for JSON strings, 57 MiB with the second."""
     replace, deflated, function, refusal = HOSTILE[hostile]
     path = _zip(tmp_path / "hostile.map.npz", _members(voxel_map, **replace), deflated)
-    child = subprocess.run(
-        [sys.executable, "-c", PEAK_CHILD, str(path), function],
-        cwd=Path(__file__).resolve().parent.parent,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=True,
+    got = measure_in_child(
+        "from app.storage import map_file\nfrom app.storage.map_file import MapFileError",
+        f"(map_file.{function}({str(path)!r}), 'loaded')[1]",
+        "MapFileError",
     )
-    got = json.loads(child.stdout)
     assert got["outcome"].startswith(f"{path}: "), got
     assert re.search(refusal, got["outcome"]), got
     assert got["grew_mib"] < 20, got

@@ -5,13 +5,9 @@ from __future__ import annotations
 
 import bz2
 import io
-import json
 import struct
-import subprocess
-import sys
 import zipfile
 import zlib
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -28,6 +24,7 @@ from app.server.panels.rig_files import (
 )
 from app.sources.sim.head import default_rig
 from calib.rig_formats import IMPORT_FORMATS, RIG_FORMATS
+from tests.support import measure_in_child
 
 
 @pytest.fixture(scope="module")
@@ -165,22 +162,6 @@ def bombs() -> dict[str, bytes]:
     }
 
 
-PEAK_CHILD = """
-import json, resource, sys, time
-from app.server.panels.rig_files import UploadError, uploaded_files
-data = open(sys.argv[1], "rb").read()
-base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-start = time.perf_counter()
-try:
-    outcome = f"accepted {len(uploaded_files('bomb.zip', data))} files"
-except UploadError as exc:
-    outcome = str(exc)
-took = time.perf_counter() - start
-grew = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base
-print(json.dumps({"outcome": outcome, "grew_mib": grew / 1024, "took_s": took}))
-"""
-
-
 @pytest.mark.parametrize(
     ("bomb", "refusal"),
     [
@@ -198,15 +179,12 @@ def test_zip_bombs_are_refused_at_once_in_bounded_memory(tmp_path, bomb, refusal
     assert len(data) <= MAX_UPLOAD_BYTES  # within the upload cap: the zip caps must hold
     path = tmp_path / "bomb.zip"
     path.write_bytes(data)
-    child = subprocess.run(
-        [sys.executable, "-c", PEAK_CHILD, str(path)],
-        cwd=Path(__file__).resolve().parent.parent,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=True,
+    got = measure_in_child(
+        "from app.server.panels.rig_files import UploadError, uploaded_files\n"
+        f"data = open({str(path)!r}, 'rb').read()",
+        "f\"accepted {len(uploaded_files('bomb.zip', data))} files\"",
+        "UploadError",
     )
-    got = json.loads(child.stdout)
     assert got["outcome"] == f"bomb.zip: {refusal}"
     assert got["grew_mib"] < 40, got
     assert got["took_s"] < 5, got  # refused at once: unpacking all of it took seconds or more

@@ -72,11 +72,12 @@ are for BENCHMARKS.md; exit 1 only if a viewer failed.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import statistics
 import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -247,6 +248,26 @@ async def soak(
     return SoakReport(cfg, baseline, phase, figures, viewers, criteria)
 
 
+@contextlib.contextmanager
+def _inspection_console(
+    start_timeout_s: float, out: Callable[[str], None]
+) -> Iterator[ConsoleProcess]:
+    """``trifuse serve`` on the simulated inspection room in a temporary work directory,
+    stopped at the end; its log's tail is said if the block fails."""
+    with tempfile.TemporaryDirectory(prefix="trifuse-soak-") as tmp:
+        console = ConsoleProcess(
+            ["--scenario", "inspection", "--workdir", str(Path(tmp) / "work")],
+            log_path=Path(tmp) / "serve.log",
+            timeout_s=start_timeout_s,
+        )
+        with console:
+            try:
+                yield console
+            except BaseException:
+                out(f"console log:\n{console.output()[-2000:]}")
+                raise
+
+
 def run_soak(cfg: SoakConfig, out: Callable[[str], None] = print) -> SoakReport:
     """Start a console, run :func:`soak` against it, stop it."""
     if cfg.viewers < 1 or cfg.soak_s <= 0 or cfg.baseline_s <= 0 or cfg.window_s <= 0:
@@ -258,19 +279,9 @@ def run_soak(cfg: SoakConfig, out: Callable[[str], None] = print) -> SoakReport:
         t = time.monotonic()
         poses = prewarm_pose_cache()
         out(f"pose cache: {poses} poses on disk ({time.monotonic() - t:.1f} s)")
-    with tempfile.TemporaryDirectory(prefix="trifuse-soak-") as tmp:
-        console = ConsoleProcess(
-            ["--scenario", "inspection", "--workdir", str(Path(tmp) / "work")],
-            log_path=Path(tmp) / "serve.log",
-            timeout_s=cfg.start_timeout_s,
-        )
-        with console:
-            out(f"console: pid {console.pid}, port {console.port}")
-            try:
-                return asyncio.run(soak(console, cfg, out))
-            except BaseException:
-                out(f"console log:\n{console.output()[-2000:]}")
-                raise
+    with _inspection_console(cfg.start_timeout_s, out) as console:
+        out(f"console: pid {console.pid}, port {console.port}")
+        return asyncio.run(soak(console, cfg, out))
 
 
 def run_soak_cli(cfg: SoakConfig) -> int:
@@ -391,19 +402,9 @@ def run_video_load(
         out(f"pose cache: {poses} poses on disk ({time.monotonic() - t:.1f} s)")
     runs = []
     for r in range(cfg.runs):
-        with tempfile.TemporaryDirectory(prefix="trifuse-video-load-") as tmp:
-            console = ConsoleProcess(
-                ["--scenario", "inspection", "--workdir", str(Path(tmp) / "work")],
-                log_path=Path(tmp) / "serve.log",
-                timeout_s=cfg.start_timeout_s,
-            )
-            with console:
-                out(f"run {r + 1}/{cfg.runs}: console pid {console.pid}, port {console.port}")
-                try:
-                    runs.append(asyncio.run(video_load(console, cfg, out)))
-                except BaseException:
-                    out(f"console log:\n{console.output()[-2000:]}")
-                    raise
+        with _inspection_console(cfg.start_timeout_s, out) as console:
+            out(f"run {r + 1}/{cfg.runs}: console pid {console.pid}, port {console.port}")
+            runs.append(asyncio.run(video_load(console, cfg, out)))
     return runs
 
 

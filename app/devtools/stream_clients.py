@@ -15,6 +15,7 @@ import re
 import socket
 import time
 from collections.abc import Sequence
+from typing import Any
 
 from app.errors import describe_error
 
@@ -55,6 +56,22 @@ class MjpegParts:
                 raise ValueError(f"MJPEG: unexpected part headers {head[:80]!r}")
             self._body_left = int(m.group(1)) + 2  # the CRLF after the JPEG
             view = memoryview(rest)
+
+
+def _connect(url: str, token: str | None, open_timeout_s: float) -> Any:
+    """A websockets client connection to ``url`` (with the console's ``token``), no proxy,
+    no compression, no message size limit: ``async with`` it."""
+    from websockets.asyncio.client import connect
+
+    headers = {"Authorization": f"token {token}"} if token else {}
+    return connect(
+        url,
+        additional_headers=headers,
+        proxy=None,
+        compression=None,
+        max_size=None,
+        open_timeout=open_timeout_s,
+    )
 
 
 class StreamClient:
@@ -104,17 +121,7 @@ class FastViewer(StreamClient):
         self.latencies_ms: list[float] = []
 
     async def _receive(self) -> None:
-        from websockets.asyncio.client import connect
-
-        headers = {"Authorization": f"token {self.token}"} if self.token else {}
-        async with connect(
-            self.url,
-            additional_headers=headers,
-            proxy=None,
-            compression=None,
-            max_size=None,
-            open_timeout=30,
-        ) as ws:
+        async with _connect(self.url, self.token, open_timeout_s=30) as ws:
             while True:
                 meta = await ws.recv()
                 jpeg = await ws.recv()
@@ -143,17 +150,7 @@ class VideoViewer(StreamClient):
         self.keyframes = 0
 
     async def _receive(self) -> None:
-        from websockets.asyncio.client import connect
-
-        headers = {"Authorization": f"token {self.token}"} if self.token else {}
-        async with connect(
-            self.url,
-            additional_headers=headers,
-            proxy=None,
-            compression=None,
-            max_size=None,
-            open_timeout=60,
-        ) as ws:
+        async with _connect(self.url, self.token, open_timeout_s=60) as ws:
             while True:
                 text = await ws.recv()
                 unit = await ws.recv()

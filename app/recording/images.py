@@ -15,12 +15,11 @@ is refused (OpenCV would decode a dozen more, each with its own header to trust)
 
 from __future__ import annotations
 
-import struct
-
 import cv2
 import numpy as np
 
 from app.recording.errors import ImageSizeError
+from calib.image_header import ImageHeaderError, image_header
 from calib.rig import MAX_IMAGE_PIXELS
 
 # encoding -> (numpy dtype, channels)
@@ -37,11 +36,6 @@ RAW_ENCODINGS: dict[str, tuple[str, int]] = {
     "rgba8": ("u1", 4),
     "bgra8": ("u1", 4),
 }
-
-
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
-_JPEG_STANDALONE = {0x01, 0xD8, *range(0xD0, 0xD8)}
 
 
 def check_size(what: str, width: int, height: int, size: tuple[int, int] | None) -> None:
@@ -64,38 +58,11 @@ def compressed_size(data: bytes) -> tuple[str, int, int]:
     """``(format, width, height)`` of a compressed image from its header (``"JPEG"``: the
     first frame header; ``"PNG"``: the IHDR chunk), nothing decoded. ValueError for any
     other format, or a header without a size."""
-    if data[:8] == _PNG_SIGNATURE:
-        if len(data) < 24 or data[12:16] != b"IHDR":
-            raise ValueError("corrupt PNG: no IHDR chunk after the signature")
-        width, height = struct.unpack_from(">II", data, 16)
-        return "PNG", width, height
-    if data[:2] != b"\xff\xd8":
-        raise ValueError(
-            f"compressed image: expected JPEG or PNG, the first bytes are {bytes(data[:8])!r}"
-        )
-    i, n = 2, len(data)
-    while i + 4 <= n:
-        if data[i] != 0xFF:
-            break
-        marker = data[i + 1]
-        if marker == 0xFF:  # fill byte
-            i += 1
-            continue
-        if marker in _JPEG_STANDALONE:
-            i += 2
-            continue
-        if marker in (0xD9, 0xDA):  # end of image, start of scan: no frame header before
-            break
-        (length,) = struct.unpack_from(">H", data, i + 2)
-        if marker in _JPEG_SOF:
-            if length < 8 or i + 9 > n:
-                break
-            height, width = struct.unpack_from(">HH", data, i + 5)
-            return "JPEG", width, height
-        if length < 2:
-            break
-        i += 2 + length
-    raise ValueError("corrupt JPEG: no frame header (width, height) before its data")
+    try:
+        header = image_header(data)
+    except ImageHeaderError as exc:
+        raise ValueError(f"compressed image: {exc}") from None
+    return header.format.upper(), header.width, header.height
 
 
 def _decode_compressed(data: bytes, flags: int, size: tuple[int, int] | None) -> np.ndarray:

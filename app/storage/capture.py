@@ -28,9 +28,9 @@ image when asked, so 30 views x 5 sensors cost the memory of what the caller kee
 
 from __future__ import annotations
 
+import mmap
 import os
 import re
-import struct
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,6 +43,7 @@ from app.sources.frames import Frame, FrameSet
 from app.storage.rigfile import load_rig
 from app.storage.text import read_text
 from calib.board import Board, board_from_dict
+from calib.image_header import ImageHeaderError, image_header
 from calib.rig import MODALITY_PREFIXES, Modality, Rig, modality_of_name
 from calib.units import kelvin_from_counts, metres_from_counts
 from calib.yaml_text import YamlError, parse_yaml
@@ -57,11 +58,6 @@ DISTANCE_SUFFIX = "_distance"
 ThermalEncoding = Literal["centikelvin", "counts"]
 
 _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-# PNG colour type -> channels after OpenCV's IMREAD_UNCHANGED (palette decodes to BGR).
-_PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}
-# JPEG start-of-frame markers (baseline, extended, progressive, lossless ...), not DHT/DAC/JPG.
-_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 
 
 class CaptureError(ValueError):
@@ -123,73 +119,27 @@ class ImageFile:
     format: Literal["png", "jpeg"]
 
 
-def _png_header(path: Path, head: bytes) -> ImageFile:
-    if len(head) < 26 or head[12:16] != b"IHDR":
-        raise CaptureError(f"{path}: corrupt PNG: expected an IHDR chunk after the signature")
-    width, height = struct.unpack(">II", head[16:24])
-    bit_depth, colour_type = head[24], head[25]
-    if width == 0 or height == 0 or colour_type not in _PNG_CHANNELS:
-        raise CaptureError(
-            f"{path}: corrupt PNG header (width {width}, height {height}, "
-            f"colour type {colour_type})"
-        )
-    channels = _PNG_CHANNELS[colour_type]
-    depth = 8 if colour_type == 3 or bit_depth < 8 else bit_depth
-    return ImageFile(path, width, height, depth, channels, "png")
-
-
-def _jpeg_header(path: Path) -> ImageFile:
-    with path.open("rb") as f:
-        f.seek(2)
-        while True:
-            byte = f.read(1)
-            if not byte:
-                break
-            if byte != b"\xff":
-                continue
-            marker = f.read(1)
-            while marker == b"\xff":
-                marker = f.read(1)
-            if not marker:
-                break
-            m = marker[0]
-            if m in (0x01, 0xD8) or 0xD0 <= m <= 0xD7:
-                continue
-            if m in (0xD9, 0xDA):  # end of image or start of scan before any frame header
-                break
-            raw_len = f.read(2)
-            if len(raw_len) < 2:
-                break
-            (length,) = struct.unpack(">H", raw_len)
-            if m in _JPEG_SOF:
-                body = f.read(6)
-                if len(body) < 6:
-                    break
-                precision, height, width, comps = struct.unpack(">BHHB", body)
-                if width == 0 or height == 0:
-                    break
-                return ImageFile(path, width, height, precision, comps, "jpeg")
-            f.seek(length - 2, os.SEEK_CUR)
-    raise CaptureError(f"{path}: corrupt JPEG: no frame header (width, height) found")
-
-
 def read_image_header(path: str | Path) -> ImageFile:
-    """Size, bit depth and channels of a PNG or JPEG file from its header.
+    """Size, bit depth and channels of a PNG or JPEG file from its header (the file is
+    mapped, not read: a JPEG's frame header may follow large metadata segments).
 
     Raises CaptureError naming the file when it cannot be read or is neither format.
     """
     path = Path(path)
     try:
         with path.open("rb") as f:
-            head = f.read(32)
+            if os.fstat(f.fileno()).st_size == 0:
+                raise CaptureError(f"{path}: not an image: an empty file")
+            with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
+                header = image_header(data)
     except OSError as exc:
         raise CaptureError(f"{path}: cannot read image: {exc.strerror}") from None
-    if head.startswith(_PNG_SIGNATURE):
-        return _png_header(path, head)
-    if head.startswith(b"\xff\xd8"):
-        return _jpeg_header(path)
-    raise CaptureError(
-        f"{path}: not an image: expected a PNG or JPEG file, the first bytes are {head[:8]!r}"
+    except ImageHeaderError as exc:
+        if "expected JPEG or PNG" in str(exc):
+            raise CaptureError(f"{path}: not an image: {exc}") from None
+        raise CaptureError(f"{path}: {exc}") from None
+    return ImageFile(
+        path, header.width, header.height, header.bit_depth, header.channels, header.format
     )
 
 

@@ -9,7 +9,6 @@ The message layout is :mod:`app.sources.push.protocol`'s; drivers encode with
 
 from __future__ import annotations
 
-import struct
 from collections.abc import Mapping
 from typing import Any
 
@@ -27,12 +26,11 @@ from app.sources.push.protocol import (
     PushError,
     parse_header,
 )
+from calib.image_header import ImageHeaderError, image_header
 from calib.numbers import check_finite
 
 _ZERO_INVALID = {("thermal", "image"), ("tof", "distance")}  # 16-bit 0 counts -> NaN
 _BYTES_PER_PIXEL = {"raw8": 3, "raw16": 2, "raw32f": 4}
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 
 
 def decode_message(
@@ -146,42 +144,6 @@ def _check_part(
     return kind
 
 
-def _png_info(data: bytes, what: str) -> tuple[int, int, int, int]:
-    """(width, height, bit depth, colour type) from a PNG's IHDR chunk."""
-    if len(data) < 33 or data[:8] != _PNG_SIGNATURE or data[12:16] != b"IHDR":
-        raise PushError(f"{what}: not a PNG (no PNG signature and IHDR chunk)")
-    w, h, depth, ctype = struct.unpack_from(">IIBB", data, 16)
-    return w, h, depth, ctype
-
-
-def _jpeg_size(data: bytes, what: str) -> tuple[int, int]:
-    """(width, height) from a JPEG's start-of-frame segment."""
-    if data[:2] != b"\xff\xd8":
-        raise PushError(f"{what}: not a JPEG (no start-of-image marker)")
-    i = 2
-    n = len(data)
-    while i + 4 <= n:
-        if data[i] != 0xFF:
-            raise PushError(f"{what}: corrupt JPEG (expected a marker at byte {i})")
-        marker = data[i + 1]
-        if marker == 0xFF:  # fill byte
-            i += 1
-            continue
-        if marker in (0x01, *range(0xD0, 0xD8)):
-            i += 2
-            continue
-        (seg_len,) = struct.unpack_from(">H", data, i + 2)
-        if marker in _JPEG_SOF:
-            if i + 9 > n:
-                break
-            h, w = struct.unpack_from(">HH", data, i + 5)
-            return w, h
-        if marker == 0xDA:
-            break
-        i += 2 + seg_len
-    raise PushError(f"{what}: corrupt JPEG (no start-of-frame segment)")
-
-
 def _number(value: Any, what: str) -> float:
     number = check_finite(value, what, PushError)
     if abs(number) > MAX_SCALE_OR_OFFSET:
@@ -207,10 +169,14 @@ def decode_part(modality: str, part: Mapping[str, Any], data: bytes, what: str) 
     if encoding == "raw32f":
         return np.frombuffer(data, dtype="<f4").reshape(h, w).astype(np.float32)
     if encoding in ("jpeg", "png", "png16"):
-        if encoding == "jpeg":
-            fw, fh = _jpeg_size(data, what)
-        else:
-            fw, fh, depth, ctype = _png_info(data, what)
+        try:
+            header = image_header(data)
+        except ImageHeaderError as exc:
+            raise PushError(f"{what}: {exc}") from None
+        fw, fh, depth, ctype = header.width, header.height, header.bit_depth, header.png_colour_type
+        if header.format != ("jpeg" if encoding == "jpeg" else "png"):
+            raise PushError(f"{what}: {encoding} data that is a {header.format.upper()}")
+        if encoding != "jpeg":
             if encoding == "png16" and (depth != 16 or ctype != 0):
                 raise PushError(
                     f"{what}: png16 needs a 16-bit grey PNG, got bit depth {depth}, colour "

@@ -1,0 +1,101 @@
+"""What a PNG or JPEG says of its picture before anything is decoded.
+
+Every reader of images that come from outside (capture directories, recordings, pushed
+frames) checks the size an image claims against what it expects before OpenCV allocates
+anything: a 631-byte JPEG may claim 30000 x 30000 pixels. :func:`image_header` reads the
+claim from the bytes: a PNG's IHDR chunk, a JPEG's first frame header (SOFn), skipping the
+segments before it (APPn, DQT, DHT, ...). It reads only the header, so it takes any buffer
+(``bytes``, a ``memoryview``, an ``mmap`` of a file).
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from typing import Literal
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}
+"""PNG colour type -> samples per pixel as OpenCV's IMREAD_UNCHANGED decodes it (a palette
+decodes to BGR)."""
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+"""JPEG start-of-frame markers (baseline, extended, progressive, lossless ...), not DHT
+(C4), JPG (C8) or DAC (CC)."""
+_JPEG_STANDALONE = {0x01, 0xD8, *range(0xD0, 0xD8)}
+"""Markers without a length: TEM, SOI, RST0-7."""
+
+
+class ImageHeaderError(ValueError):
+    """Bytes that are not a PNG or JPEG with a readable size; the message says why (the
+    caller names the file or message)."""
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    """A PNG's or JPEG's picture as its header describes it.
+
+    Attributes:
+        format: ``"png"`` or ``"jpeg"``.
+        width, height: pixels (both positive).
+        bit_depth: bits per sample as OpenCV decodes it (a palette PNG or one of fewer than
+            8 bits: 8).
+        channels: samples per pixel as OpenCV's IMREAD_UNCHANGED decodes it (1 grey, 2 grey
+            and alpha, 3, 4).
+        png_colour_type: the IHDR's colour type (0 grey, 2 RGB, 3 palette, 4 grey and
+            alpha, 6 RGBA); None for a JPEG.
+    """
+
+    format: Literal["png", "jpeg"]
+    width: int
+    height: int
+    bit_depth: int
+    channels: int
+    png_colour_type: int | None = None
+
+
+def image_header(data: bytes | bytearray | memoryview) -> ImageHeader:
+    """The header of a PNG or JPEG in ``data`` (ImageHeaderError for anything else, or a
+    header without a size)."""
+    if bytes(data[:8]) == PNG_SIGNATURE:
+        return _png(data)
+    if bytes(data[:2]) == b"\xff\xd8":
+        return _jpeg(data)
+    raise ImageHeaderError(f"expected JPEG or PNG, the first bytes are {bytes(data[:8])!r}")
+
+
+def _png(data: bytes | bytearray | memoryview) -> ImageHeader:
+    if len(data) < 26 or bytes(data[12:16]) != b"IHDR":
+        raise ImageHeaderError("corrupt PNG: no IHDR chunk after the signature")
+    width, height, bit_depth, colour_type = struct.unpack_from(">IIBB", data, 16)
+    if width == 0 or height == 0 or colour_type not in _PNG_CHANNELS:
+        raise ImageHeaderError(
+            f"corrupt PNG header (width {width}, height {height}, colour type {colour_type})"
+        )
+    depth = 8 if colour_type == 3 or bit_depth < 8 else bit_depth
+    return ImageHeader("png", width, height, depth, _PNG_CHANNELS[colour_type], colour_type)
+
+
+def _jpeg(data: bytes | bytearray | memoryview) -> ImageHeader:
+    i, n = 2, len(data)
+    while i + 4 <= n and data[i] == 0xFF:
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in _JPEG_STANDALONE:
+            i += 2
+            continue
+        if marker in (0xD9, 0xDA):  # end of image, start of scan: no frame header before
+            break
+        (length,) = struct.unpack_from(">H", data, i + 2)
+        if marker in _JPEG_SOF:
+            if length < 8 or i + 10 > n:
+                break
+            precision, height, width, components = struct.unpack_from(">BHHB", data, i + 4)
+            if width == 0 or height == 0:
+                break
+            return ImageHeader("jpeg", width, height, precision, components)
+        if length < 2:
+            break
+        i += 2 + length
+    raise ImageHeaderError("corrupt JPEG: no frame header (width, height) before its data")
