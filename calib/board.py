@@ -6,7 +6,10 @@ metres. Corners are ordered row-major: index ``r * cols + c`` is at
 ``(c * square, r * square, 0)``. The square diagonally up-left of corner (0, 0) is black
 (on the heated board: high emissivity, so hot in thermal; dark in TOF amplitude). With
 an odd number of squares on one side and an even number on the other, the colours fix
-the ordering under a half turn.
+the ordering under a half turn. Other boards look the same turned (:attr:`Board.orderings`):
+even x even or odd x odd inner corners under a half turn, a square board under a quarter
+turn too; each view's ordering is then decided across sensors from the data
+(:func:`calib.polarity.order_views`).
 
 Which squares read dark in a thermal image or in a TOF amplitude image depends on the
 board (painted squares on bare aluminium read hot when heated, cold when cooled; some black
@@ -65,6 +68,16 @@ class Board:
     @property
     def n_corners(self) -> int:
         return self.cols * self.rows
+
+    @property
+    def orderings(self) -> int:
+        """How many orderings of a detection's corners the pattern cannot tell apart: 1
+        when the square colours fix it (odd x even inner corners, not square), 2 when a
+        half turn maps the pattern, colours included, onto itself (even x even or odd x
+        odd), 4 for a square board (quarter turns too; its colours are not used)."""
+        if self.cols == self.rows:
+            return 4
+        return 2 if (self.cols + self.rows) % 2 == 0 else 1
 
     @property
     def squares(self) -> tuple[int, int]:

@@ -13,6 +13,12 @@ Pipeline, per modality:
   corners are refined with ``cornerSubPix`` (half-window 0.4 x the smallest corner
   spacing, clamped to 2-11 px) on the linearised (gamma ``COLOR_GAMMA``), lightly blurred
   grey image; the classic detector's corners get one wider pass first.
+* **large colour images** (longer side over ``PYRAMID_ABOVE_PX``, e.g. 12 MP): the same
+  detectors on copies downscaled (``INTER_AREA``) to the longer sides
+  ``PYRAMID_LEVELS_PX`` in turn, the corners refined there as above, then refined once
+  more at full resolution in a crop around the board (half-window from the corner spacing
+  at full resolution, same clamp), and the squares just outside the grid checked
+  (:func:`_ring_problem`). Detection then costs about the same at 12 MP as at 1 MP.
 * **thermal** (temperatures or raw counts, any real dtype, NaN = no reading): fixed-pattern
   column and row offsets removed (:func:`_destripe`), background flattening (the image
   minus a wide Gaussian blur, which removes uneven heating, the hot spot, narcissus and
@@ -44,8 +50,9 @@ opencv-python-headless 5.0.0.93, 2 cores):
   on their small, upsampled squares it was worse than the SB detector with ACCURACY on
   an upsampled crop (thermal 0.062 vs 0.034 px, TOF 0.26 vs 0.054 px).
 
-Upsampled coordinates map back with the pixel-centre convention of docs/CONVENTIONS.md:
-``u = (u' + 0.5) / s - 0.5``.
+Upsampled (or downscaled) coordinates map back with the pixel-centre convention of
+docs/CONVENTIONS.md: ``u = (u' + 0.5) / s - 0.5`` (per axis for a downscaled copy, whose
+size is rounded to whole pixels).
 
 Canonical order (calib/board.py): row-major, corner ``r * cols + c`` is the board point
 ``(c * s, r * s, 0)``. The detectors return one of several orderings (the sector-based
@@ -77,7 +84,7 @@ views, seeds 0-1; BENCHMARKS.md, thermal board detection).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
 import cv2
@@ -101,6 +108,19 @@ calibration RMS too (0.196 -> 0.193 px). Use 1.0 for a linear camera."""
 COLOR_REFINE_BLUR_PX = 1.0
 """Gaussian sigma applied before the colour refinement; sharp, pixel-integrated edges
 otherwise bias ``cornerSubPix`` (measured 0.073 -> 0.057 px mean without linearising)."""
+
+PYRAMID_ABOVE_PX = 2000
+"""Colour images whose longer side exceeds this are searched on downscaled copies (module
+docstring); smaller ones at their own size, as before."""
+PYRAMID_LEVELS_PX = (1000, 500, 2000)
+"""Longer sides of the downscaled copies, in the order they are searched (levels not
+smaller than the image are skipped). 1000 and 2000 px are what OpenCV users downscale 12 MP
+views to; 500 px catches boards that fill the frame, whose textured surroundings (grass)
+break the detectors at 1000 px."""
+RING_WRONG_FRACTION = 1 / 3
+"""Pyramid levels: a side of the grid is wrong when at least this fraction (and at least 2)
+of the squares just outside it, in view, read as the other colour class than the
+checkerboard demands (:func:`_ring_problem`)."""
 
 THERMAL_FLATTEN_SIGMA_PX = 25.0
 """Sigma of the background blur subtracted from thermal images, native pixels."""
@@ -197,7 +217,8 @@ class _Prepared:
     """A sensor image made ready for the detectors.
 
     Attributes:
-        scale: ``detect`` and ``refine`` are ``scale`` x the original size.
+        scale: ``detect`` and ``refine`` are ``scale`` x the original size: an integer
+            upsampling, or per axis ``(sx, sy)`` below 1 for a pyramid level.
         detect: uint8 image for the detectors, the board's black squares dark.
         both_polarities: whether to try the inverted ``detect`` image too.
         refine: float32 image (``scale`` x) for cornerSubPix.
@@ -208,15 +229,19 @@ class _Prepared:
             upsampled crop of it.
         extra: more (label, uint8 image) pairs like ``detect``, tried after it when it
             gives no board (thermal: the locally normalised image, label ``"lcn"``).
+        pyramid: a downscaled copy of a large colour image: the corners are refined once
+            more at the original size, in ``darkness`` (the linearised grey), and the
+            squares around the grid are checked (:func:`_ring_problem`).
     """
 
-    scale: int
+    scale: int | tuple[float, float]
     detect: np.ndarray
     both_polarities: bool
     refine: np.ndarray
     darkness: np.ndarray
     fine: np.ndarray | None = None
     extra: list[tuple[str, np.ndarray]] = field(default_factory=list)
+    pyramid: bool = False
 
 
 class _Rejected(Exception):
@@ -230,22 +255,11 @@ class _Rejected(Exception):
 
 
 def _check_board(board: Board) -> None:
+    """Any checkerboard: one that looks the same turned (``board.orderings`` > 1: even x
+    even, odd x odd or square) is detected in one of its orderings, and a calibration
+    decides each view's across sensors from the data (calib.polarity.order_views)."""
     if not isinstance(board, Board):
         raise ValueError(f"board: expected a calib.board.Board, got {type(board).__name__}")
-    if board.cols == board.rows:
-        raise ValueError(
-            f"board {board.cols}x{board.rows}: the pattern is square-symmetric (cols == rows), "
-            "so a quarter turn maps it onto itself and the corner order is ambiguous; use a "
-            "board with an odd number of inner corners on one side and an even number on "
-            "the other (e.g. 9x6)"
-        )
-    if (board.cols + board.rows) % 2 == 0:
-        raise ValueError(
-            f"board {board.cols}x{board.rows}: a half turn maps the pattern onto itself "
-            "(same square colours), so the corner order is ambiguous; use a board with an "
-            "odd number of inner corners on one side and an even number on the other "
-            "(e.g. 9x6)"
-        )
 
 
 def _check_image(image: object, modality: str) -> np.ndarray:
@@ -366,6 +380,32 @@ def _prepare(image: np.ndarray, modality: str, black_is_hot: bool) -> _Prepared 
     )
 
 
+def _pyramid_levels(image: np.ndarray) -> Iterator[_Prepared | str]:
+    """The prepared pyramid levels of a large colour image ((H, W, 3) RGB or (H, W) grey
+    uint8), in the order ``PYRAMID_LEVELS_PX`` lists them, built as they are asked for; or
+    the reason there is nothing to detect in."""
+    grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    h, w = grey.shape
+    long_side = max(h, w)
+    lin = None
+    for side in PYRAMID_LEVELS_PX:
+        if side >= long_side:
+            continue
+        f = side / long_side
+        size = (max(8, round(w * f)), max(8, round(h * f)))
+        prep = _prepare(cv2.resize(grey, size, interpolation=cv2.INTER_AREA), "color", True)
+        if isinstance(prep, str):
+            yield prep
+            return
+        if lin is None:  # the same values as _prepare's, at 12 MP in ms (a table lookup)
+            grey_levels = np.arange(256, dtype=np.float32) * np.float32(1.0 / 255.0)
+            lin = cv2.LUT(grey, np.power(grey_levels, COLOR_GAMMA))
+        prep.scale = (size[0] / w, size[1] / h)
+        prep.darkness = lin
+        prep.pyramid = True
+        yield prep
+
+
 # -- detectors --------------------------------------------------------------------------
 
 
@@ -449,6 +489,23 @@ def _subpix(img: np.ndarray, G: np.ndarray, wide_first: bool = False) -> np.ndar
     return pts.reshape(G.shape).astype(np.float64)
 
 
+def _subpix_full(lin: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """The grid ``G`` (rows, cols, 2, original pixels, from a pyramid level) refined at the
+    original size: :func:`_subpix` in a crop of ``lin`` (the linearised grey, (H, W)
+    float32) around the grid, blurred as :func:`_prepare` blurs its refine image. The
+    half-window follows from the spacing at this size (0.4 x, clamped to 2-11 px), not from
+    the level's: scaling the level's window up would span a whole square (FIELD-NOTES)."""
+    h, w = lin.shape
+    margin = SUBPIX_HALF_WINDOW_PX[1] + 4 * COLOR_REFINE_BLUR_PX + 2
+    x0 = max(0, int(np.floor(G[..., 0].min() - margin)))
+    x1 = min(w, int(np.ceil(G[..., 0].max() + margin)) + 1)
+    y0 = max(0, int(np.floor(G[..., 1].min() - margin)))
+    y1 = min(h, int(np.ceil(G[..., 1].max() + margin)) + 1)
+    crop = cv2.GaussianBlur(lin[y0:y1, x0:x1], (0, 0), COLOR_REFINE_BLUR_PX)
+    offset = np.array([x0, y0], dtype=np.float64)
+    return _subpix(crop, G - offset) + offset
+
+
 def _bend(G: np.ndarray) -> float:
     """Largest second difference along rows and columns, each over the local spacing."""
     sp = _spacing(G)
@@ -474,12 +531,18 @@ def _same_grid(F: np.ndarray, G: np.ndarray) -> np.ndarray | None:
     return best if best_d < FINE_MAX_SHIFT * float(np.median(_spacing(G))) else None
 
 
+def _extended(G: np.ndarray) -> np.ndarray:
+    """The grid ``G`` (rows, cols, 2) extended linearly by one square on every side:
+    (rows + 2, cols + 2, 2), the corners of the board's outer squares."""
+    E = np.concatenate([2 * G[:1] - G[1:2], G, 2 * G[-1:] - G[-2:-1]], axis=0)
+    return np.concatenate([2 * E[:, :1] - E[:, 1:2], E, 2 * E[:, -1:] - E[:, -2:-1]], axis=1)
+
+
 def _board_mask(G: np.ndarray, shape: tuple[int, int]) -> np.ndarray | None:
     """(H, W) bool: the checkered area of the grid ``G`` (rows, cols, 2), i.e. the inner
     corners' grid extended by one square on every side; None if that covers too few
     pixels to take percentiles of."""
-    E = np.concatenate([2 * G[:1] - G[1:2], G, 2 * G[-1:] - G[-2:-1]], axis=0)
-    E = np.concatenate([2 * E[:, :1] - E[:, 1:2], E, 2 * E[:, -1:] - E[:, -2:-1]], axis=1)
+    E = _extended(G)
     outline = np.concatenate([E[0], E[1:, -1], E[-1, -2::-1], E[-2:0:-1, 0]])
     mask = np.zeros(shape, dtype=np.uint8)
     hull = cv2.convexHull(np.round(outline).astype(np.int32).reshape(-1, 1, 2))
@@ -619,6 +682,52 @@ def _border_problem(G: np.ndarray, w: int, h: int) -> str | None:
     )
 
 
+def _ring_problem(darkness: np.ndarray, G: np.ndarray) -> str | None:
+    """Why the grid ``G`` (rows, cols, 2, pixels of ``darkness``, (H, W) with the board's
+    black squares low) is not the board's inner corners, judged by the squares around it.
+
+    Every inner corner has squares on all four sides, so the ring of squares just outside
+    the grid (extrapolated by one spacing) continues the checkerboard. A grid shifted by
+    one row onto the board's margin has a side whose ring squares all show the margin (2
+    of 47 views of tests/data/czha626-thermal-visible at 1000 px: a white frame brighter
+    than the light squares, so the detectors took its edge for a row of corners). Each
+    ring square in view is classed against the mean of the two interior colour classes;
+    a side is wrong when at least ``RING_WRONG_FRACTION`` (and at least 2) of its squares
+    in view read as the other class. Measured on those views (0 = the dark class's mean,
+    1 = the light one's): ring squares of correct grids at most 0.23 away from their
+    class, the margin's 1.8-1.9."""
+    rows, cols = G.shape[:2]
+    E = _extended(G)
+    v = _square_values(darkness, E)  # (rows + 1, cols + 1); ring: first/last row/column
+    i, j = np.indices(v.shape)
+    even = (i + j) % 2 == 0
+    inner = (i > 0) & (i < rows) & (j > 0) & (j < cols)
+    if not (inner & even).any() or not (inner & ~even).any():
+        return None
+    m_even, m_odd = float(v[inner & even].mean()), float(v[inner & ~even].mean())
+    wrong = (v < 0.5 * (m_even + m_odd)) != (even == (m_even < m_odd))
+    h, w = darkness.shape
+    quads = np.stack([E[:-1, :-1], E[:-1, 1:], E[1:, :-1], E[1:, 1:]])
+    in_view = np.all(
+        (quads[..., 0] >= -0.5)
+        & (quads[..., 0] <= w - 0.5)
+        & (quads[..., 1] >= -0.5)
+        & (quads[..., 1] <= h - 0.5),
+        axis=0,
+    )
+    sides = {"top": i == 0, "bottom": i == rows, "left": j == 0, "right": j == cols}
+    for side, on_side in sides.items():
+        n = int((on_side & in_view).sum())
+        k = int((on_side & in_view & wrong).sum())
+        if k >= 2 and k >= RING_WRONG_FRACTION * n:
+            return (
+                f"the squares beyond the grid's {side} side do not continue the checkerboard "
+                f"({k} of {n} in view have the wrong colour): the grid is shifted onto the "
+                "board's margin"
+            )
+    return None
+
+
 def _finish(
     raw: np.ndarray, prep: _Prepared, board: Board, shape: tuple[int, int], classic: bool
 ) -> tuple[np.ndarray, str]:
@@ -641,12 +750,17 @@ def _finish(
         G = (_subpix(prep.refine, G, wide_first=classic) + 0.5) / s - 0.5
         if prep.fine is not None:
             suffix = "+subpix"
+        if prep.pyramid:
+            G = _subpix_full(prep.darkness, G)
     else:
         G = F
     if not np.all(np.isfinite(G)) or not _regular(G) or _bend(G) > GRID_MAX_BEND:
         raise _Rejected(
             "the refined corners do not form a smooth grid (a corner went astray)", False
         )
+    problem = _ring_problem(prep.darkness, G) if prep.pyramid else None
+    if problem:
+        raise _Rejected(problem, False)
     if not _right_handed(G):
         G = G[::-1]
 
@@ -673,6 +787,7 @@ def detect_board(
     modality: str,
     *,
     thermal_black_is_hot: bool = THERMAL_BLACK_IS_HOT,
+    pyramid: bool = True,
 ) -> Detection:
     """Find the board's inner corners in one sensor image.
 
@@ -683,6 +798,9 @@ def detect_board(
         board: the checkerboard; it must not be symmetric under a half or quarter turn.
         modality: ``"color"``, ``"thermal"`` or ``"tof"``.
         thermal_black_is_hot: polarity of the board in thermal (``THERMAL_BLACK_IS_HOT``).
+        pyramid: search a colour image larger than ``PYRAMID_ABOVE_PX`` on downscaled
+            copies (module docstring); False searches it at full size (seconds to tens of
+            seconds at 12 MP; for comparisons).
 
     Returns:
         A :class:`Detection`: corners (N, 2) float64 in the original image's pixels
@@ -698,34 +816,43 @@ def detect_board(
     img = _check_image(image, modality)
     shape = img.shape[:2]
 
-    prep = _prepare(img, modality, thermal_black_is_hot)
-    if isinstance(prep, str):
-        return Detection(None, f"board not found: {prep}", None)
+    preps: Iterable[_Prepared | str]
+    if pyramid and modality == "color" and max(shape) > PYRAMID_ABOVE_PX:
+        preps = _pyramid_levels(img)
+    else:
+        preps = (_prepare(img, modality, thermal_black_is_hot),)
     first_rejection: Detection | None = None
     tried: list[str] = []
-    attempts = [
-        (label, inverted, image)
-        for label, image in [("", prep.detect), *prep.extra]
-        for inverted in ((False, True) if prep.both_polarities else (False,))
-    ]
-    for label, inverted, image in attempts:
-        det_img = 255 - image if inverted else image
-        for name, finder in _DETECTORS:
-            method = name + (f"-{label}" if label else "") + ("-inverted" if inverted else "")
-            method += f"-x{prep.scale}" if prep.scale != 1 else ""
-            tried.append(method)
-            raw = finder(det_img, board)
-            if raw is None:
-                continue
-            try:
-                corners, suffix = _finish(raw, prep, board, shape, name == "classic")
-            except _Rejected as rej:
-                if rej.final:
-                    return Detection(None, rej.reason, method)
-                if first_rejection is None:
-                    first_rejection = Detection(None, rej.reason, method)
-                continue
-            return Detection(corners, None, method + suffix)
+    for prep in preps:
+        if isinstance(prep, str):
+            return Detection(None, f"board not found: {prep}", None)
+        if prep.pyramid:
+            level = f"-{max(prep.detect.shape)}px"
+        else:
+            level = f"-x{prep.scale}" if prep.scale != 1 else ""
+        attempts = [
+            (label, inverted, image)
+            for label, image in [("", prep.detect), *prep.extra]
+            for inverted in ((False, True) if prep.both_polarities else (False,))
+        ]
+        for label, inverted, image in attempts:
+            det_img = 255 - image if inverted else image
+            for name, finder in _DETECTORS:
+                method = name + (f"-{label}" if label else "") + ("-inverted" if inverted else "")
+                method += level
+                tried.append(method)
+                raw = finder(det_img, board)
+                if raw is None:
+                    continue
+                try:
+                    corners, suffix = _finish(raw, prep, board, shape, name == "classic")
+                except _Rejected as rej:
+                    if rej.final:
+                        return Detection(None, rej.reason, method)
+                    if first_rejection is None:
+                        first_rejection = Detection(None, rej.reason, method)
+                    continue
+                return Detection(corners, None, method + suffix)
     if first_rejection is not None:
         return first_rejection
     return Detection(

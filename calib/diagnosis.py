@@ -11,7 +11,9 @@ Run between the per-sensor intrinsics (Zhang) and the placement of the sensors
    relative poses with an anchor (the colour camera most other sensors agree with; without
    colour cameras the sensor with the most views), chaining through sensors already decided
    for a sensor that shares too few views with the anchor. A ``board.yaml`` polarity key
-   replaces the search for its modality and is only checked.
+   replaces the search for its modality and is only checked. A board that looks the same
+   turned (``Board.orderings`` > 1) has no polarity to find: each view's ordering is
+   decided across the sensors instead (calib.polarity.order_views).
 
 A sensor that fails is excluded with a sentence naming what disagrees and the likely cause,
 and the others go on; the optimiser is never left to find out. Pure: arrays in, values out.
@@ -32,11 +34,13 @@ from calib.polarity import (
     HALF_TURNED,
     MIN_AGREEING_FRACTION,
     MIN_SHARED_VIEWS,
+    BoardOrdering,
     OrderingCheck,
     SensorPolarity,
     check_ordering,
     detected_as,
     half_turn,
+    order_views,
     override,
     override_key,
     polarity_words,
@@ -73,6 +77,8 @@ class Screening:
         excluded: sensor -> why it cannot be calibrated.
         anchor: the sensor the orderings were compared with (None: no usable sensor).
         notes: sentences for the report (e.g. no colour camera).
+        ordering: a board that looks the same turned: every view's ordering, decided
+            across sensors instead of the polarity (None for other boards).
     """
 
     observations: dict[str, dict[str, np.ndarray]]
@@ -81,6 +87,7 @@ class Screening:
     excluded: dict[str, str]
     anchor: str | None
     notes: list[str] = field(default_factory=list)
+    ordering: BoardOrdering | None = None
 
 
 def zhang_failure(n_views: int, exc: Exception) -> str:
@@ -246,6 +253,12 @@ def screen_sensors(
     usable = [s for s in sorted(intrinsics) if s not in excluded]
     if not usable:
         return Screening(obs, poses, found, excluded, None, notes)
+    if board.orderings > 1:  # no polarity to find: each view's ordering instead
+        o = order_views(
+            {s: obs[s] for s in usable}, {s: poses[s] for s in usable}, modalities, board
+        )
+        excluded.update(o.excluded)
+        return Screening(o.observations, o.T_sensor_board, found, excluded, o.anchor, o.notes, o)
 
     def shared(a: str, b: str) -> int:
         return len(set(poses[a]) & set(poses[b]))

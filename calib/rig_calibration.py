@@ -4,8 +4,9 @@ Pipeline (the method's Zhang-based calibration, extended to the whole rig at onc
 
 1. **Intrinsics per sensor** with Zhang's method (``cv2.calibrateCamera``: closed form
    start, then Levenberg-Marquardt with distortion; ``cv2.calibrateCameraExtended`` for
-   the standard deviations when the joint pass does not refine the intrinsics). Sensors
-   with too few views are left out and reported.
+   the standard deviations when the joint pass does not refine the intrinsics). Every
+   sensor with Zhang's 3 views is calibrated (a stricter ``min_views`` leaves out those
+   with fewer, with the reason).
 2. **Initial poses**: each sensor's pose relative to the reference from the views it shares
    with an already placed sensor (chordal mean of rotations, median of translations),
    walking the co-visibility graph outward from the reference; each board pose from a
@@ -18,8 +19,12 @@ Pipeline (the method's Zhang-based calibration, extended to the whole rig at onc
    outlier corners and views are flagged, each sensor's residuals are weighted by its own
    noise level, and a final least-squares pass runs on the inliers.
 4. **Uncertainty**: the covariance ``s^2 (J^T J)^-1`` of the final pass, and a
-   cluster-robust (per image) one, give a 1-sigma for every parameter; ``J^T J`` is formed
-   from the sparse Jacobian (n x n, never the dense m x n matrix).
+   cluster-robust (per image, small-sample corrected) one, give a 1-sigma for every
+   parameter; ``J^T J`` is formed from the sparse Jacobian (n x n, never the dense m x n
+   matrix).
+5. **Verdicts** (:mod:`calib.verdict`): per sensor and per eye and stereo pair, the
+   1-sigmas of focal lengths and relative poses against the targets, and which views
+   would lower them.
 
 BLAS runs on one thread throughout (threadpoolctl, for the duration of
 :func:`calibrate_rig`): beside other busy processes, OpenBLAS's spinning threads cost far
@@ -29,7 +34,8 @@ Everything per corner is vectorised (numpy); Python loops run over sensors, view
 images only.
 
 The least-squares problem and its Jacobian are in :mod:`calib.rig_problem`, the
-uncertainties in :mod:`calib.rig_uncertainty`, the result in :mod:`calib.rig_result`.
+uncertainties in :mod:`calib.rig_uncertainty`, the verdicts in :mod:`calib.verdict`, the
+result in :mod:`calib.rig_result`.
 Inputs are plain arrays; nothing here reads files or prints. ``observations`` maps view
 name -> sensor name -> (N, 2) float64 corners in canonical board order (calib.board).
 """
@@ -46,14 +52,16 @@ from threadpoolctl import threadpool_limits
 
 from calib.board import Board
 from calib.camera import Intrinsics
-from calib.diagnosis import fallback_reference, screen_sensors, zhang_failure
+from calib.diagnosis import fallback_reference, screen_sensors, zhang_failure, zhang_rms_px
 from calib.errors import CalibrationError
 from calib.rig import Eye
 from calib.rig_problem import BLAS_THREADS, CornerProblem, build_problem
-from calib.rig_result import CalibrationResult, Outlier, SensorResult, ViewError
-from calib.rig_uncertainty import parameter_sigma, sensor_sigma
+from calib.rig_result import CalibrationResult, CornerResiduals, Outlier, ViewError
+from calib.rig_uncertainty import covariance_estimates, rig_covariance, sensor_sigma
 from calib.schur_lm import SchurResult, least_squares_schur
+from calib.sensor_result import SensorResult
 from calib.transforms import invert, make_T, mean_rotation, rotation_from_rvec
+from calib.verdict import ZHANG_MIN_VIEWS, judge_rig
 
 Observations = Mapping[str, Mapping[str, np.ndarray]]
 Progress = Callable[[str, float], None]
@@ -89,11 +97,11 @@ class CalibrationOptions:
         view_outlier_factor: a view is an outlier for a sensor when its RMS error exceeds
             this factor times the median view RMS of that sensor ...
         view_outlier_min_px: ... and exceeds this absolute value.
-        min_views: fewest views with the board for a sensor's intrinsics. Zhang's method
-            runs from 3, but measured on simulated captures a thermal imager seen in 3-6 of
-            16 views missed the calibration targets (0.1 deg, 1 mm to the other sensors:
-            up to 0.17 deg, 1.7 mm) and met them from 8 (0.06 deg, 0.4 mm); a sensor with
-            fewer is left out with the reason (too few views), not calibrated badly.
+        min_views: fewest views with the board for a sensor to be calibrated. The default
+            is Zhang's minimum (:data:`ZHANG_MIN_VIEWS`): a sensor seen in few views is
+            calibrated, and its verdict (calib.verdict) says how well from its own
+            uncertainty and what to capture next. A larger value is a strict mode: sensors
+            with fewer views are left out with the reason.
     """
 
     reference: str | None = None
@@ -104,7 +112,18 @@ class CalibrationOptions:
     corner_outlier_min_px: float = 0.3
     view_outlier_factor: float = 3.0
     view_outlier_min_px: float = 0.3
-    min_views: int = 8
+    min_views: int = ZHANG_MIN_VIEWS
+
+    def __post_init__(self) -> None:
+        if (
+            not isinstance(self.min_views, int)
+            or isinstance(self.min_views, bool)
+            or self.min_views < ZHANG_MIN_VIEWS
+        ):
+            raise CalibrationError(
+                f"min_views: expected an integer of at least {ZHANG_MIN_VIEWS} (Zhang's "
+                f"method needs {ZHANG_MIN_VIEWS} views of the board), got {self.min_views!r}"
+            )
 
 
 # -- initialisation -----------------------------------------------------------------------
@@ -276,12 +295,9 @@ def _calibrate_rig(
 
     excluded: dict[str, str] = {}
     for s in sorted(by_sensor):
-        if len(by_sensor[s]) < opts.min_views:
-            excluded[s] = (
-                f"board detected in {len(by_sensor[s])} view(s); at least "
-                f"{opts.min_views} are needed for intrinsics: too few views (show it the "
-                "board in more views)"
-            )
+        why = too_few_views(len(by_sensor[s]), opts.min_views)
+        if why is not None:
+            excluded[s] = why
 
     # 1. Intrinsics per sensor.
     intr: dict[str, Intrinsics] = {}
@@ -314,6 +330,7 @@ def _calibrate_rig(
     by_sensor = {**by_sensor, **screen.observations}
     T_s_board = screen.T_sensor_board
     candidates = [s for s in candidates if s not in excluded]
+    alone_rms = {s: zhang_rms_px(by_sensor[s], intr[s], T_s_board[s], board) for s in candidates}
     notes = list(screen.notes)
     if reference in excluded:
         fallback = fallback_reference(
@@ -403,8 +420,9 @@ def _calibrate_rig(
     x = res.x
 
     # 4. Covariance of the parameters from the weighted Jacobian.
-    report("uncertainty", 0.95)
-    sig = parameter_sigma(final, res.jac, res.fun)
+    report("uncertainty", 0.9)
+    est = covariance_estimates(final, res.jac, res.fun)
+    sig = est.sigma()
 
     Rs, ts, Rb, tb = final.poses(x)
     K4, D8 = final.unpack_intrinsics(x, intr)
@@ -448,7 +466,12 @@ def _calibrate_rig(
             views_used=len({final.views[i] for i in np.unique(final.v_idx[sel])}),
             rms_px=float(np.sqrt(np.mean(final_err[sel] ** 2))),
             worst_view=worst,
+            zhang_rms_px=alone_rms[s],
         )
+    # 5. Verdicts from the covariance (calib.verdict).
+    report("verdicts", 0.95)
+    cov = rig_covariance(final, est, x, intr, weights)
+    verdict = judge_rig(cov, results, reference, dict(eyes or {}), board)
     report("done", 1.0)
     return CalibrationResult(
         reference=reference,
@@ -462,8 +485,40 @@ def _calibrate_rig(
         seconds=time.perf_counter() - t0,
         eyes=dict(eyes or {}),
         polarity=screen.polarity,
+        ordering=screen.ordering,
         notes=notes,
+        covariance=cov,
+        verdict=verdict,
+        min_views=opts.min_views,
+        corners=CornerResiduals(
+            list(prob.views),
+            list(sensors),
+            prob.v_idx,
+            prob.s_idx,
+            prob.c_idx,
+            prob.uv,
+            prob.uv - prob.project(x_all, intr),
+            inlier,
+        ),
     )
+
+
+def too_few_views(n_views: int, min_views: int = ZHANG_MIN_VIEWS) -> str | None:
+    """Why a sensor seen in ``n_views`` views is not calibrated, or None: fewer than
+    Zhang's minimum, or fewer than a stricter ``min_views``."""
+    if n_views < ZHANG_MIN_VIEWS:
+        return (
+            f"board detected in {n_views} view(s); Zhang's method needs at least "
+            f"{ZHANG_MIN_VIEWS} for intrinsics: too few views (show it the board in "
+            f"{ZHANG_MIN_VIEWS - n_views} more)"
+        )
+    if n_views < min_views:
+        return (
+            f"board detected in {n_views} view(s); the strict minimum asked for is "
+            f"{min_views} views (min views {min_views}): too few views (show it the board "
+            f"in {min_views - n_views} more, or lower the minimum)"
+        )
+    return None
 
 
 def _image_sums(

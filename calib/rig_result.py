@@ -9,9 +9,11 @@ from typing import Any
 import numpy as np
 
 from calib.board import Board
-from calib.camera import Intrinsics
-from calib.polarity import SensorPolarity
+from calib.polarity import BoardOrdering, SensorPolarity
 from calib.rig import Eye, Rig, Sensor
+from calib.rig_uncertainty import RigCovariance
+from calib.sensor_result import SensorResult
+from calib.verdict import ZHANG_MIN_VIEWS, RigVerdict
 
 
 @dataclass
@@ -25,27 +27,6 @@ class ViewError:
 
 
 @dataclass
-class SensorResult:
-    """Calibration of one sensor.
-
-    ``sigma`` holds 1-sigma uncertainties: ``fx fy cx cy`` (px), ``distortion`` (list),
-    ``rotation_deg`` and ``translation_m`` (3 components each, of ``T_rig_sensor``'s
-    rotation vector and translation; zero for the reference).
-    """
-
-    name: str
-    modality: str
-    image_size: tuple[int, int]
-    intrinsics: Intrinsics
-    T_rig_sensor: np.ndarray
-    sigma: dict[str, Any]
-    views_detected: int
-    views_used: int
-    rms_px: float
-    worst_view: str | None
-
-
-@dataclass
 class Outlier:
     """An observation left out of the final solution, and why."""
 
@@ -54,6 +35,30 @@ class Outlier:
     corner: int | None  # None: the whole view of that sensor
     error_px: float
     reason: str
+
+
+@dataclass
+class CornerResiduals:
+    """Every corner the joint calibration was given, at the final solution (outliers too).
+
+    Attributes:
+        views: view names; ``v_idx`` indexes them.
+        sensors: sensor names; ``s_idx`` indexes them.
+        v_idx, s_idx, c_idx: (M,) int view, sensor and board corner index of each corner.
+        uv_px: (M, 2) the detected corner (u, v), pixels, in the order the calibration used.
+        residual_px: (M, 2) detected minus reprojected (du, dv), pixels.
+        inlier: (M,) bool, the corner was used in the final pass (not an outlier corner,
+            not in an outlier view).
+    """
+
+    views: list[str]
+    sensors: list[str]
+    v_idx: np.ndarray
+    s_idx: np.ndarray
+    c_idx: np.ndarray
+    uv_px: np.ndarray
+    residual_px: np.ndarray
+    inlier: np.ndarray
 
 
 @dataclass
@@ -72,8 +77,18 @@ class CalibrationResult:
     eyes: dict[str, Eye] = field(default_factory=dict)
     polarity: dict[str, SensorPolarity] = field(default_factory=dict)
     """Per sensor: which squares read dark/cold or bright/hot, and how that was found."""
+    ordering: BoardOrdering | None = None
+    """A board that looks the same turned: how each view's ordering was decided."""
     notes: list[str] = field(default_factory=list)
     """What the calibration decided on its own (e.g. another reference), in sentences."""
+    corners: CornerResiduals | None = None
+    """Per corner residuals (not in ``to_report()``: the HTML report plots them)."""
+    covariance: RigCovariance | None = None
+    """The joint covariance of the sensors' poses and intrinsics (not in ``to_report()``)."""
+    verdict: RigVerdict | None = None
+    """Verdicts per sensor and pair from that covariance (calib.verdict)."""
+    min_views: int = ZHANG_MIN_VIEWS
+    """The fewest views a sensor needed to be calibrated (the option used)."""
 
     def rig(self) -> Rig:
         """The calibrated rig (sensors that were calibrated), with ``uncertainty`` blocks."""
@@ -99,6 +114,7 @@ class CalibrationResult:
                 "views_used": s.views_used,
                 "rms_px": s.rms_px,
                 "worst_view": s.worst_view,
+                "zhang_rms_px": s.zhang_rms_px,
                 "intrinsics": {"fx": i.fx, "fy": i.fy, "cx": i.cx, "cy": i.cy},
                 "distortion": list(i.distortion),
                 "T_rig_sensor": s.T_rig_sensor.tolist(),
@@ -113,7 +129,10 @@ class CalibrationResult:
             "sensors": sensors,
             "excluded_sensors": dict(self.excluded_sensors),
             "polarity": {n: p.as_dict() for n, p in sorted(self.polarity.items())},
+            "board_ordering": self.ordering.as_dict() if self.ordering is not None else None,
             "notes": list(self.notes),
+            "min_views": self.min_views,
+            "verdict": self.verdict.as_dict() if self.verdict is not None else None,
             "views": {
                 v: {
                     s: {

@@ -72,6 +72,9 @@ def test_report_has_what_the_issue_lists(simulated: dict) -> None:
     for view, per in report["views"].items():
         for entry in per.values():
             assert isinstance(entry["outlier"], bool) and entry["rms_px"] >= 0, view
+    # 30 views meet the targets (tests above); the verdicts from the sigmas agree.
+    assert report["verdict"]["grade"] == "good" and report["min_views"] == 3
+    assert len(report["verdict"]["pairs"]) == 3  # both eyes and the stereo pair
     # Every image has a detection entry: found, or the reason it was not used.
     assert len(report["detections"]) == 30
     for per in report["detections"].values():

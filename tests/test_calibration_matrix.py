@@ -52,8 +52,8 @@ def simulate(root: Path, name: str, *options: str, keep_rig: bool = True) -> Pat
     return capture
 
 
-def calibrate(capture: Path, out: Path) -> dict:
-    """``trifuse calibrate CAPTURE --out --report --truth``; the report."""
+def calibrate(capture: Path, out: Path, *extra: str) -> dict:
+    """``trifuse calibrate CAPTURE --out --report --truth [EXTRA]``; the report."""
     out.mkdir(parents=True, exist_ok=True)
     argv = [
         "calibrate",
@@ -64,6 +64,7 @@ def calibrate(capture: Path, out: Path) -> dict:
         str(out / "report.json"),
         "--truth",
         str(capture / "ground_truth_rig.yaml"),
+        *extra,
     ]
     assert main(argv) == 0
     return json.loads((out / "report.json").read_text())
@@ -154,10 +155,10 @@ def test_a_sensor_seen_in_three_views_is_refused_the_others_calibrate(
     captures: dict[str, Path], tmp_path: Path
 ) -> None:
     capture = captures["few_views"]
-    report = calibrate(capture, tmp_path)
+    report = calibrate(capture, tmp_path, "--min-views", "8")  # strict mode (issue 30, 1)
     assert_meets_targets(tmp_path, capture, {"thermal_right"})
     why = report["excluded_sensors"]["thermal_right"]
-    assert "3 view(s)" in why and "too few views" in why
+    assert "3 view(s)" in why and "too few views" in why and "strict minimum" in why
     assert report["comparison"]["only_in_truth"] == ["thermal_right"]
     assert report["polarity"]["thermal_left"]["polarity"] == "black squares hot"
     assert not report["polarity"]["thermal_left"]["turned"]

@@ -100,7 +100,8 @@ def add_every_argument(parser: argparse.ArgumentParser, what: str) -> None:
 
 
 def board_size(text: str) -> tuple[int, int]:
-    """``COLSxROWS`` inner corners, one odd and one even (a board the detector can orient)."""
+    """``COLSxROWS`` inner corners, at least 2x2 (a board that looks the same turned, such
+    as 4x6 or 6x6, is ordered from the data: calib.polarity.order_views)."""
     parts = text.lower().split("x")
     try:
         cols, rows = (int(p) for p in parts)
@@ -108,12 +109,8 @@ def board_size(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(
             f"expected COLSxROWS inner corners such as 9x6, got {text!r}"
         ) from None
-    if min(cols, rows) < 2 or (cols + rows) % 2 == 0:
-        raise argparse.ArgumentTypeError(
-            f"expected at least 2x2 inner corners, one count odd and the other even (e.g. "
-            f"9x6: only then do the square colours tell the board from its half turn), got "
-            f"{text!r}"
-        )
+    if min(cols, rows) < 2:
+        raise argparse.ArgumentTypeError(f"expected at least 2x2 inner corners, got {text!r}")
     return cols, rows
 
 

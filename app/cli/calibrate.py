@@ -7,13 +7,23 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from app.cli.args import EXIT_OK, PROG, Commands
+from app.cli.args import EXIT_OK, PROG, Commands, checked
 from app.cli.files import load_rig_arg, refuse_existing
 from app.cli.output import err, out, stage_progress
 
 if TYPE_CHECKING:
     from app.storage.capture import Capture
     from calib.rig import Rig
+
+
+ZHANG_MIN_VIEWS = 3  # calib.verdict.ZHANG_MIN_VIEWS (not imported: the CLI starts fast)
+MIN_VIEWS = checked(
+    int,
+    lambda v: v >= ZHANG_MIN_VIEWS,
+    "an integer",
+    f"an integer of at least {ZHANG_MIN_VIEWS} (Zhang's method needs {ZHANG_MIN_VIEWS} views)",
+    show_value=True,
+)
 
 
 def add_parser(commands: Commands) -> argparse.ArgumentParser:
@@ -26,8 +36,12 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
             "calibrate each sensor's intrinsics (Zhang) and then the whole rig jointly "
             "(every sensor pose, every board pose and the intrinsics, robust loss, outlier "
             "views and corners flagged and left out), and write the calibrated rig file "
-            "with 1-sigma uncertainties. Prints a summary: RMS per sensor, parameters with "
-            "their uncertainty, coverage of each image, outliers and rejected images."
+            "with 1-sigma uncertainties. Every sensor that sees the board in at least 3 "
+            "views (Zhang's minimum) is calibrated; a verdict per sensor and per pair of "
+            "sensors (good, usable, poor) judges the uncertainty against the targets and "
+            "says which views to capture next. Prints a summary: RMS per sensor, parameters "
+            "with their uncertainty, the verdicts and advice, coverage of each image, "
+            "outliers and rejected images."
         ),
     )
     cal.add_argument("capture_dir", metavar="CAPTURE_DIR", help="the capture directory")
@@ -43,6 +57,13 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         help="also write the full report as JSON (must not exist): per sensor "
         "RMS, views, intrinsics, distortion, pose and sigma; per view and sensor "
         "the RMS and outlier flag; detections, coverage, outliers",
+    )
+    cal.add_argument(
+        "--report-html",
+        metavar="REPORT.html",
+        help="also write the report as one self-contained HTML page to read and print "
+        "(must not exist): verdict, per sensor intrinsics and pose with 1-sigma, per-view "
+        "and per-corner residual plots, coverage, decisions, outliers (docs/FORMATS.md)",
     )
     cal.add_argument(
         "--reference",
@@ -62,6 +83,15 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         "(default: refine them with the poses)",
     )
     cal.add_argument(
+        "--min-views",
+        type=MIN_VIEWS,
+        default=ZHANG_MIN_VIEWS,
+        metavar="N",
+        help="strict mode: leave out (with the reason) every sensor that sees the board in "
+        "fewer than N views (default: %(default)s, Zhang's minimum; sensors with few views "
+        "are calibrated and their verdict says how well)",
+    )
+    cal.add_argument(
         "--truth",
         metavar="TRUTH.yaml",
         help="also compare the result with this rig (e.g. the capture's "
@@ -78,7 +108,8 @@ def run(args: argparse.Namespace) -> int:
     from calib.rig_calibration import CalibrationOptions
 
     rig_out, report_path = Path(args.out), Path(args.report) if args.report else None
-    for flag, path in (("--out", rig_out), ("--report", report_path)):
+    html_path = Path(args.report_html) if args.report_html else None
+    for flag, path in (("--out", rig_out), ("--report", report_path), ("--report-html", html_path)):
         if path is not None and path.exists():
             refuse_existing(flag, path)
     truth = load_rig_arg(args.truth, "--truth") if args.truth else None
@@ -87,7 +118,9 @@ def run(args: argparse.Namespace) -> int:
         check_truth_fits(truth, capture, args.truth)
     out(capture.summary())
     options = CalibrationOptions(
-        reference=args.reference, refine_intrinsics=not args.fixed_intrinsics
+        reference=args.reference,
+        refine_intrinsics=not args.fixed_intrinsics,
+        min_views=args.min_views,
     )
     sensors = args.sensors.split(",") if args.sensors else None
     result, report = calibrate_capture(capture, options, sensors, stage_progress())
@@ -111,6 +144,11 @@ def run(args: argparse.Namespace) -> int:
     if report_path is not None:
         write_report(report_path, report)
         out(f"report written to {report_path}")
+    if html_path is not None:
+        from app.workflows.report_html import command_line, write_report_html
+
+        write_report_html(html_path, report, result.corners, command_line(args))
+        out(f"HTML report written to {html_path}")
     return EXIT_OK
 
 

@@ -72,7 +72,8 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         type=board_size,
         default=(9, 6),
         metavar="COLSxROWS",
-        help="inner corners of the checkerboard, one odd and one even (default: 9x6)",
+        help="inner corners of the checkerboard (default: 9x6; one odd and one even: the "
+        "square colours then fix the ordering, else the calibration decides it per view)",
     )
     calib_p.add_argument(
         "--square-size",

@@ -50,6 +50,7 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     bench_motion.sim_first_minute,
     bench_sim.sim_live,
     bench_detect.thermal_detect,
+    bench_detect.real_12mp,
     bench_idle.idle,
     bench_link.link,
 )

@@ -29,6 +29,7 @@ wrong) and ``<c>_ms_<d>`` (median time per image).
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
 from collections.abc import Callable, Iterable
@@ -258,3 +259,234 @@ def thermal_detect(repeat: int) -> dict[str, float]:
         figures.update(result.figures())
     figures.update(real_figures())
     return figures
+
+
+# -- real 12 MP views (issue 30) ---------------------------------------------------------
+
+REAL_12MP_DIR = Path(__file__).resolve().parents[2] / "tests" / "data" / "czha626-thermal-visible"
+REAL_12MP_BOARD = Board(6, 5, 0.1)
+"""The board of czha626-thermal-visible: 6 x 5 inner corners, 0.1 m squares (its README)."""
+OPENCV_SIDES = {"full": None, "2000": 2000, "1000": 1000}
+"""OpenCV's plain variants: the detector at full size or on a copy downscaled (INTER_AREA) to
+this longer side, its corners scaled back, no refinement."""
+
+
+def _opencv_plain(grey: np.ndarray, board: Board, detector: str, side: int | None):
+    """OpenCV's ``detector`` (``"sb"``: findChessboardCornersSB, no flags; ``"classic"``:
+    findChessboardCorners, default flags) on ``grey`` (H, W) uint8, downscaled to the
+    longer side ``side`` if given; (N, 2) float64 pixels of ``grey`` or None."""
+    h, w = grey.shape
+    img, sx, sy = grey, 1.0, 1.0
+    if side is not None and max(h, w) > side:
+        f = side / max(h, w)
+        size = (round(w * f), round(h * f))
+        img = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+        sx, sy = w / size[0], h / size[1]
+    if detector == "sb":
+        ok, raw = cv2.findChessboardCornersSB(img, board.pattern_size)
+    else:
+        ok, raw = cv2.findChessboardCorners(img, board.pattern_size)
+    if not ok or raw is None:
+        return None
+    return (np.asarray(raw, dtype=np.float64).reshape(-1, 2) + 0.5) * (sx, sy) - 0.5
+
+
+def _real_12mp_detectors(modality: str) -> dict[str, Callable[[np.ndarray], np.ndarray | None]]:
+    """name -> detector of one grey image ((N, 2) corners or None) for ``real-12mp``."""
+    from calib.opencv_reference import find_chessboard_opencv
+
+    board = REAL_12MP_BOARD
+    thermal = modality == "thermal"
+
+    def ours(pyramid: bool) -> Callable[[np.ndarray], np.ndarray | None]:
+        return lambda g: detect_board(g, board, modality, pyramid=pyramid).corners
+
+    out: dict[str, Callable[[np.ndarray], np.ndarray | None]] = {"ours": ours(True)}
+    if thermal:
+        out["baseline"] = lambda g: detect_board_baseline(g, board, "thermal").corners
+    else:
+        out["ours_fullres"] = ours(False)
+    for det in ("sb", "classic"):
+        for label, side in OPENCV_SIDES.items() if not thermal else [("full", None)]:
+            out[f"opencv_{det}_{label}"] = lambda g, det=det, side=side: _opencv_plain(
+                g, board, det, side
+            )
+    out["opencv_reference"] = lambda g: find_chessboard_opencv(
+        g, board.pattern_size, thermal=thermal, max_side_px=None if thermal else 1000
+    )[0]
+    return out
+
+
+def _calibration(corners: list[np.ndarray], size: tuple[int, int]) -> tuple[float, float, float]:
+    """calibrateCamera (5 coefficients) on per-view corners (N, 2) in the board's order:
+    (RMS px, worst view's RMS px, fx px); NaNs with fewer than 3 views."""
+    if len(corners) < 3:
+        return float("nan"), float("nan"), float("nan")
+    obj = REAL_12MP_BOARD.object_points().astype(np.float32)
+    img = [c.astype(np.float32) for c in corners]
+    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera([obj] * len(img), img, size, None, None)
+    worst = 0.0
+    for c, r, t in zip(img, rvecs, tvecs, strict=True):
+        proj, _ = cv2.projectPoints(obj, r, t, K, dist)
+        worst = max(worst, float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - c) ** 2, 1)))))
+    return float(rms), worst, float(K[0, 0])
+
+
+def _in_order(corners: np.ndarray, grey: np.ndarray) -> np.ndarray:
+    """A detector's corners (N, 2) in the board's canonical order (handedness, then the
+    square colours: :func:`calib.detect.canonical_order`), so that views calibrate
+    together and compare corner for corner."""
+    from calib.detect import canonical_order
+
+    return canonical_order(corners, REAL_12MP_BOARD, grey.astype(np.float32))[0]
+
+
+def _agreement(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distances (px) between corresponding corners of two detections (N, 2), taking the
+    ordering of ``b`` (of the four a grid has) that lies closest to ``a``."""
+    A = a.reshape(REAL_12MP_BOARD.rows, REAL_12MP_BOARD.cols, 2)
+    B = b.reshape(A.shape)
+    cands = (B, B[::-1, ::-1], B[::-1, :], B[:, ::-1])
+    best = min(cands, key=lambda c: float(np.median(np.linalg.norm(c - A, axis=2))))
+    return np.linalg.norm(best - A, axis=2).ravel()
+
+
+def real_12mp_figures(directory: Path = REAL_12MP_DIR, repeat: int = 1) -> dict[str, float]:
+    """Every detector of :func:`_real_12mp_detectors` on ``directory``'s ``visible/*.jpg``
+    (12 MP) and ``thermal/*.jpg``: view by view, every detector in turn, ``repeat`` times
+    (times: median over views and repeats; ours runs once on the first view before, untimed).
+
+    Figures per sensor ``<s>`` (``visible``, ``thermal``) and detector ``<d>``:
+
+    * ``<s>_views``, ``<s>_found_<d>``, ``<s>_s_<d>`` (median seconds per view);
+    * ``<s>_calib_rms_px_<d>``, ``<s>_worst_view_px_<d>``, ``<s>_fx_<d>``:
+      cv2.calibrateCamera on the views ``<d>`` found (RMS, the largest per-view RMS, which a
+      misplaced grid drives up, and fx); ``<s>_calib_rms_px_ours_on_<d>_views``: ours
+      calibrated on the views that ``<d>`` and ours both found;
+    * ``<s>_best_opencv_found``: the most boards any OpenCV variant found;
+    * visible only: ``visible_s_ours_at_1000`` and ``visible_found_ours_at_1000`` (ours on the
+      same views downscaled to 1000 px), ``visible_vs_fullres_px_max`` (largest distance
+      between our corners and ours at full resolution, on the views both found),
+      ``visible_opencv_1000_vs_ours_px_median`` (OpenCV's sector-based corners found at
+      1000 px against ours);
+    * ``load_1min_start``, ``load_1min_end``: the machine's load average."""
+    out: dict[str, float] = {"load_1min_start": os.getloadavg()[0]}
+    found: dict[str, dict[str, dict[str, np.ndarray]]] = {}
+    for sensor, modality in (("visible", "color"), ("thermal", "thermal")):
+        files = sorted((directory / sensor).glob("*.jpg"))
+        greys = {}
+        for f in files:
+            grey = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+            if grey is None:
+                raise ValueError(f"real image {f}: cannot be read")
+            greys[f.stem] = grey
+        out[f"{sensor}_views"] = len(greys)
+        if not greys:
+            continue
+        size = next(iter(greys.values())).shape[::-1]
+        detectors = _real_12mp_detectors(modality)
+        if sensor == "visible":
+            detectors["ours_at_1000"] = detectors["ours"]
+        detectors["ours"](next(iter(greys.values())))  # warm-up
+        corners: dict[str, dict[str, np.ndarray]] = {name: {} for name in detectors}
+        seconds: dict[str, list[float]] = {name: [] for name in detectors}
+        for view, grey in greys.items():
+            f = 1000 / max(grey.shape)
+            small = cv2.resize(grey, None, fx=f, fy=f, interpolation=cv2.INTER_AREA)
+            for _ in range(repeat):
+                # Every detector on this view in turn: a change of load hits them alike.
+                for name, detect in detectors.items():
+                    image = small if name == "ours_at_1000" else grey
+                    t0 = time.perf_counter()
+                    c = detect(image)
+                    seconds[name].append(time.perf_counter() - t0)
+                    if c is not None and np.all(np.isfinite(c)):
+                        corners[name][view] = _in_order(c, image)
+        found[sensor] = corners
+        for name in detectors:
+            out[f"{sensor}_found_{name}"] = len(corners[name])
+            out[f"{sensor}_s_{name}"] = statistics.median(seconds[name])
+            if name == "ours_at_1000":
+                continue
+            rms, worst, fx = _calibration(list(corners[name].values()), size)
+            out[f"{sensor}_calib_rms_px_{name}"] = rms
+            out[f"{sensor}_worst_view_px_{name}"] = worst
+            out[f"{sensor}_fx_{name}"] = fx
+            if name != "ours":
+                same = [corners["ours"][v] for v in corners[name] if v in corners["ours"]]
+                out[f"{sensor}_calib_rms_px_ours_on_{name}_views"] = _calibration(same, size)[0]
+        out[f"{sensor}_best_opencv_found"] = max(
+            v for k, v in out.items() if k.startswith(f"{sensor}_found_opencv_")
+        )
+    vis = found.get("visible", {})
+    if vis:
+        ours, full, cv1000 = vis["ours"], vis["ours_fullres"], vis["opencv_sb_1000"]
+        both = [v for v in ours if v in full]
+        d = [_agreement(ours[v], full[v]).max() for v in both]
+        out["visible_vs_fullres_px_max"] = max(d) if d else float("nan")
+        d = [np.median(_agreement(ours[v], cv1000[v])) for v in ours if v in cv1000]
+        out["visible_opencv_1000_vs_ours_px_median"] = float(np.median(d)) if d else float("nan")
+    out["load_1min_end"] = os.getloadavg()[0]
+    return out
+
+
+@benchmark(
+    "real-12mp",
+    "real 12 MP colour views and their 640 x 480 thermal pairs (issue 30, "
+    "tests/data/czha626-thermal-visible): boards found, seconds per view and calibration "
+    "RMS for calib.detect (pyramid, and at full resolution as before) against OpenCV's plain "
+    "detectors at full size, 2000 and 1000 px; --repeat N times each view N times",
+    baselines=(
+        ("visible_found_ours", "visible_found_opencv_sb_1000"),
+        ("visible_found_ours", "visible_best_opencv_found"),
+        ("visible_s_ours", "visible_s_ours_fullres"),
+        ("visible_s_ours", "visible_s_ours_at_1000"),
+        ("thermal_found_ours", "thermal_best_opencv_found"),
+    ),
+    default_repeat=1,
+)
+def real_12mp(repeat: int) -> dict[str, float]:
+    """:func:`real_12mp_figures` on tests/data/czha626-thermal-visible."""
+    return real_12mp_figures(REAL_12MP_DIR, repeat)
+
+
+def real_12mp_markdown(figures: dict[str, float]) -> str:
+    """``real-12mp``'s figures as the Markdown table of BENCHMARKS.md (one row per sensor
+    and detector; ``-`` where there is no figure)."""
+
+    def fmt(x: float | None, spec: str) -> str:
+        return "-" if x is None or not np.isfinite(x) else format(x, spec)
+
+    lines = [
+        "| sensor | detector | found | median s per view | calibration RMS px (ours on the "
+        "same views) | worst view px | fx px |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for sensor in ("visible", "thermal"):
+        views = figures.get(f"{sensor}_views", 0)
+        names = [k[len(f"{sensor}_found_") :] for k in figures if k.startswith(f"{sensor}_found_")]
+        for d in names:
+            f = {k: figures.get(f"{sensor}_{k}_{d}") for k in ("found", "s", "worst_view_px")}
+            rms = fmt(figures.get(f"{sensor}_calib_rms_px_{d}"), ".3f")
+            same = figures.get(f"{sensor}_calib_rms_px_ours_on_{d}_views")
+            rms += f" ({fmt(same, '.3f')})" if same is not None else ""
+            lines.append(
+                f"| {sensor} | {_DETECTOR_LABELS.get(d, d)} | {f['found']:.0f}/{views:.0f} "
+                f"| {fmt(f['s'], '.2f')} | {rms} | {fmt(f['worst_view_px'], '.2f')} "
+                f"| {fmt(figures.get(f'{sensor}_fx_{d}'), '.0f')} |"
+            )
+    return "\n".join(lines)
+
+
+_DETECTOR_LABELS = {
+    "ours": "calib.detect (pyramid)",
+    "ours_fullres": "calib.detect at full size (before)",
+    "ours_at_1000": "calib.detect on the view downscaled to 1000 px",
+    "baseline": "calib.detect_baseline (issue 15)",
+    "opencv_reference": "calib.opencv_reference (visible: 1000 px, then cornerSubPix 11x11)",
+    **{
+        f"opencv_{d}_{side}": f"OpenCV {name}, {'full size' if side == 'full' else side + ' px'}"
+        for d, name in (("sb", "findChessboardCornersSB"), ("classic", "findChessboardCorners"))
+        for side in OPENCV_SIDES
+    },
+}

@@ -9,7 +9,8 @@ Layout (docs/FORMATS.md)::
       ground_truth_rig.yaml    # optional, the rig the simulator rendered with
       0001/                    # one folder per view, any name, sorted by name
         ccd_left.png           # colour: 8-bit RGB or grey, PNG or JPG
-        thermal_left.png       # thermal: 16-bit PNG, centi-kelvin (0 = no reading)
+        thermal_left.png       # thermal: 16-bit PNG, centi-kelvin (0 = no reading); 8-bit
+                               # grey, or false colour (a palette, mapped back: not kelvin)
         tof.png                # TOF amplitude: 8- or 16-bit PNG
         tof_distance.png       # TOF radial distance: 16-bit PNG, millimetres, 0 = invalid
 
@@ -32,7 +33,8 @@ import mmap
 import os
 import re
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cache
 from pathlib import Path
 from typing import Any, Literal
 
@@ -44,9 +46,11 @@ from app.storage.rigfile import load_rig
 from app.storage.text import read_text
 from calib.board import Board, board_from_dict
 from calib.image_header import ImageHeaderError, image_header
+from calib.palette_inverse import PaletteError, PaletteFit, invert_palette
 from calib.rig import MODALITY_PREFIXES, Modality, Rig, modality_of_name
 from calib.units import kelvin_from_counts, metres_from_counts
 from calib.yaml_text import YamlError, parse_yaml
+from fusion.palettes import PALETTE_NAMES, palette
 
 BOARD_FILE = "board.yaml"
 RIG_FILE = "rig.yaml"
@@ -172,10 +176,8 @@ def _single_channel(image: np.ndarray, info: ImageFile, what: str) -> np.ndarray
     """(H, W) of a grey image; a 3/4-channel image is accepted only if its colours are grey."""
     if image.ndim == 2:
         return image
-    if image.shape[2] in (3, 4):
-        first = image[:, :, 0]
-        if np.array_equal(first, image[:, :, 1]) and np.array_equal(first, image[:, :, 2]):
-            return first
+    if image.shape[2] in (3, 4) and _is_grey(image):
+        return image[:, :, 0]
     if image.shape[2] == 2:
         return image[:, :, 0]
     raise CaptureError(
@@ -183,6 +185,39 @@ def _single_channel(image: np.ndarray, info: ImageFile, what: str) -> np.ndarray
         f"{image.shape[2]} channels with colour (a false-colour image holds no "
         "values)"
     )
+
+
+def _is_grey(image: np.ndarray) -> bool:
+    """Whether a (H, W, 3 or 4) image's three colour channels are equal."""
+    first = image[:, :, 0]
+    return np.array_equal(first, image[:, :, 1]) and np.array_equal(first, image[:, :, 2])
+
+
+@cache
+def known_palettes() -> dict[str, np.ndarray]:
+    """The project's own palettes (:mod:`fusion.palettes`) as the known palettes a
+    false-colour thermal image is first compared with (then calib's built-in ones:
+    :func:`calib.palette_inverse.builtin_palettes`). ``black_hot`` is left out: it is the
+    grey ramp reversed, so a grey image reads white-hot (dark = cold)."""
+    return {name: palette(name) for name in PALETTE_NAMES if name != "black_hot"}
+
+
+def _thermal_from_palette(image: np.ndarray, info: ImageFile) -> tuple[np.ndarray, PaletteFit]:
+    """An 8-bit false-colour thermal image (BGR or BGRA as decoded) -> its palette
+    position, (H, W) float32 0-255, and how it was read; CaptureError naming the file when
+    its colours follow no known palette and no single curve."""
+    if image.dtype != np.uint8:
+        raise CaptureError(
+            f"{info.path}: a {image.dtype} colour thermal image: expected a grey one "
+            "(16-bit centi-kelvin or counts, or 8-bit) or an 8-bit false-colour one"
+        )
+    code = cv2.COLOR_BGR2RGB if image.shape[2] == 3 else cv2.COLOR_BGRA2RGB
+    try:
+        return invert_palette(cv2.cvtColor(image, code), known_palettes())
+    except PaletteError as exc:
+        raise CaptureError(
+            f"{info.path}: a false-colour thermal image that cannot be read back: {exc}"
+        ) from None
 
 
 def decode_color(info: ImageFile) -> np.ndarray:
@@ -201,16 +236,30 @@ def decode_color(info: ImageFile) -> np.ndarray:
 
 
 def decode_thermal(info: ImageFile, encoding: ThermalEncoding = "centikelvin") -> np.ndarray:
-    """Thermal image -> (H, W) float32.
+    """Thermal image -> (H, W) float32 (:func:`read_thermal` without how a palette was read)."""
+    return read_thermal(info, encoding)[0]
+
+
+def read_thermal(
+    info: ImageFile, encoding: ThermalEncoding = "centikelvin"
+) -> tuple[np.ndarray, PaletteFit | None]:
+    """Thermal image -> (H, W) float32, and how a false-colour image was read (else None).
 
     16-bit with ``encoding="centikelvin"`` (the format's default): kelvin, counts / 100, with
-    0 (no reading) -> NaN. 16-bit with ``encoding="counts"`` and any 8-bit image: the stored
-    values as float32, *not* kelvin (enough to detect a board, not to read temperatures).
+    0 (no reading) -> NaN. 16-bit with ``encoding="counts"`` and any 8-bit grey image: the
+    stored values as float32, *not* kelvin (enough to detect a board, not to read
+    temperatures). An 8-bit false-colour image (3 or 4 channels that differ): its palette
+    position 0-255 (:func:`calib.palette_inverse.invert_palette`), *not* kelvin either;
+    CaptureError naming the file when its colours follow no known palette and no single
+    curve.
     """
-    image = _single_channel(_decode(info), info, "thermal")
+    image = _decode(info)
+    if image.ndim == 3 and image.shape[2] in (3, 4) and not _is_grey(image):
+        return _thermal_from_palette(image, info)
+    image = _single_channel(image, info, "thermal")
     if image.dtype == np.uint16 and encoding == "centikelvin":
-        return kelvin_from_counts(image)
-    return image.astype(np.float32)
+        return kelvin_from_counts(image), None
+    return image.astype(np.float32), None
 
 
 def decode_amplitude(info: ImageFile) -> np.ndarray:
@@ -257,13 +306,16 @@ class CaptureView:
         name: the folder name.
         path: the folder.
         files: sensor id -> its files, in sensor order (rig order, else sorted by name).
-        thermal_encoding: how 16-bit thermal images are read (see :func:`decode_thermal`).
+        thermal_encoding: how 16-bit thermal images are read (see :func:`read_thermal`).
+        palettes: thermal sensor -> how its false-colour image was read back, filled in by
+            :meth:`frame` (the values are palette positions, not kelvin).
     """
 
     name: str
     path: Path
     files: dict[str, SensorFiles]
     thermal_encoding: ThermalEncoding = "centikelvin"
+    palettes: dict[str, PaletteFit] = field(default_factory=dict)
 
     @property
     def sensors(self) -> list[str]:
@@ -294,15 +346,19 @@ class CaptureView:
         """Decode one sensor's image(s) into a Frame (``stamp_ns`` 0: captures carry no time).
 
         Colour -> (H, W, 3) uint8 RGB; thermal -> (H, W) float32 (kelvin for 16-bit files,
-        see :meth:`thermal_is_kelvin`); TOF -> amplitude (H, W) float32 and, if present,
+        see :meth:`thermal_is_kelvin`; palette positions 0-255 for a false-colour image,
+        noted in :attr:`palettes`); TOF -> amplitude (H, W) float32 and, if present,
         ``distance_m`` (H, W) float32 metres, NaN where invalid. Raises CaptureError naming
-        the file if it is corrupt.
+        the file if it is corrupt, or false-colour with colours that cannot be read back.
         """
         f = self._files(sensor)
         if f.modality == "color":
             return Frame(sensor, 0, decode_color(f.image))
         if f.modality == "thermal":
-            return Frame(sensor, 0, decode_thermal(f.image, self.thermal_encoding))
+            image, fit = read_thermal(f.image, self.thermal_encoding)
+            if fit is not None:
+                self.palettes[sensor] = fit
+            return Frame(sensor, 0, image)
         distance = decode_distance(f.distance) if f.distance is not None else None
         return Frame(sensor, 0, decode_amplitude(f.image), distance)
 
@@ -369,6 +425,41 @@ class Capture:
                             f"{want[0]}x{want[1]} images (width x height), this one is "
                             f"{info.width}x{info.height}: a rig of another head?"
                         )
+
+    def palette_report(self) -> dict[str, dict[str, Any]]:
+        """The false-colour thermal images read so far (:attr:`CaptureView.palettes`), per
+        sensor: ``views`` (how many), ``palettes`` (palette name -> views; ``own curve``:
+        no known palette fitted, the image's own colour curve was used), ``radiometric``
+        (always False), ``worst_mean_distance_rgb`` and ``worst_share_on_palette`` (the
+        poorest fit of the images to their palette) and ``note`` (one sentence). Empty when
+        no image was false colour. The report's ``palette_images``."""
+        fits: dict[str, dict[str, PaletteFit]] = {}
+        for view in self.views:
+            for sensor, fit in view.palettes.items():
+                fits.setdefault(sensor, {})[view.name] = fit
+        report: dict[str, dict[str, Any]] = {}
+        for sensor in (s for s in self.modalities if s in fits):
+            per_view = fits[sensor]
+            names: dict[str, list[str]] = {}
+            words: dict[str, str] = {}
+            for view, fit in per_view.items():
+                names.setdefault(fit.palette, []).append(view)
+                words[fit.palette] = fit.what
+            which = "; ".join(
+                words[n] + (f" in {len(v)}" if len(names) > 1 else "") for n, v in names.items()
+            )
+            report[sensor] = {
+                "views": len(per_view),
+                "palettes": names,
+                "radiometric": False,
+                "worst_mean_distance_rgb": max(f.mean_distance_rgb for f in per_view.values()),
+                "worst_share_on_palette": min(f.share_on_palette for f in per_view.values()),
+                "note": (
+                    f"{sensor}: {len(per_view)} false-colour image(s), {which}: read back as "
+                    "palette positions 0-255 for geometry; values not radiometric"
+                ),
+            }
+        return report
 
     def summary(self) -> str:
         """A few lines for people: views, sensors and how many views each one is in."""

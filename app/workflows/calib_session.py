@@ -70,6 +70,7 @@ from calib.polarity import detect_board_configured
 from calib.rig import Rig, rig_to_yaml
 from calib.rig_calibration import CalibrationOptions
 from calib.rig_result import CalibrationResult
+from calib.verdict import ZHANG_MIN_VIEWS
 
 CAPTURES = "captures"
 RIGS = "rigs"
@@ -424,12 +425,12 @@ class CalibrationSession:
             if self.job.state == "running":
                 raise SessionError("a calibration is running already; wait for it to end")
             names = sorted(self._views)
-            if len(names) < 3:
+            if len(names) < ZHANG_MIN_VIEWS:
                 raise SessionError(
                     f"{len(names)} view(s) captured; a calibration needs several views of "
-                    f"the board (at least 3 to start; a sensor is calibrated from at least "
-                    f"{CalibrationOptions().min_views} views that show it the board, 20 or "
-                    "more for a good calibration)"
+                    f"the board (at least {ZHANG_MIN_VIEWS} to start: a sensor is calibrated "
+                    f"from {ZHANG_MIN_VIEWS} views that show it the board, with a verdict on "
+                    "how well; about 20 for a good calibration)"
                 )
             self.job = job = CalibrationJob("running", "starting", 0.0, names, started=time.time())
         self._job_thread = threading.Thread(

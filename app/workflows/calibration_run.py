@@ -22,6 +22,7 @@ from app.workflows.report_format import (
     polarity_caption,
     polarity_rows,
     text_table,
+    verdict_lines,
 )
 from calib.coverage import coverage
 from calib.detect import Detection
@@ -29,6 +30,7 @@ from calib.errors import CalibrationError
 from calib.polarity import detect_board_configured
 from calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
 from calib.rig_result import CalibrationResult
+from calib.verdict import ZHANG_MIN_VIEWS
 
 Progress = Callable[[str, float], None]
 
@@ -134,11 +136,11 @@ def calibrate_capture(
             raise CaptureError(
                 f"--sensors: no images of {unknown} in {capture.path} (sensors: {sorted(specs)})"
             )
-    if len(capture.views) < 2:
+    if len(capture.views) < ZHANG_MIN_VIEWS:
         raise CalibrationError(
-            f"{capture.path}: {len(capture.views)} view(s); a calibration "
-            f"needs several views of the board (at least {CalibrationOptions().min_views} "
-            "per sensor, 20 or more for a good one)"
+            f"{capture.path}: {len(capture.views)} view(s); a calibration needs the board "
+            f"in at least {ZHANG_MIN_VIEWS} views per sensor (Zhang's method; about 20 for "
+            "a good one)"
         )
 
     def stage(offset: float, span: float) -> Progress | None:
@@ -170,6 +172,8 @@ def build_report(
     """``report.json`` content: the calibration plus detection results and coverage."""
     report = result.to_report()
     report["capture"] = str(capture.path)
+    if palettes := capture.palette_report():  # false-colour thermal images, not kelvin
+        report["palette_images"] = palettes
     report["detections"] = {
         v: {s: {"found": True, "method": m} for s, m in per.items()}
         for v, per in detections.methods.items()
@@ -245,6 +249,8 @@ def format_summary(result: CalibrationResult, report: dict[str, Any]) -> str:
             f"{i.cx:>8.2f}±{sg['cx']:<6.2f} {i.cy:>8.2f}±{sg['cy']:<6.2f} "
             f"({t[0]:6.1f},{t[1]:6.1f},{t[2]:6.1f}) {st:6.2f}mm {sr:7.3f}°"
         )
+    if result.verdict is not None:
+        lines += ["", *verdict_lines(report["verdict"])]
     lines.append("")
     for name, entry in report["sensors"].items():
         c = entry["coverage"]
@@ -261,9 +267,10 @@ def format_summary(result: CalibrationResult, report: dict[str, Any]) -> str:
         lines.append("")
         for name, why in result.excluded_sensors.items():
             lines.append(f"not calibrated: {name}: {why}")
-    if result.notes:
+    palette_notes = [p["note"] for p in report.get("palette_images", {}).values()]
+    if result.notes or palette_notes:
         lines.append("")
-        lines += [f"note: {note}" for note in result.notes]
+        lines += [f"note: {note}" for note in [*result.notes, *palette_notes]]
     view_outliers = [o for o in result.outliers if o.corner is None]
     corner_outliers = [o for o in result.outliers if o.corner is not None]
     if result.outliers:

@@ -348,3 +348,19 @@ def polarity_caption(polarity: dict[str, dict]) -> str:
         + polarity_note(polarity)
         + ")"
     )
+
+
+# -- verdicts from the calibration's own uncertainty (calib.verdict, the report's ``verdict``)
+
+
+def verdict_lines(verdict: dict) -> list[str]:
+    """The report's ``verdict`` block for a terminal: the overall grade, then one line per
+    sensor and per pair (eyes, stereo) with its grade, the sigmas above target and the
+    advice (``label  usable: σ of ...; capture about 3 more views: ...``)."""
+    rows = [*verdict["sensors"].values(), *verdict["pairs"]]
+    width = max((len(v["label"]) for v in rows), default=0)
+    head = (
+        f"Verdict: {verdict['grade']} (good: every 1-sigma within half its accuracy target; "
+        "poor: one beyond twice its accuracy target)"
+    )
+    return [head, *(f"  {v['label']:<{width}}  {v['line']}" for v in rows)]

@@ -33,6 +33,7 @@ from app.workflows.report_format import (
     truth_rows,
     verdict_line,
 )
+from app.workflows.report_html import REPORT_HTML_NAME, session_report_html
 from calib.coverage import PARAM_NAMES
 from calib.errors import RigError
 from calib.rig import Rig
@@ -128,6 +129,11 @@ class CalibrationPanel(Periodic):
                 visible=False,
             )
             self.drop = gui.add_button("Drop view and calibrate again", visible=False)
+            self.download = gui.add_button(
+                "Download report",
+                hint="The calibration report as one HTML page to read, print or send",
+                visible=False,
+            )
             self.save = gui.add_button("Save rig", disabled=True)
             self.version_pick = gui.add_dropdown("Saved rig", (NONE,))
             self.use = gui.add_button("Use this rig")
@@ -137,6 +143,7 @@ class CalibrationPanel(Periodic):
         self.delete.on_click(lambda _e: self._act(self._delete))
         self.run.on_click(lambda _e: self._act(self._calibrate))
         self.drop.on_click(lambda _e: self._act(self._drop))
+        self.download.on_click(lambda e: self._act(lambda: self._download(e.client)))
         self.save.on_click(lambda _e: self._act(self._save))
         self.use.on_click(lambda _e: self._act(self._use))
         self._dirty = True
@@ -180,6 +187,12 @@ class CalibrationPanel(Periodic):
         self.session.delete(name)
         self.session.start_calibration()
         return f"Dropped view {md_text(name)}; calibrating again."
+
+    def _download(self, client) -> str:
+        """Send the finished calibration's report page (as GET /api/calibrate/report.html)."""
+        page = session_report_html(self.session.job).encode("utf-8")
+        client.send_file_download(REPORT_HTML_NAME, page, save_immediately=True)
+        return f"Report sent: {REPORT_HTML_NAME} ({len(page) // 1024} kB)."
 
     def _save(self) -> str:
         v = self.session.save()
@@ -294,7 +307,7 @@ class CalibrationPanel(Periodic):
             self.stage.content = f"Calibrated {len(job.views)} views in {took:.0f} s{saved}."
         self.save.disabled = job.state != "done" or job.saved_as is not None
         done = job.state == "done" and job.result is not None
-        self.chart.visible = self.drop.visible = done
+        self.chart.visible = self.drop.visible = self.download.visible = done
         if not done:
             self.results.content = ""
             return

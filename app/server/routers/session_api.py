@@ -1,6 +1,6 @@
 """REST routes of the calibration session: captures, calibration runs, saved rig versions.
 
-``/api/captures`` (list, take, delete), ``/api/calibrate`` (start, status, result),
+``/api/captures`` (list, take, delete), ``/api/calibrate`` (start, status, result, ``report.html``),
 ``/api/range`` (the TOF range calibration: start, status, result, save) and ``/api/rigs``
 (list versions, save, get one, use one; ``/api/thermal/save``: the rig in use with the
 imagers' current radiometry). Typed models; a request that cannot
@@ -16,6 +16,7 @@ from collections.abc import Callable
 from typing import Any, Literal, TypeVar
 
 from fastapi import APIRouter, Depends, HTTPException
+from fastapi.responses import HTMLResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 from app.server.routers.limits import require_json
@@ -29,6 +30,7 @@ from app.workflows.calib_session import (
     ViewInfo,
     radiometry_report,
 )
+from app.workflows.report_html import CSP, REPORT_HTML_NAME, session_report_html
 from calib.errors import RigError
 from calib.rig import Rig, rig_to_dict
 
@@ -278,6 +280,20 @@ def make_session_router(
         "calibration",
         "The finished calibration's report (``report.json`` layout, docs/FORMATS.md).",
     )
+
+    @router.get("/calibrate/report.html", response_class=HTMLResponse)
+    def calibration_report_html() -> HTMLResponse:
+        """The finished calibration's report as one self-contained HTML page to read and
+        print (the Calibration panel's Download report sends the same); 404 before."""
+        job = session.job
+        _finished_report(job, "calibration")
+        return HTMLResponse(
+            session_report_html(job),
+            headers={
+                "Content-Security-Policy": CSP,
+                "Content-Disposition": f'inline; filename="{REPORT_HTML_NAME}"',
+            },
+        )
 
     @router.post("/range", status_code=202, dependencies=[Depends(require_json)])
     def start_range(body: RangeStart | None = None) -> RangeStatus:

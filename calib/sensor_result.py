@@ -1,0 +1,34 @@
+"""One sensor's calibration (:class:`SensorResult`), on its own so that the verdicts
+(:mod:`calib.verdict`) and the whole result (:mod:`calib.rig_result`) can both use it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from calib.camera import Intrinsics
+
+
+@dataclass
+class SensorResult:
+    """Calibration of one sensor.
+
+    ``sigma`` holds 1-sigma uncertainties: ``fx fy cx cy`` (px), ``distortion`` (list),
+    ``rotation_deg`` and ``translation_m`` (3 components each, of ``T_rig_sensor``'s
+    rotation vector and translation; zero for the reference).
+    """
+
+    name: str
+    modality: str
+    image_size: tuple[int, int]
+    intrinsics: Intrinsics
+    T_rig_sensor: np.ndarray
+    sigma: dict[str, Any]
+    views_detected: int
+    views_used: int
+    rms_px: float
+    worst_view: str | None
+    zhang_rms_px: float | None = None
+    """RMS error of Zhang's fit of this sensor alone (its own board poses), px."""

@@ -1,0 +1,757 @@
+"""How good is a calibration, and what would make it better: verdicts from its own
+uncertainty (:mod:`calib.rig_uncertainty`), per sensor and per pair of sensors.
+
+**Figures.** Per sensor: the 1-sigma of its focal lengths (relative, %), of its principal
+point (px; reported, not judged) and of its pose relative to the reference sensor
+(rotation in degrees, translation in mm). Per pair, each eye (colour camera - thermal
+imager) and the stereo pair (the two eyes' colour cameras): the 1-sigma of their relative
+pose ``T_a_b = inv(T_rig_a) @ T_rig_b``, rotation and translation (the baseline). A pose's
+rotation and translation errors are taken in the first sensor's frame (x right, y down,
+z forward: rotations about the horizontal, vertical and optical axes); their sigma is the
+root of the summed variances of the three components (the expected size of the error
+vector). Every sigma is the larger of the independent-errors and the cluster-robust
+estimate, as the parameters' own.
+
+**Targets.** The calibration's accuracy targets (calib.rig_compare: focal lengths 0.3 %,
+1 % for the TOF; relative poses 0.1 deg and 1 mm, 0.2 deg and 3 mm with the TOF) apply to
+the error; a sigma meets its target when it is at most half of it (:data:`SIGMA_SHARE`),
+so that the error stays within the accuracy target at two sigma. A verdict is **good** when
+every judged sigma meets its target, **poor** when one exceeds it :data:`POOR_FACTOR` times
+(the error is then likely beyond twice the accuracy target), **usable** in between.
+
+**Advice** is derived from the information matrix, not from the number of views: candidate
+board poses of a few kinds (tilted about the vertical axis, tilted about the horizontal
+axis, in the image corners, nearer, farther; :data:`KINDS`) are placed in front of the
+sensor, projected into every sensor that would see the whole board with the current
+estimates, and their Jacobian is added to the information of the sensors' parameters (the
+board pose eliminated). Views are added one at a time, each time the one that lowers the
+worst sigma / target ratio most, until every target is met or :data:`MAX_MORE_VIEWS` views
+have been added: the advice names how many views that took and of which kinds. Predicted
+sigmas scale the current ones by the change of the independent-errors estimate, so the
+cluster-robust inflation carries over.
+
+Pure: arrays in, values out.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import scipy.linalg
+
+from calib.board import Board
+from calib.rig import Eye
+from calib.rig_compare import FOCAL_TARGET, POSE_TARGET
+from calib.rig_problem import CornerProblem
+from calib.rig_uncertainty import RigCovariance
+from calib.sensor_result import SensorResult
+from calib.transforms import invert, make_T, rotations_from_rvecs, rvec_from_rotation
+
+ZHANG_MIN_VIEWS = 3
+"""Views of the board Zhang's method needs for a sensor's intrinsics (OpenCV's
+``calibrateCamera`` with the focal lengths, principal point and distortion free)."""
+GOOD, USABLE, POOR = "good", "usable", "poor"
+GRADES = (GOOD, USABLE, POOR)
+SIGMA_SHARE = 0.5
+"""A sigma meets its target when it is at most this share of the accuracy target."""
+POOR_FACTOR = 4.0
+"""A verdict is poor when a sigma exceeds its target (half the accuracy target) this many
+times: twice the accuracy target."""
+MAX_MORE_VIEWS = 40
+"""The search for more views stops here (the advice then says "more than")."""
+DISAGREEMENT = (2.0, 0.5)
+"""A sensor's joint RMS error beyond this factor times, and this many pixels above, its RMS
+alone (Zhang's fit with its own board poses): its views disagree with the other sensors'
+(a mount that moved, captures not at the same moment), which more views cannot fix."""
+DOMINANT_SHARE = 0.6
+"""An axis holding this share of a figure's variance is named ("mostly about ...")."""
+
+KINDS: Mapping[str, str] = {
+    "tilt_vertical": "tilted about the vertical axis",
+    "tilt_horizontal": "tilted about the horizontal axis",
+    "corners": "in the image corners of {sensors}",
+    "nearer": "nearer, filling most of the image of {sensors}",
+    "farther": "farther from {sensors}",
+}
+"""Kinds of candidate views, and how the advice names them."""
+
+_ROTATION_AXES = ("horizontal", "vertical", "optical")
+_TRANSLATION_AXES = ("sideways", "vertical", "depth")
+_MIN_SPACING_PX = 8.0  # corners nearer than this in the image: the detector fails
+_MARGIN = 0.03  # share of the image kept free around a candidate board
+
+
+@dataclass(frozen=True)
+class Figure:
+    """One 1-sigma figure of a verdict.
+
+    Attributes:
+        what: e.g. ``focal length``, ``principal point``, ``rotation to tof``,
+            ``baseline``.
+        sigma: 1-sigma in ``unit``.
+        unit: ``%``, ``px``, ``°`` or ``mm``.
+        target: the sigma's target (half the accuracy target) in ``unit``; None when the
+            figure is reported, not judged.
+        axes: per-axis 1-sigma (x, y, z of the first sensor's frame) of a rotation or
+            translation, else None.
+        axis_names: what the axes are called (``horizontal vertical optical`` for
+            rotations, ``sideways vertical depth`` for translations).
+    """
+
+    what: str
+    sigma: float
+    unit: str
+    target: float | None
+    axes: tuple[float, float, float] | None = None
+    axis_names: tuple[str, str, str] | None = None
+
+    @property
+    def ratio(self) -> float:
+        """sigma / target (0 for a figure without target)."""
+        return self.sigma / self.target if self.target else 0.0
+
+    @property
+    def dominant_axis(self) -> str | None:
+        """The axis holding :data:`DOMINANT_SHARE` of the variance, or None."""
+        if self.axes is None or self.axis_names is None:
+            return None
+        var = np.square(self.axes)
+        k = int(np.argmax(var))
+        total = float(var.sum())
+        return self.axis_names[k] if total > 0 and var[k] >= DOMINANT_SHARE * total else None
+
+    def text(self, with_target: bool = False) -> str:
+        """``σ of the rotation to tof 0.14°`` (``(target 0.10°, mostly about the vertical
+        axis)`` added with ``with_target``)."""
+        s = f"σ of the {self.what} {_number(self.sigma)}{_space(self.unit)}"
+        if not with_target:
+            return s
+        notes = []
+        if self.target is not None:
+            notes.append(f"target {_number(self.target)}{_space(self.unit)}")
+        axis = self.dominant_axis
+        if axis is not None:
+            notes.append(f"mostly about the {axis} axis" if self.unit == "°" else f"mostly {axis}")
+        return s + (f" ({', '.join(notes)})" if notes else "")
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "what": self.what,
+            "sigma": self.sigma,
+            "unit": self.unit,
+            "target": self.target,
+            "ratio": self.ratio if self.target else None,
+            "axes": list(self.axes) if self.axes is not None else None,
+            "axis_names": list(self.axis_names) if self.axis_names is not None else None,
+            "dominant_axis": self.dominant_axis,
+        }
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The verdict on a sensor or a pair of sensors.
+
+    Attributes:
+        label: ``ccd_left``, ``left eye (ccd_left – thermal_left)``, ``stereo (ccd_left –
+            ccd_right)``.
+        sensors: the sensor, or the pair (first: the frame of its pose figures).
+        grade: ``good``, ``usable`` or ``poor``.
+        figures: every figure, judged or not.
+        more_views: views that would make it good (predicted), 0 when good, None when
+            :data:`MAX_MORE_VIEWS` do not suffice.
+        advice_views: (kind, sensors, views) of the kinds of those views chosen most
+            often (at most two, most first; kind a :data:`KINDS` key, sensors those the
+            board was placed in front of).
+        predicted: the judged figure with the worst sigma / target ratio after the views
+            the search added, with its predicted sigma (None when good).
+        baseline_mm: length of the pair's translation, mm (pairs only).
+        sigma_baseline_length_mm: 1-sigma of that length, mm (pairs only).
+        next_poses: (4, 4) ``T_rig_board`` of the views the search added, in the order it
+            added them (metres; not in the report).
+        disagreement: why the sensor's views disagree with the other sensors' (see
+            :data:`DISAGREEMENT`), or None; it replaces the advice.
+    """
+
+    label: str
+    sensors: tuple[str, ...]
+    grade: str
+    figures: tuple[Figure, ...]
+    more_views: int | None = 0
+    advice_views: tuple[tuple[str, tuple[str, ...], int], ...] = ()
+    predicted: Figure | None = None
+    baseline_mm: float | None = None
+    sigma_baseline_length_mm: float | None = None
+    next_poses: tuple[np.ndarray, ...] = ()
+    disagreement: str | None = None
+
+    @property
+    def judged(self) -> list[Figure]:
+        return [f for f in self.figures if f.target is not None]
+
+    @property
+    def advice(self) -> str | None:
+        """What to capture next, in a sentence; None when good."""
+        if self.grade == GOOD:
+            return None
+        if self.disagreement is not None:
+            return self.disagreement
+        kinds = " and ".join(
+            KINDS[k].format(sensors=" and ".join(s)) for k, s, _ in self.advice_views
+        )
+        if self.more_views is None and not self.next_poses:
+            return (
+                "no candidate view of the board helps (none fits or none lowers the sigma): "
+                "lower the corner noise (sharper, better lit or better heated images)"
+            )
+        if self.more_views is None:
+            p = self.predicted
+            after = ""
+            if p is not None and p.target is not None:
+                after = (
+                    f" ({len(self.next_poses)} would bring σ of the {p.what} to "
+                    f"{_number(p.sigma)}{_space(p.unit)}, target {_number(p.target)}"
+                    f"{_space(p.unit)})"
+                )
+            tried = f", {kinds}" if kinds else ""
+            return (
+                f"capture more than {len(self.next_poses)} more views{tried}{after}, or lower "
+                "the corner noise (sharper, better lit or better heated images; a larger or "
+                "nearer board)"
+            )
+        n = self.more_views
+        return f"capture about {n} more view{'s' if n > 1 else ''}: {kinds}"
+
+    @property
+    def line(self) -> str:
+        """``usable: σ of the rotation to tof 0.14° (target 0.10°, mostly about the
+        vertical axis); capture about 6 more views: tilted about the vertical axis``."""
+        if self.grade == GOOD:
+            shown = [f.text() for f in self.judged]
+            if self.baseline_mm is not None and self.sigma_baseline_length_mm is not None:
+                shown.append(
+                    f"baseline {self.baseline_mm:.1f} ± {_number(self.sigma_baseline_length_mm)} mm"
+                )
+            return f"{GOOD}: " + ", ".join(shown) if shown else GOOD
+        over = sorted(
+            (f for f in self.judged if f.ratio > 1.0), key=lambda f: f.ratio, reverse=True
+        )
+        head = f"{self.grade}: " + "; ".join(f.text(with_target=True) for f in over[:2])
+        if len(over) > 2:
+            head += f" and {len(over) - 2} more above target"
+        advice = self.advice
+        return head + (f"; {advice}" if advice else "")
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "label": self.label,
+            "sensors": list(self.sensors),
+            "grade": self.grade,
+            "line": self.line,
+            "figures": [f.as_dict() for f in self.figures],
+            "advice": self.advice,
+            "advice_views": [
+                {"kind": k, "sensors": list(s), "views": n} for k, s, n in self.advice_views
+            ],
+            "more_views": self.more_views,
+            "predicted": self.predicted.as_dict() if self.predicted is not None else None,
+            "baseline_mm": self.baseline_mm,
+            "sigma_baseline_length_mm": self.sigma_baseline_length_mm,
+            "disagreement": self.disagreement,
+        }
+
+
+@dataclass(frozen=True)
+class RigVerdict:
+    """Verdicts on every calibrated sensor and on the eye and stereo pairs."""
+
+    sensors: dict[str, Verdict]
+    pairs: list[Verdict] = field(default_factory=list)
+
+    @property
+    def grade(self) -> str:
+        """The worst grade of all."""
+        grades = [v.grade for v in [*self.sensors.values(), *self.pairs]]
+        return max(grades, key=GRADES.index) if grades else GOOD
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "grade": self.grade,
+            "sigma_share": SIGMA_SHARE,
+            "poor_factor": POOR_FACTOR,
+            "sensors": {n: v.as_dict() for n, v in self.sensors.items()},
+            "pairs": [v.as_dict() for v in self.pairs],
+        }
+
+
+# -- figures as linear functions of the sensors' parameters ---------------------------------
+
+
+@dataclass
+class _Spec:
+    """A figure as rows of a Jacobian on the kept parameters (RigCovariance.columns):
+    ``sigma`` combines the rows' variances (``norm``: their sum, ``max``: the largest),
+    times ``unit_scale``. ``fallback``: the sigma when there are no rows (intrinsics held
+    fixed: Zhang's own sigma, not predicted)."""
+
+    what: str
+    unit: str
+    target: float | None
+    rows: np.ndarray | None  # (k, p)
+    combine: str
+    unit_scale: float
+    axis_names: tuple[str, str, str] | None = None
+    fallback: float | None = None
+
+    def variances(self, cov: np.ndarray) -> np.ndarray:
+        """(k,) variances of the rows under ``cov`` (none without rows)."""
+        rows = self.rows if self.rows is not None else np.zeros((0, len(cov)))
+        return np.einsum("ij,jk,ik->i", rows, cov, rows)
+
+    def combined(self, var: np.ndarray) -> float:
+        v = float(np.sum(var)) if self.combine == "norm" else float(np.max(var))
+        return float(np.sqrt(max(v, 0.0))) * self.unit_scale
+
+    def figure(self, c: RigCovariance) -> tuple[Figure, float]:
+        """The figure now, and its independent-errors sigma alone (0 without rows: not
+        predicted)."""
+        if self.rows is None:
+            return Figure(self.what, float(self.fallback or 0.0), self.unit, self.target), 0.0
+        v_iid, v_cl = self.variances(c.iid), self.variances(c.cluster)
+        sigma = max(self.combined(v_iid), self.combined(v_cl))
+        axes = None
+        if self.axis_names is not None:
+            axes = tuple(float(a) for a in np.sqrt(np.maximum(v_iid, v_cl)) * self.unit_scale)
+        fig = Figure(self.what, sigma, self.unit, self.target, axes, self.axis_names)  # type: ignore[arg-type]
+        return fig, self.combined(v_iid)
+
+
+def _T_rig(prob: CornerProblem, x: np.ndarray, sensor: str) -> np.ndarray:
+    k = prob.sensors.index(sensor)
+    if k == 0:
+        return np.eye(4)
+    p = x[6 * (k - 1) : 6 * k]
+    return make_T(rotations_from_rvecs(p[:3])[0], p[3:])
+
+
+def _pose_rows(c: RigCovariance, a: str, b: str) -> np.ndarray:
+    """(6, p): derivatives of the error of ``T_a_b`` (rotation vector of ``R(x) R0^T`` in
+    radians, translation change in metres, both in frame a) by the kept parameters
+    (central differences over the two sensors' pose parameters)."""
+    prob, x0 = c.problem, c.x
+    T0 = invert(_T_rig(prob, x0, a)) @ _T_rig(prob, x0, b)
+    rows = np.zeros((6, len(c.columns)))
+    h = 1e-6
+    for s in (a, b):
+        k = prob.sensors.index(s)
+        if k == 0:
+            continue
+        for j in range(6 * (k - 1), 6 * k):
+            d = []
+            for sign in (1.0, -1.0):
+                x = x0.copy()
+                x[j] += sign * h
+                T = invert(_T_rig(prob, x, a)) @ _T_rig(prob, x, b)
+                d.append(np.r_[rvec_from_rotation(T[:3, :3] @ T0[:3, :3].T), T[:3, 3] - T0[:3, 3]])
+            rows[:, c.column(j)] += (d[0] - d[1]) / (2 * h)
+    return rows
+
+
+def _pose_specs(
+    c: RigCovariance, a: str, b: str, modalities: Mapping[str, str], kind: str
+) -> list[_Spec]:
+    rows = _pose_rows(c, a, b)
+    rot_t = max(POSE_TARGET[modalities[a]][0], POSE_TARGET[modalities[b]][0]) * SIGMA_SHARE
+    tr_t = max(POSE_TARGET[modalities[a]][1], POSE_TARGET[modalities[b]][1]) * SIGMA_SHARE
+    rot_what = "rotation" if kind == "pair" else f"rotation to {a}"
+    tr_what = "baseline" if kind == "pair" else f"translation to {a}"
+    return [
+        _Spec(rot_what, "°", rot_t, rows[:3], "norm", float(np.degrees(1.0)), _ROTATION_AXES),
+        _Spec(tr_what, "mm", 1000 * tr_t, rows[3:], "norm", 1000.0, _TRANSLATION_AXES),
+    ]
+
+
+def _sensor_specs(
+    c: RigCovariance, s: SensorResult, reference: str, modalities: Mapping[str, str]
+) -> list[_Spec]:
+    prob = c.problem
+    k = prob.sensors.index(s.name)
+    i = s.intrinsics
+    focal_t = 100 * FOCAL_TARGET[s.modality] * SIGMA_SHARE
+    if k in prob.intr_slices:
+        start = prob.intr_slices[k].start
+        p = len(c.columns)
+        focal = np.zeros((2, p))
+        focal[0, c.column(start)] = 100.0 / i.fx
+        focal[1, c.column(start + 1)] = 100.0 / i.fy
+        centre = np.zeros((2, p))
+        centre[0, c.column(start + 2)] = 1.0
+        centre[1, c.column(start + 3)] = 1.0
+        specs = [
+            _Spec("focal length", "%", focal_t, focal, "max", 1.0),
+            _Spec("principal point", "px", None, centre, "max", 1.0),
+        ]
+    else:  # intrinsics held fixed: Zhang's own sigma, not predicted
+        sg = s.sigma
+        rel = 100 * max(sg["fx"] / i.fx, sg["fy"] / i.fy)
+        specs = [
+            _Spec("focal length", "%", focal_t, None, "max", 1.0, fallback=rel),
+            _Spec(
+                "principal point", "px", None, None, "max", 1.0, fallback=max(sg["cx"], sg["cy"])
+            ),
+        ]
+    if s.name != reference:
+        specs += _pose_specs(c, reference, s.name, modalities, "sensor")
+    return specs
+
+
+# -- candidate views: what more views would do ----------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    """A view the advice may suggest: its kind, the sensor the board is placed in front
+    of, the board pose ``T_rig_board`` (4, 4) and the (p, p) information it would add."""
+
+    kind: str
+    sensor: str
+    T_rig_board: np.ndarray
+    information: np.ndarray
+
+
+def _rot(axis: int, deg: float) -> np.ndarray:
+    r = np.zeros(3)
+    r[axis] = np.radians(deg)
+    return rotations_from_rvecs(r)[0]
+
+
+def _inside(uv: np.ndarray, size: tuple[int, int], margin_px: float = 1.0) -> bool:
+    w, h = size
+    return bool(
+        np.all(np.isfinite(uv))
+        and np.all(uv >= margin_px)
+        and np.all(uv[:, 0] <= w - 1 - margin_px)
+        and np.all(uv[:, 1] <= h - 1 - margin_px)
+    )
+
+
+def _candidates(s: SensorResult, board: Board, distance_m: float) -> list[tuple[str, np.ndarray]]:
+    """(kind, T_sensor_board) of candidate views in front of sensor ``s``."""
+    obj = board.object_points()
+    centre_b = 0.5 * (obj.min(axis=0) + obj.max(axis=0))
+    extent = obj.max(axis=0) - obj.min(axis=0)
+    intr, (w, h) = s.intrinsics, s.image_size
+    margin = _MARGIN * min(w, h)
+
+    def fill(frac: float) -> float:  # distance at which the board spans frac of the image
+        return max(extent[0] * intr.fx / (frac * w), extent[1] * intr.fy / (frac * h))
+
+    def place(R: np.ndarray, pixel: tuple[float, float], z: float) -> np.ndarray | None:
+        ray = intr.normalized(np.array(pixel, dtype=np.float64))
+        for _ in range(25):
+            T = make_T(R, np.r_[ray * z, z] - R @ centre_b)
+            if _inside(intr.project(obj @ T[:3, :3].T + T[:3, 3]), (w, h), margin):
+                return T
+            z *= 1.1
+        return None
+
+    steps = np.linalg.norm(np.diff(obj, axis=0), axis=1)
+    spacing = float(np.min(steps[steps > 0]))  # neighbouring corners, metres
+    far_limit = spacing * min(intr.fx, intr.fy) / _MIN_SPACING_PX
+    pp = (intr.cx, intr.cy)
+    out: list[tuple[str, np.ndarray | None]] = []
+    z_tilt = max(distance_m, fill(0.7))
+    for a in (25.0, -25.0, 45.0, -45.0):
+        out.append(("tilt_vertical", place(_rot(1, a), pp, z_tilt)))
+        out.append(("tilt_horizontal", place(_rot(0, a), pp, z_tilt)))
+    z_c = max(distance_m, fill(0.45))
+    hw, hh = extent[0] * intr.fx / (2 * z_c), extent[1] * intr.fy / (2 * z_c)
+    for u in (margin + hw, w - 1 - margin - hw):
+        for v in (margin + hh, h - 1 - margin - hh):
+            out.append(("corners", place(np.eye(3), (u, v), z_c)))
+    tilts = [_rot(0, 15.0), _rot(0, -15.0), _rot(1, 15.0), _rot(1, -15.0)]
+    z_near = fill(0.85)
+    if z_near < 0.8 * distance_m:
+        out += [("nearer", place(R, pp, z_near)) for R in tilts]
+    z_far = min(1.7 * distance_m, far_limit)
+    if z_far > 1.2 * distance_m:
+        out += [("farther", place(R, pp, z_far)) for R in tilts]
+    return [(k, T) for k, T in out if T is not None]
+
+
+def _candidate_information(
+    c: RigCovariance,
+    sensors: Mapping[str, SensorResult],
+    board: Board,
+    subject: str,
+) -> list[_Candidate]:
+    """Every candidate view in front of ``subject``, with the information it would add to
+    the kept parameters (its own board pose eliminated) from every sensor that would see
+    the whole board with the current estimates. One Jacobian for all of them."""
+    prob = c.problem
+    obj = board.object_points()
+    n = len(obj)
+    kinds, poses, s_idx, v_idx, uv = [], [], [], [], []
+    for kind, T in _candidates(sensors[subject], board, _median_distance(c, subject, board)):
+        T_rig_board = sensors[subject].T_rig_sensor @ T
+        seen = []
+        for k, name in enumerate(prob.sensors):
+            s = sensors[name]
+            T_s = invert(s.T_rig_sensor) @ T_rig_board
+            p = s.intrinsics.project(obj @ T_s[:3, :3].T + T_s[:3, 3])
+            if _inside(p, s.image_size):
+                seen.append((k, p))
+        if not seen:
+            continue
+        for k, p in seen:
+            s_idx.append(np.full(n, k))
+            v_idx.append(np.full(n, len(poses)))
+            uv.append(p)
+        kinds.append(kind)
+        poses.append(T_rig_board)
+    if not poses:
+        return []
+    s_all = np.concatenate(s_idx)
+    hyp = CornerProblem(
+        prob.sensors,
+        [f"next{i}" for i in range(len(poses))],
+        s_all,
+        np.concatenate(v_idx),
+        np.tile(np.arange(n), len(s_all) // n),
+        np.tile(obj, (len(s_all) // n, 1)),
+        np.concatenate(uv),
+        prob.free_dist,
+        prob.refine_intrinsics,
+    )
+    board_x = np.concatenate([np.r_[rvec_from_rotation(T[:3, :3]), T[:3, 3]] for T in poses])
+    x = np.r_[c.x[: prob.off_board], board_x, c.x[prob.off_intr :]]
+    J = hyp.jacobian(x, c.fixed, c.weights[hyp.s_idx])
+    keep = np.r_[np.arange(hyp.off_board), np.arange(hyp.off_intr, hyp.n_params)]
+    rows = np.r_[0, np.cumsum(np.bincount(hyp.v_idx, minlength=len(poses)))] * 2
+    out = []
+    for i, kind in enumerate(kinds):
+        Ji = J[rows[i] : rows[i + 1]].toarray()
+        Js, Jb = Ji[:, keep], Ji[:, hyp.off_board + 6 * i : hyp.off_board + 6 * i + 6]
+        W = Js.T @ Jb
+        info = Js.T @ Js - W @ np.linalg.pinv(Jb.T @ Jb, hermitian=True) @ W.T
+        out.append(_Candidate(kind, subject, poses[i], info))
+    return out
+
+
+def _row_variances(information: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(k,) diagonal of ``rows inv(information) rows^T`` (rows (k, p)), through a
+    Cholesky factor of the equilibrated matrix (pseudo-inverse if singular)."""
+    d = np.sqrt(np.clip(np.diag(information), 1e-300, None))
+    As = information / d[:, None] / d[None, :]
+    Rs = rows / d[None, :]
+    try:
+        X = scipy.linalg.cho_solve(scipy.linalg.cho_factor(As), Rs.T)
+    except np.linalg.LinAlgError:
+        X = np.linalg.pinv(As, hermitian=True) @ Rs.T
+    return np.einsum("ij,ji->i", Rs, X)
+
+
+def _more_views(
+    c: RigCovariance,
+    specs: list[_Spec],
+    now: list[Figure],
+    iid_now: list[float],
+    candidates: list[_Candidate],
+) -> tuple[int | None, list[_Candidate], Figure | None]:
+    """Greedy: add the candidate view that lowers the worst sigma / target ratio most,
+    until every judged sigma meets its target or :data:`MAX_MORE_VIEWS` were added.
+
+    A figure's predicted sigma is its current one times the ratio of its independent-errors
+    sigma with and without the views: the cluster-robust excess is carried along whole
+    (a model in which it fades with the views' leverage predicted sigmas 1-4.5 times too
+    small on simulated captures; this one within a factor of two either way). Figures
+    without a Jacobian keep their sigma. Returns (views added, None if that did not
+    suffice; the views chosen, in order; the judged figure with the worst ratio at the
+    end, with its predicted sigma).
+    """
+    judged = [
+        (spec, fig, base)
+        for spec, fig, base in zip(specs, now, iid_now, strict=True)
+        if spec.target is not None and base > 0
+    ]
+    fixed = [f for f, base in zip(now, iid_now, strict=True) if f.target is not None and base <= 0]
+    rows = np.concatenate([spec.rows for spec, _, _ in judged]) if judged else None
+    ends = np.cumsum([len(spec.rows) for spec, _, _ in judged])
+
+    def worst(information: np.ndarray) -> Figure | None:
+        out = list(fixed)
+        if rows is not None:
+            var = np.split(_row_variances(information, rows) * c.scale, ends[:-1])
+            for (spec, fig, base), v in zip(judged, var, strict=True):
+                out.append(replace(fig, sigma=fig.sigma * spec.combined(v) / base, axes=None))
+        return max(out, key=lambda f: f.ratio, default=None)
+
+    info = c.information.copy()
+    reached = worst(info)
+    picks: list[_Candidate] = []
+    while reached is not None and reached.ratio > 1.0 and len(picks) < MAX_MORE_VIEWS:
+        scored = [(worst(info + cand.information), k) for k, cand in enumerate(candidates)]
+        best = min(scored, key=lambda fk: fk[0].ratio, default=None)
+        if best is None or best[0].ratio > reached.ratio * (1 - 1e-4):
+            break  # no candidate helps
+        reached, k = best
+        info += candidates[k].information
+        picks.append(candidates[k])
+    done = reached is None or reached.ratio <= 1.0
+    return (len(picks) if done else None), picks, reached
+
+
+def _grade(figures: list[Figure]) -> str:
+    worst = max((f.ratio for f in figures if f.target is not None), default=0.0)
+    if worst <= 1.0:
+        return GOOD
+    return POOR if worst > POOR_FACTOR else USABLE
+
+
+def _median_distance(c: RigCovariance, sensor: str, board: Board) -> float:
+    """Median distance (m) from ``sensor`` to the centre of the board over its views."""
+    prob = c.problem
+    k = prob.sensors.index(sensor)
+    views = np.unique(prob.v_idx[prob.s_idx == k])
+    obj = board.object_points()
+    centre = 0.5 * (obj.min(axis=0) + obj.max(axis=0))
+    _Rs, _ts, Rb, tb = prob.poses(c.x)
+    T_s = _T_rig(prob, c.x, sensor)
+    P = np.einsum("vij,j->vi", Rb[views], centre) + tb[views]
+    Q = (P - T_s[:3, 3]) @ T_s[:3, :3]
+    return float(np.median(np.linalg.norm(Q, axis=1)))
+
+
+class _Judge:
+    """Verdicts of one calibration; candidate views' information computed once per
+    sensor they are placed in front of."""
+
+    def __init__(self, c: RigCovariance, sensors: Mapping[str, SensorResult], board: Board) -> None:
+        self.c, self.sensors, self.board = c, sensors, board
+        self.modalities = {n: s.modality for n, s in sensors.items()}
+        self._cache: dict[str, list[_Candidate]] = {}
+
+    def candidates(self, subjects: tuple[str, ...]) -> list[_Candidate]:
+        out = []
+        for s in dict.fromkeys(subjects):
+            if s not in self._cache:
+                self._cache[s] = _candidate_information(self.c, self.sensors, self.board, s)
+            out += self._cache[s]
+        return out
+
+    def disagreement(self, names: tuple[str, ...]) -> str | None:
+        """Why one of ``names`` disagrees with the other sensors (:data:`DISAGREEMENT`)."""
+        factor, margin = DISAGREEMENT
+        for name in names:
+            s = self.sensors[name]
+            alone = s.zhang_rms_px
+            if alone is None or len(self.sensors) < 2:
+                continue
+            if s.rms_px > factor * alone and s.rms_px > alone + margin:
+                return (
+                    f"{name}'s corners fit one camera alone (RMS {alone:.2f} px) but not the "
+                    f"other sensors' in the same views ({s.rms_px:.2f} px): likely the "
+                    "sensors moved relative to each other between views, or did not capture "
+                    "at the same moment; fix the mount or synchronise the captures, then "
+                    "capture again"
+                )
+        return None
+
+    def verdict(
+        self,
+        label: str,
+        names: tuple[str, ...],
+        specs: list[_Spec],
+        subjects: tuple[str, ...],
+        baseline: tuple[float, float] | None = None,
+    ) -> Verdict:
+        """The verdict on ``specs`` of the sensor or pair ``names``; candidate views are
+        placed in front of each of ``subjects``."""
+        current = [spec.figure(self.c) for spec in specs]
+        figures = [f for f, _ in current]
+        grade = _grade(figures)
+        disagreement = self.disagreement(names) if grade != GOOD else None
+        more, picks, predicted = 0, [], None
+        if disagreement is not None:
+            more = None  # more views will not mend it
+        elif grade != GOOD:
+            iid_now = [k for _, k in current]
+            more, picks, predicted = _more_views(
+                self.c, specs, figures, iid_now, self.candidates(subjects)
+            )
+        by_kind = Counter(p.kind for p in picks).most_common(2)
+        views = tuple(
+            (k, tuple(dict.fromkeys(p.sensor for p in picks if p.kind == k)), n) for k, n in by_kind
+        )
+        length, sig_len = baseline if baseline is not None else (None, None)
+        return Verdict(
+            label,
+            names,
+            grade,
+            tuple(figures),
+            more,
+            views,
+            predicted,
+            length,
+            sig_len,
+            tuple(p.T_rig_board for p in picks),
+            disagreement,
+        )
+
+    def sensor(self, s: SensorResult, reference: str) -> Verdict:
+        specs = _sensor_specs(self.c, s, reference, self.modalities)
+        subjects = (s.name,) if s.name == reference else (s.name, reference)
+        return self.verdict(s.name, (s.name,), specs, subjects)
+
+    def pair(self, what: str, a: str, b: str) -> Verdict:
+        c = self.c
+        specs = _pose_specs(c, a, b, self.modalities, "pair")
+        t = (invert(self.sensors[a].T_rig_sensor) @ self.sensors[b].T_rig_sensor)[:3, 3]
+        length = float(np.linalg.norm(t))
+        row = (t / length if length > 0 else np.zeros(3)) @ _pose_rows(c, a, b)[3:]
+        sig_len = float(np.sqrt(max(row @ c.iid @ row, row @ c.cluster @ row, 0.0)))
+        label = f"{what} ({a} – {b})"
+        return self.verdict(label, (a, b), specs, (a, b), (1000 * length, 1000 * sig_len))
+
+
+def judge_rig(
+    cov: RigCovariance,
+    sensors: Mapping[str, SensorResult],
+    reference: str,
+    eyes: Mapping[str, Eye],
+    board: Board,
+) -> RigVerdict:
+    """Verdicts on every calibrated sensor and on the eye and stereo pairs.
+
+    Args:
+        cov: the calibration's joint covariance (calib.rig_uncertainty.rig_covariance).
+        sensors: the calibrated sensors (intrinsics, ``T_rig_sensor``, sigma).
+        reference: the rig's reference sensor.
+        eyes: eye name -> (colour, thermal); pairs with an uncalibrated sensor are skipped.
+        board: the board (candidate views are of it).
+    """
+    judge = _Judge(cov, sensors, board)
+    out = {name: judge.sensor(s, reference) for name, s in sensors.items()}
+    calibrated = {
+        n: e for n, e in sorted(eyes.items()) if e.color in sensors and e.thermal in sensors
+    }
+    pairs = [judge.pair(f"{n} eye", e.color, e.thermal) for n, e in calibrated.items()]
+    if len(calibrated) >= 2:
+        a, b = (e.color for e in list(calibrated.values())[:2])
+        pairs.append(judge.pair("stereo", a, b))
+    return RigVerdict(out, pairs)
+
+
+def _number(x: float) -> str:
+    """Two significant digits, at most three decimals: 0.14, 1.2, 36, 0.012."""
+    if x == 0 or not np.isfinite(x):
+        return f"{x:g}"
+    digits = max(0, min(3, 1 - int(np.floor(np.log10(abs(x))))))
+    return f"{x:.{digits}f}"
+
+
+def _space(unit: str) -> str:
+    return unit if unit == "°" else f" {unit}"

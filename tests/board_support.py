@@ -1,0 +1,112 @@
+"""Synthetic board detections for the polarity and ordering tests (tests/test_polarity.py,
+tests/test_symmetric_board.py): exact projections of the simulated head's ground truth plus
+seeded noise, their poses, the screening and the calibration's input shape, and hard-edged
+synthetic board images."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from app.sources.sim.head import default_rig
+from app.sources.sim.scenarios import calibration_poses
+from calib.board import Board
+from calib.camera import Intrinsics
+from calib.diagnosis import Screening, screen_sensors
+from calib.rig import Rig
+from calib.rig_calibration import SensorSpec
+from calib.transforms import make_T, transform_points
+
+RIG = default_rig()
+
+# Per-axis corner noise (px) of each modality, about what the detectors achieve.
+NOISE = {"color": 0.08, "thermal": 0.06, "tof": 0.05}
+VIEWS = 16
+
+
+def corners_seen(
+    board: Board,
+    rig: Rig = RIG,
+    views: int = VIEWS,
+    seed: int = 0,
+    poses: list[np.ndarray] | None = None,
+    offsets: dict[str, dict[str, np.ndarray]] | None = None,
+) -> dict[str, dict[str, np.ndarray]]:
+    """sensor -> view -> (N, 2) noisy corners in canonical order, for the views where the
+    board lies inside the sensor's image (3 px from the border). ``offsets[sensor][view]``
+    moves the board points (3,) in the board frame before projecting (another sub-grid)."""
+    rng = np.random.default_rng(seed)
+    obs: dict[str, dict[str, np.ndarray]] = {}
+    poses = poses if poses is not None else calibration_poses(views, 1, rig, board)
+    for i, T_rig_board in enumerate(poses):
+        view = f"{i + 1:04d}"
+        for s in rig.names:
+            obj = board.object_points() + (offsets or {}).get(s, {}).get(view, 0.0)
+            pts = transform_points(np.linalg.inv(rig[s].T_rig_sensor) @ T_rig_board, obj)
+            uv = rig[s].intrinsics.project(pts)
+            w, h = rig[s].image_size
+            if np.isfinite(uv).all() and (uv > 3).all() and (uv < (w - 4, h - 4)).all():
+                sigma = NOISE[rig[s].modality]
+                obs.setdefault(s, {})[view] = uv + rng.normal(0.0, sigma, uv.shape)
+    return obs
+
+
+def pnp_poses(
+    obs: dict[str, dict[str, np.ndarray]], rig: Rig, board: Board
+) -> dict[str, dict[str, np.ndarray]]:
+    """sensor -> view -> T_sensor_board by PnP with the true intrinsics."""
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for s, per in obs.items():
+        intr = rig[s].intrinsics
+        for v, c in per.items():
+            ok, rvec, tvec = cv2.solvePnP(board.object_points(), c, intr.K, intr.dist)
+            assert ok
+            out.setdefault(s, {})[v] = make_T(cv2.Rodrigues(rvec)[0], tvec.ravel())
+    return out
+
+
+def screen(obs: dict[str, dict[str, np.ndarray]], board: Board, rig: Rig = RIG) -> Screening:
+    """:func:`calib.diagnosis.screen_sensors` of ``obs`` with the true intrinsics and PnP poses."""
+    return screen_sensors(
+        obs,
+        {s: rig[s].modality for s in obs},
+        {s: rig[s].image_size for s in obs},
+        {s: rig[s].intrinsics for s in obs},
+        pnp_poses(obs, rig, board),
+        board,
+    )
+
+
+SPECS = {n: SensorSpec(n, RIG[n].modality, RIG[n].image_size) for n in RIG.names}
+
+
+def as_views(obs: dict[str, dict[str, np.ndarray]]) -> dict[str, dict[str, np.ndarray]]:
+    """sensor -> view -> corners as the calibration takes them: view -> sensor -> corners."""
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for s, per in obs.items():
+        for v, c in per.items():
+            out.setdefault(v, {})[s] = c
+    return out
+
+
+def board_image(board: Board, T_cam_board: np.ndarray, intr: Intrinsics, size, black, white):
+    """A synthetic (H, W) float32 image of the board: ``black`` and ``white`` values of the
+    squares (the margin white, one square wide), ``(black + white) / 2`` around it."""
+    w, h = size
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    rays = intr.unproject(np.stack([u, v], axis=-1))
+    R, t = T_cam_board[:3, :3], T_cam_board[:3, 3]
+    n = R[:, 2]
+    depth = (n @ t) / (rays @ n)
+    X = (rays * depth[..., None] - t) @ R  # board frame
+    s = board.square_size_m
+    inside = (X[..., 0] > -2 * s) & (X[..., 0] < (board.cols + 1) * s)
+    inside &= (X[..., 1] > -2 * s) & (X[..., 1] < (board.rows + 1) * s)
+    squares = (
+        (X[..., 0] >= -s) & (X[..., 0] < board.cols * s)
+        & (X[..., 1] >= -s) & (X[..., 1] < board.rows * s)
+    )  # fmt: skip
+    img = np.full((h, w), (black + white) / 2.0)
+    img[inside] = white
+    img[squares & board.is_black(X[..., 0], X[..., 1])] = black
+    return cv2.GaussianBlur(img.astype(np.float32), (0, 0), 0.7)
