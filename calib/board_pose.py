@@ -42,11 +42,16 @@ def board_pose_single(
     rig: Rig, sensor: str, corners: np.ndarray, board: Board
 ) -> np.ndarray | None:
     """(4, 4) ``T_rig_board`` from one sensor's corners (N, 2) pixels (PnP with the rig's
-    intrinsics); None when PnP fails."""
+    intrinsics; NaN rows, corners a partial view did not see, left out); None when PnP
+    fails or too few corners were seen (:meth:`calib.board.Board.pose_problem`)."""
     intr = rig[sensor].intrinsics
+    uv = np.asarray(corners, np.float64).reshape(-1, 2)
+    seen = np.isfinite(uv).all(axis=1)  # all but on a partial view (NaN rows: not seen)
+    if board.pose_problem(seen) is not None:
+        return None
     ok, rvec, tvec = cv2.solvePnP(
-        board.object_points().astype(np.float64),
-        np.asarray(corners, np.float64).reshape(-1, 1, 2),
+        board.object_points()[seen],
+        uv[seen].reshape(-1, 1, 2),
         intr.K,
         np.asarray(intr.distortion, dtype=np.float64),
         flags=cv2.SOLVEPNP_ITERATIVE,
@@ -59,11 +64,13 @@ def board_pose_single(
 def _residuals(
     rig: Rig, corners: Mapping[str, np.ndarray], obj: np.ndarray, T_rig_board: np.ndarray
 ) -> dict[str, np.ndarray]:
-    """Per sensor (N, 2) projected minus detected corners, pixels."""
+    """Per sensor (M, 2) projected minus detected corners, pixels, of the corners seen
+    (rows of ``corners`` that are not NaN)."""
     out = {}
     for name, uv in corners.items():
+        seen = np.isfinite(uv).all(axis=1)
         T = np.linalg.inv(rig[name].T_rig_sensor) @ T_rig_board
-        out[name] = rig[name].intrinsics.project(obj @ T[:3, :3].T + T[:3, 3]) - uv
+        out[name] = rig[name].intrinsics.project(obj[seen] @ T[:3, :3].T + T[:3, 3]) - uv[seen]
     return out
 
 
@@ -74,7 +81,8 @@ def board_pose(
 
     Args:
         rig: intrinsics and ``T_rig_sensor`` of every sensor named in ``corners``.
-        corners: sensor -> (cols * rows, 2) detected corners, pixels, canonical order.
+        corners: sensor -> (cols * rows, 2) detected corners, pixels, canonical order
+            (NaN rows: corners a partial view did not see).
         board: the checkerboard.
         iterations: Gauss-Newton steps at most (it converges in 3-4).
 

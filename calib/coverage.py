@@ -133,15 +133,21 @@ def _check_corners(corners: npt.ArrayLike, board: Board, where: str = "corners")
             f"{where}: expected shape ({board.n_corners}, 2) for a {board.cols}x{board.rows} "
             f"board (all corners, canonical order), got {c.shape}"
         )
-    if not np.all(np.isfinite(c)):
-        raise ValueError(f"{where}: contains NaN or infinity")
+    seen = np.isfinite(c).all(axis=1)
+    if np.isinf(c).any() or not (seen.all() or (board.partial_views and seen.sum() >= 4)):
+        raise ValueError(f"{where}: contains NaN or infinity")  # a partial view: NaN rows
     return c
 
 
 def _outer_corners(c: np.ndarray, board: Board) -> tuple[np.ndarray, ...]:
-    """(up_left, up_right, down_right, down_left) outer corners in canonical board order."""
+    """(up_left, up_right, down_right, down_left) outer corners in canonical board order;
+    of a partial view (NaN rows), the corners seen that are outermost that way."""
     cols = board.cols
-    return c[0], c[cols - 1], c[-1], c[-cols]
+    if np.isfinite(c).all():
+        return c[0], c[cols - 1], c[-1], c[-cols]
+    i = np.flatnonzero(np.isfinite(c).all(axis=1))
+    u, v = i % cols, i // cols
+    return tuple(c[i[np.argmax(k)]] for k in (-u - v, u - v, u + v, v - u))
 
 
 def _quad_area(ul: np.ndarray, ur: np.ndarray, dr: np.ndarray, dl: np.ndarray) -> float:
@@ -167,12 +173,14 @@ def view_params(
     """(X, Y, size, skew) of one detection, each in [0, 1] (module docstring).
 
     Args:
-        corners: (N, 2) pixels, all ``board.n_corners`` corners in canonical board order.
+        corners: (N, 2) pixels, all ``board.n_corners`` corners in canonical board order
+            (a board with ``partial_views``: NaN rows for corners not seen, at least 4 seen).
         board: the checkerboard.
         image_size: (width, height) of the image in pixels.
 
     Raises:
-        ValueError: wrong corner array shape, NaN corners, or a bad image size.
+        ValueError: wrong corner array shape, NaN corners (but a partial view's), or a bad
+            image size.
     """
     w, h = _check_image_size(image_size)
     c = _check_corners(corners, board)
@@ -186,8 +194,8 @@ def view_params(
             return 0.5
         return min(1.0, max(0.0, (mean - border / 2.0) / span))
 
-    x = position(float(np.mean(c[:, 0])), w)
-    y = position(float(np.mean(c[:, 1])), h)
+    x = position(float(np.nanmean(c[:, 0])), w)
+    y = position(float(np.nanmean(c[:, 1])), h)
     size = math.sqrt(area / (w * h))
     return (x, y, size, _skew(ul, ur, dr))
 
@@ -328,7 +336,8 @@ def coverage(
     checked = [_check_corners(c, board, f"corner_sets[{i}]") for i, c in enumerate(corner_sets)]
     params = np.array([view_params(c, board, size) for c in checked], dtype=np.float64)
     if len(checked):
-        counts = _cells(np.concatenate(checked), size, grid)
+        points = np.concatenate(checked)
+        counts = _cells(points[np.isfinite(points).all(axis=1)], size, grid)
         lo, hi = params.min(axis=0), params.max(axis=0)
         # Don't reward small boards or square-on views: their spread starts at 0.
         base = np.array([lo[0], lo[1], 0.0, 0.0])

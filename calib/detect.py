@@ -27,7 +27,8 @@ Pipeline, per modality:
   bright margin); then the same on the flattened image over its local RMS
   (``LCN_SIGMA_PX``), for a faint board (1-3 K) beside hot or cold objects that take the
   global stretch's range (issue 15, BENCHMARKS.md "Thermal board detection under
-  real-world conditions").
+  real-world conditions"); if none gives a board, all of it again without the upsampling
+  (:func:`_native_levels`).
 * **TOF amplitude**: flattened log amplitude (amplitude falls as 1/d^2), a percentile
   stretch, ``TOF_UPSAMPLE`` x cubic upsampling (the squares are 2.5-15 px).
 * **fine stage** (thermal and TOF): the board is found again with the sector-based
@@ -36,6 +37,9 @@ Pipeline, per modality:
   ``FINE_TARGET_SPACING_PX`` and stretched by the checkered area's percentiles; failing
   that, in the crop minus its blur at the squares' scale (``FINE_HIGHPASS_SIGMA``). If
   that fails too, ``cornerSubPix`` on the upsampled image.
+* **fallback refinements**: a grid that no refinement above made smooth is kept; if no
+  detector at any level gives a board, the kept grids are refined with a narrow window,
+  taken as the detector gave them, or repaired (:func:`_refined`).
 
 Why these choices (measured on 40 simulated views and the 13 OpenCV sample images,
 opencv-python-headless 5.0.0.93, 2 cores):
@@ -63,9 +67,17 @@ one returns the reverse of the classic one); they are normalised by
    front; otherwise the rows are flipped;
 2. square colours: the interior square between corners (r, c) and (r + 1, c + 1) is black
    iff r + c is even. On a board with an odd number of inner corners on one side and an
-   even number on the other a half turn swaps the colours, so comparing neighbouring
-   squares decides between the ordering and its half turn. "Black" means dark in colour
-   and TOF amplitude and, on the heated board, hot in thermal (``THERMAL_BLACK_IS_HOT``).
+   even number on the other (``Board.orderings`` 1) a half turn swaps the colours, so
+   comparing neighbouring squares decides between the ordering and its half turn; a
+   detection whose colours do not clearly decide is rejected, never guessed. "Black"
+   means dark in colour and TOF amplitude and, on the heated board, hot in thermal
+   (``THERMAL_BLACK_IS_HOT``).
+
+A board that looks the same turned (even x even or odd x odd inner corners: a half turn;
+square: quarter turns too) keeps the detector's ordering after step 1: the colours cannot
+tell its orderings apart, so they are only checked to alternate
+(``COLOUR_PLAUSIBLE_SEPARATION``), and a calibration decides each view's ordering across
+sensors from the data (calib.polarity.order_views).
 
 Mirrored images: a board with an even number of inner-corner rows (9 x 6) looks the same
 in a mirror (flipped top to bottom it has the same colours), so a mirrored image cannot
@@ -146,8 +158,17 @@ STRETCH_PERCENTILES = (0.5, 99.5)
 FINE_TARGET_SPACING_PX = 48.0
 """Thermal and TOF: after the first detection the board is found again with the accurate
 sector-based detector (CALIB_CB_ACCURACY) in a crop upsampled so that the corner spacing
-is about this many pixels (at most ``FINE_MAX_UPSAMPLE`` x). Measured on the simulator
-this beats cornerSubPix: thermal 0.062 -> 0.034 px, TOF 0.26 -> 0.054 px mean RMS."""
+is about this many pixels: by the whole factor (1 to ``FINE_MAX_UPSAMPLE``) that rounds
+target / spacing up and, when it differs, by the nearest one; of the grids found the
+smoother is kept (:func:`_roughness`). Measured on the simulator the fine stage beats
+cornerSubPix: thermal 0.062 -> 0.034 px, TOF 0.26 -> 0.054 px mean RMS. Why two factors:
+real LWIR squares of about 44 px (tests/data/czha626-thermal-visible, blurred 8-bit JPEG)
+doubled calibrated at RMS 0.769 / 0.619 px (12 / 47 views; Img29 not found at 2x, its
+cornerSubPix fallback 2 px off) against OpenCV's plain SB corners' 0.445 / 0.457 px, at
+their own size at 0.443 / 0.458 px; sharp 16-bit LWIR views (VimsLab, not committed:
+BENCHMARKS.md) the other way round: 0.198 / 0.231 px doubled, 0.228 / 0.269 px at their
+own size. With the choice: 0.444 / 0.460 px and 0.198 / 0.234 px; on the simulated
+thermal conditions (seed 0) one row moved, partial-view 0.030 -> 0.033 px mean."""
 FINE_MAX_UPSAMPLE = 4
 FINE_MARGIN = 1.6
 """Crop margin around the outer corners, in corner spacings (the outer squares and a bit
@@ -166,6 +187,12 @@ SUBPIX_WINDOW_FRACTION = 0.4
 """cornerSubPix half-window as a fraction of the smallest corner spacing: a window wider
 than half the spacing converges to a neighbouring corner (FIELD-NOTES)."""
 SUBPIX_HALF_WINDOW_PX = (2, 11)
+NARROW_WINDOW_FRACTION = 0.1
+"""Half-window of the second cornerSubPix, over the corner spacing, tried when the first
+(``SUBPIX_WINDOW_FRACTION``) leaves a bent grid (:func:`_refined`)."""
+STRAY_FRACTION = 0.25
+"""A detected corner this far (over the corner spacing) from a homography fitted to the
+others is put back on it before a last refinement (:func:`_repaired`)."""
 SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
 
 GRID_MAX_BEND = 0.4
@@ -178,11 +205,21 @@ BORDER_FRACTION = 0.25
 
 COLOUR_AGREEMENT = 0.9
 """Fraction of neighbouring interior-square pairs that must agree on which colour class is
-darker; below it the detection is rejected as ambiguous (never guessed)."""
+darker on a board with one ordering (``Board.orderings`` 1); below it the detection is
+rejected as ambiguous (never guessed)."""
 COLOUR_MIN_SEPARATION = 2.0
 """Minimum separation of the two colour classes: |mean| over standard deviation of the
 (signed) differences between neighbouring squares. Measured: at least 5.5 on detected
 boards (TOF; colour 45+, thermal 8.6+, real images 7.6+); noise gives about 0."""
+COLOUR_PLAUSIBLE_SEPARATION = 0.5
+"""Boards that look the same turned (``Board.orderings`` > 1): the colours decide nothing
+there, so the two thresholds above do not apply; the squares only have to alternate, with
+at least this separation. Measured on synthetic 4 x 6 views (the simulated ccd_left, board
+at 1.2 m) with white glare over the centres of k of its 8 black interior squares (3 seeds
+each; the corners stay sharp): k = 1: 1.7-2.2, k = 2: 0.74-1.0, k = 3: 0.63-0.74, k = 4:
+0.26-0.44; blocky noise in place of the board: median 0.26, 90 % below 0.70 (9 x 6: 0.16
+and 0.40). A plausibility check, not a gate: a grid's geometry is checked before, and a
+calibration leaves out a view whose corners agree with no ordering."""
 
 _SB_FLAGS = {
     "sb": 0,
@@ -245,10 +282,11 @@ class _Prepared:
 
 
 class _Rejected(Exception):
-    def __init__(self, reason: str, final: bool) -> None:
+    def __init__(self, reason: str, final: bool, bent: bool = False) -> None:
         super().__init__(reason)
         self.reason = reason
         self.final = final  # the same board would be rejected whatever found it
+        self.bent = bent  # no refinement tried gave a smooth grid
 
 
 # -- input checks -----------------------------------------------------------------------
@@ -345,8 +383,11 @@ def _upsample(x: np.ndarray, s: int) -> np.ndarray:
     return cv2.resize(x, None, fx=s, fy=s, interpolation=cv2.INTER_CUBIC)
 
 
-def _prepare(image: np.ndarray, modality: str, black_is_hot: bool) -> _Prepared | str:
-    """The prepared image, or the reason there is nothing to detect in."""
+def _prepare(
+    image: np.ndarray, modality: str, black_is_hot: bool, upsample: int | None = None
+) -> _Prepared | str:
+    """The prepared image, or the reason there is nothing to detect in; ``upsample``
+    overrides the thermal / TOF upsampling factor."""
     if modality == "color":
         grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
         if int(grey.max()) - int(grey.min()) < 8:
@@ -369,6 +410,7 @@ def _prepare(image: np.ndarray, modality: str, black_is_hot: bool) -> _Prepared 
         coarse = _flatten(np.log(np.maximum(x, 1.0)), TOF_FLATTEN_SIGMA_PX)
         fine = _flatten(x, TOF_FLATTEN_SIGMA_PX)
         s = TOF_UPSAMPLE
+    s = s if upsample is None else upsample
     u8 = _stretch_u8(coarse)
     if u8 is None:
         return "the image has no contrast (blank image?)"
@@ -378,6 +420,20 @@ def _prepare(image: np.ndarray, modality: str, black_is_hot: bool) -> _Prepared 
     return _Prepared(
         s, _upsample(u8, s), modality == "thermal", _upsample(fine, s), fine, fine, extra
     )
+
+
+def _native_levels(
+    image: np.ndarray, modality: str, black_is_hot: bool
+) -> Iterator[_Prepared | str]:
+    """The prepared image (:func:`_prepare`), then for thermal the same without the
+    upsampling, built only if the first gives no board. Squares that are large already
+    (czha626's LWIR, 44 px) are found at their own size where the upsampled copy can fail:
+    with white text burnt into the image, 2 of 12 views (OpenCV's plain SB finds all 12 at
+    the original size)."""
+    prep = _prepare(image, modality, black_is_hot)
+    yield prep
+    if modality == "thermal" and not isinstance(prep, str) and prep.scale != 1:
+        yield _prepare(image, modality, black_is_hot, upsample=1)
 
 
 def _pyramid_levels(image: np.ndarray) -> Iterator[_Prepared | str]:
@@ -517,14 +573,19 @@ def _bend(G: np.ndarray) -> float:
 def _same_grid(F: np.ndarray, G: np.ndarray) -> np.ndarray | None:
     """``F`` re-ordered to correspond to ``G`` (both (rows, cols, 2)), or None if no
     ordering puts F's corners within ``FINE_MAX_SHIFT`` of a spacing of G's (median over
-    the corners, median spacing).
+    the corners, median spacing). The orderings: F's rows and columns each as they are or
+    reversed, and on a square grid also transposed (a detector may start from any corner
+    and run along either side).
 
     The median, not the largest distance: a first detection with one corner gone a few
     pixels astray (the classic detector on a faint board) must not veto a fine grid that
     is right everywhere; a grid shifted or turned by a square is a whole spacing off at
     every corner. The fine grid's own smoothness is checked afterwards (``_finish``)."""
+    cands = [F, F[::-1, ::-1], F[::-1, :], F[:, ::-1]]
+    if F.shape[0] == F.shape[1]:
+        cands += [c.transpose(1, 0, 2) for c in cands]
     best, best_d = None, np.inf
-    for cand in (F, F[::-1, ::-1], F[::-1, :], F[:, ::-1]):
+    for cand in cands:
         d = float(np.median(np.linalg.norm(cand - G, axis=2)))
         if d < best_d:
             best, best_d = cand, d
@@ -553,7 +614,8 @@ def _board_mask(G: np.ndarray, shape: tuple[int, int]) -> np.ndarray | None:
 
 def _fine(fine: np.ndarray, G: np.ndarray, board: Board) -> np.ndarray | None:
     """Re-detect the board with the accurate sector-based detector in an upsampled crop
-    around the grid ``G`` (original pixels); None if that fails or disagrees.
+    around the grid ``G`` (original pixels), at each upsampling factor of
+    ``FINE_TARGET_SPACING_PX`` (the smoother grid wins); None if that fails or disagrees.
 
     The crop is stretched to 8 bit by the percentiles of the checkered area only (a hot or
     cold object beside the board clips instead of squeezing the board's grey levels). If
@@ -570,26 +632,48 @@ def _fine(fine: np.ndarray, G: np.ndarray, board: Board) -> np.ndarray | None:
     y1 = min(h, int(np.ceil(G[..., 1].max() + margin)) + 1)
     crop = fine[y0:y1, x0:x1]
     mask = _board_mask(G - (x0, y0), (y1 - y0, x1 - x0))
-    s = int(np.clip(np.ceil(FINE_TARGET_SPACING_PX / _min_spacing(G)), 1, FINE_MAX_UPSAMPLE))
+    ratio = FINE_TARGET_SPACING_PX / _min_spacing(G)
+    scales = sorted({int(np.clip(r(ratio), 1, FINE_MAX_UPSAMPLE)) for r in (np.ceil, np.rint)})
     sigma = FINE_HIGHPASS_SIGMA * spacing
     highpassed = crop - cv2.GaussianBlur(crop, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
     exhaustive = cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_EXHAUSTIVE
-    for image, flags in (
-        (crop, cv2.CALIB_CB_ACCURACY),
-        (highpassed, cv2.CALIB_CB_ACCURACY),
-        (highpassed, exhaustive),
-    ):
-        u8 = _stretch_u8(image, mask)
-        if u8 is None:
-            continue
-        ok, raw = cv2.findChessboardCornersSB(_upsample(u8, s), board.pattern_size, flags=flags)
-        if not ok:
-            continue
-        F = (np.asarray(raw, dtype=np.float64).reshape(G.shape) + 0.5) / s - 0.5
-        F += (x0, y0)
-        if np.all(np.isfinite(F)):
-            return _same_grid(F, G)
-    return None
+    images = [
+        (_stretch_u8(image, mask), flags)
+        for image, flags in (
+            (crop, cv2.CALIB_CB_ACCURACY),
+            (highpassed, cv2.CALIB_CB_ACCURACY),
+            (highpassed, exhaustive),
+        )
+    ]
+    grids = []
+    for s in scales:
+        for u8, flags in images:
+            if u8 is None:
+                continue
+            ok, raw = cv2.findChessboardCornersSB(_upsample(u8, s), board.pattern_size, flags=flags)
+            if not ok:
+                continue
+            F = (np.asarray(raw, dtype=np.float64).reshape(G.shape) + 0.5) / s - 0.5
+            F += (x0, y0)
+            if np.all(np.isfinite(F)) and (F := _same_grid(F, G)) is not None:
+                grids.append(F)
+            break
+    return min(grids, key=_roughness, default=None)
+
+
+def _roughness(G: np.ndarray) -> float:
+    """RMS (pixels) of the grid's (rows, cols, 2) second differences along rows and
+    columns, each less its row's (column's) mean: corner noise, little of the perspective
+    and distortion, which vary smoothly."""
+    parts = [np.zeros((0, 2))]
+    if G.shape[1] > 2:
+        a = G[:, 2:] - 2 * G[:, 1:-1] + G[:, :-2]
+        parts.append((a - a.mean(axis=1, keepdims=True)).reshape(-1, 2))
+    if G.shape[0] > 2:
+        b = G[2:] - 2 * G[1:-1] + G[:-2]
+        parts.append((b - b.mean(axis=0, keepdims=True)).reshape(-1, 2))
+    both = np.concatenate(parts)
+    return float(np.sqrt(np.mean(both**2))) if len(both) else 0.0
 
 
 def _sample(img: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -625,9 +709,10 @@ def _colour_order(darkness: np.ndarray, G: np.ndarray) -> tuple[bool, float, flo
             ((v[1:, :] - v[:-1, :]) * sign[:-1, :]).ravel(),
         ]
     )
-    even_dark = float(np.mean(d > 0))
-    even_is_dark = even_dark >= 0.5
-    agreement = even_dark if even_is_dark else 1.0 - even_dark
+    # Ties (both squares clipped, e.g. by glare) vote for neither ordering.
+    even_dark, odd_dark = float(np.mean(d > 0)), float(np.mean(d < 0))
+    even_is_dark = even_dark >= odd_dark
+    agreement = max(even_dark, odd_dark)
     spread = float(np.std(d))
     separation = abs(float(np.mean(d))) / spread if spread > 0 else float("inf")
     return even_is_dark, agreement, separation
@@ -649,12 +734,21 @@ def canonical_order(
         :data:`COLOUR_AGREEMENT`, :data:`COLOUR_MIN_SEPARATION`), for a caller to judge.
     """
     G = np.asarray(corners, dtype=np.float64).reshape(board.rows, board.cols, 2)
+    G, agreement, separation = _orient(G, board, darkness)
+    return np.ascontiguousarray(G.reshape(-1, 2)), agreement, separation
+
+
+def _orient(G: np.ndarray, board: Board, darkness: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """The grid ``G`` (rows, cols, 2) made right-handed, then (boards with one ordering)
+    turned half round if the square colours say so; with the colours' agreement and
+    separation. On a board that looks the same turned (``board.orderings`` > 1) the colours
+    cannot tell its orderings apart, so the grid keeps the detector's ordering."""
     if not _right_handed(G):
         G = G[::-1]
     even_is_dark, agreement, separation = _colour_order(darkness, G)
-    if not even_is_dark:
+    if board.orderings == 1 and not even_is_dark:
         G = G[::-1, ::-1]
-    return np.ascontiguousarray(G.reshape(-1, 2)), agreement, separation
+    return G, agreement, separation
 
 
 def _border_problem(G: np.ndarray, w: int, h: int) -> str | None:
@@ -728,11 +822,87 @@ def _ring_problem(darkness: np.ndarray, G: np.ndarray) -> str | None:
     return None
 
 
+def _refined(
+    G: np.ndarray, prep: _Prepared, board: Board, classic: bool, fallback: bool
+) -> Iterator[tuple[np.ndarray, str]]:
+    """Refinements of the detector's grid ``G`` ((rows, cols, 2), pixels of
+    ``prep.detect``) in original pixels, with the method suffix of each, best first; the
+    caller takes the first that forms a smooth grid.
+
+    1. The fine stage (:func:`_fine`), where the modality has one.
+    2. cornerSubPix (:func:`_subpix`; a pyramid level: again at the original size).
+    3. With ``fallback`` instead (:func:`detect_board` asks for it only when no detector
+       gave a grid that 1 or 2 made smooth), not on pyramid levels: cornerSubPix with a
+       half-window of ``NARROW_WINDOW_FRACTION`` x the spacing (``"+narrow"``), then the
+       detector's own corners (``"+unrefined"``), as a plain OpenCV script keeps them,
+       then the same narrow cornerSubPix after stray corners are put back on the grid
+       (:func:`_repaired`, ``"+repaired"``). Squares with a texture of their own (foil,
+       glare) pull a wide window's corner to the texture's edges: 9-16 px off on harunrk's
+       ZED 2i views (13 of 69 refused before these steps; OpenCV's plain pipeline finds
+       all 69).
+    """
+    s = prep.scale
+    if not fallback:
+        if prep.fine is not None:
+            F = _fine(prep.fine, (G + 0.5) / s - 0.5, board)
+            if F is not None:
+                yield F, ""
+        R = (_subpix(prep.refine, G, wide_first=classic) + 0.5) / s - 0.5
+        if prep.pyramid:
+            yield _subpix_full(prep.darkness, R), ""
+        else:
+            yield R, "+subpix" if prep.fine is not None else ""
+        return
+    if prep.pyramid:
+        return
+    hw = int(np.clip(round(NARROW_WINDOW_FRACTION * _min_spacing(G)), *SUBPIX_HALF_WINDOW_PX))
+
+    def narrow(G: np.ndarray) -> np.ndarray:
+        pts = np.ascontiguousarray(G.reshape(-1, 1, 2), dtype=np.float32)
+        cv2.cornerSubPix(prep.refine, pts, (hw, hw), (-1, -1), SUBPIX_CRITERIA)
+        return (pts.reshape(G.shape).astype(np.float64) + 0.5) / s - 0.5
+
+    yield narrow(G), "+narrow"
+    yield (G + 0.5) / s - 0.5, "+unrefined"
+    P = _repaired(G)
+    if P is not None:
+        yield narrow(P), "+repaired"
+
+
+def _repaired(G: np.ndarray) -> np.ndarray | None:
+    """The grid ``G`` (rows, cols, 2) with its stray corners (farther than
+    ``STRAY_FRACTION`` x the spacing from a homography fitted to the others, RANSAC) put
+    where that homography puts them; None if there is none, or more than one in ten.
+    For a corner the detector misplaced on a blurred, low-contrast square (a 160 x 120
+    Lepton view: one corner half a spacing off, where OpenCV's own grid is noisy but
+    whole)."""
+    rows, cols = G.shape[:2]
+    c, r = np.meshgrid(np.arange(cols, dtype=np.float32), np.arange(rows, dtype=np.float32))
+    board = np.stack([c.ravel(), r.ravel()], axis=1)
+    pts = G.reshape(-1, 2).astype(np.float32)
+    limit = STRAY_FRACTION * _min_spacing(G)
+    H, _ = cv2.findHomography(board, pts, cv2.RANSAC, limit)
+    if H is None:
+        return None
+    predicted = cv2.perspectiveTransform(board[None], H)[0].astype(np.float64)
+    stray = np.linalg.norm(predicted - pts, axis=1) > limit
+    if not stray.any() or stray.sum() > 0.1 * len(pts):
+        return None
+    out = G.reshape(-1, 2).copy()
+    out[stray] = predicted[stray]
+    return out.reshape(G.shape)
+
+
 def _finish(
-    raw: np.ndarray, prep: _Prepared, board: Board, shape: tuple[int, int], classic: bool
+    raw: np.ndarray,
+    prep: _Prepared,
+    board: Board,
+    shape: tuple[int, int],
+    classic: bool,
+    fallback: bool = False,
 ) -> tuple[np.ndarray, str]:
     """Refined corners (N, 2) in original pixels and canonical order, and the method
-    suffix; raises _Rejected."""
+    suffix (``fallback``: :func:`_refined`'s); raises _Rejected."""
     rows, cols = board.rows, board.cols
     pts = np.asarray(raw, dtype=np.float64).reshape(-1, 2)
     if len(pts) != board.n_corners:
@@ -742,38 +912,36 @@ def _finish(
     G = pts.reshape(rows, cols, 2)
     if not _regular(G):
         raise _Rejected("detected corners do not form a regular grid", False)
-    s = prep.scale
     h, w = shape
-    suffix = ""
-    F = None if prep.fine is None else _fine(prep.fine, (G + 0.5) / s - 0.5, board)
-    if F is None:
-        G = (_subpix(prep.refine, G, wide_first=classic) + 0.5) / s - 0.5
-        if prep.fine is not None:
-            suffix = "+subpix"
-        if prep.pyramid:
-            G = _subpix_full(prep.darkness, G)
-    else:
-        G = F
-    if not np.all(np.isfinite(G)) or not _regular(G) or _bend(G) > GRID_MAX_BEND:
+    smooth = (
+        (R, sfx)
+        for R, sfx in _refined(G, prep, board, classic, fallback)
+        if np.all(np.isfinite(R)) and _regular(R) and _bend(R) <= GRID_MAX_BEND
+    )
+    G, suffix = next(smooth, (None, ""))
+    if G is None:
         raise _Rejected(
-            "the refined corners do not form a smooth grid (a corner went astray)", False
+            "the refined corners do not form a smooth grid (a corner went astray)", False, True
         )
     problem = _ring_problem(prep.darkness, G) if prep.pyramid else None
     if problem:
         raise _Rejected(problem, False)
-    if not _right_handed(G):
-        G = G[::-1]
-
-    even_is_dark, agreement, separation = _colour_order(prep.darkness, G)
-    if agreement < COLOUR_AGREEMENT or separation < COLOUR_MIN_SEPARATION:
+    G, agreement, separation = _orient(G, board, prep.darkness)
+    if board.orderings == 1 and (
+        agreement < COLOUR_AGREEMENT or separation < COLOUR_MIN_SEPARATION
+    ):
         raise _Rejected(
             "the square colours are not clearly separated (only "
             f"{100 * agreement:.0f}% of neighbouring squares agree on which colour is "
             f"darker, separation {separation:.1f}); cannot tell the board's orientation",
             False,
         )
-    if not even_is_dark:
-        G = G[::-1, ::-1]
+    if separation < COLOUR_PLAUSIBLE_SEPARATION:
+        raise _Rejected(
+            f"the squares do not alternate in colour (separation {separation:.2f}): not a "
+            "checkerboard",
+            False,
+        )
     # Final: whatever finds this board finds it at the border (corner numbers canonical).
     problem = _border_problem(G, w, h)
     if problem:
@@ -795,7 +963,8 @@ def detect_board(
         image: colour: (H, W, 3) uint8 RGB or (H, W) uint8 grey; thermal: (H, W)
             temperatures in kelvin or raw counts (any float or integer dtype, NaN = no
             reading); tof: (H, W) amplitude (float or integer).
-        board: the checkerboard; it must not be symmetric under a half or quarter turn.
+        board: the checkerboard (any: one that looks the same turned comes out in one of
+            its orderings, module docstring).
         modality: ``"color"``, ``"thermal"`` or ``"tof"``.
         thermal_black_is_hot: polarity of the board in thermal (``THERMAL_BLACK_IS_HOT``).
         pyramid: search a colour image larger than ``PYRAMID_ABOVE_PX`` on downscaled
@@ -808,21 +977,31 @@ def detect_board(
         the board point ``(c * s, r * s, 0)``), or None with the reason.
 
     Raises:
-        ValueError: unknown modality, wrong image shape or dtype, ambiguous board.
+        ValueError: unknown modality, not a Board, wrong image shape or dtype.
     """
     if not isinstance(modality, str) or modality not in MODALITIES:
         raise ValueError(f"modality: expected one of {', '.join(MODALITIES)}, got {modality!r}")
     _check_board(board)
     img = _check_image(image, modality)
+    if board.pattern != "checkerboard":  # ChArUco, circle grids: their own modules
+        from calib.detect_charuco import find_charuco
+        from calib.detect_circles import find_circles
+
+        prep = _prepare(img, modality, thermal_black_is_hot)
+        if isinstance(prep, str):
+            return Detection(None, f"board not found: {prep}", None)
+        find = find_charuco if board.pattern == "charuco" else find_circles
+        return Detection(*find(prep.detect, int(prep.scale), board, modality != "color"))
     shape = img.shape[:2]
 
     preps: Iterable[_Prepared | str]
     if pyramid and modality == "color" and max(shape) > PYRAMID_ABOVE_PX:
         preps = _pyramid_levels(img)
     else:
-        preps = (_prepare(img, modality, thermal_black_is_hot),)
+        preps = _native_levels(img, modality, thermal_black_is_hot)
     first_rejection: Detection | None = None
     tried: list[str] = []
+    bent: list[tuple[np.ndarray, _Prepared, bool, str]] = []  # for _refined's fallback
     for prep in preps:
         if isinstance(prep, str):
             return Detection(None, f"board not found: {prep}", None)
@@ -851,8 +1030,18 @@ def detect_board(
                         return Detection(None, rej.reason, method)
                     if first_rejection is None:
                         first_rejection = Detection(None, rej.reason, method)
+                    if rej.bent:
+                        bent.append((raw, prep, name == "classic", method))
                     continue
                 return Detection(corners, None, method + suffix)
+    for raw, prep, classic, method in bent:
+        try:
+            corners, suffix = _finish(raw, prep, board, shape, classic, fallback=True)
+        except _Rejected as rej:
+            if rej.final:
+                return Detection(None, rej.reason, method)
+            continue
+        return Detection(corners, None, method + suffix)
     if first_rejection is not None:
         return first_rejection
     return Detection(

@@ -377,7 +377,7 @@ def _extend_ends(table: np.ndarray, colours: _Colours) -> np.ndarray:
     the colours beyond that end reach (those within ``2 * FIT_TOLERANCE_RGB`` of the
     line): the curve is built from bins, whose means lie inside the extreme bins, and
     from the common colours only, so the rarest extreme colours (the hottest and coldest
-    pixels) would otherwise all sit on the end."""
+    pixels) would otherwise all sit on the end. The ends stay inside the RGB cube."""
     pos, _ = palette_positions(colours.rgb, table)
     ends = []
     for end, inner, at in ((0, 8, 0.0), (-1, -9, 255.0)):
@@ -392,7 +392,8 @@ def _extend_ends(table: np.ndarray, colours: _Colours) -> np.ndarray:
         perp = np.linalg.norm(beyond - along[:, None] * direction, axis=1)
         reach = along[(along > 0) & (perp <= 2.0 * FIT_TOLERANCE_RGB)]
         ends.append(table[end] + (reach.max() if len(reach) else 0.0) * direction)
-    return _resample(np.vstack([ends[0], table, ends[1]]))
+    # a colour cannot leave the RGB cube, however far the line goes
+    return _resample(np.clip(np.vstack([ends[0], table, ends[1]]), 0.0, 255.0))
 
 
 def _refine(table: np.ndarray, colours: _Colours) -> np.ndarray:

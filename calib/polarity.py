@@ -135,6 +135,7 @@ def detect_board_configured(image: np.ndarray, board: Board, modality: str) -> D
     default when None); TOF amplitude corners are reversed when ``board.tof_black_is_dark``
     is false (black squares bright in amplitude: the detector takes dark squares as black).
     Without overrides this is ``detect_board`` itself; the calibration finds the polarity.
+    A ChArUco board or a circle grid has its points labelled by the pattern: never reversed.
 
     Args:
         image, board, modality: as :func:`calib.detect.detect_board`.
@@ -143,7 +144,8 @@ def detect_board_configured(image: np.ndarray, board: Board, modality: str) -> D
         hot = detected_as(board, modality)
         return detect_board(image, board, modality, thermal_black_is_hot=hot)
     det = detect_board(image, board, modality)
-    if modality == "tof" and det.found and not detected_as(board, modality):
+    turnable = board.pattern == "checkerboard"  # ChArUco, circles: no polarity to apply
+    if modality == "tof" and det.found and turnable and not detected_as(board, modality):
         return Detection(reverse_corners(det.corners), None, det.method)
     return det
 

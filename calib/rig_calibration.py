@@ -37,14 +37,15 @@ The least-squares problem and its Jacobian are in :mod:`calib.rig_problem`, the
 uncertainties in :mod:`calib.rig_uncertainty`, the verdicts in :mod:`calib.verdict`, the
 result in :mod:`calib.rig_result`.
 Inputs are plain arrays; nothing here reads files or prints. ``observations`` maps view
-name -> sensor name -> (N, 2) float64 corners in canonical board order (calib.board).
+name -> sensor name -> (N, 2) float64 corners in canonical board order (calib.board); a
+board with partial views (ChArUco) has NaN rows for the corners a view did not see.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -86,7 +87,8 @@ class CalibrationOptions:
     Attributes:
         reference: sensor whose frame is the rig frame; default the TOF camera if one was
             observed, else the first sensor by name.
-        refine_intrinsics: refine intrinsics and distortion in the joint pass too.
+        refine_intrinsics: refine intrinsics and distortion in the joint pass too (but a
+            sensor whose views disagree with the others' keeps its own: :func:`_disagreeing`).
         free_k3_modalities: modalities whose k3 is estimated (k3 = 0 for the others:
             a low-resolution sensor cannot separate it from k1, k2).
         loss_scale_px: scale of the robust (soft L1) loss of the first joint pass.
@@ -126,6 +128,17 @@ class CalibrationOptions:
             )
 
 
+# The guard on the joint refinement of intrinsics (:func:`_disagreeing`), in sigmas of the
+# sensor's own (Zhang) estimate: the joint sigma is no yardstick, it grows with the very
+# residuals a disagreeing sensor inflates (cam_1 below: 50 px against 12 px alone). On
+# caliscope's four webcams, whose cam_1 runs about a frame late, cam_1's fx moved 14 sigma,
+# its cx 26 (fx 770 -> 939 px), with its RMS 10x its own (2.06 against 0.21 px); the other
+# three moved at most 3.4 sigma with their RMS 1.8-4x their own; on the simulator's consistent
+# views (8-30) at most 3 sigma and 1.04x.
+GUARD_SIGMAS = 6.0
+GUARD_RMS_RATIO = 3.0
+
+
 # -- initialisation -----------------------------------------------------------------------
 
 
@@ -139,8 +152,8 @@ def _intrinsics_per_sensor(
     """Zhang per sensor (OpenCV).
 
     Args:
-        obs: view -> (N, 2) corners, pixels.
-        board: the checkerboard.
+        obs: view -> (N, 2) corners, pixels (NaN rows: not seen, on a partial view).
+        board: the board.
         spec: the sensor's image size.
         free_k3: estimate k3 (else k3 = 0).
         with_std: also the standard deviations of the intrinsics
@@ -154,8 +167,9 @@ def _intrinsics_per_sensor(
         fx fy cx cy (px) k1 k2 p1 p2 k3 (NaN without ``with_std``).
     """
     views = sorted(obs)
-    obj = [board.object_points().astype(np.float32) for _ in views]
-    img = [obs[v].astype(np.float32).reshape(-1, 1, 2) for v in views]
+    seen = [np.isfinite(obs[v][:, 0]) for v in views]  # all True but on partial views
+    obj = [board.object_points()[m].astype(np.float32) for m in seen]
+    img = [obs[v][m].astype(np.float32).reshape(-1, 1, 2) for v, m in zip(views, seen, strict=True)]
     flags = 0 if free_k3 else cv2.CALIB_FIX_K3
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
     if with_std:
@@ -224,8 +238,15 @@ def _check_observations(
                     f"view {view!r}, sensor {sensor!r}: expected corners of "
                     f"shape ({board.n_corners}, 2), got {c.shape}"
                 )
-            if not np.all(np.isfinite(c)):
+            if not board.partial_views and not np.all(np.isfinite(c)):
                 raise CalibrationError(f"view {view!r}, sensor {sensor!r}: corners contain NaN")
+            if board.partial_views:  # NaN rows: corners not seen
+                seen = np.all(np.isfinite(c), axis=1)
+                if not seen.all():  # a row with one NaN coordinate is unseen as a whole
+                    c = np.where(seen[:, None], c, np.nan)
+                why = board.pose_problem(seen)
+                if why is not None:
+                    raise CalibrationError(f"view {view!r}, sensor {sensor!r}: {why}")
             by_sensor.setdefault(sensor, {})[view] = c
     if not by_sensor:
         raise CalibrationError("the board was not detected in any image: nothing to calibrate")
@@ -260,7 +281,9 @@ def calibrate_rig(
     """Calibrate every observed sensor's intrinsics and pose, and every board pose.
 
     Args:
-        observations: view -> sensor -> (N, 2) corners (canonical order, full board).
+        observations: view -> sensor -> (N, 2) corners (canonical order, full board; on
+            a board with partial views, NaN rows for corners not seen, and at least
+            :data:`calib.board.MIN_POSE_POINTS` not on one line).
         board: the checkerboard.
         specs: modality and image size of every sensor that may appear.
         options: see :class:`CalibrationOptions`.
@@ -385,51 +408,109 @@ def _calibrate_rig(
             max_nfev=100,
         )
 
-    # 3a. Robust joint pass on everything.
-    report("joint refinement (robust)", 0.5)
-    prob = build_problem(sensors, views, by_sensor, board, free_dist, opts.refine_intrinsics)
-    x = solve(prob, prob.pack(T_rig_sensor, T_rig_board, intr), np.ones(len(sensors)), "soft_l1").x
-    err = np.linalg.norm(prob.project(x, intr) - prob.uv, axis=1)
+    # 3-4. Joint refinement; then the guard (:func:`_disagreeing`): a sensor whose intrinsics
+    # the joint fit moved far beyond their uncertainty while fitting its views several times
+    # worse than alone (the worst such sensor) keeps its own intrinsics, the others take theirs
+    # from the joint refinement without its views, and the poses are refined again from the
+    # start with every intrinsic fixed.
+    own = dict(intr)
+    start = (dict(T_rig_sensor), dict(T_rig_board))
+    kept_own: dict[str, str] = {}
+    while True:
+        intr = {**own}
+        T_rig_sensor, T_rig_board = dict(start[0]), dict(start[1])
+        refine = opts.refine_intrinsics and not kept_own
+        # 3a. Robust joint pass on everything.
+        report("joint refinement (robust)", 0.5)
+        prob = build_problem(sensors, views, by_sensor, board, free_dist, refine)
+        x = solve(
+            prob, prob.pack(T_rig_sensor, T_rig_board, intr), np.ones(len(sensors)), "soft_l1"
+        ).x
+        err = np.linalg.norm(prob.project(x, intr) - prob.uv, axis=1)
 
-    # 3b. Outliers: corners beyond k sigma of their sensor; then views, judged by their
-    # remaining corners (a view with many outlier corners is an outlier as a whole).
-    sigma_s = np.array(
-        [np.median(err[prob.s_idx == k]) / _RAYLEIGH_MEDIAN for k in range(len(sensors))]
-    )
-    limit = np.maximum(opts.corner_outlier_sigmas * sigma_s[prob.s_idx], opts.corner_outlier_min_px)
-    bad_corner = err > limit
-    outliers, in_bad_view = _flag_outliers(prob, err, bad_corner, limit, opts)
-    inlier = ~bad_corner & ~in_bad_view
+        # 3b. Outliers: corners beyond k sigma of their sensor; then views, judged by their
+        # remaining corners (a view with many outlier corners is an outlier as a whole).
+        sigma_s = np.array(
+            [np.median(err[prob.s_idx == k]) / _RAYLEIGH_MEDIAN for k in range(len(sensors))]
+        )
+        limit = np.maximum(
+            opts.corner_outlier_sigmas * sigma_s[prob.s_idx], opts.corner_outlier_min_px
+        )
+        bad_corner = err > limit
+        outliers, in_bad_view = _flag_outliers(prob, err, bad_corner, limit, opts)
+        inlier = ~bad_corner & ~in_bad_view
 
-    # 3c. Final pass: inliers, each sensor weighted by its own noise level.
-    report("joint refinement (inliers, weighted)", 0.75)
-    Rs, ts, Rb, tb = prob.poses(x)
-    K4, D8 = prob.unpack_intrinsics(x, intr)
-    for k, s in enumerate(sensors):
-        T_rig_sensor[s] = make_T(Rs[k], ts[k])
-        intr[s] = Intrinsics(*K4[k], tuple(D8[k, :5]))
-    for vi, v in enumerate(prob.views):
-        T_rig_board[v] = make_T(Rb[vi], tb[vi])
-    final = prob.subset(inlier)
-    inlier_err, inlier_s = err[inlier], prob.s_idx[inlier]
-    noise = np.array(
-        [np.sqrt(np.mean(inlier_err[inlier_s == k] ** 2) / 2.0) for k in range(len(sensors))]
-    )
-    weights = 1.0 / np.maximum(noise, 1e-6)
-    res = solve(final, final.pack(T_rig_sensor, T_rig_board, intr), weights, "linear")
-    x = res.x
+        # 3c. Final pass: inliers, each sensor weighted by its own noise level.
+        report("joint refinement (inliers, weighted)", 0.75)
+        Rs, ts, Rb, tb = prob.poses(x)
+        K4, D8 = prob.unpack_intrinsics(x, intr)
+        for k, s in enumerate(sensors):
+            T_rig_sensor[s] = make_T(Rs[k], ts[k])
+            intr[s] = Intrinsics(*K4[k], tuple(D8[k, :5]))
+        for vi, v in enumerate(prob.views):
+            T_rig_board[v] = make_T(Rb[vi], tb[vi])
+        final = prob.subset(inlier)
+        inlier_err, inlier_s = err[inlier], prob.s_idx[inlier]
+        noise = np.array(
+            [np.sqrt(np.mean(inlier_err[inlier_s == k] ** 2) / 2.0) for k in range(len(sensors))]
+        )
+        weights = 1.0 / np.maximum(noise, 1e-6)
+        res = solve(final, final.pack(T_rig_sensor, T_rig_board, intr), weights, "linear")
+        x = res.x
 
-    # 4. Covariance of the parameters from the weighted Jacobian.
-    report("uncertainty", 0.9)
-    est = covariance_estimates(final, res.jac, res.fun)
-    sig = est.sigma()
+        # 4. Covariance of the parameters from the weighted Jacobian.
+        report("uncertainty", 0.9)
+        est = covariance_estimates(final, res.jac, res.fun)
+        sig = est.sigma()
 
-    Rs, ts, Rb, tb = final.poses(x)
-    K4, D8 = final.unpack_intrinsics(x, intr)
-    for k, s in enumerate(sensors):
-        T_rig_sensor[s] = make_T(Rs[k], ts[k])
-        intr[s] = Intrinsics(*(float(v) for v in K4[k]), tuple(float(c) for c in D8[k, :5]))
-    board_poses = {v: make_T(Rb[vi], tb[vi]) for vi, v in enumerate(final.views)}
+        Rs, ts, Rb, tb = final.poses(x)
+        K4, D8 = final.unpack_intrinsics(x, intr)
+        for k, s in enumerate(sensors):
+            T_rig_sensor[s] = make_T(Rs[k], ts[k])
+            intr[s] = Intrinsics(*(float(v) for v in K4[k]), tuple(float(c) for c in D8[k, :5]))
+        board_poses = {v: make_T(Rb[vi], tb[vi]) for vi, v in enumerate(final.views)}
+
+        if not refine:
+            break
+        joint_rms = {
+            s: float(np.sqrt(np.mean(sq)))
+            for k, s in enumerate(sensors)
+            if (sq := np.sum((final.project(x, intr) - final.uv)[final.s_idx == k] ** 2, 1)).size
+        }
+        worst = _disagreeing(
+            {s: own[s] for s in sensors},
+            intr,
+            joint_rms,
+            alone_rms,
+            lambda s: _intrinsics_per_sensor(
+                by_sensor[s], board, specs[s], specs[s].modality in opts.free_k3_modalities
+            )[2],
+        )
+        if worst is None:
+            break
+        s, why, std = worst
+        kept_own[s] = why
+        std_zhang[s] = std
+        notes.append(f"{s} keeps the intrinsics of its own views: {why}")
+        # The others' intrinsics: the joint refinement without its views (with them, the
+        # others' absorb what its own cannot: caliscope's cam_2 fx went -8 %).
+        rest = {v: {n: c for n, c in per.items() if n != s} for v, per in observations.items()}
+        try:
+            sub = _calibrate_rig(
+                {v: per for v, per in rest.items() if per},
+                board,
+                specs,
+                replace(opts, reference=None if s == reference else reference),
+                None,
+                None,
+            ).sensors
+        except CalibrationError:
+            sub = {}  # the others keep their own too
+        for n, r in sub.items():
+            if n in own:
+                own[n] = r.intrinsics
+                sig_n = [r.sigma[k] for k in ("fx", "fy", "cx", "cy")] + r.sigma["distortion"]
+                std_zhang[n] = np.array(sig_n, dtype=float)
 
     # Errors of every observation (outliers included) at the final solution.
     x_all = prob.pack(T_rig_sensor, {**T_rig_board, **board_poses}, intr)
@@ -467,6 +548,7 @@ def _calibrate_rig(
             rms_px=float(np.sqrt(np.mean(final_err[sel] ** 2))),
             worst_view=worst,
             zhang_rms_px=alone_rms[s],
+            intrinsics_source=_source(s, kept_own, opts.refine_intrinsics),
         )
     # 5. Verdicts from the covariance (calib.verdict).
     report("verdicts", 0.95)
@@ -617,3 +699,58 @@ def _flag_outliers(
             )
         )
     return outliers, in_bad_view
+
+
+def _disagreeing(
+    own: Mapping[str, Intrinsics],
+    joint: Mapping[str, Intrinsics],
+    joint_rms: Mapping[str, float],
+    alone_rms: Mapping[str, float],
+    own_std: Callable[[str], np.ndarray],
+) -> tuple[str, str, np.ndarray] | None:
+    """The sensor whose views disagree most with the others', if one does.
+
+    A sensor disagrees when its joint RMS exceeds :data:`GUARD_RMS_RATIO` times its RMS alone
+    and one of fx fy cx cy moved from its own estimate by more than :data:`GUARD_SIGMAS`
+    times that estimate's 1-sigma.
+
+    Args:
+        own: sensor -> its own (Zhang) intrinsics, for the sensors refined jointly.
+        joint: sensor -> the joint refinement's intrinsics.
+        joint_rms, alone_rms: sensor -> RMS reprojection error jointly / alone, px.
+        own_std: sensor -> (9,) Zhang's 1-sigma of fx fy cx cy k1 k2 p1 p2 k3 (called only
+            for the sensors whose RMS grew: it costs a calibration).
+
+    Returns:
+        (sensor, the reason in words, its own (9,) 1-sigma), or None.
+    """
+    worst: tuple[float, str, str, np.ndarray] | None = None
+    for s in own:
+        ratio = joint_rms[s] / max(alone_rms[s], 1e-9)
+        if ratio <= GUARD_RMS_RATIO:
+            continue
+        std = own_std(s)
+        a = np.array([own[s].fx, own[s].fy, own[s].cx, own[s].cy])
+        b = np.array([joint[s].fx, joint[s].fy, joint[s].cx, joint[s].cy])
+        z = np.abs(b - a) / std[:4]
+        j = int(np.argmax(z))
+        if z[j] > GUARD_SIGMAS and (worst is None or z[j] > worst[0]):
+            name = ("fx", "fy", "cx", "cy")[j]
+            why = (
+                f"the joint refinement moved its {name} {z[j]:.0f}σ ({a[j]:.1f} -> {b[j]:.1f} "
+                f"px) and its RMS to {ratio:.0f}x its own ({joint_rms[s]:.2f} against "
+                f"{alone_rms[s]:.2f} px): its views disagree with the others'"
+            )
+            worst = (float(z[j]), s, why, std)
+    return None if worst is None else worst[1:]
+
+
+def _source(sensor: str, kept_own: Mapping[str, str], refined: bool) -> str:
+    """Where ``sensor``'s intrinsics come from, in words (the report's intrinsics_source)."""
+    if sensor in kept_own:
+        return f"own views ({kept_own[sensor]})"
+    if not refined:
+        return "own views"
+    if kept_own:
+        return "joint refinement without " + ", ".join(f"{n}'s views" for n in kept_own)
+    return "joint refinement"

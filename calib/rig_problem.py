@@ -334,8 +334,9 @@ def build_problem(
     Args:
         sensors: sensor names, the reference first.
         views: every view any of them saw, sorted.
-        by_sensor: sensor -> view -> (N, 2) corners, pixels.
-        board: the checkerboard (N corners).
+        by_sensor: sensor -> view -> (N, 2) corners, pixels; NaN rows (corners a partial
+            view did not see) are left out of the problem.
+        board: the board (N corners).
         free_dist: sensor -> indices (into k1 k2 p1 p2 k3 k4 k5 k6) of the estimated
             distortion coefficients.
         refine_intrinsics: intrinsics are parameters.
@@ -352,14 +353,19 @@ def build_problem(
         uv.append(np.stack([by_sensor[s][v] for v in names]).reshape(-1, 2))
     s_all = np.concatenate(s_idx)
     c_idx = np.tile(np.arange(n), len(s_all) // n)
+    uv_all = np.concatenate(uv).astype(np.float64)
+    v_all = np.concatenate(v_idx)
+    seen = np.all(np.isfinite(uv_all), axis=1)  # partial views (ChArUco): NaN rows unseen
+    if not seen.all():
+        s_all, v_all, c_idx, uv_all = s_all[seen], v_all[seen], c_idx[seen], uv_all[seen]
     return CornerProblem(
         list(sensors),
         list(views),
         s_all,
-        np.concatenate(v_idx),
+        v_all,
         c_idx,
         board.object_points()[c_idx],
-        np.concatenate(uv).astype(np.float64),
+        uv_all,
         free_dist,
         refine_intrinsics,
     )

@@ -115,6 +115,7 @@ class CalibrationResult:
                 "rms_px": s.rms_px,
                 "worst_view": s.worst_view,
                 "zhang_rms_px": s.zhang_rms_px,
+                "intrinsics_source": s.intrinsics_source,
                 "intrinsics": {"fx": i.fx, "fy": i.fy, "cx": i.cx, "cy": i.cy},
                 "distortion": list(i.distortion),
                 "T_rig_sensor": s.T_rig_sensor.tolist(),

@@ -32,3 +32,7 @@ class SensorResult:
     worst_view: str | None
     zhang_rms_px: float | None = None
     """RMS error of Zhang's fit of this sensor alone (its own board poses), px."""
+    intrinsics_source: str | None = None
+    """Where the intrinsics come from: "joint refinement" (or "... without <s>'s views" when
+    the guard of calib.rig_calibration kept <s>'s own), or "own views" (Zhang's fit of this
+    sensor alone: intrinsics fixed, or "own views (<why>)" when the guard kept them)."""

@@ -36,7 +36,7 @@ Pure: arrays in, values out.
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -488,15 +488,33 @@ def _candidate_information(
     board: Board,
     subject: str,
 ) -> list[_Candidate]:
-    """Every candidate view in front of ``subject``, with the information it would add to
-    the kept parameters (its own board pose eliminated) from every sensor that would see
-    the whole board with the current estimates. One Jacobian for all of them."""
+    """Every candidate view in front of ``subject``, with the information it would add
+    (:func:`pose_information`)."""
+    cands = _candidates(sensors[subject], board, _median_distance(c, subject, board))
+    poses = [sensors[subject].T_rig_sensor @ T for _, T in cands]
+    infos = pose_information(c, sensors, board, poses)
+    return [
+        _Candidate(kind, subject, T, info)
+        for (kind, _), T, info in zip(cands, poses, infos, strict=True)
+        if info is not None
+    ]
+
+
+def pose_information(
+    c: RigCovariance,
+    sensors: Mapping[str, SensorResult],
+    board: Board,
+    poses: list[np.ndarray],
+) -> list[np.ndarray | None]:
+    """The (p, p) information each board pose ``T_rig_board`` (4, 4) of ``poses`` would
+    add to the kept parameters (its own board pose eliminated), from every sensor that
+    would see the whole board with the current estimates (None: no sensor would). One
+    Jacobian for all of them."""
     prob = c.problem
     obj = board.object_points()
     n = len(obj)
-    kinds, poses, s_idx, v_idx, uv = [], [], [], [], []
-    for kind, T in _candidates(sensors[subject], board, _median_distance(c, subject, board)):
-        T_rig_board = sensors[subject].T_rig_sensor @ T
+    kept, s_idx, v_idx, uv = [], [], [], []
+    for i, T_rig_board in enumerate(poses):
         seen = []
         for k, name in enumerate(prob.sensors):
             s = sensors[name]
@@ -508,16 +526,16 @@ def _candidate_information(
             continue
         for k, p in seen:
             s_idx.append(np.full(n, k))
-            v_idx.append(np.full(n, len(poses)))
+            v_idx.append(np.full(n, len(kept)))
             uv.append(p)
-        kinds.append(kind)
-        poses.append(T_rig_board)
-    if not poses:
-        return []
+        kept.append(i)
+    out: list[np.ndarray | None] = [None] * len(poses)
+    if not kept:
+        return out
     s_all = np.concatenate(s_idx)
     hyp = CornerProblem(
         prob.sensors,
-        [f"next{i}" for i in range(len(poses))],
+        [f"next{i}" for i in range(len(kept))],
         s_all,
         np.concatenate(v_idx),
         np.tile(np.arange(n), len(s_all) // n),
@@ -526,18 +544,19 @@ def _candidate_information(
         prob.free_dist,
         prob.refine_intrinsics,
     )
-    board_x = np.concatenate([np.r_[rvec_from_rotation(T[:3, :3]), T[:3, 3]] for T in poses])
+    board_x = np.concatenate(
+        [np.r_[rvec_from_rotation(poses[i][:3, :3]), poses[i][:3, 3]] for i in kept]
+    )
     x = np.r_[c.x[: prob.off_board], board_x, c.x[prob.off_intr :]]
     J = hyp.jacobian(x, c.fixed, c.weights[hyp.s_idx])
     keep = np.r_[np.arange(hyp.off_board), np.arange(hyp.off_intr, hyp.n_params)]
-    rows = np.r_[0, np.cumsum(np.bincount(hyp.v_idx, minlength=len(poses)))] * 2
-    out = []
-    for i, kind in enumerate(kinds):
-        Ji = J[rows[i] : rows[i + 1]].toarray()
-        Js, Jb = Ji[:, keep], Ji[:, hyp.off_board + 6 * i : hyp.off_board + 6 * i + 6]
+    J_keep, J_board = J[:, keep].tocsr(), J[:, hyp.off_board : hyp.off_intr].tocsr()
+    rows = np.r_[0, np.cumsum(np.bincount(hyp.v_idx, minlength=len(kept)))] * 2
+    for j, i in enumerate(kept):
+        Js = J_keep[rows[j] : rows[j + 1]].toarray()
+        Jb = J_board[rows[j] : rows[j + 1], 6 * j : 6 * j + 6].toarray()
         W = Js.T @ Jb
-        info = Js.T @ Js - W @ np.linalg.pinv(Jb.T @ Jb, hermitian=True) @ W.T
-        out.append(_Candidate(kind, subject, poses[i], info))
+        out[i] = Js.T @ Js - W @ np.linalg.pinv(Jb.T @ Jb, hermitian=True) @ W.T
     return out
 
 
@@ -552,6 +571,34 @@ def _row_variances(information: np.ndarray, rows: np.ndarray) -> np.ndarray:
     except np.linalg.LinAlgError:
         X = np.linalg.pinv(As, hermitian=True) @ Rs.T
     return np.einsum("ij,ji->i", Rs, X)
+
+
+def predictor(
+    c: RigCovariance, specs: list[_Spec], now: list[Figure], iid_now: list[float]
+) -> Callable[[np.ndarray], list[Figure]]:
+    """The judged figures of ``specs`` (``now``: their current figures, ``iid_now`` their
+    independent-errors sigmas) predicted under another (p, p) information of the kept
+    parameters: each current sigma times the ratio of its independent-errors sigma under
+    that information and now (:func:`_more_views` says why); figures without a Jacobian
+    keep their sigma."""
+    judged = [
+        (spec, fig, base)
+        for spec, fig, base in zip(specs, now, iid_now, strict=True)
+        if spec.target is not None and base > 0
+    ]
+    fixed = [f for f, base in zip(now, iid_now, strict=True) if f.target is not None and base <= 0]
+    rows = np.concatenate([spec.rows for spec, _, _ in judged]) if judged else None
+    ends = np.cumsum([len(spec.rows) for spec, _, _ in judged])
+
+    def predict(information: np.ndarray) -> list[Figure]:
+        out = list(fixed)
+        if rows is not None:
+            var = np.split(_row_variances(information, rows) * c.scale, ends[:-1])
+            for (spec, fig, base), v in zip(judged, var, strict=True):
+                out.append(replace(fig, sigma=fig.sigma * spec.combined(v) / base, axes=None))
+        return out
+
+    return predict
 
 
 def _more_views(
@@ -572,22 +619,10 @@ def _more_views(
     suffice; the views chosen, in order; the judged figure with the worst ratio at the
     end, with its predicted sigma).
     """
-    judged = [
-        (spec, fig, base)
-        for spec, fig, base in zip(specs, now, iid_now, strict=True)
-        if spec.target is not None and base > 0
-    ]
-    fixed = [f for f, base in zip(now, iid_now, strict=True) if f.target is not None and base <= 0]
-    rows = np.concatenate([spec.rows for spec, _, _ in judged]) if judged else None
-    ends = np.cumsum([len(spec.rows) for spec, _, _ in judged])
+    predict = predictor(c, specs, now, iid_now)
 
     def worst(information: np.ndarray) -> Figure | None:
-        out = list(fixed)
-        if rows is not None:
-            var = np.split(_row_variances(information, rows) * c.scale, ends[:-1])
-            for (spec, fig, base), v in zip(judged, var, strict=True):
-                out.append(replace(fig, sigma=fig.sigma * spec.combined(v) / base, axes=None))
-        return max(out, key=lambda f: f.ratio, default=None)
+        return max(predict(information), key=lambda f: f.ratio, default=None)
 
     info = c.information.copy()
     reached = worst(info)

@@ -190,7 +190,7 @@ def test_missing_board_yaml(tmp_path: Path) -> None:
     [
         ("pattern: [unclosed\n", "not valid YAML"),
         ("pattern: checkerboard\ninner_corners: [9, 6]\n", r"missing key\(s\) \['square_size_m'\]"),
-        ("pattern: circles\ninner_corners: [9, 6]\nsquare_size_m: 0.02\n", "only 'checkerboard'"),
+        ("pattern: circles\ninner_corners: [9, 6]\nsquare_size_m: 0.02\n", "expected one of"),
         ("- 1\n- 2\n", "expected a mapping, got list"),
     ],
 )

@@ -2,7 +2,8 @@
 copies and refines the corners at full resolution. Real 4056 x 3040 views of
 tests/data/czha626-thermal-visible (its README), with OpenCV's detectors on the same images
 as the reference and OpenCV's own calibration of those views (app.devtools.real_sets) as
-the judge of whether a grid sits on the board's corners."""
+the judge of whether a grid sits on the board's corners. Also the set's thermal views,
+calibrated with our corners and OpenCV's."""
 
 from __future__ import annotations
 
@@ -166,3 +167,29 @@ def test_small_images_are_searched_at_their_own_size(modality: str, image) -> No
     assert a.found and b.found, (a.reason, b.reason)
     assert a.method == b.method and not a.method.endswith("px")
     np.testing.assert_array_equal(a.corners, b.corners)
+
+
+def test_thermal_pairs_calibrate_as_well_as_with_opencv_s_corners() -> None:
+    # The set's 640 x 480 LWIR views (squares of about 44 px, blurred 8-bit JPEG): the fine
+    # stage re-detects at 2x and 1x (FINE_TARGET_SPACING_PX) and keeps the smoother grid.
+    # At 2x alone (before) the corners calibrated at RMS 0.769 px against OpenCV's 0.445,
+    # fx 1.3 % low; now 0.444 px, fx 0.2 % low. The issue's target: RMS within 5 % of
+    # OpenCV's plain pipeline (sector-based detector, measured here).
+    size = (640, 480)
+    ours, plain = [], []
+    for path in sorted((DATA / "thermal").glob("*.jpg")):
+        grey = _grey(path.stem, "thermal")
+        det = detect_board(grey, BOARD, "thermal")
+        assert det.found, (path.stem, det.reason)
+        ours.append(det.corners)
+        ok, raw = cv2.findChessboardCornersSB(grey, BOARD.pattern_size)
+        assert ok, path.stem
+        plain.append(detect_mod.canonical_order(raw, BOARD, grey.astype(np.float32))[0])
+    obj = [BOARD.object_points().astype(np.float32)] * len(ours)
+    rms, K, *_ = cv2.calibrateCamera(obj, [c.astype(np.float32) for c in ours], size, None, None)
+    rms_cv, K_cv, *_ = cv2.calibrateCamera(
+        obj, [c.astype(np.float32) for c in plain], size, None, None
+    )
+    assert len(ours) == 12
+    assert rms <= 1.05 * rms_cv, (rms, rms_cv)
+    assert K[0, 0] == pytest.approx(K_cv[0, 0], rel=0.005)

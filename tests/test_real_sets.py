@@ -30,17 +30,8 @@ from calib.opencv_reference import (
 )
 from calib.transforms import make_T, rotation_from_euler_deg
 
-COPIED_ELSEWHERE: set[str] = set()
-"""Sets another part of issue 30 copies into tests/data with its own README."""
 SLOW = {"caliscope-charuco-4cam"}
 """About 20 s of ChArUco detection on 4 x 57 video frames."""
-
-
-def _present(name: str):
-    rs = REAL_SETS[name]
-    if name in COPIED_ELSEWHERE and not rs.path.is_dir():
-        pytest.skip(f"{rs.path} is copied into tests/data by another part of issue 30")
-    return rs
 
 
 def _params(names):
@@ -51,7 +42,7 @@ def _params(names):
 
 @pytest.mark.parametrize("name", list(REAL_SETS))
 def test_set_files_and_licence_are_there(name: str) -> None:
-    rs = _present(name)
+    rs = REAL_SETS[name]
     licence = rs.path / rs.licence[1]
     assert licence.is_file() and licence.stat().st_size > 500, licence
     assert (rs.path / "README.md").is_file()
@@ -66,7 +57,7 @@ def test_set_files_and_licence_are_there(name: str) -> None:
         assert views[a] & views[b], f"{a} and {b} share no view"
 
 
-@pytest.mark.parametrize("name", [n for n in REAL_SETS if n not in COPIED_ELSEWHERE])
+@pytest.mark.parametrize("name", list(REAL_SETS))
 def test_readme_carries_the_reference_table(name: str) -> None:
     rs = REAL_SETS[name]
     readme = (rs.path / "README.md").read_text(encoding="utf-8")
@@ -75,7 +66,7 @@ def test_readme_carries_the_reference_table(name: str) -> None:
 
 @pytest.mark.parametrize("name", _params(REAL_SETS))
 def test_opencv_reference_reproduces(name: str) -> None:
-    rs = _present(name)
+    rs = REAL_SETS[name]
     m = measure(rs)
     assert list(m.sensors) == list(rs.reference)
     for sensor, want in rs.reference.items():

@@ -10,12 +10,14 @@ the corners as generated are in canonical order.
 
 from __future__ import annotations
 
+from functools import cache
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
+import calib.detect as detect_mod
 from app.cli import main
 from app.devtools.real_sets import REAL_SETS, load_views, measure
 from app.storage.capture import load_capture
@@ -298,15 +300,16 @@ def test_order_views_takes_any_sensor_as_anchor_without_a_colour_camera() -> Non
         assert len({turn_of(o.observations[s][v], truth[s][v], board) for s in seen}) == 1
 
 
-@pytest.mark.slow  # renders and detects 20 views of five sensors: 40 s of CPU, ~100 s busy
+@pytest.mark.slow  # renders and detects 16 views of five sensors: 30 s of CPU, ~80 s busy
 def test_a_simulated_capture_of_a_4x6_board_end_to_end(tmp_path: Path) -> None:
     """``trifuse simulate calibration --board 4x6``, then the calibration of the capture
     directory: the rendered images' detections come in either ordering (the detector's own
     choice per image); every view ends up in one ordering for all five sensors (checked
     against the exact projections of the truth), nothing is refused or left out, and the
-    rig meets the targets."""
+    rig meets the targets. 16 views: the worst figure at 0.90 of its target (a pair's
+    translation; 0.87 with 20 views, 0.90 with 18, 0.96 with 15 and 0.97 with 12)."""
     capture = tmp_path / "captures"
-    argv = ["simulate", "calibration", "--views", "20", "--seed", "3", "--board", "4x6"]
+    argv = ["simulate", "calibration", "--views", "16", "--seed", "3", "--board", "4x6"]
     assert main([*argv, "--square-size", "0.08", "--out", str(capture)]) == 0
     truth = load_ground_truth(capture)
     result, report = calibrate_capture(load_capture(capture))
@@ -418,3 +421,80 @@ def test_orient_to_pose_undoes_a_quarter_turn_on_a_square_board() -> None:
     for k in range(4):
         got, turned = orient_to_pose(uv[perm[k]], intr, T, board)
         assert np.array_equal(got, uv) and turned == (k != 0)
+
+
+# -- the detector's colour check (calib.detect) --------------------------------------------
+
+
+NINE_BY_SIX = Board(9, 6, 0.06)
+"""A board whose colours fix the ordering (for comparison)."""
+
+
+@cache
+def glared_view(board: Board, k: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A synthetic colour view (ccd_left, board at 1.2 m) with white glare over the centres
+    of ``k`` seeded black interior squares (the corners stay sharp), and the exact corners
+    (N, 2) in canonical order."""
+    intr = RIG["ccd_left"].intrinsics
+    T = make_T(rotation_from_euler_deg(15, -10, 30), (0.05, -0.05, 1.2))
+    image = board_image(board, T, intr, RIG["ccd_left"].image_size, 40.0, 220.0)
+    s = board.square_size_m
+    r, c = np.mgrid[0 : board.rows - 1, 0 : board.cols - 1]
+    centres = np.stack([(c.ravel() + 0.5) * s, (r.ravel() + 0.5) * s, np.zeros(r.size)], 1)
+    uv = intr.project(transform_points(T, centres))
+    truth = intr.project(transform_points(T, board.object_points()))
+    black = np.flatnonzero((r + c).ravel() % 2 == 0)
+    radius = round(0.3 * np.linalg.norm(truth[1] - truth[0]))
+    for j in np.random.default_rng(seed).choice(black, k, replace=False):
+        cv2.circle(image, (round(uv[j, 0]), round(uv[j, 1])), radius, 220.0, -1, cv2.LINE_AA)
+    return np.clip(image, 0, 255).astype(np.uint8), truth
+
+
+@pytest.mark.parametrize("name", ["9x6", "4x6", "5x7", "6x6"])
+def test_glare_on_the_squares_refuses_only_a_board_whose_colours_order_it(name: str) -> None:
+    """Glare over 3 black squares: on a 9 x 6 board the colours no longer clearly decide
+    the half turn, so the view is refused, never guessed; on a board that looks the same
+    turned they decide nothing and only have to alternate, so the view is kept (it used to
+    be refused too), its corners on one turn of the truth (hard-edged synthetic image:
+    within a pixel)."""
+    board = SYMMETRIC.get(name, NINE_BY_SIX)
+    image, truth = glared_view(board, 3, seed=0)
+    det = detect_board(image, board, "color")
+    if board.orderings == 1:
+        assert not det.found and "cannot tell the board's orientation" in det.reason
+        return
+    assert det.found, det.reason
+    _, perm = grid_turns(board)
+    error = sorted(np.abs(det.corners - truth[p]).max() for p in perm)
+    assert error[0] < 1.0 and error[1] > 10.0, error
+
+
+def test_the_colour_vote_does_not_depend_on_the_grid_it_starts_from() -> None:
+    """Squares clipped to the same value (glare) vote for neither ordering: the agreement
+    is the same from a grid and from its half turn (it used to count ties against one
+    ordering only, which passed a 9 x 6 view with 84 % agreement as 100 %)."""
+    board = NINE_BY_SIX
+    image, truth = glared_view(board, 3, seed=0)
+    grey = image.astype(np.float32)
+    G = truth.reshape(board.rows, board.cols, 2)
+    a = detect_mod._colour_order(grey, G)
+    b = detect_mod._colour_order(grey, G[::-1, ::-1])
+    assert a[0] != b[0]  # a half turn of a 9 x 6 board swaps the colours
+    assert a[1] == pytest.approx(b[1]) and a[2] == pytest.approx(b[2])
+    assert a[1] < detect_mod.COLOUR_AGREEMENT
+
+
+def test_the_fine_stage_takes_a_square_grid_found_from_another_side() -> None:
+    """The accurate re-detection may start at another corner of a square board and run
+    along the other side (the transposed grid): it is matched to the first grid (it used
+    to be refused, leaving the corners to cornerSubPix). A grid shifted by a row is
+    refused."""
+    board = SYMMETRIC["6x6"]
+    intr = RIG["thermal_left"].intrinsics
+    T = make_T(rotation_from_euler_deg(10, 20, -5), (0.1, 0.0, 2.0))
+    G = intr.project(transform_points(T, board.object_points())).reshape(6, 6, 2)
+    noise = np.random.default_rng(1).normal(0.0, 0.05, G.shape)
+    for F in (G.transpose(1, 0, 2), G[::-1].transpose(1, 0, 2), G[:, ::-1].transpose(1, 0, 2)):
+        got = detect_mod._same_grid(F + noise, G)
+        assert got is not None and np.abs(got - G).max() < 0.3
+    assert detect_mod._same_grid(np.roll(G, 1, axis=0), G) is None

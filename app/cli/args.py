@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Callable
+from pathlib import Path
 from typing import NoReturn, TypeVar
 
 PROG = "trifuse"
@@ -112,6 +113,14 @@ def board_size(text: str) -> tuple[int, int]:
     if min(cols, rows) < 2:
         raise argparse.ArgumentTypeError(f"expected at least 2x2 inner corners, got {text!r}")
     return cols, rows
+
+
+def board_size_or_file(text: str) -> tuple[int, int] | Path:
+    """``COLSxROWS`` (:func:`board_size`), or the path of a board file (``*.yaml`` /
+    ``*.yml``, read later)."""
+    if text.lower().endswith((".yaml", ".yml")):
+        return Path(text)
+    return board_size(text)
 
 
 def sensor_count(text: str) -> tuple[str, int]:

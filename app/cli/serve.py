@@ -89,8 +89,9 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
     srv.add_argument(
         "--board",
         metavar="BOARD.yaml",
-        help="the calibration checkerboard (docs/FORMATS.md; default: the simulated "
-        "head's 9 x 6 inner corners, 60 mm squares)",
+        help="the calibration board: checkerboard, ChArUco or asymmetric circle grid "
+        "(docs/FORMATS.md; the simulated calibration scenario holds it too; default: the "
+        "simulated head's checkerboard, 9 x 6 inner corners, 60 mm squares)",
     )
     srv.add_argument(
         "--host",
@@ -262,6 +263,7 @@ def run(args: argparse.Namespace) -> int:
                 scenario=args.scenario,
                 board_poses=args.board_poses,
                 hold_s=args.hold,
+                board=board,
             )
             serve(
                 opened,

@@ -29,6 +29,7 @@ from app.devtools import (
     bench_map,
     bench_motion,
     bench_ray,
+    bench_real_calib,
     bench_recording,
     bench_sim,
     bench_stream,
@@ -51,6 +52,7 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     bench_sim.sim_live,
     bench_detect.thermal_detect,
     bench_detect.real_12mp,
+    bench_real_calib.real_calib,
     bench_idle.idle,
     bench_link.link,
 )

@@ -291,8 +291,12 @@ def _opencv_plain(grey: np.ndarray, board: Board, detector: str, side: int | Non
     return (np.asarray(raw, dtype=np.float64).reshape(-1, 2) + 0.5) * (sx, sy) - 0.5
 
 
-def _real_12mp_detectors(modality: str) -> dict[str, Callable[[np.ndarray], np.ndarray | None]]:
-    """name -> detector of one grey image ((N, 2) corners or None) for ``real-12mp``."""
+def _real_12mp_detectors(
+    modality: str, full_size: bool = True
+) -> dict[str, Callable[[np.ndarray], np.ndarray | None]]:
+    """name -> detector of one grey image ((N, 2) corners or None) for ``real-12mp``;
+    ``full_size`` False leaves out the colour detectors that search the whole 12 MP image
+    (ours without the pyramid, OpenCV's at full size and 2000 px: 1-22 s a view)."""
     from calib.opencv_reference import find_chessboard_opencv
 
     board = REAL_12MP_BOARD
@@ -304,10 +308,11 @@ def _real_12mp_detectors(modality: str) -> dict[str, Callable[[np.ndarray], np.n
     out: dict[str, Callable[[np.ndarray], np.ndarray | None]] = {"ours": ours(True)}
     if thermal:
         out["baseline"] = lambda g: detect_board_baseline(g, board, "thermal").corners
-    else:
+    elif full_size:
         out["ours_fullres"] = ours(False)
+    sides = OPENCV_SIDES if full_size else {"1000": 1000}
     for det in ("sb", "classic"):
-        for label, side in OPENCV_SIDES.items() if not thermal else [("full", None)]:
+        for label, side in sides.items() if not thermal else [("full", None)]:
             out[f"opencv_{det}_{label}"] = lambda g, det=det, side=side: _opencv_plain(
                 g, board, det, side
             )
@@ -351,10 +356,13 @@ def _agreement(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.linalg.norm(best - A, axis=2).ravel()
 
 
-def real_12mp_figures(directory: Path = REAL_12MP_DIR, repeat: int = 1) -> dict[str, float]:
-    """Every detector of :func:`_real_12mp_detectors` on ``directory``'s ``visible/*.jpg``
-    (12 MP) and ``thermal/*.jpg``: view by view, every detector in turn, ``repeat`` times
-    (times: median over views and repeats; ours runs once on the first view before, untimed).
+def real_12mp_figures(
+    directory: Path = REAL_12MP_DIR, repeat: int = 1, full_size: bool = True
+) -> dict[str, float]:
+    """Every detector of :func:`_real_12mp_detectors` (``full_size`` passed on) on
+    ``directory``'s ``visible/*.jpg`` (12 MP) and ``thermal/*.jpg``: view by view, every
+    detector in turn, ``repeat`` times (times: median over views and repeats; ours runs once
+    on the first view before, untimed).
 
     Figures per sensor ``<s>`` (``visible``, ``thermal``) and detector ``<d>``:
 
@@ -384,7 +392,7 @@ def real_12mp_figures(directory: Path = REAL_12MP_DIR, repeat: int = 1) -> dict[
         if not greys:
             continue
         size = next(iter(greys.values())).shape[::-1]
-        detectors = _real_12mp_detectors(modality)
+        detectors = _real_12mp_detectors(modality, full_size)
         if sensor == "visible":
             detectors["ours_at_1000"] = detectors["ours"]
         detectors["ours"](next(iter(greys.values())))  # warm-up
@@ -420,9 +428,8 @@ def real_12mp_figures(directory: Path = REAL_12MP_DIR, repeat: int = 1) -> dict[
         )
     vis = found.get("visible", {})
     if vis:
-        ours, full, cv1000 = vis["ours"], vis["ours_fullres"], vis["opencv_sb_1000"]
-        both = [v for v in ours if v in full]
-        d = [_agreement(ours[v], full[v]).max() for v in both]
+        ours, full, cv1000 = vis["ours"], vis.get("ours_fullres", {}), vis["opencv_sb_1000"]
+        d = [_agreement(ours[v], full[v]).max() for v in ours if v in full]
         out["visible_vs_fullres_px_max"] = max(d) if d else float("nan")
         d = [np.median(_agreement(ours[v], cv1000[v])) for v in ours if v in cv1000]
         out["visible_opencv_1000_vs_ours_px_median"] = float(np.median(d)) if d else float("nan")
@@ -479,7 +486,7 @@ def real_12mp_markdown(figures: dict[str, float]) -> str:
 
 
 _DETECTOR_LABELS = {
-    "ours": "calib.detect (pyramid)",
+    "ours": "calib.detect (colour: pyramid)",
     "ours_fullres": "calib.detect at full size (before)",
     "ours_at_1000": "calib.detect on the view downscaled to 1000 px",
     "baseline": "calib.detect_baseline (issue 15)",
@@ -490,3 +497,27 @@ _DETECTOR_LABELS = {
         for side in OPENCV_SIDES
     },
 }
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m app.devtools.bench_detect --root DIR [--no-full-size]``: ``real-12mp``'s
+    figures and table on another directory laid out as tests/data/czha626-thermal-visible
+    (e.g. all 47 pairs of the source repository, which are not committed)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument("--root", type=Path, default=REAL_12MP_DIR)
+    parser.add_argument("--repeat", type=int, default=1)
+    parser.add_argument("--no-full-size", dest="full_size", action="store_false")
+    args = parser.parse_args(argv)
+    if not (args.root / "visible").is_dir() or args.repeat < 1:
+        parser.error(f"expected a directory with visible/ and thermal/, got {args.root}")
+    figures = real_12mp_figures(args.root, args.repeat, args.full_size)
+    for key, value in figures.items():
+        print(f"{key} = {value:.3f}")
+    print(real_12mp_markdown(figures))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

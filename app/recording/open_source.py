@@ -17,6 +17,7 @@ from calib.rig import Rig
 
 if TYPE_CHECKING:
     from app.sources.simulated import SimulatedHeadSource
+    from calib.board import Board
 
 SCENARIOS = ("inspection", "calibration", "survey")
 """What the simulated head can show (:func:`simulated_source`)."""
@@ -37,14 +38,15 @@ class NeedsRig(ValueError):
 
 
 def simulated_source(
-    scenario: str, board_poses: int = 40, hold_s: float = 3.0
+    scenario: str, board_poses: int = 40, hold_s: float = 3.0, board: Board | None = None
 ) -> tuple[SimulatedHeadSource, str]:
     """The simulated head as the console shows it: ``(source, description)``.
 
     Args:
         scenario: ``inspection`` (the panning room, live quality), ``calibration`` (the
             heated board held at ``board_poses`` poses for ``hold_s`` seconds each, looping;
-            accurate quality) or ``survey`` (the room surveyed for the 3D map: pan and
+            accurate quality; ``board``: the board it holds, default the simulated
+            head's checkerboard) or ``survey`` (the room surveyed for the 3D map: pan and
             tilt, then a 3 m drive, looping every 36 s; live quality, head poses sampled
             at 2 Hz and shown as rendered: the head moves, so a picture cannot stand in
             for another by turning; ``truth_at(stamp).T_world_rig`` is the pose shown).
@@ -52,9 +54,11 @@ def simulated_source(
     from app.sources.simulated import SimulatedHeadSource
 
     if scenario == "calibration":
-        from app.sources.sim.scenarios import CalibrationScenario
+        from app.sources.sim.scenarios import CALIBRATION_BOARD, CalibrationScenario
 
-        cal = CalibrationScenario(n_poses=board_poses, hold_s=hold_s)
+        cal = CalibrationScenario(
+            n_poses=board_poses, hold_s=hold_s, board=board or CALIBRATION_BOARD
+        )
         src = SimulatedHeadSource(
             cal, realtime=True, render_hz=1.0 / cal.hold_s, loop_s=cal.loop_s, start_ns=None
         )
@@ -89,6 +93,7 @@ def open_source(
     scenario: str = "inspection",
     board_poses: int = 40,
     hold_s: float = 3.0,
+    board: Board | None = None,
     live_flag: str = "--live",
 ) -> OpenedSource:
     """The source named by ``--replay FILE``, ``--live CONFIG`` or ``--push`` (the first
@@ -102,7 +107,8 @@ def open_source(
         push: frames pushed by an on-robot driver at ``/ingest`` (rig default: the
             simulated head's).
         rig: the rig given on the command line, or None.
-        scenario, board_poses, hold_s: the simulated head's, see :func:`simulated_source`.
+        scenario, board_poses, hold_s, board: the simulated head's, see
+            :func:`simulated_source`.
         live_flag: how the command names ``live`` in the error when ``rig`` is missing.
 
     Raises:
@@ -134,5 +140,5 @@ def open_source(
 
         rig = rig or default_rig()
         return OpenedSource(PushSource(rig), rig, "frames pushed to /ingest")
-    src, what = simulated_source(scenario, board_poses, hold_s)
+    src, what = simulated_source(scenario, board_poses, hold_s, board)
     return OpenedSource(src, rig or src.rig, what, ground_truth_rig=src.rig)

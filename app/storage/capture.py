@@ -32,6 +32,7 @@ from __future__ import annotations
 import mmap
 import os
 import re
+from collections import Counter
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from functools import cache
@@ -428,35 +429,36 @@ class Capture:
 
     def palette_report(self) -> dict[str, dict[str, Any]]:
         """The false-colour thermal images read so far (:attr:`CaptureView.palettes`), per
-        sensor: ``views`` (how many), ``palettes`` (palette name -> views; ``own curve``:
-        no known palette fitted, the image's own colour curve was used), ``radiometric``
+        sensor, as the report's ``palette_images``: ``views`` (how many), ``palette`` (its
+        name, ``own curve`` when no known palette fitted and the image's own colour curve
+        was read; several as ``iron (10 of 12), own curve (2 of 12)``), ``radiometric``
         (always False), ``worst_mean_distance_rgb`` and ``worst_share_on_palette`` (the
-        poorest fit of the images to their palette) and ``note`` (one sentence). Empty when
-        no image was false colour. The report's ``palette_images``."""
-        fits: dict[str, dict[str, PaletteFit]] = {}
+        poorest fit of an image to its palette) and ``note`` (one sentence for people).
+        Empty when no image was false colour."""
+        fits: dict[str, list[PaletteFit]] = {}
         for view in self.views:
             for sensor, fit in view.palettes.items():
-                fits.setdefault(sensor, {})[view.name] = fit
+                fits.setdefault(sensor, []).append(fit)
         report: dict[str, dict[str, Any]] = {}
         for sensor in (s for s in self.modalities if s in fits):
             per_view = fits[sensor]
-            names: dict[str, list[str]] = {}
-            words: dict[str, str] = {}
-            for view, fit in per_view.items():
-                names.setdefault(fit.palette, []).append(view)
-                words[fit.palette] = fit.what
-            which = "; ".join(
-                words[n] + (f" in {len(v)}" if len(names) > 1 else "") for n, v in names.items()
-            )
+            names = Counter(f.palette for f in per_view)
+            words = {f.palette: f.what for f in per_view}
+            several = len(names) > 1
             report[sensor] = {
                 "views": len(per_view),
-                "palettes": names,
+                "palette": ", ".join(
+                    f"{n} ({k} of {len(per_view)})" if several else n for n, k in names.items()
+                ),
                 "radiometric": False,
-                "worst_mean_distance_rgb": max(f.mean_distance_rgb for f in per_view.values()),
-                "worst_share_on_palette": min(f.share_on_palette for f in per_view.values()),
+                "worst_mean_distance_rgb": max(f.mean_distance_rgb for f in per_view),
+                "worst_share_on_palette": min(f.share_on_palette for f in per_view),
                 "note": (
-                    f"{sensor}: {len(per_view)} false-colour image(s), {which}: read back as "
-                    "palette positions 0-255 for geometry; values not radiometric"
+                    f"{sensor}: {len(per_view)} false-colour image(s), "
+                    + "; ".join(
+                        words[n] + (f" in {k}" if several else "") for n, k in names.items()
+                    )
+                    + ": read back as palette positions 0-255 for geometry; values not radiometric"
                 ),
             }
         return report
@@ -464,8 +466,7 @@ class Capture:
     def summary(self) -> str:
         """A few lines for people: views, sensors and how many views each one is in."""
         lines = [
-            f"{self.path}: {len(self.views)} views, board {self.board.cols}x"
-            f"{self.board.rows} inner corners of {self.board.square_size_m * 1000:g} mm, "
+            f"{self.path}: {len(self.views)} views, board {self.board.describe()}, "
             f"{'starting rig rig.yaml' if self.rig else 'no rig.yaml'}"
         ]
         for s in self.sensors:

@@ -66,6 +66,7 @@ from calib.board import POLARITY_KEYS, Board
 from calib.coverage import NOVELTY_THRESHOLD, Coverage, coverage, pose_novelty, view_params
 from calib.detect import Detection
 from calib.errors import CalibrationError
+from calib.palette_inverse import PaletteFit
 from calib.polarity import detect_board_configured
 from calib.rig import Rig, rig_to_yaml
 from calib.rig_calibration import CalibrationOptions
@@ -98,12 +99,14 @@ class ViewInfo:
         detections: sensor -> Detection of the board in the image as written; a sensor is
             missing while its search is still running.
         params: sensor -> (X, Y, size, skew) of the detection (calib.coverage).
+        palettes: thermal sensor -> how its false-colour image was read back (not kelvin).
     """
 
     name: str
     sensors: list[str]
     detections: dict[str, Detection] = field(default_factory=dict)
     params: dict[str, tuple[float, float, float, float]] = field(default_factory=dict)
+    palettes: dict[str, PaletteFit] = field(default_factory=dict)
 
     @property
     def searched(self) -> bool:
@@ -352,7 +355,7 @@ class CalibrationSession:
         with self._lock:
             info = self._views.get(name)
             if info is not None:
-                info.detections, info.params = found, params
+                info.detections, info.params, info.palettes = found, params, view.palettes
         self._changed()
 
     def delete(self, name: str) -> Path:
@@ -459,11 +462,13 @@ class CalibrationSession:
                 progress("searching the views for the board", 0.2 * (k + 1) / len(job.views))
             capture = load_capture(self.captures)
             capture.views = [v for v in capture.views if v.name in job.views]
+            for v in capture.views:  # the searches read the images: how palettes were read
+                v.palettes.update(self.view(v.name).palettes)
             result, report = calibrate_capture(
                 capture,
                 options,
                 progress=lambda what, f: progress(what, 0.2 + 0.8 * f),
-                detections=self._detection_run(job.views),
+                detections=self.detection_run(job.views),
             )
         except (CalibrationError, CaptureError, KeyError, ValueError) as exc:
             job.error, job.state = str(exc), "failed"
@@ -475,7 +480,8 @@ class CalibrationSession:
         job.finished = time.time()
         self._changed()
 
-    def _detection_run(self, names: list[str]) -> DetectionRun:
+    def detection_run(self, names: list[str]) -> DetectionRun:
+        """The views' detections as a calibration takes them (found corners, reasons)."""
         run = DetectionRun({}, {}, {})
         for name in names:
             for sensor, det in self.view(name).detections.items():
@@ -600,7 +606,7 @@ class CalibrationSession:
                 job.rig,
                 holdout_every,
                 progress=progress,
-                detections=self._detection_run(job.views),
+                detections=self.detection_run(job.views),
             )
         except (CaptureError, KeyError, ValueError) as exc:
             job.error, job.state = str(exc), "failed"
@@ -627,9 +633,9 @@ class CalibrationSession:
 
 
 def _board_text(board: Board) -> str:
-    """``9x6 inner corners of 60 mm`` and the polarity keys it sets (board.yaml)."""
+    """:meth:`Board.describe` and the polarity keys it sets (board.yaml)."""
     keys = {k: v for k, v in board.to_dict().items() if k in POLARITY_KEYS}
-    text = f"{board.cols}x{board.rows} inner corners of {board.square_size_m * 1000:g} mm"
+    text = board.describe()
     if keys:
         text += " with " + ", ".join(f"{k}: {str(v).lower()}" for k, v in keys.items())
     else:

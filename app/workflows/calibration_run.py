@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections import Counter
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -156,14 +157,84 @@ def calibrate_capture(
         reasons = Counter(r for per in detections.rejected.values() for r in per.values())
         common = "; ".join(f"{n}x {r}" for r, n in reasons.most_common(3))
         raise CalibrationError(
-            f"the board ({capture.board.cols}x{capture.board.rows} inner "
-            f"corners) was not found in any image: {common}"
+            f"the board ({capture.board.describe()}) was not found in any image: {common}"
         )
     eyes = capture.rig.eyes if capture.rig is not None else {}
     result = calibrate_rig(
         detections.observations, capture.board, specs, options, progress=stage(0.6, 0.4), eyes=eyes
     )
+    # false-colour thermal images: say, wherever notes are shown, that they are not kelvin
+    result.notes += [p["note"] for p in capture.palette_report().values()]
+    result.excluded_sensors = excluded_with_detection_reasons(result, detections)
     return result, build_report(result, detections, capture)
+
+
+def excluded_with_detection_reasons(
+    result: CalibrationResult, detections: DetectionRun
+) -> dict[str, str]:
+    """``result.excluded_sensors`` with what the detection says of each sensor left out:
+    when most of its views failed for one reason (e.g. "ChArUco markers not resolvable"),
+    that reason, summed over those views, comes first; a sensor found in no view at all
+    (so unknown to the calibration) is added."""
+    out = dict(result.excluded_sensors)
+    views: Counter[str] = Counter()
+    failed: dict[str, list[str]] = {}
+    for part in (detections.observations, detections.rejected):
+        for per in part.values():
+            views.update(list(per))  # sensor names, not their values
+    for per in detections.rejected.values():
+        for s, reason in per.items():
+            failed.setdefault(s, []).append(reason)
+    for s in sorted(views):
+        if s in result.sensors or s not in failed:
+            continue
+        why = dominant_failure(failed[s], views[s])
+        if s in out:
+            out[s] = f"{why}; {out[s]}" if why else out[s]
+        else:  # found in no view: all failed
+            common = Counter(failed[s]).most_common(1)[0][0]
+            out[s] = why or f"board not found in any of its {views[s]} views (e.g. {common})"
+    return out
+
+
+_NUMBER = re.compile(r"\d+(?:\.\d+)?")
+
+
+def _reason_kind(reason: str) -> str:
+    """What a detection reason says without its details: the text before its first ``:``
+    or ``;``, bracketed parts dropped, numbers as ``#`` ("board not found", "ChArUco
+    markers not resolvable", "ChArUco board seen but only # corner of #")."""
+    head = re.split(r"[:;]", reason, maxsplit=1)[0]
+    return " ".join(_NUMBER.sub("#", re.sub(r"\([^)]*\)", "", head)).split())
+
+
+def dominant_failure(reasons: list[str], n_views: int) -> str | None:
+    """The reason most of a sensor's ``n_views`` views failed for, as one line, or None
+    when no one kind of reason (:func:`_reason_kind`) covers more than half of them.
+
+    The reasons of that kind worded alike are summed up: each number that differs
+    between them becomes its range, e.g. "ChArUco markers not resolvable in 15 of 18
+    views: quads of about 1.8-7.9 px seen, marker cells of at most 0.3-1.3 px, under the
+    2 px ...".
+    """
+    kinds = Counter(_reason_kind(r) for r in reasons)
+    if not kinds:
+        return None
+    kind, n = kinds.most_common(1)[0]
+    if 2 * n <= n_views:
+        return None
+    group = [r for r in reasons if _reason_kind(r) == kind]
+    wording = Counter(_NUMBER.sub("#", r) for r in group).most_common(1)[0][0]
+    alike = [r for r in group if _NUMBER.sub("#", r) == wording]
+    texts = _NUMBER.split(alike[0])
+    numbers = list(zip(*(_NUMBER.findall(r) for r in alike), strict=True))
+    merged = texts[0]
+    for values, text in zip(numbers, texts[1:], strict=True):
+        lo, hi = min(values, key=float), max(values, key=float)
+        merged += (lo if float(lo) == float(hi) else f"{lo}-{hi}") + text
+    head, colon, tail = merged.partition(": ")
+    where = f"in {n} of {n_views} views"
+    return f"{head} {where}: {tail}" if colon else f"{merged} ({where})"
 
 
 def build_report(
@@ -267,10 +338,9 @@ def format_summary(result: CalibrationResult, report: dict[str, Any]) -> str:
         lines.append("")
         for name, why in result.excluded_sensors.items():
             lines.append(f"not calibrated: {name}: {why}")
-    palette_notes = [p["note"] for p in report.get("palette_images", {}).values()]
-    if result.notes or palette_notes:
+    if result.notes:
         lines.append("")
-        lines += [f"note: {note}" for note in [*result.notes, *palette_notes]]
+        lines += [f"note: {note}" for note in result.notes]
     view_outliers = [o for o in result.outliers if o.corner is None]
     corner_outliers = [o for o in result.outliers if o.corner is not None]
     if result.outliers:

@@ -45,6 +45,7 @@ from app.workflows.report_format import (
     polarity_rows,
     sensor_colour,
 )
+from calib.board import POLARITY_KEYS, board_from_dict
 from calib.coverage import PARAM_NAMES
 from calib.transforms import rvec_from_rotation
 
@@ -1391,15 +1392,13 @@ def _run(report: Mapping[str, Any], command: str | None, versions: Mapping[str, 
 
 
 def _board_text(board: Mapping[str, Any]) -> str:
-    corners = board.get("inner_corners")
-    text = str(board.get("pattern", "board"))
-    if isinstance(corners, Sequence) and len(corners) == 2:
-        text += f", {corners[0]} × {corners[1]} inner corners"
-    if _finite(board.get("square_size_m")):
-        text += f", squares of {1000 * board['square_size_m']:g} mm"
-    extra = {
-        k: v for k, v in board.items() if k not in ("pattern", "inner_corners", "square_size_m")
-    }
+    """:meth:`Board.describe` of the report's board (its polarity keys in brackets); a
+    board the report format does not know: its keys as they are."""
+    try:
+        text, described = board_from_dict(board).describe(), set(board) - set(POLARITY_KEYS)
+    except ValueError:
+        text, described = "board", set()
+    extra = {k: v for k, v in board.items() if k not in described}
     if extra:
         text += " (" + ", ".join(f"{_label(k)}: {v}" for k, v in extra.items()) + ")"
     return text

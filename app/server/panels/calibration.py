@@ -18,6 +18,7 @@ import numpy as np
 import viser.uplot as uplot
 
 from app.server.markdown_text import md_cells, md_text
+from app.server.panels.next_pose_overlay import NextPoseOverlay, verdict_md
 from app.server.runtime.board_watch import BoardSighting
 from app.server.runtime.context import ConsoleContext
 from app.server.runtime.demand import Hold
@@ -85,11 +86,17 @@ def views_html(views: list[ViewInfo], sensors: list[str]) -> str:
             color = "#2ca02c" if found else ("#888" if found is None else "#d62728")
             marks.append(f"<td title='{title}' style='color:{color}'>{mark}</td>")
         rows.append(f"<tr><td>{html.escape(v.name)}</td>{''.join(marks)}</tr>")
+    paletted = {s: fit.what for v in views for s, fit in v.palettes.items()}  # false colour
     return (
         f"<p style='font-size:0.85em;margin:0'>{len(views)} views</p>"
         "<div style='max-height:220px;overflow-y:auto'>"
         "<table style='font-size:0.75em;text-align:center;border-spacing:6px 0'>"
         f"<tr><th></th>{head}</tr>{''.join(rows)}</table></div>"
+        + "".join(
+            f"<p style='font-size:0.75em;margin:0'>{html.escape(s)}: false-colour images "
+            f"({html.escape(what)}), read back for geometry; values not radiometric</p>"
+            for s, what in paletted.items()
+        )
     )
 
 
@@ -112,6 +119,7 @@ class CalibrationPanel(Periodic):
                 hint="Take the board whenever it is steady and at a new pose",
             )
             self.message = gui.add_markdown("")
+            self.next_pose = NextPoseOverlay(ctx, session)  # where to hold the board next
             self.coverage = gui.add_html(coverage_html({s: (0, 0, 0, 0) for s in self.sensors}, {}))
             self.views_html = gui.add_html(views_html([], self.sensors))
             self.view_pick = gui.add_dropdown("View", (NONE,))
@@ -254,6 +262,7 @@ class CalibrationPanel(Periodic):
         self.seen.content = f"Board ({state}): seen by {md_text(', '.join(found))}"
 
     def tick(self) -> None:
+        self.next_pose.tick()
         if not self._dirty:
             return
         self._dirty = False
@@ -335,6 +344,8 @@ class CalibrationPanel(Periodic):
                 f"| {md_text(name)} | {s.views_used}/{s.views_detected} | {s.rms_px:.3f} | "
                 f"{sig.get('fx', 0.0):.2f} | {rot:.3f} | {trans:.2f} |"
             )
+        if getattr(result, "verdict", None) is not None:
+            lines += ["", *verdict_md(result.verdict.as_dict())]
         if result.polarity:
             pol = {n: p.as_dict() for n, p in result.polarity.items()}
             lines += [

@@ -127,25 +127,28 @@ def draw_corners(thumb: np.ndarray, corners: np.ndarray, cols: int) -> None:
     """Draw corners (N, 2), thumbnail pixels, row-major ``cols`` per row, in place: like
     ``cv2.drawChessboardCorners`` (a circle and an x per corner, a line from the previous
     corner, one colour per row), sized to the corner spacing; dots where the corners are
-    closer than :data:`FULL_MARKERS_PX`."""
+    closer than :data:`FULL_MARKERS_PX`. NaN rows (corners a partial view did not see)
+    are left out."""
     n = len(corners)
     if n == 0:
         return
     cols = cols if cols > 0 and n % cols == 0 else n
     steps = np.linalg.norm(np.diff(corners.reshape(-1, cols, 2), axis=1), axis=2)
+    steps = steps[np.isfinite(steps)]
     spacing = float(np.median(steps)) if steps.size else FULL_MARKERS_PX
     one = 1 << _SHIFT
-    pts = np.round(corners * one).astype(np.int64)
+    seen = np.isfinite(corners).all(axis=1)
+    pts = np.round(np.where(seen[:, None], corners, 0.0) * one).astype(np.int64)
     aa = cv2.LINE_AA
     full = spacing >= FULL_MARKERS_PX
     rr = round(min(0.3 * spacing, 4.0) * one) if full else round(max(0.2 * spacing, 0.8) * one)
-    for i in range(n):
+    for i in np.flatnonzero(seen):
         colour = ROW_COLOURS[(i // cols) % len(ROW_COLOURS)]
         x, y = int(pts[i, 0]), int(pts[i, 1])
         if not full:
             cv2.circle(thumb, (x, y), rr, colour, -1, aa, _SHIFT)
             continue
-        if i:
+        if i and seen[i - 1]:
             prev = (int(pts[i - 1, 0]), int(pts[i - 1, 1]))
             cv2.line(thumb, prev, (x, y), colour, 1, aa, _SHIFT)
         cv2.line(thumb, (x - rr, y - rr), (x + rr, y + rr), colour, 1, aa, _SHIFT)

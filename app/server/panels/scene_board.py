@@ -1,7 +1,8 @@
-"""The checkerboard in the console's 3D scene: a frame node at the board watch's newest
-pose ``T_rig_board`` (board frame: origin at the first inner corner, +z away from the
-cameras, metres) carrying the checker plate and the outline, and the line that says where
-it is."""
+"""The calibration board in the console's 3D scene: a frame node at the board watch's
+newest pose ``T_rig_board`` (board frame: origin at the first detectable point, +z away
+from the cameras, metres) carrying the board's pattern (checkerboard, ChArUco, circle
+grid) as an image and the outline of the patterned area, and the line that says where it
+is."""
 
 from __future__ import annotations
 
@@ -10,9 +11,11 @@ import viser
 
 from app.server.markdown_text import md_text
 from app.server.panels.scene_sensors import wxyz_of
-from calib.board import Board
+from calib.board import Board, aruco_dictionary
 
 BOARD_PX_PER_SQUARE = 16
+BOARD_PX_PER_CELL = 4
+"""A ChArUco marker's cells (bits) are drawn at least this many pixels wide."""
 BOARD_PLATE_BEHIND_M = 0.003
 """The board's checker plate is drawn this far behind the board plane (+z of the board
 frame, away from the cameras) so the cloud's points on the board stay visible."""
@@ -23,22 +26,27 @@ from this lag on."""
 
 
 def board_checker_image(board: Board, px_per_square: int = BOARD_PX_PER_SQUARE) -> np.ndarray:
-    """The board's checkered area as (rows+1, cols+1) squares of ``px_per_square`` pixels,
-    (H, W, 3) uint8 RGB; pixel row 0 is the board's -y edge, column 0 its -x edge, and the
-    black squares are where :meth:`Board.is_black` says."""
-    nx, ny = board.squares
-    i = np.arange(nx * px_per_square) // px_per_square - 1  # square index along x
-    j = np.arange(ny * px_per_square) // px_per_square - 1  # along y
-    black = ((i[None, :] + j[:, None]) % 2) == 0
+    """The board's patterned area (:meth:`Board.extent_m`) as an (H, W, 3) uint8 RGB image
+    of ``px_per_square`` pixels a square (circle grids: a spacing; ChArUco: more where a
+    marker's cells need :data:`BOARD_PX_PER_CELL`); pixel row 0 is the area's -y edge,
+    column 0 its -x edge, and the dark pixels are where :meth:`Board.is_black` says
+    (black squares, markers, circles)."""
+    x0, y0, x1, y1 = board.extent_m()
+    px_per_m = px_per_square / board.square_size_m
+    if board.pattern == "charuco":
+        cells = int(aruco_dictionary(board.dictionary).markerSize) + 2  # type: ignore[arg-type]
+        px_per_m = max(px_per_m, BOARD_PX_PER_CELL * cells / board.marker_size_m)  # type: ignore[operator]
+    w, h = round((x1 - x0) * px_per_m), round((y1 - y0) * px_per_m)
+    x = x0 + (np.arange(w) + 0.5) * (x1 - x0) / w
+    y = y0 + (np.arange(h) + 0.5) * (y1 - y0) / h
+    black = board.is_black(x[None, :], y[:, None])
     grey = np.where(black, 20, 235).astype(np.uint8)
     return np.repeat(grey[..., None], 3, axis=2)
 
 
 def board_outline(board: Board) -> np.ndarray:
-    """The checkered area's edges as line segments (4, 2, 3) in the board frame, metres."""
-    sq = board.square_size_m
-    x0, y0 = -sq, -sq
-    x1, y1 = board.cols * sq, board.rows * sq
+    """The patterned area's edges as line segments (4, 2, 3) in the board frame, metres."""
+    x0, y0, x1, y1 = board.extent_m()
     c = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
     return np.stack([c, np.roll(c, -1, axis=0)], axis=1)
 
@@ -65,15 +73,14 @@ class BoardMarker:
 
     def __init__(self, scene: viser.SceneApi, board: Board, md: viser.GuiMarkdownHandle) -> None:
         node = scene.add_frame("/live/board", axes_length=0.05, axes_radius=0.002, visible=False)
-        w, h = board.size_m
-        sq = board.square_size_m
+        x0, y0, x1, y1 = board.extent_m()
         scene.add_image(
             "/live/board/plate",
             board_checker_image(board),
-            render_width=w,
-            render_height=h,
+            render_width=x1 - x0,
+            render_height=y1 - y0,
             format="png",
-            position=(-sq + w / 2.0, -sq + h / 2.0, BOARD_PLATE_BEHIND_M),
+            position=((x0 + x1) / 2.0, (y0 + y1) / 2.0, BOARD_PLATE_BEHIND_M),
         )
         scene.add_line_segments(
             "/live/board/outline",

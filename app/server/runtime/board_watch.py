@@ -1,4 +1,4 @@
-"""Live checkerboard detection on the console's newest frame set.
+"""Live board detection (checkerboard, ChArUco, circle grid) on the console's newest frame set.
 
 :class:`BoardWatch` searches every sensor of the pipeline's newest frame set for the board
 and keeps the result as a :class:`BoardSighting`: the frames it looked at, each sensor's
@@ -147,12 +147,22 @@ class PassTiming:
     reused: bool
 
 
+MIN_POSE_CORNERS = 6
+"""A partial view (ChArUco) gives a pose from at least this many corners."""
+
+
 def board_pose(rig: Rig, sensor: str, corners: np.ndarray, board: Board) -> np.ndarray | None:
-    """(4, 4) ``T_rig_board`` from one sensor's corners (PnP with the rig's intrinsics)."""
+    """(4, 4) ``T_rig_board`` from one sensor's corners (N, 2) pixels, NaN rows for corners
+    not seen (a partial view: at least :data:`MIN_POSE_CORNERS`), by PnP with the rig's
+    intrinsics; None when PnP fails or too few corners were seen."""
     intr = rig[sensor].intrinsics
+    corners = np.asarray(corners, dtype=np.float64)
+    seen = np.isfinite(corners).all(axis=1)
+    if seen.sum() < min(MIN_POSE_CORNERS, len(corners)):
+        return None
     ok, rvec, tvec = cv2.solvePnP(
-        board.object_points().astype(np.float64),
-        corners.astype(np.float64).reshape(-1, 1, 2),
+        board.object_points()[seen].astype(np.float64),
+        corners[seen].reshape(-1, 1, 2),
         intr.K,
         np.asarray(intr.distortion, dtype=np.float64),
         flags=cv2.SOLVEPNP_ITERATIVE,
@@ -167,14 +177,18 @@ def board_pose(rig: Rig, sensor: str, corners: np.ndarray, board: Board) -> np.n
 
 def board_in_image(rig: Rig, sensor: str, T_rig_board: np.ndarray, board: Board) -> bool:
     """Whether every inner corner of the board at ``T_rig_board`` (4, 4) projects into
-    ``sensor``'s image (in front of it, within its pixels), by the rig's calibration."""
+    ``sensor``'s image (in front of it, within its pixels), by the rig's calibration; of a
+    board seen in part (ChArUco), whether at least :data:`MIN_POSE_CORNERS` do."""
     s = rig[sensor]
     T = invert(s.T_rig_sensor) @ np.asarray(T_rig_board, dtype=np.float64)
     P = board.object_points() @ T[:3, :3].T + T[:3, 3]
     uv = s.intrinsics.project(P)
     w, h = s.image_size
     inside = (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
-    return bool(np.all(np.isfinite(uv)) and np.all(inside))
+    inside &= np.isfinite(uv).all(axis=1) & (P[:, 2] > 0)
+    if board.partial_views:
+        return int(inside.sum()) >= MIN_POSE_CORNERS
+    return bool(np.all(inside))
 
 
 def orient_by_colour(
@@ -192,9 +206,12 @@ def orient_by_colour(
     puts the corners in that sensor's image through the rig, and is reversed (relabelled by
     the half turn, method suffixed ``-turned``) when the reversed ordering is the one that
     agrees. Without a colour camera's pose, or where the expected corners do not tell, the
-    detections stay as they are.
+    detections stay as they are. A ChArUco board's markers name every corner: its
+    detections are never turned.
     """
     if T_rig_board is None or pose_sensor is None or rig[pose_sensor].modality != "color":
+        return detections
+    if board.pattern == "charuco":
         return detections
     out = dict(detections)
     for name, det in detections.items():
@@ -209,11 +226,14 @@ def orient_by_colour(
 
 
 def _corner_spacing(corners: np.ndarray, board: Board) -> float:
-    """Median distance between neighbouring corners (N, 2) of the board's grid, pixels."""
+    """Median distance between neighbouring points (N, 2) of the board's grid (along a row
+    and down a column; corners not seen, NaN rows, left out), pixels."""
     G = corners.reshape(board.rows, board.cols, 2)
     dx = np.linalg.norm(np.diff(G, axis=1), axis=2)
     dy = np.linalg.norm(np.diff(G, axis=0), axis=2)
-    return float(np.median(np.concatenate([dx.ravel(), dy.ravel()])))
+    d = np.concatenate([dx.ravel(), dy.ravel()])
+    d = d[np.isfinite(d)]
+    return float(np.median(d)) if len(d) else 0.0
 
 
 def first_look(
@@ -243,10 +263,10 @@ def first_look(
     # pixel centres: full = (half + 0.5) * 2 - 0.5 (docs/CONVENTIONS.md)
     G = (coarse.corners + 0.5) * 2.0 - 0.5
     margin = COARSE_CROP_MARGIN * _corner_spacing(G, board) + 8.0
-    x0 = max(0, int(np.floor(G[:, 0].min() - margin)))
-    x1 = min(w, int(np.ceil(G[:, 0].max() + margin)) + 1)
-    y0 = max(0, int(np.floor(G[:, 1].min() - margin)))
-    y1 = min(h, int(np.ceil(G[:, 1].max() + margin)) + 1)
+    x0 = max(0, int(np.floor(np.nanmin(G[:, 0]) - margin)))
+    x1 = min(w, int(np.ceil(np.nanmax(G[:, 0]) + margin)) + 1)
+    y0 = max(0, int(np.floor(np.nanmin(G[:, 1]) - margin)))
+    y1 = min(h, int(np.ceil(np.nanmax(G[:, 1]) + margin)) + 1)
     fine = detect(np.ascontiguousarray(a[y0:y1, x0:x1]), board, modality)
     if fine.found:
         corners = fine.corners + np.array([x0, y0], dtype=np.float64)
@@ -410,7 +430,7 @@ def sighting(
                 break
     detections = orient_by_colour(detections, rig, board, pose, pose_sensor)
     moved = [
-        float(np.max(np.linalg.norm(det.corners - previous.detections[name].corners, axis=1)))
+        _moved_px(det.corners, previous.detections[name].corners)
         for name, det in detections.items()
         if det.found
         and previous is not None
@@ -420,6 +440,14 @@ def sighting(
     steady = bool(moved) and max(moved) <= STEADY_PX
     ordered = {n: detections[n] for n in frames.frames if n in detections}
     return BoardSighting(frames, ordered, pose, pose_sensor, steady)
+
+
+def _moved_px(now: np.ndarray, before: np.ndarray) -> float:
+    """How far (pixels) the corners (N, 2) seen both times moved at most; inf when a partial
+    view (NaN rows) shares no corner with the previous one."""
+    d = np.linalg.norm(now - before, axis=1)
+    d = d[np.isfinite(d)]
+    return float(d.max()) if len(d) else math.inf
 
 
 class _PoseLoop(Periodic):

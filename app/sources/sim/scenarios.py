@@ -32,12 +32,30 @@ from app.sources.sim.scene import (
     Solid,
     Sphere,
 )
+from calib.board import aruco_dictionary
 from calib.rig import Rig, Sensor, rig_to_yaml
 from calib.transforms import make_T, rotation_from_euler_deg
 
 CALIBRATION_BOARD = Board(cols=9, rows=6, square_size_m=0.06)
-BOARD_MARGIN_M = 0.04  # bare aluminium around the checkered area
+BOARD_MARGIN_M = 0.04  # bare aluminium around the patterned area
 BOARD_PLATE_K = 296.0  # plate temperature before heating
+
+
+def plate_extent_m(board: Board) -> tuple[float, float, float, float]:
+    """The board plate ``(x0, x1, y0, y1)`` in the board frame, metres (a
+    :class:`~app.sources.sim.scene.Quad`'s extent): the patterned area
+    (``board.extent_m()``) and :data:`BOARD_MARGIN_M` of bare
+    plate around it."""
+    x0, y0, x1, y1 = board.extent_m()
+    m = BOARD_MARGIN_M
+    return (x0 - m, x1 + m, y0 - m, y1 + m)
+
+
+def pattern_centre_m(board: Board) -> np.ndarray:
+    """(3,) the middle of the board's patterned area in the board frame, metres (where the
+    poses aim the board)."""
+    x0, y0, x1, y1 = board.extent_m()
+    return np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
 
 
 def _quad(name: str, centre, rpy_deg, half_w: float, half_h: float, mat: Material) -> Quad:
@@ -126,20 +144,21 @@ def board_solid(
     heating_k: float = 22.0,
     finish: BoardFinish | None = None,
 ) -> Quad:
-    """The heated board as a quad in its own frame (calib.board), margin included.
+    """The heated board as a quad in its own frame (calib.board), margin included: its
+    pattern (checkerboard, ChArUco, circle grid) where the board's ``is_black`` says.
 
     ``finish`` (default: the simulated head's board heated by ``heating_k``) sets the
     squares' emissivities and NIR reflectances and the heating (it replaces ``heating_k``).
     """
-    s, m = board.square_size_m, BOARD_MARGIN_M
-    extent = (-s - m, board.cols * s + m, -s - m, board.rows * s + m)
+    extent = plate_extent_m(board)
+    x0, y0, x1, y1 = board.extent_m()
     f = finish if finish is not None else BoardFinish(heating_k=heating_k)
     mat = BoardMaterial(
         (0.8, 0.8, 0.78),
         BOARD_PLATE_K,
         board=board,
         heating_k=f.heating_k,
-        hot_spot_xy_m=(0.3 * board.size_m[0], 0.2 * board.size_m[1]),
+        hot_spot_xy_m=(0.3 * (x1 - x0), 0.2 * (y1 - y0)),
         black_emissivity=f.black_emissivity,
         white_emissivity=f.white_emissivity,
         black_nir=f.black_nir,
@@ -203,9 +222,7 @@ _TARGETS = [
 
 
 def _plate_corners(board: Board) -> np.ndarray:
-    s, m = board.square_size_m, BOARD_MARGIN_M
-    x0, x1 = -s - m, board.cols * s + m
-    y0, y1 = -s - m, board.rows * s + m
+    x0, x1, y0, y1 = plate_extent_m(board)
     return np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]], dtype=np.float64)
 
 
@@ -216,26 +233,22 @@ def calibration_poses(
 
     View i targets sensor ``i mod n`` and one of nine image positions (corners first);
     the board is placed so it lies wholly inside that sensor's image at a distance drawn
-    from 0.6-4 m (0.6-1.8 m for a TOF camera, whose board image gets small quickly), with
-    a random tilt up to 45 degrees and roll up to 15 degrees.
+    from 0.6-4 m (0.6-1.8 m for a TOF camera, whose board image gets small quickly; a
+    ChArUco board no farther than that sensor reads its markers, at least to 1 m:
+    :func:`_readable_within_m`), with a random tilt up to 45 degrees and roll up to 15
+    degrees.
     """
     if views < 1:
         raise ValueError(f"views: expected at least 1, got {views}")
     rng = np.random.default_rng(seed)
     names = rig.names
-    centre_b = np.array(
-        [
-            (board.cols - 1) * board.square_size_m / 2,
-            (board.rows - 1) * board.square_size_m / 2,
-            0.0,
-        ]
-    )
+    centre_b = pattern_centre_m(board)
     corners_b = _plate_corners(board)
     poses = []
     for i in range(views):
         sensor = rig[names[i % len(names)]]
         target = np.array(_TARGETS[(i // len(names)) % len(_TARGETS)])
-        far = 1.8 if sensor.modality == "tof" else 4.0
+        far = _readable_within_m(sensor, board, 1.8 if sensor.modality == "tof" else 4.0)
         distance = rng.uniform(0.6, far)
         tilt = np.radians(rng.uniform(0.0, 45.0))
         tilt_dir = rng.uniform(0.0, 2 * np.pi)
@@ -271,10 +284,32 @@ def calibration_poses(
     return poses
 
 
+MARKER_CELL_PX = 2.5
+"""A ChArUco board's views aimed at a sensor keep its marker cells (bits) at least this
+many pixels wide (where the sensor still has room for the board, from 1 m)."""
+
+
+def _readable_within_m(sensor: Sensor, board: Board, far_m: float) -> float:
+    """How far (metres) a view aimed at ``sensor`` may put ``board``: ``far_m``, for a
+    ChArUco board no farther than its marker cells are :data:`MARKER_CELL_PX` wide, but
+    not under 1 m (the TOF camera then sees markers it cannot read: it says so)."""
+    if board.pattern != "charuco":
+        return far_m
+    cells = int(aruco_dictionary(board.dictionary).markerSize) + 2  # type: ignore[arg-type]
+    cell_m = float(board.marker_size_m) / cells  # type: ignore[arg-type]
+    return min(far_m, max(1.0, sensor.intrinsics.fx * cell_m / MARKER_CELL_PX))
+
+
 def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
     k = axis / np.linalg.norm(axis)
     K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+PARTIAL_EVERY = 3
+"""Every third view of a board that may be seen in part (ChArUco) leaves the image."""
+PARTIAL_OVERHANG = (0.1, 0.4)
+"""What fraction of the patterned area's image those views put beyond the border."""
 
 
 def calibration_views(
@@ -292,8 +327,11 @@ def calibration_views(
         views, seed: how many views, and the seed of the poses and the noise.
         rig: the head (default: the simulated head's ground truth).
         model: the sensor models.
-        board: the checkerboard (its poses follow its size).
-        finish: what the squares are made of and how warm (default: the heated board).
+        board: the board (its poses follow its size); a board whose views may show part
+            of it (ChArUco: ``board.partial_views``) is pushed over an image border in
+            every :data:`PARTIAL_EVERY`-th view (:func:`partial_view_poses`), so that
+            the image corners get covered.
+        finish: what the marks are made of and how warm (default: the heated board).
         sensor_views: sensor -> N: that sensor's image is kept in N views only, views
             that show it the whole board where there are enough (spread evenly over the
             session: :func:`kept_views`); the others' are all kept.
@@ -303,6 +341,10 @@ def calibration_views(
     background = lab_background()
     rng = np.random.default_rng([seed, 1])
     poses = calibration_poses(views, seed, rig, board)
+    if board.partial_views:
+        partial = partial_view_poses(views, seed, rig, board, PARTIAL_OVERHANG)
+        for i in range(PARTIAL_EVERY - 1, views, PARTIAL_EVERY):
+            poses[i] = partial[i]
     keep = {}
     for name, n in (sensor_views or {}).items():
         inside = [i for i, T in enumerate(poses) if board_inside(rig[name], T, board)]
@@ -534,9 +576,10 @@ class InspectionScenario:
 
 
 class CalibrationScenario:
-    """The calibration session as a live scene: the head stands still and the heated board
-    is held at each of ``n_poses`` poses (:func:`calibration_poses`) for ``hold_s`` seconds,
-    then jumps to the next; the sequence loops every ``loop_s`` seconds.
+    """The calibration session as a live scene: the head stands still and the heated
+    ``board`` (any pattern) is held at each of ``n_poses`` poses (:func:`calibration_poses`;
+    a ChArUco board leaves the image in every :data:`PARTIAL_EVERY`-th) for ``hold_s``
+    seconds, then jumps to the next; the sequence loops every ``loop_s`` seconds.
 
     For :class:`~app.sources.simulated.SimulatedHeadSource` use ``render_hz = 1 / hold_s``
     and ``loop_s = loop_s``: one rendering per board pose (``scene_key`` tells the source
@@ -550,14 +593,19 @@ class CalibrationScenario:
         n_poses: int = 40,
         hold_s: float = 3.0,
         seed: int = 1,
+        board: Board = CALIBRATION_BOARD,
     ) -> None:
         if not hold_s > 0:
             raise ValueError(f"hold_s: expected a positive number of seconds, got {hold_s}")
         self.rig = rig or default_rig()
         self.renderer = Renderer(self.rig, model)
         self.model = model
-        self.board = CALIBRATION_BOARD
-        self.poses = calibration_poses(n_poses, seed, self.rig, self.board)
+        self.board = board
+        self.poses = calibration_poses(n_poses, seed, self.rig, board)
+        if board.partial_views:  # as in calibration_views: some poses leave the image
+            partial = partial_view_poses(n_poses, seed, self.rig, board, PARTIAL_OVERHANG)
+            for i in range(PARTIAL_EVERY - 1, n_poses, PARTIAL_EVERY):
+                self.poses[i] = partial[i]
         self.background = lab_background()
         self.n_poses, self.hold_s, self.seed = n_poses, float(hold_s), seed
         self.loop_s = n_poses * self.hold_s
@@ -565,7 +613,8 @@ class CalibrationScenario:
     def cache_key(self) -> str:
         """What identifies this scenario's pictures (for the simulated head's disk cache)."""
         rig = hashlib.sha256(rig_to_yaml(self.rig).encode()).hexdigest()[:16]
-        return f"poses={self.n_poses} hold={self.hold_s} seed={self.seed} rig={rig} {self.model!r}"
+        key = f"poses={self.n_poses} hold={self.hold_s} seed={self.seed} rig={rig} {self.model!r}"
+        return key if self.board == CALIBRATION_BOARD else f"{key} board={self.board!r}"
 
     def pose_index(self, t_s: float) -> int:
         """Which board pose is held at scenario time ``t_s`` (seconds)."""
@@ -589,7 +638,7 @@ class CalibrationScenario:
         """Frames and exact ground truth at ``t_s``; noise is seeded by (seed, pose)."""
         i = self.pose_index(t_s)
         rng = np.random.default_rng([self.seed, 2, i])
-        scene = Scene([*self.background, board_solid(self.poses[i])])
+        scene = Scene([*self.background, board_solid(self.poses[i], self.board)])
         return self.renderer.render(scene, np.eye(4), round(t_s * 1e9), rng, sensors)
 
 
@@ -612,27 +661,28 @@ def _facing_pose(
 
 
 def partial_view_poses(
-    views: int, seed: int, rig: Rig, board: Board = CALIBRATION_BOARD
+    views: int,
+    seed: int,
+    rig: Rig,
+    board: Board = CALIBRATION_BOARD,
+    overhang: tuple[float, float] = (-0.1, 0.45),
 ) -> list[np.ndarray]:
     """Board poses ``T_rig_board`` (4, 4) that put the board across the image border.
 
     View i is aimed at sensor ``i mod n`` of ``rig``: the board (0.8-3 m away, tilted up
     to 35 degrees, rolled up to 15) is pushed over one edge or corner of that image
-    (seeded) so that a fraction from -0.1 (wholly inside, outer squares at the border) to
-    0.45 of its checkered area's image lies beyond it. Whether every inner corner is still
-    in view is for the caller to work out from the exact projection.
+    (seeded) so that a fraction drawn from ``overhang`` (default -0.1: wholly inside, outer
+    squares at the border, to 0.45) of its patterned area's image lies beyond it. Whether
+    every inner corner is still in view is for the caller to work out from the exact
+    projection.
     """
     if views < 1:
         raise ValueError(f"views: expected at least 1, got {views}")
     rng = np.random.default_rng([seed, 18])
     names = rig.names
-    s = board.square_size_m
-    centre_b = np.array([(board.cols - 1) * s / 2, (board.rows - 1) * s / 2, 0.0])
-    outline_b = np.array(
-        [[-s, -s, 0], [board.cols * s, -s, 0], [board.cols * s, board.rows * s, 0],
-         [-s, board.rows * s, 0]],
-        dtype=np.float64,
-    )  # fmt: skip
+    centre_b = pattern_centre_m(board)
+    x0, y0, x1, y1 = board.extent_m()
+    outline_b = np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]], dtype=np.float64)
     sides = [(-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (1, -1), (-1, 1), (1, 1)]
     poses = []
     for i in range(views):
@@ -644,7 +694,7 @@ def partial_view_poses(
         R_extra = _axis_angle(np.array([np.cos(tilt_dir), np.sin(tilt_dir), 0.0]), tilt)
         R_extra = R_extra @ rotation_from_euler_deg(0.0, 0.0, rng.uniform(-15.0, 15.0))
         side = sides[int(rng.integers(len(sides)))]
-        overhang = rng.uniform(-0.1, 0.45)
+        over = rng.uniform(*overhang)
         along = rng.uniform(0.25, 0.75)
         centre_px = np.array([(w - 1) / 2, (h - 1) / 2])
         T0 = _facing_pose(sensor, centre_px, distance, R_extra, centre_b)
@@ -653,9 +703,9 @@ def partial_view_poses(
         target = np.empty(2)
         for k, (d, extent) in enumerate(zip(side, (w, h), strict=True)):
             if d < 0:
-                target[k] = (0.5 - overhang) * size[k]
+                target[k] = (0.5 - over) * size[k]
             elif d > 0:
-                target[k] = extent - 1 - (0.5 - overhang) * size[k]
+                target[k] = extent - 1 - (0.5 - over) * size[k]
             else:
                 target[k] = along * (extent - 1)
         T_s_b = _facing_pose(sensor, target, distance, R_extra, centre_b)
@@ -677,9 +727,7 @@ def hot_objects_beside_board(
     visible comes from the render's truth. Names: ``hot_pipe``, ``person_body``, ``person_head``,
     ``hand_left``, ``hand_right``."""
     rng = np.random.default_rng([seed, 19])
-    s, m = board.square_size_m, BOARD_MARGIN_M
-    x_lo, x_hi = -s - m, board.cols * s + m
-    y_lo, y_hi = -s - m, board.rows * s + m
+    x_lo, x_hi, y_lo, y_hi = plate_extent_m(board)
     cy = 0.5 * (y_lo + y_hi)
     side = 1.0 if rng.uniform() < 0.5 else -1.0
     pipe_r = rng.uniform(0.03, 0.05)

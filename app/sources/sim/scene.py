@@ -129,7 +129,9 @@ class BoardMaterial(Material):
     Black squares (foil): dark in colour, high emissivity so they read hot in thermal,
     low NIR reflectance so they are dark in TOF amplitude. White squares and the margin
     (bare aluminium): bright, low emissivity (they mirror the cooler room), bright in
-    TOF amplitude. The heating is uneven: a hot spot off-centre and a cooler far edge.
+    TOF amplitude. A ChArUco board's black squares and marker cells and a circle grid's
+    circles are the foil in the same way (the board's :meth:`~calib.board.Board.is_black`
+    says where). The heating is uneven: a hot spot off-centre and a cooler far edge.
     Surface coordinates are the board frame's (x, y) in metres (calib.board).
     """
 
@@ -150,14 +152,13 @@ class BoardMaterial(Material):
     """Real-world conditions of this view (app.sources.sim.thermal_conditions); None: off."""
 
     def _black(self, st: np.ndarray) -> np.ndarray:
+        """Whether board points ``st`` (N, 2) metres lie on a mark: a black square or a
+        black marker cell (ChArUco), a circle (circle grids); only inside the patterned
+        area (``board.extent_m()``), the margin around it is bare plate."""
         b = self.board
         x, y = st[:, 0], st[:, 1]
-        inside = (
-            (x >= -b.square_size_m)
-            & (x < b.cols * b.square_size_m)
-            & (y >= -b.square_size_m)
-            & (y < b.rows * b.square_size_m)
-        )
+        x0, y0, x1, y1 = b.extent_m()
+        inside = (x >= x0) & (x < x1) & (y >= y0) & (y < y1)
         return inside & b.is_black(x, y)
 
     def albedo(self, st: np.ndarray) -> np.ndarray:

@@ -42,8 +42,10 @@ from __future__ import annotations
 
 import zlib
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
+from scipy.ndimage import gaussian_filter, map_coordinates
 from scipy.special import ndtr
 
 from calib.board import Board
@@ -158,8 +160,7 @@ class ThermalConditions(ImagerSettings):
             scale = contrast / (eps_gap * abs(centre_excess_k))
         if self.cooling_time_constant_s:
             scale *= float(np.exp(-view * self.view_interval_s / self.cooling_time_constant_s))
-        w, h = board.size_m
-        x0, y0 = -board.square_size_m, -board.square_size_m
+        x0, y0, w, h = _area(board)
         angle = rng.uniform(0, 2 * np.pi)
         spot = (x0 + rng.uniform(0.15, 0.85) * w, y0 + rng.uniform(0.15, 0.85) * h)
         return BoardThermal(
@@ -190,6 +191,22 @@ class ThermalConditions(ImagerSettings):
 # -- the board ------------------------------------------------------------------------------
 
 
+_FINE = (np.arange(200) + 0.5) / 200
+"""Fractions of the patterned area sampled where a pattern's marks are looked for."""
+_RASTER_STEP_M = 0.001
+"""Grid step (metres) of the marks blurred by :func:`_blurred_marks` (at most a third of
+the blur's sigma)."""
+_RASTER_SUBSAMPLES = 4
+"""Each grid cell holds the fraction of it covered by marks, from this many x this many
+samples (the marks' edges then fall between grid points, not on them)."""
+
+
+def _area(board: Board) -> tuple[float, float, float, float]:
+    """``(x0, y0, width, height)`` of the board's patterned area, metres (board frame)."""
+    x0, y0, x1, y1 = board.extent_m()
+    return float(x0), float(y0), float(x1 - x0), float(y1 - y0)
+
+
 def _blurred_steps(x: np.ndarray, edges: np.ndarray, jumps: np.ndarray, sigma: float) -> np.ndarray:
     """A piecewise-constant function (0 left of the first edge, ``+jumps[k]`` at
     ``edges[k]``) convolved with a Gaussian of ``sigma`` (same units), at ``x`` (N,)."""
@@ -218,7 +235,12 @@ def blurred_black(board: Board, st: np.ndarray, sigma_m: float) -> np.ndarray:
     Black (calib.board): inside the checkered area and ``floor(x/s) + floor(y/s)`` even.
     With f(x) = (-1)^floor(x/s) and g likewise, black = box_x box_y (1 + f g) / 2, and a
     Gaussian blur of a product of functions of x and of y is the product of their blurs.
+    Other patterns (ChArUco markers, circles) are not separable: their marks
+    (``board.is_black`` inside the patterned area) are sampled on a grid of at most 1 mm,
+    blurred there and interpolated (:func:`_blurred_marks`).
     """
+    if board.pattern != "checkerboard":
+        return _blurred_marks(board, st, sigma_m)
     s = board.square_size_m
     ex, bx, fx_e, fx = _square_wave(board.cols + 1, s)
     ey, by, fy_e, fy = _square_wave(board.rows + 1, s)
@@ -228,6 +250,40 @@ def blurred_black(board: Board, st: np.ndarray, sigma_m: float) -> np.ndarray:
     f = _blurred_steps(x, fx_e, fx, sigma_m)
     g = _blurred_steps(y, fy_e, fy, sigma_m)
     return 0.5 * (box_x * box_y + f * g)
+
+
+def _blurred_marks(board: Board, st: np.ndarray, sigma_m: float) -> np.ndarray:
+    """:func:`blurred_black` of a pattern that is not separable, (N,) in 0..1."""
+    x, y = st[:, 0].astype(np.float64), st[:, 1].astype(np.float64)
+    if sigma_m <= 0:
+        x0, y0, w, h = _area(board)
+        inside = (x >= x0) & (x < x0 + w) & (y >= y0) & (y < y0 + h)
+        return (inside & board.is_black(x, y)).astype(np.float64)
+    blurred, origin, step = _marks_raster(board, float(sigma_m))
+    rows = (y - origin[1]) / step - 0.5  # pixel centres at (k + 0.5) step from the origin
+    cols = (x - origin[0]) / step - 0.5
+    return map_coordinates(blurred, [rows, cols], order=1, mode="constant", cval=0.0)
+
+
+@lru_cache(maxsize=4)
+def _marks_raster(board: Board, sigma_m: float) -> tuple[np.ndarray, tuple[float, float], float]:
+    """The board's marks blurred by a Gaussian of ``sigma_m``: (H, W) float64 image, its
+    top-left corner (x, y) in the board frame and its step, metres."""
+    x0, y0, w, h = _area(board)
+    step = min(_RASTER_STEP_M, sigma_m / 3.0)
+    pad = 4.0 * sigma_m
+    nx, ny = int(np.ceil((w + 2 * pad) / step)), int(np.ceil((h + 2 * pad) / step))
+    origin = (x0 - pad, y0 - pad)
+    sub = _RASTER_SUBSAMPLES  # each cell: the fraction of it that is a mark
+    xs = origin[0] + (np.arange(nx * sub) + 0.5) * step / sub
+    ys = origin[1] + (np.arange(ny * sub) + 0.5) * step / sub
+    marks = np.empty((ny, nx))
+    for r in range(0, ny, 64):  # 64 rows of cells at a time: bounded memory
+        X, Y = np.meshgrid(xs, ys[r * sub : (r + 64) * sub])
+        inside = (X >= x0) & (X < x0 + w) & (Y >= y0) & (Y < y0 + h)
+        black = inside & board.is_black(X, Y)
+        marks[r : r + 64] = black.reshape(-1, sub, nx, sub).mean(axis=(1, 3))
+    return gaussian_filter(marks, sigma_m / step, mode="constant"), origin, step
 
 
 @dataclass(frozen=True)
@@ -254,9 +310,9 @@ class BoardThermal:
         unconditioned temperatures ``base_k`` (N,) there."""
         t = self.room_k + (np.asarray(base_k, dtype=np.float64) - self.room_k) * self.excess_scale
         if self.uneven_k:
-            w, h = board.size_m
-            x = st[:, 0] - (0.5 * w - board.square_size_m)
-            y = st[:, 1] - (0.5 * h - board.square_size_m)
+            x0, y0, w, h = _area(board)
+            x = st[:, 0] - (x0 + 0.5 * w)
+            y = st[:, 1] - (y0 + 0.5 * h)
             half = 0.5 * np.hypot(w, h)
             ramp = (self.gradient_dir[0] * x + self.gradient_dir[1] * y) / half  # -1..1
             dx = st[:, 0] - self.spot_xy_m[0]
@@ -272,15 +328,22 @@ class BoardThermal:
 def centre_excess_k(material: object, board: Board, room_k: float) -> float:
     """The unconditioned board material's temperature minus ``room_k`` in the middle of
     the checkered area (``material`` is a ``BoardMaterial``)."""
-    w, h = board.size_m
-    centre = np.array([[0.5 * w - board.square_size_m, 0.5 * h - board.square_size_m]])
+    x0, y0, w, h = _area(board)
+    centre = np.array([[x0 + 0.5 * w, y0 + 0.5 * h]])
     return float(material.temperature(centre)[0]) - room_k  # type: ignore[attr-defined]
 
 
 def square_emissivities(material: object, board: Board) -> tuple[float, float]:
-    """Emissivity of a black and of a white square of ``material`` (a ``BoardMaterial``)."""
+    """Emissivity of a black and of a white square (ChArUco: the white around a marker;
+    circle grid: a circle and the plate) of ``material`` (a ``BoardMaterial``)."""
     s = board.square_size_m
-    pts = np.array([[0.5 * s, 0.5 * s], [1.5 * s, 0.5 * s]])  # black (0, 0), white (1, 0)
+    if board.pattern == "checkerboard":
+        pts = np.array([[0.5 * s, 0.5 * s], [1.5 * s, 0.5 * s]])  # black (0, 0), white (1, 0)
+    else:  # the first mark and the first white point of a fine grid over the pattern
+        x0, y0, w, h = _area(board)
+        g = np.stack(np.meshgrid(x0 + w * _FINE, y0 + h * _FINE), axis=-1).reshape(-1, 2)
+        black = board.is_black(g[:, 0], g[:, 1])
+        pts = np.array([g[black][0], g[~black][0]])
     eps = np.asarray(material.emissivity_at(pts), dtype=np.float64)  # type: ignore[attr-defined]
     return float(eps[0]), float(eps[1])
 

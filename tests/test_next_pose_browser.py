@@ -1,0 +1,112 @@
+"""Where to hold the board next, in the browser (issue 30, 6).
+
+The console runs on the simulated head's calibration scenario (the heated board moving
+through ``TEST_BOARD_POSES`` poses, 3 s each). In Chromium: four Captures a pose apart;
+once their images are searched the Calibration folder shows the next view in words ("move
+closer ..., turn the left edge away ..., lower-right corner of ccd_...") with the sigma it
+is for, and the live image of that camera with the board's outline where it should
+appear (the 3D scene shows the ghost board); Run calibration then shows the verdicts,
+overall and per sensor. Screenshots are kept beside the test's temporary files.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+
+import pytest
+
+from app.devtools.console_process import ConsoleProcess
+from tests.browser_support import (
+    TEST_BOARD_POSES,
+    WAIT_MS,
+    needs_chromium,
+    wait_for_cache_warmup,
+)
+
+pytestmark = [needs_chromium, pytest.mark.slow]
+
+VIEWS = 4
+
+
+def test_the_next_view_is_shown_after_a_few_captures_and_the_verdicts_after_a_run(
+    browser, tmp_path
+) -> None:
+    workdir = tmp_path / "work"
+    args = ["--scenario", "calibration", "--board-poses", str(TEST_BOARD_POSES)]
+    args += ["--workdir", str(workdir)]
+    wait_for_cache_warmup("calibration")
+    log = tmp_path / "console.log"  # not a pipe: the console's log lines never stall it
+    console = ConsoleProcess(args, log_path=log, timeout_s=WAIT_MS / 1e3)
+    proc = console.proc
+    try:
+        page = browser.new_page(viewport={"width": 900, "height": 1200})
+        page.goto(console.signin("/console/"))
+        page.wait_for_function("() => !document.body.innerText.includes('Connecting...')")
+        page.wait_for_function("() => document.body.innerText.includes('Next view:')")
+        text = page.evaluate("() => document.body.innerText")
+        assert "capture 3 more view(s)" in text, text
+        page.wait_for_function("() => document.body.innerText.includes('Board (')")
+        for k in range(1, VIEWS + 1):
+            # a click can be lost on a machine loaded several times over (seen once at a
+            # load of 12 on 2 cores): click again when no view was taken within a minute
+            for _attempt in range(3):
+                page.get_by_role("button", name="Capture", exact=True).click()
+                if _views_within(console, k, 60.0):
+                    break
+            assert _views_within(console, k, 1.0), log.read_text()[-3000:]
+            time.sleep(3.5)  # the scenario's next pose
+        page.wait_for_function(
+            "() => /expected after this view|no more views needed/.test(document.body.innerText)",
+            timeout=600000,
+            polling=1000,
+        )
+        text = page.evaluate("() => document.body.innerText")
+        line = re.search(r"Next view: (.+)", text).group(1)
+        assert re.search(r"(move closer|move back|this distance|at) \(?\d", line), line
+        assert re.search(r"(square-on|turn the \w+ edge away)", line), line
+        assert re.search(r"of (ccd_left|ccd_right|thermal_\w+|tof)", line), line
+        assert re.search(r"its target now, [\d.]+× expected after this view", text), text
+        # the live image of the camera the words refer to, with the outline drawn
+        page.wait_for_function("() => document.body.innerText.includes('next view: ')")
+        page.wait_for_timeout(2000)
+        page.screenshot(path=str(tmp_path / "next-pose-panel.png"), full_page=True)
+        image = page.get_by_text(re.compile(r"^next view: ")).locator("..")
+        image.screenshot(path=str(tmp_path / "next-pose-image.png"))
+        # the ghost board in the 3D scene, near the head: zoom in on it (for the eye only)
+        page.mouse.move(250, 570)
+        for _ in range(2):
+            page.mouse.wheel(0, -250)
+            page.wait_for_timeout(300)
+        page.wait_for_timeout(3000)
+        page.screenshot(path=str(tmp_path / "next-pose-scene.png"))
+
+        page.get_by_role("button", name="Run calibration", exact=True).click()
+        page.wait_for_function(
+            "() => /Calibrated \\d+ views|Calibration failed/.test(document.body.innerText)",
+            timeout=600000,
+            polling=1000,
+        )
+        text = page.evaluate("() => document.body.innerText")
+        assert "Calibration failed" not in text, text
+        assert re.search(r"Verdict: (good|usable|poor)", text), text
+        for name in ("ccd_left", "ccd_right", "thermal_left", "thermal_right", "tof"):
+            assert re.search(rf"{name} (good|usable|poor): σ of the", text), (name, text)
+        assert re.search(r"left eye \(ccd_left – thermal_left\) (good|usable|poor)", text)
+        page.screenshot(path=str(tmp_path / "next-pose-verdicts.png"), full_page=True)
+        page.close()
+    finally:
+        proc.terminate()
+        proc.wait(10)
+        print(log.read_text(errors="replace")[-4000:])  # shown when the test fails
+
+
+def _views_within(console: ConsoleProcess, n: int, timeout_s: float) -> bool:
+    """Whether the session holds at least ``n`` views within ``timeout_s`` seconds."""
+    end = time.monotonic() + timeout_s
+    while True:
+        if len(console.get("/api/captures")["views"]) >= n:
+            return True
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.5)
