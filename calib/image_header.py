@@ -1,11 +1,13 @@
-"""What a PNG or JPEG says of its picture before anything is decoded.
+"""What a PNG, JPEG or binary PGM/PPM says of its picture before anything is decoded.
 
 Every reader of images that come from outside (capture directories, recordings, pushed
 frames) checks the size an image claims against what it expects before OpenCV allocates
 anything: a 631-byte JPEG may claim 30000 x 30000 pixels. :func:`image_header` reads the
 claim from the bytes: a PNG's IHDR chunk, a JPEG's first frame header (SOFn), skipping the
 segments before it (APPn, DQT, DHT, ...). It reads only the header, so it takes any buffer
-(``bytes``, a ``memoryview``, an ``mmap`` of a file).
+(``bytes``, a ``memoryview``, an ``mmap`` of a file). :func:`pnm_header` reads a binary
+PGM or PPM's (``P5``, ``P6``: what thermal and machine-vision cameras' SDKs save, 16-bit
+too); only capture directories take those.
 """
 
 from __future__ import annotations
@@ -35,17 +37,17 @@ class ImageHeader:
     """A PNG's or JPEG's picture as its header describes it.
 
     Attributes:
-        format: ``"png"`` or ``"jpeg"``.
+        format: ``"png"``, ``"jpeg"`` or ``"pnm"``.
         width, height: pixels (both positive).
         bit_depth: bits per sample as OpenCV decodes it (a palette PNG or one of fewer than
             8 bits: 8).
         channels: samples per pixel as OpenCV's IMREAD_UNCHANGED decodes it (1 grey, 2 grey
             and alpha, 3, 4).
         png_colour_type: the IHDR's colour type (0 grey, 2 RGB, 3 palette, 4 grey and
-            alpha, 6 RGBA); None for a JPEG.
+            alpha, 6 RGBA); None for a JPEG or PNM.
     """
 
-    format: Literal["png", "jpeg"]
+    format: Literal["png", "jpeg", "pnm"]
     width: int
     height: int
     bit_depth: int
@@ -99,3 +101,50 @@ def _jpeg(data: bytes | bytearray | memoryview) -> ImageHeader:
             break
         i += 2 + length
     raise ImageHeaderError("corrupt JPEG: no frame header (width, height) before its data")
+
+
+_PNM_CHANNELS = {b"P5": 1, b"P6": 3}
+"""Binary PGM (grey) and PPM (RGB) magic -> samples per pixel."""
+_PNM_HEADER_MAX = 4096
+"""A PNM header (magic, width, height, maxval and comments) longer than this is refused."""
+
+
+def pnm_header(data: bytes | bytearray | memoryview) -> ImageHeader:
+    """The header of a binary PGM (``P5``) or PPM (``P6``) in ``data``: width, height and
+    maxval (1-65535; above 255: 16 bits a sample), separated by whitespace, ``#`` comments
+    to the end of their line; ImageHeaderError for anything else."""
+    magic = bytes(data[:2])
+    if magic not in _PNM_CHANNELS:
+        raise ImageHeaderError(
+            f"expected a binary PGM or PPM (P5, P6), the first bytes are {magic!r}"
+        )
+    head = bytes(data[2:_PNM_HEADER_MAX])
+    fields: list[int] = []
+    i = 0
+    while len(fields) < 3:
+        while i < len(head) and head[i : i + 1].isspace():
+            i += 1
+        if head[i : i + 1] == b"#":
+            end = head.find(b"\n", i)
+            if end < 0:
+                break
+            i = end + 1
+            continue
+        j = i
+        while j < len(head) and head[j : j + 1].isdigit():
+            j += 1
+        if j == i or j >= len(head) or not head[j : j + 1].isspace():
+            break
+        fields.append(int(head[i:j]))
+        i = j
+    if len(fields) < 3:
+        raise ImageHeaderError(
+            f"corrupt {magic.decode()} header: expected width, height and maxval within "
+            f"its first {_PNM_HEADER_MAX} bytes"
+        )
+    width, height, maxval = fields
+    if width == 0 or height == 0 or not 0 < maxval < 65536:
+        raise ImageHeaderError(
+            f"corrupt {magic.decode()} header (width {width}, height {height}, maxval {maxval})"
+        )
+    return ImageHeader("pnm", width, height, 16 if maxval > 255 else 8, _PNM_CHANNELS[magic])

@@ -8,7 +8,7 @@ Layout (docs/FORMATS.md)::
       ground_truth.yaml        # optional, simulated captures only (trifuse-ground-truth/1)
       ground_truth_rig.yaml    # optional, the rig the simulator rendered with
       0001/                    # one folder per view, any name, sorted by name
-        ccd_left.png           # colour: 8-bit RGB or grey, PNG or JPG
+        ccd_left.png           # colour: 8-bit RGB or grey, PNG, JPG or PPM
         thermal_left.png       # thermal: 16-bit PNG, centi-kelvin (0 = no reading); 8-bit
                                # grey, or false colour (a palette, mapped back: not kelvin)
         tof.png                # TOF amplitude: 8- or 16-bit PNG
@@ -46,7 +46,7 @@ from app.sources.frames import Frame, FrameSet
 from app.storage.rigfile import load_rig
 from app.storage.text import read_text
 from calib.board import Board, board_from_dict
-from calib.image_header import ImageHeaderError, image_header
+from calib.image_header import ImageHeaderError, image_header, pnm_header
 from calib.palette_inverse import PaletteError, PaletteFit, invert_palette
 from calib.rig import MODALITY_PREFIXES, Modality, Rig, modality_of_name
 from calib.units import kelvin_from_counts, metres_from_counts
@@ -56,7 +56,7 @@ from fusion.palettes import PALETTE_NAMES, palette
 BOARD_FILE = "board.yaml"
 RIG_FILE = "rig.yaml"
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".ppm")
 DISTANCE_SUFFIX = "_distance"
 """A TOF sensor's distance image is ``<sensor>_distance.png`` beside ``<sensor>.png``."""
 
@@ -113,7 +113,7 @@ class ImageFile:
         width, height: pixels.
         bit_depth: bits per sample (8 or 16).
         channels: samples per pixel as OpenCV decodes it (1 grey, 2 grey+alpha, 3, 4).
-        format: ``"png"`` or ``"jpeg"``.
+        format: ``"png"``, ``"jpeg"`` or ``"pnm"`` (binary PGM or PPM).
     """
 
     path: Path
@@ -121,12 +121,12 @@ class ImageFile:
     height: int
     bit_depth: int
     channels: int
-    format: Literal["png", "jpeg"]
+    format: Literal["png", "jpeg", "pnm"]
 
 
 def read_image_header(path: str | Path) -> ImageFile:
-    """Size, bit depth and channels of a PNG or JPEG file from its header (the file is
-    mapped, not read: a JPEG's frame header may follow large metadata segments).
+    """Size, bit depth and channels of a PNG, JPEG or binary PGM/PPM file from its header
+    (the file is mapped, not read: a JPEG's frame header may follow large metadata segments).
 
     Raises CaptureError naming the file when it cannot be read or is neither format.
     """
@@ -136,11 +136,11 @@ def read_image_header(path: str | Path) -> ImageFile:
             if os.fstat(f.fileno()).st_size == 0:
                 raise CaptureError(f"{path}: not an image: an empty file")
             with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
-                header = image_header(data)
+                header = pnm_header(data) if data[:1] == b"P" else image_header(data)
     except OSError as exc:
         raise CaptureError(f"{path}: cannot read image: {exc.strerror}") from None
     except ImageHeaderError as exc:
-        if "expected JPEG or PNG" in str(exc):
+        if "expected JPEG or PNG" in str(exc) or "expected a binary PGM" in str(exc):
             raise CaptureError(f"{path}: not an image: {exc}") from None
         raise CaptureError(f"{path}: {exc}") from None
     return ImageFile(

@@ -39,6 +39,7 @@ import numpy as np
 
 from app.storage.atomic import atomic_write_text
 from app.workflows.report_format import (
+    INTRINSICS_HEAD,
     POLARITY_HEAD,
     coverage_sentence,
     polarity_caption,
@@ -1306,18 +1307,7 @@ def _comparison(report: Mapping[str, Any]) -> str:
         )
     parts.append(
         _table(
-            [
-                "sensor",
-                "fx px",
-                "fy px",
-                "fx %",
-                "fy %",
-                "target %",
-                "focal",
-                "cx px",
-                "cy px",
-                "distortion px",
-            ],
+            INTRINSICS_HEAD,
             rows,
             numeric=(1, 2, 3, 4, 5, 7, 8, 9),
             raw=True,
