@@ -65,6 +65,17 @@ def pnp_poses(
     return out
 
 
+def mirror_sensor(obs: dict[str, dict[str, np.ndarray]], sensor: str, board: Board) -> None:
+    """Replace ``sensor``'s corners in ``obs`` (in place) by what the detector makes of a
+    mirrored image: x mirrored, rows relabelled so that the grid is right-handed again
+    (calib.detect: "Mirrored images")."""
+    w = RIG[sensor].image_size[0]
+    for v, c in obs[sensor].items():
+        G = c.reshape(board.rows, board.cols, 2).copy()
+        G[..., 0] = w - 1 - G[..., 0]
+        obs[sensor][v] = G[::-1].reshape(-1, 2)
+
+
 def screen(obs: dict[str, dict[str, np.ndarray]], board: Board, rig: Rig = RIG) -> Screening:
     """:func:`calib.diagnosis.screen_sensors` of ``obs`` with the true intrinsics and PnP poses."""
     return screen_sensors(

@@ -45,6 +45,7 @@ from tests.board_support import (
     as_views,
     board_image,
     corners_seen,
+    mirror_sensor,
     pnp_poses,
     screen,
 )
@@ -207,13 +208,7 @@ def test_views_turned_alone_are_relabelled_alone() -> None:
 def test_a_mirrored_image_is_refused_with_the_reason() -> None:
     board = CALIBRATION_BOARD
     obs = corners_seen(board, seed=4)
-    w = RIG["thermal_right"].image_size[0]
-    for v, c in obs["thermal_right"].items():
-        # what the detector makes of a mirrored image: x mirrored, rows relabelled so that
-        # the grid is right-handed again (calib.detect: "Mirrored images")
-        G = c.reshape(board.rows, board.cols, 2).copy()
-        G[..., 0] = w - 1 - G[..., 0]
-        obs["thermal_right"][v] = G[::-1].reshape(-1, 2)
+    mirror_sensor(obs, "thermal_right", board)
     result = screen(obs, board)
     assert set(result.excluded) == {"thermal_right"}
     why = result.excluded["thermal_right"]

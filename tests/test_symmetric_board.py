@@ -30,7 +30,16 @@ from calib.polarity import grid_turns, half_turn, order_views, orient_to_pose
 from calib.rig_calibration import SensorSpec, calibrate_rig
 from calib.rig_compare import compare_rigs
 from calib.transforms import invert, make_T, rotation_from_euler_deg, transform_points
-from tests.board_support import RIG, SPECS, as_views, board_image, corners_seen, pnp_poses, screen
+from tests.board_support import (
+    RIG,
+    SPECS,
+    as_views,
+    board_image,
+    corners_seen,
+    mirror_sensor,
+    pnp_poses,
+    screen,
+)
 
 SYMMETRIC = {
     "4x6": Board(4, 6, 0.08),  # even x even: a half turn
@@ -236,13 +245,7 @@ def test_views_agreeing_in_no_ordering_are_left_out_naming_them() -> None:
 def test_a_mirrored_image_is_refused_with_the_reason() -> None:
     board = SYMMETRIC["4x6"]
     obs, _ = turned_at_random(corners_seen(board, views=VIEWS, seed=14), board, seed=15)
-    w = RIG["thermal_right"].image_size[0]
-    for v, c in obs["thermal_right"].items():
-        # what the detector makes of a mirrored image: x mirrored, rows relabelled so that
-        # the grid is right-handed again (calib.detect: "Mirrored images")
-        G = c.reshape(board.rows, board.cols, 2).copy()
-        G[..., 0] = w - 1 - G[..., 0]
-        obs["thermal_right"][v] = G[::-1].reshape(-1, 2)
+    mirror_sensor(obs, "thermal_right", board)
     result = screen(obs, board)
     assert set(result.excluded) == {"thermal_right"}
     why = result.excluded["thermal_right"]
