@@ -267,6 +267,7 @@ def panels(server: viser.ViserServer) -> tuple[Panels, SimpleNamespace, FakeCloc
         save_rig=None,
         stream_settings=StreamSettings(),
         bandwidth=ConsoleBandwidth(),
+        next_outline={},
     )
     clock = FakeClock(100.0)
     return Panels(ctx, feed_hz=2.0, clock=clock), pipeline, clock

@@ -5,7 +5,8 @@ through ``TEST_BOARD_POSES`` poses, 3 s each). In Chromium: four Captures a pose
 once their images are searched the Calibration folder shows the next view in words ("move
 closer ..., turn the left edge away ..., lower-right corner of ccd_...") with the sigma it
 is for, and the live image of that camera with the board's outline where it should
-appear (the 3D scene shows the ghost board); Run calibration then shows the verdicts,
+appear, drawn also in the Feeds image of every sensor that would see the board there (the
+3D scene shows the ghost board); Run calibration then shows the verdicts,
 overall and per sensor. Screenshots are kept beside the test's temporary files.
 """
 
@@ -27,6 +28,30 @@ from tests.browser_support import (
 pytestmark = [needs_chromium, pytest.mark.slow]
 
 VIEWS = 4
+SENSORS = ("ccd_left", "ccd_right", "thermal_left", "thermal_right", "tof")
+CYAN_PIXELS_JS = r"""(name) => {
+    const label = (i) => {  // the nearest ancestor's text: the image's label
+        for (let p = i.parentElement; p; p = p.parentElement)
+            if (p.innerText.trim()) return p.innerText.trim();
+        return '';
+    };
+    const im = [...document.querySelectorAll('img')].find(
+        (i) => label(i).split(/\s/)[0] === name);
+    if (!im || !im.complete || im.naturalWidth === 0) return -1;
+    const c = document.createElement('canvas');
+    c.width = im.naturalWidth;
+    c.height = im.naturalHeight;
+    const g = c.getContext('2d');
+    g.drawImage(im, 0, 0);
+    const d = g.getImageData(0, 0, c.width, c.height).data;
+    let n = 0;
+    for (let k = 0; k < d.length; k += 4)
+        if (d[k] < 60 && d[k + 1] > 180 && d[k + 2] > 215) n++;
+    return n;
+}"""
+"""Pixels of the next view's cyan (``NEXT_RGB``, within JPEG's error) in the Feeds image of
+the sensor ``name`` (the first image whose label starts with the name); -1 while it has not
+loaded."""
 
 
 def test_the_next_view_is_shown_after_a_few_captures_and_the_verdicts_after_a_run(
@@ -47,6 +72,11 @@ def test_the_next_view_is_shown_after_a_few_captures_and_the_verdicts_after_a_ru
         text = page.evaluate("() => document.body.innerText")
         assert "capture 3 more view(s)" in text, text
         page.wait_for_function("() => document.body.innerText.includes('Board (')")
+        page.wait_for_function(
+            f"(names) => names.every((n) => ({CYAN_PIXELS_JS})(n) >= 0)", arg=list(SENSORS)
+        )
+        before = {name: _cyan_pixels(page, name) for name in SENSORS}
+        assert max(before.values()) < 20, before  # the simulated room has no cyan
         for k in range(1, VIEWS + 1):
             # a click can be lost on a machine loaded several times over (seen once at a
             # load of 12 on 2 cores): click again when no view was taken within a minute
@@ -73,6 +103,10 @@ def test_the_next_view_is_shown_after_a_few_captures_and_the_verdicts_after_a_ru
         page.screenshot(path=str(tmp_path / "next-pose-panel.png"), full_page=True)
         image = page.get_by_text(re.compile(r"^next view: ")).locator("..")
         image.screenshot(path=str(tmp_path / "next-pose-image.png"))
+        subject = re.search(r"next view: (\w+)", page.evaluate("() => document.body.innerText"))
+        page.wait_for_function(  # the same outline in the subject's Feeds image
+            f"(name) => ({CYAN_PIXELS_JS})(name) > 100", arg=subject.group(1), polling=500
+        )
         # the ghost board in the 3D scene, near the head: zoom in on it (for the eye only)
         page.mouse.move(250, 570)
         for _ in range(2):
@@ -90,7 +124,7 @@ def test_the_next_view_is_shown_after_a_few_captures_and_the_verdicts_after_a_ru
         text = page.evaluate("() => document.body.innerText")
         assert "Calibration failed" not in text, text
         assert re.search(r"Verdict: (good|usable|poor)", text), text
-        for name in ("ccd_left", "ccd_right", "thermal_left", "thermal_right", "tof"):
+        for name in SENSORS:
             assert re.search(rf"{name} (good|usable|poor): σ of the", text), (name, text)
         assert re.search(r"left eye \(ccd_left – thermal_left\) (good|usable|poor)", text)
         page.screenshot(path=str(tmp_path / "next-pose-verdicts.png"), full_page=True)
@@ -99,6 +133,11 @@ def test_the_next_view_is_shown_after_a_few_captures_and_the_verdicts_after_a_ru
         proc.terminate()
         proc.wait(10)
         print(log.read_text(errors="replace")[-4000:])  # shown when the test fails
+
+
+def _cyan_pixels(page, name: str) -> int:
+    """:data:`CYAN_PIXELS_JS` for the Feeds image of ``name``."""
+    return int(page.evaluate(CYAN_PIXELS_JS, name))
 
 
 def _views_within(console: ConsoleProcess, n: int, timeout_s: float) -> bool:

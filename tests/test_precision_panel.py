@@ -263,6 +263,7 @@ def _panels(server: viser.ViserServer, sighting: BoardSighting | None) -> Panels
         balancer=None,
         save_rig=None,
         stream_settings=StreamSettings(),
+        next_outline={},
     )
     return Panels(ctx)
 
@@ -301,6 +302,35 @@ def test_feeds_draw_the_sightings_own_frames_while_it_is_recent(server) -> None:
     assert panels.feeds["ccd_left"].label == "ccd_left"
     panels.update_feeds(later, None)  # no sighting at all: the same
     assert panels._shown["ccd_left"][1] is None
+
+
+def test_feeds_draw_the_next_views_outline_and_redraw_when_it_changes(server) -> None:
+    """The next-pose advisor's outline (``ctx.next_outline``, full-image pixels) is drawn
+    cyan at the thumbnail's scale in that sensor's feed only, on top of the corners; a new
+    suggestion redraws the feed on the same frame and none clears it."""
+    from app.server.panels.display import NEXT_RGB
+
+    t0 = 1_000_000_000_000
+    frames = {n: Frame(n, t0, np.zeros((480, 640, 3), np.uint8)) for n in ("ccd_left", "ccd_right")}
+    newest = FrameSet(t0, frames)
+    panels = _panels(server, None)
+    outline = np.array([[100.0, 80.0], [540.0, 80.0], [540.0, 400.0], [100.0, 400.0]])
+    panels.ctx.next_outline = {"ccd_left": outline}
+    panels.update_feeds(newest, None)
+    left, right = panels.feeds["ccd_left"].image, panels.feeds["ccd_right"].image
+    for x, y in scale_corners(outline, (640, 480), left):  # 640 -> 320: half scale
+        assert _colour_near(left, round(x), round(y), NEXT_RGB), (x, y)
+    assert not _colour_near(left, 160, 120, NEXT_RGB)  # inside the outline: the image
+    assert not right.any()  # the other sensor's feed: the frame as it is
+    moved = outline + 40.0
+    panels.ctx.next_outline = {"ccd_left": moved}
+    panels.update_feeds(newest, None)  # same frame, new outline: redrawn
+    again = panels.feeds["ccd_left"].image
+    x, y = scale_corners(moved, (640, 480), again)[2]
+    assert _colour_near(again, round(x), round(y), NEXT_RGB)
+    panels.ctx.next_outline = {}
+    panels.update_feeds(newest, None)
+    assert not panels.feeds["ccd_left"].image.any()
 
 
 def test_close_corners_get_dots_that_leave_the_board_visible() -> None:

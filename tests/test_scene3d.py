@@ -12,6 +12,7 @@ import pytest
 import viser.transforms as vtf
 
 from app.server.panels import scene_layout as layout
+from app.server.panels.display import NEXT_RGB, scale_corners
 from app.server.panels.scene3d import (
     FALLBACK_VIEWPORT,
     Scene3D,
@@ -173,6 +174,38 @@ def test_the_image_panel_shows_small_live_images(scene) -> None:
 
     s.textures_on.value = False
     assert not any(n.picture.visible for n in s.nodes.values())
+
+
+def test_the_next_views_outline_is_drawn_in_the_live_images(scene) -> None:
+    """``ctx.next_outline`` (full-image pixels) is drawn cyan at the texture's scale in
+    that sensor's live image only, on the same frame when it changes, never into the
+    frame itself; none clears it."""
+    s, pipeline, _ = scene
+    s.update_textures()
+    plain = {n: s.nodes[n].picture.image.copy() for n in ("ccd_left", "tof")}
+    frames = {n: pipeline.latest_set.frames[n].image.copy() for n in ("ccd_left", "tof")}
+    w, h = s.shown_rig["ccd_left"].image_size
+    box = np.array([[0.1, 0.1], [0.9, 0.1], [0.9, 0.9], [0.1, 0.9]])  # fractions of the image
+    outline = box * (w, h)
+    s.ctx.next_outline = {"ccd_left": outline}
+    s.update_textures()
+    img = s.nodes["ccd_left"].picture.image
+    for x, y in scale_corners(outline, (w, h), img):
+        patch = img[round(y) - 1 : round(y) + 2, round(x) - 1 : round(x) + 2].reshape(-1, 3)
+        assert np.min(np.abs(patch.astype(int) - NEXT_RGB).sum(axis=1)) <= 40, (x, y)
+    centre = img.shape[0] // 2, img.shape[1] // 2
+    np.testing.assert_array_equal(img[centre], plain["ccd_left"][centre])
+    np.testing.assert_array_equal(s.nodes["tof"].picture.image, plain["tof"])
+    tw, th = s.shown_rig["tof"].image_size  # a texture at the frame's own size
+    s.ctx.next_outline = {"tof": box * (tw, th)}
+    s.update_textures()
+    assert not np.array_equal(s.nodes["tof"].picture.image, plain["tof"])
+    np.testing.assert_array_equal(s.nodes["ccd_left"].picture.image, plain["ccd_left"])
+    for n, image in frames.items():
+        np.testing.assert_array_equal(pipeline.latest_set.frames[n].image, image)
+    s.ctx.next_outline = {}
+    s.update_textures()
+    np.testing.assert_array_equal(s.nodes["tof"].picture.image, plain["tof"])
 
 
 def test_sensor_texture_shapes() -> None:

@@ -4,8 +4,10 @@ Fusion and Thermal write the pipeline's display settings and per-imager offsets 
 effect on the next frame; Fusion also the video stream's default preset,
 :mod:`app.server.panels.stream`); Feeds shows each sensor's newest image (thermal colour-mapped,
 TOF amplitude stretched) with the board watch's detected corners drawn on it (or, in a strip
-at the bottom, why the board was not found there), and the Thermal panel the live left-right
-temperature difference over points both imagers see (the same TOF point sampled in each).
+at the bottom, why the board was not found there) and, during a calibration session, the
+cyan outline of where to hold the board next (``ctx.next_outline``). The Thermal panel shows
+the live left-right temperature difference over points both imagers see (the same TOF point
+sampled in each).
 
 While the board watch's newest sighting is recent (:data:`SIGHTING_RECENT_S`), the feeds
 show the sighting's own frames, so that the corners sit on the image they were found in.
@@ -47,6 +49,8 @@ C_TO_K = 273.15
 
 FEED_WIDTH_PX = 320
 """Width of a feed thumbnail (the height keeps the sensor's aspect ratio)."""
+NEXT_RGB = (0, 220, 255)
+"""The suggested next board pose's colour (outline in the images, ghost board in the scene)."""
 
 
 @dataclass(frozen=True)
@@ -177,19 +181,36 @@ def draw_note(thumb: np.ndarray, text: str, scale: float = 0.4) -> None:
 
 
 def feed_image(
-    frame: Frame, detection: Detection | None, cols: int, width: int = FEED_WIDTH_PX
+    frame: Frame,
+    detection: Detection | None,
+    cols: int,
+    width: int = FEED_WIDTH_PX,
+    next_outline: np.ndarray | None = None,
 ) -> np.ndarray:
     """The feed thumbnail of ``frame`` with the detection drawn: corners when found, else
-    the short reason; nothing when ``detection`` is None (no recent search)."""
+    the short reason; nothing when ``detection`` is None (no recent search). With
+    ``next_outline`` ((4, 2) full-image pixels), the next view's outline too."""
     thumb = np.ascontiguousarray(thumbnail(frame.image, width))
-    if detection is None:
-        return thumb
-    if detection.found:
-        h, w = frame.image.shape[:2]
+    h, w = frame.image.shape[:2]
+    if detection is not None and detection.found:
         draw_corners(thumb, scale_corners(detection.corners, (w, h), thumb), cols)
-    else:
+    elif detection is not None:
         draw_note(thumb, short_reason(detection.reason))
+    if next_outline is not None:
+        draw_outline(thumb, next_outline, (w, h))
     return thumb
+
+
+def draw_outline(thumb: np.ndarray, outline_px: np.ndarray, image_size: tuple[int, int]) -> None:
+    """The suggested board's outline (4, 2) full-image pixels, drawn in place on ``thumb``:
+    a thick cyan quadrilateral with the first corner (the board's origin) marked."""
+    pts = scale_corners(outline_px, image_size, thumb)
+    if not np.all(np.isfinite(pts)):
+        return
+    poly = np.round(pts * 16).astype(np.int32).reshape(-1, 1, 2)
+    cv2.polylines(thumb, [poly], True, NEXT_RGB, 2, cv2.LINE_AA, 4)
+    x, y = np.round(pts[0]).astype(int)
+    cv2.circle(thumb, (int(x), int(y)), 4, NEXT_RGB, -1, cv2.LINE_AA)
 
 
 def recent_sighting(sighting: BoardSighting | None, newest: FrameSet) -> bool:
@@ -316,7 +337,7 @@ class Panels(Periodic):
             }
             self.feeds_error = gui.add_markdown("")
         # what each feed shows: (frame, detection), compared by identity
-        self._shown: dict[str, tuple[Frame, Detection | None]] = {}
+        self._shown: dict[str, tuple[Frame, Detection | None, np.ndarray | None]] = {}
         for handle in (
             self.mode,
             self.palette,
@@ -482,11 +503,15 @@ class Panels(Periodic):
                 frame, detection = newest.frames[name], None
             else:
                 continue
+            outline = self.ctx.next_outline.get(name)
+            now = (frame, detection, outline)
             shown = self._shown.get(name)
-            if shown is not None and shown[0] is frame and shown[1] is detection:
+            if shown is not None and all(a is b for a, b in zip(shown, now, strict=True)):
                 continue
-            handle.image = feed_image(frame, detection, self.ctx.board.cols, self.profile.width_px)
-            self._shown[name] = (frame, detection)
+            handle.image = feed_image(
+                frame, detection, self.ctx.board.cols, self.profile.width_px, outline
+            )
+            self._shown[name] = now
 
 
 SPLIT = "both (split evenly)"

@@ -12,6 +12,8 @@ Calibration folder:
   sees it), which sigma it is for and what it should become;
 - the live image of the sensor the words refer to, with the board's outline where it
   should appear (cyan) and where the board is now (yellow: its outer inner corners);
+- the same cyan outline in the Feeds panel's image and the 3D scene's live image of every
+  sensor that would see the board there (``ctx.next_outline``);
 - in the 3D scene, a translucent cyan ghost board at the pose (``/live/next_board``, in
   the rig frame like the live board).
 
@@ -30,7 +32,14 @@ import numpy as np
 
 from app.errors import describe_error
 from app.server.markdown_text import md_text
-from app.server.panels.display import draw_note, recent_sighting, scale_corners, thumbnail
+from app.server.panels.display import (
+    NEXT_RGB,
+    draw_note,
+    draw_outline,
+    recent_sighting,
+    scale_corners,
+    thumbnail,
+)
 from app.server.panels.scene_sensors import wxyz_of
 from app.server.runtime.context import ConsoleContext
 from app.storage.capture import CaptureError, load_capture
@@ -41,8 +50,6 @@ from calib.next_pose import NextPose, outline_points, suggest_next_pose
 from calib.rig_result import CalibrationResult
 from calib.verdict import GOOD, ZHANG_MIN_VIEWS
 
-NEXT_RGB = (0, 220, 255)
-"""The suggested pose's colour (outline in the image, ghost board in the scene)."""
 NOW_RGB = (255, 220, 0)
 """The board where it is now (as the 3D scene's live board)."""
 IMAGE_WIDTH_PX = 320
@@ -170,18 +177,6 @@ def suggestion_md(s: Suggestion | None, running: bool, words: str | None = None)
     return "  \n".join(lines)
 
 
-def draw_outline(thumb: np.ndarray, outline_px: np.ndarray, image_size: tuple[int, int]) -> None:
-    """The suggested board's outline (4, 2) full-image pixels, drawn in place on ``thumb``:
-    a thick cyan quadrilateral with the first corner (the board's origin) marked."""
-    pts = scale_corners(outline_px, image_size, thumb)
-    if not np.all(np.isfinite(pts)):
-        return
-    poly = np.round(pts * 16).astype(np.int32).reshape(-1, 1, 2)
-    cv2.polylines(thumb, [poly], True, NEXT_RGB, 2, cv2.LINE_AA, 4)
-    x, y = np.round(pts[0]).astype(int)
-    cv2.circle(thumb, (int(x), int(y)), 4, NEXT_RGB, -1, cv2.LINE_AA)
-
-
 def draw_board_now(thumb: np.ndarray, corners: np.ndarray, cols: int, image_size) -> None:
     """The board where it is now: the quadrilateral of its outer inner corners (N, 2),
     full-image pixels, row-major ``cols`` per row; yellow."""
@@ -276,6 +271,8 @@ class NextPoseOverlay:
         self._show_image(nxt, s, words, sighting)
 
     def _show_ghost(self, nxt: NextPose | None) -> None:
+        """The ghost board in the 3D scene, and the outline in the live images."""
+        self.ctx.next_outline = {} if nxt is None else dict(nxt.outline_px)
         if nxt is None:
             self.ghost.visible = False
             return

@@ -699,8 +699,9 @@ class Scene3D(Periodic):
 
     def update_textures(self) -> None:
         """Each displayed sensor's picture on the image panel shows its newest image
-        (:func:`~app.server.panels.scene_sensors.sensor_texture`); a sensor without a
-        frame in the newest set shows none (its frame and name stay)."""
+        (:func:`~app.server.panels.scene_sensors.sensor_texture`) with the next view's
+        outline when one is suggested (``ctx.next_outline``); a sensor without a frame in
+        the newest set shows none (its frame and name stay)."""
         if not self.textures_on.value:
             return
         max_width = self.profile.texture_max_w
@@ -718,9 +719,10 @@ class Scene3D(Periodic):
         except (ValueError, KeyError, AttributeError):
             span = None
         palette = getattr(p.settings, "palette", "iron")
+        outlines = self.ctx.next_outline
         for name, nodes in self.nodes.items():
             shown = frames.get(name) if name in self.shown_rig else None
-            why = nodes.show_frame(shown, span, palette, max_width)
+            why = nodes.show_frame(shown, span, palette, max_width, outlines.get(name))
             if why is None:
                 self.errors.pop(f"texture {name}", None)
             else:

@@ -13,6 +13,7 @@ import viser
 import viser.transforms as vtf
 
 from app.server.panels import scene_layout as layout
+from app.server.panels.display import draw_outline
 from app.sources.frames import Frame
 from app.storage.preview import to_display
 from calib.rig import Sensor
@@ -143,6 +144,7 @@ class SensorNodes:
         self.depth_m = 0.0
         self.cell: layout.Cell | None = None
         self.shown_frame: object = None  # the Frame whose image the picture shows
+        self.shown_outline: np.ndarray | None = None  # the next view's outline drawn on it
 
     def _add_picture(self, name: str, width_m: float, height_m: float) -> viser.ImageHandle:
         """The (hidden) live image node ``name``, ``width_m`` x ``height_m`` metres, encoded
@@ -211,18 +213,21 @@ class SensorNodes:
         span_k: tuple[float, float] | None,
         palette: str,
         max_width: int = TEXTURE_MAX_W,
+        outline: np.ndarray | None = None,
     ) -> str | None:
         """The picture shows ``frame``'s image (None: no picture) at most ``max_width``
-        pixels wide, made again only for a new frame (or after :meth:`set_jpeg_quality`,
-        or with ``shown_frame`` set to None); returns why it cannot be shown (the picture
-        is then hidden), else None. ``span_k``, ``palette``: a thermal image's colours
-        (:func:`sensor_texture`)."""
+        pixels wide, made again only for a new frame or outline (or after
+        :meth:`set_jpeg_quality`, or with ``shown_frame`` set to None); returns why it
+        cannot be shown (the picture is then hidden), else None. ``span_k``, ``palette``: a
+        thermal image's colours (:func:`sensor_texture`). ``outline``: (4, 2) full-image
+        pixels of the next view's board, drawn cyan
+        (:func:`~app.server.panels.display.draw_outline`)."""
         if frame is None:
             if self.shown_frame is not None:
                 self.show_image(None)
                 self.shown_frame = None
             return None
-        if frame is self.shown_frame:
+        if frame is self.shown_frame and outline is self.shown_outline:
             return None
         try:
             tex = sensor_texture(frame.image, self.modality, max_width, span_k, palette)
@@ -230,8 +235,11 @@ class SensorNodes:
             self.show_image(None)
             self.shown_frame = None
             return str(exc)
+        if outline is not None:
+            tex = tex.copy()  # the texture may be the frame's own image
+            draw_outline(tex, outline, (frame.image.shape[1], frame.image.shape[0]))
         self.show_image(tex)
-        self.shown_frame = frame
+        self.shown_frame, self.shown_outline = frame, outline
         return None
 
     def hide(self) -> None:

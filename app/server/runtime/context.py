@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numpy as np
 import viser
 
 from app.server.runtime.board_watch import BoardWatch
@@ -65,6 +66,11 @@ class ConsoleContext:
             search, the GUI's updates): the parts hold or touch it (demand.py).
         bandwidth: what ``/console/`` may send (``full`` or ``low``); the 3D scene and the
             Feeds read it each update.
+        next_outline: where the board should appear in the next view: sensor -> (4, 2)
+            full-image pixels of its checkered area's corners
+            (:class:`calib.next_pose.NextPose` ``outline_px``); empty when nothing is
+            suggested. The Calibration panel's next-pose advisor replaces it whole; the
+            Feeds and the 3D scene's live images draw it.
     """
 
     server: viser.ViserServer
@@ -80,6 +86,7 @@ class ConsoleContext:
     save_rig: Callable[[Rig, dict], RigVersion] | None = None
     demand: ConsoleDemand = field(default_factory=ConsoleDemand)
     bandwidth: ConsoleBandwidth = field(default_factory=ConsoleBandwidth)
+    next_outline: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def stream_settings(self) -> StreamSettings:
