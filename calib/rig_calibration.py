@@ -10,7 +10,9 @@ Pipeline (the method's Zhang-based calibration, extended to the whole rig at onc
 2. **Initial poses**: each sensor's pose relative to the reference from the views it shares
    with an already placed sensor (chordal mean of rotations, median of translations),
    walking the co-visibility graph outward from the reference; each board pose from a
-   sensor that saw it.
+   sensor that saw it. A sensor that shares no view with any placed one is calibrated
+   alone, on its own views (intrinsics with their sigma and verdict; its pose unknown:
+   ``CalibrationResult.intrinsics_only``).
 3. **Joint refinement** of every sensor pose ``T_rig_sensor``, every board pose
    ``T_rig_board`` and (optionally) every sensor's intrinsics and distortion, minimising the
    reprojection error of all corners of all sensors at once (analytic sparse Jacobian;
@@ -53,8 +55,15 @@ from threadpoolctl import threadpool_limits
 
 from calib.board import Board
 from calib.camera import Intrinsics
-from calib.diagnosis import fallback_reference, screen_sensors, zhang_failure, zhang_rms_px
+from calib.diagnosis import (
+    fallback_reference,
+    intrinsics_problem,
+    screen_sensors,
+    zhang_failure,
+    zhang_rms_px,
+)
 from calib.errors import CalibrationError
+from calib.polarity import SensorPolarity
 from calib.rig import Eye
 from calib.rig_problem import BLAS_THREADS, CornerProblem, build_problem
 from calib.rig_result import CalibrationResult, CornerResiduals, Outlier, ViewError
@@ -62,7 +71,7 @@ from calib.rig_uncertainty import covariance_estimates, rig_covariance, sensor_s
 from calib.schur_lm import SchurResult, least_squares_schur
 from calib.sensor_result import SensorResult
 from calib.transforms import invert, make_T, mean_rotation, rotation_from_rvec
-from calib.verdict import ZHANG_MIN_VIEWS, judge_rig
+from calib.verdict import ZHANG_MIN_VIEWS, Verdict, judge_rig
 
 Observations = Mapping[str, Mapping[str, np.ndarray]]
 Progress = Callable[[str, float], None]
@@ -193,9 +202,10 @@ def _intrinsics_per_sensor(
 def _place_sensors(
     reference: str, sensors: list[str], T_s_board: dict[str, dict[str, np.ndarray]]
 ) -> tuple[dict[str, np.ndarray], dict[str, str]]:
-    """T_rig_sensor for every sensor reachable from ``reference`` through shared views."""
+    """T_rig_sensor for every sensor reachable from ``reference`` through shared views, and
+    why each other one is not placed."""
     placed = {reference: np.eye(4)}
-    unplaced = {s: "never seen in the same view as an already placed sensor" for s in sensors}
+    unplaced = dict.fromkeys(sensors, _unlinked(reference))
     unplaced.pop(reference)
     progress = True
     while unplaced and progress:
@@ -216,6 +226,27 @@ def _place_sensors(
             del unplaced[s]
             progress = True
     return placed, unplaced
+
+
+def _unlinked_sensors(reference: str, views: Mapping[str, set[str]]) -> list[str]:
+    """The sensors (of ``views``: sensor -> its views) that no chain of shared views links to
+    ``reference``, by name."""
+    linked, todo = {reference}, [reference]
+    while todo:
+        a = todo.pop()
+        for b in views:
+            if b not in linked and views[a] & views[b]:
+                linked.add(b)
+                todo.append(b)
+    return sorted(s for s in views if s not in linked)
+
+
+def _unlinked(reference: str) -> str:
+    """Why a sensor that no shared view links to ``reference`` has no pose."""
+    return (
+        f"shares no view with {reference} or any sensor placed from it: its pose to the rig "
+        f"is unknown; capture views in which it and {reference} both see the board"
+    )
 
 
 # -- the calibration ----------------------------------------------------------------------
@@ -340,25 +371,61 @@ def _calibrate_rig(
     # 1b. Diagnosis (calib.diagnosis): physical intrinsics, and every sensor's board
     # ordering (thermal and TOF polarity) found from its poses' agreement with the others;
     # a sensor that cannot be reconciled is left out with the reason.
+    # A sensor that no chain of shared views links to the reference is left to be
+    # calibrated alone (below): no view orders its corners against the reference's nor
+    # places it. Only its intrinsics are screened here.
     report("board orientation per sensor", 0.38)
+    lone = (
+        _unlinked_sensors(reference, {s: set(by_sensor[s]) for s in intr})
+        if reference in intr
+        else []
+    )
+    for s in lone:
+        rms = zhang_rms_px(by_sensor[s], intr[s], T_s_board[s], board)
+        problem = intrinsics_problem(intr[s], specs[s].image_size, rms, len(by_sensor[s]))
+        if problem is not None:
+            excluded[s] = problem
+    screened = [s for s in intr if s not in lone]
     screen = screen_sensors(
-        {s: by_sensor[s] for s in intr},
-        {s: specs[s].modality for s in intr},
-        {s: specs[s].image_size for s in intr},
-        intr,
-        T_s_board,
+        {s: by_sensor[s] for s in screened},
+        {s: specs[s].modality for s in screened},
+        {s: specs[s].image_size for s in screened},
+        {s: intr[s] for s in screened},
+        {s: T_s_board[s] for s in screened},
         board,
     )
     excluded.update(screen.excluded)
     by_sensor = {**by_sensor, **screen.observations}
     T_s_board = screen.T_sensor_board
-    candidates = [s for s in candidates if s not in excluded]
+    candidates = [s for s in candidates if s not in excluded and s not in lone]
     alone_rms = {s: zhang_rms_px(by_sensor[s], intr[s], T_s_board[s], board) for s in candidates}
     notes = list(screen.notes)
     if reference in excluded:
-        fallback = fallback_reference(
-            reference, candidates, {s: specs[s].modality for s in specs}, screen.anchor
-        )
+        modalities = {s: specs[s].modality for s in specs}
+        fallback = fallback_reference(reference, candidates, modalities, screen.anchor)
+        if fallback is None and (unlinked := [s for s in lone if s not in excluded]):
+            # Only sensors no view links to it are left: the rig frame is one of theirs,
+            # calibrated from their views; the others keep their reasons.
+            other = fallback_reference(reference, unlinked, modalities, None)
+            rest = {
+                v: {s: c for s, c in per.items() if s in unlinked}
+                for v, per in observations.items()
+            }
+            result = _calibrate_rig(
+                {v: per for v, per in rest.items() if per},
+                board,
+                specs,
+                replace(opts, reference=other),
+                progress,
+                eyes,
+            )
+            result.excluded_sensors = {**excluded, **result.excluded_sensors}
+            result.notes.insert(
+                0,
+                f"the reference {reference} is not calibrated ({excluded[reference]}): the "
+                f"rig frame is {other}'s instead",
+            )
+            return result
         if fallback is None:
             raise CalibrationError(
                 f"reference sensor {reference!r}: {excluded[reference]}; and no other sensor "
@@ -374,7 +441,11 @@ def _calibrate_rig(
     # 2. Initial poses.
     report("initial poses", 0.4)
     T_rig_sensor, unplaced = _place_sensors(reference, candidates, T_s_board)
-    excluded.update(unplaced)
+    unplaced.update({s: _unlinked(reference) for s in lone if s not in excluded})
+    alone, alone_verdicts, alone_polarity, not_alone = _calibrate_alone(
+        unplaced, by_sensor, board, specs, opts
+    )
+    excluded.update(not_alone)
     sensors = [reference, *sorted(s for s in T_rig_sensor if s != reference)]
     views = sorted({v for s in sensors for v in by_sensor[s]})
     T_rig_board: dict[str, np.ndarray] = {}
@@ -553,7 +624,9 @@ def _calibrate_rig(
     # 5. Verdicts from the covariance (calib.verdict).
     report("verdicts", 0.95)
     cov = rig_covariance(final, est, x, intr, weights)
-    verdict = judge_rig(cov, results, reference, dict(eyes or {}), board)
+    verdict = replace(
+        judge_rig(cov, results, reference, dict(eyes or {}), board), intrinsics_only=alone_verdicts
+    )
     report("done", 1.0)
     return CalibrationResult(
         reference=reference,
@@ -566,12 +639,13 @@ def _calibrate_rig(
         rms_px=float(np.sqrt(np.mean(final_err**2))),
         seconds=time.perf_counter() - t0,
         eyes=dict(eyes or {}),
-        polarity=screen.polarity,
+        polarity={**alone_polarity, **screen.polarity},  # the latter found with the others
         ordering=screen.ordering,
         notes=notes,
         covariance=cov,
         verdict=verdict,
         min_views=opts.min_views,
+        intrinsics_only=alone,
         corners=CornerResiduals(
             list(prob.views),
             list(sensors),
@@ -583,6 +657,56 @@ def _calibrate_rig(
             inlier,
         ),
     )
+
+
+def _calibrate_alone(
+    unplaced: Mapping[str, str],
+    by_sensor: Mapping[str, dict[str, np.ndarray]],
+    board: Board,
+    specs: Mapping[str, SensorSpec],
+    opts: CalibrationOptions,
+) -> tuple[dict[str, SensorResult], dict[str, Verdict], dict[str, SensorPolarity], dict[str, str]]:
+    """Each sensor not linked to the rig (``unplaced``: sensor -> why), calibrated on its
+    own views as a capture of it alone would be (its own reference: the same joint
+    refinement, outliers, sigmas and verdict); its pose is unknown.
+
+    Returns:
+        sensor -> its result (``pose_unknown`` set, ``T_rig_sensor`` NaN, no pose sigma),
+        sensor -> its verdict (intrinsics judged, ``pose_unknown`` set), sensor -> its board
+        polarity as found alone (a sensor sharing views with other unplaced ones has it from
+        the screening with them too), and sensor -> why for any that cannot be calibrated alone
+        either.
+    """
+    results: dict[str, SensorResult] = {}
+    verdicts: dict[str, Verdict] = {}
+    polarity: dict[str, SensorPolarity] = {}
+    failed: dict[str, str] = {}
+    for s, why in sorted(unplaced.items()):
+        try:
+            sub = _calibrate_rig(
+                {v: {s: c} for v, c in by_sensor[s].items()},
+                board,
+                specs,
+                replace(opts, reference=s),
+                None,
+                None,
+            )
+        except CalibrationError as exc:
+            failed[s] = f"{why}; calibrated alone, it fails: {exc}"
+            continue
+        r = sub.sensors[s]
+        pose = ("rotation_deg", "translation_m")
+        results[s] = replace(
+            r,
+            T_rig_sensor=np.full((4, 4), np.nan),
+            sigma={k: v for k, v in r.sigma.items() if k not in pose},
+            intrinsics_source="own views, calibrated alone",
+            pose_unknown=why,
+        )
+        if sub.verdict is not None:
+            verdicts[s] = replace(sub.verdict.sensors[s], pose_unknown=why)
+        polarity.update(sub.polarity)
+    return results, verdicts, polarity, failed
 
 
 def too_few_views(n_views: int, min_views: int = ZHANG_MIN_VIEWS) -> str | None:

@@ -89,6 +89,11 @@ class CalibrationResult:
     """Verdicts per sensor and pair from that covariance (calib.verdict)."""
     min_views: int = ZHANG_MIN_VIEWS
     """The fewest views a sensor needed to be calibrated (the option used)."""
+    intrinsics_only: dict[str, SensorResult] = field(default_factory=dict)
+    """Sensors whose intrinsics were calibrated but whose pose is unknown: each shares no
+    view with the reference or a sensor placed from it (``SensorResult.pose_unknown``
+    says so). Not in ``sensors`` nor in the rig (a pose is required there); their verdicts
+    are in ``verdict.intrinsics_only``."""
 
     def rig(self) -> Rig:
         """The calibrated rig (sensors that were calibrated), with ``uncertainty`` blocks."""
@@ -104,23 +109,13 @@ class CalibrationResult:
 
     def to_report(self) -> dict[str, Any]:
         """Plain data (lists, floats, strings) for ``report.json``."""
-        sensors = {}
-        for name, s in self.sensors.items():
-            i = s.intrinsics
-            sensors[name] = {
-                "modality": s.modality,
-                "image_size": list(s.image_size),
-                "views_detected": s.views_detected,
-                "views_used": s.views_used,
-                "rms_px": s.rms_px,
-                "worst_view": s.worst_view,
-                "zhang_rms_px": s.zhang_rms_px,
-                "intrinsics_source": s.intrinsics_source,
-                "intrinsics": {"fx": i.fx, "fy": i.fy, "cx": i.cx, "cy": i.cy},
-                "distortion": list(i.distortion),
-                "T_rig_sensor": s.T_rig_sensor.tolist(),
-                "sigma": s.sigma,
-            }
+        sensors = {name: _sensor_entry(s) for name, s in self.sensors.items()}
+        intrinsics_only = {}
+        for name, s in self.intrinsics_only.items():
+            entry = _sensor_entry(s)
+            del entry["T_rig_sensor"]
+            entry["pose_unknown"] = s.pose_unknown
+            intrinsics_only[name] = entry
         return {
             "format": "trifuse-calibration-report/1",
             "reference": self.reference,
@@ -128,6 +123,7 @@ class CalibrationResult:
             "rms_px": self.rms_px,
             "seconds": self.seconds,
             "sensors": sensors,
+            "sensors_intrinsics_only": intrinsics_only,
             "excluded_sensors": dict(self.excluded_sensors),
             "polarity": {n: p.as_dict() for n, p in sorted(self.polarity.items())},
             "board_ordering": self.ordering.as_dict() if self.ordering is not None else None,
@@ -158,3 +154,22 @@ class CalibrationResult:
             ],
             "board_poses": {v: T.tolist() for v, T in self.board_poses.items()},
         }
+
+
+def _sensor_entry(s: SensorResult) -> dict[str, Any]:
+    """One sensor's ``report.json`` entry (plain data)."""
+    i = s.intrinsics
+    return {
+        "modality": s.modality,
+        "image_size": list(s.image_size),
+        "views_detected": s.views_detected,
+        "views_used": s.views_used,
+        "rms_px": s.rms_px,
+        "worst_view": s.worst_view,
+        "zhang_rms_px": s.zhang_rms_px,
+        "intrinsics_source": s.intrinsics_source,
+        "intrinsics": {"fx": i.fx, "fy": i.fy, "cx": i.cx, "cy": i.cy},
+        "distortion": list(i.distortion),
+        "T_rig_sensor": s.T_rig_sensor.tolist(),
+        "sigma": s.sigma,
+    }

@@ -17,7 +17,7 @@ class SensorResult:
 
     ``sigma`` holds 1-sigma uncertainties: ``fx fy cx cy`` (px), ``distortion`` (list),
     ``rotation_deg`` and ``translation_m`` (3 components each, of ``T_rig_sensor``'s
-    rotation vector and translation; zero for the reference).
+    rotation vector and translation; zero for the reference; absent when ``pose_unknown``).
     """
 
     name: str
@@ -35,4 +35,10 @@ class SensorResult:
     intrinsics_source: str | None = None
     """Where the intrinsics come from: "joint refinement" (or "... without <s>'s views" when
     the guard of calib.rig_calibration kept <s>'s own), or "own views" (Zhang's fit of this
-    sensor alone: intrinsics fixed, or "own views (<why>)" when the guard kept them)."""
+    sensor alone: intrinsics fixed, or "own views (<why>)" when the guard kept them), or
+    "own views, calibrated alone" (``pose_unknown``)."""
+    pose_unknown: str | None = None
+    """Why the sensor's pose in the rig is unknown (it shares no view with the reference or a
+    sensor placed from it), or None. Such a sensor is calibrated alone, on its own views,
+    as a capture of it alone would be: intrinsics, their sigma and RMS only;
+    ``T_rig_sensor`` is NaN."""

@@ -125,14 +125,15 @@ class Figure:
         return self.axis_names[k] if total > 0 and var[k] >= DOMINANT_SHARE * total else None
 
     def text(self, with_target: bool = False) -> str:
-        """``σ of the rotation to tof 0.14°`` (``(target 0.10°, mostly about the vertical
-        axis)`` added with ``with_target``)."""
+        """``σ of the rotation to tof 0.14°`` (``(good at ≤ 0.05°, mostly about the
+        vertical axis)`` added with ``with_target``: the target is the sigma's, half the
+        accuracy target)."""
         s = f"σ of the {self.what} {_number(self.sigma)}{_space(self.unit)}"
         if not with_target:
             return s
         notes = []
         if self.target is not None:
-            notes.append(f"target {_number(self.target)}{_space(self.unit)}")
+            notes.append(f"good at ≤ {_number(self.target)}{_space(self.unit)}")
         axis = self.dominant_axis
         if axis is not None:
             notes.append(f"mostly about the {axis} axis" if self.unit == "°" else f"mostly {axis}")
@@ -174,6 +175,8 @@ class Verdict:
             added them (metres; not in the report).
         disagreement: why the sensor's views disagree with the other sensors' (see
             :data:`DISAGREEMENT`), or None; it replaces the advice.
+        pose_unknown: why the sensor's pose in the rig is unknown (a sensor calibrated
+            alone: its verdict judges its intrinsics only), or None; the line ends with it.
     """
 
     label: str
@@ -187,6 +190,7 @@ class Verdict:
     sigma_baseline_length_mm: float | None = None
     next_poses: tuple[np.ndarray, ...] = ()
     disagreement: str | None = None
+    pose_unknown: str | None = None
 
     @property
     def judged(self) -> list[Figure]:
@@ -213,7 +217,7 @@ class Verdict:
             if p is not None and p.target is not None:
                 after = (
                     f" ({len(self.next_poses)} would bring σ of the {p.what} to "
-                    f"{_number(p.sigma)}{_space(p.unit)}, target {_number(p.target)}"
+                    f"{_number(p.sigma)}{_space(p.unit)}, good at ≤ {_number(p.target)}"
                     f"{_space(p.unit)})"
                 )
             tried = f", {kinds}" if kinds else ""
@@ -227,8 +231,15 @@ class Verdict:
 
     @property
     def line(self) -> str:
-        """``usable: σ of the rotation to tof 0.14° (target 0.10°, mostly about the
-        vertical axis); capture about 6 more views: tilted about the vertical axis``."""
+        """``usable: σ of the rotation to tof 0.14° (good at ≤ 0.05°, mostly about the
+        vertical axis); capture about 6 more views: tilted about the vertical axis``; a
+        sensor calibrated alone adds ``; pose not linked: <why>``."""
+        line = self._line()
+        return (
+            line if self.pose_unknown is None else f"{line}; pose not linked: {self.pose_unknown}"
+        )
+
+    def _line(self) -> str:
         if self.grade == GOOD:
             shown = [f.text() for f in self.judged]
             if self.baseline_mm is not None and self.sigma_baseline_length_mm is not None:
@@ -261,20 +272,24 @@ class Verdict:
             "baseline_mm": self.baseline_mm,
             "sigma_baseline_length_mm": self.sigma_baseline_length_mm,
             "disagreement": self.disagreement,
-        }
+        } | ({} if self.pose_unknown is None else {"pose_unknown": self.pose_unknown})
 
 
 @dataclass(frozen=True)
 class RigVerdict:
-    """Verdicts on every calibrated sensor and on the eye and stereo pairs."""
+    """Verdicts on every calibrated sensor and on the eye and stereo pairs; and on the
+    intrinsics of each sensor calibrated alone (its pose unknown: ``Verdict.pose_unknown``)."""
 
     sensors: dict[str, Verdict]
     pairs: list[Verdict] = field(default_factory=list)
+    intrinsics_only: dict[str, Verdict] = field(default_factory=dict)
 
     @property
     def grade(self) -> str:
         """The worst grade of all."""
-        grades = [v.grade for v in [*self.sensors.values(), *self.pairs]]
+        grades = [
+            v.grade for v in [*self.sensors.values(), *self.pairs, *self.intrinsics_only.values()]
+        ]
         return max(grades, key=GRADES.index) if grades else GOOD
 
     def as_dict(self) -> dict[str, Any]:
@@ -284,6 +299,7 @@ class RigVerdict:
             "poor_factor": POOR_FACTOR,
             "sensors": {n: v.as_dict() for n, v in self.sensors.items()},
             "pairs": [v.as_dict() for v in self.pairs],
+            "sensors_intrinsics_only": {n: v.as_dict() for n, v in self.intrinsics_only.items()},
         }
 
 

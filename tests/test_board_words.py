@@ -115,7 +115,9 @@ def test_a_sensor_left_out_says_why_its_views_failed() -> None:
         else:
             rejected[v]["tof"] = NOT_FOUND
     too_few = "board detected in 1 view(s); Zhang's method needs at least 3: too few views"
-    result = SimpleNamespace(sensors={"ccd_left": None}, excluded_sensors={"tof": too_few})
+    result = SimpleNamespace(
+        sensors={"ccd_left": None}, intrinsics_only={}, excluded_sensors={"tof": too_few}
+    )
     out = excluded_with_detection_reasons(result, DetectionRun(obs, rejected, {}))  # type: ignore[arg-type]
     assert out["tof"].startswith(
         "ChArUco markers not resolvable in 15 of 18 views: quads of about 2.1-3.5 px seen, "

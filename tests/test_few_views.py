@@ -178,7 +178,7 @@ def test_enough_views_are_good_few_are_not_and_the_lines_say_why() -> None:
             continue
         worst = max(v.judged, key=lambda f: f.ratio)
         assert v.line.startswith(f"{v.grade}: σ of the {worst.what} ")
-        assert "(target " in v.line
+        assert "(good at ≤ " in v.line
         assert v.more_views is not None and v.more_views > 0, v.line
         assert f"capture about {v.more_views} more view" in v.line
         assert v.advice_views and all(k in KINDS for k, _, _ in v.advice_views)

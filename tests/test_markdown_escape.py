@@ -278,6 +278,7 @@ def panel_texts(server, nasty: str) -> list[tuple[str, bool]]:
         rms_px=0.2,
         reference=nasty,
         sensors={nasty: sensor},
+        intrinsics_only={nasty: SimpleNamespace(**vars(sensor), pose_unknown=nasty)},
         polarity={nasty: SimpleNamespace(as_dict=lambda: polarity)},
         excluded_sensors={nasty: nasty},
         notes=[nasty],

@@ -310,7 +310,7 @@ def test_additions_to_the_report_are_shown(rig_run: dict) -> None:
     """Keys the report gains (a verdict, advice, a palette decision) appear without more
     work: at the top, in their sensor's section, under "Decisions and other findings"."""
     report = json.loads(json.dumps(rig_run["report"]))
-    report["verdict"] = "usable: σ of the baseline 0.4 mm (target 0.5 mm)"
+    report["verdict"] = "usable: σ of the baseline 0.4 mm (good at ≤ 0.25 mm)"
     report["advice"] = ["capture 6 more views tilted about the vertical axis"]
     report["sensors"]["thermal_left"]["verdict"] = "poor: σ of fx 0.9 %"
     report["sensors"]["thermal_left"]["palette"] = {"name": "iron", "radiometric": False}

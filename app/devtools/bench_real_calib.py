@@ -6,10 +6,11 @@ For each set (the committed ones in ``tests/data``; the unlicensed
 :data:`SCRATCH_DIR` or is given with ``--root NAME=DIR``; nothing is copied into the
 checkout) this builds a trifuse capture directory (docs/FORMATS.md) in a temporary directory:
 ``board.yaml`` from the registry's board, one folder per view id, one image per sensor. The
-images are the set's own files byte for byte (palette PNG, 8-bit or 12 MP JPEG); a format
-the capture directory does not take (PGM / PPM) is written as a PNG with the same pixel
-values (16-bit stays 16-bit), and a video's frames as PNGs. A sensor whose name does not
-tell trifuse its modality is renamed with a prefix (``visible`` -> ``ccd_visible``).
+images are the set's own files byte for byte (palette PNG, 8-bit or 12 MP JPEG, 8- or
+16-bit PGM / PPM); a format the capture directory does not take (BMP, TIFF) is written as a
+PNG with the same pixel values (16-bit stays 16-bit), and a video's frames as PNGs. A sensor
+whose name does not tell trifuse its modality is renamed with a prefix (``visible`` ->
+``ccd_visible``).
 
 Then, on the same views:
 
@@ -22,7 +23,8 @@ Then, on the same views:
 
 Per sensor: boards found, RMS (trifuse: the sensor alone, Zhang's fit with its own board
 poses like ``calibrateCamera``, and in the joint rig result), fx, median detection time per
-image (decoding excluded, both), and trifuse's outcome (a result, or the refusal's line);
+image (decoding excluded, both), and trifuse's outcome (a result, intrinsics only for a
+sensor that shares no view with the rig, or the refusal's line);
 per pair, baseline and rotation. The targets of issue 30 are checked per sensor: boards
 found >= OpenCV's, a result whenever OpenCV gives one, thermal RMS (alone) at most
 :data:`THERMAL_RMS_TOLERANCE` above OpenCV's. A set whose board or images trifuse cannot
@@ -81,8 +83,6 @@ THERMAL_RMS_TOLERANCE = 0.05
 """Issue 30's target: a thermal sensor's RMS within 5 % of OpenCV's."""
 QUICK_VIEWS = 6
 """``--quick``: about this many views per set (every k-th view id)."""
-KEPT_SUFFIXES = (".png", ".jpg", ".jpeg")
-"""Image files the capture directory takes as they are (app.storage.capture)."""
 PREFIX = {"color": "ccd", "thermal": "thermal", "tof": "tof"}
 
 
@@ -90,7 +90,8 @@ PREFIX = {"color": "ccd", "thermal": "thermal", "tof": "tof"}
 class SensorRow:
     """One sensor of a set, trifuse against OpenCV (NaN / None where there is no figure).
 
-    ``outcome`` is ``"result"``, ``"refused: <line>"`` or ``"not supported yet: <line>"``;
+    ``outcome`` is ``"result"``, ``"intrinsics only: <why>"`` (a result, its pose unknown),
+    ``"refused: <line>"`` or ``"not supported yet: <line>"``;
     ``rms_alone_trifuse`` is Zhang's fit of the sensor alone (like calibrateCamera),
     ``rms_trifuse`` the joint rig result's; times are median ms per image."""
 
@@ -101,7 +102,7 @@ class SensorRow:
     found_opencv: int | None
     rms_trifuse: float = math.nan
     rms_alone_trifuse: float = math.nan
-    rms_opencv: float = math.nan
+    rms_alone_opencv: float = math.nan
     fx_trifuse: float = math.nan
     fx_opencv: float = math.nan
     ms_trifuse: float = math.nan
@@ -117,21 +118,26 @@ class SensorRow:
     def supported(self) -> bool:
         return not self.outcome.startswith("not supported yet")
 
+    @property
+    def has_result(self) -> bool:
+        """trifuse gave a result (intrinsics only counts: a sensor's own calibration)."""
+        return self.outcome == "result" or self.outcome.startswith("intrinsics only")
+
     def targets(self) -> dict[str, bool | None]:
         """Issue 30's targets for this sensor: True / False, None where not applicable
         (not supported yet; no OpenCV result; not thermal)."""
         if not self.supported:
             return {"found": None, "result": None, "rms": None}
-        opencv_result = math.isfinite(self.rms_opencv)
+        opencv_result = math.isfinite(self.rms_alone_opencv)
         rms: bool | None = None
-        if self.modality == "thermal" and opencv_result and self.outcome == "result":
-            rms = self.rms_alone_trifuse <= (1 + THERMAL_RMS_TOLERANCE) * self.rms_opencv
+        if self.modality == "thermal" and opencv_result and self.has_result:
+            rms = self.rms_alone_trifuse <= (1 + THERMAL_RMS_TOLERANCE) * self.rms_alone_opencv
         found = None
         if self.found_opencv is not None:
             found = (self.found_trifuse or 0) >= self.found_opencv
         return {
             "found": found,
-            "result": self.outcome == "result" if opencv_result else None,
+            "result": self.has_result if opencv_result else None,
             "rms": rms,
         }
 
@@ -180,8 +186,8 @@ class SetRun:
             if t["rms"] is False:
                 out.append(
                     f"{s.sensor}: thermal RMS {s.rms_alone_trifuse:.3f} px > OpenCV's "
-                    f"{s.rms_opencv:.3f} px + {THERMAL_RMS_TOLERANCE:.0%} "
-                    f"({s.rms_alone_trifuse / s.rms_opencv - 1:+.1%})"
+                    f"{s.rms_alone_opencv:.3f} px + {THERMAL_RMS_TOLERANCE:.0%} "
+                    f"({s.rms_alone_trifuse / s.rms_alone_opencv - 1:+.1%})"
                 )
         return out
 
@@ -222,6 +228,8 @@ def write_capture(rs: RealSet, root: Path | None, dest: Path) -> list[str]:
     """Write ``rs`` (every ``rs.view_step``-th view id per sensor, as
     :func:`~app.devtools.real_sets.load_views` takes them) as a capture directory ``dest``;
     returns notes on what was converted."""
+    from app.storage.capture import IMAGE_SUFFIXES
+
     dest.mkdir(parents=True, exist_ok=True)
     text = yaml.safe_dump(board_yaml(rs.board), sort_keys=False, default_flow_style=None)
     (dest / "board.yaml").write_text(text)
@@ -241,7 +249,7 @@ def write_capture(rs: RealSet, root: Path | None, dest: Path) -> list[str]:
         for view in sorted(files)[:: rs.view_step]:
             src = files[view]
             (dest / view).mkdir(exist_ok=True)
-            if src.suffix.lower() in KEPT_SUFFIXES:
+            if src.suffix.lower() in IMAGE_SUFFIXES:  # the capture directory takes it
                 shutil.copyfile(src, dest / view / f"{name}{src.suffix.lower()}")
                 continue
             pixels = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
@@ -432,13 +440,13 @@ def _sensor_row(
         }
         row.extra = [v for v in found_tf if v not in found_cv]
     if ref is not None:
-        row.rms_opencv, row.fx_opencv = ref.rms_px, ref.fx
+        row.rms_alone_opencv, row.fx_opencv = ref.rms_px, ref.fx
     result = trifuse.result
     if trifuse.failure:
         row.outcome = trifuse.failure
-    elif name in result.sensors:
-        sr = result.sensors[name]
-        row.outcome = "result"
+    elif name in result.sensors or name in result.intrinsics_only:
+        sr = result.sensors.get(name) or result.intrinsics_only[name]
+        row.outcome = "result" if sr.pose_unknown is None else f"intrinsics only: {sr.pose_unknown}"
         row.rms_trifuse, row.fx_trifuse = sr.rms_px, sr.intrinsics.fx
         row.rms_alone_trifuse = sr.zhang_rms_px if sr.zhang_rms_px is not None else math.nan
     else:
@@ -536,7 +544,7 @@ def format_set(run: SetRun) -> str:
         outcome = s.outcome if len(s.outcome) < 160 else s.outcome[:157] + "..."
         lines.append(
             f"| {s.sensor} ({s.modality}) | {_pair(s.found_trifuse, s.found_opencv)} ({s.views}) "
-            f"| {_pair(s.rms_alone_trifuse, s.rms_opencv)} | {_f(s.rms_trifuse)} "
+            f"| {_pair(s.rms_alone_trifuse, s.rms_alone_opencv)} | {_f(s.rms_trifuse)} "
             f"| {_pair(s.fx_trifuse, s.fx_opencv, 1)} | {_pair(s.ms_trifuse, s.ms_opencv, 0)} "
             f"| {outcome.replace('|', '/')} | {_ok(t['found'])} | {_ok(t['result'])} "
             f"| {_ok(t['rms'])} |"

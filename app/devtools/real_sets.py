@@ -394,6 +394,18 @@ def _caliscope_published() -> dict[str, float]:
     return out
 
 
+def _pose2sim_published() -> dict[str, float]:
+    """fx, fy, cx, cy of Pose2Sim's Calib_scene.toml (values copied)."""
+    k = {
+        "cam01": (1671.5012042021037, 1671.3866928599075, 564.6403499852015, 933.0074897877159),
+        "cam02": (1675.7080607483433, 1675.4079150009259, 555.7798754387691, 937.7259328417255),
+        "cam03": (1678.7524092974595, 1678.1875775424717, 556.0712835099544, 928.197809795709),
+        "cam04": (1690.8621773209618, 1689.2410845215763, 535.7642414457736, 933.0004533663628),
+    }
+    names = ("fx", "fy", "cx", "cy")
+    return {f"{c}.{f}": v for c, vs in k.items() for f, v in zip(names, vs, strict=True)}
+
+
 _SETS = (
     RealSet(
         name="opencv-left-9x6",
@@ -556,6 +568,63 @@ _SETS = (
         published_source="camera_array.toml beside the videos (caliscope's calibration: "
         "intrinsics from another recording of the same cameras, poses from its bundle "
         "adjustment on these videos)",
+    ),
+    RealSet(
+        name="pose2sim-4cam-checker",
+        licence=("BSD-3-Clause", "LICENSE.pose2sim-BSD-3-Clause.txt"),
+        source="github perfanalytics/pose2sim @ eca0229, "
+        "Pose2Sim/Demo_SinglePerson/calibration/intrinsics",
+        board=Checkerboard(4, 7, 0.060),
+        # Each camera filmed the board on its own (not at the same moments): no shared view.
+        sensors=tuple(
+            Sensor(f"cam{c}", "color", f"cam{c}/cam{c}_*.jpg", r"(cam\d+_\d+)", (1088, 1920))
+            for c in ("01", "02", "03", "04")
+        ),
+        reference={
+            "cam01": SensorFigures(
+                7,
+                7,
+                0.941015,
+                1680.03,
+                1680.14,
+                570.722,
+                939.714,
+                (-0.0918183, 0.568758, -0.000152337, 0.00209366, -1.49206),
+            ),
+            "cam02": SensorFigures(
+                6,
+                7,
+                1.13936,
+                1671.65,
+                1668.95,
+                556.554,
+                944.416,
+                (-0.0607826, 0.250669, -0.00259766, 0.00120323, -0.602007),
+            ),
+            "cam03": SensorFigures(
+                6,
+                7,
+                0.924985,
+                1680.05,
+                1679.88,
+                553.205,
+                924.835,
+                (0.0456087, -1.33822, -0.00169708, -0.00106813, 5.85772),
+            ),
+            "cam04": SensorFigures(
+                6,
+                7,
+                1.72674,
+                1694.07,
+                1693.95,
+                519.597,
+                939.854,
+                (-0.0559704, 0.212592, 0.00168622, -0.00130956, -0.303101),
+            ),
+        },
+        published=_pose2sim_published(),
+        published_source="Calib_scene.toml beside the images (Pose2Sim's calibration of these "
+        "images: classic detector, cornerSubPix 11 x 11, calibrateCamera with k3 fixed)",
     ),
 )
 REAL_SETS: dict[str, RealSet] = {rs.name: rs for rs in _SETS}

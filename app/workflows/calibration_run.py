@@ -186,7 +186,7 @@ def excluded_with_detection_reasons(
         for s, reason in per.items():
             failed.setdefault(s, []).append(reason)
     for s in sorted(views):
-        if s in result.sensors or s not in failed:
+        if s in result.sensors or s in result.intrinsics_only or s not in failed:
             continue
         why = dominant_failure(failed[s], views[s])
         if s in out:
@@ -299,8 +299,10 @@ def write_report(path: str | Path, report: dict[str, Any], overwrite: bool = Fal
 
 def format_summary(result: CalibrationResult, report: dict[str, Any]) -> str:
     """A human-readable summary of a calibration, for the terminal."""
+    alone = result.intrinsics_only
+    also = f" and the intrinsics of {len(alone)} more (pose unknown)" if alone else ""
     lines = [
-        f"Calibrated {len(result.sensors)} sensor(s) in {result.seconds:.1f} s, "
+        f"Calibrated {len(result.sensors)} sensor(s){also} in {result.seconds:.1f} s, "
         f"reference {result.reference}, overall RMS {result.rms_px:.3f} px",
         "",
     ]
@@ -320,6 +322,13 @@ def format_summary(result: CalibrationResult, report: dict[str, Any]) -> str:
             f"{i.cx:>8.2f}±{sg['cx']:<6.2f} {i.cy:>8.2f}±{sg['cy']:<6.2f} "
             f"({t[0]:6.1f},{t[1]:6.1f},{t[2]:6.1f}) {st:6.2f}mm {sr:7.3f}°"
         )
+    for name, s in alone.items():
+        i, sg = s.intrinsics, s.sigma
+        lines.append(
+            f"{name:<14} {s.views_used:>3}/{s.views_detected:<3} {s.rms_px:>7.3f} "
+            f"{i.fx:>9.2f}±{sg['fx']:<6.2f} {i.fy:>9.2f}±{sg['fy']:<6.2f} "
+            f"{i.cx:>8.2f}±{sg['cx']:<6.2f} {i.cy:>8.2f}±{sg['cy']:<6.2f}  pose unknown"
+        )
     if result.verdict is not None:
         lines += ["", *verdict_lines(report["verdict"])]
     lines.append("")
@@ -334,6 +343,10 @@ def format_summary(result: CalibrationResult, report: dict[str, Any]) -> str:
         lines += [
             "  " + line for line in text_table(POLARITY_HEAD, polarity_rows(report["polarity"]))
         ]
+    if alone:
+        lines.append("")
+        for name, s in alone.items():
+            lines.append(f"intrinsics only: {name}: {s.pose_unknown}")
     if result.excluded_sensors:
         lines.append("")
         for name, why in result.excluded_sensors.items():

@@ -356,8 +356,10 @@ def polarity_caption(polarity: dict[str, dict]) -> str:
 def verdict_lines(verdict: dict) -> list[str]:
     """The report's ``verdict`` block for a terminal: the overall grade, then one line per
     sensor and per pair (eyes, stereo) with its grade, the sigmas above target and the
-    advice (``label  usable: σ of ...; capture about 3 more views: ...``)."""
-    rows = [*verdict["sensors"].values(), *verdict["pairs"]]
+    advice (``label  usable: σ of ...; capture about 3 more views: ...``); then each
+    sensor calibrated alone (its intrinsics judged, its pose not linked)."""
+    alone = verdict.get("sensors_intrinsics_only") or {}
+    rows = [*verdict["sensors"].values(), *verdict["pairs"], *alone.values()]
     width = max((len(v["label"]) for v in rows), default=0)
     head = (
         f"Verdict: {verdict['grade']} (good: every 1-sigma within half its accuracy target; "

@@ -66,6 +66,7 @@ KNOWN_KEYS = frozenset(
         "rms_px",
         "seconds",
         "sensors",
+        "sensors_intrinsics_only",
         "excluded_sensors",
         "polarity",
         "notes",
@@ -352,7 +353,8 @@ def _graded_body(v: Mapping[str, Any]) -> str:
     parts = []
     sensors, pairs = v.get("sensors"), v.get("pairs")
     if isinstance(sensors, Mapping) or isinstance(pairs, list):
-        entries = [*(sensors or {}).values(), *(pairs or [])]
+        alone = v.get("sensors_intrinsics_only") or {}
+        entries = [*(sensors or {}).values(), *(pairs or []), *alone.values()]
         entries = [e for e in entries if _graded(e)]
         parts.append(f"<p style='font-size:12pt'>{_grade(v['grade'])}</p>")
         rows = [[_e(e.get("label", "")), _grade(e["grade"]), _e(_sentence(e))] for e in entries]
@@ -383,6 +385,7 @@ _GRADED_SHOWN = frozenset(
         "label",
         "sensors",
         "pairs",
+        "sensors_intrinsics_only",
         "figures",
         "sigma_share",
         "poor_factor",
@@ -735,6 +738,8 @@ def _summary(report: Mapping[str, Any]) -> str:
         if sensors
         else "no sensor calibrated"
     )
+    if alone := list(report.get("sensors_intrinsics_only") or {}):
+        calibrated += f", intrinsics only ({_e(_and(alone))}: pose unknown)"
     rms = report.get("rms_px")
     line = f"<p>{calibrated}, reference <b>{_e(report.get('reference', '–'))}</b>"
     if _finite(rms):
@@ -796,6 +801,7 @@ def _summary(report: Mapping[str, Any]) -> str:
                 attrs=" id='overview' class='small'",
             )
         )
+    parts.append(_intrinsics_only(report.get("sensors_intrinsics_only") or {}))
     notes = report.get("notes") or []
     if notes:
         parts.append(
@@ -805,6 +811,37 @@ def _summary(report: Mapping[str, Any]) -> str:
         )
     parts.append("</section>")
     return "".join(parts)
+
+
+def _intrinsics_only(alone: Mapping[str, Any]) -> str:
+    """The sensors calibrated alone (``sensors_intrinsics_only``): their intrinsics ± 1-sigma,
+    then why their pose is unknown (the sensors with the same reason together)."""
+    if not alone:
+        return ""
+    rows, why = [], {}
+    for name, s in alone.items():
+        intr = s.get("intrinsics") or {}
+        size = s.get("image_size") or ["?", "?"]
+        rows.append(
+            [
+                _e(name),
+                f"{_e(size[0])}&nbsp;×&nbsp;{_e(size[1])}",
+                f"{_e(s.get('views_used', '?'))} / {_e(s.get('views_detected', '?'))}",
+                _f(s.get("rms_px"), 3),
+                *(pm(intr.get(k), _sigma(s, k)) for k in ("fx", "fy", "cx", "cy")),
+            ]
+        )
+        why.setdefault(str(s.get("pose_unknown") or "pose unknown"), []).append(name)
+    table = _table(
+        ["sensor", "image px", "views used / found", "RMS px", "fx px", "fy px", "cx px", "cy px"],
+        rows,
+        numeric=(1, 2, 3, 4, 5, 6, 7),
+        raw=True,
+        caption="Sensors calibrated alone, on their own views, ± 1-sigma; not in the rig",
+        attrs=" id='intrinsics-only' class='small'",
+    )
+    reasons = "".join(f"<li><b>{_e(_and(n))}</b>: {_e(w)}</li>" for w, n in why.items())
+    return f"<h3>Intrinsics only: pose unknown</h3>{table}<ul>{reasons}</ul>"
 
 
 def _comparison_verdict(cmp: Mapping[str, Any]) -> str:

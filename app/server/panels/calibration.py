@@ -344,6 +344,11 @@ class CalibrationPanel(Periodic):
                 f"| {md_text(name)} | {s.views_used}/{s.views_detected} | {s.rms_px:.3f} | "
                 f"{sig.get('fx', 0.0):.2f} | {rot:.3f} | {trans:.2f} |"
             )
+        for name, s in result.intrinsics_only.items():  # calibrated alone: no pose
+            lines.append(
+                f"| {md_text(name)} | {s.views_used}/{s.views_detected} | {s.rms_px:.3f} | "
+                f"{s.sigma.get('fx', 0.0):.2f} | pose unknown | |"
+            )
         if getattr(result, "verdict", None) is not None:
             lines += ["", *verdict_md(result.verdict.as_dict())]
         if result.polarity:
@@ -353,6 +358,12 @@ class CalibrationPanel(Periodic):
                 f"**Board polarity per sensor** ({md_text(polarity_panel_note(pol))}):",
                 "",
                 *markdown_table(POLARITY_PANEL_HEAD, md_cells(polarity_panel_rows(pol))),
+            ]
+        if result.intrinsics_only:
+            lines.append("")
+            lines += [
+                f"- **{md_text(n)}: intrinsics only:** {md_text(s.pose_unknown)}"
+                for n, s in result.intrinsics_only.items()
             ]
         if result.excluded_sensors:
             lines.append("")

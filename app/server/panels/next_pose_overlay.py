@@ -312,7 +312,11 @@ def verdict_md(verdict: dict) -> list[str]:
     """The report's ``verdict`` block (calib.verdict ``RigVerdict.as_dict``) as markdown
     lines for the Calibration panel: the overall grade, then one line per sensor and per
     pair with its grade, the sigmas above target and the advice."""
-    rows = [*verdict["sensors"].values(), *verdict["pairs"]]
+    rows = [
+        *verdict["sensors"].values(),
+        *verdict.get("sensors_intrinsics_only", {}).values(),
+        *verdict["pairs"],
+    ]
     return [
         f"**Verdict: {md_text(verdict['grade'])}** (good: every 1-sigma within half its "
         "accuracy target; poor: one beyond twice it)",
