@@ -77,6 +77,11 @@ def wait_for_cache_warmup(scenario: str, timeout_s: float = 1200.0) -> None:
         pytest.fail(f"rendering the simulator's {scenario} poses failed: {proc.stderr.read()}")
 
 
+def cache_warmups() -> list[subprocess.Popen]:
+    """The warm-up processes started (tests/prerender_support.py lets them finish first)."""
+    return list(_warmups.values())
+
+
 def stop_cache_warmup() -> None:
     for proc in _warmups.values():
         stop_process(proc)

@@ -27,26 +27,32 @@ OPENCV_LEFT_9X6 = DATA_DIR / "opencv-left-9x6"
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Tests that need the 30-view simulated calibration (fixture ``simulated``, about 40
-    s once per run) are slow ones too."""
+    """Tests that need the 30-view simulated capture (fixtures ``simulated`` and
+    ``simulated_capture``, about 40 s once per run) are slow ones too."""
     for item in items:
-        if "simulated" in getattr(item, "fixturenames", ()):
+        if {"simulated", "simulated_capture"} & set(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.slow)
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
     """A run with slow tests (the consoles and browser sessions) warms the simulator's disk
-    cache in the background from the start (tests/browser_support.py)."""
-    if any(item.get_closest_marker("slow") for item in session.items):
-        from tests.browser_support import start_cache_warmup
+    cache in the background from the start (tests/browser_support.py); then a background
+    process renders the simulated captures and views the run's tests will ask for
+    (tests/prerender_support.py)."""
+    from tests import prerender_support
+    from tests.browser_support import cache_warmups, start_cache_warmup
 
+    if any(item.get_closest_marker("slow") for item in session.items):
         start_cache_warmup()
+    prerender_support.start(session, after=cache_warmups())
 
 
 def pytest_sessionfinish(session: pytest.Session) -> None:
+    from tests import prerender_support
     from tests.browser_support import stop_cache_warmup
 
     stop_cache_warmup()
+    prerender_support.stop()
 
 
 @pytest.fixture(scope="module")
@@ -92,28 +98,32 @@ def calibration_frame_sets():
 
 
 @pytest.fixture(scope="session")
-def simulated(tmp_path_factory: pytest.TempPathFactory) -> dict:
-    """``trifuse simulate calibration --views 30 --seed 1`` then ``trifuse calibrate``:
-    the capture directory, the calibrated rig (and its path), the ground-truth rig and the
-    report. Shared by the calibration and range calibration tests."""
+def simulated_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The capture directory of ``trifuse simulate calibration --views 30 --seed 1``
+    (rendered ahead: tests/prerender_support.py). Read it; copy it to change it."""
+    from tests.prerender_support import prerendered
+
+    return prerendered("simulated-capture", tmp_path_factory) / "captures"
+
+
+@pytest.fixture(scope="session")
+def simulated(simulated_capture: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """``simulated_capture`` and its ``trifuse calibrate`` (rendered and run ahead:
+    tests/prerender_support.py): the capture directory, the calibrated rig (and its path),
+    the ground-truth rig and the report. Shared by the calibration and range calibration
+    tests."""
     import json
 
-    from app.cli import main
     from app.storage.rigfile import load_rig
+    from tests.prerender_support import prerendered
 
-    root = tmp_path_factory.mktemp("sim")
-    capture = root / "captures"
-    argv = ["simulate", "calibration", "--views", "30", "--out", str(capture), "--seed", "1"]
-    assert main(argv) == 0
-    rig_path, report_path = root / "rig.yaml", root / "report.json"
-    assert (
-        main(["calibrate", str(capture), "--out", str(rig_path), "--report", str(report_path)]) == 0
-    )
+    out = prerendered("simulated", tmp_path_factory)
+    rig_path, report_path = out / "rig.yaml", out / "report.json"
     return {
-        "capture": capture,
+        "capture": simulated_capture,
         "rig": load_rig(rig_path),
         "rig_path": rig_path,
-        "truth": load_rig(capture / "ground_truth_rig.yaml"),
+        "truth": load_rig(simulated_capture / "ground_truth_rig.yaml"),
         "report": json.loads(report_path.read_text()),
     }
 

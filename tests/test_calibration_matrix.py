@@ -16,7 +16,8 @@ reason while the others meet the targets.
 
 and two captures made from them: the white-hot one with ``board.yaml`` keys (a wrong
 thermal one, a right TOF one) and the cooled one with thermal_right's images mirrored.
-Each capture is rendered once per session (14-20 views). The 8x5 board of 50 mm is small
+Each capture is rendered once per session (14-20 views), ahead of the tests, in the
+background (tests/prerender_support.py). The 8x5 board of 50 mm is small
 in the TOF's 176 x 144 pixels: with 14 views the calibration itself reported a 1-sigma of
 0.29 deg for the TOF pairs' rotation, above their 0.2 deg target (seed 4 missed it by
 0.006 deg); with 20 the sigma is 0.07 deg and the worst TOF pair 0.13 deg. The matrix
@@ -35,21 +36,11 @@ import cv2
 import pytest
 
 from app.cli import main
-from app.sources.sim.head import default_rig
-from app.storage.rigfile import load_rig, save_rig
+from app.storage.rigfile import load_rig
 from calib.rig_compare import compare_rigs
-from tests.support import upside_down
+from tests.prerender_support import prerendered
 
 pytestmark = pytest.mark.slow
-
-
-def simulate(root: Path, name: str, *options: str, keep_rig: bool = True) -> Path:
-    capture = root / name
-    argv = ["simulate", "calibration", "--out", str(capture), *options]
-    assert main(argv) == 0
-    if not keep_rig:
-        (capture / "rig.yaml").unlink()
-    return capture
 
 
 def calibrate(capture: Path, out: Path, *extra: str) -> dict:
@@ -84,30 +75,12 @@ def replace_file(path: Path, write) -> None:
 
 @pytest.fixture(scope="session")
 def captures(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    root = tmp_path_factory.mktemp("matrix")
-    upside = root / "upside-down.yaml"
-    save_rig(upside, upside_down(default_rig(), ("ccd_right", "thermal_left")))
+    """The three captures, rendered ahead by tests/prerender_support.py (its jobs
+    ``matrix-*`` hold the ``trifuse simulate calibration`` options of each)."""
     return {
-        "white_hot": simulate(
-            root,
-            "white-hot",
-            *("--views", "14", "--seed", "3", "--thermal-board", "white-hot"),
-            *("--tof-board", "bright"),
-            keep_rig=False,
-        ),
-        "cooled": simulate(
-            root,
-            "cooled",
-            *("--views", "20", "--seed", "4", "--thermal-board", "cooled"),
-            *("--board", "8x5", "--square-size", "0.05", "--rig", str(upside)),
-        ),
-        "few_views": simulate(
-            root,
-            "few-views",
-            *("--views", "16", "--seed", "5", "--board", "7x10", "--square-size", "0.06"),
-            *("--sensor-views", "thermal_right=3"),
-            keep_rig=False,
-        ),
+        "white_hot": prerendered("matrix-white-hot", tmp_path_factory) / "white-hot",
+        "cooled": prerendered("matrix-cooled", tmp_path_factory) / "cooled",
+        "few_views": prerendered("matrix-few-views", tmp_path_factory) / "few-views",
     }
 
 

@@ -22,6 +22,7 @@ import hashlib
 import json
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -555,24 +556,26 @@ def _check_after_restart(
         assert _temporaries(folder) == [], "temporary files of interrupted writes remain"
 
 
-def _render_views(folder: Path) -> None:
-    """Ten rendered calibration views (``trifuse simulate calibration --seed 1``'s): enough
-    for every sensor's intrinsics (the calibration needs the board in 8 views a sensor)."""
-    from app.sources.sim.head import default_rig
-    from app.sources.sim.scenarios import calibration_views
+FIRST_VIEWS = 10
+"""Views the console starts with: enough for every sensor's intrinsics (the calibration
+needs the board in 8 views a sensor)."""
 
-    rig = default_rig()
-    for view in calibration_views(10, 1, rig):
-        write_view(folder, view.name, view.frames, rig)
+
+def _copy_first_views(capture: Path, folder: Path) -> None:
+    """The first :data:`FIRST_VIEWS` view folders of ``capture`` (``trifuse simulate
+    calibration --seed 1``'s: the same files as rendering that many views) into ``folder``."""
+    folder.mkdir(parents=True)
+    for i in range(1, FIRST_VIEWS + 1):
+        shutil.copytree(capture / f"{i:04d}", folder / f"{i:04d}")
 
 
 ROUNDS = 6
 
 
 @pytest.mark.slow
-def test_console_killed_during_captures_saves_and_recording(tmp_path) -> None:
+def test_console_killed_during_captures_saves_and_recording(simulated_capture, tmp_path) -> None:
     workdir = tmp_path / "work"
-    _render_views(workdir / "captures")  # enough views for a quick calibration
+    _copy_first_views(simulated_capture, workdir / "captures")  # for a quick calibration
     servers: list[Server] = []
     try:
         _kill_and_restart(workdir, tmp_path / "console.log", servers)

@@ -38,11 +38,13 @@ from calib.board import Board
 from calib.rig import Rig
 from calib.transforms import make_T, pose_error
 from tests.browser_support import WAIT_MS, needs_chromium
+from tests.prerender_support import TARGET_VIEWS, prerendered
 from tests.support import FOCAL, POSE
 
-VIEWS = {"charuco": 12, "asymmetric_circles": 15}
-"""Views per pattern (seed 3; 18 before): each assertion holds with a margin (about 2-4 s a
-view to render on the 2-core reference machine). Measured worst error / target:
+VIEWS = TARGET_VIEWS
+"""Views per pattern (seed 3; 18 before; set in tests/prerender_support.py, which renders
+and calibrates them ahead, in the background): each assertion holds with a margin (about
+2-4 s a view to render on the 2-core reference machine). Measured worst error / target:
 ChArUco 0.50 with 12 views (1.18 with 9); circle grid 0.91 with 15, 0.95 with 18
 (1.48 with 12), its TOF pairs' rotation the closest."""
 
@@ -150,24 +152,14 @@ def opencv_plain(capture_dir: Path) -> dict:
 # -- the runs --------------------------------------------------------------------------------
 
 
-RUNS = {
-    "charuco": ["--pattern", "charuco"],
-    "asymmetric_circles": ["--pattern", "asymmetric_circles"],
-}
-
-
-@pytest.fixture(scope="module", params=list(RUNS))
+@pytest.fixture(scope="module", params=list(VIEWS))
 def run(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> dict:
-    """Simulate ``VIEWS[pattern]`` views of the pattern (seed 3), calibrate them with trifuse and
-    with OpenCV's plain pipeline; the errors of both against the ground truth."""
-    root = tmp_path_factory.mktemp(request.param)
+    """``VIEWS[pattern]`` simulated views of the pattern (seed 3) calibrated with trifuse
+    (tests/prerender_support.py's job ``targets-PATTERN``) and with OpenCV's plain pipeline;
+    the errors of both against the ground truth."""
+    root = prerendered(f"targets-{request.param}", tmp_path_factory)
     capture = root / "captures"
-    argv = ["simulate", "calibration", "--views", str(VIEWS[request.param]), "--seed", "3"]
-    assert main([*argv, "--out", str(capture), *RUNS[request.param]]) == 0
     rig_path, report_path = root / "rig.yaml", root / "report.json"
-    assert (
-        main(["calibrate", str(capture), "--out", str(rig_path), "--report", str(report_path)]) == 0
-    )
     truth = load_rig(capture / "ground_truth_rig.yaml")
     rig = load_rig(rig_path)
     baseline = opencv_plain(capture)

@@ -11,14 +11,12 @@ the corners as generated are in canonical order.
 from __future__ import annotations
 
 from functools import cache
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
 import calib.detect as detect_mod
-from app.cli import main
 from app.devtools.real_sets import REAL_SETS, load_views, measure
 from app.storage.capture import load_capture
 from app.storage.ground_truth import load_ground_truth
@@ -40,6 +38,7 @@ from tests.board_support import (
     pnp_poses,
     screen,
 )
+from tests.prerender_support import prerendered
 
 SYMMETRIC = {
     "4x6": Board(4, 6, 0.08),  # even x even: a half turn
@@ -303,17 +302,17 @@ def test_order_views_takes_any_sensor_as_anchor_without_a_colour_camera() -> Non
         assert len({turn_of(o.observations[s][v], truth[s][v], board) for s in seen}) == 1
 
 
-@pytest.mark.slow  # renders and detects 16 views of five sensors: 30 s of CPU, ~80 s busy
-def test_a_simulated_capture_of_a_4x6_board_end_to_end(tmp_path: Path) -> None:
+@pytest.mark.slow  # detects 16 views of five sensors (rendered ahead: 15 s of CPU more)
+def test_a_simulated_capture_of_a_4x6_board_end_to_end(tmp_path_factory) -> None:
     """``trifuse simulate calibration --board 4x6``, then the calibration of the capture
     directory: the rendered images' detections come in either ordering (the detector's own
     choice per image); every view ends up in one ordering for all five sensors (checked
     against the exact projections of the truth), nothing is refused or left out, and the
     rig meets the targets. 16 views: the worst figure at 0.90 of its target (a pair's
     translation; 0.87 with 20 views, 0.90 with 18, 0.96 with 15 and 0.97 with 12)."""
-    capture = tmp_path / "captures"
-    argv = ["simulate", "calibration", "--views", "16", "--seed", "3", "--board", "4x6"]
-    assert main([*argv, "--square-size", "0.08", "--out", str(capture)]) == 0
+    # simulate calibration --views 16 --seed 3 --board 4x6 --square-size 0.08, rendered
+    # ahead, in the background (tests/prerender_support.py's job board-4x6)
+    capture = prerendered("board-4x6", tmp_path_factory)
     truth = load_ground_truth(capture)
     result, report = calibrate_capture(load_capture(capture))
     assert not result.excluded_sensors and not result.outliers

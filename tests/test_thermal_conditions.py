@@ -7,6 +7,7 @@ the baseline is a real one (it finds the boards of the real colour photographs).
 from __future__ import annotations
 
 import itertools
+import pickle
 import zlib
 from dataclasses import replace
 from functools import lru_cache
@@ -45,6 +46,7 @@ from calib.board import Board
 from calib.detect import detect_board
 from calib.detect_baseline import detect_board_baseline
 from calib.rig import Rig
+from tests.prerender_support import THERMAL_MORE_SEEDS, prerendered
 
 RIG = default_rig()
 BOARD = CALIBRATION_BOARD
@@ -361,11 +363,18 @@ def corner_tolerance_px(view: ThermalView, cond: ThermalConditions) -> float:
     return float(np.clip(0.1 * (10.0 / contrast) * (sigma / 0.7) ** 2, 0.1, 1.0))
 
 
-def _check_condition(name: str, poses: int, seeds: tuple[int, ...]) -> None:
+def _check_condition(
+    name: str,
+    poses: int,
+    seeds: tuple[int, ...],
+    views: dict[int, tuple[ThermalView, ...]] | None = None,
+) -> None:
+    """``views``: per seed, the views of ``poses`` poses if rendered already (else
+    :func:`_views` renders them)."""
     cond = BENCH_CONDITIONS[name]
     ours = base = expected = 0
     for seed in seeds:
-        for view in _views(cond, poses, seed):
+        for view in views[seed] if views else _views(cond, poses, seed):
             d = detect_board(view.image, BOARD, "thermal")
             b = detect_board_baseline(view.image, BOARD, "thermal")
             ours += d.found
@@ -394,9 +403,13 @@ def test_detection_under_condition(name: str) -> None:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", list(BENCH_CONDITIONS))
-def test_detection_under_condition_more_seeds(name: str) -> None:
-    """The same on 8 poses of seeds 12 and 13 (32 images per condition)."""
-    _check_condition(name, 8, (12, 13))
+def test_detection_under_condition_more_seeds(name: str, tmp_path_factory) -> None:
+    """The same on 8 poses of seeds 12 and 13 (32 images per condition), rendered ahead in
+    the background (tests/prerender_support.py's jobs ``thermal-NAME``)."""
+    poses, seeds = THERMAL_MORE_SEEDS
+    out = prerendered(f"thermal-{name}", tmp_path_factory)
+    views = {s: pickle.loads((out / f"seed-{s}.pkl").read_bytes()) for s in seeds}
+    _check_condition(name, poses, seeds, views)
 
 
 # -- (c) the baseline is a real one ------------------------------------------------------------
