@@ -28,7 +28,10 @@ Pipeline, per modality:
   (``LCN_SIGMA_PX``), for a faint board (1-3 K) beside hot or cold objects that take the
   global stretch's range (issue 15, BENCHMARKS.md "Thermal board detection under
   real-world conditions"); if none gives a board, all of it again without the upsampling
-  (:func:`_native_levels`).
+  (:func:`_native_levels`). Before all this the three detectors look at the stretched
+  image at its original size, and a board of large squares found there
+  (``NATIVE_FIRST_SPACING_PX``) is taken if the fine stage refines it: the upsampling is
+  for small squares, and costs several times more.
 * **TOF amplitude**: flattened log amplitude (amplitude falls as 1/d^2), a percentile
   stretch, ``TOF_UPSAMPLE`` x cubic upsampling (the squares are 2.5-15 px).
 * **fine stage** (thermal and TOF): the board is found again with the sector-based
@@ -36,7 +39,9 @@ Pipeline, per modality:
   sensor's signal) around the first corners, upsampled until the corner spacing is about
   ``FINE_TARGET_SPACING_PX`` and stretched by the checkered area's percentiles; failing
   that, in the crop minus its blur at the squares' scale (``FINE_HIGHPASS_SIGMA``). If
-  that fails too, ``cornerSubPix`` on the upsampled image.
+  that fails too, ``cornerSubPix`` on the upsampled image. On a large upsampled crop the
+  detector runs without ``CALIB_CB_ACCURACY`` first, as a cheap check
+  (``FINE_CHECK_ABOVE_PX``).
 * **fallback refinements**: a grid that no refinement above made smooth is kept; if no
   detector at any level gives a board, the kept grids are refined with a narrow window,
   taken as the detector gave them, or repaired (:func:`_refined`).
@@ -97,7 +102,7 @@ views, seeds 0-1; BENCHMARKS.md, thermal board detection).
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -137,6 +142,20 @@ checkerboard demands (:func:`_ring_problem`)."""
 THERMAL_FLATTEN_SIGMA_PX = 25.0
 """Sigma of the background blur subtracted from thermal images, native pixels."""
 THERMAL_UPSAMPLE = 2
+NATIVE_FIRST_SPACING_PX = 15.0
+"""Thermal: the detectors first run on the image at its original size (one polarity, no
+locally normalised copy), and a grid found there whose median corner spacing is at
+least this (pixels) is taken when the fine stage refines it; otherwise the search
+goes on as before, upsampled first. The fine stage gives the corners either way (it
+works at the original size), so the level only decides where the board is. The
+upsampling is for small squares; on squares this large the upsampled search costs
+several times more and found no board that the original size missed (VimsLab's 16-bit
+LWIR, 16-25 px: median CPU time 1.66-1.68 -> 1.0-1.1 s an image, with the cheap check of
+``FINE_CHECK_ABOVE_PX``)."""
+NATIVE_FIRST_ABOVE_PX = 50_000
+"""Only images of more pixels than this are probed at their original size first: on a
+160 x 120 Lepton a failing sector-based search costs 25-40 ms, as much as the upsampled
+search that finds the board (harunrk's Lepton 3.5: 44 -> 58 ms a view with the probe)."""
 DESTRIPE_WINDOW_PX = 7
 """Thermal: width of the box whose mean a pixel's column (row) offset is measured
 against (:func:`_destripe`)."""
@@ -179,6 +198,15 @@ crop as it is: it keeps 1 - exp(-pi^2 0.5^2) = 92 % of the squares' pattern and 
 shading across the board. On the faint boards of the thermal-detect conditions (seeds 0-2,
 BENCHMARKS.md, issue 15) the accurate detector then found 11-12 of 14 boards it had missed
 (0.6 x: 8, 0.7 x: 6); corners 0.4-0.5 px -> about 0.05-0.1 px from the truth."""
+FINE_CHECK_ABOVE_PX = 500_000
+"""Fine stage: on an upsampled crop of more pixels than this, the sector-based detector
+runs first without CALIB_CB_ACCURACY (a quarter of the time), and with it only where that
+finds the board. Measured on every ACCURACY call of the real thermal sets and the simulated
+thermal conditions (seeds 0-1, every other view): where the plain detector failed the
+accurate one failed too, except on 3 crops of 0.1-0.4 Mpx (harunrk's Lepton, 2; the
+simulator, 1); on VimsLab's
+16-bit LWIR crops (0.6-1.2 Mpx at 3-4 x) it fails on the crop as it is and the high-passed
+one before CALIB_CB_EXHAUSTIVE finds the board, 0.3-0.7 s a call."""
 FINE_MAX_SHIFT = 0.25
 """The fine corners must lie within this fraction of the spacing of the first ones (median
 over the corners, :func:`_same_grid`)."""
@@ -269,6 +297,18 @@ class _Prepared:
         pyramid: a downscaled copy of a large colour image: the corners are refined once
             more at the original size, in ``darkness`` (the linearised grey), and the
             squares around the grid are checked (:func:`_ring_problem`).
+        probe: None, or (thermal) the memo of the upsampled level, when this is the
+            original size searched before it: only ``detect`` at one polarity, and only a
+            grid of large squares (median corner spacing at least
+            ``NATIVE_FIRST_SPACING_PX``) whose corners the fine stage gave is taken; a
+            sector-based detector's grid of smaller squares is handed, scaled, to the
+            upsampled level as if the same detector had found it there (it does not search
+            again). Not the classic detector's: its corners, unrefined, can be pixels off
+            on small squares, and the fine stage then failed on 1 of 448 simulated views
+            (corners 0.07 -> 0.22 px from the truth).
+        memo: (label, inverted, detector) -> [the detector's raw corners or None, then
+            what :func:`_finish` made of them, or None before it ran]: shared by the probe
+            and the level of the same size, so that no detector runs twice on an image.
     """
 
     scale: int | tuple[float, float]
@@ -279,6 +319,8 @@ class _Prepared:
     fine: np.ndarray | None = None
     extra: list[tuple[str, np.ndarray]] = field(default_factory=list)
     pyramid: bool = False
+    probe: dict[tuple[str, bool, str], list] | None = None
+    memo: dict[tuple[str, bool, str], list] = field(default_factory=dict)
 
 
 class _Rejected(Exception):
@@ -422,18 +464,48 @@ def _prepare(
     )
 
 
+def _upsampled(prep: _Prepared, s: int) -> _Prepared:
+    """``prep`` (prepared at the original size, :func:`_prepare` with ``upsample=1``) with
+    its detection and refinement images upsampled ``s`` x: the same images as
+    ``_prepare(..., upsample=s)`` gives, without flattening and normalising again."""
+    if s == 1:
+        return prep
+    return _Prepared(
+        s,
+        _upsample(prep.detect, s),
+        prep.both_polarities,
+        _upsample(prep.refine, s),
+        prep.darkness,
+        prep.fine,
+        [(label, _upsample(image, s)) for label, image in prep.extra],
+    )
+
+
 def _native_levels(
     image: np.ndarray, modality: str, black_is_hot: bool
 ) -> Iterator[_Prepared | str]:
     """The prepared image (:func:`_prepare`), then for thermal the same without the
-    upsampling, built only if the first gives no board. Squares that are large already
-    (czha626's LWIR, 44 px) are found at their own size where the upsampled copy can fail:
-    with white text burnt into the image, 2 of 12 views (OpenCV's plain SB finds all 12 at
-    the original size)."""
-    prep = _prepare(image, modality, black_is_hot)
-    yield prep
-    if modality == "thermal" and not isinstance(prep, str) and prep.scale != 1:
-        yield _prepare(image, modality, black_is_hot, upsample=1)
+    upsampling. Squares that are large already (czha626's LWIR, 44 px) are found at their
+    own size where the upsampled copy can fail: with white text burnt into the image, 2 of
+    12 views (OpenCV's plain SB finds all 12 at the original size). Before both, the
+    original size is probed (``_Prepared.probe``, ``NATIVE_FIRST_SPACING_PX``). All come
+    from one preparation at the original size (:func:`_upsampled`)."""
+    if modality == "color":
+        yield _prepare(image, modality, black_is_hot)
+        return
+    native = _prepare(image, modality, black_is_hot, upsample=1)
+    if isinstance(native, str):
+        yield native
+        return
+    s = TOF_UPSAMPLE if modality == "tof" else THERMAL_UPSAMPLE
+    if modality == "tof" or s == 1:
+        yield _upsampled(native, s)
+        return
+    up = _upsampled(native, s)
+    if native.detect.size > NATIVE_FIRST_ABOVE_PX:
+        yield replace(native, probe=up.memo)  # large squares at their own size first
+    yield up
+    yield native
 
 
 def _pyramid_levels(image: np.ndarray) -> Iterator[_Prepared | str]:
@@ -485,6 +557,19 @@ _DETECTORS: list[tuple[str, Callable[[np.ndarray, Board], np.ndarray | None]]] =
 
 
 # -- geometry of a detected grid ----------------------------------------------------------
+
+
+def _grid_spacing(raw: np.ndarray, board: Board, shape: tuple[int, ...]) -> float | None:
+    """The median corner spacing (pixels) of a detector's corners (any shape holding
+    N x 2), or None unless they are the board's, finite and inside an image of ``shape``
+    (H, W). The median: the classic detector's corners can be a few pixels astray before
+    refinement."""
+    pts = np.asarray(raw, dtype=np.float64).reshape(-1, 2)
+    if len(pts) != board.n_corners or not np.all(np.isfinite(pts)):
+        return None
+    if np.any(pts < 0) or np.any(pts[:, 0] > shape[1] - 1) or np.any(pts[:, 1] > shape[0] - 1):
+        return None
+    return float(np.median(_spacing(pts.reshape(board.rows, board.cols, 2))))
 
 
 def _spacing(G: np.ndarray) -> np.ndarray:
@@ -650,7 +735,15 @@ def _fine(fine: np.ndarray, G: np.ndarray, board: Board) -> np.ndarray | None:
         for u8, flags in images:
             if u8 is None:
                 continue
-            ok, raw = cv2.findChessboardCornersSB(_upsample(u8, s), board.pattern_size, flags=flags)
+            up = _upsample(u8, s)
+            if (
+                up.size > FINE_CHECK_ABOVE_PX
+                and not cv2.findChessboardCornersSB(
+                    up, board.pattern_size, flags=flags & ~cv2.CALIB_CB_ACCURACY
+                )[0]
+            ):
+                continue  # the accurate detector costs 4x as much and would fail too
+            ok, raw = cv2.findChessboardCornersSB(up, board.pattern_size, flags=flags)
             if not ok:
                 continue
             F = (np.asarray(raw, dtype=np.float64).reshape(G.shape) + 0.5) / s - 0.5
@@ -1014,18 +1107,38 @@ def detect_board(
             for label, image in [("", prep.detect), *prep.extra]
             for inverted in ((False, True) if prep.both_polarities else (False,))
         ]
-        for label, inverted, image in attempts:
-            det_img = 255 - image if inverted else image
+        probe = prep.probe
+        for label, inverted, image in attempts[:1] if probe is not None else attempts:
             for name, finder in _DETECTORS:
                 method = name + (f"-{label}" if label else "") + ("-inverted" if inverted else "")
                 method += level
-                tried.append(method)
-                raw = finder(det_img, board)
+                if probe is None:
+                    tried.append(method)
+                key = (label, inverted, name)
+                if key not in prep.memo:
+                    prep.memo[key] = [finder(255 - image if inverted else image, board), None]
+                memo = prep.memo[key]
+                raw = memo[0]
                 if raw is None:
                     continue
-                try:
-                    corners, suffix = _finish(raw, prep, board, shape, name == "classic")
-                except _Rejected as rej:
+                if probe is not None:
+                    spacing = _grid_spacing(raw, board, image.shape)
+                    if spacing is None or spacing < NATIVE_FIRST_SPACING_PX:
+                        if spacing is not None and name != "classic":  # small squares
+                            up = (np.asarray(raw, dtype=np.float32) + 0.5) * THERMAL_UPSAMPLE
+                            probe.setdefault(key, [up - 0.5, None])
+                        break
+                if memo[1] is None:
+                    try:
+                        memo[1] = _finish(raw, prep, board, shape, name == "classic")
+                    except _Rejected as rej:
+                        memo[1] = rej
+                if probe is not None:  # only a board whose corners the fine stage gave
+                    if not isinstance(memo[1], _Rejected) and memo[1][1] == "":
+                        return Detection(memo[1][0], None, method)
+                    continue
+                if isinstance(memo[1], _Rejected):
+                    rej = memo[1]
                     if rej.final:
                         return Detection(None, rej.reason, method)
                     if first_rejection is None:
@@ -1033,6 +1146,7 @@ def detect_board(
                     if rej.bent:
                         bent.append((raw, prep, name == "classic", method))
                     continue
+                corners, suffix = memo[1]
                 return Detection(corners, None, method + suffix)
     for raw, prep, classic, method in bent:
         try:
