@@ -92,11 +92,13 @@ corner (rows - 1 - r, c) of the original). Do not feed mirrored images to a cali
 
 A detection whose corners come closer to the image border than
 ``max(BORDER_MIN_PX, BORDER_FRACTION x local corner spacing)`` is rejected: the outer
-squares are then cut to slivers and the detectors' corners there are unreliable. A quarter
-of a spacing, not half: boards with an outer corner 0.25-0.5 of a spacing from the edge
-are found by the plain OpenCV pipeline (calib.detect_baseline) and, with the fine stage
-here, their corners are as accurate as elsewhere (0.04 px RMS at most on simulated colour
-views, seeds 0-1; BENCHMARKS.md, thermal board detection).
+squares are then cut to slivers and the detectors' corners there are unreliable. A
+twentieth of a spacing: real boards with an outer corner 0.07-0.12 of a spacing from the
+edge (Pose2Sim's 1088 x 1920 cameras, 4 of 28 views) are found by the plain OpenCV
+pipeline, and trifuse's corners there fit like the others (0.24-0.29 px per view); a
+quarter of a spacing refused them (at 0.25-0.5 of a spacing, simulated colour views' corners
+were as accurate as elsewhere: 0.04 px RMS at most). No simulator view changed between a
+quarter and a twentieth (448 views of the detection bench's conditions, seeds 0-1).
 """
 
 from __future__ import annotations
@@ -229,7 +231,12 @@ the local spacing. Measured: good grids at most 0.07 (colour, thermal), 0.12 (re
 samples), 0.18 (TOF, 2.5 px squares); corners gone astray 0.9 and more."""
 
 BORDER_MIN_PX = 2.0
-BORDER_FRACTION = 0.25
+BORDER_FRACTION = 0.05
+FALLBACK_BORDER_FRACTION = 0.25
+"""The border rule's fraction for the fallback refinements of grids refused as bent
+(``+narrow``, ``+unrefined``, ``+repaired``): a quarter of a spacing, because a board cut
+at a few pixels from its outer corners can come back from them with a corner half a
+spacing astray (simulated thermal, a cut 0.02 of a spacing from the outer corners: 11.5 px)."""
 
 COLOUR_AGREEMENT = 0.9
 """Fraction of neighbouring interior-square pairs that must agree on which colour class is
@@ -844,8 +851,9 @@ def _orient(G: np.ndarray, board: Board, darkness: np.ndarray) -> tuple[np.ndarr
     return G, agreement, separation
 
 
-def _border_problem(G: np.ndarray, w: int, h: int) -> str | None:
-    """Why the grid (rows, cols, 2) in original pixels is too close to the border."""
+def _border_problem(G: np.ndarray, w: int, h: int, fraction: float = BORDER_FRACTION) -> str | None:
+    """Why the grid (rows, cols, 2) in original pixels is too close to the border (closer
+    than ``max(BORDER_MIN_PX, fraction x local corner spacing)``)."""
     corners = G.reshape(-1, 2)
     # Pixel (u, v) covers [u - 0.5, u + 0.5): the image edges are at -0.5 and W - 0.5.
     dist = np.stack(
@@ -857,7 +865,7 @@ def _border_problem(G: np.ndarray, w: int, h: int) -> str | None:
         ],
         axis=1,
     )
-    need = np.maximum(BORDER_MIN_PX, BORDER_FRACTION * _spacing(G).ravel())
+    need = np.maximum(BORDER_MIN_PX, fraction * _spacing(G).ravel())
     slack = dist - need[:, None]
     if not (slack < 0).any():
         return None
@@ -1036,7 +1044,7 @@ def _finish(
             False,
         )
     # Final: whatever finds this board finds it at the border (corner numbers canonical).
-    problem = _border_problem(G, w, h)
+    problem = _border_problem(G, w, h, FALLBACK_BORDER_FRACTION if fallback else BORDER_FRACTION)
     if problem:
         raise _Rejected(problem, True)
     return np.ascontiguousarray(G.reshape(-1, 2)), suffix

@@ -288,15 +288,24 @@ def test_real_opencv_samples() -> None:
 
 
 def test_board_cut_by_the_border_is_rejected(cases: list[Case]) -> None:
+    """Outer squares cut to slivers (0.02 of a spacing left of the outer corners) are
+    refused; cut at 0.15 of a spacing (real boards are found there by OpenCV: Pose2Sim's at
+    0.07-0.12) the board is found and its corners are as accurate as the view's own
+    (measured: RMS 0.035 px, worst corner 0.16 px, against 0.027 px uncut)."""
     c = _case(cases, "ccd_left")
     corners = c.detection.corners
     k = int(np.argmin(corners[:, 0]))
     grid = corners.reshape(BOARD.rows, BOARD.cols, 2)
     spacing = float(np.min(np.linalg.norm(np.diff(grid, axis=1), axis=2)))
-    x0 = int(np.floor(corners[k, 0] - 0.15 * spacing))  # the outer squares cut to slivers
+    x0 = int(np.floor(corners[k, 0] - 0.02 * spacing))
     d = detect_board(np.ascontiguousarray(c.image[:, x0:]), BOARD, "color")
     assert not d.found and d.corners is None
     assert "border" in d.reason and "left edge" in d.reason
+    x0 = int(np.floor(corners[k, 0] - 0.15 * spacing))
+    d = detect_board(np.ascontiguousarray(c.image[:, x0:]), BOARD, "color")
+    assert d.found, d.reason
+    error = np.linalg.norm(d.corners - (c.truth - [x0, 0]), axis=1)
+    assert np.sqrt(np.mean(error**2)) < 0.1 and error.max() < 0.5, error
 
 
 @pytest.mark.parametrize(
