@@ -1,15 +1,18 @@
-"""Synthetic board detections for the polarity and ordering tests (tests/test_polarity.py,
+"""Synthetic board detections for the calibration tests (noisy corners of the simulated
+head: :func:`noisy_corners`) and the polarity and ordering tests (tests/test_polarity.py,
 tests/test_symmetric_board.py): exact projections of the simulated head's ground truth plus
 seeded noise, their poses, the screening and the calibration's input shape, and hard-edged
 synthetic board images."""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable, Mapping
+
 import cv2
 import numpy as np
 
 from app.sources.sim.head import default_rig
-from app.sources.sim.scenarios import calibration_poses
+from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
 from calib.board import Board
 from calib.camera import Intrinsics
 from calib.diagnosis import Screening, screen_sensors
@@ -22,6 +25,35 @@ RIG = default_rig()
 # Per-axis corner noise (px) of each modality, about what the detectors achieve.
 NOISE = {"color": 0.08, "thermal": 0.06, "tof": 0.05}
 VIEWS = 16
+
+
+def noisy_corners(
+    poses: Iterable[np.ndarray],
+    rng: np.random.Generator,
+    sensors: Iterable[str] | None = None,
+    *,
+    noise: Mapping[str, float] = NOISE,
+    view_name: Callable[[int], str] = lambda i: f"{i + 1:04d}",
+    moved: Mapping[str, np.ndarray] | None = None,
+) -> dict[str, dict[str, np.ndarray]]:
+    """view -> sensor -> (N, 2) corners of the default head's ``sensors`` (all by default)
+    seeing the calibration board at the ``T_rig_board`` ``poses`` (the TOF's frame): exact
+    projections plus Gaussian noise (``noise``: px per axis, per modality); only whole boards
+    at least 3 px inside the image. ``view_name``: the i-th pose's view name. ``moved``:
+    sensor -> (4, 4) board-frame motion that sensor sees the board moved by (a camera running
+    late)."""
+    obs: dict[str, dict[str, np.ndarray]] = {}
+    for i, T_rig_board in enumerate(poses):
+        for s in sensors or RIG.names:
+            T = T_rig_board @ moved[s] if moved and s in moved else T_rig_board
+            uv = RIG[s].intrinsics.project(
+                transform_points(RIG.T(s, "tof") @ T, CALIBRATION_BOARD.object_points())
+            )
+            w, h = RIG[s].image_size
+            if np.isfinite(uv).all() and (uv > 3).all() and (uv < (w - 4, h - 4)).all():
+                noisy = uv + rng.normal(0, noise[RIG[s].modality], uv.shape)
+                obs.setdefault(view_name(i), {})[s] = noisy
+    return obs
 
 
 def corners_seen(

@@ -112,3 +112,17 @@ def console_running(args: Sequence[str]) -> Iterator[ConsoleProcess]:
     _, console = start_console(args)
     with console:
         yield console
+
+
+def run_calibration(page) -> str:
+    """Click the Calibration panel's Run calibration, wait until it has calibrated (or
+    failed), assert it did not fail; the page's text then."""
+    page.get_by_role("button", name="Run calibration", exact=True).click()
+    page.wait_for_function(
+        "() => /Calibrated \\d+ views|Calibration failed/.test(document.body.innerText)",
+        timeout=600000,
+        polling=1000,
+    )
+    text = page.evaluate("() => document.body.innerText")
+    assert "Calibration failed" not in text, text
+    return text

@@ -23,7 +23,7 @@ from app.sources.sim.head import default_rig
 from app.storage.capture import load_capture
 from app.storage.rigfile import load_rig
 from calib.transforms import pose_error
-from tests.browser_support import TEST_BOARD_POSES, needs_chromium, start_console
+from tests.browser_support import TEST_BOARD_POSES, needs_chromium, run_calibration, start_console
 from tests.support import FOCAL, POSE
 
 pytestmark = [needs_chromium, pytest.mark.slow]
@@ -69,14 +69,7 @@ def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path)
         shown = _views_shown(page)
         assert len(_views_on_disk(workdir)) >= shown >= MIN_VIEWS
 
-        page.get_by_role("button", name="Run calibration", exact=True).click()
-        page.wait_for_function(
-            "() => /Calibrated \\d+ views|Calibration failed/.test(document.body.innerText)",
-            timeout=600000,
-            polling=1000,
-        )
-        text = page.evaluate("() => document.body.innerText")
-        assert "Calibration failed" not in text, text
+        text = run_calibration(page)
         # the polarity found per sensor: the scenario's board is heated, black squares hot
         assert "Board polarity per sensor" in text, text
         for name in ("thermal_left", "thermal_right"):

@@ -22,7 +22,6 @@ from conftest import DATA_DIR, OPENCV_LEFT_9X6
 
 from app.cli import main
 from app.cli.calibrate import ZHANG_MIN_VIEWS as CLI_ZHANG_MIN_VIEWS
-from app.sources.sim.head import default_rig
 from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
 from calib.board import Board
 from calib.detect import detect_board
@@ -30,12 +29,10 @@ from calib.detect_baseline import detect_board_baseline
 from calib.errors import CalibrationError
 from calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
 from calib.rig_result import CalibrationResult
-from calib.transforms import invert, make_T, rvec_from_rotation, transform_points
+from calib.transforms import invert, make_T, rvec_from_rotation
 from calib.verdict import GOOD, KINDS, ZHANG_MIN_VIEWS, Verdict
+from tests.board_support import RIG, SPECS, noisy_corners
 
-RIG = default_rig()
-SPECS = {n: SensorSpec(n, RIG[n].modality, RIG[n].image_size) for n in RIG.names}
-NOISE = {"color": 0.08, "thermal": 0.06, "tof": 0.05}  # per-axis px, the detectors' level
 CZHA626 = DATA_DIR / "czha626-thermal-visible"
 
 
@@ -45,17 +42,7 @@ def corners_of(
     """view -> sensor -> (N, 2) corners of the default head seeing the board at
     ``T_rig_board`` poses (the TOF's frame), with Gaussian noise; only whole boards."""
     rng = np.random.default_rng(seed)
-    obs: dict[str, dict[str, np.ndarray]] = {}
-    for i, T in enumerate(poses):
-        for s in names or RIG.names:
-            uv = RIG[s].intrinsics.project(
-                transform_points(RIG.T(s, "tof") @ T, CALIBRATION_BOARD.object_points())
-            )
-            w, h = RIG[s].image_size
-            if np.isfinite(uv).all() and (uv > 3).all() and (uv < (w - 4, h - 4)).all():
-                noisy = uv + rng.normal(0, NOISE[RIG[s].modality], uv.shape)
-                obs.setdefault(f"{i:04d}", {})[s] = noisy
-    return obs
+    return noisy_corners(poses, rng, names, view_name=lambda i: f"{i:04d}")
 
 
 def normalised_errors(result: CalibrationResult, truth) -> dict[str, list[float]]:

@@ -17,8 +17,9 @@ from calib.detect import detect_board
 from calib.opencv_reference import calibrate_camera_opencv, find_charuco_opencv
 from calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
 from calib.rig_result import CalibrationResult
-from calib.transforms import invert, make_T, rotation_from_rvec, transform_points
-from tests.test_rig_calibration import NOISE, RIG, SPECS, synthetic
+from calib.transforms import invert, make_T, rotation_from_rvec
+from tests.board_support import RIG, SPECS, noisy_corners
+from tests.test_rig_calibration import synthetic
 
 CALISCOPE = REAL_SETS["caliscope-charuco-4cam"]
 CALISCOPE_BOARD = Board(
@@ -96,17 +97,7 @@ def test_a_sensor_one_frame_late_is_guarded() -> None:
     joint refinement without its views."""
     late, rng = "ccd_right", np.random.default_rng(0)
     step = make_T(rotation_from_rvec(np.radians(2.0) * np.array([0.3, 1.0, 0.0])), [0, 0, 0.03])
-    obs: dict[str, dict[str, np.ndarray]] = {}
-    for i, T_rig_board in enumerate(calibration_poses(30, seed=1, rig=RIG)):
-        for s in RIG.names:
-            T = T_rig_board @ step if s == late else T_rig_board
-            uv = RIG[s].intrinsics.project(
-                transform_points(RIG.T(s, "tof") @ T, CALIBRATION_BOARD.object_points())
-            )
-            w, h = RIG[s].image_size
-            if np.isfinite(uv).all() and (uv > 3).all() and (uv < (w - 4, h - 4)).all():
-                noisy = uv + rng.normal(0, NOISE[RIG[s].modality], uv.shape)
-                obs.setdefault(f"{i + 1:04d}", {})[s] = noisy
+    obs = noisy_corners(calibration_poses(30, seed=1, rig=RIG), rng, moved={late: step})
     result = calibrate_rig(obs, CALIBRATION_BOARD, SPECS)
     assert _kept(result) == [late]
     assert [n for n in result.notes if n.startswith(f"{late} {KEPT}")], result.notes

@@ -22,6 +22,7 @@ from tests.browser_support import (
     TEST_BOARD_POSES,
     WAIT_MS,
     needs_chromium,
+    run_calibration,
     wait_for_cache_warmup,
 )
 
@@ -115,14 +116,7 @@ def test_the_next_view_is_shown_after_a_few_captures_and_the_verdicts_after_a_ru
         page.wait_for_timeout(3000)
         page.screenshot(path=str(tmp_path / "next-pose-scene.png"))
 
-        page.get_by_role("button", name="Run calibration", exact=True).click()
-        page.wait_for_function(
-            "() => /Calibrated \\d+ views|Calibration failed/.test(document.body.innerText)",
-            timeout=600000,
-            polling=1000,
-        )
-        text = page.evaluate("() => document.body.innerText")
-        assert "Calibration failed" not in text, text
+        text = run_calibration(page)
         assert re.search(r"Verdict: (good|usable|poor)", text), text
         for name in SENSORS:
             assert re.search(rf"{name} (good|usable|poor): σ of the", text), (name, text)

@@ -8,20 +8,17 @@ from scipy import sparse
 from scipy.optimize import least_squares
 from threadpoolctl import threadpool_info
 
-from app.sources.sim.head import default_rig
 from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
 from calib import polarity
 from calib.errors import CalibrationError
-from calib.rig_calibration import CalibrationOptions, SensorSpec, _flag_outliers, calibrate_rig
+from calib.rig_calibration import CalibrationOptions, _flag_outliers, calibrate_rig
 from calib.rig_problem import CornerProblem
 from calib.rig_uncertainty import parameter_sigma
 from calib.schur_lm import least_squares_schur
-from calib.transforms import make_T, rotation_from_rvec, rvec_from_rotation, transform_points
+from calib.transforms import make_T, rotation_from_rvec, rvec_from_rotation
+from tests.board_support import NOISE, RIG, SPECS, noisy_corners
 
-RIG = default_rig()
-SPECS = {n: SensorSpec(n, RIG[n].modality, RIG[n].image_size) for n in RIG.names}
 # Per-axis corner noise (px) of each modality, about what the detectors achieve.
-NOISE = {"color": 0.08, "thermal": 0.06, "tof": 0.05}
 
 
 def synthetic(
@@ -31,17 +28,12 @@ def synthetic(
     noise: dict[str, float] | None = None,
 ) -> dict[str, dict[str, np.ndarray]]:
     """Corners of the default head seeing the board at the calibration scenario's poses."""
-    rng = np.random.default_rng(seed)
-    obs: dict[str, dict[str, np.ndarray]] = {}
-    for i, T_rig_board in enumerate(calibration_poses(views, seed=1, rig=RIG)):
-        for s in sensors or RIG.names:
-            pts = transform_points(RIG.T(s, "tof") @ T_rig_board, CALIBRATION_BOARD.object_points())
-            uv = RIG[s].intrinsics.project(pts)
-            w, h = RIG[s].image_size
-            if np.isfinite(uv).all() and (uv > 3).all() and (uv < (w - 4, h - 4)).all():
-                sigma = (noise or NOISE)[RIG[s].modality]
-                obs.setdefault(f"{i + 1:04d}", {})[s] = uv + rng.normal(0, sigma, uv.shape)
-    return obs
+    return noisy_corners(
+        calibration_poses(views, seed=1, rig=RIG),
+        np.random.default_rng(seed),
+        sensors,
+        noise=noise or NOISE,
+    )
 
 
 def _param_errors(name: str, result, reference: str = "tof"):

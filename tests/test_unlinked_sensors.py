@@ -36,35 +36,22 @@ from app.devtools.bench_real_calib import (
     trifuse_name,
     write_capture,
 )
-from app.sources.sim.head import default_rig
 from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
 from app.storage.capture import load_capture
 from app.workflows.calibration_run import calibrate_capture, format_summary
 from app.workflows.report_html import render_report_html
-from calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
-from calib.transforms import transform_points
+from calib.rig_calibration import CalibrationOptions, calibrate_rig
+from tests.board_support import NOISE, RIG, SPECS, noisy_corners
 from tests.test_real_pose2sim_published import CAMERAS, SET, TARGET, _recipe
 
-RIG = default_rig()
-SPECS = {n: SensorSpec(n, RIG[n].modality, RIG[n].image_size) for n in RIG.names}
-NOISE = {"color": 0.08, "thermal": 0.06, "tof": 0.05}
-"""Per-axis corner noise (px) per modality, about what the detectors achieve."""
 ALONE = "thermal_right"
 
 
 def _corners(views: int, pose_seed: int, sensors: list[str], rng: np.random.Generator, tag: str):
     """view -> sensor -> (N, 2) noisy corners of ``sensors`` seeing the board at the
     calibration scenario's poses (``pose_seed``), view names ``<tag>NNNN``."""
-    obs: dict[str, dict[str, np.ndarray]] = {}
-    for i, T_rig_board in enumerate(calibration_poses(views, seed=pose_seed, rig=RIG)):
-        for s in sensors:
-            pts = transform_points(RIG.T(s, "tof") @ T_rig_board, CALIBRATION_BOARD.object_points())
-            uv = RIG[s].intrinsics.project(pts)
-            w, h = RIG[s].image_size
-            if np.isfinite(uv).all() and (uv > 3).all() and (uv < (w - 4, h - 4)).all():
-                noise = rng.normal(0, NOISE[RIG[s].modality], uv.shape)
-                obs.setdefault(f"{tag}{i + 1:04d}", {})[s] = uv + noise
-    return obs
+    poses = calibration_poses(views, seed=pose_seed, rig=RIG)
+    return noisy_corners(poses, rng, sensors, view_name=lambda i: f"{tag}{i + 1:04d}")
 
 
 @pytest.fixture(scope="module")
