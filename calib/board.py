@@ -54,7 +54,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from calib.numbers import finite_float
+from trifuse.calib.numbers import finite_float
 
 POLARITY_KEYS = ("thermal_black_is_hot", "tof_black_is_dark")
 """The optional polarity overrides of ``board.yaml`` (None: found from the data)."""

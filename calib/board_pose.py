@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calib.board import Board
-from calib.rig import Rig
-from calib.transforms import make_T, rotation_from_rvec, rvec_from_rotation
+from trifuse.calib.board import Board
+from trifuse.calib.rig import Rig
+from trifuse.calib.transforms import make_T, rotation_from_rvec, rvec_from_rotation
 
 
 @dataclass(frozen=True)

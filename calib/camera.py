@@ -23,7 +23,7 @@ from functools import cached_property, lru_cache
 import numpy as np
 import numpy.typing as npt
 
-from calib.numbers import check_finite
+from trifuse.calib.numbers import check_finite
 
 DISTORTION_LENGTHS = (4, 5, 8)
 

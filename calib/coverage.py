@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from calib.board import Board
+from trifuse.calib.board import Board
 
 PARAM_NAMES = ("X", "Y", "size", "skew")
 PARAM_RANGES = (0.7, 0.7, 0.4, 0.5)

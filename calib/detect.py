@@ -109,7 +109,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from calib.board import Board
+from trifuse.calib.board import Board
 
 MODALITIES = ("color", "thermal", "tof")
 
@@ -1085,8 +1085,8 @@ def detect_board(
     _check_board(board)
     img = _check_image(image, modality)
     if board.pattern != "checkerboard":  # ChArUco, circle grids: their own modules
-        from calib.detect_charuco import find_charuco
-        from calib.detect_circles import find_circles
+        from trifuse.calib.detect_charuco import find_charuco
+        from trifuse.calib.detect_circles import find_circles
 
         prep = _prepare(img, modality, thermal_black_is_hot)
         if isinstance(prep, str):

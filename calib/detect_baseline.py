@@ -19,8 +19,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from calib.board import Board
-from calib.detect import (
+from trifuse.calib.board import Board
+from trifuse.calib.detect import (
     THERMAL_BLACK_IS_HOT,
     Detection,
     _check_board,

@@ -34,7 +34,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from calib.board import Board, aruco_dictionary
+from trifuse.calib.board import Board, aruco_dictionary
 
 MIN_CELL_PX = 2.0
 """Smallest marker cell (one bit of the code, native pixels) the markers can be read at:

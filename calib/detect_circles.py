@@ -38,7 +38,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from calib.board import Board
+from trifuse.calib.board import Board
 
 MIN_CIRCLE_PX = 4.0
 """Smallest circle diameter (native pixels) whose centre is trusted: below it the blob

@@ -28,9 +28,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calib.board import Board
-from calib.camera import Intrinsics
-from calib.polarity import (
+from trifuse.calib.board import Board
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.polarity import (
     AS_DETECTED,
     HALF_TURNED,
     MIN_AGREEING_FRACTION,

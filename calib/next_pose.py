@@ -45,13 +45,13 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from calib.board import Board
-from calib.rig_problem import BLAS_THREADS
-from calib.rig_result import CalibrationResult
-from calib.rig_uncertainty import RigCovariance
-from calib.sensor_result import SensorResult
-from calib.transforms import invert, make_T, rotations_from_rvecs
-from calib.verdict import (
+from trifuse.calib.board import Board
+from trifuse.calib.rig_problem import BLAS_THREADS
+from trifuse.calib.rig_result import CalibrationResult
+from trifuse.calib.rig_uncertainty import RigCovariance
+from trifuse.calib.sensor_result import SensorResult
+from trifuse.calib.transforms import invert, make_T, rotations_from_rvecs
+from trifuse.calib.verdict import (
     Figure,
     RigVerdict,
     _pose_specs,

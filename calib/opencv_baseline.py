@@ -44,10 +44,10 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from calib.board import Board
-from calib.camera import Intrinsics
-from calib.errors import CalibrationError
-from calib.transforms import invert, make_T, rotation_from_rvec, transform_points
+from trifuse.calib.board import Board
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.errors import CalibrationError
+from trifuse.calib.transforms import invert, make_T, rotation_from_rvec, transform_points
 
 MIN_VIEWS = 3
 _DIST_FLAGS = {

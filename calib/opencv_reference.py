@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calib.camera import Intrinsics
-from calib.errors import CalibrationError
-from calib.transforms import make_T
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.errors import CalibrationError
+from trifuse.calib.transforms import make_T
 
 FLATTEN_SIGMA_PX = 25.0
 """Sigma of the Gaussian blur subtracted from thermal images before detection, pixels

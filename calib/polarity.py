@@ -45,10 +45,10 @@ from typing import Any
 
 import numpy as np
 
-from calib.board import Board
-from calib.camera import Intrinsics
-from calib.detect import THERMAL_BLACK_IS_HOT, Detection, detect_board
-from calib.transforms import make_T
+from trifuse.calib.board import Board
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.detect import THERMAL_BLACK_IS_HOT, Detection, detect_board
+from trifuse.calib.transforms import make_T
 
 AGREE_FRACTION_OF_HALF_TURN = 0.1
 """A view agrees with a consensus pose when its disagreement is below this fraction of what

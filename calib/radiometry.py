@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from calib.numbers import check_finite
+from trifuse.calib.numbers import check_finite
 
 __all__ = ["RADIOMETRY_KEYS", "Radiometry"]
 

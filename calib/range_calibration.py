@@ -20,17 +20,17 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from calib.board import Board
-from calib.camera import Intrinsics, pixel_rays
-from calib.range_correction import (
+from trifuse.calib.board import Board
+from trifuse.calib.camera import Intrinsics, pixel_rays
+from trifuse.calib.range_correction import (
     RangeCorrection,
     amplitude_log,
     bilinear_weights,
     bspline_basis,
     offset_grid_shape,
 )
-from calib.robust import mad_sigma
-from calib.tof import region_map
+from trifuse.calib.robust import mad_sigma
+from trifuse.calib.tof import region_map
 
 REGION_NAMES = {
     1: "region 1 (centre 11x11)",

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from calib.numbers import check_finite
+from trifuse.calib.numbers import check_finite
 
 MODEL = "trifuse-range/1"
 _LUT_STEP_M = 0.001  # resolution of the distance term's lookup table

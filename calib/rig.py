@@ -18,13 +18,13 @@ from typing import Any, Literal, get_args
 import numpy as np
 import yaml
 
-from calib.camera import COEFFICIENT_NAMES, DISTORTION_LENGTHS, Intrinsics, physical_problem
-from calib.errors import RigError
-from calib.numbers import check_finite
-from calib.radiometry import Radiometry
-from calib.range_correction import RangeCorrection
-from calib.transforms import invert, rigidity_problem
-from calib.yaml_text import YamlError, parse_yaml
+from trifuse.calib.camera import COEFFICIENT_NAMES, DISTORTION_LENGTHS, Intrinsics, physical_problem
+from trifuse.calib.errors import RigError
+from trifuse.calib.numbers import check_finite
+from trifuse.calib.radiometry import Radiometry
+from trifuse.calib.range_correction import RangeCorrection
+from trifuse.calib.transforms import invert, rigidity_problem
+from trifuse.calib.yaml_text import YamlError, parse_yaml
 
 Modality = Literal["color", "thermal", "tof"]
 MODALITIES: tuple[str, ...] = get_args(Modality)

@@ -53,25 +53,25 @@ import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from calib.board import Board
-from calib.camera import Intrinsics
-from calib.diagnosis import (
+from trifuse.calib.board import Board
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.diagnosis import (
     fallback_reference,
     intrinsics_problem,
     screen_sensors,
     zhang_failure,
     zhang_rms_px,
 )
-from calib.errors import CalibrationError
-from calib.polarity import SensorPolarity
-from calib.rig import Eye
-from calib.rig_problem import BLAS_THREADS, CornerProblem, build_problem
-from calib.rig_result import CalibrationResult, CornerResiduals, Outlier, ViewError
-from calib.rig_uncertainty import covariance_estimates, rig_covariance, sensor_sigma
-from calib.schur_lm import SchurResult, least_squares_schur
-from calib.sensor_result import SensorResult
-from calib.transforms import invert, make_T, mean_rotation, rotation_from_rvec
-from calib.verdict import ZHANG_MIN_VIEWS, Verdict, judge_rig
+from trifuse.calib.errors import CalibrationError
+from trifuse.calib.polarity import SensorPolarity
+from trifuse.calib.rig import Eye
+from trifuse.calib.rig_problem import BLAS_THREADS, CornerProblem, build_problem
+from trifuse.calib.rig_result import CalibrationResult, CornerResiduals, Outlier, ViewError
+from trifuse.calib.rig_uncertainty import covariance_estimates, rig_covariance, sensor_sigma
+from trifuse.calib.schur_lm import SchurResult, least_squares_schur
+from trifuse.calib.sensor_result import SensorResult
+from trifuse.calib.transforms import invert, make_T, mean_rotation, rotation_from_rvec
+from trifuse.calib.verdict import ZHANG_MIN_VIEWS, Verdict, judge_rig
 
 Observations = Mapping[str, Mapping[str, np.ndarray]]
 Progress = Callable[[str, float], None]

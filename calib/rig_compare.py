@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from calib.camera import Intrinsics
-from calib.rig import Rig, Sensor
-from calib.transforms import pose_error
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.rig import Rig, Sensor
+from trifuse.calib.transforms import pose_error
 
 FOCAL_TARGET: Mapping[str, float] = {"color": 0.003, "thermal": 0.003, "tof": 0.01}
 """Largest relative focal-length error |f_est / f_true - 1| per modality."""

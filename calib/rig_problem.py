@@ -18,9 +18,9 @@ from functools import cached_property
 import numpy as np
 from scipy import sparse
 
-from calib.board import Board
-from calib.camera import Intrinsics
-from calib.transforms import rotations_from_rvecs, rvec_from_rotation
+from trifuse.calib.board import Board
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.transforms import rotations_from_rvecs, rvec_from_rotation
 
 # BLAS threads of the whole calibration: the products are small (sparse, n x n with n of a
 # few hundred, the screening's (n M, 3) x (3, 3 J)), so more threads gain little and, beside

@@ -8,12 +8,12 @@ from typing import Any
 
 import numpy as np
 
-from calib.board import Board
-from calib.polarity import BoardOrdering, SensorPolarity
-from calib.rig import Eye, Rig, Sensor
-from calib.rig_uncertainty import RigCovariance
-from calib.sensor_result import SensorResult
-from calib.verdict import ZHANG_MIN_VIEWS, RigVerdict
+from trifuse.calib.board import Board
+from trifuse.calib.polarity import BoardOrdering, SensorPolarity
+from trifuse.calib.rig import Eye, Rig, Sensor
+from trifuse.calib.rig_uncertainty import RigCovariance
+from trifuse.calib.sensor_result import SensorResult
+from trifuse.calib.verdict import ZHANG_MIN_VIEWS, RigVerdict
 
 
 @dataclass

@@ -16,8 +16,8 @@ import scipy.linalg
 from scipy import sparse
 from threadpoolctl import threadpool_limits
 
-from calib.camera import Intrinsics
-from calib.rig_problem import BLAS_THREADS, CornerProblem
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.rig_problem import BLAS_THREADS, CornerProblem
 
 
 @dataclass(frozen=True)

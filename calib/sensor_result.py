@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from calib.camera import Intrinsics
+from trifuse.calib.camera import Intrinsics
 
 
 @dataclass

@@ -43,13 +43,13 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from calib.board import Board
-from calib.rig import Eye
-from calib.rig_compare import FOCAL_TARGET, POSE_TARGET
-from calib.rig_problem import CornerProblem
-from calib.rig_uncertainty import RigCovariance
-from calib.sensor_result import SensorResult
-from calib.transforms import invert, make_T, rotations_from_rvecs, rvec_from_rotation
+from trifuse.calib.board import Board
+from trifuse.calib.rig import Eye
+from trifuse.calib.rig_compare import FOCAL_TARGET, POSE_TARGET
+from trifuse.calib.rig_problem import CornerProblem
+from trifuse.calib.rig_uncertainty import RigCovariance
+from trifuse.calib.sensor_result import SensorResult
+from trifuse.calib.transforms import invert, make_T, rotations_from_rvecs, rvec_from_rotation
 
 ZHANG_MIN_VIEWS = 3
 """Views of the board Zhang's method needs for a sensor's intrinsics (OpenCV's

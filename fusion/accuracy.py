@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calib.camera import pixel_grid
-from calib.rig import Rig
+from trifuse.calib.camera import pixel_grid
+from trifuse.calib.rig import Rig
 
 BANDS_M: tuple[tuple[float, float], ...] = ((0.5, 1.0), (1.0, 2.0), (2.0, 4.0), (4.0, 8.0))
 

@@ -62,8 +62,8 @@ import numpy as np
 import numpy.typing as npt
 from scipy.ndimage import gaussian_filter1d
 
-from calib.numbers import check_finite
-from fusion.palettes import _index_into, check_span
+from trifuse.calib.numbers import check_finite
+from trifuse.fusion.palettes import _index_into, check_span
 
 __all__ = [
     "AGC_MODES",

@@ -30,12 +30,12 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from calib.radiometry import Radiometry
-from calib.rig import Rig
-from calib.robust import MAD_TO_SIGMA, mad_sigma
-from fusion.geometry import in_image, project_to_sensor
-from fusion.mapping import DepthView, MappingOptions
-from fusion.stereo import sample_image
+from trifuse.calib.radiometry import Radiometry
+from trifuse.calib.rig import Rig
+from trifuse.calib.robust import MAD_TO_SIGMA, mad_sigma
+from trifuse.fusion.geometry import in_image, project_to_sensor
+from trifuse.fusion.mapping import DepthView, MappingOptions
+from trifuse.fusion.stereo import sample_image
 
 __all__ = [
     "REJECTION_REASONS",

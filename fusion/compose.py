@@ -78,8 +78,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from calib.numbers import check_finite
-from fusion.agc import (
+from trifuse.calib.numbers import check_finite
+from trifuse.fusion.agc import (
     AGC_MODES,
     DEFAULT_MAX_GAIN,
     DEFAULT_PLATEAU,
@@ -89,7 +89,7 @@ from fusion.agc import (
     check_max_gain,
     check_plateau,
 )
-from fusion.palettes import (
+from trifuse.fusion.palettes import (
     PALETTE_NAMES,
     PaletteName,
     _check_rgb,

@@ -19,9 +19,9 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from calib.camera import MAX_RAY_RADIUS, Intrinsics, monotonic_radius, pixel_rays
-from calib.rig import Rig
-from calib.transforms import transform_points
+from trifuse.calib.camera import MAX_RAY_RADIUS, Intrinsics, monotonic_radius, pixel_rays
+from trifuse.calib.rig import Rig
+from trifuse.calib.transforms import transform_points
 
 __all__ = [
     "Projector32",

@@ -18,12 +18,12 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from calib.rig import Rig
-from fusion.geometry import tof_sensor_name
-from fusion.mapping import MappingOptions, TofGrid
-from fusion.odometry import TofOdometry
-from fusion.point_attributes import PointAttributes
-from fusion.voxel_map import DepthImage, IntegrateStats, MapSettings, VoxelMap
+from trifuse.calib.rig import Rig
+from trifuse.fusion.geometry import tof_sensor_name
+from trifuse.fusion.mapping import MappingOptions, TofGrid
+from trifuse.fusion.odometry import TofOdometry
+from trifuse.fusion.point_attributes import PointAttributes
+from trifuse.fusion.voxel_map import DepthImage, IntegrateStats, MapSettings, VoxelMap
 
 
 class MapBuilder:

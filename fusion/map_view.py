@@ -17,10 +17,10 @@ from typing import Literal
 
 import numpy as np
 
-from fusion.agc import DEFAULT_MAX_GAIN, tone_map
-from fusion.compose import point_colors
-from fusion.palettes import PaletteName, palette
-from fusion.voxel_map import VoxelMap
+from trifuse.fusion.agc import DEFAULT_MAX_GAIN, tone_map
+from trifuse.fusion.compose import point_colors
+from trifuse.fusion.palettes import PaletteName, palette
+from trifuse.fusion.voxel_map import VoxelMap
 
 MapColoring = Literal["temperature", "color"]
 MapAgc = Literal["plateau", "linear"]

@@ -32,9 +32,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from calib.camera import pixel_grid
-from calib.rig import Rig, Sensor
-from fusion.geometry import tof_rays, tof_sensor_name
+from trifuse.calib.camera import pixel_grid
+from trifuse.calib.rig import Rig, Sensor
+from trifuse.fusion.geometry import tof_rays, tof_sensor_name
 
 
 @dataclass(frozen=True)

@@ -19,8 +19,8 @@ from collections.abc import Mapping
 import cv2
 import numpy as np
 
-from calib.rig import Rig
-from fusion.geometry import Projector32
+from trifuse.calib.rig import Rig
+from trifuse.fusion.geometry import Projector32
 
 _KERNEL = np.ones((3, 3), np.uint8)
 

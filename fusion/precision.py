@@ -57,9 +57,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from calib.rig import Rig
-from calib.tof import region3_edge_pixel
-from fusion.geometry import in_image, monotonic_radius, project_to_sensor, tof_sensor_name
+from trifuse.calib.rig import Rig
+from trifuse.calib.tof import region3_edge_pixel
+from trifuse.fusion.geometry import in_image, monotonic_radius, project_to_sensor, tof_sensor_name
 
 __all__ = [
     "DEFAULT_DISTANCE_ERROR_M",

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import numbers
 
-from calib.numbers import check_finite
+from trifuse.calib.numbers import check_finite
 
 __all__ = ["SpanSmoother", "level_from_span", "span_from_level"]
 

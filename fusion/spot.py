@@ -48,8 +48,8 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
-from calib.camera import Intrinsics
-from fusion.stereo import StereoFusion
+from trifuse.calib.camera import Intrinsics
+from trifuse.fusion.stereo import StereoFusion
 
 DepthKind = Literal["measured", "fallback"]
 """Where a pixel's depth came from: the TOF (``measured``) or the mapping's fallback."""

@@ -15,9 +15,9 @@ from collections.abc import Mapping
 import cv2
 import numpy as np
 
-from calib.rig import Rig
-from fusion.agc import ToneMap, ToneMapper, gain_span
-from fusion.compose import (
+from trifuse.calib.rig import Rig
+from trifuse.fusion.agc import ToneMap, ToneMapper, gain_span
+from trifuse.fusion.compose import (
     CloudColoring,
     Composer,
     DisplaySettings,
@@ -26,9 +26,9 @@ from fusion.compose import (
     resolve_span,
     stereo_halves,
 )
-from fusion.mapping import EyeFusion, MappingOptions, TofGrid
-from fusion.palettes import PaletteName
-from fusion.span import SpanSmoother
+from trifuse.fusion.mapping import EyeFusion, MappingOptions, TofGrid
+from trifuse.fusion.palettes import PaletteName
+from trifuse.fusion.span import SpanSmoother
 
 EYE_ORDER = ("left", "right")
 SPAN_SETTLED_K = 0.02

@@ -35,10 +35,10 @@ from dataclasses import asdict, dataclass, field
 import cv2
 import numpy as np
 
-from calib.camera import Intrinsics
-from calib.numbers import finite_float
-from fusion.geometry import Projector32
-from fusion.voxel_hash import VoxelHash
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.numbers import finite_float
+from trifuse.fusion.geometry import Projector32
+from trifuse.fusion.voxel_hash import VoxelHash
 
 MAX_VOXELS = 50_000_000
 """The largest ``max_voxels``: about 5.4 GB of memory when full (60 bytes of arrays and at

@@ -11,14 +11,14 @@ from collections.abc import Callable, Iterable, Mapping
 import cv2
 import numpy as np
 
-from app.sources.sim.head import default_rig
-from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
-from calib.board import Board
-from calib.camera import Intrinsics
-from calib.diagnosis import Screening, screen_sensors
-from calib.rig import Rig
-from calib.rig_calibration import SensorSpec
-from calib.transforms import make_T, transform_points
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
+from trifuse.calib.board import Board
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.diagnosis import Screening, screen_sensors
+from trifuse.calib.rig import Rig
+from trifuse.calib.rig_calibration import SensorSpec
+from trifuse.calib.transforms import make_T, transform_points
 
 RIG = default_rig()
 

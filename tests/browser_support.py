@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from app.devtools.browser_console import CHROMIUM, CHROMIUM_FLAGS
-from app.devtools.console_process import ConsoleProcess, stop_process
+from trifuse.app.devtools.browser_console import CHROMIUM, CHROMIUM_FLAGS
+from trifuse.app.devtools.console_process import ConsoleProcess, stop_process
 
 FLAGS = list(CHROMIUM_FLAGS)
 WAIT_MS = 300_000

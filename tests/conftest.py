@@ -1,5 +1,6 @@
-"""Test set-up: the repository's packages importable without installing trifuse, the real
-test images kept in ``tests/data`` (with their licences), and shared fixtures.
+"""Test set-up: the checkout on ``sys.path`` (``tests.*`` support modules; trifuse itself is
+imported as installed, ``pip install -e '.[test]'``), the real test images kept in
+``tests/data`` (with their licences), and shared fixtures.
 
 Plain helpers shared by test modules live in support modules, never in a test module that
 another imports: ``support.py`` (waiting, a simulated clock, small rigs, synthetic frames and
@@ -92,7 +93,7 @@ def browser():
 @pytest.fixture(scope="session")
 def calibration_frame_sets():
     """Twelve simulated views of the calibration board (seed 1), all five sensors."""
-    from app.sources.sim.scenarios import calibration_views
+    from trifuse.app.sources.sim.scenarios import calibration_views
 
     return [v.frames for v in calibration_views(12, seed=1)]
 
@@ -114,8 +115,8 @@ def simulated(simulated_capture: Path, tmp_path_factory: pytest.TempPathFactory)
     tests."""
     import json
 
-    from app.storage.rigfile import load_rig
     from tests.prerender_support import prerendered
+    from trifuse.app.storage.rigfile import load_rig
 
     out = prerendered("simulated", tmp_path_factory)
     rig_path, report_path = out / "rig.yaml", out / "report.json"

@@ -17,11 +17,11 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from app.server.runtime.foxglove_live import FoxgloveLive
-from app.server.runtime.stream import FrameHub
-from app.sources.frames import Frame, FrameSet
-from app.sources.sim.head import default_rig
 from tests.support import synth_frame
+from trifuse.app.server.runtime.foxglove_live import FoxgloveLive
+from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.sources.sim.head import default_rig
 
 VARIANTS = 3
 """Different frames per sensor (cycled)."""

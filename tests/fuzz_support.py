@@ -40,20 +40,20 @@ import pytest
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
-from app.sources.frames import Frame, FrameSet
-from app.sources.sim.head import default_rig
-from app.storage.capture import load_capture
-from app.storage.capture_writer import write_board, write_rig, write_view
-from app.storage.ground_truth import write_ground_truth
-from app.storage.rigfile import load_rig, save_rig
-from calib.errors import RigError
-from calib.radiometry import Radiometry
-from calib.range_correction import RangeCorrection, offset_grid_shape
-from calib.rig import Rig, rig_to_dict, rig_to_yaml
-from calib.transforms import make_T, rotation_from_euler_deg
 from tests.support import CAPTURE_BOARD as BOARD
 from tests.support import capture_frames
 from tests.support import small_capture_rig as capture_rig
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.storage.capture import load_capture
+from trifuse.app.storage.capture_writer import write_board, write_rig, write_view
+from trifuse.app.storage.ground_truth import write_ground_truth
+from trifuse.app.storage.rigfile import load_rig, save_rig
+from trifuse.calib.errors import RigError
+from trifuse.calib.radiometry import Radiometry
+from trifuse.calib.range_correction import RangeCorrection, offset_grid_shape
+from trifuse.calib.rig import Rig, rig_to_dict, rig_to_yaml
+from trifuse.calib.transforms import make_T, rotation_from_euler_deg
 
 EXAMPLES = {
     "rig_content": 250,

@@ -42,7 +42,7 @@ TIMEOUT_S = 1800.0
 
 
 def _cli(*argv: str) -> None:
-    from app.cli import main
+    from trifuse.app.cli import main
 
     assert main(list(argv)) == 0, argv
 
@@ -77,9 +77,9 @@ def _simulated(out: Path) -> None:
 def _matrix_cooled(out: Path) -> None:
     """test_calibration_matrix.py's cooled 8x5 board seen by a head with ccd_right and
     thermal_left upside down (the rig file beside the capture)."""
-    from app.sources.sim.head import default_rig
-    from app.storage.rigfile import save_rig
     from tests.support import upside_down
+    from trifuse.app.sources.sim.head import default_rig
+    from trifuse.app.storage.rigfile import save_rig
 
     out.mkdir()
     rig = out / "upside-down.yaml"
@@ -115,9 +115,9 @@ def _thermal_views(name: str) -> Callable[[Path], None]:
     def job(out: Path) -> None:
         """The thermal views under BENCH_CONDITIONS[name] of :data:`THERMAL_MORE_SEEDS`,
         both imagers, each seed's as a pickled tuple of ThermalView (``seed-N.pkl``)."""
-        from app.sources.sim.condition_views import thermal_condition_views
-        from app.sources.sim.head import default_rig
-        from app.sources.sim.thermal_conditions import BENCH_CONDITIONS
+        from trifuse.app.sources.sim.condition_views import thermal_condition_views
+        from trifuse.app.sources.sim.head import default_rig
+        from trifuse.app.sources.sim.thermal_conditions import BENCH_CONDITIONS
 
         out.mkdir()
         poses, seeds = THERMAL_MORE_SEEDS

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 from mcap_ros2.writer import Writer
 
-from app.recording.ros2 import MSGDEFS
+from trifuse.app.recording.ros2 import MSGDEFS
 
 TOPIC_MAP = """
 format: trifuse-topic-map/1

@@ -11,14 +11,14 @@ from types import SimpleNamespace
 import numpy as np
 import viser
 
-from app.server.runtime.context import ConsoleContext
-from app.sources.frames import Frame, FrameSet
-from app.sources.sim.head import default_rig
-from calib.board import Board
-from calib.radiometry import Radiometry
-from calib.rig import Rig
-from fusion.compose import DisplaySettings
-from fusion.stereo import StereoFusion
+from trifuse.app.server.runtime.context import ConsoleContext
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.calib.board import Board
+from trifuse.calib.radiometry import Radiometry
+from trifuse.calib.rig import Rig
+from trifuse.fusion.compose import DisplaySettings
+from trifuse.fusion.stereo import StereoFusion
 
 RED = (200, 30, 30)
 GREEN = (30, 200, 30)

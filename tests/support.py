@@ -30,15 +30,15 @@ from typing import TypeVar
 import numpy as np
 import pytest
 
-from app.devtools.image_quality import psnr
-from app.recording import RecordingWriter
-from app.sources.base import FrameSource
-from app.sources.frames import Frame, FrameSet
-from calib.board import Board
-from calib.camera import Intrinsics
-from calib.rig import Eye, Rig, Sensor
-from calib.transforms import make_T, rotation_from_euler_deg
-from calib.units import encode_amplitude, encode_distance, encode_thermal
+from trifuse.app.devtools.image_quality import psnr
+from trifuse.app.recording import RecordingWriter
+from trifuse.app.sources.base import FrameSource
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.calib.board import Board
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.rig import Eye, Rig, Sensor
+from trifuse.calib.transforms import make_T, rotation_from_euler_deg
+from trifuse.calib.units import encode_amplitude, encode_distance, encode_thermal
 
 V = TypeVar("V")
 
@@ -78,7 +78,7 @@ def wait_searched(session) -> None:
 def run_cli(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
     """``trifuse argv`` in this process: its exit status, stdout and stderr (never a
     traceback: the CLI turns errors into one line)."""
-    from app.cli import main
+    from trifuse.app.cli import main
 
     code = main(argv)
     out, err = capsys.readouterr()
@@ -354,8 +354,8 @@ def record_survey_archive(directory: Path, seeds: Iterable[int], duration_s: flo
     """Recordings ``mission<seed>.mcap`` of the simulated survey (the head pans, its poses
     recorded) at a tenth of the real resolutions (:func:`small_rig`), made by ``trifuse
     record``: the archive an offline job (fuse, map) runs over."""
-    from app.cli import main
-    from app.storage.rigfile import save_rig
+    from trifuse.app.cli import main
+    from trifuse.app.storage.rigfile import save_rig
 
     rig_path = save_rig(directory / "rig.yaml", small_rig())
     out = []

@@ -11,8 +11,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from calib.board import Board
-from calib.transforms import make_T
+from trifuse.calib.board import Board
+from trifuse.calib.transforms import make_T
 
 
 def look_at_pose(

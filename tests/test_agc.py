@@ -9,8 +9,8 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from app.server.runtime.pipeline import PALETTE_TICKS, scale_meta
-from fusion.agc import (
+from trifuse.app.server.runtime.pipeline import PALETTE_TICKS, scale_meta
+from trifuse.fusion.agc import (
     AGC_MODES,
     BIN_K,
     DEFAULT_MAX_GAIN,
@@ -28,14 +28,14 @@ from fusion.agc import (
     plateau_positions,
     tone_map,
 )
-from fusion.compose import (
+from trifuse.fusion.compose import (
     FALLBACK_DESATURATION,
     FALLBACK_FADE,
     Composer,
     DisplaySettings,
     auto_span,
 )
-from fusion.palettes import palette, temperature_index
+from trifuse.fusion.palettes import palette, temperature_index
 
 W, H = 160, 120
 WALL_K, FLOOR_K, PERSON_K, PIPE_K, COLD_K = 293.5, 292.3, 307.15, 358.0, 279.0
@@ -258,9 +258,9 @@ def test_the_stereo_fusion_widens_a_flat_scenes_automatic_span() -> None:
     """Through :class:`fusion.stereo.StereoFusion` (the console's path): a flat noisy wall
     in both imagers gets an automatic span of ``255 / max_gain`` under plateau (1 K under
     linear, as before), a manual span stays as it is, and the table keeps to the cap."""
-    from app.sources.sim.head import default_rig
-    from fusion.stereo import StereoFusion
     from tests.scene_support import ramp_distance
+    from trifuse.app.sources.sim.head import default_rig
+    from trifuse.fusion.stereo import StereoFusion
 
     fusion = StereoFusion(default_rig())
     fusion.update_depth(ramp_distance(fusion.rig))
@@ -637,12 +637,12 @@ def test_entropy_of_palette_indices() -> None:
 def test_fusion_panel_sets_the_agc_the_plateau_and_the_max_gain(server) -> None:
     from types import SimpleNamespace
 
-    from app.server.panels.display import Panels
-    from app.server.runtime.context import ConsoleBandwidth
-    from app.server.runtime.video_presets import StreamSettings
-    from app.sources.sim.head import default_rig
-    from calib.board import Board
-    from calib.radiometry import Radiometry
+    from trifuse.app.server.panels.display import Panels
+    from trifuse.app.server.runtime.context import ConsoleBandwidth
+    from trifuse.app.server.runtime.video_presets import StreamSettings
+    from trifuse.app.sources.sim.head import default_rig
+    from trifuse.calib.board import Board
+    from trifuse.calib.radiometry import Radiometry
 
     pipeline = SimpleNamespace(
         rig=default_rig(),
@@ -675,11 +675,11 @@ def test_fusion_panel_sets_the_agc_the_plateau_and_the_max_gain(server) -> None:
 def test_rest_api_sets_the_agc_and_keeps_it_when_left_out() -> None:
     from fastapi.testclient import TestClient
 
-    from app.server.routers.app import create_app
-    from app.server.runtime.pipeline import FusionPipeline
-    from app.server.runtime.stream import FrameHub
-    from app.sources.sim.head import default_rig
     from tests.support import ListSource
+    from trifuse.app.server.routers.app import create_app
+    from trifuse.app.server.runtime.pipeline import FusionPipeline
+    from trifuse.app.server.runtime.stream import FrameHub
+    from trifuse.app.sources.sim.head import default_rig
 
     pipeline = FusionPipeline(ListSource(), default_rig(), FrameHub())
     client = TestClient(create_app(FrameHub(), None, pipeline))

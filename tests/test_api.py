@@ -8,11 +8,11 @@ import re
 import pytest
 from fastapi.testclient import TestClient
 
-from app.server.routers.app import create_app
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.stream import FrameHub
-from app.sources.sim.head import default_rig
 from tests.support import ListSource
+from trifuse.app.server.routers.app import create_app
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.sources.sim.head import default_rig
 
 
 @pytest.fixture()

@@ -22,21 +22,21 @@ from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
-from app.cli import main
-from app.devtools.console_process import free_port, stop_process
-from app.server.routers.app import create_app
-from app.server.routers.auth import AuthConfig, SignInThrottle, check_token, is_loopback
-from app.server.routers.session_api import make_session_router
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.stream import FrameHub
-from app.sources.push.router import make_push_router
-from app.sources.push.source import PushSource
-from app.sources.sim.head import default_rig
-from app.sources.sim.scenarios import CALIBRATION_BOARD
-from app.workflows.calib_session import CalibrationSession
 from tests.browser_support import start_console
 from tests.support import ListSource
 from tests.test_push import serve
+from trifuse.app.cli import main
+from trifuse.app.devtools.console_process import free_port, stop_process
+from trifuse.app.server.routers.app import create_app
+from trifuse.app.server.routers.auth import AuthConfig, SignInThrottle, check_token, is_loopback
+from trifuse.app.server.routers.session_api import make_session_router
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.sources.push.router import make_push_router
+from trifuse.app.sources.push.source import PushSource
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD
+from trifuse.app.workflows.calib_session import CalibrationSession
 
 TOKEN = "test-token-0123456789abcdef"
 HOST = "testserver"  # TestClient's Host header; its origin is http://testserver
@@ -362,7 +362,7 @@ class _NoRedirect(urllib.request.HTTPRedirectHandler):
 
 
 def test_push_driver_without_the_token_stops_with_a_message(tmp_path, capsys) -> None:
-    from app.drivers import push_sim
+    from trifuse.app.drivers import push_sim
 
     with serve(console_app(tmp_path)) as port:
         url = f"ws://127.0.0.1:{port}/ingest"

@@ -11,13 +11,13 @@ import math
 import numpy as np
 import pytest
 
-from app.sources.sim.head import default_rig
-from app.sources.sim.render import HeadModel, Renderer
-from app.sources.sim.scenarios import inspection_scene
-from calib.radiometry import Radiometry
-from calib.rig import Rig
-from calib.transforms import make_T, rotation_from_euler_deg
-from fusion.balance import (
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.render import HeadModel, Renderer
+from trifuse.app.sources.sim.scenarios import inspection_scene
+from trifuse.calib.radiometry import Radiometry
+from trifuse.calib.rig import Rig
+from trifuse.calib.transforms import make_T, rotation_from_euler_deg
+from trifuse.fusion.balance import (
     REJECTION_REASONS,
     BalanceEstimate,
     BalanceFilter,
@@ -26,8 +26,8 @@ from fusion.balance import (
     estimate_balance,
     shared_temperatures,
 )
-from fusion.span import SpanSmoother, level_from_span, span_from_level
-from fusion.stereo import StereoFusion
+from trifuse.fusion.span import SpanSmoother, level_from_span, span_from_level
+from trifuse.fusion.stereo import StereoFusion
 
 NETD_K = 0.08  # the simulated imagers' noise (app.sources.sim.render), 1 sigma per reading
 SIGMA_DIFF_K = NETD_K * math.sqrt(2.0)  # 1 sigma of a left - right difference: 0.113 K

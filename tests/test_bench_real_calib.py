@@ -22,14 +22,14 @@ import cv2
 import numpy as np
 import pytest
 
-from app.devtools.bench_real_calib import (
+from trifuse.app.devtools.bench_real_calib import (
     THERMAL_RMS_TOLERANCE,
     format_set,
     run_set,
     run_trifuse,
     write_capture,
 )
-from app.devtools.real_sets import REAL_SETS, Checkerboard, RealSet, Sensor
+from trifuse.app.devtools.real_sets import REAL_SETS, Checkerboard, RealSet, Sensor
 
 
 @pytest.fixture(scope="module", params=["opencv-left-9x6", "boofcv-bumblebee2-chess"])
@@ -103,8 +103,8 @@ def test_a_board_trifuse_cannot_read_is_reported_not_supported_yet(tmp_path) -> 
 
 
 def test_the_figures_carry_the_baselines_trifuse_bench_reports(run) -> None:
-    from app.devtools.bench import REGISTRY
-    from app.devtools.bench_real_calib import figures
+    from trifuse.app.devtools.bench import REGISTRY
+    from trifuse.app.devtools.bench_real_calib import figures
 
     figs = figures([run])
     mine = [(a, b) for a, b in REGISTRY["real-calib"].baselines if a.startswith(f"{run.name}.")]

@@ -11,10 +11,10 @@ import random
 
 import pytest
 
-from app.cli import main
-from app.devtools import bench_soak, soak_report
-from app.devtools.procfs import parse_proc_cpu_s, parse_proc_status, sample_process
-from app.devtools.soak_report import (
+from trifuse.app.cli import main
+from trifuse.app.devtools import bench_soak, soak_report
+from trifuse.app.devtools.procfs import parse_proc_cpu_s, parse_proc_status, sample_process
+from trifuse.app.devtools.soak_report import (
     Phase,
     SoakConfig,
     VideoLoadConfig,
@@ -23,7 +23,7 @@ from app.devtools.soak_report import (
     slope_per_minute,
     summarize,
 )
-from app.devtools.stream_clients import MjpegParts
+from trifuse.app.devtools.stream_clients import MjpegParts
 
 # -- the slope fit --------------------------------------------------------------------------
 

@@ -11,20 +11,20 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from app.server.runtime import board_watch
-from app.server.runtime.board_watch import (
+from tests.support import WAIT_S, FakeClock, wait_until
+from trifuse.app.server.runtime import board_watch
+from trifuse.app.server.runtime.board_watch import (
     MAX_PAUSE_S,
     BoardWatch,
     board_in_image,
     first_look,
     sighting,
 )
-from app.sources.frames import Frame, FrameSet
-from app.sources.sim.head import default_rig
-from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
-from calib.detect import Detection, detect_board
-from calib.transforms import pose_error
-from tests.support import WAIT_S, FakeClock, wait_until
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
+from trifuse.calib.detect import Detection, detect_board
+from trifuse.calib.transforms import pose_error
 
 
 def restamped(fs: FrameSet, stamp_ns: int) -> FrameSet:

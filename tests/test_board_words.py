@@ -12,21 +12,21 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from app.cli.simulate import board_text
-from app.sources.frames import FrameSet
-from app.storage.capture import load_capture
-from app.storage.capture_writer import write_board, write_view
-from app.workflows.calib_session import _board_text as session_board_text
-from app.workflows.calibration_run import (
+from tests.support import capture_frames, small_capture_rig
+from trifuse.app.cli.simulate import board_text
+from trifuse.app.sources.frames import FrameSet
+from trifuse.app.storage.capture import load_capture
+from trifuse.app.storage.capture_writer import write_board, write_view
+from trifuse.app.workflows.calib_session import _board_text as session_board_text
+from trifuse.app.workflows.calibration_run import (
     DetectionRun,
     calibrate_capture,
     dominant_failure,
     excluded_with_detection_reasons,
 )
-from app.workflows.report_html import _board_text as html_board_text
-from calib.board import Board
-from calib.errors import CalibrationError
-from tests.support import capture_frames, small_capture_rig
+from trifuse.app.workflows.report_html import _board_text as html_board_text
+from trifuse.calib.board import Board
+from trifuse.calib.errors import CalibrationError
 
 BOARDS = {
     "checkerboard 9 x 6 inner corners of 60 mm": Board(9, 6, 0.06),

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from fusion.palettes import palette
 from tests.browser_support import needs_chromium
+from trifuse.fusion.palettes import palette
 
 pytestmark = [needs_chromium, pytest.mark.slow]
 

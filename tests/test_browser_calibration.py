@@ -19,12 +19,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.sources.sim.head import default_rig
-from app.storage.capture import load_capture
-from app.storage.rigfile import load_rig
-from calib.transforms import pose_error
 from tests.browser_support import TEST_BOARD_POSES, needs_chromium, run_calibration, start_console
 from tests.support import FOCAL, POSE
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.storage.capture import load_capture
+from trifuse.app.storage.rigfile import load_rig
+from trifuse.calib.transforms import pose_error
 
 pytestmark = [needs_chromium, pytest.mark.slow]
 

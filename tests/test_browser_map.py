@@ -83,7 +83,7 @@ def test_the_map_appears_grows_highlights_pauses_saves_and_resets(browser, tmp_p
         page.wait_for_function("() => /Saved map-.*\\.map\\.npz/.test(document.body.innerText)")
         saved = sorted((workdir / "maps").iterdir())
         assert [p.suffix for p in saved] == [".npz", ".ply"]
-        from app.storage.map_file import load_map
+        from trifuse.app.storage.map_file import load_map
 
         loaded = load_map(saved[0])
         assert int(loaded.occupied().sum()) == held
@@ -97,8 +97,8 @@ def test_the_map_appears_grows_highlights_pauses_saves_and_resets(browser, tmp_p
 def big_map_file(path: Path, n: int = 1_000_000) -> int:
     """A saved map of about ``n`` occupied 2 cm voxels (the walls, floor and ceiling of a
     24 x 3 x 24 m hall, 1 m thick), warm spots included; returns the occupied count."""
-    from app.storage.map_file import save_map
-    from fusion.voxel_map import MapSettings, VoxelMap
+    from trifuse.app.storage.map_file import save_map
+    from trifuse.fusion.voxel_map import MapSettings, VoxelMap
 
     rng = np.random.default_rng(4)
     m = VoxelMap(MapSettings(voxel_m=0.02, max_voxels=2 * n))

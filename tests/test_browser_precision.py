@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import pytest
 
-from app.sources.sim.head import default_rig
-from app.workflows.report_format import limit_distance_cell
-from fusion.precision import analyze_precision
 from tests.browser_support import needs_chromium
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.workflows.report_format import limit_distance_cell
+from trifuse.fusion.precision import analyze_precision
 
 pytestmark = [needs_chromium, pytest.mark.slow]
 

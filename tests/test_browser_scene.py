@@ -95,8 +95,8 @@ def wait_until(condition, what: str, timeout_s: float = 120.0) -> None:
 def small_scene():
     """Viser with the console's 3D scene on the synthetic frame set of test_scene3d (a
     ramp of TOF distances 1.5-3.5 m, uniform colour and thermal images)."""
-    from app.server.panels.scene3d import Scene3D
     from tests.scene_support import pipeline_for, scene_context
+    from trifuse.app.server.panels.scene3d import Scene3D
 
     ctx = scene_context(pipeline_for())
     server = ctx.server

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from app.recording import ReplaySource
 from tests.browser_support import needs_chromium
+from trifuse.app.recording import ReplaySource
 
 pytestmark = [needs_chromium, pytest.mark.slow]
 

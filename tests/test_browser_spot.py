@@ -21,10 +21,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from app.sources.frames import Frame
-from app.sources.sim.scenarios import InspectionScenario
 from tests.browser_support import console_running, needs_chromium
 from tests.support import RATES_HZ, write_recording
+from trifuse.app.sources.frames import Frame
+from trifuse.app.sources.sim.scenarios import InspectionScenario
 
 pytestmark = [needs_chromium, pytest.mark.slow]
 

@@ -7,16 +7,16 @@ import json
 import numpy as np
 import pytest
 
-from app.sources.frames import FrameSet
-from app.sources.sim.head import default_rig
-from app.sources.sim.scenarios import CALIBRATION_BOARD
-from app.storage.capture import load_capture
-from app.storage.rigfile import load_rig
-from app.workflows.calib_session import CalibrationSession, SessionError
-from calib.board import Board
-from calib.detect import Detection
-from calib.transforms import pose_error
 from tests.support import wait_searched
+from trifuse.app.sources.frames import FrameSet
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD
+from trifuse.app.storage.capture import load_capture
+from trifuse.app.storage.rigfile import load_rig
+from trifuse.app.workflows.calib_session import CalibrationSession, SessionError
+from trifuse.calib.board import Board
+from trifuse.calib.detect import Detection
+from trifuse.calib.transforms import pose_error
 
 N_VIEWS = 12
 

@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from conftest import OPENCV_LEFT_9X6
 
-from app.cli import main
-from app.workflows.report_format import coverage_sentence
-from calib.coverage import coarse_reached
-from calib.transforms import pose_error, rvec_from_rotation
 from tests.support import FOCAL, POSE
+from trifuse.app.cli import main
+from trifuse.app.workflows.report_format import coverage_sentence
+from trifuse.calib.coverage import coarse_reached
+from trifuse.calib.transforms import pose_error, rvec_from_rotation
 
 REAL = OPENCV_LEFT_9X6
 BOARD_9x6 = "pattern: checkerboard\ninner_corners: [9, 6]\nsquare_size_m: 0.025\n"
@@ -248,7 +248,7 @@ def test_never_overwrites(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
 def test_board_polarity_keys_are_tri_state_and_round_trip() -> None:
     """Absent (None): found from the data; true/false: an override. Load -> save -> load
     gives the same board, and the default board.yaml carries no polarity key."""
-    from calib.board import Board, board_from_dict
+    from trifuse.calib.board import Board, board_from_dict
 
     auto = Board(9, 6, 0.06)
     assert auto.thermal_black_is_hot is None and auto.tof_black_is_dark is None
@@ -272,12 +272,12 @@ def test_board_yaml_polarity_keys_reach_the_detector(
     the keys board.yaml sets: on the simulated heated board (black hot, dark in the TOF),
     ``thermal_black_is_hot: false`` and ``tof_black_is_dark: false`` give the corner lists
     reversed, leaving the colour cameras alone."""
-    from app.sources.sim.head import default_rig
-    from app.sources.sim.scenarios import CALIBRATION_BOARD
-    from app.storage.capture import load_capture
-    from app.storage.capture_writer import write_board, write_view
-    from app.workflows.calibration_run import detect_capture
-    from calib.board import Board
+    from trifuse.app.sources.sim.head import default_rig
+    from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD
+    from trifuse.app.storage.capture import load_capture
+    from trifuse.app.storage.capture_writer import write_board, write_view
+    from trifuse.app.workflows.calibration_run import detect_capture
+    from trifuse.calib.board import Board
 
     rig = default_rig()
     runs = {}

@@ -35,10 +35,10 @@ from pathlib import Path
 import cv2
 import pytest
 
-from app.cli import main
-from app.storage.rigfile import load_rig
-from calib.rig_compare import compare_rigs
 from tests.prerender_support import prerendered
+from trifuse.app.cli import main
+from trifuse.app.storage.rigfile import load_rig
+from trifuse.calib.rig_compare import compare_rigs
 
 pytestmark = pytest.mark.slow
 

@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from calib.camera import (
+from trifuse.calib.camera import (
     MAX_DISTORTION_TERM,
     MAX_RAY_RADIUS,
     PHYSICAL_FOV_DEG,
@@ -22,7 +22,7 @@ from calib.camera import (
     physical_problem,
     pixel_grid,
 )
-from fusion.geometry import Projector32
+from trifuse.fusion.geometry import Projector32
 
 # Deterministic property tests: same examples every run.
 PROPERTY = settings(derandomize=True, database=None, deadline=None, max_examples=150)

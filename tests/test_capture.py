@@ -11,21 +11,25 @@ import numpy as np
 import pytest
 import yaml
 
-from app.sources.frames import FrameSet
-from app.storage.capture import (
+from tests.support import CAPTURE_BOARD, capture_frames, small_capture_rig
+from trifuse.app.sources.frames import FrameSet
+from trifuse.app.storage.capture import (
     CaptureError,
     ViewExistsError,
     load_capture,
     modality_from_name,
     read_image_header,
 )
-from app.storage.capture_writer import write_board, write_rig, write_view
-from app.storage.ground_truth import GROUND_TRUTH_FORMAT, load_ground_truth, write_ground_truth
-from calib.board import Board
-from calib.rig import Rig
-from calib.transforms import make_T, rotation_from_euler_deg
-from calib.units import encode_distance
-from tests.support import CAPTURE_BOARD, capture_frames, small_capture_rig
+from trifuse.app.storage.capture_writer import write_board, write_rig, write_view
+from trifuse.app.storage.ground_truth import (
+    GROUND_TRUTH_FORMAT,
+    load_ground_truth,
+    write_ground_truth,
+)
+from trifuse.calib.board import Board
+from trifuse.calib.rig import Rig
+from trifuse.calib.transforms import make_T, rotation_from_euler_deg
+from trifuse.calib.units import encode_distance
 
 # Half a centi-kelvin of rounding plus float32's resolution near 300 K (about 3e-5 K).
 THERMAL_TOL_K = 0.005 + 3e-5

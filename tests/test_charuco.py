@@ -14,19 +14,19 @@ import numpy as np
 import pytest
 import yaml
 
-from app.cli import main
-from app.devtools.real_sets import REAL_SETS, load_views
-from calib.board import Board, board_from_dict
-from calib.detect import detect_board
-from calib.opencv_reference import (
+from tests.target_render import look_at_pose, render, to_u8, truth_points
+from trifuse.app.cli import main
+from trifuse.app.devtools.real_sets import REAL_SETS, load_views
+from trifuse.calib.board import Board, board_from_dict
+from trifuse.calib.detect import detect_board
+from trifuse.calib.opencv_reference import (
     calibrate_camera_opencv,
     find_charuco_opencv,
     stereo_calibrate_opencv,
 )
-from calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
-from calib.rig_result import CalibrationResult
-from calib.transforms import invert, make_T, pose_error
-from tests.target_render import look_at_pose, render, to_u8, truth_points
+from trifuse.calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
+from trifuse.calib.rig_result import CalibrationResult
+from trifuse.calib.transforms import invert, make_T, pose_error
 
 BOARD = Board(6, 4, 0.04, pattern="charuco", marker_size_m=0.03, dictionary="DICT_4X4_50")
 INVERTED = Board(

@@ -16,13 +16,13 @@ import numpy as np
 import pytest
 import yaml
 
-from app.cli import main
-from calib.board import Board, board_from_dict
-from calib.detect import detect_board
-from calib.opencv_reference import calibrate_camera_opencv
-from calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
-from calib.transforms import invert, make_T, pose_error
 from tests.target_render import look_at_pose, render, to_u8, truth_points
+from trifuse.app.cli import main
+from trifuse.calib.board import Board, board_from_dict
+from trifuse.calib.detect import detect_board
+from trifuse.calib.opencv_reference import calibrate_camera_opencv
+from trifuse.calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
+from trifuse.calib.transforms import invert, make_T, pose_error
 
 GRID = Board(4, 11, 0.02, pattern="asymmetric_circles", circle_diameter_m=0.015)
 SIZE = (640, 480)

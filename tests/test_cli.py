@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import yaml
 
-from app.cli import main
-from app.devtools import bench, benchmark
+from trifuse.app.cli import main
+from trifuse.app.devtools import bench, benchmark
 
 ROOT = Path(__file__).resolve().parent.parent
 COMMANDS = [
@@ -58,9 +58,9 @@ def test_command_help(
 
 
 def test_console_script_entry_point() -> None:
-    """``python -m app.cli`` is what the ``trifuse`` console script runs."""
+    """``python -m trifuse.app.cli`` is what the ``trifuse`` console script runs."""
     proc = subprocess.run(
-        [sys.executable, "-m", "app.cli", "--help"],
+        [sys.executable, "-m", "trifuse.app.cli", "--help"],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -100,7 +100,7 @@ def test_bad_arguments_in_a_real_process(tmp_path: Path) -> None:
         [
             sys.executable,
             "-m",
-            "app.cli",
+            "trifuse.app.cli",
             "simulate",
             "calibration",
             "--views",
@@ -212,8 +212,8 @@ def test_record_suggests_the_commands_that_use_the_recording(
     suggested command line is one the parser takes, for the file just written."""
     import shlex
 
-    from app.cli import build_parser
     from tests.support import small_rig, synth_frames, write_recording
+    from trifuse.app.cli import build_parser
 
     rig = small_rig()
     source = write_recording(tmp_path / "in.mcap", rig, synth_frames(rig, 0.1, seed=3))
@@ -235,9 +235,9 @@ def test_analyze_prints_tof_pixels_rounded(
     """A calibrated TOF's principal point has many decimals; the table shows one."""
     import dataclasses
 
-    from app.sources.sim.head import default_rig
-    from app.storage.rigfile import save_rig
-    from calib.rig import Rig
+    from trifuse.app.sources.sim.head import default_rig
+    from trifuse.app.storage.rigfile import save_rig
+    from trifuse.calib.rig import Rig
 
     rig = default_rig()
     tof = rig["tof"]
@@ -260,12 +260,12 @@ def test_simulate_calibration_writes_a_capture(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     scenarios = pytest.importorskip(
-        "app.sources.sim.scenarios",
-        reason="the simulator module app.sources.sim.scenarios is not in this checkout yet",
+        "trifuse.app.sources.sim.scenarios",
+        reason="the simulator module trifuse.app.sources.sim.scenarios is not in this checkout yet",
     )
-    from app.sources.sim.head import default_rig, nominal_rig
-    from app.storage.capture import load_capture
-    from app.storage.ground_truth import load_ground_truth
+    from trifuse.app.sources.sim.head import default_rig, nominal_rig
+    from trifuse.app.storage.capture import load_capture
+    from trifuse.app.storage.ground_truth import load_ground_truth
 
     out = tmp_path / "captures"
     code, stdout, err = run(
@@ -331,8 +331,8 @@ def test_median_ms_excludes_warmup() -> None:
 
 def test_nominal_rig_applies_to_any_rig() -> None:
     """``--rig`` derives its starting rig by the rule of ``head.nominal_rig``."""
-    from app.sources.sim.head import default_rig, nominal_rig
-    from calib.rig import Rig
+    from trifuse.app.sources.sim.head import default_rig, nominal_rig
+    from trifuse.calib.rig import Rig
 
     truth = default_rig()
     one_eye = Rig({n: truth[n] for n in ("tof", "ccd_left", "thermal_left")}, "tof")
@@ -346,7 +346,7 @@ def test_nominal_rig_applies_to_any_rig() -> None:
 
 
 def test_serve_refuses_conflicting_sources(capsys) -> None:
-    from app.cli import main as cli_main
+    from trifuse.app.cli import main as cli_main
 
     assert cli_main(["serve", "--replay", "a.mcap", "--push"]) == 2
     assert "choose one of" in capsys.readouterr().err

@@ -13,13 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.sources.sim.head import default_rig
-from app.storage.rigfile import load_rig, save_rig
-from calib.camera import Intrinsics
-from calib.rig import Rig, Sensor
-from calib.rig_compare import FOCAL_TARGET, POSE_TARGET, compare_rigs
-from calib.transforms import invert, make_T, pose_error, rotation_from_rvec
 from tests.support import run_cli
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.storage.rigfile import load_rig, save_rig
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.rig import Rig, Sensor
+from trifuse.calib.rig_compare import FOCAL_TARGET, POSE_TARGET, compare_rigs
+from trifuse.calib.transforms import invert, make_T, pose_error, rotation_from_rvec
 
 TRUTH = default_rig()
 NAMES = TRUTH.names  # tof, ccd_left, ccd_right, thermal_left, thermal_right

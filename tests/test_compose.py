@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from fusion.compose import (
+from trifuse.fusion.compose import (
     DISPLAY_MODES,
     Composer,
     DisplaySettings,
@@ -21,7 +21,7 @@ from fusion.compose import (
     side_by_side,
     stereo_halves,
 )
-from fusion.palettes import (
+from trifuse.fusion.palettes import (
     PALETTE_NAMES,
     apply_palette,
     check_span,

@@ -14,10 +14,10 @@ import time
 
 import pytest
 
-from app.devtools.console_process import stop_process
-from app.server.routers.connections import _RepeatFilter
 from tests.browser_support import start_console
 from tests.support import wait_until
+from trifuse.app.devtools.console_process import stop_process
+from trifuse.app.server.routers.connections import _RepeatFilter
 
 HEADER_TIMEOUT_S = 3.0
 PER_CLIENT = 40

@@ -28,27 +28,27 @@ from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from viser import _messages
 
-from app.devtools.console_bandwidth import (
+from tests.browser_support import needs_chromium
+from tests.scene_support import pipeline_for, scene_context
+from tests.support import FakeClock
+from trifuse.app.devtools.console_bandwidth import (
     ConsolePage,
     ViserTally,
     get_console_bandwidth,
     image_size,
     set_console_bandwidth,
 )
-from app.server.panels.display import FEED_PROFILES, Panels
-from app.server.panels.scene3d import LOW_CLOUD_MAX_POINTS, SCENE_PROFILES, Scene3D
-from app.server.panels.scene_cloud import decimate_cloud, grid_stride
-from app.server.routers.console_api import make_console_settings_router
-from app.server.runtime.context import BANDWIDTH_MODES, ConsoleBandwidth
-from app.server.runtime.video_presets import StreamSettings
-from app.sources.frames import FrameSet
-from app.sources.sim.head import default_rig
-from calib.board import Board
-from calib.radiometry import Radiometry
-from fusion.compose import DisplaySettings
-from tests.browser_support import needs_chromium
-from tests.scene_support import pipeline_for, scene_context
-from tests.support import FakeClock
+from trifuse.app.server.panels.display import FEED_PROFILES, Panels
+from trifuse.app.server.panels.scene3d import LOW_CLOUD_MAX_POINTS, SCENE_PROFILES, Scene3D
+from trifuse.app.server.panels.scene_cloud import decimate_cloud, grid_stride
+from trifuse.app.server.routers.console_api import make_console_settings_router
+from trifuse.app.server.runtime.context import BANDWIDTH_MODES, ConsoleBandwidth
+from trifuse.app.server.runtime.video_presets import StreamSettings
+from trifuse.app.sources.frames import FrameSet
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.calib.board import Board
+from trifuse.calib.radiometry import Radiometry
+from trifuse.fusion.compose import DisplaySettings
 
 LOW = SCENE_PROFILES["low"]
 FULL = SCENE_PROFILES["full"]
@@ -330,7 +330,7 @@ def test_settings_route_reads_and_sets_the_mode() -> None:
 
 
 def test_serve_takes_the_console_bandwidth() -> None:
-    from app.cli import build_parser
+    from trifuse.app.cli import build_parser
 
     args = build_parser().parse_args(["serve", "--console-bandwidth", "low"])
     assert args.console_bandwidth == "low"

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from app.sources.sim.head import default_rig
-from calib.board import Board
-from calib.coverage import (
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.calib.board import Board
+from trifuse.calib.coverage import (
     COARSE_NAMES,
     NOVELTY_THRESHOLD,
     WHOLE_IMAGE,
@@ -18,7 +18,7 @@ from calib.coverage import (
     pose_novelty,
     view_params,
 )
-from calib.transforms import make_T, rotation_from_rvec, transform_points
+from trifuse.calib.transforms import make_T, rotation_from_rvec, transform_points
 
 BOARD = Board(9, 6, 0.03)  # 0.24 m x 0.15 m of corners: about 320 x 200 px at 1 m
 CAMERA = default_rig()["ccd_left"]

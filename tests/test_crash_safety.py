@@ -38,22 +38,22 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-import app.storage.atomic
-import app.storage.capture_writer
-from app.devtools.console_process import ConsoleProcess
-from app.recording import ReplaySource
-from app.recording.sealed_file import SEAL
-from app.recording.writer import RecordingWriter, recover_interrupted
-from app.server.runtime.source_control import Recorder
-from app.sources.frames import Frame, FrameSet
-from app.sources.sim.head import default_rig
-from app.sources.sim.scenarios import CALIBRATION_BOARD
-from app.storage.atomic import atomic_write_bytes, remove_temporaries
-from app.storage.capture import load_capture, load_view
-from app.storage.capture_writer import write_board, write_rig, write_view
-from app.storage.rigfile import load_rig
-from app.workflows.calib_session import CalibrationSession
 from tests.browser_support import ROOT, TEST_BOARD_POSES, wait_for_cache_warmup
+from trifuse.app.devtools.console_process import ConsoleProcess
+from trifuse.app.recording import ReplaySource
+from trifuse.app.recording.sealed_file import SEAL
+from trifuse.app.recording.writer import RecordingWriter, recover_interrupted
+from trifuse.app.server.runtime.source_control import Recorder
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD
+from trifuse.app.storage import atomic as atomic_mod
+from trifuse.app.storage import capture_writer as capture_writer_mod
+from trifuse.app.storage.atomic import atomic_write_bytes, remove_temporaries
+from trifuse.app.storage.capture import load_capture, load_view
+from trifuse.app.storage.capture_writer import write_board, write_rig, write_view
+from trifuse.app.storage.rigfile import load_rig
+from trifuse.app.workflows.calib_session import CalibrationSession
 
 CRASHED = 86  # exit code of a child that "crashed" where the test wanted
 TOKEN = "crash-safety-token-0123456789"
@@ -105,7 +105,7 @@ def _temporaries(folder: Path) -> list[str]:
     [
         (os, "fsync", False),  # data written, not yet durable
         (os, "replace", False),  # data durable, not yet renamed
-        (app.storage.atomic, "fsync_dir", True),  # renamed, the directory not yet fsynced
+        (atomic_mod, "fsync_dir", True),  # renamed, the directory not yet fsynced
     ],
 )
 def test_atomic_write_crash_leaves_old_or_new(tmp_path, module, name, new_is_there) -> None:
@@ -167,7 +167,7 @@ def _file_hashes(folder: Path) -> dict[str, str]:
         (os, "replace", 3, False),  # two images written into the staging folder, third not
         (os, "rename", 1, False),  # every image written, the folder not renamed into place
         # renamed, the capture directory not fsynced
-        (app.storage.capture_writer, "fsync_dir", 2, True),
+        (capture_writer_mod, "fsync_dir", 2, True),
     ],
 )
 def test_capture_crash_leaves_views_whole(tmp_path, module, name, nth, new_is_there) -> None:
@@ -240,9 +240,9 @@ def test_rig_save_crash_keeps_versions_and_numbers_go_on(tmp_path) -> None:
 _RECORD_CHILD = """
 import os, signal, sys
 import numpy as np
-from app.recording.writer import RecordingWriter
-from app.sources.frames import Frame
-from app.sources.sim.head import default_rig
+from trifuse.app.recording.writer import RecordingWriter
+from trifuse.app.sources.frames import Frame
+from trifuse.app.sources.sim.head import default_rig
 rig = default_rig()
 w, h = rig["thermal_left"].image_size
 rng = np.random.default_rng(5)
@@ -355,7 +355,7 @@ def test_a_seal_cut_short_by_a_kill_leaves_the_previous_one_readable(tmp_path, m
         raise _Killed  # (the MCAP writer reports it as an I/O error)
 
     cut: list[int] = []
-    monkeypatch.setattr("app.recording.sealed_file.os.pwrite", torn_pwrite)
+    monkeypatch.setattr("trifuse.app.recording.sealed_file.os.pwrite", torn_pwrite)
     with pytest.raises((_Killed, RuntimeError)):
         writer.seal()
     monkeypatch.undo()
@@ -680,7 +680,7 @@ def _kill_and_restart(workdir: Path, log: Path, servers: list[Server]) -> None:
 def _record_until(out: Path, instants: int) -> tuple[subprocess.Popen, Path, str]:
     """``trifuse record --source sim`` into ``out`` until it has written ``instants``
     instants; returns the process, the file it writes into and what it printed."""
-    main = "import sys; from app.cli import main; sys.exit(main(sys.argv[1:]))"
+    main = "import sys; from trifuse.app.cli import main; sys.exit(main(sys.argv[1:]))"
     argv = ["record", "--source", "sim", "--out", str(out), "--duration", "60"]
     proc = subprocess.Popen(
         [sys.executable, "-c", main, *argv],

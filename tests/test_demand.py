@@ -13,17 +13,17 @@ import numpy as np
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from app.errors import describe_error
-from app.server.runtime.board_watch import BoardWatch
-from app.server.runtime.demand import Demand
-from app.server.runtime.periodic import Periodic
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.stream import FrameHub, make_stream_router
-from app.sources.base import FrameSource
-from app.sources.frames import Frame, FrameSet
-from calib.board import Board
-from calib.detect import Detection
 from tests.support import FakeClock, small_rig, synth_frame
+from trifuse.app.errors import describe_error
+from trifuse.app.server.runtime.board_watch import BoardWatch
+from trifuse.app.server.runtime.demand import Demand
+from trifuse.app.server.runtime.periodic import Periodic
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.stream import FrameHub, make_stream_router
+from trifuse.app.sources.base import FrameSource
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.calib.board import Board
+from trifuse.calib.detect import Detection
 
 RIG = small_rig()
 

@@ -11,12 +11,16 @@ import numpy as np
 import pytest
 from conftest import OPENCV_LEFT_9X6
 
-import calib.detect as detect_mod
-from app.sources.sim.head import default_rig
-from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses, calibration_views
-from calib.board import Board
-from calib.detect import Detection, detect_board
-from calib.transforms import make_T, rotation_from_rvec, transform_points
+import trifuse.calib.detect as detect_mod
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.scenarios import (
+    CALIBRATION_BOARD,
+    calibration_poses,
+    calibration_views,
+)
+from trifuse.calib.board import Board
+from trifuse.calib.detect import Detection, detect_board
+from trifuse.calib.transforms import make_T, rotation_from_rvec, transform_points
 
 RIG = default_rig()
 BOARD = CALIBRATION_BOARD

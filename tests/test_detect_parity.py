@@ -23,12 +23,12 @@ import numpy as np
 import pytest
 from conftest import DATA_DIR
 
-import calib.detect as detect_mod
-from app.devtools.real_sets import top_left_first
-from calib.board import Board
-from calib.detect import detect_board
-from calib.opencv_reference import calibrate_camera_opencv, find_chessboard_opencv
+import trifuse.calib.detect as detect_mod
 from tests.test_palette_thermal import render
+from trifuse.app.devtools.real_sets import top_left_first
+from trifuse.calib.board import Board
+from trifuse.calib.detect import detect_board
+from trifuse.calib.opencv_reference import calibrate_camera_opencv, find_chessboard_opencv
 
 BUMBLEBEE = DATA_DIR / "boofcv-bumblebee2-chess"
 BUMBLEBEE_BOARD = Board(4, 6, 0.03)

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 from conftest import DATA_DIR
 
-import calib.detect as detect_mod
-from app.devtools.real_sets import REAL_SETS
-from calib.board import Board
-from calib.detect import detect_board
+import trifuse.calib.detect as detect_mod
+from trifuse.app.devtools.real_sets import REAL_SETS
+from trifuse.calib.board import Board
+from trifuse.calib.detect import detect_board
 
 DATA = DATA_DIR / "czha626-thermal-visible"
 BOARD = Board(6, 5, 0.1)

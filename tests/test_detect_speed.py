@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 from conftest import DATA_DIR
 
-import calib.detect as detect_mod
-from calib.board import Board
-from calib.detect import detect_board
+import trifuse.calib.detect as detect_mod
+from trifuse.calib.board import Board
+from trifuse.calib.detect import detect_board
 
 THERMAL = DATA_DIR / "czha626-thermal-visible" / "thermal"
 BOARD = Board(6, 5, 0.1)

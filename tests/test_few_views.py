@@ -20,18 +20,18 @@ import numpy as np
 import pytest
 from conftest import DATA_DIR, OPENCV_LEFT_9X6
 
-from app.cli import main
-from app.cli.calibrate import ZHANG_MIN_VIEWS as CLI_ZHANG_MIN_VIEWS
-from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
-from calib.board import Board
-from calib.detect import detect_board
-from calib.detect_baseline import detect_board_baseline
-from calib.errors import CalibrationError
-from calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
-from calib.rig_result import CalibrationResult
-from calib.transforms import invert, make_T, rvec_from_rotation
-from calib.verdict import GOOD, KINDS, ZHANG_MIN_VIEWS, Verdict
 from tests.board_support import RIG, SPECS, noisy_corners
+from trifuse.app.cli import main
+from trifuse.app.cli.calibrate import ZHANG_MIN_VIEWS as CLI_ZHANG_MIN_VIEWS
+from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
+from trifuse.calib.board import Board
+from trifuse.calib.detect import detect_board
+from trifuse.calib.detect_baseline import detect_board_baseline
+from trifuse.calib.errors import CalibrationError
+from trifuse.calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
+from trifuse.calib.rig_result import CalibrationResult
+from trifuse.calib.transforms import invert, make_T, rvec_from_rotation
+from trifuse.calib.verdict import GOOD, KINDS, ZHANG_MIN_VIEWS, Verdict
 
 CZHA626 = DATA_DIR / "czha626-thermal-visible"
 
@@ -108,8 +108,8 @@ def test_sigmas_are_honest_on_rendered_views(simulated: dict) -> None:
     plain cluster-robust estimate the translations' normalised errors had an RMS of 2.5
     and reached 6.7; with its small-sample form (calib.rig_uncertainty) 0.6-1.1, at most
     4.1."""
-    from app.storage.capture import load_capture
-    from app.workflows.calibration_run import detect_capture, sensor_specs
+    from trifuse.app.storage.capture import load_capture
+    from trifuse.app.workflows.calibration_run import detect_capture, sensor_specs
 
     capture = load_capture(simulated["capture"])
     det = detect_capture(capture)
@@ -378,7 +378,7 @@ def test_real_colour_and_lwir_rig_of_eight_views_is_calibrated_and_judged(
     mend it. OpenCV's plain pipeline in the same test (per-camera ``calibrateCamera``, then
     ``stereoCalibrate`` with the intrinsics fixed) shows the same disagreement: stereo RMS
     more than three times each camera's alone."""
-    from calib.opencv_reference import (
+    from trifuse.calib.opencv_reference import (
         calibrate_camera_opencv,
         find_chessboard_opencv,
         stereo_calibrate_opencv,

@@ -30,19 +30,20 @@ from mcap.reader import make_reader
 from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory
 
-from app.devtools.procfs import parse_proc_status
-from app.recording import RecordingWriter
-from app.recording.layout import FUSED_VIDEO_SCHEMA, FUSED_VIDEO_TOPIC, topic_of
-from app.recording.video_track import FusedVideoEncoder, nal_types
-from app.server.runtime.demand import ConsoleDemand
-from app.server.runtime.foxglove_gate import (
+from tests.support import run_cli, synth_frame, wait_until
+from trifuse.app.devtools.procfs import parse_proc_status
+from trifuse.app.recording import RecordingWriter
+from trifuse.app.recording.layout import FUSED_VIDEO_SCHEMA, FUSED_VIDEO_TOPIC, topic_of
+from trifuse.app.recording.video_track import FusedVideoEncoder, nal_types
+from trifuse.app.server.runtime.demand import ConsoleDemand
+from trifuse.app.server.runtime.foxglove_gate import (
     LOOPBACK,
     MAX_CLIENT_MESSAGE_BYTES,
     MAX_CLIENTS,
     MAX_WAITING,
     FoxgloveGate,
 )
-from app.server.runtime.foxglove_live import (
+from trifuse.app.server.runtime.foxglove_live import (
     HEALTH_SCHEMA_NAME,
     HEALTH_TOPIC,
     MESSAGE_BACKLOG,
@@ -52,13 +53,12 @@ from app.server.runtime.foxglove_live import (
     points_topic,
     start_foxglove_server,
 )
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.source_control import SourceControl, SourceTap
-from app.server.runtime.stream import FrameHub
-from app.sources.sim.render import HeadModel
-from app.sources.sim.scenarios import InspectionScenario
-from app.sources.simulated import SimulatedHeadSource
-from tests.support import run_cli, synth_frame, wait_until
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.source_control import SourceControl, SourceTap
+from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.sources.sim.render import HeadModel
+from trifuse.app.sources.sim.scenarios import InspectionScenario
+from trifuse.app.sources.simulated import SimulatedHeadSource
 
 ROOT = Path(__file__).resolve().parent.parent
 RECV_S = 60.0
@@ -335,7 +335,7 @@ def _context():
 
 
 def test_serve_refuses_a_foxglove_port_in_use_before_anything_starts(tmp_path, capsys) -> None:
-    from app.devtools.console_process import free_port
+    from trifuse.app.devtools.console_process import free_port
 
     with socket.socket() as taken:
         taken.bind((LOOPBACK, 0))

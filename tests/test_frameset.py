@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.sources.base import FrameSetAssembler, frame_sets
-from app.sources.frames import Frame
 from tests.support import ListSource
+from trifuse.app.sources.base import FrameSetAssembler, frame_sets
+from trifuse.app.sources.frames import Frame
 
 IMG = np.zeros((2, 2), np.float32)
 

@@ -6,11 +6,11 @@ import cv2
 import numpy as np
 import pytest
 
-from app.sources.sim.head import default_rig
-from calib.camera import Intrinsics, pixel_grid
-from calib.rig import Rig, Sensor
-from calib.transforms import make_T, transform_points
-from fusion.geometry import (
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.calib.camera import Intrinsics, pixel_grid
+from trifuse.calib.rig import Rig, Sensor
+from trifuse.calib.transforms import make_T, transform_points
+from trifuse.fusion.geometry import (
     in_image,
     monotonic_radius,
     project_to_sensor,
@@ -380,7 +380,7 @@ def test_the_float32_projector_agrees_with_project_to_sensor(sensor: str) -> Non
     """Projector32 (the thermal map's per-frame projection) against the float64 chain:
     the same points kept (in front, inside the distortion's fold), the same pixels to
     float32 precision."""
-    from fusion.geometry import Projector32
+    from trifuse.fusion.geometry import Projector32
 
     rng = np.random.default_rng(21)
     pts = rng.uniform((-6.0, -4.0, -2.0), (6.0, 4.0, 9.0), size=(20_000, 3))

@@ -29,25 +29,25 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 from hypothesis.control import currently_in_test_context
 
-from app.recording import ReplaySource
-from app.server.routers.app import create_app
-from app.server.routers.limits import (
+from tests.support import small_rig, synth_frames, write_recording
+from tests.test_push import serve
+from trifuse.app.recording import ReplaySource
+from trifuse.app.server.routers.app import create_app
+from trifuse.app.server.routers.limits import (
     DEFAULT_MAX_BODY_BYTES,
     BodyLimitMiddleware,
     add_body_limit,
     require_json,
 )
-from app.server.routers.session_api import make_session_router
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.source_control import SourceControl, SourceTap
-from app.server.runtime.stream import FrameHub
-from app.server.runtime.thermal_balance import ThermalBalancer
-from app.sources.frames import FrameSet
-from app.sources.sim.scenarios import CALIBRATION_BOARD
-from app.workflows.calib_session import CalibrationSession
-from fusion.compose import DisplaySettings
-from tests.support import small_rig, synth_frames, write_recording
-from tests.test_push import serve
+from trifuse.app.server.routers.session_api import make_session_router
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.source_control import SourceControl, SourceTap
+from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.server.runtime.thermal_balance import ThermalBalancer
+from trifuse.app.sources.frames import FrameSet
+from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD
+from trifuse.app.workflows.calib_session import CalibrationSession
+from trifuse.fusion.compose import DisplaySettings
 
 MAX_BODY = DEFAULT_MAX_BODY_BYTES
 FUZZ = settings(

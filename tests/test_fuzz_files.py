@@ -28,15 +28,6 @@ import yaml
 from hypothesis import assume, example, given
 from hypothesis import strategies as st
 
-from app.recording import TopicMapError, load_topic_map
-from app.sources.frames import Frame, FrameSet
-from app.storage.capture import BOARD_FILE, RIG_FILE, CaptureError, load_board_file, load_capture
-from app.storage.capture_writer import write_board, write_view
-from app.storage.ground_truth import load_ground_truth
-from app.storage.rigfile import load_rig, save_rig
-from calib.board import Board
-from calib.errors import RigError
-from calib.rig import rig_from_yaml
 from tests.fuzz_support import (
     BOARD_DOC,
     KEYS,
@@ -56,6 +47,21 @@ from tests.fuzz_support import (
 from tests.support import CAPTURE_BOARD as BOARD
 from tests.support import capture_frames
 from tests.support import small_capture_rig as capture_rig
+from trifuse.app.recording import TopicMapError, load_topic_map
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.storage.capture import (
+    BOARD_FILE,
+    RIG_FILE,
+    CaptureError,
+    load_board_file,
+    load_capture,
+)
+from trifuse.app.storage.capture_writer import write_board, write_view
+from trifuse.app.storage.ground_truth import load_ground_truth
+from trifuse.app.storage.rigfile import load_rig, save_rig
+from trifuse.calib.board import Board
+from trifuse.calib.errors import RigError
+from trifuse.calib.rig import rig_from_yaml
 
 CASES: Counter[str] = Counter()
 """Cases each test actually ran (printed at the end of the module)."""

@@ -26,18 +26,6 @@ import yaml
 from hypothesis import example, given
 from hypothesis import strategies as st
 
-from app.recording import RecordingError, ReplaySource, TopicMapError, load_topic_map
-from app.recording.ros2 import Ros2BagSource
-from app.recording.topicmap import topic_map_from_yaml
-from app.sources.camera import CameraError, load_cameras_config
-from app.sources.frames import Frame
-from app.sources.push.encode import encode_frame
-from app.sources.push.protocol import PREFIX, PushError
-from app.sources.push.source import PushSource
-from app.storage.capture import BOARD_FILE, CaptureError, load_board_file
-from app.storage.ground_truth import load_ground_truth
-from calib.errors import RigError
-from calib.transforms import make_T, rotation_from_euler_deg
 from tests.fuzz_support import (
     BOARD_DOC,
     JUNK,
@@ -57,6 +45,18 @@ from tests.ros2_support import TOPIC_MAP, make_bag
 from tests.support import CAPTURE_BOARD as BOARD
 from tests.support import small_rig as recording_rig
 from tests.support import synth_frame, synth_frames, write_recording
+from trifuse.app.recording import RecordingError, ReplaySource, TopicMapError, load_topic_map
+from trifuse.app.recording.ros2 import Ros2BagSource
+from trifuse.app.recording.topicmap import topic_map_from_yaml
+from trifuse.app.sources.camera import CameraError, load_cameras_config
+from trifuse.app.sources.frames import Frame
+from trifuse.app.sources.push.encode import encode_frame
+from trifuse.app.sources.push.protocol import PREFIX, PushError
+from trifuse.app.sources.push.source import PushSource
+from trifuse.app.storage.capture import BOARD_FILE, CaptureError, load_board_file
+from trifuse.app.storage.ground_truth import load_ground_truth
+from trifuse.calib.errors import RigError
+from trifuse.calib.transforms import make_T, rotation_from_euler_deg
 
 CASES: Counter[str] = Counter()
 """Cases each test actually ran (printed at the end of the module)."""

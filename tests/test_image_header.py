@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calib.image_header import ImageHeaderError, image_header
+from trifuse.calib.image_header import ImageHeaderError, image_header
 
 
 def _encode(ext: str, image: np.ndarray, params: tuple[int, ...] = ()) -> bytes:

@@ -1,6 +1,7 @@
 """Imports point one way, ``app -> fusion -> calib``, imports inside functions included:
-``calib`` imports neither ``fusion`` nor ``app``, ``fusion`` does not import ``app``; and no
-modules import each other in a circle."""
+``calib`` imports neither ``fusion`` nor ``app``, ``fusion`` does not import ``app``; no
+modules import each other in a circle; and every import names the installed package
+(``trifuse.calib``, never a bare ``calib``, which a normal install does not have)."""
 
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ def module_graph() -> dict[str, set[str]]:
     paths = {}
     for package in ("app", "fusion", "calib"):
         for path in (ROOT / package).rglob("*.py"):
-            name = ".".join(path.relative_to(ROOT).with_suffix("").parts)
+            name = ".".join(("trifuse", *path.relative_to(ROOT).with_suffix("").parts))
             paths[name.removesuffix(".__init__")] = path
     return {m: (imported_modules(p) & paths.keys()) - {m} for m, p in paths.items()}
 
@@ -73,15 +74,44 @@ def test_the_circle_check_finds_a_circle() -> None:
     assert circles(graph) == [["a", "b", "c"]]
 
 
+def _package(module: str) -> str:
+    """``trifuse.calib.board`` -> ``calib``; anything else -> its top-level name."""
+    parts = module.split(".")
+    return parts[1] if parts[0] == "trifuse" and len(parts) > 1 else parts[0]
+
+
 def imported_packages(path: Path) -> set[tuple[str, int]]:
-    """Top-level package of every import in ``path`` (module level or not), with its line."""
+    """The project package (``app``, ``fusion``, ``calib``) or other top-level package of
+    every import in ``path`` (module level or not), with its line."""
     found = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
-            found |= {(a.name.split(".")[0], node.lineno) for a in node.names}
+            found |= {(_package(a.name), node.lineno) for a in node.names}
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            found.add((node.module.split(".")[0], node.lineno))
+            found.add((_package(node.module), node.lineno))
     return found
+
+
+def bare_imports(path: Path) -> list[int]:
+    """Lines of ``path`` importing ``app``, ``calib`` or ``fusion`` without ``trifuse.``."""
+    lines = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names = [node.module]
+        if any(n.split(".")[0] in ("app", "calib", "fusion") for n in names):
+            lines.append(node.lineno)
+    return lines
+
+
+def test_every_import_names_the_installed_package() -> None:
+    wrong = [
+        f"{path.relative_to(ROOT)}:{line}"
+        for package in ("app", "calib", "fusion", "tests")
+        for path in sorted((ROOT / package).rglob("*.py"))
+        for line in bare_imports(path)
+    ]
+    assert not wrong, wrong
 
 
 @pytest.mark.parametrize("package", sorted(FORBIDDEN))
@@ -97,5 +127,9 @@ def test_imports_point_one_way(package: str) -> None:
 
 def test_the_check_sees_imports_inside_functions(tmp_path: Path) -> None:
     module = tmp_path / "m.py"
-    module.write_text("def f():\n    from fusion.geometry import tof_rays\n    import app.cli\n")
-    assert imported_packages(module) == {("fusion", 2), ("app", 3)}
+    module.write_text(
+        "def f():\n    from trifuse.fusion.geometry import tof_rays\n    import trifuse.app.cli\n"
+        "    import calib.board\n"
+    )
+    assert imported_packages(module) == {("fusion", 2), ("app", 3), ("calib", 4)}
+    assert bare_imports(module) == [4]

@@ -9,17 +9,17 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from app.devtools.real_sets import REAL_SETS, load_views
-from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
-from calib import rig_calibration
-from calib.board import Board
-from calib.detect import detect_board
-from calib.opencv_reference import calibrate_camera_opencv, find_charuco_opencv
-from calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
-from calib.rig_result import CalibrationResult
-from calib.transforms import invert, make_T, rotation_from_rvec
 from tests.board_support import RIG, SPECS, noisy_corners
 from tests.test_rig_calibration import synthetic
+from trifuse.app.devtools.real_sets import REAL_SETS, load_views
+from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
+from trifuse.calib import rig_calibration
+from trifuse.calib.board import Board
+from trifuse.calib.detect import detect_board
+from trifuse.calib.opencv_reference import calibrate_camera_opencv, find_charuco_opencv
+from trifuse.calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
+from trifuse.calib.rig_result import CalibrationResult
+from trifuse.calib.transforms import invert, make_T, rotation_from_rvec
 
 CALISCOPE = REAL_SETS["caliscope-charuco-4cam"]
 CALISCOPE_BOARD = Board(

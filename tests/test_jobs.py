@@ -12,13 +12,13 @@ import cv2
 import numpy as np
 import pytest
 
-from app.cli import main
-from app.recording import ReplaySource
-from app.recording.fuse import FusedWriter, PieceEnd, fuse_piece
-from app.recording.jobs import LocalRunner, plan_fuse_job, run_fuse_job
-from app.recording.pieces import FusePiece, plan_fuse, plan_map, ranges
-from fusion.compose import DisplaySettings
 from tests.support import directory_bytes, record_survey_archive, small_rig
+from trifuse.app.cli import main
+from trifuse.app.recording import ReplaySource
+from trifuse.app.recording.fuse import FusedWriter, PieceEnd, fuse_piece
+from trifuse.app.recording.jobs import LocalRunner, plan_fuse_job, run_fuse_job
+from trifuse.app.recording.pieces import FusePiece, plan_fuse, plan_map, ranges
+from trifuse.fusion.compose import DisplaySettings
 
 DURATION_S = 3.0
 

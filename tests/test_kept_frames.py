@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from app.devtools.bench_link import draw_figures
-from app.server.routers.app import create_app
-from app.server.runtime.kept_frames import ENV, KeptFrames
-from app.server.runtime.stream import FrameHub
+from trifuse.app.devtools.bench_link import draw_figures
+from trifuse.app.server.routers.app import create_app
+from trifuse.app.server.runtime.kept_frames import ENV, KeptFrames
+from trifuse.app.server.runtime.stream import FrameHub
 
 
 def _picture(value: int) -> np.ndarray:

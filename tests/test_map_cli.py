@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 from plyfile import PlyData
 
-from app.cli import main
-from app.recording import RecordingWriter, ReplaySource
-from app.recording.poses import read_poses
-from app.sources.sim.scenarios import inspection_scene
-from app.storage.map_file import load_map, read_map_info
-from app.storage.rigfile import save_rig
-from fusion.mapping import TofGrid
 from tests.support import small_rig, synth_frames, write_recording
+from trifuse.app.cli import main
+from trifuse.app.recording import RecordingWriter, ReplaySource
+from trifuse.app.recording.poses import read_poses
+from trifuse.app.sources.sim.scenarios import inspection_scene
+from trifuse.app.storage.map_file import load_map, read_map_info
+from trifuse.app.storage.rigfile import save_rig
+from trifuse.fusion.mapping import TofGrid
 
 SURVEY_S = 3.0
 VOXEL = 0.037

@@ -17,8 +17,9 @@ import numpy as np
 import pytest
 from plyfile import PlyData
 
-from app.storage import map_file
-from app.storage.map_file import (
+from tests.support import measure_in_child
+from trifuse.app.storage import map_file
+from trifuse.app.storage.map_file import (
     MAP_FORMAT,
     NO_COLOUR,
     MapFileError,
@@ -27,9 +28,8 @@ from app.storage.map_file import (
     save_map,
     write_ply,
 )
-from calib.transforms import make_T, rotation_from_euler_deg
-from fusion.voxel_map import MapSettings, VoxelMap
-from tests.support import measure_in_child
+from trifuse.calib.transforms import make_T, rotation_from_euler_deg
+from trifuse.fusion.voxel_map import MapSettings, VoxelMap
 
 VOXEL = 0.05
 
@@ -400,7 +400,7 @@ def test_the_hostile_files_are_well_formed_but_for_their_one_defect(
 
 LIMITED_CHILD = """
 import resource, sys
-from app.storage import map_file
+from trifuse.app.storage import map_file
 with open("/proc/self/statm") as f:
     vsz = int(f.read().split()[0]) * resource.getpagesize()
 resource.setrlimit(resource.RLIMIT_AS, (vsz + int(sys.argv[2]), resource.RLIM_INFINITY))

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.transforms import make_T
-from fusion.map_view import UNKNOWN_RGB, map_cloud, merged, path_segments
-from fusion.voxel_map import MapSettings, VoxelMap
+from trifuse.calib.transforms import make_T
+from trifuse.fusion.map_view import UNKNOWN_RGB, map_cloud, merged, path_segments
+from trifuse.fusion.voxel_map import MapSettings, VoxelMap
 
 
 def plane_map(n_side: int = 200, voxel: float = 0.01) -> VoxelMap:

@@ -6,16 +6,16 @@ import cv2
 import numpy as np
 import pytest
 
-from app.sources.sim.head import default_rig
-from app.sources.sim.render import HeadModel, Renderer
-from app.sources.sim.scenarios import InspectionScenario
-from app.sources.sim.scene import Box, Material, Quad, Scene
-from app.sources.sim.tof_error import RangeErrorModel
-from calib.camera import Intrinsics
-from calib.rig import Rig, Sensor
-from calib.transforms import make_T
-from fusion.accuracy import band_errors, depth_edges, exact_mapping, fixed_depth_mapping
-from fusion.mapping import DepthView, EyeFusion, ViewMapping, mixed_pixels
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.render import HeadModel, Renderer
+from trifuse.app.sources.sim.scenarios import InspectionScenario
+from trifuse.app.sources.sim.scene import Box, Material, Quad, Scene
+from trifuse.app.sources.sim.tof_error import RangeErrorModel
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.rig import Rig, Sensor
+from trifuse.calib.transforms import make_T
+from trifuse.fusion.accuracy import band_errors, depth_edges, exact_mapping, fixed_depth_mapping
+from trifuse.fusion.mapping import DepthView, EyeFusion, ViewMapping, mixed_pixels
 
 RIG = default_rig()
 NO_RANGE_ERROR = RangeErrorModel(

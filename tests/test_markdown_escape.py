@@ -20,22 +20,22 @@ import viser
 import viser._gui_handles as viser_handles
 from markdown_it import MarkdownIt
 
-from app.server.markdown_text import MAX_CHARS, WORD_JOINER, md_text
-from app.server.panels.calibration import CalibrationPanel, views_html
-from app.server.panels.display import balance_text
-from app.server.panels.precision import compute, table_markdown
-from app.server.panels.rig_files import RigFilesPanel, zip_files
-from app.server.panels.scene3d import rig_difference_markdown
-from app.server.panels.source import health_text, recording_text
-from app.server.routers.viser_bridge import VISER_IMAGE_READER, start_guarded_viser
-from app.server.runtime.sensor_health import SensorHealth
-from app.server.runtime.source_control import RecordingState
-from app.server.runtime.thermal_balance import BalanceStatus
-from app.sources.sim.head import default_rig
-from app.workflows.calib_session import ViewInfo
-from calib.rig import Eye, Rig
-from calib.rig_formats import export_rig
 from tests.browser_support import needs_chromium
+from trifuse.app.server.markdown_text import MAX_CHARS, WORD_JOINER, md_text
+from trifuse.app.server.panels.calibration import CalibrationPanel, views_html
+from trifuse.app.server.panels.display import balance_text
+from trifuse.app.server.panels.precision import compute, table_markdown
+from trifuse.app.server.panels.rig_files import RigFilesPanel, zip_files
+from trifuse.app.server.panels.scene3d import rig_difference_markdown
+from trifuse.app.server.panels.source import health_text, recording_text
+from trifuse.app.server.routers.viser_bridge import VISER_IMAGE_READER, start_guarded_viser
+from trifuse.app.server.runtime.sensor_health import SensorHealth
+from trifuse.app.server.runtime.source_control import RecordingState
+from trifuse.app.server.runtime.thermal_balance import BalanceStatus
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.workflows.calib_session import ViewInfo
+from trifuse.calib.rig import Eye, Rig
+from trifuse.calib.rig_formats import export_rig
 
 NASTY = [
     "![x](/etc/hostname)",

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from app.devtools.netem import (
+from trifuse.app.devtools.netem import (
     IP,
     EmulatedLink,
     LinkShape,
@@ -195,7 +195,7 @@ def test_bad_shapes_are_refused() -> None:
 def test_chromium_runs_inside_the_namespace() -> None:
     from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
-    from app.devtools.browser_console import CHROMIUM, CHROMIUM_FLAGS
+    from trifuse.app.devtools.browser_console import CHROMIUM, CHROMIUM_FLAGS
 
     seen: list[str] = []
 

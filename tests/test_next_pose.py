@@ -19,22 +19,22 @@ import pytest
 from conftest import DATA_DIR, OPENCV_LEFT_9X6
 from test_few_views import RIG, SPECS, corners_of
 
-from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
-from app.storage.capture import load_capture
-from app.workflows.calibration_run import calibrate_capture
-from calib.board import Board
-from calib.detect import detect_board
-from calib.next_pose import (
+from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
+from trifuse.app.storage.capture import load_capture
+from trifuse.app.workflows.calibration_run import calibrate_capture
+from trifuse.calib.board import Board
+from trifuse.calib.detect import detect_board
+from trifuse.calib.next_pose import (
     NextPose,
     feasible,
     judged_specs,
     outline_points,
     suggest_next_pose,
 )
-from calib.rig_calibration import SensorSpec, calibrate_rig
-from calib.rig_result import CalibrationResult
-from calib.transforms import invert, make_T
-from calib.verdict import GOOD, Figure
+from trifuse.calib.rig_calibration import SensorSpec, calibrate_rig
+from trifuse.calib.rig_result import CalibrationResult
+from trifuse.calib.transforms import invert, make_T
+from trifuse.calib.verdict import GOOD, Figure
 
 BUMBLEBEE = DATA_DIR / "boofcv-bumblebee2-chess"
 
@@ -184,7 +184,7 @@ def test_the_words_say_what_the_pose_is() -> None:
 
 
 def _pose(T_cam_board: np.ndarray, fig: Figure) -> NextPose:
-    from calib.next_pose import describe
+    from trifuse.calib.next_pose import describe
 
     sensors = {n: _Sensor(RIG[n]) for n in RIG.names}
     T = RIG["ccd_left"].T_rig_sensor @ T_cam_board
@@ -311,7 +311,7 @@ def test_the_console_line_image_and_verdicts() -> None:
     what to do and the sigma it is for, the live image gets the cyan outline in the
     subject's image, and the verdict lines name every sensor; with thirty views every
     sensor meets its target and the line says that no more views are needed."""
-    from app.server.panels.next_pose_overlay import (
+    from trifuse.app.server.panels.next_pose_overlay import (
         DONE_TEXT,
         NEXT_RGB,
         Suggestion,

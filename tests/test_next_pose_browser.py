@@ -17,7 +17,6 @@ import time
 
 import pytest
 
-from app.devtools.console_process import ConsoleProcess
 from tests.browser_support import (
     TEST_BOARD_POSES,
     WAIT_MS,
@@ -25,6 +24,7 @@ from tests.browser_support import (
     run_calibration,
     wait_for_cache_warmup,
 )
+from trifuse.app.devtools.console_process import ConsoleProcess
 
 pytestmark = [needs_chromium, pytest.mark.slow]
 

@@ -11,13 +11,13 @@ import cv2
 import numpy as np
 import pytest
 
-from app.sources.sim.head import default_rig
-from calib.board import Board
-from calib.camera import Intrinsics
-from calib.errors import CalibrationError
-from calib.opencv_baseline import BaselineResult, calibrate_multiview_opencv
-from calib.rig import Rig, Sensor
-from calib.transforms import (
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.calib.board import Board
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.errors import CalibrationError
+from trifuse.calib.opencv_baseline import BaselineResult, calibrate_multiview_opencv
+from trifuse.calib.rig import Rig, Sensor
+from trifuse.calib.transforms import (
     invert,
     make_T,
     pose_error,

@@ -23,18 +23,18 @@ import pytest
 from conftest import DATA_DIR
 from scipy.stats import spearmanr
 
-from app.cli import main
-from app.server.panels.calibration import views_html
-from app.storage.capture import known_palettes, load_capture
-from app.workflows.calib_session import CalibrationSession
-from calib.board import Board
-from calib.camera import Intrinsics
-from calib.opencv_reference import calibrate_camera_opencv, find_chessboard_opencv
-from calib.palette_inverse import PaletteError, builtin_palettes, invert_palette
-from calib.polarity import detect_board_configured
-from calib.rig import Rig, Sensor
-from fusion.palettes import palette
 from tests.support import wait_searched
+from trifuse.app.cli import main
+from trifuse.app.server.panels.calibration import views_html
+from trifuse.app.storage.capture import known_palettes, load_capture
+from trifuse.app.workflows.calib_session import CalibrationSession
+from trifuse.calib.board import Board
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.opencv_reference import calibrate_camera_opencv, find_chessboard_opencv
+from trifuse.calib.palette_inverse import PaletteError, builtin_palettes, invert_palette
+from trifuse.calib.polarity import detect_board_configured
+from trifuse.calib.rig import Rig, Sensor
+from trifuse.fusion.palettes import palette
 
 THERMAL = DATA_DIR / "czha626-thermal-visible" / "thermal"
 pytestmark = pytest.mark.skipif(

@@ -7,11 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.stream import FrameHub
-from app.sources.sim.head import default_rig
-from calib.rig import Rig
 from tests.support import ListSource, wait_until
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.calib.rig import Rig
 
 
 def test_set_rig_takes_effect_with_the_next_frame_set(calibration_frame_sets) -> None:

@@ -14,29 +14,6 @@ import cv2
 import numpy as np
 import pytest
 
-from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
-from calib.board import Board
-from calib.camera import Intrinsics
-from calib.diagnosis import intrinsics_problem
-from calib.polarity import (
-    AS_DETECTED,
-    HALF_TURNED,
-    check_ordering,
-    detect_board_configured,
-    half_turn,
-    orient_to_pose,
-    reverse_corners,
-)
-from calib.rig import Rig
-from calib.rig_calibration import CalibrationOptions, calibrate_rig
-from calib.rig_compare import compare_rigs
-from calib.transforms import (
-    make_T,
-    rotation_from_euler_deg,
-    rotation_from_rvec,
-    rvec_from_rotation,
-    transform_points,
-)
 from tests.board_support import (
     NOISE,
     RIG,
@@ -50,6 +27,29 @@ from tests.board_support import (
     screen,
 )
 from tests.support import upside_down
+from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
+from trifuse.calib.board import Board
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.diagnosis import intrinsics_problem
+from trifuse.calib.polarity import (
+    AS_DETECTED,
+    HALF_TURNED,
+    check_ordering,
+    detect_board_configured,
+    half_turn,
+    orient_to_pose,
+    reverse_corners,
+)
+from trifuse.calib.rig import Rig
+from trifuse.calib.rig_calibration import CalibrationOptions, calibrate_rig
+from trifuse.calib.rig_compare import compare_rigs
+from trifuse.calib.transforms import (
+    make_T,
+    rotation_from_euler_deg,
+    rotation_from_rvec,
+    rvec_from_rotation,
+    transform_points,
+)
 
 BOARDS = {
     "9x6": CALIBRATION_BOARD,

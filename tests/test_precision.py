@@ -9,13 +9,14 @@ import cv2
 import numpy as np
 import pytest
 
-from app.sources.sim.head import default_rig
-from app.storage.rigfile import save_rig
-from calib.camera import Intrinsics
-from calib.rig import Rig, Sensor, rig_to_yaml
-from calib.tof import region_map
-from calib.transforms import make_T
-from fusion.precision import (
+from tests.support import run_cli
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.storage.rigfile import save_rig
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.rig import Rig, Sensor, rig_to_yaml
+from trifuse.calib.tof import region_map
+from trifuse.calib.transforms import make_T
+from trifuse.fusion.precision import (
     analyze_precision,
     default_tof_pixels,
     distance_error_shifts,
@@ -25,7 +26,6 @@ from fusion.precision import (
     tof_pixel_error_shifts,
     tof_pixel_label,
 )
-from tests.support import run_cli
 
 # -- a hand-built rig with a closed form ----------------------------------------------------
 

@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 import viser
 
-from app.server.panels import display as panels_mod
-from app.server.panels.display import (
+from tests.support import wait_until
+from trifuse.app.server.panels import display as panels_mod
+from trifuse.app.server.panels.display import (
     FEED_WIDTH_PX,
     ROW_COLOURS,
     Panels,
@@ -21,19 +22,18 @@ from app.server.panels.display import (
     scale_corners,
     short_reason,
 )
-from app.server.panels.precision import PrecisionPanel, plot_data, short_names
-from app.server.runtime.board_watch import BoardSighting
-from app.server.runtime.video_presets import StreamSettings
-from app.sources.frames import Frame, FrameSet
-from app.sources.sim.head import default_rig
-from app.workflows.report_format import limit_distance_cell, pixel_cell
-from calib.board import Board
-from calib.detect import Detection
-from calib.radiometry import Radiometry
-from calib.rig import Rig
-from fusion.compose import DisplaySettings
-from fusion.precision import analyze_precision
-from tests.support import wait_until
+from trifuse.app.server.panels.precision import PrecisionPanel, plot_data, short_names
+from trifuse.app.server.runtime.board_watch import BoardSighting
+from trifuse.app.server.runtime.video_presets import StreamSettings
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.workflows.report_format import limit_distance_cell, pixel_cell
+from trifuse.calib.board import Board
+from trifuse.calib.detect import Detection
+from trifuse.calib.radiometry import Radiometry
+from trifuse.calib.rig import Rig
+from trifuse.fusion.compose import DisplaySettings
+from trifuse.fusion.precision import analyze_precision
 
 
 def _wait_for(panel: PrecisionPanel, rig: Rig, after: int = 0) -> None:
@@ -162,7 +162,7 @@ def test_panel_shows_an_error_and_keeps_running(server) -> None:
 
 
 def test_plot_data_clips_to_the_log_axis() -> None:
-    from app.server.panels.precision import compute
+    from trifuse.app.server.panels.precision import compute
 
     result = compute(default_rig())
     key = next(iter(result.before.distance_error))
@@ -308,7 +308,7 @@ def test_feeds_draw_the_next_views_outline_and_redraw_when_it_changes(server) ->
     """The next-pose advisor's outline (``ctx.next_outline``, full-image pixels) is drawn
     cyan at the thumbnail's scale in that sensor's feed only, on top of the corners; a new
     suggestion redraws the feed on the same frame and none clears it."""
-    from app.server.panels.display import NEXT_RGB
+    from trifuse.app.server.panels.display import NEXT_RGB
 
     t0 = 1_000_000_000_000
     frames = {n: Frame(n, t0, np.zeros((480, 640, 3), np.uint8)) for n in ("ccd_left", "ccd_right")}

@@ -21,15 +21,15 @@ from fastapi import FastAPI
 from websockets.exceptions import ConnectionClosedError, InvalidStatus
 from websockets.sync.client import connect
 
-from app.drivers import push_sim
-from app.server.routers.auth import AuthConfig, AuthMiddleware
-from app.sources.frames import Frame
-from app.sources.push.clients import AsyncPushClient, PushClient, PushRejected
-from app.sources.push.encode import encode_frame, encode_part
-from app.sources.push.protocol import MAGIC, Part, PushError, encode_message
-from app.sources.push.router import make_push_router, uvicorn_ws_max_size
-from app.sources.push.source import PushSource
-from app.sources.sim.head import default_rig
+from trifuse.app.drivers import push_sim
+from trifuse.app.server.routers.auth import AuthConfig, AuthMiddleware
+from trifuse.app.sources.frames import Frame
+from trifuse.app.sources.push.clients import AsyncPushClient, PushClient, PushRejected
+from trifuse.app.sources.push.encode import encode_frame, encode_part
+from trifuse.app.sources.push.protocol import MAGIC, Part, PushError, encode_message
+from trifuse.app.sources.push.router import make_push_router, uvicorn_ws_max_size
+from trifuse.app.sources.push.source import PushSource
+from trifuse.app.sources.sim.head import default_rig
 
 RIG = default_rig()
 LIMIT = 1 << 20  # 1 MiB message limit in these tests

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from calib.radiometry import RADIOMETRY_KEYS, Radiometry
+from trifuse.calib.radiometry import RADIOMETRY_KEYS, Radiometry
 
 FULL = Radiometry(
     gain=1.1, offset_k=-2.0, balance_gain=0.98, balance_offset_k=0.3, manual_offset_k=-0.1

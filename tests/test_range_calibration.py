@@ -12,23 +12,23 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.cli import main
-from app.sources.sim.head import default_rig
-from app.sources.sim.tof_error import RangeErrorModel
-from app.storage.ground_truth import load_ground_truth
-from app.storage.rigfile import load_rig
-from calib.board import Board
-from calib.errors import RigError
-from calib.range_calibration import (
+from trifuse.app.cli import main
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.tof_error import RangeErrorModel
+from trifuse.app.storage.ground_truth import load_ground_truth
+from trifuse.app.storage.rigfile import load_rig
+from trifuse.calib.board import Board
+from trifuse.calib.errors import RigError
+from trifuse.calib.range_calibration import (
     RangeSamples,
     board_samples,
     fit_range_correction,
     region_errors,
 )
-from calib.range_correction import RangeCorrection
-from calib.rig import rig_from_dict, rig_to_dict
-from calib.transforms import make_T, rotation_from_euler_deg
-from fusion.stereo import StereoFusion
+from trifuse.calib.range_correction import RangeCorrection
+from trifuse.calib.rig import rig_from_dict, rig_to_dict
+from trifuse.calib.transforms import make_T, rotation_from_euler_deg
+from trifuse.fusion.stereo import StereoFusion
 
 TOF_SIZE = (176, 144)
 BOARD = Board(cols=9, rows=6, square_size_m=0.06)
@@ -245,7 +245,7 @@ def test_range_calibration_meets_the_target_on_held_out_views(
     model = range_run["rig"]["tof"].range_correction
     held = range_run["report"]["views"]["holdout"]
     assert len(held) >= 5
-    from app.storage.capture import load_capture
+    from trifuse.app.storage.capture import load_capture
 
     capture = load_capture(simulated["capture"])
     parts = []
@@ -312,7 +312,7 @@ def test_a_rig_without_a_tof_is_a_clear_error(simulated: dict, tmp_path: Path, c
     T = np.asarray(d["sensors"]["ccd_left"]["T_rig_sensor"])
     for s in d["sensors"].values():
         s["T_rig_sensor"] = (np.linalg.inv(T) @ np.asarray(s["T_rig_sensor"])).tolist()
-    from app.storage.rigfile import save_rig
+    from trifuse.app.storage.rigfile import save_rig
 
     rig_path = save_rig(tmp_path / "no-tof.yaml", rig_from_dict(d))
     argv = ["calibrate-range", str(simulated["capture"]), "--rig", str(rig_path)]

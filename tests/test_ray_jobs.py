@@ -20,12 +20,12 @@ import pytest
 import ray
 from ray.cluster_utils import Cluster
 
-from app.cli import main
-from app.devtools.procfs import child_pids
-from app.recording import jobs
-from app.recording.jobs import RayRunner, plan_fuse_job, run_fuse_job
-from fusion.compose import DisplaySettings
 from tests.support import directory_bytes, record_survey_archive
+from trifuse.app.cli import main
+from trifuse.app.devtools.procfs import child_pids
+from trifuse.app.recording import jobs
+from trifuse.app.recording.jobs import RayRunner, plan_fuse_job, run_fuse_job
+from trifuse.fusion.compose import DisplaySettings
 
 CHUNK = ["--chunk-s", "1"]  # 3 pieces per 3 s recording
 
@@ -234,7 +234,7 @@ def test_a_private_ray_instance_listens_on_loopback_only(
     and workers listened on ``*``, every interface, and the runtime environment agent on
     the machine's address; ``ss -ltnp`` showed the same.)"""
     out, log = tmp_path / "fused", tmp_path / "stderr.txt"
-    code = "import sys; from app.cli import main; sys.exit(main(sys.argv[1:]))"
+    code = "import sys; from trifuse.app.cli import main; sys.exit(main(sys.argv[1:]))"
     with log.open("w") as stderr:  # (a file: a pipe nobody reads while polling can fill)
         job = subprocess.Popen(
             [sys.executable, "-c", code, "fuse", str(archive[0]), "--out", str(out), "--ray"],

@@ -32,8 +32,8 @@ import cv2
 import numpy as np
 import pytest
 
-from app.devtools.bench_real_calib import run_trifuse, trifuse_name, write_capture
-from app.devtools.real_sets import REAL_SETS, load_views, measure
+from trifuse.app.devtools.bench_real_calib import run_trifuse, trifuse_name, write_capture
+from trifuse.app.devtools.real_sets import REAL_SETS, load_views, measure
 
 SET = REAL_SETS["pose2sim-4cam-checker"]
 CAMERAS = [s.name for s in SET.sensors]

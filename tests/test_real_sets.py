@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from app.devtools.real_sets import (
+from trifuse.app.devtools.real_sets import (
     REAL_SETS,
     Checkerboard,
     measure,
@@ -21,14 +21,14 @@ from app.devtools.real_sets import (
     sensor_files,
     top_left_first,
 )
-from calib.camera import Intrinsics
-from calib.errors import CalibrationError
-from calib.opencv_reference import (
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.errors import CalibrationError
+from trifuse.calib.opencv_reference import (
     CharucoTarget,
     calibrate_camera_opencv,
     stereo_calibrate_opencv,
 )
-from calib.transforms import make_T, rotation_from_euler_deg
+from trifuse.calib.transforms import make_T, rotation_from_euler_deg
 
 SLOW = {"caliscope-charuco-4cam"}
 """About 20 s of ChArUco detection on 4 x 57 video frames."""

@@ -14,28 +14,6 @@ import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from app.cli import main
-from app.recording import (
-    RecordingDamaged,
-    RecordingError,
-    RecordingWriter,
-    ReplaySource,
-)
-from app.recording.mcapindex import MAX_CHUNK_BYTES
-from app.recording.player import MAX_LAG_S
-from app.recording.simrecord import (
-    head_model_for,
-    plan_simulation,
-    pose_index,
-    record_simulation,
-    sim_schedule,
-)
-from app.recording.writer import MAX_CHUNK_SIZE, MAX_MESSAGE_BYTES
-from app.sources.base import frame_sets
-from app.sources.frames import Frame, FrameSet
-from app.storage.rigfile import save_rig
-from calib.rig import Rig
-from calib.units import encode_amplitude
 from tests.support import (
     RATES_HZ,
     WAIT_S,
@@ -46,6 +24,28 @@ from tests.support import (
     synth_frames,
     write_recording,
 )
+from trifuse.app.cli import main
+from trifuse.app.recording import (
+    RecordingDamaged,
+    RecordingError,
+    RecordingWriter,
+    ReplaySource,
+)
+from trifuse.app.recording.mcapindex import MAX_CHUNK_BYTES
+from trifuse.app.recording.player import MAX_LAG_S
+from trifuse.app.recording.simrecord import (
+    head_model_for,
+    plan_simulation,
+    pose_index,
+    record_simulation,
+    sim_schedule,
+)
+from trifuse.app.recording.writer import MAX_CHUNK_SIZE, MAX_MESSAGE_BYTES
+from trifuse.app.sources.base import frame_sets
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.storage.rigfile import save_rig
+from trifuse.calib.rig import Rig
+from trifuse.calib.units import encode_amplitude
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +84,7 @@ def test_round_trip_gives_the_same_frames_and_stamps(recorded, rig):
 
 
 def test_real_scenario_frames_round_trip(tmp_path, rig):
-    from app.sources.sim.scenarios import InspectionScenario
+    from trifuse.app.sources.sim.scenarios import InspectionScenario
 
     fs, _ = InspectionScenario(rig=rig, model=head_model_for(rig), seed=1).render(0.5)
     path = tmp_path / "sim.mcap"
@@ -109,7 +109,7 @@ def test_frame_sets_of_a_replay(recorded, rig):
 
 
 def test_rig_rebuilt_from_calibration_messages(recorded, rig, monkeypatch):
-    import app.recording.reader as reader
+    import trifuse.app.recording.reader as reader
 
     monkeypatch.setattr(reader, "RIG_ATTACHMENT", "absent.yaml")
     path, _ = recorded
@@ -126,7 +126,7 @@ def test_rig_rebuilt_from_calibration_messages(recorded, rig, monkeypatch):
 
 
 def test_calibration_messages_of_no_real_camera_make_no_rig(tmp_path, rig, monkeypatch):
-    import app.recording.reader as reader
+    import trifuse.app.recording.reader as reader
 
     monkeypatch.setattr(reader, "RIG_ATTACHMENT", "absent.yaml")
     absurd = dataclasses.replace(rig["ccd_left"].intrinsics, fx=1e300)
@@ -772,7 +772,7 @@ def test_fuse_with_nothing_to_fuse_is_an_error(tmp_path, capsys):
 
 
 def test_recording_benchmark_is_registered():
-    from app.devtools.bench import REGISTRY
+    from trifuse.app.devtools.bench import REGISTRY
 
     assert "recording" in REGISTRY
 
@@ -780,10 +780,10 @@ def test_recording_benchmark_is_registered():
 def test_record_live_cameras_from_a_config(tmp_path):
     """`trifuse record --source live:CONFIG`: OpenCV devices (here a video file and a
     16-bit PNG sequence) recorded for a duration, then replayed."""
-    from app.cli import main as cli_main
-    from app.sources.sim.head import default_rig
-    from app.storage.rigfile import save_rig
-    from calib.rig import Rig
+    from trifuse.app.cli import main as cli_main
+    from trifuse.app.sources.sim.head import default_rig
+    from trifuse.app.storage.rigfile import save_rig
+    from trifuse.calib.rig import Rig
 
     full = default_rig()
     rig = Rig({n: full[n] for n in ("tof", "ccd_left", "thermal_left")}, "tof")

@@ -14,15 +14,21 @@ from foxglove.channels import FrameTransformChannel, FrameTransformsChannel
 from foxglove.messages import FrameTransform, FrameTransforms, Quaternion, Timestamp, Vector3
 from scipy.spatial.transform import Rotation
 
-from app.cli import main
-from app.recording import RecordingError, RecordingWriter, ReplaySource
-from app.recording.poses import interpolate_pose, read_poses
-from app.recording.simrecord import POSE_HZ, pose_index, shown_pose, sim_scenario, sim_schedule
-from app.sources.sim.survey import SurveyScenario
-from app.storage.rigfile import save_rig
-from calib.rig import Rig
-from calib.transforms import make_T, rotation_angle_deg, rotation_from_euler_deg
 from tests.support import small_rig, synth_frames, write_recording
+from trifuse.app.cli import main
+from trifuse.app.recording import RecordingError, RecordingWriter, ReplaySource
+from trifuse.app.recording.poses import interpolate_pose, read_poses
+from trifuse.app.recording.simrecord import (
+    POSE_HZ,
+    pose_index,
+    shown_pose,
+    sim_scenario,
+    sim_schedule,
+)
+from trifuse.app.sources.sim.survey import SurveyScenario
+from trifuse.app.storage.rigfile import save_rig
+from trifuse.calib.rig import Rig
+from trifuse.calib.transforms import make_T, rotation_angle_deg, rotation_from_euler_deg
 
 WIRE_ATOL = 1e-12
 """The wire format keeps float64 (translation, quaternion): a pose comes back to rounding
@@ -93,7 +99,7 @@ def test_the_pose_between_poses() -> None:
     T0 = make_T(rotation_from_euler_deg(0, 10, 0), (0.0, 0.0, 1.0))
     T1 = make_T(rotation_from_euler_deg(0, 50, 0), (1.0, 0.0, 3.0))
     T2 = make_T(rotation_from_euler_deg(20, 50, 0), (1.0, 0.0, 3.0))
-    from app.recording.poses import RecordingPoses
+    from trifuse.app.recording.poses import RecordingPoses
 
     poses = RecordingPoses(
         np.array([0, 100_000_000, 2_000_000_000]), np.stack([T0, T1, T2]), "world", "rig"
@@ -241,8 +247,8 @@ def test_the_simulated_heads_survey_shows_the_pose_it_reports(
     """``open_source(scenario="survey")`` (``trifuse serve --scenario survey``): the head
     moves, so frames show their sample's pose as rendered (no turning), and ``truth_at``
     gives that pose: the survey's at the sample's time."""
-    from app.recording.open_source import SCENARIOS, open_source
-    from app.sources.sim.survey import survey_pose
+    from trifuse.app.recording.open_source import SCENARIOS, open_source
+    from trifuse.app.sources.sim.survey import survey_pose
 
     monkeypatch.setenv("TRIFUSE_SIM_CACHE", "off")  # keep the shared disk cache as it is
     assert "survey" in SCENARIOS

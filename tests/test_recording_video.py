@@ -23,34 +23,34 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from viser import GuiEvent
 
-from app.cli import main
-from app.devtools.image_quality import psnr, ssim
-from app.recording import RecordingError, RecordingWriter, ReplaySource
-from app.recording.layout import FUSED_VIDEO_TOPIC, parse_topic
-from app.recording.video_track import (
+from tests.support import run_cli, small_rig, synth_frame, synth_frames, wait_until, write_recording
+from trifuse.app.cli import main
+from trifuse.app.devtools.image_quality import psnr, ssim
+from trifuse.app.recording import RecordingError, RecordingWriter, ReplaySource
+from trifuse.app.recording.layout import FUSED_VIDEO_TOPIC, parse_topic
+from trifuse.app.recording.video_track import (
     FusedVideoEncoder,
     FusedVideoFuser,
     StereoPictures,
     VideoSettings,
     nal_types,
 )
-from app.server.panels.source import SourcePanel
-from app.server.runtime.board_watch import BoardWatch
-from app.server.runtime.context import ConsoleContext
-from app.server.runtime.demand import Demand
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.source_control import (
+from trifuse.app.server.panels.source import SourcePanel
+from trifuse.app.server.runtime.board_watch import BoardWatch
+from trifuse.app.server.runtime.context import ConsoleContext
+from trifuse.app.server.runtime.demand import Demand
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.source_control import (
     FusedVideoSource,
     Recorder,
     SourceControl,
     SourceTap,
 )
-from app.server.runtime.stream import FrameHub
-from app.sources.base import frame_sets
-from app.storage.rigfile import save_rig
-from calib.board import Board
-from calib.rig import Rig
-from tests.support import run_cli, small_rig, synth_frame, synth_frames, wait_until, write_recording
+from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.sources.base import frame_sets
+from trifuse.app.storage.rigfile import save_rig
+from trifuse.calib.board import Board
+from trifuse.calib.rig import Rig
 
 DURATION_S = 2.5
 SPS, PPS, IDR = 7, 8, 5

@@ -21,23 +21,23 @@ from conftest import OPENCV_LEFT_9X6
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from app.cli import main
-from app.server.routers.session_api import make_session_router
-from app.sources.sim.head import default_rig
-from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
-from app.workflows.calib_session import CalibrationJob, CalibrationSession
-from app.workflows.calibration_run import DetectionRun, build_report
-from app.workflows.report_html import (
+from tests.browser_support import needs_chromium
+from trifuse.app.cli import main
+from trifuse.app.server.routers.session_api import make_session_router
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
+from trifuse.app.workflows.calib_session import CalibrationJob, CalibrationSession
+from trifuse.app.workflows.calibration_run import DetectionRun, build_report
+from trifuse.app.workflows.report_html import (
     CSP,
     REPORT_HTML_NAME,
     pm,
     render_report_html,
     session_report_html,
 )
-from calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
-from calib.rig_compare import compare_rigs
-from calib.transforms import transform_points
-from tests.browser_support import needs_chromium
+from trifuse.calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
+from trifuse.calib.rig_compare import compare_rigs
+from trifuse.calib.transforms import transform_points
 
 BOARD_9x6 = "pattern: checkerboard\ninner_corners: [9, 6]\nsquare_size_m: 0.025\n"
 VOID = {"area", "base", "br", "col", "embed", "hr", "img", "input", "link", "meta", "source"}
@@ -350,8 +350,8 @@ def test_text_from_the_capture_is_escaped(rig_run: dict) -> None:
 
 
 def test_panel_download_and_route_send_the_same_page(rig_run: dict, tmp_path: Path) -> None:
-    from app.server.panels.calibration import CalibrationPanel
     from tests.scene_support import pipeline_for, scene_context
+    from trifuse.app.server.panels.calibration import CalibrationPanel
 
     session = CalibrationSession(tmp_path, RIG, CALIBRATION_BOARD)
     ctx = scene_context(pipeline_for())

@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 import yaml
 
-from app.sources.sim.head import default_rig
-from app.storage.rigfile import load_rig, save_rig
-from calib.camera import MAX_DISTORTION_TERM, Intrinsics, corner_radius
-from calib.diagnosis import FIELD_OF_VIEW_DEG, MAX_ASPECT_DEVIATION
-from calib.errors import RigError
-from calib.radiometry import Radiometry
-from calib.rig import (
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.storage.rigfile import load_rig, save_rig
+from trifuse.calib.camera import MAX_DISTORTION_TERM, Intrinsics, corner_radius
+from trifuse.calib.diagnosis import FIELD_OF_VIEW_DEG, MAX_ASPECT_DEVIATION
+from trifuse.calib.errors import RigError
+from trifuse.calib.radiometry import Radiometry
+from trifuse.calib.rig import (
     Eye,
     Rig,
     Sensor,
@@ -31,7 +31,7 @@ from calib.rig import (
     rig_to_dict,
     rig_to_yaml,
 )
-from calib.transforms import invert, make_T
+from trifuse.calib.transforms import invert, make_T
 
 BASE = rig_to_dict(default_rig())
 
@@ -546,7 +546,7 @@ def test_lookup_helpers() -> None:
 
 
 def test_modality_of_a_sensor_name() -> None:
-    from calib.rig import modality_of_name
+    from trifuse.calib.rig import modality_of_name
 
     assert modality_of_name("CCD_left") == "color" and modality_of_name("rgb") == "color"
     assert modality_of_name("LWIR_2") == "thermal" and modality_of_name("depth0") == "tof"

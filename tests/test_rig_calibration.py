@@ -8,15 +8,15 @@ from scipy import sparse
 from scipy.optimize import least_squares
 from threadpoolctl import threadpool_info
 
-from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
-from calib import polarity
-from calib.errors import CalibrationError
-from calib.rig_calibration import CalibrationOptions, _flag_outliers, calibrate_rig
-from calib.rig_problem import CornerProblem
-from calib.rig_uncertainty import parameter_sigma
-from calib.schur_lm import least_squares_schur
-from calib.transforms import make_T, rotation_from_rvec, rvec_from_rotation
 from tests.board_support import NOISE, RIG, SPECS, noisy_corners
+from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
+from trifuse.calib import polarity
+from trifuse.calib.errors import CalibrationError
+from trifuse.calib.rig_calibration import CalibrationOptions, _flag_outliers, calibrate_rig
+from trifuse.calib.rig_problem import CornerProblem
+from trifuse.calib.rig_uncertainty import parameter_sigma
+from trifuse.calib.schur_lm import least_squares_schur
+from trifuse.calib.transforms import make_T, rotation_from_rvec, rvec_from_rotation
 
 # Per-axis corner noise (px) of each modality, about what the detectors achieve.
 

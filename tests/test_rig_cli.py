@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import yaml
 
-from app.sources.sim.head import default_rig
-from app.storage.rigfile import load_rig, save_rig
-from calib.camera import Intrinsics
-from calib.rig import Rig, Sensor
 from tests.support import run_cli
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.storage.rigfile import load_rig, save_rig
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.rig import Rig, Sensor
 
 EYES_ARG = "left=ccd_left:thermal_left,right=ccd_right:thermal_right"
 
@@ -246,7 +246,7 @@ def test_bad_paths(rig_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture
 
 # -- the other formats, where they exist --------------------------------------------------------
 
-HAVE = {f: importlib.util.find_spec(f"calib.rig_formats.{f}_format") is not None
+HAVE = {f: importlib.util.find_spec(f"trifuse.calib.rig_formats.{f}_format") is not None
         for f in ("ros", "opencv", "urdf")}  # fmt: skip
 
 

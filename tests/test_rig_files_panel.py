@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 import viser
 
-from app.server.panels.rig_files import (
+from tests.support import measure_in_child
+from trifuse.app.server.panels.rig_files import (
     MAX_UPLOAD_BYTES,
     RigFilesPanel,
     UploadError,
@@ -22,9 +23,8 @@ from app.server.panels.rig_files import (
     uploaded_files,
     zip_files,
 )
-from app.sources.sim.head import default_rig
-from calib.rig_formats import IMPORT_FORMATS, RIG_FORMATS
-from tests.support import measure_in_child
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.calib.rig_formats import IMPORT_FORMATS, RIG_FORMATS
 
 
 @pytest.fixture(scope="module")

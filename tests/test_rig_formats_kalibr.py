@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 import yaml
 
-from app.sources.sim.head import default_rig
-from calib.camera import Intrinsics
-from calib.errors import RigError
-from calib.rig import Eye, Rig, Sensor, rig_from_yaml, rig_to_yaml
-from calib.rig_formats import export_rig, import_rig
-from calib.rig_formats.kalibr_format import CAMCHAIN_NAME, export, import_, radtan_loss
-from calib.transforms import invert, make_T, rotation_from_euler_deg, transform_points
 from tests.support import small_rig, synth_frame
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.errors import RigError
+from trifuse.calib.rig import Eye, Rig, Sensor, rig_from_yaml, rig_to_yaml
+from trifuse.calib.rig_formats import export_rig, import_rig
+from trifuse.calib.rig_formats.kalibr_format import CAMCHAIN_NAME, export, import_, radtan_loss
+from trifuse.calib.transforms import invert, make_T, rotation_from_euler_deg, transform_points
 
 DATA = Path(__file__).parent / "data" / "rig_formats" / "kalibr"
 EUROC = DATA / "euroc_camchain.yaml"
@@ -316,8 +316,8 @@ def test_a_thermal_and_tof_camchain_with_eyes_fuses() -> None:
     """A camchain of the small head (cam0 the TOF camera, two colour cameras, two thermal
     imagers, topics /thermal_left/image_raw ...), imported with eyes: the fusion that
     `trifuse serve --rig` runs takes it and fuses a frame set."""
-    from fusion.compose import DisplaySettings
-    from fusion.stereo import StereoFusion
+    from trifuse.fusion.compose import DisplaySettings
+    from trifuse.fusion.stereo import StereoFusion
 
     source = small_rig()
     text = export(source).files[CAMCHAIN_NAME]

@@ -15,13 +15,13 @@ import pytest
 import yaml
 from conftest import DATA_DIR
 
-from app.sources.sim.head import default_rig
-from calib.camera import Intrinsics
-from calib.errors import RigError
-from calib.radiometry import Radiometry
-from calib.range_correction import RangeCorrection
-from calib.rig import Eye, Rig, Sensor
-from calib.rig_formats import (
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.errors import RigError
+from trifuse.calib.radiometry import Radiometry
+from trifuse.calib.range_correction import RangeCorrection
+from trifuse.calib.rig import Eye, Rig, Sensor
+from trifuse.calib.rig_formats import (
     Exported,
     export_rig,
     import_rig,
@@ -29,7 +29,7 @@ from calib.rig_formats import (
     ros_format,
     urdf_format,
 )
-from calib.transforms import invert, make_T, rotation_from_euler_deg, transform_points
+from trifuse.calib.transforms import invert, make_T, rotation_from_euler_deg, transform_points
 
 ROS_SAMPLE = DATA_DIR / "rig_formats" / "ros" / "camera_info.yaml"
 DEFAULT_EYES = {"left": ("ccd_left", "thermal_left"), "right": ("ccd_right", "thermal_right")}

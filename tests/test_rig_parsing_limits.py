@@ -33,20 +33,20 @@ import numpy as np
 import pytest
 import yaml
 
-from app.sources.sim.head import default_rig
-from app.workflows.rig_import import import_rig_isolated, run_isolated
-from calib import yaml_text
-from calib.errors import RigError
-from calib.rig import Rig, rig_to_yaml
-from calib.rig_formats import export_rig, import_rig, opencv_format
-from calib.rig_formats.filestorage_text import (
+from tests.support import run_cli
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.workflows.rig_import import import_rig_isolated, run_isolated
+from trifuse.calib import yaml_text
+from trifuse.calib.errors import RigError
+from trifuse.calib.rig import Rig, rig_to_yaml
+from trifuse.calib.rig_formats import export_rig, import_rig, opencv_format
+from trifuse.calib.rig_formats.filestorage_text import (
     MAX_NESTING,
     MAX_TEXT_CHARS,
     check_filestorage_text,
     nesting_bound,
 )
-from calib.yaml_text import YamlError, parse_yaml
-from tests.support import run_cli
+from trifuse.calib.yaml_text import YamlError, parse_yaml
 
 READ = cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY
 EYES = {"left": ("ccd_left", "thermal_left"), "right": ("ccd_right", "thermal_right")}
@@ -122,7 +122,7 @@ def test_deep_opencv_text_is_refused_before_opencv_reads_it(kind: str) -> None:
 def test_a_small_zip_of_a_deep_file_is_refused_in_the_consoles_path() -> None:
     """The issue's case: a few hundred bytes of zip unpack to a file that would crash
     OpenCV; the console's way (unpack the upload, import in a child) refuses it."""
-    from app.server.panels.rig_files import uploaded_files
+    from trifuse.app.server.panels.rig_files import uploaded_files
 
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
@@ -459,8 +459,8 @@ def test_the_isolated_run_reports_memory_and_time_running_out() -> None:
 _MEASURE = textwrap.dedent(
     """
     import json, resource, sys, time
-    from calib.rig_formats.ros_format import parse_camera_info
-    from calib.errors import RigError
+    from trifuse.calib.rig_formats.ros_format import parse_camera_info
+    from trifuse.calib.errors import RigError
 
     def status(key):
         with open("/proc/self/status") as f:

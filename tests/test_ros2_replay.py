@@ -7,11 +7,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.recording import RecordingDamaged, RecordingError, TopicMapError
-from app.recording.ros2 import Ros2BagSource
-from app.recording.topicmap import load_topic_map, topic_map_from_yaml
-from app.sources.base import frame_sets
-from calib.camera import Intrinsics
 from tests.ros2_support import (
     COLOR,
     PERIOD_NS,
@@ -20,6 +15,11 @@ from tests.ros2_support import (
     TOPIC_MAP,
     make_bag,
 )
+from trifuse.app.recording import RecordingDamaged, RecordingError, TopicMapError
+from trifuse.app.recording.ros2 import Ros2BagSource
+from trifuse.app.recording.topicmap import load_topic_map, topic_map_from_yaml
+from trifuse.app.sources.base import frame_sets
+from trifuse.calib.camera import Intrinsics
 
 
 @pytest.fixture
@@ -202,8 +202,8 @@ def test_topic_map_file(tmp_path):
 
 
 def test_bag_replay_with_a_rig(bag, tmp_path):
-    from app.storage.rigfile import save_rig
-    from calib.rig import Rig, Sensor
+    from trifuse.app.storage.rigfile import save_rig
+    from trifuse.calib.rig import Rig, Sensor
 
     path, _ = bag
     sensors = {

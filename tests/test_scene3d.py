@@ -11,33 +11,6 @@ import numpy as np
 import pytest
 import viser.transforms as vtf
 
-from app.server.panels import scene_layout as layout
-from app.server.panels.display import NEXT_RGB, scale_corners
-from app.server.panels.scene3d import (
-    FALLBACK_VIEWPORT,
-    Scene3D,
-    rig_difference_markdown,
-    viewport_of,
-)
-from app.server.panels.scene_board import board_checker_image, board_lag_s
-from app.server.panels.scene_cloud import DEPTH_PALETTE, NAN_GREY
-from app.server.panels.scene_sensors import (
-    TEXTURE_MAX_W,
-    frustum_scale,
-    sensor_texture,
-    vertical_fov_rad,
-    wxyz_of,
-)
-from app.server.runtime.board_watch import BoardSighting
-from app.sources.frames import Frame, FrameSet
-from app.sources.sim.head import default_rig
-from calib.board import Board
-from calib.radiometry import Radiometry
-from calib.rig import Rig
-from calib.transforms import make_T, rotation_from_euler_deg
-from fusion.compose import DisplaySettings
-from fusion.palettes import palette_colors
-from fusion.stereo import StereoFusion
 from tests.scene_support import (
     LEFT_K,
     RED,
@@ -46,6 +19,33 @@ from tests.scene_support import (
     ramp_distance,
     scene_context,
 )
+from trifuse.app.server.panels import scene_layout as layout
+from trifuse.app.server.panels.display import NEXT_RGB, scale_corners
+from trifuse.app.server.panels.scene3d import (
+    FALLBACK_VIEWPORT,
+    Scene3D,
+    rig_difference_markdown,
+    viewport_of,
+)
+from trifuse.app.server.panels.scene_board import board_checker_image, board_lag_s
+from trifuse.app.server.panels.scene_cloud import DEPTH_PALETTE, NAN_GREY
+from trifuse.app.server.panels.scene_sensors import (
+    TEXTURE_MAX_W,
+    frustum_scale,
+    sensor_texture,
+    vertical_fov_rad,
+    wxyz_of,
+)
+from trifuse.app.server.runtime.board_watch import BoardSighting
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.calib.board import Board
+from trifuse.calib.radiometry import Radiometry
+from trifuse.calib.rig import Rig
+from trifuse.calib.transforms import make_T, rotation_from_euler_deg
+from trifuse.fusion.compose import DisplaySettings
+from trifuse.fusion.palettes import palette_colors
+from trifuse.fusion.stereo import StereoFusion
 
 
 @pytest.fixture(scope="module")

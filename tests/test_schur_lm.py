@@ -7,7 +7,7 @@ import pytest
 from scipy import sparse
 from scipy.optimize import least_squares
 
-from calib.schur_lm import least_squares_schur
+from trifuse.calib.schur_lm import least_squares_schur
 
 TOL = {"ftol": 1e-12, "xtol": 1e-12, "gtol": 1e-10}
 

@@ -14,10 +14,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from app.server.panels.source import health_text
-from app.server.routers.app import create_app
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.sensor_health import (
+from tests.support import ListSource, small_rig, synth_frame, wait_until
+from trifuse.app.server.panels.source import health_text
+from trifuse.app.server.routers.app import create_app
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.sensor_health import (
     SUBSAMPLE,
     Expected,
     HealthMonitor,
@@ -30,14 +31,13 @@ from app.server.runtime.sensor_health import (
     short_error,
     silence_threshold_s,
 )
-from app.server.runtime.source_control import SourceControl, SourceTap
-from app.server.runtime.stream import FrameHub
-from app.sources.base import FrameSetAssembler
-from app.sources.frames import Frame
-from app.sources.push.encode import encode_frame
-from app.sources.push.protocol import PushError
-from app.sources.push.source import PushSource
-from tests.support import ListSource, small_rig, synth_frame, wait_until
+from trifuse.app.server.runtime.source_control import SourceControl, SourceTap
+from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.sources.base import FrameSetAssembler
+from trifuse.app.sources.frames import Frame
+from trifuse.app.sources.push.encode import encode_frame
+from trifuse.app.sources.push.protocol import PushError
+from trifuse.app.sources.push.source import PushSource
 
 RIG = small_rig()
 EXPECTED = expected_of(RIG)

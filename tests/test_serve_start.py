@@ -12,12 +12,12 @@ from pathlib import Path
 
 import pytest
 
-from app.cli import main
-from app.devtools.console_process import free_port, stop_process
-from app.server.runtime.serve import bind_public_socket
-from app.storage.workdir_lock import WorkdirInUse, lock_workdir
 from tests.browser_support import console_running, start_console
 from tests.support import direct_websocket
+from trifuse.app.cli import main
+from trifuse.app.devtools.console_process import free_port, stop_process
+from trifuse.app.server.runtime.serve import bind_public_socket
+from trifuse.app.storage.workdir_lock import WorkdirInUse, lock_workdir
 
 
 def test_a_port_in_use_is_one_line(tmp_path) -> None:

@@ -6,12 +6,12 @@ import pytest
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from app.server.routers.session_api import make_session_router
-from app.sources.sim.head import default_rig
-from app.sources.sim.scenarios import CALIBRATION_BOARD
-from app.workflows.calib_session import CalibrationSession
-from calib.rig import Rig
 from tests.support import wait_searched, wait_until
+from trifuse.app.server.routers.session_api import make_session_router
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD
+from trifuse.app.workflows.calib_session import CalibrationSession
+from trifuse.calib.rig import Rig
 
 
 @pytest.fixture

@@ -6,20 +6,20 @@ import cv2
 import numpy as np
 import pytest
 
-from app.sources.sim.head import default_rig
-from app.sources.sim.render import HeadModel, Renderer
-from app.sources.sim.scenarios import (
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.render import HeadModel, Renderer
+from trifuse.app.sources.sim.scenarios import (
     CALIBRATION_BOARD,
     InspectionScenario,
     board_solid,
     calibration_poses,
     lab_background,
 )
-from app.sources.sim.scene import Material, Quad, Scene
-from app.sources.sim.tof_error import RangeErrorModel
-from calib.tof import region_map
-from calib.transforms import make_T, rotation_from_euler_deg, transform_points
-from fusion.geometry import tof_points, tof_rays
+from trifuse.app.sources.sim.scene import Material, Quad, Scene
+from trifuse.app.sources.sim.tof_error import RangeErrorModel
+from trifuse.calib.tof import region_map
+from trifuse.calib.transforms import make_T, rotation_from_euler_deg, transform_points
+from trifuse.fusion.geometry import tof_points, tof_rays
 
 RIG = default_rig()
 NO_RANGE_ERROR = RangeErrorModel(
@@ -334,7 +334,7 @@ def test_rotation_warp_map_is_the_exact_projection() -> None:
     interpolation bound of projecting every pixel: (8^2 / 8) x the map's largest second
     difference, plus float32 arithmetic on pixel coordinates (bilinear: four products and
     three sums, at most 4 ulp of the largest coordinate)."""
-    from app.sources.sim.live import RotationWarp
+    from trifuse.app.sources.sim.live import RotationWarp
 
     R = rotation_from_euler_deg(0.05, 0.3, 0.02)
     for name in LIVE_SENSORS:

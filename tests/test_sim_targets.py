@@ -30,16 +30,16 @@ import numpy as np
 import pytest
 import viser
 
-from app.cli import main
-from app.sources.frames import FrameSet
-from app.storage.capture import load_capture
-from app.storage.rigfile import load_rig
-from calib.board import Board
-from calib.rig import Rig
-from calib.transforms import make_T, pose_error
 from tests.browser_support import WAIT_MS, needs_chromium
 from tests.prerender_support import TARGET_VIEWS, prerendered
 from tests.support import FOCAL, POSE
+from trifuse.app.cli import main
+from trifuse.app.sources.frames import FrameSet
+from trifuse.app.storage.capture import load_capture
+from trifuse.app.storage.rigfile import load_rig
+from trifuse.calib.board import Board
+from trifuse.calib.rig import Rig
+from trifuse.calib.transforms import make_T, pose_error
 
 VIEWS = TARGET_VIEWS
 """Views per pattern (seed 3; 18 before; set in tests/prerender_support.py, which renders
@@ -270,8 +270,8 @@ def test_partial_charuco_views_cover_the_image_corners(run: dict) -> None:
     whole board reach less."""
     if run["pattern"] != "charuco":
         pytest.skip("partial views are a ChArUco matter")
-    from calib.coverage import coarse_reached
-    from calib.detect import detect_board
+    from trifuse.calib.coverage import coarse_reached
+    from trifuse.calib.detect import detect_board
 
     cap = load_capture(run["capture"])
     partial = []
@@ -301,10 +301,10 @@ def partial_frames(board: Board, seed: int) -> tuple[FrameSet, Rig]:
     """The colour cameras' images of the lab with ``board`` pushed over an edge or corner
     of ccd_left's image (30 % of its pattern beyond it; :func:`partial_view_poses`' view 1
     is aimed at the rig's second sensor, ccd_left), and the simulated head's rig."""
-    from app.sources.sim.head import default_rig
-    from app.sources.sim.render import Renderer
-    from app.sources.sim.scenarios import board_solid, lab_background, partial_view_poses
-    from app.sources.sim.scene import Scene
+    from trifuse.app.sources.sim.head import default_rig
+    from trifuse.app.sources.sim.render import Renderer
+    from trifuse.app.sources.sim.scenarios import board_solid, lab_background, partial_view_poses
+    from trifuse.app.sources.sim.scene import Scene
 
     rig = default_rig()
     assert rig.names[1] == "ccd_left"
@@ -321,12 +321,12 @@ def test_console_auto_captures_a_partial_charuco_view(tmp_path: Path) -> None:
     watch on a frame set whose ChArUco board leaves ccd_left's image: the view is taken
     (steady, novel), and the session's search of it finds the corners in view (NaN rows for
     the others) in both colour cameras."""
-    from app.server.panels.calibration import CalibrationPanel
-    from app.server.runtime.board_watch import BoardWatch
-    from app.server.runtime.context import ConsoleContext
-    from app.workflows.calib_session import CalibrationSession
     from tests.scene_support import pipeline_for
     from tests.support import wait_until
+    from trifuse.app.server.panels.calibration import CalibrationPanel
+    from trifuse.app.server.runtime.board_watch import BoardWatch
+    from trifuse.app.server.runtime.context import ConsoleContext
+    from trifuse.app.workflows.calib_session import CalibrationSession
 
     board = charuco_board()
     frames, rig = partial_frames(board, 1)
@@ -366,7 +366,7 @@ def test_console_auto_captures_a_partial_charuco_view(tmp_path: Path) -> None:
 def test_the_scene_draws_the_boards_pattern_over_its_true_extent() -> None:
     """The 3D scene's board image: a ChArUco board's squares and markers, a circle grid's
     circles, each over the pattern's extent (calib.board), outlined there."""
-    from app.server.panels.scene_board import board_checker_image, board_outline
+    from trifuse.app.server.panels.scene_board import board_checker_image, board_outline
 
     circles = Board(4, 11, 0.06, pattern="asymmetric_circles", circle_diameter_m=0.042)
     for board in (charuco_board(), circles):
@@ -398,7 +398,7 @@ def test_browser_shows_the_charuco_board_in_the_3d_scene(browser, tmp_path: Path
     its squares and markers; the screenshot goes to /tmp/shots/charuco-in-scene.png."""
     import yaml
 
-    from app.devtools.console_process import ConsoleProcess
+    from trifuse.app.devtools.console_process import ConsoleProcess
 
     board_yaml = tmp_path / "board.yaml"
     board_yaml.write_text(yaml.safe_dump(charuco_board().to_dict(), sort_keys=False))
@@ -439,16 +439,16 @@ def mark_contrast(board: Board, thermal: str) -> dict[str, float]:
     board's marks (``is_black``: black squares and marker cells, circles) minus that at its
     white, sampled at board points 8 mm or more from a mark's edge, through the exact
     projection of one view (the board at 0.6-1 m in front of the TOF camera)."""
-    from app.sources.sim.head import default_rig
-    from app.sources.sim.render import Renderer
-    from app.sources.sim.scenarios import (
+    from trifuse.app.sources.sim.head import default_rig
+    from trifuse.app.sources.sim.render import Renderer
+    from trifuse.app.sources.sim.scenarios import (
         board_finish,
         board_solid,
         calibration_poses,
         lab_background,
     )
-    from app.sources.sim.scene import Scene
-    from calib.transforms import invert
+    from trifuse.app.sources.sim.scene import Scene
+    from trifuse.calib.transforms import invert
 
     rig = default_rig()
     T = calibration_poses(1, 2, rig, board)[0]
@@ -516,7 +516,7 @@ def test_heat_diffusion_blurs_charuco_and_circle_marks() -> None:
     """The thermal condition "heat diffusion" on patterns that are not separable: without
     blur the marks themselves; with blur a Monte-Carlo average of the marks around each
     point (the checkerboard's exact formula has its own test)."""
-    from app.sources.sim.thermal_conditions import blurred_black
+    from trifuse.app.sources.sim.thermal_conditions import blurred_black
 
     circles = Board(4, 11, 0.06, pattern="asymmetric_circles", circle_diameter_m=0.042)
     rng = np.random.default_rng(7)

@@ -9,13 +9,6 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from app.recording import ReplaySource
-from app.server.routers.app import create_app
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.source_control import SourceControl, SourceTap
-from app.server.runtime.stream import FrameHub
-from app.sources.frames import Frame
-from calib.rig import Rig
 from tests.support import (
     ListSource,
     assert_same_frame,
@@ -24,6 +17,13 @@ from tests.support import (
     wait_until,
     write_recording,
 )
+from trifuse.app.recording import ReplaySource
+from trifuse.app.server.routers.app import create_app
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.source_control import SourceControl, SourceTap
+from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.sources.frames import Frame
+from trifuse.calib.rig import Rig
 
 DURATION_S = 3.0
 

@@ -16,23 +16,6 @@ import pytest
 import viser
 from viser import GuiEvent
 
-from app.recording import RecordingWriter, ReplaySource
-from app.server.panels import source as source_panel
-from app.server.panels.source import SourcePanel, human_bytes
-from app.server.runtime.board_watch import BoardWatch
-from app.server.runtime.context import ConsoleContext
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.source_control import (
-    ControlError,
-    RateMeter,
-    Recorder,
-    SourceControl,
-    SourceTap,
-)
-from app.server.runtime.stream import FrameHub
-from app.sources.frames import Frame
-from calib.board import Board
-from calib.rig import Rig
 from tests.support import (
     WAIT_S,
     ListSource,
@@ -42,6 +25,23 @@ from tests.support import (
     wait_until,
     write_recording,
 )
+from trifuse.app.recording import RecordingWriter, ReplaySource
+from trifuse.app.server.panels import source as source_panel
+from trifuse.app.server.panels.source import SourcePanel, human_bytes
+from trifuse.app.server.runtime.board_watch import BoardWatch
+from trifuse.app.server.runtime.context import ConsoleContext
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.source_control import (
+    ControlError,
+    RateMeter,
+    Recorder,
+    SourceControl,
+    SourceTap,
+)
+from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.sources.frames import Frame
+from trifuse.calib.board import Board
+from trifuse.calib.rig import Rig
 
 
 @pytest.fixture(scope="module")
@@ -277,8 +277,8 @@ def test_rate_meter() -> None:
 def test_the_head_pose_is_recorded_beside_each_tof_frame(rig, tmp_path) -> None:
     """A source that knows the head's pose (the simulated head, a replay with poses):
     each TOF frame's pose goes to /tf as world -> rig, and the recording gives it back."""
-    from app.recording.poses import read_poses
-    from calib.transforms import make_T, rotation_from_euler_deg
+    from trifuse.app.recording.poses import read_poses
+    from trifuse.calib.transforms import make_T, rotation_from_euler_deg
 
     def pose(stamp_ns: int) -> np.ndarray:
         t = stamp_ns * 1e-9

@@ -12,8 +12,9 @@ import cv2
 import numpy as np
 import pytest
 
-from app.sources.base import FrameSetAssembler, frame_sets
-from app.sources.camera import (
+from tests.support import WAIT_S, FakeClock, wait_until
+from trifuse.app.sources.base import FrameSetAssembler, frame_sets
+from trifuse.app.sources.camera import (
     CameraConfig,
     CameraError,
     CameraSource,
@@ -23,12 +24,11 @@ from app.sources.camera import (
     counts_to_kelvin,
     load_cameras_config,
 )
-from app.sources.frames import Frame
-from app.sources.sim.head import default_rig
-from app.sources.sim.render import HeadModel
-from app.sources.sim.scenarios import InspectionScenario
-from app.sources.simulated import SimulatedHeadSource
-from tests.support import WAIT_S, FakeClock, wait_until
+from trifuse.app.sources.frames import Frame
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.render import HeadModel
+from trifuse.app.sources.sim.scenarios import InspectionScenario
+from trifuse.app.sources.simulated import SimulatedHeadSource
 
 SENSOR_RATES = {
     "ccd_left": 30,
@@ -316,8 +316,8 @@ def test_simulated_live_mode_turns_the_nearest_rendered_pose(scenario):
 def test_first_minute_benchmark_measures_moves_and_stills():
     """``trifuse bench --only sim-first-minute`` judges the picture by the JPEGs the
     viewer receives: a new size is a change, changes within 0.15 s are one move."""
-    from app.devtools.bench import REGISTRY
-    from app.devtools.bench_motion import motion_figures
+    from trifuse.app.devtools.bench import REGISTRY
+    from trifuse.app.devtools.bench_motion import motion_figures
 
     assert {"sim-first-minute", "sim-live"} <= set(REGISTRY)
     pictures = [(0.0, 10), (0.1, 10), (0.5, 11), (0.55, 12), (1.0, 12), (2.5, 13), (3.2, 14)]
@@ -332,7 +332,7 @@ def test_first_minute_benchmark_measures_moves_and_stills():
 
 
 def test_simulated_live_mode_needs_a_turning_head():
-    from app.sources.sim.scenarios import CalibrationScenario
+    from trifuse.app.sources.sim.scenarios import CalibrationScenario
 
     with pytest.raises(ValueError, match="only the head turns"):
         SimulatedHeadSource(CalibrationScenario(n_poses=2), live=True)

@@ -20,17 +20,17 @@ import cv2
 import numpy as np
 import pytest
 
-from app.sources.sim.render import HeadModel
-from app.sources.sim.scenarios import (
+from trifuse.app.sources.sim.render import HeadModel
+from trifuse.app.sources.sim.scenarios import (
     INSPECTION_WALL_K,
     PERSON2_SKIN_K,
     WINDOW_K,
     InspectionScenario,
 )
-from app.sources.sim.tof_error import RangeErrorModel
-from fusion.compose import DisplaySettings
-from fusion.spot import SpotError, SpotFrame, SpotMeter, robust_extremes
-from fusion.stereo import StereoFusion
+from trifuse.app.sources.sim.tof_error import RangeErrorModel
+from trifuse.fusion.compose import DisplaySettings
+from trifuse.fusion.spot import SpotError, SpotFrame, SpotMeter, robust_extremes
+from trifuse.fusion.stereo import StereoFusion
 
 T_S = 18.0
 OFFSET_K = HeadModel().thermal_offset_k  # thermal_left +0.75, thermal_right -0.75

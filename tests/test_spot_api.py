@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from app.server.routers.app import create_app
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.stream import FrameHub
-from app.sources.frames import Frame, FrameSet
-from app.sources.sim.scenarios import InspectionScenario
 from tests.support import ListSource, wait_until
+from trifuse.app.server.routers.app import create_app
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.sources.sim.scenarios import InspectionScenario
 
 T_S = 18.0
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.sources.sim.scenarios import InspectionScenario
-from fusion.accuracy import band_errors, depth_edges, exact_mapping
-from fusion.compose import DisplaySettings
-from fusion.stereo import StereoFusion
+from trifuse.app.sources.sim.scenarios import InspectionScenario
+from trifuse.fusion.accuracy import band_errors, depth_edges, exact_mapping
+from trifuse.fusion.compose import DisplaySettings
+from trifuse.fusion.stereo import StereoFusion
 
 
 @pytest.fixture(scope="module")

@@ -15,21 +15,21 @@ import pytest
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from app.server.panels.source import stream_text
-from app.server.runtime.pipeline import FusionPipeline, PipelineStatus, _Job, _StreamEncoder
-from app.server.runtime.rates import RatesSnapshot, StreamRates
-from app.server.runtime.stream import (
+from tests.support import FakeClock, small_rig, synth_frame
+from trifuse.app.server.panels.source import stream_text
+from trifuse.app.server.runtime.pipeline import FusionPipeline, PipelineStatus, _Job, _StreamEncoder
+from trifuse.app.server.runtime.rates import RatesSnapshot, StreamRates
+from trifuse.app.server.runtime.stream import (
     MAX_MESSAGE_CHARS,
     FrameHub,
     StreamFrame,
     make_stream_router,
 )
-from app.server.runtime.video_stats import VideoViewerStats
-from app.sources.base import FrameSource
-from app.sources.frames import Frame
-from fusion.compose import DisplaySettings
-from fusion.palettes import palette
-from tests.support import FakeClock, small_rig, synth_frame
+from trifuse.app.server.runtime.video_stats import VideoViewerStats
+from trifuse.app.sources.base import FrameSource
+from trifuse.app.sources.frames import Frame
+from trifuse.fusion.compose import DisplaySettings
+from trifuse.fusion.palettes import palette
 
 RIG = small_rig()
 

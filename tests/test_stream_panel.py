@@ -3,8 +3,8 @@ console's default preset and follows a change made through ``/api/stream/setting
 
 from __future__ import annotations
 
-from app.server.panels.stream import AUTO_LABEL, StreamPresetControl, preset_labels
-from app.server.runtime.video_presets import PRESETS, StreamSettings
+from trifuse.app.server.panels.stream import AUTO_LABEL, StreamPresetControl, preset_labels
+from trifuse.app.server.runtime.video_presets import PRESETS, StreamSettings
 
 
 def test_labels_name_every_preset_with_its_level() -> None:

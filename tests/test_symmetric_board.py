@@ -16,18 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-import calib.detect as detect_mod
-from app.devtools.real_sets import REAL_SETS, load_views, measure
-from app.storage.capture import load_capture
-from app.storage.ground_truth import load_ground_truth
-from app.workflows.calibration_run import calibrate_capture
-from calib.board import Board
-from calib.detect import detect_board
-from calib.opencv_reference import calibrate_camera_opencv, stereo_calibrate_opencv
-from calib.polarity import grid_turns, half_turn, order_views, orient_to_pose
-from calib.rig_calibration import SensorSpec, calibrate_rig
-from calib.rig_compare import compare_rigs
-from calib.transforms import invert, make_T, rotation_from_euler_deg, transform_points
+import trifuse.calib.detect as detect_mod
 from tests.board_support import (
     RIG,
     SPECS,
@@ -39,6 +28,17 @@ from tests.board_support import (
     screen,
 )
 from tests.prerender_support import prerendered
+from trifuse.app.devtools.real_sets import REAL_SETS, load_views, measure
+from trifuse.app.storage.capture import load_capture
+from trifuse.app.storage.ground_truth import load_ground_truth
+from trifuse.app.workflows.calibration_run import calibrate_capture
+from trifuse.calib.board import Board
+from trifuse.calib.detect import detect_board
+from trifuse.calib.opencv_reference import calibrate_camera_opencv, stereo_calibrate_opencv
+from trifuse.calib.polarity import grid_turns, half_turn, order_views, orient_to_pose
+from trifuse.calib.rig_calibration import SensorSpec, calibrate_rig
+from trifuse.calib.rig_compare import compare_rigs
+from trifuse.calib.transforms import invert, make_T, rotation_from_euler_deg, transform_points
 
 SYMMETRIC = {
     "4x6": Board(4, 6, 0.08),  # even x even: a half turn

@@ -13,19 +13,19 @@ import numpy as np
 import pytest
 import yaml
 
-from app.cli import main
-from app.recording.writer import RecordingWriter
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.stream import FrameHub
-from app.server.runtime.thermal_balance import ThermalBalancer
-from app.sources.frames import Frame, FrameSet
-from app.sources.sim.scenarios import InspectionScenario
-from calib.radiometry import Radiometry
-from calib.transforms import make_T, rotation_from_euler_deg
-from fusion.balance import balance_terms, measure_balance
-from fusion.compose import DisplaySettings
-from fusion.stereo import StereoFusion
 from tests.support import ListSource
+from trifuse.app.cli import main
+from trifuse.app.recording.writer import RecordingWriter
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.server.runtime.thermal_balance import ThermalBalancer
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.sources.sim.scenarios import InspectionScenario
+from trifuse.calib.radiometry import Radiometry
+from trifuse.calib.transforms import make_T, rotation_from_euler_deg
+from trifuse.fusion.balance import balance_terms, measure_balance
+from trifuse.fusion.compose import DisplaySettings
+from trifuse.fusion.stereo import StereoFusion
 
 # The simulator's imagers read +0.75 K (left) and -0.75 K (right) off; NETD 0.08 K.
 SIM_DIFFERENCE_K = 1.5
@@ -167,7 +167,7 @@ def _recording(path: Path, rig, sets: list[FrameSet]) -> Path:
 
 def test_balance_thermal_command(inspection, tmp_path: Path, capsys) -> None:
     rig, sets = inspection
-    from app.storage.rigfile import save_rig
+    from trifuse.app.storage.rigfile import save_rig
 
     rec = _recording(tmp_path / "room.mcap", rig, sets)
     rig_path = save_rig(tmp_path / "rig.yaml", rig)

@@ -17,10 +17,11 @@ import numpy as np
 import pytest
 from conftest import OPENCV_LEFT_9X6
 
-from app.sources.sim.condition_views import ThermalView, thermal_condition_views
-from app.sources.sim.head import default_rig
-from app.sources.sim.render import Renderer
-from app.sources.sim.scenarios import (
+from tests.prerender_support import THERMAL_MORE_SEEDS, prerendered
+from trifuse.app.sources.sim.condition_views import ThermalView, thermal_condition_views
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.render import Renderer
+from trifuse.app.sources.sim.scenarios import (
     CALIBRATION_BOARD,
     HOT_PIPE_K,
     board_solid,
@@ -29,8 +30,8 @@ from app.sources.sim.scenarios import (
     lab_background,
     partial_view_poses,
 )
-from app.sources.sim.scene import Scene
-from app.sources.sim.thermal_conditions import (
+from trifuse.app.sources.sim.scene import Scene
+from trifuse.app.sources.sim.thermal_conditions import (
     BENCH_CONDITIONS,
     COUNTS_MAX,
     ROOM_K,
@@ -42,11 +43,10 @@ from app.sources.sim.thermal_conditions import (
     square_emissivities,
     to_counts,
 )
-from calib.board import Board
-from calib.detect import detect_board
-from calib.detect_baseline import detect_board_baseline
-from calib.rig import Rig
-from tests.prerender_support import THERMAL_MORE_SEEDS, prerendered
+from trifuse.calib.board import Board
+from trifuse.calib.detect import detect_board
+from trifuse.calib.detect_baseline import detect_board_baseline
+from trifuse.calib.rig import Rig
 
 RIG = default_rig()
 BOARD = CALIBRATION_BOARD
@@ -88,8 +88,8 @@ def _apparent_contrast(view: ThermalView, cond: ThermalConditions) -> float:
 
 def _plate_mask(view: ThermalView, grow_px: int) -> np.ndarray:
     """(H, W) bool: the board plate's image (margin included) grown by ``grow_px``."""
-    from app.sources.sim.scenarios import BOARD_MARGIN_M
-    from calib.transforms import transform_points
+    from trifuse.app.sources.sim.scenarios import BOARD_MARGIN_M
+    from trifuse.calib.transforms import transform_points
 
     s, m = BOARD.square_size_m, BOARD_MARGIN_M
     x0, x1, y0, y1 = -s - m, BOARD.cols * s + m, -s - m, BOARD.rows * s + m

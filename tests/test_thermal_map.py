@@ -7,16 +7,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.sources.sim.render import HeadModel
-from app.sources.sim.scenarios import inspection_scene
-from app.sources.sim.survey import SURVEY_S, SurveyScenario, survey_pose
-from app.sources.sim.tof_error import RangeErrorModel
-from calib.transforms import rotation_angle_deg
-from fusion.map_builder import MapBuilder
-from fusion.mapping import TofGrid
-from fusion.odometry import TofOdometry
-from fusion.point_attributes import PointAttributes
-from fusion.voxel_map import MapSettings
+from trifuse.app.sources.sim.render import HeadModel
+from trifuse.app.sources.sim.scenarios import inspection_scene
+from trifuse.app.sources.sim.survey import SURVEY_S, SurveyScenario, survey_pose
+from trifuse.app.sources.sim.tof_error import RangeErrorModel
+from trifuse.calib.transforms import rotation_angle_deg
+from trifuse.fusion.map_builder import MapBuilder
+from trifuse.fusion.mapping import TofGrid
+from trifuse.fusion.odometry import TofOdometry
+from trifuse.fusion.point_attributes import PointAttributes
+from trifuse.fusion.voxel_map import MapSettings
 
 EXACT_RANGE = RangeErrorModel(
     bias_m=0.0, wiggle=(), radial_m=0.0, border_m=0.0, pixel_sigma_m=0.0, amplitude_m=0.0

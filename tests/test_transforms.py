@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calib.transforms import (
+from trifuse.calib.transforms import (
     check_rigid,
     invert,
     make_T,

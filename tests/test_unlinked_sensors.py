@@ -29,20 +29,20 @@ import math
 import numpy as np
 import pytest
 
-from app.devtools.bench_real_calib import (
+from tests.board_support import NOISE, RIG, SPECS, noisy_corners
+from tests.test_real_pose2sim_published import CAMERAS, SET, TARGET, _recipe
+from trifuse.app.devtools.bench_real_calib import (
     TrifuseRun,
     _sensor_row,
     run_opencv,
     trifuse_name,
     write_capture,
 )
-from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
-from app.storage.capture import load_capture
-from app.workflows.calibration_run import calibrate_capture, format_summary
-from app.workflows.report_html import render_report_html
-from calib.rig_calibration import CalibrationOptions, calibrate_rig
-from tests.board_support import NOISE, RIG, SPECS, noisy_corners
-from tests.test_real_pose2sim_published import CAMERAS, SET, TARGET, _recipe
+from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
+from trifuse.app.storage.capture import load_capture
+from trifuse.app.workflows.calibration_run import calibrate_capture, format_summary
+from trifuse.app.workflows.report_html import render_report_html
+from trifuse.calib.rig_calibration import CalibrationOptions, calibrate_rig
 
 ALONE = "thermal_right"
 

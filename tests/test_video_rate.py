@@ -16,9 +16,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from app.recording.h264 import MIN_BPS
-from app.server.runtime.video_presets import LEVELS, RUNG_STEP, Rung, rung_for
-from app.server.runtime.video_rate import DECREASE, STALL_S, WINDOW, RateController
+from trifuse.app.recording.h264 import MIN_BPS
+from trifuse.app.server.runtime.video_presets import LEVELS, RUNG_STEP, Rung, rung_for
+from trifuse.app.server.runtime.video_rate import DECREASE, STALL_S, WINDOW, RateController
 
 STEP_S = 0.001
 

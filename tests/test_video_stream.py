@@ -21,20 +21,20 @@ import pytest
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
-from app.devtools.image_quality import psnr, ssim
-from app.recording.h264 import VideoEncoder, codec_string, is_idr
-from app.server.routers.app import create_app
-from app.server.routers.auth import AuthConfig
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.stream import FrameHub, StreamFrame
-from app.server.runtime.video_presets import LEVEL_BY_NAME, LEVELS
-from app.server.runtime.video_rate import WINDOW
-from app.sources.base import FrameSource
-from app.sources.frames import Frame
-from app.sources.sim.render import HeadModel
-from app.sources.sim.scenarios import InspectionScenario
-from app.sources.simulated import SimulatedHeadSource
 from tests.support import wait_until
+from trifuse.app.devtools.image_quality import psnr, ssim
+from trifuse.app.recording.h264 import VideoEncoder, codec_string, is_idr
+from trifuse.app.server.routers.app import create_app
+from trifuse.app.server.routers.auth import AuthConfig
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.stream import FrameHub, StreamFrame
+from trifuse.app.server.runtime.video_presets import LEVEL_BY_NAME, LEVELS
+from trifuse.app.server.runtime.video_rate import WINDOW
+from trifuse.app.sources.base import FrameSource
+from trifuse.app.sources.frames import Frame
+from trifuse.app.sources.sim.render import HeadModel
+from trifuse.app.sources.sim.scenarios import InspectionScenario
+from trifuse.app.sources.simulated import SimulatedHeadSource
 
 W, H = LEVELS[0].size
 META_KEYS = {"codec", "key", "width", "height", "bitrate_bps", "fps_target", "preset", "level"}

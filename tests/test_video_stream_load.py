@@ -31,11 +31,11 @@ import uvicorn
 from fastapi.testclient import TestClient
 from websockets.sync.client import connect
 
-from app.server.routers.app import create_app
-from app.server.runtime.stream import MAX_MESSAGE_CHARS, MAX_MESSAGES_PER_S, FrameHub
-from app.server.runtime.video_presets import LEVEL_BY_NAME
-from app.server.runtime.video_rate import WINDOW
 from tests.support import wait_until
+from trifuse.app.server.routers.app import create_app
+from trifuse.app.server.runtime.stream import MAX_MESSAGE_CHARS, MAX_MESSAGES_PER_S, FrameHub
+from trifuse.app.server.runtime.video_presets import LEVEL_BY_NAME
+from trifuse.app.server.runtime.video_rate import WINDOW
 
 TEXTURE = np.random.default_rng(29).integers(0, 256, (48, 64, 3), dtype=np.uint8)
 

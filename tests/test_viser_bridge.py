@@ -18,8 +18,10 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 from viser._messages import FileTransferPart, FileTransferStartUpload
 
-from app.server.panels import rig_files
-from app.server.routers.viser_bridge import (
+from tests.browser_support import needs_chromium
+from tests.support import direct_websocket, wait_until
+from trifuse.app.server.panels import rig_files
+from trifuse.app.server.routers.viser_bridge import (
     MAX_UPLOAD_BYTES,
     RELAY_HEADER,
     UploadGate,
@@ -27,8 +29,6 @@ from app.server.routers.viser_bridge import (
     make_viser_router,
     start_guarded_viser,
 )
-from tests.browser_support import needs_chromium
-from tests.support import direct_websocket, wait_until
 
 PROTOCOL = f"viser-v{viser.__version__}"
 

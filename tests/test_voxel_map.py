@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.camera import Intrinsics
-from calib.transforms import make_T, rotation_from_euler_deg
-from fusion.geometry import tof_rays
-from fusion.voxel_hash import VoxelHash
-from fusion.voxel_map import DepthImage, MapSettings, VoxelMap
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.transforms import make_T, rotation_from_euler_deg
+from trifuse.fusion.geometry import tof_rays
+from trifuse.fusion.voxel_hash import VoxelHash
+from trifuse.fusion.voxel_map import DepthImage, MapSettings, VoxelMap
 
 TOF = Intrinsics(165.5, 165.8, 87.9, 71.2, (-0.12, 0.05, 0.0003, -0.0002, 0.0))
 W, H = 176, 144

@@ -10,10 +10,10 @@ from itertools import pairwise
 import numpy as np
 import pytest
 
-from calib.camera import Intrinsics
-from calib.transforms import make_T, rotation_from_euler_deg
-from fusion.geometry import tof_rays
-from fusion.voxel_map import DepthImage, MapSettings, VoxelMap, _prior_weight
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.transforms import make_T, rotation_from_euler_deg
+from trifuse.fusion.geometry import tof_rays
+from trifuse.fusion.voxel_map import DepthImage, MapSettings, VoxelMap, _prior_weight
 
 # hits only; hit_logodds a power of two (float32 sums exact) and max_logodds out of reach
 # of 6 frames: the log-odds of a merge and of a sequential build agree exactly

@@ -15,7 +15,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from app.cli import (
+from trifuse.app.cli import (
     analyze,
     balance_thermal,
     bench,
@@ -28,8 +28,8 @@ from app.cli import (
     serve,
     simulate,
 )
-from app.cli import map as map_command
-from app.cli.args import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, PROG, Parser, UsageError
+from trifuse.app.cli import map as map_command
+from trifuse.app.cli.args import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, PROG, Parser, UsageError
 
 __all__ = ["EXIT_FAILURE", "EXIT_OK", "EXIT_USAGE", "PROG", "UsageError", "build_parser", "main"]
 

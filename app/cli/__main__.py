@@ -1,7 +1,7 @@
-"""``python -m app.cli``: what the ``trifuse`` console script runs."""
+"""``python -m trifuse.app.cli``: what the ``trifuse`` console script runs."""
 
 import sys
 
-from app.cli import main
+from trifuse.app.cli import main
 
 sys.exit(main())

@@ -6,9 +6,17 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from app.cli.args import EXIT_OK, PROG, Commands, UsageError, non_negative, positive, tof_pixel
-from app.cli.files import load_rig_arg, refuse_existing
-from app.cli.output import out
+from trifuse.app.cli.args import (
+    EXIT_OK,
+    PROG,
+    Commands,
+    UsageError,
+    non_negative,
+    positive,
+    tof_pixel,
+)
+from trifuse.app.cli.files import load_rig_arg, refuse_existing
+from trifuse.app.cli.output import out
 
 
 def add_parser(commands: Commands) -> argparse.ArgumentParser:
@@ -90,10 +98,10 @@ def run(args: argparse.Namespace) -> int:
     """Analyse the rig's TOF; print the table (or JSON); draw the curves into ``--plot``."""
     import json
 
-    from app.cli.analyze_plot import analysis_plot
-    from app.cli.analyze_table import analysis_table
-    from app.storage.atomic import atomic_write_bytes
-    from fusion.precision import (
+    from trifuse.app.cli.analyze_plot import analysis_plot
+    from trifuse.app.cli.analyze_table import analysis_table
+    from trifuse.app.storage.atomic import atomic_write_bytes
+    from trifuse.fusion.precision import (
         RANGE_MAX_M,
         RANGE_MIN_M,
         analyze_precision,

@@ -10,11 +10,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from app.cli.analyze_table import error_names
-from app.workflows.report_format import pixel_cell, sensor_colour
+from trifuse.app.cli.analyze_table import error_names
+from trifuse.app.workflows.report_format import pixel_cell, sensor_colour
 
 if TYPE_CHECKING:
-    from fusion.precision import PrecisionAnalysis, SensorShift
+    from trifuse.fusion.precision import PrecisionAnalysis, SensorShift
 
 Colour = tuple[int, int, int]
 BLACK, GREY, LIGHT, RED = (0, 0, 0), (110, 110, 110), (225, 225, 225), (200, 0, 0)

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from app.workflows.report_format import NEVER, limit_distance_cell, pixel_cell
+from trifuse.app.workflows.report_format import NEVER, limit_distance_cell, pixel_cell
 
 if TYPE_CHECKING:
-    from fusion.precision import PrecisionAnalysis
+    from trifuse.fusion.precision import PrecisionAnalysis
 
 
 def error_names(analysis: PrecisionAnalysis) -> dict[str, str]:

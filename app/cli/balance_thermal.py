@@ -6,9 +6,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from app.cli.args import EXIT_FAILURE, EXIT_OK, Commands, UsageError, add_every_argument
-from app.cli.files import add_rig_out_argument, check_rig_out, write_rig_out
-from app.cli.output import out
+from trifuse.app.cli.args import EXIT_FAILURE, EXIT_OK, Commands, UsageError, add_every_argument
+from trifuse.app.cli.files import add_rig_out_argument, check_rig_out, write_rig_out
+from trifuse.app.cli.output import out
 
 
 def add_parser(commands: Commands) -> argparse.ArgumentParser:
@@ -39,9 +39,13 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Balance the imagers over the recording; write the rig, or exit 1 when refused."""
-    from app.recording.open_source import open_source
-    from app.storage.rigfile import load_rig
-    from app.workflows.thermal_run import balance_source, format_thermal_summary, with_balance
+    from trifuse.app.recording.open_source import open_source
+    from trifuse.app.storage.rigfile import load_rig
+    from trifuse.app.workflows.thermal_run import (
+        balance_source,
+        format_thermal_summary,
+        with_balance,
+    )
 
     rig_out = Path(args.out)
     rig_path = Path(args.rig) if args.rig else None

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import argparse
 
-from app.cli.args import EXIT_OK, PROG, Commands, UsageError, positive_int
-from app.cli.output import out
+from trifuse.app.cli.args import EXIT_OK, PROG, Commands, UsageError, positive_int
+from trifuse.app.cli.output import out
 
 
 def _bench_names() -> str:
     """Every benchmark with its description, for ``--help`` (``%`` escaped for argparse)."""
-    from app.devtools.bench import REGISTRY
+    from trifuse.app.devtools.bench import REGISTRY
 
     return ", ".join(f"{n} ({b.description})" for n, b in REGISTRY.items()).replace("%", "%%")
 
@@ -84,12 +84,12 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Run the soak, or each benchmark (all, or ``--only``) and print its figures."""
-    from app.devtools.bench import REGISTRY, run_benchmark, run_soak_command
+    from trifuse.app.devtools.bench import REGISTRY, run_benchmark, run_soak_command
 
     if args.video:
         if not args.soak or args.only or args.viewers:
             raise UsageError(f"{PROG} bench: --video goes with --soak (no --only, --viewers)")
-        from app.devtools import bench_soak
+        from trifuse.app.devtools import bench_soak
 
         return bench_soak.run_video_load_cli(
             bench_soak.VideoLoadConfig(

@@ -7,13 +7,13 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from app.cli.args import EXIT_OK, PROG, Commands, checked
-from app.cli.files import load_rig_arg, refuse_existing
-from app.cli.output import err, out, stage_progress
+from trifuse.app.cli.args import EXIT_OK, PROG, Commands, checked
+from trifuse.app.cli.files import load_rig_arg, refuse_existing
+from trifuse.app.cli.output import err, out, stage_progress
 
 if TYPE_CHECKING:
-    from app.storage.capture import Capture
-    from calib.rig import Rig
+    from trifuse.app.storage.capture import Capture
+    from trifuse.calib.rig import Rig
 
 
 ZHANG_MIN_VIEWS = 3  # calib.verdict.ZHANG_MIN_VIEWS (not imported: the CLI starts fast)
@@ -102,10 +102,14 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Calibrate ``args.capture_dir``; write the rig (and report); compare with ``--truth``."""
-    from app.storage.capture import load_capture
-    from app.storage.rigfile import save_rig
-    from app.workflows.calibration_run import calibrate_capture, format_summary, write_report
-    from calib.rig_calibration import CalibrationOptions
+    from trifuse.app.storage.capture import load_capture
+    from trifuse.app.storage.rigfile import save_rig
+    from trifuse.app.workflows.calibration_run import (
+        calibrate_capture,
+        format_summary,
+        write_report,
+    )
+    from trifuse.calib.rig_calibration import CalibrationOptions
 
     rig_out, report_path = Path(args.out), Path(args.report) if args.report else None
     html_path = Path(args.report_html) if args.report_html else None
@@ -127,8 +131,8 @@ def run(args: argparse.Namespace) -> int:
     out("")
     out(format_summary(result, report))
     if truth is not None:
-        from app.workflows.report_format import comparison_text
-        from calib.rig_compare import compare_rigs
+        from trifuse.app.workflows.report_format import comparison_text
+        from trifuse.calib.rig_compare import compare_rigs
 
         try:
             comparison = compare_rigs(result.rig(), truth)
@@ -145,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
         write_report(report_path, report)
         out(f"report written to {report_path}")
     if html_path is not None:
-        from app.workflows.report_html import command_line, write_report_html
+        from trifuse.app.workflows.report_html import command_line, write_report_html
 
         write_report_html(html_path, report, result.corners, command_line(args))
         out(f"HTML report written to {html_path}")
@@ -155,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
 def check_truth_fits(truth: Rig, capture: Capture, path: str) -> None:
     """Before calibrating: ``--truth`` must share a sensor with the capture, of the same
     modality and image size (else the comparison at the end would fail)."""
-    from app.workflows.calibration_run import sensor_specs
+    from trifuse.app.workflows.calibration_run import sensor_specs
 
     specs = sensor_specs(capture)
     common = [n for n in truth.names if n in specs]

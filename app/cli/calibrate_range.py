@@ -6,9 +6,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from app.cli.args import EXIT_OK, Commands, positive_int
-from app.cli.files import add_rig_out_argument, check_rig_out, write_rig_out
-from app.cli.output import out, stage_progress
+from trifuse.app.cli.args import EXIT_OK, Commands, positive_int
+from trifuse.app.cli.files import add_rig_out_argument, check_rig_out, write_rig_out
+from trifuse.app.cli.output import out, stage_progress
 
 
 def add_parser(commands: Commands) -> argparse.ArgumentParser:
@@ -61,10 +61,10 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Fit the range correction; write the rig with it (and the report and chart)."""
-    from app.storage.capture import load_capture
-    from app.storage.rigfile import load_rig
-    from app.workflows.calibration_run import write_report
-    from app.workflows.range_run import (
+    from trifuse.app.storage.capture import load_capture
+    from trifuse.app.storage.rigfile import load_rig
+    from trifuse.app.workflows.calibration_run import write_report
+    from trifuse.app.workflows.range_run import (
         build_range_report,
         calibrate_range,
         format_range_summary,
@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         with_range_correction,
         write_png,
     )
-    from calib.range_calibration import FitOptions
+    from trifuse.calib.range_calibration import FitOptions
 
     rig_path, rig_out = Path(args.rig), Path(args.out)
     check_rig_out(rig_out, rig_path, report=args.report, plot=args.plot)

@@ -9,17 +9,17 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from app.cli.args import UsageError, non_negative
+from trifuse.app.cli.args import UsageError, non_negative
 
 if TYPE_CHECKING:
-    from app.recording.jobs import Runner
+    from trifuse.app.recording.jobs import Runner
 
 LOCAL_RAY = "local"
 
 
 def add_cluster_arguments(parser: argparse.ArgumentParser) -> None:
     """``--ray [ADDRESS]`` and ``--chunk-s S``."""
-    from app.recording.pieces import DEFAULT_CHUNK_S
+    from trifuse.app.recording.pieces import DEFAULT_CHUNK_S
 
     parser.add_argument(
         "--ray",
@@ -51,7 +51,7 @@ def pieces_text(chunk_s: float) -> str:
 def open_runner(args: argparse.Namespace) -> Iterator[Runner]:
     """The runner ``--ray`` names (the local one without it); a Ray instance it started
     is shut down at the end."""
-    from app.recording.jobs import LocalRunner, RayRunner
+    from trifuse.app.recording.jobs import LocalRunner, RayRunner
 
     if args.ray is None:
         yield LocalRunner()

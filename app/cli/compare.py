@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import argparse
 
-from app.cli.args import EXIT_FAILURE, EXIT_OK, Commands
-from app.cli.files import load_rig_arg
-from app.cli.output import out
+from trifuse.app.cli.args import EXIT_FAILURE, EXIT_OK, Commands
+from trifuse.app.cli.files import load_rig_arg
+from trifuse.app.cli.output import out
 
 
 def add_parser(commands: Commands) -> argparse.ArgumentParser:
@@ -42,8 +42,8 @@ def run(args: argparse.Namespace) -> int:
     """Print the comparison; exit 0 when every figure meets its target, else 1."""
     import json
 
-    from app.workflows.report_format import comparison_text
-    from calib.rig_compare import compare_rigs
+    from trifuse.app.workflows.report_format import comparison_text
+    from trifuse.calib.rig_compare import compare_rigs
 
     estimate = load_rig_arg(args.rig)
     truth = load_rig_arg(args.truth)

@@ -11,11 +11,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 from urllib.parse import unquote, urlsplit
 
-from app.cli.args import UsageError
-from app.cli.output import out
+from trifuse.app.cli.args import UsageError
+from trifuse.app.cli.output import out
 
 if TYPE_CHECKING:
-    from calib.rig import Rig
+    from trifuse.calib.rig import Rig
 
 
 def refuse_existing(flag: str, path: Path) -> NoReturn:
@@ -50,7 +50,7 @@ def add_out_dir_argument(parser: argparse.ArgumentParser) -> None:
 def load_rig_arg(path: str, flag: str = "") -> Rig:
     """A rig file given on the command line; its errors on one line (a YAML error's
     message spans several), naming the option."""
-    from app.storage.rigfile import load_rig
+    from trifuse.app.storage.rigfile import load_rig
 
     try:
         return load_rig(path)
@@ -98,7 +98,7 @@ def check_rig_out(rig_out: Path, rig_path: Path | None, **others: str | None) ->
 def write_rig_out(rig_out: Path, rig_path: Path | None, rig: Rig, what: str) -> None:
     """Write the updated rig; when it replaces ``rig_path``, the old file stays as
     ``RIG.yaml.~N~`` first."""
-    from app.storage.rigfile import save_rig
+    from trifuse.app.storage.rigfile import save_rig
 
     same = _same_file(rig_out, rig_path)
     if same:

@@ -6,11 +6,16 @@ import argparse
 import sys
 from pathlib import Path
 
-from app.cli.args import EXIT_OK, PROG, Commands, UsageError, add_every_argument
-from app.cli.cluster import add_cluster_arguments, open_runner, pieces_text
-from app.cli.files import add_out_dir_argument, check_output_dir, load_rig_arg, recording_paths
-from app.cli.output import err, frame_progress, out
-from fusion.compose import DISPLAY_MODES
+from trifuse.app.cli.args import EXIT_OK, PROG, Commands, UsageError, add_every_argument
+from trifuse.app.cli.cluster import add_cluster_arguments, open_runner, pieces_text
+from trifuse.app.cli.files import (
+    add_out_dir_argument,
+    check_output_dir,
+    load_rig_arg,
+    recording_paths,
+)
+from trifuse.app.cli.output import err, frame_progress, out
+from trifuse.fusion.compose import DISPLAY_MODES
 
 
 def add_parser(commands: Commands) -> argparse.ArgumentParser:
@@ -71,11 +76,11 @@ def output_dirs(args: argparse.Namespace, inputs: list[Path]) -> list[Path]:
 
 def run(args: argparse.Namespace) -> int:
     """Fuse the recordings into ``--out``; say what was written and what was skipped."""
-    from app.recording.fuse import VIDEO_NAME
-    from app.recording.jobs import plan_fuse_job, run_fuse_job
-    from app.recording.player import skips_text
-    from app.storage.atomic import make_dirs
-    from fusion.compose import DisplaySettings
+    from trifuse.app.recording.fuse import VIDEO_NAME
+    from trifuse.app.recording.jobs import plan_fuse_job, run_fuse_job
+    from trifuse.app.recording.player import skips_text
+    from trifuse.app.storage.atomic import make_dirs
+    from trifuse.fusion.compose import DisplaySettings
 
     check_output_dir(Path(args.out))  # refusals first: the inputs need not exist for them
     inputs = recording_paths(args.recordings)

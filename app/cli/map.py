@@ -9,12 +9,12 @@ from pathlib import Path
 
 import numpy as np
 
-from app.cli.args import EXIT_OK, PROG, Commands, UsageError, positive_float
-from app.cli.cluster import add_cluster_arguments, open_runner, pieces_text
-from app.cli.files import load_rig_arg, recording_paths
-from app.cli.output import err, frame_progress, out
-from app.recording.map3d import MAX_IMAGE_AGE_S, POSE_MODES
-from app.storage.map_file import MAP_SUFFIX
+from trifuse.app.cli.args import EXIT_OK, PROG, Commands, UsageError, positive_float
+from trifuse.app.cli.cluster import add_cluster_arguments, open_runner, pieces_text
+from trifuse.app.cli.files import load_rig_arg, recording_paths
+from trifuse.app.cli.output import err, frame_progress, out
+from trifuse.app.recording.map3d import MAX_IMAGE_AGE_S, POSE_MODES
+from trifuse.app.storage.map_file import MAP_SUFFIX
 
 DEFAULT_VOXEL_M = 0.03
 
@@ -118,11 +118,11 @@ def extent_text(centres: np.ndarray) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Build the map of the recordings; write the PLY and the map file; say what was done."""
-    from app.recording.jobs import run_map_job
-    from app.recording.map3d import open_recordings
-    from app.recording.player import skips_text
-    from app.storage.map_file import save_map, write_ply
-    from fusion.voxel_map import MapSettings
+    from trifuse.app.recording.jobs import run_map_job
+    from trifuse.app.recording.map3d import open_recordings
+    from trifuse.app.recording.player import skips_text
+    from trifuse.app.storage.map_file import save_map, write_ply
+    from trifuse.fusion.voxel_map import MapSettings
 
     ply, map_file = output_paths(args)  # refusals first: inputs need not exist for them
     inputs = recording_paths(args.recordings)

@@ -9,7 +9,7 @@ import threading
 import time
 from pathlib import Path
 
-from app.cli.args import (
+from trifuse.app.cli.args import (
     EXIT_OK,
     PROG,
     Commands,
@@ -18,11 +18,11 @@ from app.cli.args import (
     positive_seconds,
     seed,
 )
-from app.cli.files import refuse_existing
-from app.cli.output import err, out
-from app.cli.record_output import record_summary, say_where
-from app.cli.record_video import add_video_arguments, attach_fused_video, video_summary
-from app.recording.simrecord import SIM_SCENARIOS
+from trifuse.app.cli.files import refuse_existing
+from trifuse.app.cli.output import err, out
+from trifuse.app.cli.record_output import record_summary, say_where
+from trifuse.app.cli.record_video import add_video_arguments, attach_fused_video, video_summary
+from trifuse.app.recording.simrecord import SIM_SCENARIOS
 
 
 def add_parser(commands: Commands) -> argparse.ArgumentParser:
@@ -125,10 +125,10 @@ def run(args: argparse.Namespace) -> int:
 
 def _record(args: argparse.Namespace) -> int:
     """Record from ``--source`` into ``--out``; the simulated head in :mod:`app.cli.record_sim`."""
-    from app.recording import RecordingDamaged, RecordingWriter
-    from app.recording.open_source import NeedsRig, open_source
-    from app.recording.poses import read_poses
-    from app.storage.rigfile import load_rig
+    from trifuse.app.recording import RecordingDamaged, RecordingWriter
+    from trifuse.app.recording.open_source import NeedsRig, open_source
+    from trifuse.app.recording.poses import read_poses
+    from trifuse.app.storage.rigfile import load_rig
 
     rec_out = Path(args.out)
     if rec_out.exists() or rec_out.is_symlink():
@@ -136,7 +136,7 @@ def _record(args: argparse.Namespace) -> int:
     rig = load_rig(args.rig) if args.rig else None
     source = args.source
     if source == "sim":
-        from app.cli.record_sim import record_sim
+        from trifuse.app.cli.record_sim import record_sim
 
         args.scenario = args.scenario or "inspection"
         return record_sim(args, rec_out, rig)
@@ -196,7 +196,7 @@ def _record(args: argparse.Namespace) -> int:
     if fuser is not None:
         video_summary(fuser)
     if kind == "replay":
-        from app.recording.player import skips_text
+        from trifuse.app.recording.player import skips_text
 
         for line in skips_text(src.skipped):  # type: ignore[attr-defined]
             err(f"{PROG}: warning: {line}; the other frames were recorded")

@@ -7,11 +7,11 @@ import shlex
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from app.cli.args import PROG
-from app.cli.output import out
+from trifuse.app.cli.args import PROG
+from trifuse.app.cli.output import out
 
 if TYPE_CHECKING:
-    from app.recording.writer import RecordingWriter
+    from trifuse.app.recording.writer import RecordingWriter
 
 
 def say_where(writer: RecordingWriter) -> None:
@@ -25,7 +25,7 @@ def say_where(writer: RecordingWriter) -> None:
 
 def record_summary(path: Path, writer: RecordingWriter) -> None:
     """What the finished recording holds, and the commands that use it."""
-    from app.recording import ReplaySource
+    from trifuse.app.recording import ReplaySource
 
     with ReplaySource(path, realtime=False) as rec:
         size_mb = path.stat().st_size / 1e6

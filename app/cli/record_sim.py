@@ -10,15 +10,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from app.cli.args import EXIT_OK, PROG, UsageError
-from app.cli.output import err, out
-from app.cli.record_output import record_summary, say_where
-from app.cli.record_video import attach_fused_video, fused_video_cost_s, video_summary
+from trifuse.app.cli.args import EXIT_OK, PROG, UsageError
+from trifuse.app.cli.output import err, out
+from trifuse.app.cli.record_output import record_summary, say_where
+from trifuse.app.cli.record_video import attach_fused_video, fused_video_cost_s, video_summary
 
 if TYPE_CHECKING:
-    from app.recording.video_track import FusedVideoFuser
-    from app.recording.writer import RecordingWriter
-    from calib.rig import Rig
+    from trifuse.app.recording.video_track import FusedVideoFuser
+    from trifuse.app.recording.writer import RecordingWriter
+    from trifuse.calib.rig import Rig
 
 
 def span(seconds: float) -> str:
@@ -32,8 +32,13 @@ def record_sim(args: argparse.Namespace, rec_out: Path, rig: Rig | None) -> int:
     """Record ``--duration`` s (default 2) of the simulated head (``rig``, default the
     built-in head) in ``--scenario`` into ``rec_out``, live mode at ``--pose-hz`` or
     ``--exact``."""
-    from app.recording.simrecord import POSE_HZ, SimProgress, plan_simulation, record_simulation
-    from app.sources.sim.head import default_rig
+    from trifuse.app.recording.simrecord import (
+        POSE_HZ,
+        SimProgress,
+        plan_simulation,
+        record_simulation,
+    )
+    from trifuse.app.sources.sim.head import default_rig
 
     rig = rig or default_rig()
     duration = 2.0 if args.duration is None else args.duration

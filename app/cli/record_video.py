@@ -8,14 +8,14 @@ import argparse
 import math
 from typing import TYPE_CHECKING
 
-from app.cli.args import PROG, checked
-from app.cli.output import err, out
-from fusion.compose import DISPLAY_MODES
+from trifuse.app.cli.args import PROG, checked
+from trifuse.app.cli.output import err, out
+from trifuse.fusion.compose import DISPLAY_MODES
 
 if TYPE_CHECKING:
-    from app.recording.video_track import FusedVideoFuser
-    from app.recording.writer import RecordingWriter
-    from calib.rig import Rig
+    from trifuse.app.recording.video_track import FusedVideoFuser
+    from trifuse.app.recording.writer import RecordingWriter
+    from trifuse.calib.rig import Rig
 
 FUSED_VIDEO_S_PER_MPX = 0.013
 """CPU seconds per megapixel of fused picture on the reference machine (2 cores): fusion
@@ -69,8 +69,8 @@ def fused_video_cost_s(rig: Rig, schedule: list[tuple[int, list[str]]]) -> float
 
 def attach_fused_video(writer: RecordingWriter, args: argparse.Namespace) -> FusedVideoFuser:
     """Make ``writer`` fuse the frames written and keep the video (per ``args``)."""
-    from app.recording.video_track import FusedVideoFuser, VideoSettings
-    from fusion.compose import DisplaySettings
+    from trifuse.app.recording.video_track import FusedVideoFuser, VideoSettings
+    from trifuse.fusion.compose import DisplaySettings
 
     settings = VideoSettings(bitrate_bps=round(args.video_mbps * 1e6))
     fuser = FusedVideoFuser(writer, settings, DisplaySettings(mode=args.video_mode))

@@ -16,11 +16,11 @@ from collections.abc import Callable, Mapping
 from pathlib import Path, PurePosixPath
 from typing import Any
 
-from app.cli.args import EXIT_OK, PROG, Commands, UsageError
-from app.cli.files import load_rig_arg
-from app.cli.output import out
-from calib.rig import MODALITIES
-from calib.rig_formats import IMPORT_FORMATS, RIG_FORMATS
+from trifuse.app.cli.args import EXIT_OK, PROG, Commands, UsageError
+from trifuse.app.cli.files import load_rig_arg
+from trifuse.app.cli.output import out
+from trifuse.calib.rig import MODALITIES
+from trifuse.calib.rig_formats import IMPORT_FORMATS, RIG_FORMATS
 
 READ_SUFFIXES = (".yaml", ".yml", ".urdf", ".xml")
 """The files ``rig import DIR`` reads from a directory (not its subfolders, not hidden)."""
@@ -182,7 +182,7 @@ def _format_function(fmt: str, name: str) -> Callable[..., Any]:
     module is not part of this version of trifuse."""
     from importlib import import_module
 
-    module_name = f"calib.rig_formats.{fmt}_format"
+    module_name = f"trifuse.calib.rig_formats.{fmt}_format"
     try:
         module = import_module(module_name)
     except ModuleNotFoundError as exc:
@@ -247,8 +247,8 @@ def export_targets(out_path: Path, names: list[str], force: bool) -> dict[str, P
 def read_inputs(path: Path) -> dict[str, str]:
     """The files to import: ``path`` itself, or a directory's ``READ_SUFFIXES`` files (by
     name -> text). UsageError when there is nothing to read."""
-    from app.storage.text import read_text
-    from calib.errors import RigError
+    from trifuse.app.storage.text import read_text
+    from trifuse.calib.errors import RigError
 
     if path.is_dir():
         found = sorted(
@@ -292,8 +292,8 @@ def run(args: argparse.Namespace) -> int:
 
 def run_export(args: argparse.Namespace) -> int:
     """Write the rig in ``--format``; say where and what the format lost."""
-    from app.storage.atomic import atomic_write_text, make_dirs
-    from calib.rig_formats import export_rig
+    from trifuse.app.storage.atomic import atomic_write_text, make_dirs
+    from trifuse.calib.rig_formats import export_rig
 
     rig_path, out_path = Path(args.rig), Path(args.out)
     if not args.force:  # refusals first: the rig file need not exist for them
@@ -316,8 +316,8 @@ def run_export(args: argparse.Namespace) -> int:
 
 def run_import(args: argparse.Namespace) -> int:
     """Read the files, write the rig file; say what the files did not say."""
-    from app.storage.rigfile import save_rig
-    from app.workflows.rig_import import import_rig_isolated
+    from trifuse.app.storage.rigfile import save_rig
+    from trifuse.app.workflows.rig_import import import_rig_isolated
 
     out_path = Path(args.out)
     if out_path.is_dir():

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
-from app.cli.args import (
+from trifuse.app.cli.args import (
     EXIT_OK,
     PROG,
     Commands,
@@ -18,12 +18,12 @@ from app.cli.args import (
     bounded_seconds,
     positive_int,
 )
-from app.recording.open_source import SCENARIOS
+from trifuse.app.recording.open_source import SCENARIOS
 
 if TYPE_CHECKING:
-    from app.server.routers.auth import AuthConfig
-    from app.server.runtime.serve import TLSFiles
-    from calib.board import Board
+    from trifuse.app.server.routers.auth import AuthConfig
+    from trifuse.app.server.runtime.serve import TLSFiles
+    from trifuse.calib.board import Board
 
 
 def add_parser(commands: Commands) -> argparse.ArgumentParser:
@@ -155,10 +155,10 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
 def load_board_arg(path: str | None) -> Board:
     """The board of ``--board`` (a board.yaml), else the simulated head's board."""
     if path is None:
-        from app.sources.sim.scenarios import CALIBRATION_BOARD
+        from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD
 
         return CALIBRATION_BOARD
-    from app.storage.capture import load_board_file
+    from trifuse.app.storage.capture import load_board_file
 
     return load_board_file(path)
 
@@ -166,7 +166,13 @@ def load_board_arg(path: str | None) -> Board:
 def serve_auth(args: argparse.Namespace) -> AuthConfig:
     """The console's authentication from ``--token`` / ``TRIFUSE_TOKEN`` / ``--no-token``,
     ``--host``, ``--allow-origin`` and TLS; UsageError for an unsafe or unusable choice."""
-    from app.server.routers.auth import TOKEN_ENV, AuthConfig, check_token, is_loopback, new_token
+    from trifuse.app.server.routers.auth import (
+        TOKEN_ENV,
+        AuthConfig,
+        check_token,
+        is_loopback,
+        new_token,
+    )
 
     given = args.token if args.token is not None else os.environ.get(TOKEN_ENV)
     if args.no_token:
@@ -200,7 +206,7 @@ def serve_auth(args: argparse.Namespace) -> AuthConfig:
 
 def serve_tls(args: argparse.Namespace) -> TLSFiles | None:
     """``--certfile``/``--keyfile`` checked by loading them, or None."""
-    from app.server.runtime.serve import TLSFiles
+    from trifuse.app.server.runtime.serve import TLSFiles
 
     if (args.certfile is None) != (args.keyfile is None):
         raise UsageError(f"{PROG} serve: --certfile and --keyfile go together")
@@ -221,10 +227,10 @@ def serve_tls(args: argparse.Namespace) -> TLSFiles | None:
 
 def run(args: argparse.Namespace) -> int:
     """Check everything, bind the port, lock the work directory, open the source, serve."""
-    from app.recording.open_source import open_source
-    from app.server.runtime.serve import bind_public_socket, serve
-    from app.storage.rigfile import load_rig
-    from app.storage.workdir_lock import WorkdirInUse, lock_workdir
+    from trifuse.app.recording.open_source import open_source
+    from trifuse.app.server.runtime.serve import bind_public_socket, serve
+    from trifuse.app.storage.rigfile import load_rig
+    from trifuse.app.storage.workdir_lock import WorkdirInUse, lock_workdir
 
     auth = serve_auth(args)
     tls = serve_tls(args)
@@ -242,7 +248,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"{PROG} serve: {e}") from None
     try:
         if args.foxglove_port is not None:
-            from app.server.runtime.foxglove_live import check_foxglove_port
+            from trifuse.app.server.runtime.foxglove_live import check_foxglove_port
 
             try:
                 check_foxglove_port(args.foxglove_port)

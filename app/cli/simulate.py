@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from app.cli.args import (
+from trifuse.app.cli.args import (
     EXIT_OK,
     PROG,
     Commands,
@@ -23,11 +23,11 @@ from app.cli.args import (
     seed,
     sensor_count,
 )
-from app.cli.files import add_out_dir_argument, check_output_dir
-from app.cli.output import out
+from trifuse.app.cli.files import add_out_dir_argument, check_output_dir
+from trifuse.app.cli.output import out
 
 if TYPE_CHECKING:
-    from calib.board import Board
+    from trifuse.calib.board import Board
 
 PATTERNS = ("checkerboard", "charuco", "asymmetric_circles", "symmetric_circles")
 """The ``--pattern`` choices (calib.board.PATTERNS)."""
@@ -170,8 +170,8 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
 def board_of_args(args: argparse.Namespace) -> Board:
     """The board ``--pattern``, ``--board`` and their options describe; UsageError (one
     line) for a combination that makes no board, or options of another pattern."""
-    from app.storage.capture import CaptureError, load_board_file
-    from calib.board import Board, aruco_dictionary
+    from trifuse.app.storage.capture import CaptureError, load_board_file
+    from trifuse.calib.board import Board, aruco_dictionary
 
     pattern = args.pattern
     own = {
@@ -225,12 +225,12 @@ def board_text(board: Board) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Render ``--views`` views into the new directory ``--out``, then say what is there."""
-    from app.sources.sim.head import default_rig, nominal_rig
-    from app.sources.sim.scenarios import board_finish, calibration_views
-    from app.storage.capture_writer import write_board, write_rig, write_view
-    from app.storage.ground_truth import write_ground_truth
-    from app.storage.preview import ContactSheet
-    from app.storage.rigfile import load_rig
+    from trifuse.app.sources.sim.head import default_rig, nominal_rig
+    from trifuse.app.sources.sim.scenarios import board_finish, calibration_views
+    from trifuse.app.storage.capture_writer import write_board, write_rig, write_view
+    from trifuse.app.storage.ground_truth import write_ground_truth
+    from trifuse.app.storage.preview import ContactSheet
+    from trifuse.app.storage.rigfile import load_rig
 
     out_dir = Path(args.out)
     check_output_dir(out_dir)

@@ -19,7 +19,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Unpack
 
-from app.devtools import (
+from trifuse.app.devtools import (
     bench_agc,
     bench_calib,
     bench_detect,
@@ -34,7 +34,14 @@ from app.devtools import (
     bench_sim,
     bench_stream,
 )
-from app.devtools.benchmark import BenchFn, Benchmark, BenchOptions, BenchResult, benchmark, run
+from trifuse.app.devtools.benchmark import (
+    BenchFn,
+    Benchmark,
+    BenchOptions,
+    BenchResult,
+    benchmark,
+    run,
+)
 
 BENCHMARKS: tuple[Benchmark, ...] = (
     bench_sim.render,
@@ -95,6 +102,6 @@ def run_soak_command(soak_s: float, viewers: int) -> int:
     """``trifuse bench --soak``: ``viewers`` fast viewers plus slow readers on a console for
     ``soak_s`` seconds (app/devtools/bench_soak.py); prints the table, returns the exit code
     (1 if a criterion fails)."""
-    from app.devtools import bench_soak
+    from trifuse.app.devtools import bench_soak
 
     return bench_soak.run_soak_cli(bench_soak.SoakConfig(soak_s=soak_s, viewers=viewers))

@@ -8,7 +8,7 @@ costs, per AGC mode, against today's linear blend measured in the same run.
 
 from __future__ import annotations
 
-from app.devtools.benchmark import benchmark, median_ms
+from trifuse.app.devtools.benchmark import benchmark, median_ms
 
 AGC_TIMES_S = (0.0, 27.0)
 """Frames measured: the head looking straight ahead and 12 degrees to the left; the
@@ -69,16 +69,16 @@ def agc(repeat: int) -> dict[str, float]:
     """
     import numpy as np
 
-    from app.sources.sim.scenarios import InspectionScenario
-    from fusion.agc import (
+    from trifuse.app.sources.sim.scenarios import InspectionScenario
+    from trifuse.fusion.agc import (
         AGC_MODES,
         DEFAULT_MAX_GAIN,
         PaletteIndexer,
         index_entropy_bits,
         tone_map,
     )
-    from fusion.compose import DisplaySettings, resolve_span
-    from fusion.stereo import StereoFusion
+    from trifuse.fusion.compose import DisplaySettings, resolve_span
+    from trifuse.fusion.stereo import StereoFusion
 
     scenario = InspectionScenario(seed=0)
     rig = scenario.rig

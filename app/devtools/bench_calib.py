@@ -7,7 +7,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from app.devtools.benchmark import benchmark
+from trifuse.app.devtools.benchmark import benchmark
 
 
 @benchmark(
@@ -32,14 +32,14 @@ def calibrate(repeat: int) -> dict[str, float]:
 
     import numpy as np
 
-    from app.sources.sim.head import default_rig
-    from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_views
-    from app.storage.capture import load_capture
-    from app.storage.capture_writer import write_board, write_view
-    from app.workflows.calibration_run import detect_capture, sensor_specs
-    from calib.opencv_baseline import calibrate_multiview_opencv
-    from calib.rig_calibration import calibrate_rig
-    from calib.transforms import pose_error
+    from trifuse.app.sources.sim.head import default_rig
+    from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_views
+    from trifuse.app.storage.capture import load_capture
+    from trifuse.app.storage.capture_writer import write_board, write_view
+    from trifuse.app.workflows.calibration_run import detect_capture, sensor_specs
+    from trifuse.calib.opencv_baseline import calibrate_multiview_opencv
+    from trifuse.calib.rig_calibration import calibrate_rig
+    from trifuse.calib.transforms import pose_error
 
     truth = default_rig()
     with tempfile.TemporaryDirectory() as tmp:
@@ -122,9 +122,9 @@ def projected_detections(views: int, seed: int) -> dict[str, dict[str, Any]]:
     """
     import numpy as np
 
-    from app.sources.sim.head import default_rig
-    from app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
-    from calib.transforms import transform_points
+    from trifuse.app.sources.sim.head import default_rig
+    from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
+    from trifuse.calib.transforms import transform_points
 
     rig = default_rig()
     rng = np.random.default_rng(seed)
@@ -179,11 +179,11 @@ def calib_scale(repeat: int) -> dict[str, float]:
     import subprocess
     import sys
 
-    from app.sources.sim.head import default_rig
-    from app.sources.sim.scenarios import CALIBRATION_BOARD
-    from calib.opencv_baseline import calibrate_multiview_opencv
-    from calib.rig_calibration import SensorSpec, calibrate_rig
-    from calib.transforms import pose_error
+    from trifuse.app.sources.sim.head import default_rig
+    from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD
+    from trifuse.calib.opencv_baseline import calibrate_multiview_opencv
+    from trifuse.calib.rig_calibration import SensorSpec, calibrate_rig
+    from trifuse.calib.transforms import pose_error
 
     truth = default_rig()
     specs = {n: SensorSpec(n, truth[n].modality, truth[n].image_size) for n in truth.names}

@@ -39,10 +39,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from app.devtools.benchmark import benchmark
-from calib.board import Board
-from calib.detect import Detection, detect_board
-from calib.detect_baseline import detect_board_baseline
+from trifuse.app.devtools.benchmark import benchmark
+from trifuse.calib.board import Board
+from trifuse.calib.detect import Detection, detect_board
+from trifuse.calib.detect_baseline import detect_board_baseline
 
 POSES_PER_SEED = 8
 """Board poses per seed; each is seen by both imagers (16 images per seed)."""
@@ -153,9 +153,9 @@ def simulated_results(
     colour_conditions: Iterable[str] = COLOUR_CONDITIONS,
 ) -> list[ConditionResult]:
     """Both detectors on rendered views of every condition (thermal, then colour)."""
-    from app.sources.sim.condition_views import thermal_condition_views
-    from app.sources.sim.scenarios import CALIBRATION_BOARD
-    from app.sources.sim.thermal_conditions import BENCH_CONDITIONS
+    from trifuse.app.sources.sim.condition_views import thermal_condition_views
+    from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD
+    from trifuse.app.sources.sim.thermal_conditions import BENCH_CONDITIONS
 
     seeds = tuple(seeds)
     names = list(BENCH_CONDITIONS) if conditions is None else list(conditions)
@@ -234,7 +234,7 @@ def markdown_table(figures: dict[str, float]) -> str:
 def ratio_pairs() -> tuple[tuple[str, str], ...]:
     """The figures ``thermal-detect`` compares, ours over the baseline: found and RMS per
     condition, and the real images found."""
-    from app.sources.sim.thermal_conditions import BENCH_CONDITIONS
+    from trifuse.app.sources.sim.thermal_conditions import BENCH_CONDITIONS
 
     conds = [*BENCH_CONDITIONS, *(f"colour-{c}" for c in COLOUR_CONDITIONS)]
     what = ("found", "rms_mean_px")
@@ -297,7 +297,7 @@ def _real_12mp_detectors(
     """name -> detector of one grey image ((N, 2) corners or None) for ``real-12mp``;
     ``full_size`` False leaves out the colour detectors that search the whole 12 MP image
     (ours without the pyramid, OpenCV's at full size and 2000 px: 1-22 s a view)."""
-    from calib.opencv_reference import find_chessboard_opencv
+    from trifuse.calib.opencv_reference import find_chessboard_opencv
 
     board = REAL_12MP_BOARD
     thermal = modality == "thermal"
@@ -341,7 +341,7 @@ def _in_order(corners: np.ndarray, grey: np.ndarray) -> np.ndarray:
     """A detector's corners (N, 2) in the board's canonical order (handedness, then the
     square colours: :func:`calib.detect.canonical_order`), so that views calibrate
     together and compare corner for corner."""
-    from calib.detect import canonical_order
+    from trifuse.calib.detect import canonical_order
 
     return canonical_order(corners, REAL_12MP_BOARD, grey.astype(np.float32))[0]
 
@@ -500,7 +500,7 @@ _DETECTOR_LABELS = {
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m app.devtools.bench_detect --root DIR [--no-full-size]``: ``real-12mp``'s
+    """``python -m trifuse.app.devtools.bench_detect --root DIR [--no-full-size]``: ``real-12mp``'s
     figures and table on another directory laid out as tests/data/czha626-thermal-visible
     (e.g. all 47 pairs of the source repository, which are not committed)."""
     import argparse

@@ -4,8 +4,8 @@ simulator's exact one)."""
 
 from __future__ import annotations
 
-from app.devtools.benchmark import benchmark, median_ms
-from fusion.compose import DISPLAY_MODES
+from trifuse.app.devtools.benchmark import benchmark, median_ms
+from trifuse.fusion.compose import DISPLAY_MODES
 
 
 @benchmark(
@@ -31,7 +31,7 @@ def compose(repeat: int) -> dict[str, float]:
     import cv2
     import numpy as np
 
-    from fusion.compose import (
+    from trifuse.fusion.compose import (
         Composer,
         DisplaySettings,
         anaglyph,
@@ -39,7 +39,7 @@ def compose(repeat: int) -> dict[str, float]:
         resolve_span,
         stereo_halves,
     )
-    from fusion.palettes import apply_palette
+    from trifuse.fusion.palettes import apply_palette
 
     w, h = 1280, 960
     rng = np.random.default_rng(0)
@@ -118,10 +118,10 @@ def fuse(repeat: int) -> dict[str, float]:
     import cv2
     import numpy as np
 
-    from app.sources.sim.scenarios import InspectionScenario
-    from fusion.accuracy import fixed_depth_mapping
-    from fusion.compose import Composer, DisplaySettings, resolve_span, stereo_halves
-    from fusion.stereo import StereoFusion
+    from trifuse.app.sources.sim.scenarios import InspectionScenario
+    from trifuse.fusion.accuracy import fixed_depth_mapping
+    from trifuse.fusion.compose import Composer, DisplaySettings, resolve_span, stereo_halves
+    from trifuse.fusion.stereo import StereoFusion
 
     scenario = InspectionScenario(seed=0)
     frames, _ = scenario.render(3.0)
@@ -156,7 +156,7 @@ def fuse(repeat: int) -> dict[str, float]:
     figures["blend_tof_every_frame_ms"] = median_ms(every_frame, repeat)
 
     # The TOF range correction (rig file ``range_correction``) on each TOF frame.
-    from calib.range_correction import RangeCorrection, offset_grid_shape
+    from trifuse.calib.range_correction import RangeCorrection, offset_grid_shape
 
     w_t, h_t = rig["tof"].image_size
     correction = RangeCorrection(
@@ -232,17 +232,17 @@ def fuse_accuracy(repeat: int) -> dict[str, float]:
     """
     import numpy as np
 
-    from app.sources.sim.render import HeadModel
-    from app.sources.sim.scenarios import InspectionScenario
-    from app.sources.sim.tof_error import RangeErrorModel
-    from fusion.accuracy import (
+    from trifuse.app.sources.sim.render import HeadModel
+    from trifuse.app.sources.sim.scenarios import InspectionScenario
+    from trifuse.app.sources.sim.tof_error import RangeErrorModel
+    from trifuse.fusion.accuracy import (
         BANDS_M,
         band_errors,
         depth_edges,
         exact_mapping,
         fixed_depth_mapping,
     )
-    from fusion.mapping import ViewMapping
+    from trifuse.fusion.mapping import ViewMapping
 
     no_error = RangeErrorModel(
         bias_m=0.0, wiggle=(), radial_m=0.0, border_m=0.0, pixel_sigma_m=0.0, amplitude_m=0.0

@@ -15,10 +15,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from app.devtools.benchmark import benchmark, check_repeat
-from app.devtools.console_process import ConsoleProcess, prewarm_pose_cache
-from app.devtools.procfs import tree_cpu_s
-from app.devtools.stream_clients import FastViewer, cancel, wait_first_frames
+from trifuse.app.devtools.benchmark import benchmark, check_repeat
+from trifuse.app.devtools.console_process import ConsoleProcess, prewarm_pose_cache
+from trifuse.app.devtools.procfs import tree_cpu_s
+from trifuse.app.devtools.stream_clients import FastViewer, cancel, wait_first_frames
 
 TARGET_CORES = 0.05
 """The issue's target for an idle console: 5 % of one core."""

@@ -26,21 +26,21 @@ from typing import Any
 
 import numpy as np
 
-from app.devtools.benchmark import benchmark, check_repeat
-from app.devtools.browser_console import (
+from trifuse.app.devtools.benchmark import benchmark, check_repeat
+from trifuse.app.devtools.browser_console import (
     CHROMIUM,
     CHROMIUM_FLAGS,
     require_chromium,
     websocket_tap,
 )
-from app.devtools.console_bandwidth import (
+from trifuse.app.devtools.console_bandwidth import (
     ConsolePage,
     get_console_bandwidth,
     measure_console,
     set_console_bandwidth,
 )
-from app.devtools.console_process import ConsoleProcess, prewarm_pose_cache
-from app.devtools.netem import EmulatedLink, LinkShape, emulated_link
+from trifuse.app.devtools.console_process import ConsoleProcess, prewarm_pose_cache
+from trifuse.app.devtools.netem import EmulatedLink, LinkShape, emulated_link
 
 LINKS = (LinkShape(10, 30, 1), LinkShape(3, 60, 2))
 """The issue's links: 10 Mbit/s, 30 ms, 1 % loss; 3 Mbit/s, 60 ms, 2 % (each direction)."""
@@ -174,7 +174,7 @@ def _quality(page: Any, pictures: dict[int, np.ndarray | None]) -> dict[str, flo
     would); ``quality_samples``: how many were compared."""
     import cv2
 
-    from app.devtools.image_quality import psnr, ssim
+    from trifuse.app.devtools.image_quality import psnr, ssim
 
     seqs = page.evaluate("() => window.__linkBench.samples.map((s) => s.seq)")
     ssims, psnrs = [], []

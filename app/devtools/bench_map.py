@@ -9,7 +9,7 @@ million voxels.
 
 from __future__ import annotations
 
-from app.devtools.benchmark import benchmark, median_ms
+from trifuse.app.devtools.benchmark import benchmark, median_ms
 
 MAP_VOXEL_M = 0.03
 ACCURACY_HZ = 3.0
@@ -23,8 +23,8 @@ all the estimate's."""
 
 
 def _exact_range_model():
-    from app.sources.sim.render import HeadModel
-    from app.sources.sim.tof_error import RangeErrorModel
+    from trifuse.app.sources.sim.render import HeadModel
+    from trifuse.app.sources.sim.tof_error import RangeErrorModel
 
     return HeadModel(
         range_error=RangeErrorModel(
@@ -47,11 +47,11 @@ def _survey_map(prefix: str, model) -> dict[str, float]:
 
     import numpy as np
 
-    from app.sources.sim.survey import SURVEY_S, SurveyScenario
-    from calib.transforms import make_T
-    from fusion.map_builder import MapBuilder
-    from fusion.stereo import StereoFusion
-    from fusion.voxel_map import DepthImage, MapSettings
+    from trifuse.app.sources.sim.survey import SURVEY_S, SurveyScenario
+    from trifuse.calib.transforms import make_T
+    from trifuse.fusion.map_builder import MapBuilder
+    from trifuse.fusion.stereo import StereoFusion
+    from trifuse.fusion.voxel_map import DepthImage, MapSettings
 
     sensors = ["tof", "thermal_left", "thermal_right", "ccd_left"]
     timed = prefix == "exact"
@@ -117,10 +117,10 @@ def _odometry(prefix: str, model) -> dict[str, float]:
 
     import numpy as np
 
-    from app.sources.sim.survey import SURVEY_S, SurveyScenario, survey_pose
-    from calib.transforms import rotation_angle_deg
-    from fusion.mapping import TofGrid
-    from fusion.odometry import TofOdometry
+    from trifuse.app.sources.sim.survey import SURVEY_S, SurveyScenario, survey_pose
+    from trifuse.calib.transforms import rotation_angle_deg
+    from trifuse.fusion.mapping import TofGrid
+    from trifuse.fusion.odometry import TofOdometry
 
     sc = SurveyScenario(seed=6, live=True, model=model)
     grid = TofGrid(sc.rig, "tof")
@@ -193,8 +193,8 @@ def thermal_map(repeat: int) -> dict[str, float]:
     """
     import numpy as np
 
-    from fusion.map_view import map_cloud
-    from fusion.voxel_map import MapSettings, VoxelMap
+    from trifuse.fusion.map_view import map_cloud
+    from trifuse.fusion.voxel_map import MapSettings, VoxelMap
 
     figures: dict[str, float] = {}
     figures.update(_survey_map("exact", _exact_range_model()))

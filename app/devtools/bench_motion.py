@@ -7,8 +7,8 @@ import itertools
 import time
 from pathlib import Path
 
-from app.devtools.benchmark import benchmark
-from app.devtools.browser_console import (
+from trifuse.app.devtools.benchmark import benchmark
+from trifuse.app.devtools.browser_console import (
     BrowserConsole,
     headless_chromium,
     inspection_pose_count,

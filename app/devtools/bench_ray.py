@@ -45,7 +45,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from app.devtools.benchmark import benchmark, check_repeat
+from trifuse.app.devtools.benchmark import benchmark, check_repeat
 
 RECORDING_S = 3.0
 """Length of each recording fused, seconds (90 colour frame sets at 30 Hz)."""
@@ -136,7 +136,7 @@ def _ray_step(
 def _warm_worker(hold_s: float) -> int:
     """Import what a job's task imports, hold the worker a moment (so that the tasks of a
     warm-up land on different workers); the worker's pid."""
-    import app.recording.jobs  # noqa: F401
+    import trifuse.app.recording.jobs  # noqa: F401
 
     time.sleep(hold_s)
     return os.getpid()
@@ -159,7 +159,7 @@ class RayInstance:
 
 def _start_ray(cpus: int) -> RayInstance:
     """A new local Ray instance of ``cpus`` CPUs with its ``cpus`` workers started."""
-    from app.recording.jobs import RayRunner
+    from trifuse.app.recording.jobs import RayRunner
 
     with _ray_step(f"starting a local instance of {cpus} CPU(s) (ray.init)"):
         t0 = time.perf_counter()
@@ -188,7 +188,7 @@ def _task_overheads(ray: Any) -> tuple[list[float], float]:
     """Round trips of :data:`EMPTY_TASKS` empty tasks (ms each, after one untimed), and the
     start of the progress actor (ms: created and first answered, as a
     :class:`~app.recording.jobs.RayRunner` does once)."""
-    from app.progress_actor import JobTracker
+    from trifuse.app.progress_actor import JobTracker
 
     empty = ray.remote(num_cpus=1)(_empty)
     ray.get(empty.remote(), timeout=RAY_STEP_TIMEOUT_S)
@@ -207,7 +207,7 @@ def _task_overheads(ray: Any) -> tuple[list[float], float]:
 
 def _settings() -> Any:
     """The display settings of every fusion run (:data:`SPAN_SMOOTHING_S`)."""
-    from fusion.compose import DisplaySettings
+    from trifuse.fusion.compose import DisplaySettings
 
     return DisplaySettings(span_smoothing_s=SPAN_SMOOTHING_S)
 
@@ -223,7 +223,7 @@ def _record_all(tmp: Path) -> tuple[list[Path], Path, float]:
     t0 = time.perf_counter()
     procs = []
     for path, seconds, seed, scenario in runs:
-        argv = [sys.executable, "-m", "app.cli", "record", "--source", "sim"]
+        argv = [sys.executable, "-m", "trifuse.app.cli", "record", "--source", "sim"]
         argv += ["--scenario", scenario, "--duration", f"{seconds:g}", "--seed", str(seed)]
         argv += ["--out", str(path)]
         procs.append(
@@ -252,7 +252,7 @@ class TimedLocalRunner:
     name = "local"
 
     def __init__(self) -> None:
-        from app.recording.jobs import LocalRunner
+        from trifuse.app.recording.jobs import LocalRunner
 
         self.inner = LocalRunner()
         self.seconds: list[float] = []
@@ -299,7 +299,7 @@ def _differences(got: dict[str, str], want: dict[str, str]) -> list[str]:
 
 def _fuse_run(planned: list[Any], runner: Any, run_dir: Path) -> tuple[float, int]:
     """The planned job written under ``run_dir`` by ``runner``: (seconds, pictures)."""
-    from app.recording.jobs import run_fuse_job
+    from trifuse.app.recording.jobs import run_fuse_job
 
     outputs = [dataclasses.replace(o, out_dir=run_dir / o.recording.stem) for o in planned]
     for o in outputs:
@@ -314,8 +314,8 @@ def _unsplit_piece_s(recording: Path, threads: int | None = None) -> tuple[float
     OpenCV on ``threads`` threads (None: as it is): (seconds, pictures)."""
     import cv2
 
-    from app.recording.fuse import FusedFrame
-    from app.recording.jobs import FuseTask, fuse_task, plan_fuse_job
+    from trifuse.app.recording.fuse import FusedFrame
+    from trifuse.app.recording.jobs import FuseTask, fuse_task, plan_fuse_job
 
     settings = _settings()
     (out,) = plan_fuse_job([(recording, recording.parent)], None, settings, 1, 0.0)
@@ -346,12 +346,12 @@ class MapOutcome:
 
 def _map_run(survey: Path, runner: Any) -> MapOutcome:
     """``trifuse map SURVEY --pose recording --chunk-s MAP_CHUNK_S`` by ``runner``."""
-    from app.recording.jobs import run_map_job
-    from app.recording.map3d import MAX_IMAGE_AGE_S, open_recordings
-    from app.recording.pieces import plan_map
-    from app.storage.map_file import ply_bytes
-    from fusion.geometry import tof_sensor_name
-    from fusion.voxel_map import MapSettings
+    from trifuse.app.recording.jobs import run_map_job
+    from trifuse.app.recording.map3d import MAX_IMAGE_AGE_S, open_recordings
+    from trifuse.app.recording.pieces import plan_map
+    from trifuse.app.storage.map_file import ply_bytes
+    from trifuse.fusion.geometry import tof_sensor_name
+    from trifuse.fusion.voxel_map import MapSettings
 
     sources, rig = open_recordings([survey], None)
     try:
@@ -383,13 +383,13 @@ def _node_breakdown(recording: Path, repeat: int, tmp: Path) -> dict[str, float]
     import cv2
     import numpy as np
 
-    from app.recording import ReplaySource
-    from app.recording.fuse import JPEG_QUALITY
-    from app.recording.player import FRAME_KINDS
-    from app.sources.base import frame_sets
-    from app.storage.atomic import atomic_write_bytes
-    from calib.radiometry import Radiometry
-    from fusion.stereo import EYE_ORDER, StereoFusion
+    from trifuse.app.recording import ReplaySource
+    from trifuse.app.recording.fuse import JPEG_QUALITY
+    from trifuse.app.recording.player import FRAME_KINDS
+    from trifuse.app.sources.base import frame_sets
+    from trifuse.app.storage.atomic import atomic_write_bytes
+    from trifuse.calib.radiometry import Radiometry
+    from trifuse.fusion.stereo import EYE_ORDER, StereoFusion
 
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
@@ -584,7 +584,7 @@ def ray_jobs(repeat: int) -> dict[str, float]:
     check_repeat(repeat)
     import cv2
 
-    from app.recording.jobs import import_ray, plan_fuse_job
+    from trifuse.app.recording.jobs import import_ray, plan_fuse_job
 
     try:
         import_ray()

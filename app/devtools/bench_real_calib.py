@@ -31,8 +31,9 @@ found >= OpenCV's, a result whenever OpenCV gives one, thermal RMS (alone) at mo
 load yet (ChArUco, a palette it cannot read) is reported "not supported yet" with trifuse's
 own line; it is picked up as soon as ``board.yaml`` / the capture loader accept it.
 
-``python -m app.devtools.bench_real_calib [NAME ...] [--quick] [--root NAME=DIR]`` prints the
-Markdown tables; ``trifuse bench --only real-calib`` prints them too and returns the figures
+``python -m trifuse.app.devtools.bench_real_calib [NAME ...] [--quick] [--root NAME=DIR]``
+prints the Markdown tables; ``trifuse bench --only real-calib`` prints them too and returns the
+figures
 (``<set>.<sensor>.<figure>_trifuse`` against ``..._opencv``, with their ratios).
 """
 
@@ -57,9 +58,9 @@ import cv2
 import numpy as np
 import yaml
 
-from app.devtools import real_sets
-from app.devtools.benchmark import benchmark
-from app.devtools.real_sets import (
+from trifuse.app.devtools import real_sets
+from trifuse.app.devtools.benchmark import benchmark
+from trifuse.app.devtools.real_sets import (
     REAL_SETS,
     UNCOMMITTED_SETS,
     Checkerboard,
@@ -70,7 +71,7 @@ from app.devtools.real_sets import (
     measure,
     sensor_files,
 )
-from calib.opencv_reference import CharucoTarget
+from trifuse.calib.opencv_reference import CharucoTarget
 
 SCRATCH_DIR = Path("/work/scratch")
 """Where the unlicensed sets are kept for measuring (never in the checkout)."""
@@ -198,7 +199,7 @@ class SetRun:
 def trifuse_name(sensor: Sensor) -> str:
     """The sensor's name in the capture directory: its own when its prefix tells trifuse its
     modality, else prefixed (``visible`` -> ``ccd_visible``, ``cam_0`` -> ``ccd_cam_0``)."""
-    from calib.rig import modality_of_name
+    from trifuse.calib.rig import modality_of_name
 
     if modality_of_name(sensor.name) == sensor.modality:
         return sensor.name
@@ -228,7 +229,7 @@ def write_capture(rs: RealSet, root: Path | None, dest: Path) -> list[str]:
     """Write ``rs`` (every ``rs.view_step``-th view id per sensor, as
     :func:`~app.devtools.real_sets.load_views` takes them) as a capture directory ``dest``;
     returns notes on what was converted."""
-    from app.storage.capture import IMAGE_SUFFIXES
+    from trifuse.app.storage.capture import IMAGE_SUFFIXES
 
     dest.mkdir(parents=True, exist_ok=True)
     text = yaml.safe_dump(board_yaml(rs.board), sort_keys=False, default_flow_style=None)
@@ -366,10 +367,14 @@ class TrifuseRun:
 def run_trifuse(capture_dir: Path, names: list[str]) -> TrifuseRun:
     """``trifuse calibrate``'s code on ``capture_dir``: load, detect (sensor by sensor, to time
     each), calibrate with the default options. ``names``: the sensors, capture names."""
-    from app.storage.capture import load_capture
-    from app.workflows import calibration_run
-    from app.workflows.calibration_run import DetectionRun, calibrate_capture, detect_capture
-    from calib.rig_calibration import CalibrationOptions
+    from trifuse.app.storage.capture import load_capture
+    from trifuse.app.workflows import calibration_run
+    from trifuse.app.workflows.calibration_run import (
+        DetectionRun,
+        calibrate_capture,
+        detect_capture,
+    )
+    from trifuse.calib.rig_calibration import CalibrationOptions
 
     out = TrifuseRun()
     t0 = time.perf_counter()

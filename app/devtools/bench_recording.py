@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from app.devtools.benchmark import benchmark, median_ms
+from trifuse.app.devtools.benchmark import benchmark, median_ms
 
 
 @benchmark(
@@ -30,9 +30,9 @@ def recording(repeat: int) -> dict[str, float]:
     import cv2
     import numpy as np
 
-    from app.recording import RecordingWriter, ReplaySource
-    from app.sources.frames import Frame
-    from app.sources.sim.scenarios import InspectionScenario
+    from trifuse.app.recording import RecordingWriter, ReplaySource
+    from trifuse.app.sources.frames import Frame
+    from trifuse.app.sources.sim.scenarios import InspectionScenario
 
     scenario = InspectionScenario(seed=0)
     frames, _ = scenario.render(3.0)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from app.devtools.benchmark import benchmark, median_ms
+from trifuse.app.devtools.benchmark import benchmark, median_ms
 
 
 @benchmark(
@@ -23,7 +23,7 @@ def render(repeat: int) -> dict[str, float]:
     ``<sensor>_ms``: one sensor of that room alone; ``setup_ms``: a new renderer's first
     frame set (ray grids of all sensors, with undistortion, are built then).
     """
-    from app.sources.sim.scenarios import InspectionScenario, calibration_views
+    from trifuse.app.sources.sim.scenarios import InspectionScenario, calibration_views
 
     stream = calibration_views(repeat + 1, seed=1000)
     figures = {"calibration_view_ms": median_ms(lambda _i: next(stream), repeat)}
@@ -63,8 +63,8 @@ def sim_live(repeat: int) -> dict[str, float]:
 
     import numpy as np
 
-    from app.recording.simrecord import record_simulation
-    from app.sources.sim.scenarios import InspectionScenario
+    from trifuse.app.recording.simrecord import record_simulation
+    from trifuse.app.sources.sim.scenarios import InspectionScenario
 
     sensors = _LIVE_SENSORS
     figures: dict[str, float] = {}
@@ -89,7 +89,7 @@ def sim_live(repeat: int) -> dict[str, float]:
         figures[f"frame_{name}_ms"] = median_ms(
             lambda _i, n=name, Ts=T_sensor: dev.frame(clean[n], 0, rng, Ts), max(repeat, 20)
         )
-    from app.sources.sim.head import default_rig
+    from trifuse.app.sources.sim.head import default_rig
 
     with tempfile.TemporaryDirectory(prefix="trifuse-bench-simrec-") as tmp:
         t0 = time.perf_counter()

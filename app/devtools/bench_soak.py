@@ -81,9 +81,9 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from app.devtools.console_process import ConsoleProcess, prewarm_pose_cache
-from app.devtools.procfs import sample_process
-from app.devtools.soak_report import (
+from trifuse.app.devtools.console_process import ConsoleProcess, prewarm_pose_cache
+from trifuse.app.devtools.procfs import sample_process
+from trifuse.app.devtools.soak_report import (
     CRITERIA,
     SLOW_KINDS,
     TABLE_HEAD,
@@ -101,7 +101,7 @@ from app.devtools.soak_report import (
     summarize,
     video_medians,
 )
-from app.devtools.stream_clients import (
+from trifuse.app.devtools.stream_clients import (
     FastViewer,
     SlowMjpegReader,
     SlowWsViewer,

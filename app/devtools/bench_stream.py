@@ -6,8 +6,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from app.devtools.benchmark import benchmark, median_ms
-from app.devtools.browser_console import (
+from trifuse.app.devtools.benchmark import benchmark, median_ms
+from trifuse.app.devtools.browser_console import (
     BrowserConsole,
     headless_chromium,
     inspection_pose_count,
@@ -67,9 +67,9 @@ def stream(repeat: int) -> dict[str, float]:
     import cv2
     import numpy as np
 
-    from app.sources.sim.scenarios import InspectionScenario
-    from fusion.compose import DisplaySettings
-    from fusion.stereo import StereoFusion
+    from trifuse.app.sources.sim.scenarios import InspectionScenario
+    from trifuse.fusion.compose import DisplaySettings
+    from trifuse.fusion.stereo import StereoFusion
 
     require_chromium("stream")
 

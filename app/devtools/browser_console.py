@@ -10,7 +10,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from app.devtools.console_process import ConsoleProcess
+from trifuse.app.devtools.console_process import ConsoleProcess
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_FLAGS = (
@@ -74,7 +74,7 @@ def inspection_pose_count(render_hz: float = 2.0) -> int:
     ``SimulatedHeadSource`` counts them: one pan period sampled at ``render_hz``)."""
     import numpy as np
 
-    from app.sources.sim.scenarios import InspectionScenario
+    from trifuse.app.sources.sim.scenarios import InspectionScenario
 
     scenario = InspectionScenario(seed=0)
     k = max(1, round(scenario.pan_period_s * render_hz))

@@ -30,7 +30,7 @@ Figures are WebSocket payload bytes (the framing, TCP/IP and TLS add a few per c
 
 Run it on its own (starts a console on the simulated inspection room, about a minute)::
 
-    .venv/bin/python -m app.devtools.console_bandwidth [SECONDS]
+    .venv/bin/python -m trifuse.app.devtools.console_bandwidth [SECONDS]
 """
 
 from __future__ import annotations
@@ -373,8 +373,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     import tempfile
     from pathlib import Path
 
-    from app.devtools.browser_console import headless_chromium, require_chromium
-    from app.devtools.console_process import ConsoleProcess, prewarm_pose_cache
+    from trifuse.app.devtools.browser_console import headless_chromium, require_chromium
+    from trifuse.app.devtools.console_process import ConsoleProcess, prewarm_pose_cache
 
     args = list(sys.argv[1:] if argv is None else argv)
     seconds = float(args[0]) if args else 15.0

@@ -21,10 +21,10 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[2]
-"""The checkout: the console's working directory, so that ``app`` is importable."""
+"""The checkout: the console's working directory."""
 HOST = "127.0.0.1"
-SERVE_CODE = "import sys; from app.cli import main; sys.exit(main(sys.argv[1:]))"
-"""What the subprocess runs: ``trifuse`` of this checkout, whether installed or not."""
+SERVE_CODE = "import sys; from trifuse.app.cli import main; sys.exit(main(sys.argv[1:]))"
+"""What the subprocess runs: the installed ``trifuse`` (an editable install: this checkout)."""
 
 
 def _direct_opener() -> urllib.request.OpenerDirector:
@@ -64,7 +64,7 @@ def stop_process(proc: Any, timeout_s: float = 15.0) -> None:
 def prewarm_pose_cache(timeout_s: float = 900.0) -> int:
     """Fill the disk cache of the console's simulated head (every pose of the inspection room
     rendered once; seconds when it is full already). Returns the number of poses."""
-    from app.sources.simulated import SimulatedHeadSource
+    from trifuse.app.sources.simulated import SimulatedHeadSource
 
     src = SimulatedHeadSource()
     try:

@@ -2,7 +2,7 @@
 moves IP packets between them with a rate, a delay and random loss (what ``tc netem``
 does, for kernels built without it; :mod:`app.devtools.netem`).
 
-Run as ``python -m app.devtools.link_relay HOST_IF NS_IF``: it creates the two TUN devices
+Run as ``python -m trifuse.app.devtools.link_relay HOST_IF NS_IF``: it creates the two TUN devices
 (IP packets, no header), prints ``ready`` and relays until its standard input ends (its
 parent is gone) or it is killed; the devices vanish with it. Each line on standard input is
 a shape for both directions, JSON ``{"rate_mbit": R, "delay_ms": D, "loss_pct": L,
@@ -129,5 +129,5 @@ def relay(host_if: str, ns_if: str) -> None:
 
 if __name__ == "__main__":
     if len(sys.argv) != 3:
-        sys.exit("usage: python -m app.devtools.link_relay HOST_IF NS_IF")
+        sys.exit("usage: python -m trifuse.app.devtools.link_relay HOST_IF NS_IF")
     relay(sys.argv[1], sys.argv[2])

@@ -45,7 +45,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from app.devtools.console_process import ROOT, stop_process
+from trifuse.app.devtools.console_process import ROOT, stop_process
 
 IP = "/usr/sbin/ip"
 NEEDS = "the link benchmark needs root and iproute2 (ip)"
@@ -187,7 +187,7 @@ class EmulatedLink:
         ns, h, n = self.namespace, self.host_if, self.ns_if
         _run([IP, "netns", "add", ns])
         self._relay = subprocess.Popen(
-            [sys.executable, "-m", "app.devtools.link_relay", h, n],
+            [sys.executable, "-m", "trifuse.app.devtools.link_relay", h, n],
             cwd=ROOT,
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,

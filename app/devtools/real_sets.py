@@ -13,7 +13,7 @@ so that the first corner is the one nearer the image's top-left; ChArUco:
 coefficients) and ``cv2.stereoCalibrate`` (intrinsics fixed) for each registered pair on
 the views both sensors saw.
 
-Run ``python -m app.devtools.real_sets [NAME ...]`` to print the figures as the README
+Run ``python -m trifuse.app.devtools.real_sets [NAME ...]`` to print the figures as the README
 table (``--root DIR`` measures a copy of a set kept elsewhere, e.g. one whose licence
 forbids committing it).
 """
@@ -31,7 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calib.opencv_reference import (
+from trifuse.calib.opencv_reference import (
     CharucoTarget,
     calibrate_camera_opencv,
     find_charuco_opencv,

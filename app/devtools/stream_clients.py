@@ -17,7 +17,7 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-from app.errors import describe_error
+from trifuse.app.errors import describe_error
 
 
 class MjpegParts:

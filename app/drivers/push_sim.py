@@ -1,6 +1,7 @@
 """Example driver: push the simulated head to a console over the push ingest protocol.
 
-    TRIFUSE_TOKEN=... python -m app.drivers.push_sim --url ws://127.0.0.1:8000/ingest [--rate 1.0]
+    TRIFUSE_TOKEN=... python -m trifuse.app.drivers.push_sim \
+        --url ws://127.0.0.1:8000/ingest [--rate 1.0]
 
 Renders the inspection scenario with :class:`~app.sources.simulated.SimulatedHeadSource`
 paced in real time (``--rate`` simulated seconds per second), encodes every frame
@@ -23,9 +24,9 @@ from collections.abc import Sequence
 
 from websockets.exceptions import InvalidStatus, InvalidURI, WebSocketException
 
-from app.server.routers.auth import TOKEN_ENV
-from app.sources.push.clients import PushClient
-from app.sources.simulated import SimulatedHeadSource
+from trifuse.app.server.routers.auth import TOKEN_ENV
+from trifuse.app.sources.push.clients import PushClient
+from trifuse.app.sources.simulated import SimulatedHeadSource
 
 
 def _positive(text: str) -> float:
@@ -40,7 +41,7 @@ def _positive(text: str) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="python -m app.drivers.push_sim",
+        prog="python -m trifuse.app.drivers.push_sim",
         description="Push the simulated sensor head to a trifuse console (push ingest).",
     )
     p.add_argument(

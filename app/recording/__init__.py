@@ -3,11 +3,11 @@
 See docs/FORMATS.md ("Recordings") for the file layout and the topic-map format.
 """
 
-from app.recording.errors import RecordingDamaged, RecordingError, TopicMapError
-from app.recording.reader import ReplaySource
-from app.recording.ros2 import Ros2BagSource
-from app.recording.topicmap import TopicMap, load_topic_map
-from app.recording.writer import RecordingWriter
+from trifuse.app.recording.errors import RecordingDamaged, RecordingError, TopicMapError
+from trifuse.app.recording.reader import ReplaySource
+from trifuse.app.recording.ros2 import Ros2BagSource
+from trifuse.app.recording.topicmap import TopicMap, load_topic_map
+from trifuse.app.recording.writer import RecordingWriter
 
 __all__ = [
     "RecordingDamaged",

@@ -25,15 +25,15 @@ import av
 import cv2
 import numpy as np
 
-from app.recording.errors import RecordingDamaged
-from app.recording.pieces import FusePiece
-from app.recording.player import MessageReplay, Skips, add_skips, skips_between
-from app.sources.base import frame_sets
-from app.storage.atomic import atomic_write_bytes, atomic_write_text, fsync_dir
-from calib.radiometry import Radiometry
-from calib.rig import Rig
-from fusion.compose import DisplaySettings
-from fusion.stereo import EYE_ORDER, StereoFusion
+from trifuse.app.recording.errors import RecordingDamaged
+from trifuse.app.recording.pieces import FusePiece
+from trifuse.app.recording.player import MessageReplay, Skips, add_skips, skips_between
+from trifuse.app.sources.base import frame_sets
+from trifuse.app.storage.atomic import atomic_write_bytes, atomic_write_text, fsync_dir
+from trifuse.calib.radiometry import Radiometry
+from trifuse.calib.rig import Rig
+from trifuse.fusion.compose import DisplaySettings
+from trifuse.fusion.stereo import EYE_ORDER, StereoFusion
 
 VIDEO_NAME = "fused.mp4"
 JPEG_QUALITY = 90

@@ -18,9 +18,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from app.recording.errors import ImageSizeError
-from calib.image_header import ImageHeaderError, image_header
-from calib.rig import MAX_IMAGE_PIXELS
+from trifuse.app.recording.errors import ImageSizeError
+from trifuse.calib.image_header import ImageHeaderError, image_header
+from trifuse.calib.rig import MAX_IMAGE_PIXELS
 
 # encoding -> (numpy dtype, channels)
 RAW_ENCODINGS: dict[str, tuple[str, int]] = {

@@ -38,8 +38,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
-from app.progress_actor import JobTracker
-from app.recording.fuse import (
+from trifuse.app.progress_actor import JobTracker
+from trifuse.app.recording.fuse import (
     FusedFrame,
     FusedWriter,
     FuseResult,
@@ -47,8 +47,8 @@ from app.recording.fuse import (
     fuse_piece,
     video_fps,
 )
-from app.recording.map3d import MAX_IMAGE_AGE_S, MapRun, choose_poses, map_piece
-from app.recording.pieces import (
+from trifuse.app.recording.map3d import MAX_IMAGE_AGE_S, MapRun, choose_poses, map_piece
+from trifuse.app.recording.pieces import (
     FusePiece,
     MapPiece,
     open_task_recording,
@@ -56,12 +56,12 @@ from app.recording.pieces import (
     plan_map,
     warmup_s,
 )
-from app.recording.reader import ReplaySource
-from calib.rig import Rig
-from fusion.compose import DisplaySettings
-from fusion.geometry import tof_sensor_name
-from fusion.stereo import EYE_ORDER
-from fusion.voxel_map import MapSettings
+from trifuse.app.recording.reader import ReplaySource
+from trifuse.calib.rig import Rig
+from trifuse.fusion.compose import DisplaySettings
+from trifuse.fusion.geometry import tof_sensor_name
+from trifuse.fusion.stereo import EYE_ORDER
+from trifuse.fusion.voxel_map import MapSettings
 
 T = TypeVar("T")
 R = TypeVar("R")

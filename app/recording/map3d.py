@@ -37,17 +37,17 @@ from typing import Literal
 
 import numpy as np
 
-from app.recording.errors import RecordingDamaged
-from app.recording.pieces import MapPiece, MapSpan, open_task_recording
-from app.recording.player import Skips, add_skips, skips_between
-from app.recording.poses import TOLERANCE_S, RecordingPoses, read_poses
-from app.recording.reader import ReplaySource
-from app.sources.frames import Frame
-from calib.radiometry import Radiometry
-from calib.rig import Rig, rig_to_yaml
-from fusion.geometry import tof_sensor_name
-from fusion.map_builder import MapBuilder
-from fusion.voxel_map import MapSettings, VoxelMap
+from trifuse.app.recording.errors import RecordingDamaged
+from trifuse.app.recording.pieces import MapPiece, MapSpan, open_task_recording
+from trifuse.app.recording.player import Skips, add_skips, skips_between
+from trifuse.app.recording.poses import TOLERANCE_S, RecordingPoses, read_poses
+from trifuse.app.recording.reader import ReplaySource
+from trifuse.app.sources.frames import Frame
+from trifuse.calib.radiometry import Radiometry
+from trifuse.calib.rig import Rig, rig_to_yaml
+from trifuse.fusion.geometry import tof_sensor_name
+from trifuse.fusion.map_builder import MapBuilder
+from trifuse.fusion.voxel_map import MapSettings, VoxelMap
 
 PoseMode = Literal["auto", "recording", "estimate"]
 POSE_MODES: tuple[str, ...] = typing.get_args(PoseMode)

@@ -58,9 +58,9 @@ from mcap.records import (
     Statistics,
 )
 
-from app.errors import describe_error
-from app.recording.errors import RecordingError
-from app.recording.layout import METADATA_NAME as SEALED_BY
+from trifuse.app.errors import describe_error
+from trifuse.app.recording.errors import RecordingError
+from trifuse.app.recording.layout import METADATA_NAME as SEALED_BY
 
 MAGIC = b"\x89MCAP0\r\n"
 _PREFIX = 9  # opcode (1) + record length (8)

@@ -12,12 +12,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from app.sources.base import FrameSource
-from calib.rig import Rig
+from trifuse.app.sources.base import FrameSource
+from trifuse.calib.rig import Rig
 
 if TYPE_CHECKING:
-    from app.sources.simulated import SimulatedHeadSource
-    from calib.board import Board
+    from trifuse.app.sources.simulated import SimulatedHeadSource
+    from trifuse.calib.board import Board
 
 SCENARIOS = ("inspection", "calibration", "survey")
 """What the simulated head can show (:func:`simulated_source`)."""
@@ -51,10 +51,10 @@ def simulated_source(
             at 2 Hz and shown as rendered: the head moves, so a picture cannot stand in
             for another by turning; ``truth_at(stamp).T_world_rig`` is the pose shown).
     """
-    from app.sources.simulated import SimulatedHeadSource
+    from trifuse.app.sources.simulated import SimulatedHeadSource
 
     if scenario == "calibration":
-        from app.sources.sim.scenarios import CALIBRATION_BOARD, CalibrationScenario
+        from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, CalibrationScenario
 
         cal = CalibrationScenario(
             n_poses=board_poses, hold_s=hold_s, board=board or CALIBRATION_BOARD
@@ -67,7 +67,7 @@ def simulated_source(
             f"{cal.hold_s:g} s each, looping)"
         )
     if scenario == "survey":
-        from app.sources.sim.survey import SurveyScenario
+        from trifuse.app.sources.sim.survey import SurveyScenario
 
         survey = SurveyScenario(live=True)
         src = SimulatedHeadSource(survey, realtime=True, start_ns=None, live=False)
@@ -117,7 +117,7 @@ def open_source(
             (a missing or damaged file, a camera that does not open).
     """
     if replay:
-        from app.recording.reader import ReplaySource
+        from trifuse.app.recording.reader import ReplaySource
 
         src = ReplaySource(Path(replay), loop=loop, realtime=realtime)
         rig = rig or src.rig
@@ -127,7 +127,7 @@ def open_source(
         src.expect(rig)  # frames of another size are skipped (counted), never delivered
         return OpenedSource(src, rig, f"replay of {replay}" + (" (looping)" if loop else ""))
     if live:
-        from app.sources.camera import CameraSource
+        from trifuse.app.sources.camera import CameraSource
 
         if rig is None:
             raise NeedsRig(
@@ -135,8 +135,8 @@ def open_source(
             )
         return OpenedSource(CameraSource(Path(live), rig=rig), rig, f"live cameras of {live}")
     if push:
-        from app.sources.push.source import PushSource
-        from app.sources.sim.head import default_rig
+        from trifuse.app.sources.push.source import PushSource
+        from trifuse.app.sources.sim.head import default_rig
 
         rig = rig or default_rig()
         return OpenedSource(PushSource(rig), rig, "frames pushed to /ingest")

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.recording.reader import ReplaySource
+from trifuse.app.recording.reader import ReplaySource
 
 DEFAULT_CHUNK_S = 30.0
 """Seconds of recording per piece (``--chunk-s``)."""

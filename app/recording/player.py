@@ -38,12 +38,12 @@ from typing import Any
 import numpy as np
 from mcap.records import Channel, Message
 
-from app.errors import describe_error
-from app.recording.errors import ImageSizeError, RecordingDamaged, RecordingError
-from app.recording.mcapindex import McapDamage, McapIndex
-from app.sources.base import FrameSource
-from app.sources.frames import Frame
-from calib.rig import Rig
+from trifuse.app.errors import describe_error
+from trifuse.app.recording.errors import ImageSizeError, RecordingDamaged, RecordingError
+from trifuse.app.recording.mcapindex import McapDamage, McapIndex
+from trifuse.app.sources.base import FrameSource
+from trifuse.app.sources.frames import Frame
+from trifuse.calib.rig import Rig
 
 log = logging.getLogger(__name__)
 

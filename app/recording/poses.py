@@ -29,8 +29,8 @@ import numpy as np
 from mcap_protobuf.decoder import DecoderFactory
 from scipy.spatial.transform import Rotation
 
-from app.recording.layout import METADATA_NAME, POSE_PARENTS, RIG_FRAME
-from app.recording.mcapindex import McapDamage, McapIndex
+from trifuse.app.recording.layout import METADATA_NAME, POSE_PARENTS, RIG_FRAME
+from trifuse.app.recording.mcapindex import McapDamage, McapIndex
 
 TOLERANCE_S = 0.05
 """Default of :meth:`RecordingPoses.at`: a stamp outside the poses' span takes the nearest

@@ -24,9 +24,9 @@ import numpy as np
 from mcap.records import Channel, Message
 from mcap_protobuf.decoder import DecoderFactory
 
-from app.recording.errors import RecordingError
-from app.recording.images import raw_plane, rgb_from_compressed, rgb_from_raw, values
-from app.recording.layout import (
+from trifuse.app.recording.errors import RecordingError
+from trifuse.app.recording.images import raw_plane, rgb_from_compressed, rgb_from_raw, values
+from trifuse.app.recording.layout import (
     METADATA_NAME,
     MODALITY_OF_KIND,
     POSE_PARENTS,
@@ -35,14 +35,14 @@ from app.recording.layout import (
     TF_TOPIC,
     parse_topic,
 )
-from app.recording.mcapindex import McapDamage
-from app.recording.player import MessageReplay, Route
-from app.recording.poses import RecordingPoses, read_poses
-from calib.camera import Intrinsics
-from calib.errors import RigError
-from calib.rig import Eye, Rig, Sensor, check_physical, rig_from_yaml
-from calib.transforms import invert, make_T
-from calib.units import kelvin_from_counts, metres_from_counts
+from trifuse.app.recording.mcapindex import McapDamage
+from trifuse.app.recording.player import MessageReplay, Route
+from trifuse.app.recording.poses import RecordingPoses, read_poses
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.errors import RigError
+from trifuse.calib.rig import Eye, Rig, Sensor, check_physical, rig_from_yaml
+from trifuse.calib.transforms import invert, make_T
+from trifuse.calib.units import kelvin_from_counts, metres_from_counts
 
 RIG_PROBE_S = 2.0
 """Without a rig attachment, calibration and transforms are looked for in this much of the

@@ -20,19 +20,19 @@ import numpy as np
 from mcap.records import Channel, Message
 from mcap_ros2.decoder import DecoderFactory
 
-from app.recording.errors import RecordingError
-from app.recording.images import (
+from trifuse.app.recording.errors import RecordingError
+from trifuse.app.recording.images import (
     plane_from_compressed,
     raw_plane,
     rgb_from_compressed,
     rgb_from_raw,
     values,
 )
-from app.recording.mcapindex import McapDamage
-from app.recording.player import MessageReplay, Route
-from app.recording.topicmap import TopicMap, TopicSpec, load_topic_map
-from calib.camera import Intrinsics
-from calib.rig import Rig
+from trifuse.app.recording.mcapindex import McapDamage
+from trifuse.app.recording.player import MessageReplay, Route
+from trifuse.app.recording.topicmap import TopicMap, TopicSpec, load_topic_map
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.rig import Rig
 
 _SEP = "=" * 80
 _TIME = "int32 sec\nuint32 nanosec\n"
@@ -152,7 +152,7 @@ class Ros2BagSource(MessageReplay):
     ) -> None:
         tmap = topic_map if isinstance(topic_map, TopicMap) else load_topic_map(topic_map)
         if rig is not None and not isinstance(rig, Rig):
-            from app.storage.rigfile import load_rig
+            from trifuse.app.storage.rigfile import load_rig
 
             rig = load_rig(rig)
         super().__init__(

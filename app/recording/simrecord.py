@@ -38,13 +38,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from app.recording.writer import RecordingWriter
-from calib.rig import Rig
+from trifuse.app.recording.writer import RecordingWriter
+from trifuse.calib.rig import Rig
 
 if TYPE_CHECKING:
-    from app.sources.frames import Frame
-    from app.sources.sim.live import CleanImage
-    from app.sources.sim.scenarios import InspectionScenario
+    from trifuse.app.sources.frames import Frame
+    from trifuse.app.sources.sim.live import CleanImage
+    from trifuse.app.sources.sim.scenarios import InspectionScenario
 
 SIM_SCENARIOS = ("inspection", "survey")
 """The scenarios :func:`record_simulation` renders: the panning inspection room, or its
@@ -91,7 +91,7 @@ def head_model_for(rig: Rig):  # -> HeadModel | None
     rig's TOF camera (the default model is made for 176 x 144 pixels); None if it is."""
     from dataclasses import replace
 
-    from app.sources.sim.render import HeadModel
+    from trifuse.app.sources.sim.render import HeadModel
 
     tofs = rig.by_modality("tof")
     model = HeadModel()
@@ -106,8 +106,8 @@ def head_model_for(rig: Rig):  # -> HeadModel | None
 def sim_scenario(name: str, rig: Rig, seed: int = 0, live: bool = True) -> InspectionScenario:
     """The scenario ``name`` (one of :data:`SIM_SCENARIOS`) with ``rig``'s sensors
     (:func:`head_model_for`), noise seeded by ``seed``, in the live quality or not."""
-    from app.sources.sim.scenarios import InspectionScenario
-    from app.sources.sim.survey import SurveyScenario
+    from trifuse.app.sources.sim.scenarios import InspectionScenario
+    from trifuse.app.sources.sim.survey import SurveyScenario
 
     kinds = {"inspection": InspectionScenario, "survey": SurveyScenario}
     if name not in kinds:

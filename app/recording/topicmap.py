@@ -27,10 +27,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from app.recording.errors import TopicMapError
-from app.storage.text import read_text
-from calib.numbers import check_finite
-from calib.yaml_text import YamlError, parse_yaml
+from trifuse.app.recording.errors import TopicMapError
+from trifuse.app.storage.text import read_text
+from trifuse.calib.numbers import check_finite
+from trifuse.calib.yaml_text import YamlError, parse_yaml
 
 TOPIC_MAP_FORMAT = "trifuse-topic-map/1"
 KINDS = ("color", "thermal", "tof_distance", "tof_amplitude", "camera_info")

@@ -35,23 +35,23 @@ import numpy as np
 from foxglove.channels import CompressedVideoChannel
 from foxglove.messages import CompressedVideo, Timestamp
 
-from app.errors import describe_error
-from app.recording.errors import RecordingError
-from app.recording.h264 import Level, VideoEncoder
-from app.recording.layout import (
+from trifuse.app.errors import describe_error
+from trifuse.app.recording.errors import RecordingError
+from trifuse.app.recording.h264 import Level, VideoEncoder
+from trifuse.app.recording.layout import (
     FUSED_VIDEO_FORMAT,
     FUSED_VIDEO_KIND,
     FUSED_VIDEO_TOPIC,
     RIG_FRAME,
 )
-from app.sources.base import FrameSetAssembler
-from calib.radiometry import Radiometry
-from calib.rig import Rig
-from fusion.compose import DisplaySettings
-from fusion.stereo import EYE_ORDER, StereoFusion
+from trifuse.app.sources.base import FrameSetAssembler
+from trifuse.calib.radiometry import Radiometry
+from trifuse.calib.rig import Rig
+from trifuse.fusion.compose import DisplaySettings
+from trifuse.fusion.stereo import EYE_ORDER, StereoFusion
 
 if TYPE_CHECKING:
-    from app.sources.frames import Frame, FrameSet
+    from trifuse.app.sources.frames import Frame, FrameSet
 
 log = logging.getLogger(__name__)
 

@@ -60,8 +60,8 @@ from foxglove.messages import (
     Vector3,
 )
 
-from app.recording.errors import RecordingError
-from app.recording.layout import (
+from trifuse.app.recording.errors import RecordingError
+from trifuse.app.recording.layout import (
     METADATA_NAME,
     RECORDING_FORMAT,
     RIG_ATTACHMENT,
@@ -70,14 +70,14 @@ from app.recording.layout import (
     WORLD_FRAME,
     topic_of,
 )
-from app.recording.mcapindex import MAX_CHUNK_BYTES, McapIndex
-from app.recording.sealed_file import SealedMcapFile
-from app.recording.video_track import FusedVideoTrack, video_frame_id
-from app.sources.frames import Frame, FrameSet
-from app.storage.atomic import fsync_dir, make_dirs, umask
-from calib.rig import Rig, Sensor, rig_to_yaml
-from calib.transforms import rigidity_problem
-from calib.units import encode_amplitude, encode_distance, encode_thermal
+from trifuse.app.recording.mcapindex import MAX_CHUNK_BYTES, McapIndex
+from trifuse.app.recording.sealed_file import SealedMcapFile
+from trifuse.app.recording.video_track import FusedVideoTrack, video_frame_id
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.storage.atomic import fsync_dir, make_dirs, umask
+from trifuse.calib.rig import Rig, Sensor, rig_to_yaml
+from trifuse.calib.transforms import rigidity_problem
+from trifuse.calib.units import encode_amplitude, encode_distance, encode_thermal
 
 THERMAL_ENCODINGS = ("16UC1", "32FC1")
 COMPRESSIONS = {"zstd": MCAPCompression.Zstd, "lz4": MCAPCompression.Lz4, "none": None}

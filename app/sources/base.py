@@ -17,8 +17,8 @@ from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Iterable, Iterator
 
-from app.sources.frames import Frame, FrameSet
-from calib.rig import Rig
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.calib.rig import Rig
 
 
 class FrameSource(ABC):

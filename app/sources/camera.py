@@ -45,14 +45,14 @@ from typing import Any
 import cv2
 import numpy as np
 
-from app.sources.base import FrameSource
-from app.sources.frames import Frame
-from app.sources.slots import NewestFrameSlots
-from app.storage.text import read_text
-from calib.numbers import finite_float
-from calib.rig import Rig, modality_of_name
-from calib.units import KELVIN_PER_COUNT
-from calib.yaml_text import YamlError, parse_yaml
+from trifuse.app.sources.base import FrameSource
+from trifuse.app.sources.frames import Frame
+from trifuse.app.sources.slots import NewestFrameSlots
+from trifuse.app.storage.text import read_text
+from trifuse.calib.numbers import finite_float
+from trifuse.calib.rig import Rig, modality_of_name
+from trifuse.calib.units import KELVIN_PER_COUNT
+from trifuse.calib.yaml_text import YamlError, parse_yaml
 
 CAMERA_CONFIG_FORMAT = "trifuse-cameras/1"
 

@@ -79,10 +79,10 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from app.sources.base import FrameSource
-from app.sources.frames import Frame, FrameSet
-from app.sources.sim.live import RotationWarp
-from app.sources.sim.pose_cache import (
+from trifuse.app.sources.base import FrameSource
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.sources.sim.live import RotationWarp
+from trifuse.app.sources.sim.pose_cache import (
     cache_folder,
     load_pose,
     pose_file,
@@ -90,9 +90,9 @@ from app.sources.sim.pose_cache import (
     save_pose,
     scenario_key,
 )
-from app.sources.sim.render import SensorTruth
-from app.sources.sim.render_process import RenderProcess, render_frames
-from calib.rig import Rig
+from trifuse.app.sources.sim.render import SensorTruth
+from trifuse.app.sources.sim.render_process import RenderProcess, render_frames
+from trifuse.calib.rig import Rig
 
 DEFAULT_RATES_HZ: dict[str, float] = {"color": 30.0, "thermal": 27.0, "tof": 15.0}
 """Frame rate per modality when ``rates_hz`` does not name a sensor."""
@@ -230,7 +230,7 @@ class SimulatedHeadSource(FrameSource):
                     "scene_key)"
                 )
         if scenario is None:
-            from app.sources.sim.scenarios import InspectionScenario
+            from trifuse.app.sources.sim.scenarios import InspectionScenario
 
             scenario = InspectionScenario(seed=seed, live=live)
         self.scenario = scenario

@@ -12,7 +12,7 @@ import time
 from collections.abc import Iterable, Iterator
 from typing import Any
 
-from app.sources.frames import Frame
+from trifuse.app.sources.frames import Frame
 
 
 class NewestFrameSlots:

@@ -42,16 +42,16 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
-from app.sources.frames import Frame, FrameSet
-from app.storage.rigfile import load_rig
-from app.storage.text import read_text
-from calib.board import Board, board_from_dict
-from calib.image_header import ImageHeaderError, image_header, pnm_header
-from calib.palette_inverse import PaletteError, PaletteFit, invert_palette
-from calib.rig import MODALITY_PREFIXES, Modality, Rig, modality_of_name
-from calib.units import kelvin_from_counts, metres_from_counts
-from calib.yaml_text import YamlError, parse_yaml
-from fusion.palettes import PALETTE_NAMES, palette
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.storage.rigfile import load_rig
+from trifuse.app.storage.text import read_text
+from trifuse.calib.board import Board, board_from_dict
+from trifuse.calib.image_header import ImageHeaderError, image_header, pnm_header
+from trifuse.calib.palette_inverse import PaletteError, PaletteFit, invert_palette
+from trifuse.calib.rig import MODALITY_PREFIXES, Modality, Rig, modality_of_name
+from trifuse.calib.units import kelvin_from_counts, metres_from_counts
+from trifuse.calib.yaml_text import YamlError, parse_yaml
+from trifuse.fusion.palettes import PALETTE_NAMES, palette
 
 BOARD_FILE = "board.yaml"
 RIG_FILE = "rig.yaml"

@@ -14,9 +14,9 @@ import cv2
 import numpy as np
 import yaml
 
-from app.sources.frames import Frame, FrameSet
-from app.storage.atomic import atomic_write_bytes, fsync_dir, make_dirs, umask
-from app.storage.capture import (
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.storage.atomic import atomic_write_bytes, fsync_dir, make_dirs, umask
+from trifuse.app.storage.capture import (
     BOARD_FILE,
     DISTANCE_SUFFIX,
     RIG_FILE,
@@ -24,9 +24,9 @@ from app.storage.capture import (
     ViewExistsError,
     check_name,
 )
-from calib.board import Board
-from calib.rig import Rig, rig_to_yaml
-from calib.units import encode_amplitude, encode_distance, encode_thermal
+from trifuse.calib.board import Board
+from trifuse.calib.rig import Rig, rig_to_yaml
+from trifuse.calib.units import encode_amplitude, encode_distance, encode_thermal
 
 # -- low-level file writing -----------------------------------------------------------------
 

@@ -12,12 +12,12 @@ from typing import Any
 import numpy as np
 import yaml
 
-from app.storage.atomic import atomic_write_bytes
-from app.storage.capture import CaptureError, check_name, read_yaml_file
-from app.storage.rigfile import load_rig, save_rig
-from calib.board import Board, board_from_dict
-from calib.rig import Rig
-from calib.transforms import rigidity_problem
+from trifuse.app.storage.atomic import atomic_write_bytes
+from trifuse.app.storage.capture import CaptureError, check_name, read_yaml_file
+from trifuse.app.storage.rigfile import load_rig, save_rig
+from trifuse.calib.board import Board, board_from_dict
+from trifuse.calib.rig import Rig
+from trifuse.calib.transforms import rigidity_problem
 
 GROUND_TRUTH_FILE = "ground_truth.yaml"
 GROUND_TRUTH_RIG_FILE = "ground_truth_rig.yaml"

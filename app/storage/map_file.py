@@ -35,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from app.storage.atomic import atomic_write_bytes
-from fusion.voxel_map import MapSettings, VoxelMap
+from trifuse.app.storage.atomic import atomic_write_bytes
+from trifuse.fusion.voxel_map import MapSettings, VoxelMap
 
 MAP_FORMAT = "trifuse-map/1"
 """The format tag of a map file (its ``format`` entry)."""

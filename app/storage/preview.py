@@ -11,8 +11,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from app.sources.frames import FrameSet
-from app.storage.atomic import atomic_write_bytes
+from trifuse.app.sources.frames import FrameSet
+from trifuse.app.storage.atomic import atomic_write_bytes
 
 THUMB_W, THUMB_H = 192, 144
 LABEL_H = 18

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from app.storage.atomic import atomic_write_text
-from app.storage.text import read_text
-from calib.errors import RigError
-from calib.rig import Rig, rig_from_yaml, rig_to_yaml
+from trifuse.app.storage.atomic import atomic_write_text
+from trifuse.app.storage.text import read_text
+from trifuse.calib.errors import RigError
+from trifuse.calib.rig import Rig, rig_from_yaml, rig_to_yaml
 
 
 def load_rig(path: str | Path) -> Rig:

@@ -41,10 +41,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from app.errors import describe_error
-from app.sources.frames import FrameSet
-from app.storage.atomic import atomic_write_text, fsync_dir, make_dirs, remove_temporaries
-from app.storage.capture import (
+from trifuse.app.errors import describe_error
+from trifuse.app.sources.frames import FrameSet
+from trifuse.app.storage.atomic import atomic_write_text, fsync_dir, make_dirs, remove_temporaries
+from trifuse.app.storage.capture import (
     BOARD_FILE,
     RIG_FILE,
     CaptureError,
@@ -53,25 +53,25 @@ from app.storage.capture import (
     load_capture,
     load_view,
 )
-from app.storage.capture_writer import write_board, write_rig, write_view
-from app.storage.rigfile import load_rig
-from app.workflows.calibration_run import DetectionRun, calibrate_capture
-from app.workflows.range_run import (
+from trifuse.app.storage.capture_writer import write_board, write_rig, write_view
+from trifuse.app.storage.rigfile import load_rig
+from trifuse.app.workflows.calibration_run import DetectionRun, calibrate_capture
+from trifuse.app.workflows.range_run import (
     RangeRun,
     build_range_report,
     calibrate_range,
     with_range_correction,
 )
-from calib.board import POLARITY_KEYS, Board
-from calib.coverage import NOVELTY_THRESHOLD, Coverage, coverage, pose_novelty, view_params
-from calib.detect import Detection
-from calib.errors import CalibrationError
-from calib.palette_inverse import PaletteFit
-from calib.polarity import detect_board_configured
-from calib.rig import Rig, rig_to_yaml
-from calib.rig_calibration import CalibrationOptions
-from calib.rig_result import CalibrationResult
-from calib.verdict import ZHANG_MIN_VIEWS
+from trifuse.calib.board import POLARITY_KEYS, Board
+from trifuse.calib.coverage import NOVELTY_THRESHOLD, Coverage, coverage, pose_novelty, view_params
+from trifuse.calib.detect import Detection
+from trifuse.calib.errors import CalibrationError
+from trifuse.calib.palette_inverse import PaletteFit
+from trifuse.calib.polarity import detect_board_configured
+from trifuse.calib.rig import Rig, rig_to_yaml
+from trifuse.calib.rig_calibration import CalibrationOptions
+from trifuse.calib.rig_result import CalibrationResult
+from trifuse.calib.verdict import ZHANG_MIN_VIEWS
 
 CAPTURES = "captures"
 RIGS = "rigs"

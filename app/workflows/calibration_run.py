@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from app.storage.atomic import atomic_write_text
-from app.storage.capture import Capture, CaptureError
-from app.workflows.report_format import (
+from trifuse.app.storage.atomic import atomic_write_text
+from trifuse.app.storage.capture import Capture, CaptureError
+from trifuse.app.workflows.report_format import (
     POLARITY_HEAD,
     coverage_sentence,
     polarity_caption,
@@ -25,13 +25,13 @@ from app.workflows.report_format import (
     text_table,
     verdict_lines,
 )
-from calib.coverage import coverage
-from calib.detect import Detection
-from calib.errors import CalibrationError
-from calib.polarity import detect_board_configured
-from calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
-from calib.rig_result import CalibrationResult
-from calib.verdict import ZHANG_MIN_VIEWS
+from trifuse.calib.coverage import coverage
+from trifuse.calib.detect import Detection
+from trifuse.calib.errors import CalibrationError
+from trifuse.calib.polarity import detect_board_configured
+from trifuse.calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
+from trifuse.calib.rig_result import CalibrationResult
+from trifuse.calib.verdict import ZHANG_MIN_VIEWS
 
 Progress = Callable[[str, float], None]
 

@@ -22,10 +22,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from app.storage.capture import Capture
-from app.workflows.calibration_run import DetectionRun, detect_capture
-from calib.board_pose import board_pose
-from calib.range_calibration import (
+from trifuse.app.storage.capture import Capture
+from trifuse.app.workflows.calibration_run import DetectionRun, detect_capture
+from trifuse.calib.board_pose import board_pose
+from trifuse.calib.range_calibration import (
     FitOptions,
     RangeSamples,
     RegionError,
@@ -33,9 +33,9 @@ from calib.range_calibration import (
     fit_range_correction,
     region_errors,
 )
-from calib.range_correction import RangeCorrection
-from calib.rig import Rig
-from fusion.geometry import tof_sensor_name
+from trifuse.calib.range_correction import RangeCorrection
+from trifuse.calib.rig import Rig
+from trifuse.fusion.geometry import tof_sensor_name
 
 Progress = Callable[[str, float], None]
 REPORT_FORMAT = "trifuse-range-report/1"
@@ -318,7 +318,7 @@ def region_chart(
 
 def write_png(path: str | Path, rgb: np.ndarray, overwrite: bool = False) -> Path:
     """Write an RGB image as PNG, atomically."""
-    from app.storage.atomic import atomic_write_bytes
+    from trifuse.app.storage.atomic import atomic_write_bytes
 
     ok, buf = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     if not ok:

@@ -7,10 +7,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from calib.coverage import COARSE_NAMES, coarse_reached, reached_fraction
+from trifuse.calib.coverage import COARSE_NAMES, coarse_reached, reached_fraction
 
 if TYPE_CHECKING:
-    from calib.rig_compare import RigComparison
+    from trifuse.calib.rig_compare import RigComparison
 
 SENSOR_COLOURS: tuple[tuple[int, int, int], ...] = (
     (31, 119, 180),

@@ -37,8 +37,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from app.storage.atomic import atomic_write_text
-from app.workflows.report_format import (
+from trifuse.app.storage.atomic import atomic_write_text
+from trifuse.app.workflows.report_format import (
     INTRINSICS_HEAD,
     POLARITY_HEAD,
     coverage_sentence,
@@ -46,13 +46,13 @@ from app.workflows.report_format import (
     polarity_rows,
     sensor_colour,
 )
-from calib.board import POLARITY_KEYS, board_from_dict
-from calib.coverage import PARAM_NAMES
-from calib.transforms import rvec_from_rotation
+from trifuse.calib.board import POLARITY_KEYS, board_from_dict
+from trifuse.calib.coverage import PARAM_NAMES
+from trifuse.calib.transforms import rvec_from_rotation
 
 if TYPE_CHECKING:
-    from app.workflows.calib_session import CalibrationJob
-    from calib.rig_result import CornerResiduals
+    from trifuse.app.workflows.calib_session import CalibrationJob
+    from trifuse.calib.rig_result import CornerResiduals
 
 CSP = "default-src 'none'; style-src 'unsafe-inline'; img-src data:"
 """The page's Content-Security-Policy (a meta tag; the console's route sends it as a

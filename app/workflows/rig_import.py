@@ -28,8 +28,8 @@ from importlib import import_module
 from multiprocessing.connection import Connection
 from typing import Any, TypeVar
 
-from calib.errors import RigError
-from calib.rig_formats import IMPORT_FORMATS, Imported, RigFormat, import_rig
+from trifuse.calib.errors import RigError
+from trifuse.calib.rig_formats import IMPORT_FORMATS, Imported, RigFormat, import_rig
 
 T = TypeVar("T")
 
@@ -67,7 +67,7 @@ def import_rig_isolated(
             out of memory or time, or ended without an answer; the message says which.
         RuntimeError: the import failed otherwise (a bug), with the child's error.
     """
-    preload = (f"calib.rig_formats.{fmt}_format",) if fmt in IMPORT_FORMATS else ()
+    preload = (f"trifuse.calib.rig_formats.{fmt}_format",) if fmt in IMPORT_FORMATS else ()
     return run_isolated(
         partial(import_rig, dict(files), fmt, **options),
         what=f"rig import ({fmt})",

@@ -18,11 +18,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from app.sources.base import FrameSource, frame_sets
-from calib.radiometry import Radiometry
-from calib.rig import Rig
-from fusion.balance import BalanceEstimate, BalanceFilter, balance_terms, measure_balance
-from fusion.stereo import EYE_ORDER, StereoFusion
+from trifuse.app.sources.base import FrameSource, frame_sets
+from trifuse.calib.radiometry import Radiometry
+from trifuse.calib.rig import Rig
+from trifuse.fusion.balance import BalanceEstimate, BalanceFilter, balance_terms, measure_balance
+from trifuse.fusion.stereo import EYE_ORDER, StereoFusion
 
 
 @dataclass

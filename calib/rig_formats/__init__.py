@@ -19,7 +19,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Literal, get_args
 
-from calib.rig import Rig
+from trifuse.calib.rig import Rig
 
 RigFormat = Literal["ros", "kalibr", "opencv", "urdf"]
 RIG_FORMATS: tuple[RigFormat, ...] = get_args(RigFormat)
@@ -72,4 +72,4 @@ def _module(fmt: str):
         raise ValueError(f"format: expected one of {RIG_FORMATS}, got {fmt!r}")
     from importlib import import_module
 
-    return import_module(f"calib.rig_formats.{fmt}_format")
+    return import_module(f"trifuse.calib.rig_formats.{fmt}_format")

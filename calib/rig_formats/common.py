@@ -13,10 +13,18 @@ from typing import Any
 
 import numpy as np
 
-from calib.errors import RigError
-from calib.rig import MODALITIES, Eye, Modality, Rig, Sensor, modality_of_name, sensor_from_dict
-from calib.rig_formats import Imported
-from calib.transforms import invert
+from trifuse.calib.errors import RigError
+from trifuse.calib.rig import (
+    MODALITIES,
+    Eye,
+    Modality,
+    Rig,
+    Sensor,
+    modality_of_name,
+    sensor_from_dict,
+)
+from trifuse.calib.rig_formats import Imported
+from trifuse.calib.transforms import invert
 
 _SENSOR_NAME_RE = re.compile(r"[A-Za-z0-9._-]+")
 

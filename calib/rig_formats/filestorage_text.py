@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import re
 
-from calib.errors import RigError
+from trifuse.calib.errors import RigError
 
 MAX_NESTING = 32
 """Largest bound on the nesting accepted (OpenCV's and trifuse's calibration files: 3 to

@@ -49,14 +49,14 @@ from typing import Any
 import numpy as np
 import yaml
 
-from calib.camera import Intrinsics
-from calib.errors import RigError
-from calib.numbers import finite_float
-from calib.rig import RIG_FORMAT, Eye, Rig, Sensor, modality_of_name, rig_from_dict
-from calib.rig_formats import Exported, Imported
-from calib.rig_formats.common import extras_lost
-from calib.transforms import invert, rigidity_problem
-from calib.yaml_text import YamlError, parse_yaml
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.errors import RigError
+from trifuse.calib.numbers import finite_float
+from trifuse.calib.rig import RIG_FORMAT, Eye, Rig, Sensor, modality_of_name, rig_from_dict
+from trifuse.calib.rig_formats import Exported, Imported
+from trifuse.calib.rig_formats.common import extras_lost
+from trifuse.calib.transforms import invert, rigidity_problem
+from trifuse.calib.yaml_text import YamlError, parse_yaml
 
 CAMCHAIN_NAME = "camchain.yaml"
 """The file :func:`export` writes (Kalibr names its own ``<bag>-camchain.yaml``)."""

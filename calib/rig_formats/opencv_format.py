@@ -36,10 +36,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from calib.errors import RigError
-from calib.rig import Rig, Sensor
-from calib.rig_formats import Exported, Imported
-from calib.rig_formats.common import (
+from trifuse.calib.errors import RigError
+from trifuse.calib.rig import Rig, Sensor
+from trifuse.calib.rig_formats import Exported, Imported
+from trifuse.calib.rig_formats.common import (
     ImportedCamera,
     assemble_rig,
     check_modalities_option,
@@ -48,8 +48,8 @@ from calib.rig_formats.common import (
     modality_for,
     sensor_name_for,
 )
-from calib.rig_formats.filestorage_text import check_filestorage_text
-from calib.transforms import invert, make_T, rigidity_problem
+from trifuse.calib.rig_formats.filestorage_text import check_filestorage_text
+from trifuse.calib.transforms import invert, make_T, rigidity_problem
 
 INDEX_FILE = "rig.yml"
 """The file that lists the sensors, the reference and the eyes."""

@@ -49,10 +49,10 @@ from typing import Any
 import numpy as np
 import yaml
 
-from calib.errors import RigError
-from calib.rig import Rig, Sensor, modality_of_name
-from calib.rig_formats import Exported, Imported, urdf_format
-from calib.rig_formats.common import (
+from trifuse.calib.errors import RigError
+from trifuse.calib.rig import Rig, Sensor, modality_of_name
+from trifuse.calib.rig_formats import Exported, Imported, urdf_format
+from trifuse.calib.rig_formats.common import (
     ImportedCamera,
     assemble_rig,
     check_modalities_option,
@@ -60,7 +60,7 @@ from calib.rig_formats.common import (
     modality_for,
     sensor_name_for,
 )
-from calib.yaml_text import YamlError, parse_yaml
+from trifuse.calib.yaml_text import YamlError, parse_yaml
 
 CAMERA_INFO_KEYS = (
     "image_width",

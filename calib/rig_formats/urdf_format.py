@@ -40,11 +40,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.errors import RigError
-from calib.rig import Rig
-from calib.rig_formats import Exported
-from calib.rig_formats.common import extras_lost
-from calib.transforms import invert, make_T, rigidity_problem
+from trifuse.calib.errors import RigError
+from trifuse.calib.rig import Rig
+from trifuse.calib.rig_formats import Exported
+from trifuse.calib.rig_formats.common import extras_lost
+from trifuse.calib.transforms import invert, make_T, rigidity_problem
 
 OPTICAL_SUFFIX = "_optical_frame"
 """A sensor's link is ``<prefix><sensor>_optical_frame`` by default (``link_suffix``)."""

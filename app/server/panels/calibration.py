@@ -17,14 +17,14 @@ import html
 import numpy as np
 import viser.uplot as uplot
 
-from app.server.markdown_text import md_cells, md_text
-from app.server.panels.next_pose_overlay import NextPoseOverlay, verdict_md
-from app.server.runtime.board_watch import BoardSighting
-from app.server.runtime.context import ConsoleContext
-from app.server.runtime.demand import Hold
-from app.server.runtime.periodic import Periodic
-from app.workflows.calib_session import CalibrationSession, SessionError, ViewInfo
-from app.workflows.report_format import (
+from trifuse.app.server.markdown_text import md_cells, md_text
+from trifuse.app.server.panels.next_pose_overlay import NextPoseOverlay, verdict_md
+from trifuse.app.server.runtime.board_watch import BoardSighting
+from trifuse.app.server.runtime.context import ConsoleContext
+from trifuse.app.server.runtime.demand import Hold
+from trifuse.app.server.runtime.periodic import Periodic
+from trifuse.app.workflows.calib_session import CalibrationSession, SessionError, ViewInfo
+from trifuse.app.workflows.report_format import (
     POLARITY_PANEL_HEAD,
     TRUTH_HEAD,
     markdown_table,
@@ -34,11 +34,11 @@ from app.workflows.report_format import (
     truth_rows,
     verdict_line,
 )
-from app.workflows.report_html import REPORT_HTML_NAME, session_report_html
-from calib.coverage import PARAM_NAMES
-from calib.errors import RigError
-from calib.rig import Rig
-from calib.rig_compare import compare_rigs
+from trifuse.app.workflows.report_html import REPORT_HTML_NAME, session_report_html
+from trifuse.calib.coverage import PARAM_NAMES
+from trifuse.calib.errors import RigError
+from trifuse.calib.rig import Rig
+from trifuse.calib.rig_compare import compare_rigs
 
 NONE = "(none)"
 

@@ -28,22 +28,22 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from app.errors import describe_error
-from app.server.markdown_text import md_text
-from app.server.panels.stream import StreamPresetControl
-from app.server.runtime.board_watch import BoardSighting
-from app.server.runtime.context import BANDWIDTH_MODES, ConsoleBandwidth, ConsoleContext
-from app.server.runtime.periodic import Periodic
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.thermal_balance import BalanceStatus
-from app.sources.frames import Frame, FrameSet
-from app.storage.preview import to_display
-from app.workflows.calib_session import radiometry_report
-from calib.detect import Detection
-from fusion.agc import AGC_MODES
-from fusion.compose import DIRECTIONS, DISPLAY_MODES
-from fusion.palettes import PALETTE_NAMES
-from fusion.span import level_from_span, span_from_level
+from trifuse.app.errors import describe_error
+from trifuse.app.server.markdown_text import md_text
+from trifuse.app.server.panels.stream import StreamPresetControl
+from trifuse.app.server.runtime.board_watch import BoardSighting
+from trifuse.app.server.runtime.context import BANDWIDTH_MODES, ConsoleBandwidth, ConsoleContext
+from trifuse.app.server.runtime.periodic import Periodic
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.thermal_balance import BalanceStatus
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.storage.preview import to_display
+from trifuse.app.workflows.calib_session import radiometry_report
+from trifuse.calib.detect import Detection
+from trifuse.fusion.agc import AGC_MODES
+from trifuse.fusion.compose import DIRECTIONS, DISPLAY_MODES
+from trifuse.fusion.palettes import PALETTE_NAMES
+from trifuse.fusion.span import level_from_span, span_from_level
 
 C_TO_K = 273.15
 

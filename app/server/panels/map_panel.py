@@ -18,14 +18,14 @@ import time
 
 import numpy as np
 
-from app.errors import describe_error
-from app.server.markdown_text import md_text
-from app.server.panels.scene_sensors import wxyz_of
-from app.server.runtime.context import ConsoleContext
-from app.server.runtime.map_worker import MapWorker
-from app.server.runtime.periodic import Periodic
-from calib.transforms import invert
-from fusion.map_view import MAP_COLORINGS, map_cloud, path_segments
+from trifuse.app.errors import describe_error
+from trifuse.app.server.markdown_text import md_text
+from trifuse.app.server.panels.scene_sensors import wxyz_of
+from trifuse.app.server.runtime.context import ConsoleContext
+from trifuse.app.server.runtime.map_worker import MapWorker
+from trifuse.app.server.runtime.periodic import Periodic
+from trifuse.calib.transforms import invert
+from trifuse.fusion.map_view import MAP_COLORINGS, map_cloud, path_segments
 
 C_TO_K = 273.15
 MAX_POINTS = {"full": 300_000, "low": 60_000}

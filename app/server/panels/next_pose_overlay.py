@@ -30,9 +30,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from app.errors import describe_error
-from app.server.markdown_text import md_text
-from app.server.panels.display import (
+from trifuse.app.errors import describe_error
+from trifuse.app.server.markdown_text import md_text
+from trifuse.app.server.panels.display import (
     NEXT_RGB,
     draw_note,
     draw_outline,
@@ -40,15 +40,15 @@ from app.server.panels.display import (
     scale_corners,
     thumbnail,
 )
-from app.server.panels.scene_sensors import wxyz_of
-from app.server.runtime.context import ConsoleContext
-from app.storage.capture import CaptureError, load_capture
-from app.workflows.calib_session import CalibrationSession
-from app.workflows.calibration_run import calibrate_capture
-from calib.errors import CalibrationError
-from calib.next_pose import NextPose, outline_points, suggest_next_pose
-from calib.rig_result import CalibrationResult
-from calib.verdict import GOOD, ZHANG_MIN_VIEWS
+from trifuse.app.server.panels.scene_sensors import wxyz_of
+from trifuse.app.server.runtime.context import ConsoleContext
+from trifuse.app.storage.capture import CaptureError, load_capture
+from trifuse.app.workflows.calib_session import CalibrationSession
+from trifuse.app.workflows.calibration_run import calibrate_capture
+from trifuse.calib.errors import CalibrationError
+from trifuse.calib.next_pose import NextPose, outline_points, suggest_next_pose
+from trifuse.calib.rig_result import CalibrationResult
+from trifuse.calib.verdict import GOOD, ZHANG_MIN_VIEWS
 
 NOW_RGB = (255, 220, 0)
 """The board where it is now (as the 3D scene's live board)."""

@@ -23,13 +23,13 @@ import numpy as np
 import viser
 import viser.uplot
 
-from app.errors import describe_error
-from app.server.markdown_text import md_text
-from app.server.runtime.context import ConsoleContext
-from app.server.runtime.periodic import Periodic
-from app.workflows.report_format import limit_distance_cell, pixel_cell, sensor_colour
-from calib.rig import Rig
-from fusion.precision import (
+from trifuse.app.errors import describe_error
+from trifuse.app.server.markdown_text import md_text
+from trifuse.app.server.runtime.context import ConsoleContext
+from trifuse.app.server.runtime.periodic import Periodic
+from trifuse.app.workflows.report_format import limit_distance_cell, pixel_cell, sensor_colour
+from trifuse.calib.rig import Rig
+from trifuse.fusion.precision import (
     DEFAULT_DISTANCE_ERROR_M,
     DEFAULT_THRESHOLD_PX,
     DEFAULT_TOF_PIXEL_ERROR_PX,

@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import math
 
-from app.server.markdown_text import md_text
-from app.server.runtime.context import ConsoleContext
-from app.server.runtime.periodic import Periodic
-from app.workflows.calib_session import CalibrationSession, SessionError
-from app.workflows.range_run import region_chart
-from calib.errors import RigError
-from calib.range_calibration import RegionError
+from trifuse.app.server.markdown_text import md_text
+from trifuse.app.server.runtime.context import ConsoleContext
+from trifuse.app.server.runtime.periodic import Periodic
+from trifuse.app.workflows.calib_session import CalibrationSession, SessionError
+from trifuse.app.workflows.range_run import region_chart
+from trifuse.calib.errors import RigError
+from trifuse.calib.range_calibration import RegionError
 
 
 def region_table(holdout: list[RegionError], fit: list[RegionError]) -> str:

@@ -15,13 +15,13 @@ import zlib
 from collections.abc import Mapping
 from pathlib import PurePosixPath
 
-from app.errors import describe_error
-from app.server.markdown_text import md_text
-from app.server.runtime.context import ConsoleContext
-from app.workflows.rig_import import import_rig_isolated
-from calib.errors import RigError
-from calib.rig import Rig
-from calib.rig_formats import IMPORT_FORMATS, RIG_FORMATS, export_rig
+from trifuse.app.errors import describe_error
+from trifuse.app.server.markdown_text import md_text
+from trifuse.app.server.runtime.context import ConsoleContext
+from trifuse.app.workflows.rig_import import import_rig_isolated
+from trifuse.calib.errors import RigError
+from trifuse.calib.rig import Rig
+from trifuse.calib.rig_formats import IMPORT_FORMATS, RIG_FORMATS, export_rig
 
 MAX_UPLOAD_BYTES = 4 << 20
 """Rig files are small: a larger upload is refused (the relay in front of Viser refuses it

@@ -74,29 +74,29 @@ from typing import Literal
 import numpy as np
 import viser
 
-from app.errors import describe_error
-from app.server.markdown_text import md_text
-from app.server.panels import scene_layout as layout
-from app.server.panels.scene_board import BoardMarker
-from app.server.panels.scene_cloud import (
+from trifuse.app.errors import describe_error
+from trifuse.app.server.markdown_text import md_text
+from trifuse.app.server.panels import scene_layout as layout
+from trifuse.app.server.panels.scene_board import BoardMarker
+from trifuse.app.server.panels.scene_cloud import (
     coloured_cloud,
     decimate_cloud,
     grid_stride,
     temperature_span,
 )
-from app.server.panels.scene_sensors import (
+from trifuse.app.server.panels.scene_sensors import (
     TEXTURE_JPEG_QUALITY,
     TEXTURE_MAX_W,
     SensorNodes,
     vertical_fov_rad,
     wxyz_of,
 )
-from app.server.runtime.context import BANDWIDTH_MODES, ConsoleContext
-from app.server.runtime.periodic import Periodic
-from app.workflows.report_format import markdown_table
-from calib.rig import Rig, Sensor
-from calib.transforms import invert, pose_error
-from fusion.compose import CLOUD_COLORINGS
+from trifuse.app.server.runtime.context import BANDWIDTH_MODES, ConsoleContext
+from trifuse.app.server.runtime.periodic import Periodic
+from trifuse.app.workflows.report_format import markdown_table
+from trifuse.calib.rig import Rig, Sensor
+from trifuse.calib.transforms import invert, pose_error
+from trifuse.fusion.compose import CLOUD_COLORINGS
 
 FRUSTUM_SIZE_RANGE_M = (0.05, 2.0)
 """The "Frustum size" slider: the frustums' depth, metres."""

@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 import viser
 
-from app.server.markdown_text import md_text
-from app.server.panels.scene_sensors import wxyz_of
-from calib.board import Board, aruco_dictionary
+from trifuse.app.server.markdown_text import md_text
+from trifuse.app.server.panels.scene_sensors import wxyz_of
+from trifuse.calib.board import Board, aruco_dictionary
 
 BOARD_PX_PER_SQUARE = 16
 BOARD_PX_PER_CELL = 4

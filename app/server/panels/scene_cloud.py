@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from app.server.runtime.pipeline import FusionPipeline
-from app.sources.frames import FrameSet
-from calib.rig import Sensor
-from fusion.compose import auto_span, resolve_span
-from fusion.palettes import PALETTE_NAMES
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.sources.frames import FrameSet
+from trifuse.calib.rig import Sensor
+from trifuse.fusion.compose import auto_span, resolve_span
+from trifuse.fusion.palettes import PALETTE_NAMES
 
 DEPTH_PALETTE = "rainbow" if "rainbow" in PALETTE_NAMES else PALETTE_NAMES[0]
 NAN_GREY = (128, 128, 128)

@@ -12,12 +12,12 @@ import numpy as np
 import viser
 import viser.transforms as vtf
 
-from app.server.panels import scene_layout as layout
-from app.server.panels.display import draw_outline
-from app.sources.frames import Frame
-from app.storage.preview import to_display
-from calib.rig import Sensor
-from fusion.palettes import apply_palette
+from trifuse.app.server.panels import scene_layout as layout
+from trifuse.app.server.panels.display import draw_outline
+from trifuse.app.sources.frames import Frame
+from trifuse.app.storage.preview import to_display
+from trifuse.calib.rig import Sensor
+from trifuse.fusion.palettes import apply_palette
 
 FRUSTUM_COLORS = {"color": (40, 120, 240), "thermal": (240, 90, 30), "tof": (40, 200, 90)}
 FRUSTUM_LINE_PX = 2.0

@@ -24,12 +24,12 @@ from pathlib import Path
 
 import viser
 
-from app.server.markdown_text import md_text
-from app.server.runtime.context import ConsoleContext
-from app.server.runtime.periodic import Periodic
-from app.server.runtime.rates import RatesSnapshot
-from app.server.runtime.sensor_health import SensorHealth
-from app.server.runtime.source_control import (
+from trifuse.app.server.markdown_text import md_text
+from trifuse.app.server.runtime.context import ConsoleContext
+from trifuse.app.server.runtime.periodic import Periodic
+from trifuse.app.server.runtime.rates import RatesSnapshot
+from trifuse.app.server.runtime.sensor_health import SensorHealth
+from trifuse.app.server.runtime.source_control import (
     RATE_MAX,
     RATE_MIN,
     ControlError,

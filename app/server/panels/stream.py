@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from app.server.runtime.video_presets import LEVELS, PRESETS, StreamSettings
+from trifuse.app.server.runtime.video_presets import LEVELS, PRESETS, StreamSettings
 
 AUTO_LABEL = "auto (follows the link)"
 

@@ -14,15 +14,15 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, ConfigDict, Field
 
-from app.server.routers.limits import require_json
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.thermal_balance import ThermalBalancer
-from calib.radiometry import MAX_TRIM_K
-from calib.rig import rig_to_dict
-from fusion.agc import MAX_MAX_GAIN, MIN_MAX_GAIN, MIN_PLATEAU, AgcMode
-from fusion.balance import BalanceEstimate
-from fusion.compose import DisplayMode, ThresholdDirection
-from fusion.palettes import PaletteName
+from trifuse.app.server.routers.limits import require_json
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.thermal_balance import ThermalBalancer
+from trifuse.calib.radiometry import MAX_TRIM_K
+from trifuse.calib.rig import rig_to_dict
+from trifuse.fusion.agc import MAX_MAX_GAIN, MIN_MAX_GAIN, MIN_PLATEAU, AgcMode
+from trifuse.fusion.balance import BalanceEstimate
+from trifuse.fusion.compose import DisplayMode, ThresholdDirection
+from trifuse.fusion.palettes import PaletteName
 
 
 class FusionSettings(BaseModel):

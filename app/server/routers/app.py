@@ -12,20 +12,20 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
-from app.server.routers.api import make_api_router
-from app.server.routers.auth import AuthConfig, AuthMiddleware
-from app.server.routers.docs_pages import add_docs_pages
-from app.server.routers.limits import add_body_limit
-from app.server.routers.source_api import make_source_router
-from app.server.routers.spot_api import make_spot_router
-from app.server.routers.stream_api import make_stream_settings_router
-from app.server.routers.viser_bridge import make_viser_router
-from app.server.runtime.kept_frames import make_kept_frames_router
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.source_control import SourceControl
-from app.server.runtime.stream import FrameHub, make_stream_router
-from app.server.runtime.thermal_balance import ThermalBalancer
-from app.server.runtime.video_stream import make_video_router
+from trifuse.app.server.routers.api import make_api_router
+from trifuse.app.server.routers.auth import AuthConfig, AuthMiddleware
+from trifuse.app.server.routers.docs_pages import add_docs_pages
+from trifuse.app.server.routers.limits import add_body_limit
+from trifuse.app.server.routers.source_api import make_source_router
+from trifuse.app.server.routers.spot_api import make_spot_router
+from trifuse.app.server.routers.stream_api import make_stream_settings_router
+from trifuse.app.server.routers.viser_bridge import make_viser_router
+from trifuse.app.server.runtime.kept_frames import make_kept_frames_router
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.source_control import SourceControl
+from trifuse.app.server.runtime.stream import FrameHub, make_stream_router
+from trifuse.app.server.runtime.thermal_balance import ThermalBalancer
+from trifuse.app.server.runtime.video_stream import make_video_router
 
 STATIC = Path(__file__).resolve().parents[3] / "static"
 FAVICON = "favicon.svg"

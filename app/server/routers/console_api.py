@@ -14,8 +14,8 @@ from typing import Literal
 from fastapi import APIRouter, Depends
 from pydantic import BaseModel, ConfigDict, Field
 
-from app.server.routers.limits import require_json
-from app.server.runtime.context import ConsoleBandwidth
+from trifuse.app.server.routers.limits import require_json
+from trifuse.app.server.runtime.context import ConsoleBandwidth
 
 
 class ConsoleSettingsBody(BaseModel):

@@ -11,9 +11,9 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, ConfigDict, Field
 
-from app.errors import describe_error
-from app.server.routers.limits import require_json
-from app.server.runtime.map_worker import MapWorker
+from trifuse.app.errors import describe_error
+from trifuse.app.server.routers.limits import require_json
+from trifuse.app.server.runtime.map_worker import MapWorker
 
 
 class MapStatus(BaseModel):

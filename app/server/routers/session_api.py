@@ -19,9 +19,9 @@ from fastapi import APIRouter, Depends, HTTPException
 from fastapi.responses import HTMLResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from app.server.routers.limits import require_json
-from app.sources.frames import FrameSet
-from app.workflows.calib_session import (
+from trifuse.app.server.routers.limits import require_json
+from trifuse.app.sources.frames import FrameSet
+from trifuse.app.workflows.calib_session import (
     CalibrationJob,
     CalibrationSession,
     RangeJob,
@@ -30,9 +30,9 @@ from app.workflows.calib_session import (
     ViewInfo,
     radiometry_report,
 )
-from app.workflows.report_html import CSP, REPORT_HTML_NAME, session_report_html
-from calib.errors import RigError
-from calib.rig import Rig, rig_to_dict
+from trifuse.app.workflows.report_html import CSP, REPORT_HTML_NAME, session_report_html
+from trifuse.calib.errors import RigError
+from trifuse.calib.rig import Rig, rig_to_dict
 
 # What a view's and a saved version's name look like (ASCII digits; a name of more digits
 # than a file name can hold is no name of this session either).

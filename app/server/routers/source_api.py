@@ -15,9 +15,9 @@ from typing import Literal
 from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, ConfigDict, Field
 
-from app.server.routers.limits import require_json
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.source_control import (
+from trifuse.app.server.routers.limits import require_json
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.source_control import (
     RATE_MAX,
     RATE_MIN,
     ControlError,
@@ -25,7 +25,7 @@ from app.server.runtime.source_control import (
     SourceControl,
     SourceState,
 )
-from app.server.runtime.stream import FrameHub
+from trifuse.app.server.runtime.stream import FrameHub
 
 
 class SourceInfo(BaseModel):

@@ -18,8 +18,8 @@ from typing import Literal
 from fastapi import APIRouter, HTTPException
 from pydantic import BaseModel, Field
 
-from app.server.runtime.pipeline import FusionPipeline
-from fusion.spot import SpotError, SpotFrame, SpotReading
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.fusion.spot import SpotError, SpotFrame, SpotReading
 
 
 class Spot(BaseModel):

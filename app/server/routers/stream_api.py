@@ -10,9 +10,9 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends
 from pydantic import BaseModel, ConfigDict, Field
 
-from app.server.routers.limits import require_json
-from app.server.runtime.stream import FrameHub
-from app.server.runtime.video_presets import VideoPreset
+from trifuse.app.server.routers.limits import require_json
+from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.server.runtime.video_presets import VideoPreset
 
 
 class StreamSettingsBody(BaseModel):

@@ -65,14 +65,14 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from app.server.runtime.demand import Demand
-from app.server.runtime.periodic import Periodic
-from app.sources.frames import FrameSet
-from calib.board import Board
-from calib.detect import Detection
-from calib.polarity import detect_board_configured, orient_to_pose, override
-from calib.rig import Rig
-from calib.transforms import invert
+from trifuse.app.server.runtime.demand import Demand
+from trifuse.app.server.runtime.periodic import Periodic
+from trifuse.app.sources.frames import FrameSet
+from trifuse.calib.board import Board
+from trifuse.calib.detect import Detection
+from trifuse.calib.polarity import detect_board_configured, orient_to_pose, override
+from trifuse.calib.rig import Rig
+from trifuse.calib.transforms import invert
 
 STEADY_PX = 2.0
 """A board is steady when no corner moved more than this many pixels (in any sensor that

@@ -8,16 +8,16 @@ from dataclasses import dataclass, field
 import numpy as np
 import viser
 
-from app.server.runtime.board_watch import BoardWatch
-from app.server.runtime.demand import ConsoleDemand
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.stream import FrameHub
-from app.server.runtime.thermal_balance import ThermalBalancer
-from app.server.runtime.video_presets import StreamSettings
-from app.sources.base import FrameSource
-from app.workflows.calib_session import RigVersion
-from calib.board import Board
-from calib.rig import Rig
+from trifuse.app.server.runtime.board_watch import BoardWatch
+from trifuse.app.server.runtime.demand import ConsoleDemand
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.server.runtime.thermal_balance import ThermalBalancer
+from trifuse.app.server.runtime.video_presets import StreamSettings
+from trifuse.app.sources.base import FrameSource
+from trifuse.app.workflows.calib_session import RigVersion
+from trifuse.calib.board import Board
+from trifuse.calib.rig import Rig
 
 BANDWIDTH_MODES = ("full", "low")
 """The 3D console's bandwidth modes: ``full`` (every point, images at 2 Hz) and ``low``

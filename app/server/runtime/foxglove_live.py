@@ -75,27 +75,32 @@ from foxglove.messages import (
     Vector3,
 )
 
-from app.errors import describe_error
-from app.recording.layout import RIG_FRAME, TF_TOPIC, WORLD_FRAME
-from app.recording.video_track import (
+from trifuse.app.errors import describe_error
+from trifuse.app.recording.layout import RIG_FRAME, TF_TOPIC, WORLD_FRAME
+from trifuse.app.recording.video_track import (
     FusedVideoTrack,
     VideoSettings,
     VideoUnit,
     video_frame_id,
     video_metadata,
 )
-from app.recording.writer import (
+from trifuse.app.recording.writer import (
     calibration_message,
     frame_messages,
     sensor_channels,
     transform_message,
 )
-from app.server.runtime.foxglove_gate import LOOPBACK, MAX_CLIENTS, FoxgloveGate, in_use_message
-from app.server.runtime.source_control import FusedVideoSource, FusedVideoTap, SourceControl
-from app.sources.frames import Frame, FrameSet
-from calib.rig import Rig
-from calib.transforms import rigidity_problem
-from fusion.mapping import MappingOptions, TofGrid, mixed_pixels
+from trifuse.app.server.runtime.foxglove_gate import (
+    LOOPBACK,
+    MAX_CLIENTS,
+    FoxgloveGate,
+    in_use_message,
+)
+from trifuse.app.server.runtime.source_control import FusedVideoSource, FusedVideoTap, SourceControl
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.calib.rig import Rig
+from trifuse.calib.transforms import rigidity_problem
+from trifuse.fusion.mapping import MappingOptions, TofGrid, mixed_pixels
 
 log = logging.getLogger(__name__)
 

@@ -24,12 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-from app.errors import describe_error
-from app.server.runtime.pipeline import FusionPipeline
-from app.sources.frames import FrameSet
-from app.storage.map_file import MAP_SUFFIX, load_map, save_map, write_ply
-from fusion.map_builder import MapBuilder
-from fusion.voxel_map import MapSettings, VoxelMap
+from trifuse.app.errors import describe_error
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.sources.frames import FrameSet
+from trifuse.app.storage.map_file import MAP_SUFFIX, load_map, save_map, write_ply
+from trifuse.fusion.map_builder import MapBuilder
+from trifuse.fusion.voxel_map import MapSettings, VoxelMap
 
 HeadPose = Callable[[int], np.ndarray | None]
 """stamp (ns) -> ``T_world_rig`` (4, 4), or None where unknown."""

@@ -7,8 +7,8 @@ from __future__ import annotations
 import threading
 from abc import ABC, abstractmethod
 
-from app.errors import describe_error
-from app.server.runtime.demand import Demand
+from trifuse.app.errors import describe_error
+from trifuse.app.server.runtime.demand import Demand
 
 DEMAND_POLL_S = 0.25
 """How often a thread whose work nobody wants looks whether it is stopping (seconds)."""

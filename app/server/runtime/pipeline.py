@@ -63,18 +63,18 @@ from typing import Any
 import cv2
 import numpy as np
 
-from app.errors import describe_error
-from app.server.runtime.demand import Demand
-from app.server.runtime.stream import FrameHub
-from app.sources.base import FrameSetAssembler, FrameSource
-from app.sources.frames import Frame, FrameSet
-from calib.radiometry import Radiometry
-from calib.rig import Rig
-from fusion.agc import ToneMap
-from fusion.compose import DisplaySettings
-from fusion.palettes import palette
-from fusion.spot import SpotFrame, SpotMeter
-from fusion.stereo import StereoFusion
+from trifuse.app.errors import describe_error
+from trifuse.app.server.runtime.demand import Demand
+from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.sources.base import FrameSetAssembler, FrameSource
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.calib.radiometry import Radiometry
+from trifuse.calib.rig import Rig
+from trifuse.fusion.agc import ToneMap
+from trifuse.fusion.compose import DisplaySettings
+from trifuse.fusion.palettes import palette
+from trifuse.fusion.spot import SpotFrame, SpotMeter
+from trifuse.fusion.stereo import StereoFusion
 
 EYES = ("left", "right")
 COLOR_GONE_S = 0.5

@@ -38,8 +38,8 @@ from typing import Any, Literal
 
 import numpy as np
 
-from app.sources.frames import Frame
-from calib.rig import Rig
+from trifuse.app.sources.frames import Frame
+from trifuse.calib.rig import Rig
 
 State = Literal["ok", "silent", "never", "failing"]
 STATES: tuple[State, ...] = ("ok", "silent", "never", "failing")

@@ -12,33 +12,33 @@ from pathlib import Path
 
 import uvicorn
 
-from app.recording.open_source import OpenedSource, simulated_source
-from app.server.panels.calibration import CalibrationPanel
-from app.server.panels.display import Panels
-from app.server.panels.map_panel import MapPanel
-from app.server.panels.precision import PrecisionPanel
-from app.server.panels.range import RangePanel
-from app.server.panels.rig_files import RigFilesPanel
-from app.server.panels.scene3d import Scene3D
-from app.server.panels.source import SourcePanel
-from app.server.routers.app import create_app
-from app.server.routers.auth import AuthConfig, is_loopback
-from app.server.routers.connections import GuardedH11Protocol, quiet_repeated_logs
-from app.server.routers.console_api import make_console_settings_router
-from app.server.routers.map_api import make_map_router
-from app.server.routers.session_api import make_session_router
-from app.server.routers.viser_bridge import start_guarded_viser
-from app.server.runtime.board_watch import BoardWatch
-from app.server.runtime.context import ConsoleBandwidth, ConsoleContext
-from app.server.runtime.demand import ConsoleDemand, hold_while_connected
-from app.server.runtime.foxglove_live import FoxgloveLive
-from app.server.runtime.map_worker import MapWorker
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.source_control import SourceControl, SourceTap
-from app.server.runtime.stream import FrameHub
-from app.server.runtime.thermal_balance import ThermalBalancer
-from app.workflows.calib_session import CalibrationSession
-from calib.board import Board
+from trifuse.app.recording.open_source import OpenedSource, simulated_source
+from trifuse.app.server.panels.calibration import CalibrationPanel
+from trifuse.app.server.panels.display import Panels
+from trifuse.app.server.panels.map_panel import MapPanel
+from trifuse.app.server.panels.precision import PrecisionPanel
+from trifuse.app.server.panels.range import RangePanel
+from trifuse.app.server.panels.rig_files import RigFilesPanel
+from trifuse.app.server.panels.scene3d import Scene3D
+from trifuse.app.server.panels.source import SourcePanel
+from trifuse.app.server.routers.app import create_app
+from trifuse.app.server.routers.auth import AuthConfig, is_loopback
+from trifuse.app.server.routers.connections import GuardedH11Protocol, quiet_repeated_logs
+from trifuse.app.server.routers.console_api import make_console_settings_router
+from trifuse.app.server.routers.map_api import make_map_router
+from trifuse.app.server.routers.session_api import make_session_router
+from trifuse.app.server.routers.viser_bridge import start_guarded_viser
+from trifuse.app.server.runtime.board_watch import BoardWatch
+from trifuse.app.server.runtime.context import ConsoleBandwidth, ConsoleContext
+from trifuse.app.server.runtime.demand import ConsoleDemand, hold_while_connected
+from trifuse.app.server.runtime.foxglove_live import FoxgloveLive
+from trifuse.app.server.runtime.map_worker import MapWorker
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.source_control import SourceControl, SourceTap
+from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.server.runtime.thermal_balance import ThermalBalancer
+from trifuse.app.workflows.calib_session import CalibrationSession
+from trifuse.calib.board import Board
 
 
 def warm_simulator_cache(scenarios: dict[str, dict], timeout_s: float = 1800.0) -> None:
@@ -215,8 +215,8 @@ def serve(
     app.include_router(make_console_settings_router(ctx.bandwidth))  # /api/console/settings
     app.include_router(make_map_router(mapper))  # /api/map (map_api.py)
     ws_max = None
-    from app.sources.push.router import make_push_router, uvicorn_ws_max_size
-    from app.sources.push.source import PushSource
+    from trifuse.app.sources.push.router import make_push_router, uvicorn_ws_max_size
+    from trifuse.app.sources.push.source import PushSource
 
     if isinstance(source, PushSource):
         app.include_router(make_push_router(source))

@@ -56,24 +56,29 @@ from typing import Literal
 
 import numpy as np
 
-from app.errors import describe_error
-from app.recording.errors import RecordingError
-from app.recording.video_track import FusedVideoEncoder, VideoSettings, VideoUnit, video_metadata
-from app.recording.writer import RecordingWriter, recover_interrupted
-from app.server.runtime.demand import Demand, Hold
-from app.server.runtime.pipeline import FusionPipeline
-from app.server.runtime.rates import RATE_WINDOW_S, RatesSnapshot, window_rate
-from app.server.runtime.sensor_health import (
+from trifuse.app.errors import describe_error
+from trifuse.app.recording.errors import RecordingError
+from trifuse.app.recording.video_track import (
+    FusedVideoEncoder,
+    VideoSettings,
+    VideoUnit,
+    video_metadata,
+)
+from trifuse.app.recording.writer import RecordingWriter, recover_interrupted
+from trifuse.app.server.runtime.demand import Demand, Hold
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.rates import RATE_WINDOW_S, RatesSnapshot, window_rate
+from trifuse.app.server.runtime.sensor_health import (
     HealthMonitor,
     Rejections,
     SensorHealth,
     expected_of,
     push_rejections,
 )
-from app.server.runtime.stream import FrameHub, StreamFrame
-from app.sources.base import FrameSource
-from app.sources.frames import Frame
-from calib.rig import Rig
+from trifuse.app.server.runtime.stream import FrameHub, StreamFrame
+from trifuse.app.sources.base import FrameSource
+from trifuse.app.sources.frames import Frame
+from trifuse.calib.rig import Rig
 
 log = logging.getLogger(__name__)
 
@@ -714,9 +719,9 @@ class SourceState:
 
 def kind_of(source: FrameSource) -> SourceKind:
     """``replay`` (recordings, ROS 2 bags), ``simulated``, ``push`` or ``live``."""
-    from app.recording.player import MessageReplay
-    from app.sources.push.source import PushSource
-    from app.sources.simulated import SimulatedHeadSource
+    from trifuse.app.recording.player import MessageReplay
+    from trifuse.app.sources.push.source import PushSource
+    from trifuse.app.sources.simulated import SimulatedHeadSource
 
     if isinstance(source, MessageReplay):
         return "replay"

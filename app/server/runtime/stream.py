@@ -35,14 +35,14 @@ import numpy as np
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from fastapi.responses import StreamingResponse
 
-from app.server.runtime.demand import Demand
-from app.server.runtime.kept_frames import KeptFrames
-from app.server.runtime.rates import StreamRates
-from app.server.runtime.video_presets import StreamSettings
-from app.server.runtime.video_stats import VideoViewerStats
+from trifuse.app.server.runtime.demand import Demand
+from trifuse.app.server.runtime.kept_frames import KeptFrames
+from trifuse.app.server.runtime.rates import StreamRates
+from trifuse.app.server.runtime.video_presets import StreamSettings
+from trifuse.app.server.runtime.video_stats import VideoViewerStats
 
 if TYPE_CHECKING:
-    from app.server.runtime.video_presets import Rung
+    from trifuse.app.server.runtime.video_presets import Rung
 
 MAX_MESSAGE_CHARS = 1024
 """The longest message a stream viewer may send, characters (text) or bytes: an ack is

@@ -16,9 +16,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from app.server.runtime.periodic import Periodic
-from app.server.runtime.pipeline import FusionPipeline
-from fusion.balance import BalanceEstimate, BalanceFilter, balance_terms, measure_balance
+from trifuse.app.server.runtime.periodic import Periodic
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.fusion.balance import BalanceEstimate, BalanceFilter, balance_terms, measure_balance
 
 MIN_SHARED_POINTS = 200
 

@@ -13,7 +13,7 @@ import typing
 from dataclasses import dataclass
 from typing import Literal
 
-from app.recording.h264 import MIN_BPS, Level
+from trifuse.app.recording.h264 import MIN_BPS, Level
 
 VideoPreset = Literal["auto", "8", "4", "2", "1"]
 """A viewer's choice: ``auto`` (the ladder follows the link) or a level's name (Mbit/s)."""

@@ -43,8 +43,8 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
-from app.recording.h264 import MIN_BPS, Level
-from app.server.runtime.video_presets import LEVEL_BY_NAME, LEVELS, check_preset
+from trifuse.app.recording.h264 import MIN_BPS, Level
+from trifuse.app.server.runtime.video_presets import LEVEL_BY_NAME, LEVELS, check_preset
 
 WINDOW = 4
 """Frames in flight (sent, not yet acknowledged): 30 frames/s over a 100 ms round trip."""

@@ -51,9 +51,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from app.errors import describe_error
-from app.recording.h264 import EncodedFrame, VideoEncoder
-from app.server.runtime.stream import (
+from trifuse.app.errors import describe_error
+from trifuse.app.recording.h264 import EncodedFrame, VideoEncoder
+from trifuse.app.server.runtime.stream import (
     POLICY_VIOLATION,
     FrameHub,
     StreamFrame,
@@ -61,9 +61,9 @@ from app.server.runtime.stream import (
     ViewerMessages,
     close_quietly,
 )
-from app.server.runtime.video_presets import PRESETS, Rung, rung_for
-from app.server.runtime.video_rate import WINDOW, RateController, Target
-from app.server.runtime.video_stats import VideoViewerStats
+from trifuse.app.server.runtime.video_presets import PRESETS, Rung, rung_for
+from trifuse.app.server.runtime.video_rate import WINDOW, RateController, Target
+from trifuse.app.server.runtime.video_stats import VideoViewerStats
 
 log = logging.getLogger(__name__)
 

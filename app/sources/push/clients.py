@@ -13,9 +13,9 @@ import json
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from app.sources.frames import Frame
-from app.sources.push.encode import encode_frame
-from calib.rig import Rig
+from trifuse.app.sources.frames import Frame
+from trifuse.app.sources.push.encode import encode_frame
+from trifuse.calib.rig import Rig
 
 MAX_REPLY_BYTES = 1 << 20
 """Largest reply a client accepts (replies are short JSON objects)."""

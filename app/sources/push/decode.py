@@ -15,8 +15,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from app.sources.frames import Frame
-from app.sources.push.protocol import (
+from trifuse.app.sources.frames import Frame
+from trifuse.app.sources.push.protocol import (
     DEFAULT_SCALE,
     ENCODINGS,
     MAX_SCALE_OR_OFFSET,
@@ -26,8 +26,8 @@ from app.sources.push.protocol import (
     PushError,
     parse_header,
 )
-from calib.image_header import ImageHeaderError, image_header
-from calib.numbers import check_finite
+from trifuse.calib.image_header import ImageHeaderError, image_header
+from trifuse.calib.numbers import check_finite
 
 _ZERO_INVALID = {("thermal", "image"), ("tof", "distance")}  # 16-bit 0 counts -> NaN
 _BYTES_PER_PIXEL = {"raw8": 3, "raw16": 2, "raw32f": 4}

@@ -11,16 +11,16 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from app.sources.frames import Frame
-from app.sources.push.protocol import (
+from trifuse.app.sources.frames import Frame
+from trifuse.app.sources.push.protocol import (
     DEFAULT_SCALE,
     ENCODINGS,
     Part,
     PushError,
     encode_message,
 )
-from calib.rig import MODALITIES
-from calib.units import UINT16_MAX
+from trifuse.calib.rig import MODALITIES
+from trifuse.calib.units import UINT16_MAX
 
 
 def _imencode(ext: str, image: np.ndarray, params: Sequence[int] = ()) -> bytes:

@@ -31,7 +31,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from calib.units import KELVIN_PER_COUNT, METRES_PER_COUNT
+from trifuse.calib.units import KELVIN_PER_COUNT, METRES_PER_COUNT
 
 MAGIC = b"TFP1"
 """First four bytes of every push message (protocol version 1)."""

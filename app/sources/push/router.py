@@ -10,8 +10,8 @@ from __future__ import annotations
 import json
 from typing import TYPE_CHECKING, Any
 
-from app.sources.push.protocol import INGEST_PATH, PushError, identify
-from app.sources.push.source import PushSource
+from trifuse.app.sources.push.protocol import INGEST_PATH, PushError, identify
+from trifuse.app.sources.push.source import PushSource
 
 if TYPE_CHECKING:
     from fastapi import APIRouter

@@ -13,10 +13,10 @@ import time
 from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
-from app.sources.base import FrameSource
-from app.sources.frames import Frame
-from app.sources.push.decode import decode_message
-from app.sources.push.protocol import (
+from trifuse.app.sources.base import FrameSource
+from trifuse.app.sources.frames import Frame
+from trifuse.app.sources.push.decode import decode_message
+from trifuse.app.sources.push.protocol import (
     DEFAULT_MAX_MESSAGE_BYTES,
     DEFAULT_MAX_PIXELS,
     PREFIX,
@@ -24,8 +24,8 @@ from app.sources.push.protocol import (
     PushError,
     identify,
 )
-from app.sources.slots import NewestFrameSlots
-from calib.rig import MODALITIES, Rig
+from trifuse.app.sources.slots import NewestFrameSlots
+from trifuse.calib.rig import MODALITIES, Rig
 
 
 class PushSource(FrameSource):

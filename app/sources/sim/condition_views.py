@@ -11,9 +11,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from app.sources.sim.head import default_rig
-from app.sources.sim.render import HeadModel, Renderer
-from app.sources.sim.scenarios import (
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.render import HeadModel, Renderer
+from trifuse.app.sources.sim.scenarios import (
     CALIBRATION_BOARD,
     board_solid,
     calibration_poses,
@@ -21,15 +21,15 @@ from app.sources.sim.scenarios import (
     lab_background,
     partial_view_poses,
 )
-from app.sources.sim.scene import Scene
-from app.sources.sim.thermal_conditions import (
+from trifuse.app.sources.sim.scene import Scene
+from trifuse.app.sources.sim.thermal_conditions import (
     ThermalConditions,
     centre_excess_k,
     square_emissivities,
 )
-from calib.board import Board
-from calib.rig import Rig
-from calib.transforms import transform_points
+from trifuse.calib.board import Board
+from trifuse.calib.rig import Rig
+from trifuse.calib.transforms import transform_points
 
 
 @dataclass

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.camera import Intrinsics
-from calib.rig import Eye, Rig, Sensor
-from calib.transforms import make_T, rotation_from_euler_deg
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.rig import Eye, Rig, Sensor
+from trifuse.calib.transforms import make_T, rotation_from_euler_deg
 
 COLOR_SIZE = (1280, 960)
 THERMAL_SIZE = (382, 288)

@@ -39,9 +39,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from app.sources.frames import Frame
-from app.sources.sim.render import Renderer, SensorTruth, vignetting
-from calib.rig import Sensor
+from trifuse.app.sources.frames import Frame
+from trifuse.app.sources.sim.render import Renderer, SensorTruth, vignetting
+from trifuse.calib.rig import Sensor
 
 NOISE_BANK_PAD = 64
 """Extra rows and columns of the colour noise bank: the offsets a frame can read it at."""

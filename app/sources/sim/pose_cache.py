@@ -37,8 +37,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from app.sources.frames import Frame
-from calib.rig import Rig
+from trifuse.app.sources.frames import Frame
+from trifuse.calib.rig import Rig
 
 CACHE_ENV = "TRIFUSE_SIM_CACHE"
 """Environment variable: the disk cache's directory, or ``off`` to keep no disk cache."""

@@ -27,14 +27,14 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from app.sources.frames import Frame, FrameSet
-from app.sources.sim.scene import Scene, apply_affine
-from app.sources.sim.tof_error import RangeErrorModel
-from calib.camera import Intrinsics
-from calib.rig import Rig, Sensor
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.sources.sim.scene import Scene, apply_affine
+from trifuse.app.sources.sim.tof_error import RangeErrorModel
+from trifuse.calib.camera import Intrinsics
+from trifuse.calib.rig import Rig, Sensor
 
 if TYPE_CHECKING:
-    from app.sources.sim.thermal_conditions import ImagerThermal
+    from trifuse.app.sources.sim.thermal_conditions import ImagerThermal
 
 _CHUNK = 1 << 20  # samples traced at once in the supersampling pass
 

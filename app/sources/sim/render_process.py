@@ -23,11 +23,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from app.errors import describe_error
-from app.sources.frames import Frame
-from app.sources.sim.pose_cache import load_pose, save_pose
-from app.sources.sim.render import SensorTruth
-from calib.rig import Rig
+from trifuse.app.errors import describe_error
+from trifuse.app.sources.frames import Frame
+from trifuse.app.sources.sim.pose_cache import load_pose, save_pose
+from trifuse.app.sources.sim.render import SensorTruth
+from trifuse.calib.rig import Rig
 
 RENDER_NICE = 10
 """Niceness the render process takes once the stream is running (the first pose is
@@ -102,7 +102,7 @@ def _render_worker(
     and builds the renderer's ray grids before the first request.
     """
     if scenario is None:
-        from app.sources.sim.scenarios import InspectionScenario
+        from trifuse.app.sources.sim.scenarios import InspectionScenario
 
         scenario = InspectionScenario(seed=seed, live=live)
     rig = scenario.rig

@@ -16,11 +16,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.sources.frames import Frame, FrameSet
-from app.sources.sim.head import default_rig
-from app.sources.sim.live import CleanImage, LiveDeveloper
-from app.sources.sim.render import HeadModel, Renderer, SensorTruth
-from app.sources.sim.scene import (
+from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.live import CleanImage, LiveDeveloper
+from trifuse.app.sources.sim.render import HeadModel, Renderer, SensorTruth
+from trifuse.app.sources.sim.scene import (
     BlotchMaterial,
     Board,
     BoardMaterial,
@@ -32,9 +32,9 @@ from app.sources.sim.scene import (
     Solid,
     Sphere,
 )
-from calib.board import aruco_dictionary
-from calib.rig import Rig, Sensor, rig_to_yaml
-from calib.transforms import make_T, rotation_from_euler_deg
+from trifuse.calib.board import aruco_dictionary
+from trifuse.calib.rig import Rig, Sensor, rig_to_yaml
+from trifuse.calib.transforms import make_T, rotation_from_euler_deg
 
 CALIBRATION_BOARD = Board(cols=9, rows=6, square_size_m=0.06)
 BOARD_MARGIN_M = 0.04  # bare aluminium around the patterned area

@@ -19,10 +19,10 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from calib.board import Board
+from trifuse.calib.board import Board
 
 if TYPE_CHECKING:
-    from app.sources.sim.thermal_conditions import BoardThermal
+    from trifuse.app.sources.sim.thermal_conditions import BoardThermal
 
 _EPS = 1e-9
 

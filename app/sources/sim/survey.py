@@ -19,9 +19,9 @@ import hashlib
 
 import numpy as np
 
-from app.sources.sim.scenarios import InspectionScenario
-from calib.rig import rig_to_yaml
-from calib.transforms import make_T, rotation_from_euler_deg
+from trifuse.app.sources.sim.scenarios import InspectionScenario
+from trifuse.calib.rig import rig_to_yaml
+from trifuse.calib.transforms import make_T, rotation_from_euler_deg
 
 # (time s, x m, z m, pan deg (about the vertical, + right), tilt deg (+ up))
 SURVEY_KEYS = np.array(

@@ -48,7 +48,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter, map_coordinates
 from scipy.special import ndtr
 
-from calib.board import Board
+from trifuse.calib.board import Board
 
 ROOM_K = 293.15
 """Reference temperature of the raw counts (kelvin) and the default room temperature."""
