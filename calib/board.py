@@ -54,7 +54,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from trifuse.calib.numbers import finite_float
+from trifuse.calib.numbers import finite_float, is_int
 
 POLARITY_KEYS = ("thermal_black_is_hot", "tof_black_is_dark")
 """The optional polarity overrides of ``board.yaml`` (None: found from the data)."""
@@ -125,7 +125,7 @@ class Board:
             )
         for name in ("cols", "rows"):
             v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 2:
+            if not is_int(v) or v < 2:
                 raise ValueError(f"board {name}: expected an integer >= 2, got {v!r}")
         size = self.square_size_m
         if not (finite_float(size) or 0.0) > 0.0:
@@ -456,7 +456,7 @@ def board_from_dict(data: Any) -> Board:
     if pattern == "charuco":
         sx, sy = _pair(data, "squares", "squares across, squares down")
         for v in (sx, sy):
-            if not isinstance(v, int) or isinstance(v, bool) or v < 3:
+            if not is_int(v) or v < 3:
                 raise ValueError(
                     f"board squares: expected two integers >= 3, got {data['squares']!r}"
                 )

@@ -46,6 +46,7 @@ import numpy as np
 import numpy.typing as npt
 
 from trifuse.calib.board import Board
+from trifuse.calib.numbers import is_integer
 
 PARAM_NAMES = ("X", "Y", "size", "skew")
 PARAM_RANGES = (0.7, 0.7, 0.4, 0.5)
@@ -121,7 +122,7 @@ def _check_image_size(image_size: Sequence[int]) -> tuple[int, int]:
             f"image_size: expected (width, height) in pixels, got {image_size!r}"
         ) from None
     for name, v in (("width", w), ("height", h)):
-        if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
+        if not is_integer(v) or v < 1:
             raise ValueError(f"image_size {name}: expected a positive integer, got {v!r}")
     return int(w), int(h)
 
@@ -229,7 +230,7 @@ def _check_grid_shape(grid_shape: Sequence[int]) -> tuple[int, int]:
     except (TypeError, ValueError):
         raise ValueError(f"grid_shape: expected (rows, cols), got {grid_shape!r}") from None
     for name, v in (("rows", rows), ("cols", cols)):
-        if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
+        if not is_integer(v) or v < 1:
             raise ValueError(f"grid_shape {name}: expected a positive integer, got {v!r}")
     return int(rows), int(cols)
 

@@ -47,6 +47,7 @@ import numpy as np
 from trifuse.calib.board import Board
 from trifuse.calib.camera import Intrinsics
 from trifuse.calib.errors import CalibrationError
+from trifuse.calib.numbers import is_integer
 from trifuse.calib.transforms import invert, make_T, rotation_from_rvec, transform_points
 
 MIN_VIEWS = 3
@@ -99,7 +100,7 @@ def _check_inputs(
         ok = (
             isinstance(size, tuple | list)
             and len(size) == 2
-            and all(isinstance(v, int | np.integer) and not isinstance(v, bool) for v in size)
+            and all(is_integer(v) for v in size)
             and min(size) > 0
         )
         if not ok:

@@ -25,7 +25,7 @@ import numpy as np
 
 from trifuse.calib.camera import Intrinsics
 from trifuse.calib.errors import CalibrationError
-from trifuse.calib.transforms import make_T
+from trifuse.calib.transforms import make_T, rotation_angle_deg
 
 FLATTEN_SIGMA_PX = 25.0
 """Sigma of the Gaussian blur subtracted from thermal images before detection, pixels
@@ -122,8 +122,7 @@ class StereoReference:
     @property
     def rotation_deg(self) -> float:
         """Angle of the rotation between the two sensors, degrees."""
-        c = (np.trace(self.T_b_a[:3, :3]) - 1.0) / 2.0
-        return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+        return rotation_angle_deg(self.T_b_a[:3, :3])
 
 
 def _grey(image: np.ndarray) -> np.ndarray:

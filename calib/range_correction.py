@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from trifuse.calib.numbers import check_finite
+from trifuse.calib.numbers import check_finite, is_int
 
 MODEL = "trifuse-range/1"
 _LUT_STEP_M = 0.001  # resolution of the distance term's lookup table
@@ -287,7 +287,7 @@ class RangeCorrection:
         amp = _mapping(block["amplitude"], "range_correction.amplitude")
         _keys(amp, "range_correction.amplitude", {"ref", "log_range", "coeffs_m"})
         step_px = off["step_px"]
-        if isinstance(step_px, bool) or not isinstance(step_px, int):
+        if not is_int(step_px):
             raise ValueError(
                 f"range_correction.offset.step_px: expected an integer, got {step_px!r}"
             )

@@ -20,7 +20,7 @@ import yaml
 
 from trifuse.calib.camera import COEFFICIENT_NAMES, DISTORTION_LENGTHS, Intrinsics, physical_problem
 from trifuse.calib.errors import RigError
-from trifuse.calib.numbers import check_finite
+from trifuse.calib.numbers import check_finite, is_int
 from trifuse.calib.radiometry import Radiometry
 from trifuse.calib.range_correction import RangeCorrection
 from trifuse.calib.transforms import invert, rigidity_problem
@@ -286,7 +286,7 @@ def sensor_from_dict(name: str, data: Any) -> Sensor:
     if (
         not isinstance(size, list | tuple)
         or len(size) != 2
-        or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)
+        or not all(is_int(s) and s > 0 for s in size)
     ):
         raise RigError(
             f"{_where(name, 'image_size')}: expected [width, height] as two positive "

@@ -63,6 +63,7 @@ from trifuse.calib.diagnosis import (
     zhang_rms_px,
 )
 from trifuse.calib.errors import CalibrationError
+from trifuse.calib.numbers import is_int
 from trifuse.calib.polarity import SensorPolarity
 from trifuse.calib.rig import Eye
 from trifuse.calib.rig_problem import BLAS_THREADS, CornerProblem, build_problem
@@ -126,11 +127,7 @@ class CalibrationOptions:
     min_views: int = ZHANG_MIN_VIEWS
 
     def __post_init__(self) -> None:
-        if (
-            not isinstance(self.min_views, int)
-            or isinstance(self.min_views, bool)
-            or self.min_views < ZHANG_MIN_VIEWS
-        ):
+        if not is_int(self.min_views) or self.min_views < ZHANG_MIN_VIEWS:
             raise CalibrationError(
                 f"min_views: expected an integer of at least {ZHANG_MIN_VIEWS} (Zhang's "
                 f"method needs {ZHANG_MIN_VIEWS} views of the board), got {self.min_views!r}"

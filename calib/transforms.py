@@ -1,10 +1,18 @@
-"""Rigid transforms as 4x4 float64 arrays named ``T_dst_src``.
+"""Rigid transforms as 4x4 float64 arrays named ``T_dst_src``, and the one place for rotations.
 
 ``T_dst_src`` maps points from frame ``src`` into frame ``dst``; transforms compose by
 adjacent frames, ``T_a_c = T_a_b @ T_b_c``.
+
+Rotations are (3, 3) float64 matrices; the other forms they take, each written once here:
+axis-angle vectors (radians, OpenCV's ``rvec``), roll-pitch-yaw (fixed axes,
+``Rz(yaw) @ Ry(pitch) @ Rx(roll)``: degrees for the simulator and tests, radians for URDF),
+unit quaternions ``(x, y, z, w)`` (ROS, Foxglove, MCAP), the angle of a rotation, the
+shortest-arc interpolation between two and the mean of many.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import numpy.typing as npt
@@ -81,6 +89,15 @@ def rotation_from_rvec(rvec: npt.ArrayLike) -> np.ndarray:
     return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
 
 
+def rotation_about(axis: npt.ArrayLike, angle: float) -> np.ndarray:
+    """(3, 3) rotation by ``angle`` radians about ``axis`` (3,) (any non-zero length; the
+    turn is right-handed about it), Rodrigues' formula."""
+    a = np.asarray(axis, dtype=np.float64)
+    k = a / np.linalg.norm(a)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
 def rvec_from_rotation(R: np.ndarray) -> np.ndarray:
     """Axis-angle vector (3,) in radians of a (3, 3) rotation matrix.
 
@@ -113,6 +130,77 @@ def rotation_from_euler_deg(roll: float, pitch: float, yaw: float) -> np.ndarray
     Ry = np.array([[np.cos(ry), 0, np.sin(ry)], [0, 1, 0], [-np.sin(ry), 0, np.cos(ry)]])
     Rz = np.array([[np.cos(rz), -np.sin(rz), 0], [np.sin(rz), np.cos(rz), 0], [0, 0, 1]])
     return Rz @ Ry @ Rx
+
+
+_GIMBAL_EPS = 1e-12
+"""``cos(pitch)`` below which :func:`rpy_from_rotation` folds yaw into roll (the two axes
+coincide)."""
+
+
+def rotation_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """(3, 3) rotation of URDF's ``rpy``: ``Rz(yaw) @ Ry(pitch) @ Rx(roll)``, radians.
+
+    Fixed axes: roll about the parent's x, then pitch about its y, then yaw about its z
+    (the order of :func:`rotation_from_euler_deg`, in radians).
+    """
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
+
+
+def rpy_from_rotation(R: np.ndarray) -> tuple[float, float, float]:
+    """URDF's ``(roll, pitch, yaw)`` in radians of a (3, 3) rotation (inverse of
+    :func:`rotation_from_rpy`), with pitch in [-pi/2, pi/2].
+
+    Pitch comes from ``atan2``, accurate everywhere. At gimbal lock (pitch = +-90 degrees)
+    roll and yaw turn about the same axis and only their difference (or sum) is defined:
+    yaw is set to 0 there. Roll is always taken from what is left once yaw and pitch are
+    undone, ``(Rz(yaw) Ry(pitch))^T R``, so an imprecise yaw near the lock is absorbed by
+    roll and ``rotation_from_rpy(*rpy_from_rotation(R))`` reproduces ``R`` to about 1e-16.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    cos_pitch = math.hypot(float(R[0, 0]), float(R[1, 0]))
+    pitch = math.atan2(-float(R[2, 0]), cos_pitch)
+    yaw = math.atan2(float(R[1, 0]), float(R[0, 0])) if cos_pitch > _GIMBAL_EPS else 0.0
+    rest = rotation_from_rpy(0.0, pitch, yaw).T @ R  # = Rx(roll)
+    roll = math.atan2(float(rest[2, 1]), float(rest[1, 1]))
+    return roll, pitch, yaw
+
+
+def quaternion_from_rotation(R: np.ndarray) -> tuple[float, float, float, float]:
+    """``(x, y, z, w)`` unit quaternion of a (3, 3) rotation matrix, ``w >= 0`` (of the two
+    quaternions of a rotation, the one with the non-negative scalar part)."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
+    if w < 0:
+        x, y, z, w = -x, -y, -z, -w
+    return float(x), float(y), float(z), float(w)
+
+
+def rotation_from_quaternion(q: npt.ArrayLike) -> np.ndarray:
+    """(3, 3) rotation matrix of a quaternion ``(x, y, z, w)`` (scaled to unit length first;
+    ``q`` and ``-q`` give the same rotation). Raises ValueError for a zero quaternion."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_quat(np.asarray(q, dtype=np.float64)).as_matrix()
+
+
+def slerp_rotation(R0: np.ndarray, R1: np.ndarray, s: float) -> np.ndarray:
+    """(3, 3) rotation a fraction ``s`` (0..1) of the way from ``R0`` to ``R1`` along the
+    shortest arc (spherical linear interpolation): ``R0 @ exp(s * log(R0^T R1))``."""
+    from scipy.spatial.transform import Rotation
+
+    r0 = Rotation.from_matrix(R0)
+    step = (r0.inv() * Rotation.from_matrix(R1)).as_rotvec()
+    return (r0 * Rotation.from_rotvec(s * step)).as_matrix()
 
 
 def rotation_angle_deg(R: np.ndarray) -> float:

@@ -53,7 +53,6 @@ restores the colour image there).
 from __future__ import annotations
 
 import math
-import numbers
 from collections.abc import Sequence
 from typing import Literal, get_args
 
@@ -62,7 +61,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.ndimage import gaussian_filter1d
 
-from trifuse.calib.numbers import check_finite
+from trifuse.calib.numbers import check_finite, is_integer, is_integral
 from trifuse.fusion.palettes import _index_into, check_span
 
 __all__ = [
@@ -206,7 +205,7 @@ def kelvin_histogram(
         kelvin, ``edges_k[0] = low``, ``edges_k[-1] = high``.
     """
     low, high = check_span(span)
-    if isinstance(step, bool) or not isinstance(step, int | np.integer) or step < 1:
+    if not is_integer(step) or step < 1:
         raise ValueError(f"step: expected a positive integer, got {step!r}")
     n = _bins((low, high))
     edges = np.linspace(low, high, n + 1)
@@ -390,7 +389,7 @@ class ToneMap:
     def ticks_k(self, count: int) -> list[float]:
         """Temperatures (kelvin) at ``count`` >= 2 evenly spaced palette positions, from the
         first entry (position 0) to the last (position 1)."""
-        if isinstance(count, bool) or not isinstance(count, int | np.integer) or count < 2:
+        if not is_integer(count) or count < 2:
             raise ValueError(f"count: expected an integer >= 2, got {count!r}")
         return [float(t) for t in self.temperatures_k(np.linspace(0.0, 1.0, int(count)))]
 
@@ -465,9 +464,7 @@ class ToneMapper:
         tau = check_finite(time_constant_s, "time_constant_s")
         if tau < 0.0:
             raise ValueError(f"time_constant_s: expected >= 0 seconds, got {time_constant_s!r}")
-        if stamp_ns is not None and (
-            isinstance(stamp_ns, bool) or not isinstance(stamp_ns, numbers.Integral)
-        ):
+        if stamp_ns is not None and not is_integral(stamp_ns):
             raise ValueError(
                 f"stamp_ns: expected an integer (nanoseconds) or None, got {stamp_ns!r}"
             )
@@ -507,7 +504,7 @@ class PaletteIndexer:
 
     def __init__(self, width: int, height: int) -> None:
         for n, v in (("width", width), ("height", height)):
-            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v <= 0:
+            if not is_integer(v) or v <= 0:
                 raise ValueError(f"{n}: expected a positive integer, got {v!r}")
         self.width, self.height = int(width), int(height)
         self._nodes = np.zeros((self.height, self.width), np.uint16)

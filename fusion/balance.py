@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from trifuse.calib.numbers import is_int, is_int_or_float
 from trifuse.calib.radiometry import Radiometry
 from trifuse.calib.rig import Rig
 from trifuse.calib.robust import MAD_TO_SIGMA, mad_sigma
@@ -404,7 +405,7 @@ def estimate_balance(
             f"t_left, t_right: expected two (N,) arrays of the same length, got {tl.shape} "
             f"and {tr.shape}"
         )
-    if isinstance(min_points, bool) or not isinstance(min_points, int) or min_points < 1:
+    if not is_int(min_points) or min_points < 1:
         raise ValueError(f"min_points: expected a positive integer, got {min_points!r}")
     if not (math.isfinite(gain_min_spread_k) and gain_min_spread_k >= 0):
         raise ValueError(f"gain_min_spread_k: expected >= 0 kelvin, got {gain_min_spread_k!r}")
@@ -527,8 +528,8 @@ class BalanceFilter:
     """
 
     def __init__(self, time_constant_s: float = 5.0) -> None:
-        if isinstance(time_constant_s, bool) or not (
-            isinstance(time_constant_s, int | float)
+        if not (
+            is_int_or_float(time_constant_s)
             and math.isfinite(time_constant_s)
             and time_constant_s >= 0
         ):

@@ -53,69 +53,40 @@ Rules common to all modes:
   change. Only painted pixels are marked: the colour image itself does not depend on depth.
   Pixels without a thermal view keep the plain colour image (above); the viewer's legend
   names both.
-
-:class:`Composer` preallocates every full-frame buffer once; :meth:`Composer.compose`
-allocates no full-frame array in the steady state (OpenCV calls with ``dst=``, numpy with
-``out=``). The colour range is one span shared by both eyes: a fixed ``span_k`` or
-:func:`auto_span` over both eyes' images (:func:`resolve_span`). Within it, palette colour
-follows the frame's AGC mapping (:mod:`fusion.agc`, ``settings.agc``): a
-:class:`fusion.agc.ToneMap` computed over both eyes and handed to ``compose`` for each eye
-(:class:`fusion.stereo.StereoFusion` does); without one, ``compose`` maps linearly over the
-span.
-
-The stereo pair: :func:`side_by_side` (left | right), :func:`stereo_halves` (compose each
-eye straight into its half), :func:`anaglyph` (red-cyan). :func:`point_colors` colours a
-point cloud for the 3D view.
+What is drawn is set here (:class:`DisplaySettings`, :func:`pip_box`); the modes are
+drawn by :class:`fusion.composer.Composer` (one eye, preallocated buffers), over one span
+shared by both eyes (:func:`fusion.span.resolve_span`); the stereo pair is put together
+by :mod:`fusion.stereo_pair`, and :mod:`fusion.cloud_colors` colours point clouds.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, get_args
 
-import cv2
 import numpy as np
-import numpy.typing as npt
 
-from trifuse.calib.numbers import check_finite
+from trifuse.calib.numbers import check_finite, is_integer
 from trifuse.fusion.agc import (
     AGC_MODES,
     DEFAULT_MAX_GAIN,
     DEFAULT_PLATEAU,
     AgcMode,
-    PaletteIndexer,
-    ToneMap,
     check_max_gain,
     check_plateau,
 )
-from trifuse.fusion.palettes import (
-    PALETTE_NAMES,
-    PaletteName,
-    _check_rgb,
-    _colormap_into,
-    check_span,
-    palette_colors,
-)
+from trifuse.fusion.palettes import PALETTE_NAMES, PaletteName, _check_rgb, check_span
 
 __all__ = [
     "BACKGROUNDS",
-    "CLOUD_COLORINGS",
     "DIRECTIONS",
     "DISPLAY_MODES",
-    "CloudColoring",
-    "Composer",
     "DisplayMode",
     "DisplaySettings",
     "IsothermBackground",
     "ThresholdDirection",
-    "anaglyph",
-    "auto_span",
+    "describe_array",
     "pip_box",
-    "point_colors",
-    "resolve_span",
-    "side_by_side",
-    "stereo_halves",
 ]
 
 DisplayMode = Literal["color", "blend", "edges", "thermal", "threshold", "isotherm", "pip"]
@@ -128,9 +99,6 @@ DIRECTIONS: tuple[ThresholdDirection, ...] = get_args(ThresholdDirection)
 IsothermBackground = Literal["color", "grey"]
 """The background of the ``isotherm`` mode."""
 BACKGROUNDS: tuple[IsothermBackground, ...] = get_args(IsothermBackground)
-CloudColoring = Literal["color", "temperature", "depth"]
-"""What colours a point cloud (:func:`point_colors`)."""
-CLOUD_COLORINGS: tuple[CloudColoring, ...] = get_args(CloudColoring)
 
 #: Fallback veil: the share of the way to a pixel's own grey (luma), and to mid-grey.
 FALLBACK_DESATURATION = 0.35
@@ -173,7 +141,7 @@ def _temperature_span(value: object, name: str) -> tuple[float, float]:
 
 def _interval(value: object, name: str) -> tuple[float, float]:
     """(low, high) with low <= high; a single number T is (T, T)."""
-    if isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool):
+    if is_integer(value) or isinstance(value, float | np.floating):
         t = check_finite(value, name)
         return t, t
     try:
@@ -190,7 +158,7 @@ def _interval(value: object, name: str) -> tuple[float, float]:
 
 def _pair_in(value: object, name: str, lo: float, hi: float, open_low: bool) -> tuple[float, float]:
     """A number or a pair of numbers in [lo, hi] (or (lo, hi] if open_low)."""
-    if isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool):
+    if is_integer(value) or isinstance(value, float | np.floating):
         items: tuple[Any, ...] = (value, value)
     else:
         try:
@@ -347,462 +315,8 @@ def pip_box(settings: DisplaySettings, width: int, height: int) -> tuple[int, in
     return x0, y0, x0 + w, y0 + h
 
 
-def auto_span(
-    thermal_images: np.ndarray | Sequence[np.ndarray],
-    low_pct: float = 1.0,
-    high_pct: float = 99.0,
-    *,
-    step: int = 8,
-    min_span_k: float = 1.0,
-    default: tuple[float, float] | None = None,
-) -> tuple[float, float]:
-    """One palette span over several temperature images (both eyes): percentiles of the
-    valid pixels of all of them together.
-
-    Cheap: every ``step``-th pixel in each direction (1/64 of the pixels by default, about
-    0.3 ms for two 1280 x 960 eyes). A span narrower than ``min_span_k`` (a uniform scene)
-    is widened about its middle to ``min_span_k``, so noise is not stretched over the
-    whole palette.
-
-    Args:
-        thermal_images: one array or a sequence of arrays of kelvin (any shape; 2-D
-            images are subsampled in both directions); NaN and inf are ignored.
-        low_pct, high_pct: percentiles, 0 <= low < high <= 100.
-        step: subsampling step, positive.
-        min_span_k: the narrowest span returned, positive.
-        default: returned when no image has a finite pixel; if None, that is a ValueError.
-
-    Returns:
-        ``(low_k, high_k)`` with ``low < high``.
-    """
-    low_pct = check_finite(low_pct, "low_pct")
-    high_pct = check_finite(high_pct, "high_pct")
-    if not 0.0 <= low_pct < high_pct <= 100.0:
-        raise ValueError(
-            f"low_pct, high_pct: expected 0 <= low < high <= 100, got ({low_pct}, {high_pct})"
-        )
-    if isinstance(step, bool) or not isinstance(step, int | np.integer) or step < 1:
-        raise ValueError(f"step: expected a positive integer, got {step!r}")
-    if not check_finite(min_span_k, "min_span_k") > 0.0:
-        raise ValueError(f"min_span_k: expected a positive number, got {min_span_k}")
-    images = [thermal_images] if isinstance(thermal_images, np.ndarray) else list(thermal_images)
-    samples = []
-    for i, image in enumerate(images):
-        a = np.asarray(image)
-        if a.dtype.kind not in "fiu":
-            raise ValueError(f"thermal_images[{i}]: expected numbers in kelvin, got {a.dtype}")
-        sub = a[..., ::step, ::step] if a.ndim >= 2 else a.reshape(-1)[::step]
-        samples.append(sub[np.isfinite(sub)])  # 1-D, no copy of the subsample itself
-    values = np.concatenate(samples) if samples else np.empty(0)
-    if values.size == 0:
-        if default is not None:
-            return check_span(default, "default")
-        raise ValueError("thermal_images: expected at least one finite temperature, got none")
-    low, high = (float(v) for v in np.percentile(values, [low_pct, high_pct]))
-    if high - low < min_span_k:
-        mid = 0.5 * (low + high)
-        low, high = mid - 0.5 * min_span_k, mid + 0.5 * min_span_k
-    return low, high
-
-
-def resolve_span(
-    settings: DisplaySettings, thermal_images: np.ndarray | Sequence[np.ndarray]
-) -> tuple[float, float]:
-    """The span to use for one stereo frame: ``settings.span_k``, or :func:`auto_span`
-    over ``thermal_images`` (pass both eyes so they share it). An all-NaN frame gets the
-    arbitrary span (273.15, 373.15): nothing is painted then anyway."""
-    if settings.span_k is not None:
-        return settings.span_k
-    return auto_span(
-        thermal_images,
-        settings.auto_low_pct,
-        settings.auto_high_pct,
-        default=(273.15, 373.15),
-    )
-
-
-def _describe(a: object) -> str:
+def describe_array(a: object) -> str:
+    """``a`` for an error message: its dtype and shape, or its type."""
     if isinstance(a, np.ndarray):
         return f"{a.dtype} array of shape {a.shape}"
     return type(a).__name__
-
-
-class Composer:
-    """Composes display pictures of one eye of a fixed size, with preallocated buffers.
-
-    Use one per eye (or one for both, called in turn: ``compose`` is not re-entrant).
-
-    Args:
-        width, height: the colour image size in pixels.
-    """
-
-    def __init__(self, width: int, height: int) -> None:
-        for n, v in (("width", width), ("height", height)):
-            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v <= 0:
-                raise ValueError(f"{n}: expected a positive integer, got {v!r}")
-        self.width = int(width)
-        self.height = int(height)
-        h, w = self.height, self.width
-        self._index = np.zeros((h, w), np.uint8)  # palette indices; also the grey image
-        self._pal = np.zeros((h, w, 3), np.uint8)  # palette image
-        self._rgb = np.zeros((h, w, 3), np.uint8)  # scratch: detail (edges) or solid colour
-        self._solid_rgb: tuple[int, int, int] | None = None  # what _rgb holds, if solid
-        self._out = np.zeros((h, w, 3), np.uint8)  # the result when no ``out`` is given
-        self._nan = np.zeros((h, w), bool)
-        self._valid = np.zeros((h, w), bool)
-        self._paint = np.zeros((h, w), np.uint8)
-        self._mask = np.zeros((h, w), np.uint8)
-        self._mask2 = np.zeros((h, w), np.uint8)
-        self._indexer = PaletteIndexer(w, h)
-
-    # -- checks ------------------------------------------------------------------------------
-
-    def _check_inputs(
-        self,
-        color: np.ndarray,
-        thermal_k: np.ndarray,
-        fallback: np.ndarray | None,
-        out: np.ndarray | None,
-    ) -> np.ndarray:
-        h, w = self.height, self.width
-        rgb_shape = (h, w, 3)
-        if not isinstance(color, np.ndarray) or color.dtype != np.uint8 or color.shape != rgb_shape:
-            raise ValueError(f"color: expected uint8 ({h}, {w}, 3) RGB, got {_describe(color)}")
-        if (
-            not isinstance(thermal_k, np.ndarray)
-            or thermal_k.dtype not in (np.float32, np.float64)
-            or thermal_k.shape != (h, w)
-        ):
-            raise ValueError(
-                f"thermal_k: expected float32 (or float64) ({h}, {w}) kelvin, "
-                f"got {_describe(thermal_k)}"
-            )
-        if fallback is not None and (
-            not isinstance(fallback, np.ndarray)
-            or fallback.dtype != np.bool_
-            or fallback.shape != (h, w)
-        ):
-            raise ValueError(
-                f"fallback: expected bool ({h}, {w}) or None, got {_describe(fallback)}"
-            )
-        if out is None:
-            return self._out
-        if not isinstance(out, np.ndarray) or out.dtype != np.uint8 or out.shape != (h, w, 3):
-            raise ValueError(f"out: expected uint8 ({h}, {w}, 3), got {_describe(out)}")
-        if out.strides[1:] != (3, 1):
-            raise ValueError("out: expected rows of contiguous RGB pixels (a column slice is fine)")
-        if np.may_share_memory(out, color) or np.may_share_memory(out, thermal_k):
-            raise ValueError("out: must not overlap color or thermal_k")
-        return out
-
-    # -- building blocks -----------------------------------------------------------------------
-
-    def _palette(
-        self,
-        thermal: np.ndarray,
-        tone: ToneMap,
-        name: str,
-        dst: np.ndarray,
-        sl: tuple[slice, slice],
-    ) -> None:
-        self._indexer.index_into(thermal, tone, self._index, sl)
-        _colormap_into(self._index[sl], name, dst[sl])
-
-    def _mark(
-        self,
-        out: np.ndarray,
-        fallback: np.ndarray,
-        paint: np.ndarray | None,
-        box: tuple[int, int, int, int],
-        fallback_box: tuple[int, int, int, int],
-    ) -> None:
-        """Veil the fallback pixels inside ``box`` (x0, y0, x1, y1), within ``paint``
-        (a 0/255 or bool-as-uint8 mask, None = all) if given: ``(1 - d - f) * c + d * Y +
-        f * 128`` (``d`` FALLBACK_DESATURATION, ``f`` FALLBACK_FADE, ``Y`` the pixel's
-        luma). Work is limited to the intersection with ``fallback_box``, the bounding box
-        of the fallback pixels. Uses ``_pal`` and ``_mask`` as scratch."""
-        x0, y0 = max(box[0], fallback_box[0]), max(box[1], fallback_box[1])
-        x1, y1 = min(box[2], fallback_box[2]), min(box[3], fallback_box[3])
-        if x0 >= x1 or y0 >= y1:
-            return
-        sl = (slice(y0, y1), slice(x0, x1))
-        base = fallback[sl].view(np.uint8)
-        if paint is not None:
-            base = cv2.bitwise_and(base, paint[sl], dst=self._mask2[sl])
-        o = out[sl]
-        grey = cv2.cvtColor(o, cv2.COLOR_RGB2GRAY, dst=self._mask[sl])
-        veil = cv2.cvtColor(grey, cv2.COLOR_GRAY2RGB, dst=self._pal[sl])
-        d, f = FALLBACK_DESATURATION, FALLBACK_FADE
-        cv2.addWeighted(o, 1.0 - d - f, veil, d, 128.0 * f, dst=veil)
-        cv2.copyTo(veil, base, dst=o)
-
-    def _restore_nan(self, out: np.ndarray, color: np.ndarray, sl: tuple[slice, slice]) -> bool:
-        """Colour back on NaN pixels (within ``sl``); ``self._nan[sl]`` holds the NaN mask."""
-        nan = self._nan[sl]
-        if nan.any():
-            cv2.copyTo(color[sl], nan.view(np.uint8), dst=out[sl])
-            return True
-        return False
-
-    def _solid(self, rgb: tuple[int, int, int]) -> np.ndarray:
-        if self._solid_rgb != rgb:
-            self._rgb[...] = rgb
-            self._solid_rgb = rgb
-        return self._rgb
-
-    # -- the modes ---------------------------------------------------------------------------
-
-    def compose(
-        self,
-        color: np.ndarray,
-        thermal_k: np.ndarray,
-        fallback: np.ndarray | None,
-        settings: DisplaySettings,
-        span: tuple[float, float] | None = None,
-        out: np.ndarray | None = None,
-        tone: ToneMap | None = None,
-    ) -> np.ndarray:
-        """One eye's display picture.
-
-        Args:
-            color: (H, W, 3) uint8 RGB.
-            thermal_k: (H, W) float32/float64 kelvin, NaN = no reading.
-            fallback: (H, W) bool, True where the mapping used a fallback depth; or None.
-            settings: what to show.
-            span: ``(low_k, high_k)`` of the palette; None: ``settings.span_k`` or, if
-                that is None, :func:`auto_span` of this eye alone (pass the span from
-                :func:`resolve_span` over both eyes so they match).
-            out: (H, W, 3) uint8 to write into (a half of a side-by-side buffer from
-                :func:`stereo_halves` is fine; must not overlap the inputs). None: an
-                internal buffer, overwritten by the next call.
-            tone: the frame's AGC mapping from kelvin to palette index
-                (:class:`fusion.agc.ToneMap`, computed over both eyes so that they match);
-                it brings its own span (``span`` is then ignored). None: linear over
-                ``span``, whatever ``settings.agc`` says.
-
-        Returns:
-            ``out`` (or the internal buffer): (H, W, 3) uint8 RGB.
-        """
-        if not isinstance(settings, DisplaySettings):
-            raise ValueError(f"settings: expected DisplaySettings, got {type(settings).__name__}")
-        out = self._check_inputs(color, thermal_k, fallback, out)
-        if tone is None:
-            span = resolve_span(settings, thermal_k) if span is None else check_span(span)
-            tone = ToneMap.linear(span)
-        elif not isinstance(tone, ToneMap):
-            raise ValueError(f"tone: expected a ToneMap or None, got {type(tone).__name__}")
-        mode = settings.mode
-        full = (slice(None), slice(None))
-        if mode == "color" or (mode == "blend" and settings.opacity == 0.0):
-            np.copyto(out, color)
-            return out
-        fb_box = (0, 0, 0, 0)
-        if settings.mark_fallback and fallback is not None:
-            x, y, bw, bh = cv2.boundingRect(fallback.view(np.uint8))
-            fb_box = (x, y, x + bw, y + bh)
-        mark = fb_box[2] > fb_box[0]
-        frame = (0, 0, self.width, self.height)
-        name = settings.palette
-
-        if mode in ("blend", "thermal", "edges"):
-            direct = (
-                mode == "thermal"
-                or (mode == "blend" and settings.opacity == 1.0)
-                or (mode == "edges" and settings.edge_strength == 0.0)
-            )
-            self._palette(thermal_k, tone, name, out if direct else self._pal, full)
-            if not direct and mode == "blend":
-                a = settings.opacity
-                cv2.addWeighted(self._pal, a, color, 1.0 - a, 0.0, dst=out)
-            elif not direct:
-                self._emboss(color, settings.edge_strength, out)
-            if mark:
-                self._mark(out, fallback, None, frame, fb_box)  # NaN pixels are restored below
-            np.isnan(thermal_k, out=self._nan)
-            self._restore_nan(out, color, full)
-            return out
-
-        if mode == "pip":
-            x0, y0, x1, y1 = pip_box(settings, self.width, self.height)
-            np.copyto(out, color)
-            sl = (slice(y0, y1), slice(x0, x1))
-            self._palette(thermal_k, tone, name, self._pal, sl)
-            valid = np.isfinite(thermal_k[sl], out=self._valid[sl]).view(np.uint8)
-            cv2.copyTo(self._pal[sl], valid, dst=out[sl])
-            if mark:
-                self._mark(out, fallback, self._valid.view(np.uint8), (x0, y0, x1, y1), fb_box)
-            return out
-
-        # threshold and isotherm: a selection mask (0/255); NaN compares false
-        paint = self._paint
-        if mode == "threshold":
-            low, high = settings.threshold_k  # type: ignore[misc]
-            direction = settings.threshold_direction
-        else:
-            low, high = settings.isotherm_k
-            direction = "inside"
-        if direction == "above":
-            cv2.compare(thermal_k, high, cv2.CMP_GT, dst=paint)
-        elif direction == "below":
-            cv2.compare(thermal_k, low, cv2.CMP_LT, dst=paint)
-        else:
-            cv2.compare(thermal_k, low, cv2.CMP_GE, dst=paint)
-            cv2.compare(thermal_k, high, cv2.CMP_LE, dst=self._mask)
-            cv2.bitwise_and(paint, self._mask, dst=paint)
-
-        if mode == "isotherm" and settings.isotherm_background == "grey":
-            cv2.cvtColor(color, cv2.COLOR_RGB2GRAY, dst=self._index)
-            cv2.cvtColor(self._index, cv2.COLOR_GRAY2RGB, dst=out)
-            np.isnan(thermal_k, out=self._nan)
-            self._restore_nan(out, color, full)
-        else:
-            np.copyto(out, color)
-        if mode == "isotherm" and settings.isotherm_color is not None:
-            source = self._solid(settings.isotherm_color)
-        else:
-            self._palette(thermal_k, tone, name, self._pal, full)
-            source = self._pal
-        cv2.copyTo(source, paint, dst=out)
-        if mark:
-            self._mark(out, fallback, paint, frame, fb_box)
-        return out
-
-    def _emboss(self, color: np.ndarray, strength: float, out: np.ndarray) -> None:
-        """out = palette + gain * (Y - box(Y)) on every channel (saturating)."""
-        grey = cv2.cvtColor(color, cv2.COLOR_RGB2GRAY, dst=self._index)
-        low = cv2.blur(grey, (EDGE_BOX_PX, EDGE_BOX_PX), dst=self._mask)
-        k = EDGE_GAIN * strength
-        # detail + 128 in uint8 (saturating), then to three channels
-        cv2.addWeighted(grey, k, low, -k, 128.0, dst=self._mask2, dtype=cv2.CV_8U)
-        self._solid_rgb = None
-        cv2.cvtColor(self._mask2, cv2.COLOR_GRAY2RGB, dst=self._rgb)
-        cv2.addWeighted(self._pal, 1.0, self._rgb, 1.0, -128.0, dst=out)
-
-
-# -- the stereo pair -----------------------------------------------------------------------------
-
-
-def _check_pair(left: np.ndarray, right: np.ndarray) -> tuple[int, int]:
-    for name, a in (("left", left), ("right", right)):
-        if not isinstance(a, np.ndarray) or a.dtype != np.uint8 or a.ndim != 3 or a.shape[2] != 3:
-            raise ValueError(f"{name}: expected a uint8 (H, W, 3) image, got {_describe(a)}")
-    if left.shape != right.shape:
-        raise ValueError(f"right: expected the shape of left {left.shape}, got {right.shape}")
-    return left.shape[0], left.shape[1]
-
-
-def stereo_halves(sbs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The left and right (H, W, 3) views of a side-by-side (H, 2W, 3) buffer, to compose
-    each eye straight into its half (``Composer.compose(..., out=half)``)."""
-    if not isinstance(sbs, np.ndarray) or sbs.dtype != np.uint8 or sbs.ndim != 3:
-        raise ValueError(f"sbs: expected a uint8 (H, 2W, 3) image, got {_describe(sbs)}")
-    if sbs.shape[2] != 3 or sbs.shape[1] % 2:
-        raise ValueError(f"sbs: expected shape (H, 2W, 3) with an even width, got {sbs.shape}")
-    w = sbs.shape[1] // 2
-    return sbs[:, :w], sbs[:, w:]
-
-
-def side_by_side(left: np.ndarray, right: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """The stereo pair side by side, left | right: (H, 2W, 3) uint8.
-
-    Args:
-        left, right: (H, W, 3) uint8 of the same shape.
-        out: (H, 2W, 3) uint8 buffer; allocated if None (pass one per frame).
-    """
-    h, w = _check_pair(left, right)
-    if out is None:
-        out = np.empty((h, 2 * w, 3), np.uint8)
-    elif not isinstance(out, np.ndarray) or out.dtype != np.uint8 or out.shape != (h, 2 * w, 3):
-        raise ValueError(f"out: expected uint8 ({h}, {2 * w}, 3), got {_describe(out)}")
-    lo, ro = stereo_halves(out)
-    np.copyto(lo, left)
-    np.copyto(ro, right)
-    return out
-
-
-def anaglyph(
-    left: np.ndarray, right: np.ndarray, out: np.ndarray | None = None, method: str = "color"
-) -> np.ndarray:
-    """Red-cyan anaglyph of the pair: (H, W, 3) uint8 RGB (red lens on the left eye).
-
-    Args:
-        left, right: (H, W, 3) uint8 RGB of the same shape.
-        out: (H, W, 3) uint8 buffer; allocated if None; must not overlap the inputs.
-        method: ``"color"``: red from the left image, green and blue from the right;
-            ``"grey"``: red = the left's luminance, green = blue = the right's (less
-            retinal rivalry, no colour; allocates two grey images).
-    """
-    h, w = _check_pair(left, right)
-    if out is None:
-        out = np.empty((h, w, 3), np.uint8)
-    elif not isinstance(out, np.ndarray) or out.dtype != np.uint8 or out.shape != (h, w, 3):
-        raise ValueError(f"out: expected uint8 ({h}, {w}, 3), got {_describe(out)}")
-    if np.may_share_memory(out, left) or np.may_share_memory(out, right):
-        raise ValueError("out: must not overlap left or right")
-    if method == "color":
-        cv2.mixChannels([left, right], [out], [0, 0, 4, 1, 5, 2])
-    elif method == "grey":
-        gl = cv2.cvtColor(left, cv2.COLOR_RGB2GRAY)
-        gr = cv2.cvtColor(right, cv2.COLOR_RGB2GRAY)
-        cv2.mixChannels([gl, gr], [out], [0, 0, 1, 1, 1, 2])
-    else:
-        raise ValueError(f"method: expected 'color' or 'grey', got {method!r}")
-    return out
-
-
-# -- the 3D view ---------------------------------------------------------------------------------
-
-
-def point_colors(
-    points: npt.ArrayLike,
-    by: CloudColoring = "color",
-    values: npt.ArrayLike | None = None,
-    span: tuple[float, float] | None = None,
-    palette: PaletteName = "iron",
-    nan_color: tuple[int, int, int] = (128, 128, 128),
-) -> np.ndarray:
-    """Colours of a point cloud for the 3D view: (N, 3) uint8 RGB.
-
-    Args:
-        points: (N, 3) points in metres (NaN rows allowed).
-        by: ``"color"``: ``values`` are (N, 3) uint8 RGB (e.g. sampled from the colour
-            image), returned as a copy; ``"temperature"``: ``values`` are (N,) kelvin,
-            coloured with ``palette`` over ``span``; ``"depth"``: the distance of each
-            point from the origin of its frame (radial, as the TOF measures; ``values``
-            must be None), coloured with ``palette`` over ``span`` in metres.
-        span: ``(low, high)`` for "temperature" / "depth"; None: the 1st to 99th
-            percentile of the finite values (:func:`auto_span` without subsampling).
-        palette: palette name.
-        nan_color: RGB of points with no value (NaN temperature, NaN point).
-
-    Raises:
-        ValueError: bad shapes, an unknown ``by``, or ``span=None`` with no finite value.
-    """
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"points: expected shape (N, 3), got {p.shape}")
-    n = p.shape[0]
-    if by == "color":
-        if values is None:
-            raise ValueError("values: expected (N, 3) uint8 RGB for by='color', got None")
-        c = np.asarray(values)
-        if c.dtype != np.uint8 or c.shape != (n, 3):
-            raise ValueError(f"values: expected uint8 ({n}, 3) RGB, got {_describe(c)}")
-        return c.copy()
-    if by == "temperature":
-        if values is None:
-            raise ValueError("values: expected (N,) kelvin for by='temperature', got None")
-        v = np.asarray(values, dtype=np.float64)
-        if v.shape != (n,):
-            raise ValueError(f"values: expected shape ({n},) in kelvin, got {v.shape}")
-        v = np.where(np.isfinite(p).all(axis=1), v, np.nan)
-    elif by == "depth":
-        if values is not None:
-            raise ValueError("values: expected None for by='depth' (computed from points)")
-        v = np.linalg.norm(p, axis=1)
-    else:
-        *first, last = (repr(c) for c in CLOUD_COLORINGS)
-        raise ValueError(f"by: expected {', '.join(first)} or {last}, got {by!r}")
-    if span is None:
-        span = auto_span(v, step=1, min_span_k=1e-3)
-    return palette_colors(v, span, palette, nan_color)

@@ -20,6 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from trifuse.calib.camera import MAX_RAY_RADIUS, Intrinsics, monotonic_radius, pixel_rays
+from trifuse.calib.numbers import is_integer
 from trifuse.calib.rig import Rig
 from trifuse.calib.transforms import transform_points
 
@@ -37,7 +38,7 @@ __all__ = [
 
 
 def _positive_int(value: object, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value <= 0:
+    if not is_integer(value) or value <= 0:
         raise ValueError(f"{name}: expected a positive integer, got {value!r}")
     return int(value)
 

@@ -18,7 +18,7 @@ from typing import Literal
 import numpy as np
 
 from trifuse.fusion.agc import DEFAULT_MAX_GAIN, tone_map
-from trifuse.fusion.compose import point_colors
+from trifuse.fusion.cloud_colors import point_colors
 from trifuse.fusion.palettes import PaletteName, palette
 from trifuse.fusion.voxel_map import VoxelMap
 

@@ -22,7 +22,7 @@ OpenCV 5.0), so an RGB table gives RGB and no conversion is needed. Both calls w
 preallocated buffers (``out=``), which matters at 1280 x 960 (see FIELD-NOTES.md).
 
 Non-finite temperatures (NaN = no reading) get an unspecified index; mask them, as
-:class:`fusion.compose.Composer` does, or pass ``nan_color`` to :func:`apply_palette`.
+:class:`fusion.composer.Composer` does, or pass ``nan_color`` to :func:`apply_palette`.
 """
 
 from __future__ import annotations
@@ -34,6 +34,8 @@ from typing import Literal, get_args
 import cv2
 import numpy as np
 import numpy.typing as npt
+
+from trifuse.calib.numbers import is_integer
 
 __all__ = [
     "CONTROL_POINTS",
@@ -261,10 +263,7 @@ def _check_rgb(color: object, name: str) -> tuple[int, int, int]:
         values = tuple(color)  # type: ignore[call-overload]
     except TypeError:
         values = ()
-    if len(values) != 3 or not all(
-        isinstance(v, int | np.integer) and not isinstance(v, bool) and 0 <= v <= 255
-        for v in values
-    ):
+    if len(values) != 3 or not all(is_integer(v) and 0 <= v <= 255 for v in values):
         raise ValueError(f"{name}: expected an (R, G, B) triple of integers 0-255, got {color!r}")
     return (int(values[0]), int(values[1]), int(values[2]))
 
@@ -307,7 +306,7 @@ def palette_bar(name: str, width: int, height: int, orientation: str | None = No
     """
     table = palette(name)
     for n, v in (("width", width), ("height", height)):
-        if isinstance(v, bool) or not isinstance(v, int | np.integer) or v <= 0:
+        if not is_integer(v) or v <= 0:
             raise ValueError(f"{n}: expected a positive integer, got {v!r}")
     if orientation is None:
         orientation = "vertical" if height > width else "horizontal"

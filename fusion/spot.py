@@ -49,6 +49,7 @@ import cv2
 import numpy as np
 
 from trifuse.calib.camera import Intrinsics
+from trifuse.calib.numbers import is_integer
 from trifuse.fusion.stereo import StereoFusion
 
 DepthKind = Literal["measured", "fallback"]
@@ -241,7 +242,7 @@ class SpotFrame:
         return self._states[eye]
 
     def _check_pixel(self, name: str, value: int, limit: int) -> int:
-        if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        if not is_integer(value):
             raise SpotError(f"{name}: expected an integer pixel, got {value!r}")
         if not 0 <= value < limit:
             raise SpotError(f"{name}: expected a colour pixel 0..{limit - 1}, got {value}")

@@ -17,18 +17,13 @@ import numpy as np
 
 from trifuse.calib.rig import Rig
 from trifuse.fusion.agc import ToneMap, ToneMapper, gain_span
-from trifuse.fusion.compose import (
-    CloudColoring,
-    Composer,
-    DisplaySettings,
-    anaglyph,
-    point_colors,
-    resolve_span,
-    stereo_halves,
-)
+from trifuse.fusion.cloud_colors import CloudColoring, point_colors
+from trifuse.fusion.compose import DisplaySettings
+from trifuse.fusion.composer import Composer
 from trifuse.fusion.mapping import EyeFusion, MappingOptions, TofGrid
 from trifuse.fusion.palettes import PaletteName
-from trifuse.fusion.span import SpanSmoother
+from trifuse.fusion.span import SpanSmoother, resolve_span
+from trifuse.fusion.stereo_pair import anaglyph, stereo_halves
 
 EYE_ORDER = ("left", "right")
 SPAN_SETTLED_K = 0.02

@@ -29,14 +29,13 @@ Temperatures in kelvin (NaN: not seen by a thermal imager); colours RGB in [0, 2
 
 from __future__ import annotations
 
-import numbers
 from dataclasses import asdict, dataclass, field
 
 import cv2
 import numpy as np
 
 from trifuse.calib.camera import Intrinsics
-from trifuse.calib.numbers import finite_float
+from trifuse.calib.numbers import finite_float, is_integral
 from trifuse.fusion.geometry import Projector32
 from trifuse.fusion.voxel_hash import VoxelHash
 
@@ -67,7 +66,7 @@ def _check_number(name: str, value: object, lo: float, hi: float, sign: int = 0)
 def _check_count(name: str, value: object, lo: int, hi: int) -> None:
     """ValueError naming the setting and its bounds unless ``value`` is an integer in
     ``[lo, hi]``."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not lo <= value <= hi:
+    if not is_integral(value) or not lo <= value <= hi:
         raise ValueError(f"{name}: expected an integer from {lo} to {hi}, got {value!r:.40}")
 
 

@@ -56,6 +56,23 @@ def noisy_corners(
     return obs
 
 
+def scenario_corners(
+    views: int = 30,
+    seed: int = 0,
+    sensors: list[str] | None = None,
+    noise: dict[str, float] | None = None,
+) -> dict[str, dict[str, np.ndarray]]:
+    """Corners of the default head seeing the board at the calibration scenario's first
+    ``views`` poses (its seed 1), noise seeded by ``seed`` (:data:`NOISE` unless given):
+    view -> sensor -> (N, 2) pixels."""
+    return noisy_corners(
+        calibration_poses(views, seed=1, rig=RIG),
+        np.random.default_rng(seed),
+        sensors,
+        noise=noise or NOISE,
+    )
+
+
 def corners_seen(
     board: Board,
     rig: Rig = RIG,

@@ -1,4 +1,6 @@
-"""Running ``trifuse serve`` and Debian's chromium for the browser tests.
+"""Running ``trifuse serve`` and Debian's chromium for the browser tests: consoles, waiting
+on a page (:func:`wait_on_page`), the 3D scene's page and its screenshots
+(:func:`open_scene`, :func:`shot_when`, :func:`drawn_fraction`).
 
 Browser tests skip, with the reason, where /usr/bin/chromium is not installed; ``.ci/run``
 installs it, so CI always runs them. The fixtures ``console`` (the console on the
@@ -11,20 +13,25 @@ import contextlib
 import os
 import subprocess
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import TypeVar
 
+import cv2
+import numpy as np
 import pytest
 
+from tests.support import ROOT, WAIT_S, wait_until
 from trifuse.app.devtools.browser_console import CHROMIUM, CHROMIUM_FLAGS
 from trifuse.app.devtools.console_process import ConsoleProcess, stop_process
+
+V = TypeVar("V")
 
 FLAGS = list(CHROMIUM_FLAGS)
 WAIT_MS = 300_000
 """Bound of a browser test's wait for the console (ms): generous, because a 2-core machine
 busy with other work runs the console several times slower; the awaited event ends the wait
 as soon as it comes. Also every page's default timeout (conftest.py's ``browser``)."""
-ROOT = Path(__file__).resolve().parents[1]
 
 needs_chromium = pytest.mark.skipif(
     not os.path.exists(CHROMIUM), reason=f"browser tests need Debian's chromium at {CHROMIUM}"
@@ -51,7 +58,7 @@ def start_cache_warmup() -> None:
         return
     for name, kwargs in WARM_SCENARIOS.items():
         code = (
-            "from app.server.runtime import serve as s; "
+            "from trifuse.app.server.runtime import serve as s; "
             f"s.warm_simulator_cache({{{name!r}: {kwargs!r}}})"
         )
         _warmups[name] = subprocess.Popen(
@@ -126,3 +133,67 @@ def run_calibration(page) -> str:
     text = page.evaluate("() => document.body.innerText")
     assert "Calibration failed" not in text, text
     return text
+
+
+# -- waiting on a page ----------------------------------------------------------------------
+
+
+def wait_on_page(
+    page,
+    condition: Callable[[], V],
+    what: str | Callable[[], object] = "the condition",
+    timeout_s: float = WAIT_S,
+    poll_s: float = 0.5,
+) -> V:
+    """:func:`tests.support.wait_until` with the Playwright ``page``'s own wait between
+    polls, so that the page runs meanwhile (its WebSocket's messages are handed over)."""
+    return wait_until(
+        condition, what, timeout_s, poll_s=poll_s, pause=lambda s: page.wait_for_timeout(s * 1e3)
+    )
+
+
+# -- the 3D scene's page --------------------------------------------------------------------
+
+VIEWPORT = {"width": 800, "height": 600}
+"""The size of a 3D scene's page (px): :func:`scene_pixels` cuts the view out of it."""
+CONNECTED = "() => !document.body.innerText.includes('Connecting...')"
+"""A page condition: Viser's client has connected."""
+
+
+def open_scene(browser, url: str):
+    """A page at ``url`` (800 x 600), connected, with Viser's software-WebGL notice closed
+    (it would cover the top left of every screenshot)."""
+    page = browser.new_page(viewport=VIEWPORT)
+    page.goto(url)
+    page.wait_for_function(CONNECTED)
+    notice = page.locator(".mantine-Notification-root", has_text="Software WebGL")
+    with contextlib.suppress(Exception):  # only under software WebGL
+        notice.locator("button").first.click()
+    return page
+
+
+def scene_pixels(png: bytes) -> np.ndarray:
+    """The 3D view left of Viser's control panel, (H, W, 3) BGR, from a screenshot."""
+    shot = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    return shot[20:580, 10:450]
+
+
+def drawn_fraction(view: np.ndarray) -> float:
+    """Fraction of pixels that differ clearly from the white background."""
+    return float((np.abs(view.astype(int) - 255).sum(axis=2) > 60).mean())
+
+
+def shot_when(
+    page, path: Path, ok: Callable[[np.ndarray], bool], what: str, timeout_s: float = 180.0
+) -> np.ndarray:
+    """Screenshots of ``page`` until the scene's pixels satisfy ``ok`` (software WebGL on
+    a busy machine may take seconds to draw a new view); the last one is kept at ``path``
+    and its scene pixels returned."""
+    shots: list[np.ndarray] = []
+
+    def drawn() -> bool:
+        shots.append(scene_pixels(page.screenshot(path=str(path))))
+        return ok(shots[-1])
+
+    wait_on_page(page, drawn, what, timeout_s)
+    return shots[-1]

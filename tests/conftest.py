@@ -1,12 +1,17 @@
 """Test set-up: the checkout on ``sys.path`` (``tests.*`` support modules; trifuse itself is
-imported as installed, ``pip install -e '.[test]'``), the real test images kept in
-``tests/data`` (with their licences), and shared fixtures.
+imported as installed, ``pip install -e '.[test]'``) and shared fixtures. The real test
+images kept in ``tests/data`` (with their licences) are ``support.DATA_DIR``.
 
 Plain helpers shared by test modules live in support modules, never in a test module that
-another imports: ``support.py`` (waiting, a simulated clock, small rigs, synthetic frames and
-recordings, capture directories, the CLI), ``scene_support.py`` (the 3D scene's fake
-pipeline), ``ros2_support.py`` (ROS 2 bags), ``fuzz_support.py`` (the loaders' fuzzing:
-strategies, mutators, case counts) and ``browser_support.py`` (consoles and the browser).
+another imports (nor this file: it holds fixtures and hooks only): ``support.py`` (the
+checkout's paths ``ROOT``/``DATA_DIR``, waiting, a simulated clock, small rigs, synthetic frames
+and recordings, capture directories, the CLI, a web app on a port), ``board_support.py``
+(simulated board detections), ``palette_support.py`` (vendor-style thermal images),
+``pose2sim_support.py`` (Pose2Sim's real set and recipe), ``scene_support.py`` (the 3D scene's
+fake pipeline), ``ros2_support.py`` (ROS 2 bags), ``fuzz_support.py`` (the loaders' fuzzing:
+strategies, mutators, case counts) and ``browser_support.py`` (consoles, the browser, the 3D
+scene's page). Paths come from ``support.ROOT``/``DATA_DIR``, never from a test file's own
+place, so test modules may live in any folder under tests/.
 Tests check behaviour, not speed: code paced by the wall clock takes a simulated one
 (``support.FakeClock``), waits are for a condition with a generous time-out
 (``support.wait_until``), and timings are measured by ``trifuse bench``."""
@@ -21,10 +26,6 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
-
-# Everything the tests read lies inside the checkout: a fresh clone runs them as they are.
-DATA_DIR = Path(__file__).resolve().parent / "data"
-OPENCV_LEFT_9X6 = DATA_DIR / "opencv-left-9x6"
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

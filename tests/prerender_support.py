@@ -32,7 +32,8 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.support import ROOT
+
 NICE = 10
 """The background's niceness: it takes what the tests (and their consoles and browsers)
 leave of the CPU. On a machine busy with other work it then gets little until a test

@@ -91,6 +91,8 @@ def scene_context(pipeline: SimpleNamespace, **kwargs: object) -> ConsoleContext
         hub=None,  # type: ignore[arg-type]
         pipeline=pipeline,  # type: ignore[arg-type]
         board=Board(9, 6, 0.04),
-        board_watch=SimpleNamespace(latest=None),  # type: ignore[arg-type]
+        board_watch=SimpleNamespace(  # type: ignore[arg-type]
+            latest=None, latest_pose=None, pose_listeners=[], enabled=True
+        ),
         **kwargs,  # type: ignore[arg-type]
     )

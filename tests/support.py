@@ -1,7 +1,12 @@
 """Helpers shared by test modules (plain functions and classes; fixtures are in
 ``conftest.py``, the console launcher and the browser's settings in ``browser_support.py``).
 
-- Waiting: :func:`wait_until` polls a condition another thread makes true.
+- The checkout: :data:`ROOT`, :data:`DATA_DIR` (the real test images, with their licences),
+  :data:`OPENCV_LEFT_9X6`; tests build paths from these, never from their own file's place.
+- Waiting: :func:`wait_until` polls a condition another thread makes true (failing the
+  test after a time-out; :func:`poll_until` returns instead); :func:`wait_for_exit` waits
+  for a forked child. Tests write no deadline loops of their own.
+- Web apps: :func:`serve` runs one with uvicorn on a free loopback port.
 - The command line: :func:`run_cli` runs ``trifuse`` in this process.
 - Time: :class:`FakeClock`, a clock and a sleep that a test moves, for code that paces
   itself on the wall clock (``clock``/``sleep`` parameters): what such code decides is
@@ -18,10 +23,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
+import os
+import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
@@ -42,6 +52,16 @@ from trifuse.calib.units import encode_amplitude, encode_distance, encode_therma
 
 V = TypeVar("V")
 
+# -- the checkout ---------------------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parent.parent
+"""The checkout's root (``pyproject.toml``, ``app/``, ``tests/``)."""
+DATA_DIR = ROOT / "tests" / "data"
+"""The real images and files the tests read, each with its licence and README: everything
+the tests read lies inside the checkout, so a fresh clone runs them as they are."""
+OPENCV_LEFT_9X6 = DATA_DIR / "opencv-left-9x6"
+"""OpenCV's 9 x 6 chessboard samples (left camera)."""
+
 # -- waiting --------------------------------------------------------------------------------
 
 WAIT_S = 120.0
@@ -50,19 +70,42 @@ on a busy machine that thread may get little CPU; a test that passes returns as 
 condition holds, so only a failing test waits this long."""
 
 
+def poll_until(
+    condition: Callable[[], V],
+    timeout_s: float,
+    *,
+    poll_s: float = 0.02,
+    pause: Callable[[float], object] = time.sleep,
+) -> V:
+    """Call ``condition`` at once, then every ``poll_s`` seconds (waiting with ``pause``),
+    until it returns something true or ``timeout_s`` has passed; its last value (false when
+    the time ran out: the caller decides what that means)."""
+    end = time.monotonic() + timeout_s
+    while not (value := condition()) and time.monotonic() <= end:
+        pause(poll_s)
+    return value
+
+
 def wait_until(
     condition: Callable[[], V],
-    what: str | Callable[[], str] = "the condition",
+    what: str | Callable[[], object] = "the condition",
     timeout_s: float = WAIT_S,
+    *,
+    poll_s: float = 0.02,
+    pause: Callable[[float], object] = time.sleep,
 ) -> V:
     """Poll ``condition`` until it returns something true, and return that; fail saying
-    ``what`` (or what ``what()`` says then) after ``timeout_s``."""
-    end = time.monotonic() + timeout_s
-    while not (value := condition()):
-        if time.monotonic() > end:
-            said = what if isinstance(what, str) else what()
-            pytest.fail(f"timed out after {timeout_s} s waiting for {said}")
-        time.sleep(0.02)
+    ``what`` (or what ``what()`` says then: the state it waits on) after ``timeout_s``.
+
+    Args:
+        condition: called at once, then every ``poll_s`` seconds.
+        pause: how to wait ``poll_s`` seconds between calls (a browser page's own wait lets
+            the page run meanwhile: :func:`tests.browser_support.wait_on_page`).
+    """
+    value = poll_until(condition, timeout_s, poll_s=poll_s, pause=pause)
+    if not value:
+        said = what if isinstance(what, str) else what()
+        pytest.fail(f"timed out after {timeout_s} s waiting for {said}")
     return value
 
 
@@ -70,6 +113,51 @@ def wait_searched(session) -> None:
     """Until every view of a :class:`~app.workflows.calib_session.CalibrationSession` has
     been searched for the board (in its background thread)."""
     wait_until(lambda: all(v.searched for v in session.views()), "every view searched")
+
+
+def wait_for_exit(pid: int, what: str, timeout_s: float = WAIT_S) -> int:
+    """Wait for the child process ``pid`` (``os.fork``) to end; its wait status. After
+    ``timeout_s`` it is killed and the test fails saying it waited for ``what``."""
+    status: list[int] = []
+
+    def ended() -> bool:
+        done, code = os.waitpid(pid, os.WNOHANG)
+        status.append(code)
+        return done != 0
+
+    try:
+        wait_until(ended, what, timeout_s)
+    except pytest.fail.Exception:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        raise
+    return status[-1]
+
+
+# -- a web app on a port --------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def serve(app: object, ws_max_size: int = 4 << 20, port: int | None = None) -> Iterator[int]:
+    """Run the ASGI ``app`` (FastAPI) with uvicorn on 127.0.0.1 (a free port unless given),
+    in a thread; yields the port once it serves."""
+    import uvicorn
+
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind(("127.0.0.1", port or 0))
+    port = sock.getsockname()[1]
+    config = uvicorn.Config(app, log_level="warning", ws_max_size=ws_max_size, lifespan="off")
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    wait_until(lambda: server.started, "uvicorn to start", 10, poll_s=0.01)
+    try:
+        yield port
+    finally:
+        server.should_exit = True
+        thread.join(10)
+        sock.close()
 
 
 # -- the command line -----------------------------------------------------------------------
@@ -400,7 +488,7 @@ def measure_in_child(setup: str, call: str, error: str, timeout_s: float = 120.0
     traceback."""
     child = subprocess.run(
         [sys.executable, "-c", _MEASURE.format(error=error), setup, call],
-        cwd=Path(__file__).resolve().parent.parent,
+        cwd=ROOT,
         capture_output=True,
         text=True,
         timeout=timeout_s,

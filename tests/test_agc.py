@@ -9,7 +9,6 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from trifuse.app.server.runtime.pipeline import PALETTE_TICKS, scale_meta
 from trifuse.fusion.agc import (
     AGC_MODES,
     BIN_K,
@@ -28,14 +27,11 @@ from trifuse.fusion.agc import (
     plateau_positions,
     tone_map,
 )
-from trifuse.fusion.compose import (
-    FALLBACK_DESATURATION,
-    FALLBACK_FADE,
-    Composer,
-    DisplaySettings,
-    auto_span,
-)
+from trifuse.fusion.compose import FALLBACK_DESATURATION, FALLBACK_FADE, DisplaySettings
+from trifuse.fusion.composer import Composer
+from trifuse.fusion.frame_meta import PALETTE_TICKS, scale_meta
 from trifuse.fusion.palettes import palette, temperature_index
+from trifuse.fusion.span import auto_span
 
 W, H = 160, 120
 WALL_K, FLOOR_K, PERSON_K, PIPE_K, COLD_K = 293.5, 292.3, 307.15, 358.0, 279.0
@@ -656,7 +652,9 @@ def test_fusion_panel_sets_the_agc_the_plateau_and_the_max_gain(server) -> None:
         server=server,
         pipeline=pipeline,
         board=Board(9, 6, 0.04),
-        board_watch=SimpleNamespace(latest=None, enabled=False),
+        board_watch=SimpleNamespace(
+            latest=None, latest_pose=None, pose_listeners=[], enabled=False
+        ),
         balancer=None,
         save_rig=None,
         stream_settings=StreamSettings(),
@@ -676,7 +674,7 @@ def test_rest_api_sets_the_agc_and_keeps_it_when_left_out() -> None:
     from fastapi.testclient import TestClient
 
     from tests.support import ListSource
-    from trifuse.app.server.routers.app import create_app
+    from trifuse.app.server.app_factory import create_app
     from trifuse.app.server.runtime.pipeline import FusionPipeline
     from trifuse.app.server.runtime.stream import FrameHub
     from trifuse.app.sources.sim.head import default_rig

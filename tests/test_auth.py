@@ -1,4 +1,5 @@
-"""Authentication and Origin checks of the console (app/server/routers/auth.py, ``trifuse serve``).
+"""Authentication and Origin checks of the console (app/server/middleware/auth.py,
+``trifuse serve``).
 
 The app under test is built as ``trifuse serve`` builds it (every router, the push ingest
 and the Viser relay), so a route added later without protection fails here.
@@ -23,12 +24,11 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from tests.browser_support import start_console
-from tests.support import ListSource
-from tests.test_push import serve
+from tests.support import ListSource, serve
 from trifuse.app.cli import main
 from trifuse.app.devtools.console_process import free_port, stop_process
-from trifuse.app.server.routers.app import create_app
-from trifuse.app.server.routers.auth import AuthConfig, SignInThrottle, check_token, is_loopback
+from trifuse.app.server.app_factory import create_app
+from trifuse.app.server.middleware.auth import AuthConfig, SignInThrottle, check_token, is_loopback
 from trifuse.app.server.routers.session_api import make_session_router
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.stream import FrameHub

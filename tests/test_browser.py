@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.browser_support import needs_chromium
+from tests.browser_support import needs_chromium, wait_on_page
 from trifuse.fusion.palettes import palette
 
 pytestmark = [needs_chromium, pytest.mark.slow]
@@ -249,15 +249,15 @@ def test_viewer_and_source_panel_show_the_same_stream_rates(console, browser) ->
         matched: set[tuple[str, str]] = set()
         settled: list[tuple[float, tuple[str, str]]] = []  # panel readings 5 s behind the last
         repeats_explained = False
-        deadline = time.monotonic() + 120
-        while len(matched) < 3 or len(settled) < 20:
-            assert time.monotonic() < deadline, (seen_panel, seen_viewer)
-            viewer.wait_for_timeout(200)  # the next reading (the loop ends on the condition)
+
+        def read() -> bool:
+            """One reading of both pages; whether enough have been read."""
+            nonlocal matched, settled, repeats_explained
             t = time.monotonic()
             text = viewer.evaluate(overlay)
             assert re.search(r"received \d+\.\d fps", text), text  # its own rate, labelled
             if "console: no frame for" in text:
-                continue  # a stall of the busy machine: no figures to compare (it says so)
+                return False  # a stall of the busy machine: no figures to compare (it says so)
             m = _VIEWER_RATES.search(text)
             assert m is not None, text
             seen_viewer.append((t, (m[1], m[2])))
@@ -270,6 +270,10 @@ def test_viewer_and_source_panel_show_the_same_stream_rates(console, browser) ->
                 repeats_explained = True
             matched = {r for tp, r in seen_panel if _shown(r, tp, seen_viewer)}
             settled = [(tp, r) for tp, r in seen_panel if tp < t - 5]
+            return len(matched) >= 3 and len(settled) >= 20
+
+        # a reading every 200 ms, until enough
+        wait_on_page(viewer, read, lambda: (seen_panel, seen_viewer), 120, poll_s=0.2)
         # A panel reading the viewer never showed: only if the viewer received no frame in
         # that second, which the loaded machine may cause now and then; rarely.
         unmatched = [(tp, r) for tp, r in settled if not _shown(r, tp, seen_viewer)]

@@ -7,14 +7,19 @@ map-hot.png; docs/screenshots/ holds copies a person looked at)."""
 from __future__ import annotations
 
 import re
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.browser_support import console_running, needs_chromium
-from tests.test_browser_scene import drawn_fraction, open_scene, shot_when
+from tests.browser_support import (
+    console_running,
+    drawn_fraction,
+    needs_chromium,
+    open_scene,
+    shot_when,
+    wait_on_page,
+)
 
 pytestmark = [needs_chromium, pytest.mark.slow]
 
@@ -32,14 +37,12 @@ def map_status(page) -> tuple[str, int]:
 
 def wait_status(page, ok, what: str, timeout_s: float = 120.0) -> tuple[str, int]:
     """Polls the status line until ``ok(state, occupied)``; returns them."""
-    end = time.monotonic() + timeout_s
-    while True:
-        state, n = map_status(page)
-        if ok(state, n):
-            return state, n
-        if time.monotonic() > end:
-            pytest.fail(f"timed out waiting for {what}: the map shows {state}, {n}")
-        page.wait_for_timeout(500)
+    return wait_on_page(
+        page,
+        lambda: ok(*(shown := map_status(page))) and shown,
+        lambda: f"{what}: the map shows {map_status(page)}",
+        timeout_s,
+    )
 
 
 def test_the_map_appears_grows_highlights_pauses_saves_and_resets(browser, tmp_path) -> None:

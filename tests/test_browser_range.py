@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import re
 import shutil
-import time
 
 import pytest
 
 from tests.browser_support import TEST_BOARD_POSES, console_running, needs_chromium
+from tests.support import poll_until
 
 pytestmark = [needs_chromium, pytest.mark.slow]
 
@@ -50,10 +50,11 @@ def test_range_panel_runs_saves_and_uses_the_correction(simulated, browser, tmp_
         assert "range_correction" in console.get(f"/api/rigs/{name}")["sensors"]["tof"]
         page.get_by_role("button", name="Use the saved rig").click()
         page.wait_for_function("() => document.body.innerText.includes('TOF distances corrected')")
-        deadline = time.monotonic() + 120  # the pipeline swaps rigs at its next frame set
-        while time.monotonic() < deadline:
-            if "range_correction" in console.get("/api/rig")["sensors"]["tof"]:
-                break
-            page.wait_for_timeout(200)
+        poll_until(  # the pipeline swaps rigs at its next frame set
+            lambda: "range_correction" in console.get("/api/rig")["sensors"]["tof"],
+            120,
+            poll_s=0.2,
+            pause=lambda s: page.wait_for_timeout(s * 1e3),
+        )
         assert "range_correction" in console.get("/api/rig")["sensors"]["tof"]
         page.close()

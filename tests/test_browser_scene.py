@@ -11,23 +11,25 @@ console shares the CPU with them."""
 
 from __future__ import annotations
 
-import contextlib
 import re
 import threading
-import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
-from tests.browser_support import console_running, needs_chromium
+from tests.browser_support import (
+    console_running,
+    drawn_fraction,
+    needs_chromium,
+    open_scene,
+    shot_when,
+)
+from tests.support import wait_until
 
 pytestmark = [needs_chromium, pytest.mark.slow]
 
 SHOTS = Path("/tmp/shots")
-VIEWPORT = {"width": 800, "height": 600}
-CONNECTED = "() => !document.body.innerText.includes('Connecting...')"
 CLOUD_SHOWN = "() => /Cloud: [\\d,]+ points, color/.test(document.body.innerText)"
 VIEW_BUTTONS = {
     "View from head": "head",
@@ -41,51 +43,6 @@ def choose(page, label: str, option: str) -> None:
     """Pick ``option`` in the Viser dropdown labelled ``label`` (a Mantine Select)."""
     page.get_by_label(label).click()
     page.get_by_role("option", name=option, exact=True).click()
-
-
-def open_scene(browser, url: str):
-    """A page at ``url`` (800 x 600), connected, with Viser's software-WebGL notice closed
-    (it would cover the top left of every screenshot)."""
-    page = browser.new_page(viewport=VIEWPORT)
-    page.goto(url)
-    page.wait_for_function(CONNECTED)
-    notice = page.locator(".mantine-Notification-root", has_text="Software WebGL")
-    with contextlib.suppress(Exception):  # only under software WebGL
-        notice.locator("button").first.click()
-    return page
-
-
-def scene_pixels(png: bytes) -> np.ndarray:
-    """The 3D view left of Viser's control panel, (H, W, 3) BGR, from a screenshot."""
-    shot = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
-    return shot[20:580, 10:450]
-
-
-def drawn_fraction(view: np.ndarray) -> float:
-    """Fraction of pixels that differ clearly from the white background."""
-    return float((np.abs(view.astype(int) - 255).sum(axis=2) > 60).mean())
-
-
-def shot_when(page, path: Path, ok, what: str, timeout_s: float = 180.0) -> np.ndarray:
-    """Screenshots of ``page`` until the scene's pixels satisfy ``ok`` (software WebGL on
-    a busy machine may take seconds to draw a new view); the last one is kept at ``path``
-    and its scene pixels returned."""
-    end = time.monotonic() + timeout_s
-    while True:
-        pixels = scene_pixels(page.screenshot(path=str(path)))
-        if ok(pixels):
-            return pixels
-        if time.monotonic() > end:
-            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
-        page.wait_for_timeout(500)
-
-
-def wait_until(condition, what: str, timeout_s: float = 120.0) -> None:
-    end = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > end:
-            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.05)
 
 
 # -- the view buttons move this browser's camera (an in-process scene, no simulator) -----

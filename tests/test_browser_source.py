@@ -7,12 +7,12 @@ A screenshot of the panel goes to /tmp/shots/source.png (for a person to look at
 from __future__ import annotations
 
 import re
-import time
 from pathlib import Path
 
 import pytest
 
 from tests.browser_support import needs_chromium
+from tests.support import wait_until
 from trifuse.app.recording import ReplaySource
 
 pytestmark = [needs_chromium, pytest.mark.slow]
@@ -55,10 +55,12 @@ def test_record_and_stop_from_the_source_panel(console, browser) -> None:
         page.get_by_role("button", name="Record", exact=True).click()
         stop = page.get_by_role("button", name="Stop recording", exact=True)
         stop.wait_for()
-        deadline = time.monotonic() + 60
-        while console.get("/api/status")["recording"]["frames_written"] < 5:
-            assert time.monotonic() < deadline, console.get("/api/status")["recording"]
-            time.sleep(0.2)
+        wait_until(
+            lambda: console.get("/api/status")["recording"]["frames_written"] >= 5,
+            lambda: console.get("/api/status")["recording"],
+            60,
+            poll_s=0.2,
+        )
         page.wait_for_function(
             "() => document.body.innerText.includes('Recording') "
             "&& /\\d+ frames/.test(document.body.innerText)",

@@ -11,9 +11,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import OPENCV_LEFT_9X6
 
-from tests.support import FOCAL, POSE
+from tests.support import FOCAL, OPENCV_LEFT_9X6, POSE
 from trifuse.app.cli import main
 from trifuse.app.workflows.report_format import coverage_sentence
 from trifuse.calib.coverage import coarse_reached

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import yaml
 
+from tests.support import DATA_DIR
 from tests.target_render import look_at_pose, render, to_u8, truth_points
 from trifuse.app.cli import main
 from trifuse.calib.board import Board, board_from_dict
@@ -216,7 +217,7 @@ def test_cli_refuses_overlapping_circles(
 
 # -- real data: BoofCV's symmetric circle grid -------------------------------------------------
 
-BOOFCV = Path(__file__).parent / "data" / "boofcv-circle-regular"
+BOOFCV = DATA_DIR / "boofcv-circle-regular"
 BOOFCV_GRID = Board(10, 8, 0.025, pattern="symmetric_circles", circle_diameter_m=0.015)
 
 

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import yaml
 
+from tests.support import ROOT
 from trifuse.app.cli import main
 from trifuse.app.devtools import bench, benchmark
 
-ROOT = Path(__file__).resolve().parent.parent
 COMMANDS = [
     "simulate", "calibrate", "compare", "rig", "analyze", "record", "fuse", "map", "serve", "bench"
 ]  # fmt: skip

@@ -9,18 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from trifuse.fusion.compose import (
-    DISPLAY_MODES,
-    Composer,
-    DisplaySettings,
-    anaglyph,
-    auto_span,
-    pip_box,
-    point_colors,
-    resolve_span,
-    side_by_side,
-    stereo_halves,
-)
+from trifuse.fusion.cloud_colors import point_colors
+from trifuse.fusion.compose import DISPLAY_MODES, DisplaySettings, pip_box
+from trifuse.fusion.composer import Composer
 from trifuse.fusion.palettes import (
     PALETTE_NAMES,
     apply_palette,
@@ -30,6 +21,8 @@ from trifuse.fusion.palettes import (
     palette_colors,
     temperature_index,
 )
+from trifuse.fusion.span import auto_span, resolve_span
+from trifuse.fusion.stereo_pair import anaglyph, side_by_side, stereo_halves
 
 W, H = 64, 48
 SPAN = (290.0, 310.0)

@@ -1,4 +1,4 @@
-"""The public port against connection exhaustion (app/server/routers/connections.py): half-sent
+"""The public port against connection exhaustion (app/server/middleware/connections.py): half-sent
 requests are closed after the header timeout, a client cannot hold more than its share of
 connections, the total stays below the file limit, and a message that repeats is logged once
 per period."""
@@ -15,9 +15,9 @@ import time
 import pytest
 
 from tests.browser_support import start_console
-from tests.support import wait_until
+from tests.support import FakeClock, wait_until
 from trifuse.app.devtools.console_process import stop_process
-from trifuse.app.server.routers.connections import _RepeatFilter
+from trifuse.app.server.middleware.connections import _RepeatFilter
 
 HEADER_TIMEOUT_S = 3.0
 PER_CLIENT = 40
@@ -116,7 +116,8 @@ def test_a_repeating_message_is_logged_once_per_period() -> None:
     handler = logging.Handler()
     handler.emit = records.append  # type: ignore[method-assign]
     logger.addHandler(handler)
-    limiter = _RepeatFilter(period_s=0.2)
+    clock = FakeClock()
+    limiter = _RepeatFilter(period_s=0.2, clock=clock)
     logger.addFilter(limiter)
     try:
         for _ in range(1000):
@@ -125,7 +126,7 @@ def test_a_repeating_message_is_logged_once_per_period() -> None:
             except OSError:
                 logger.exception("socket.accept() out of system resource\nsocket: fd=7")
         logger.warning("another message")
-        time.sleep(0.25)
+        clock.advance(0.25)
         logger.exception("socket.accept() out of system resource\nsocket: fd=9")
     finally:
         logger.removeFilter(limiter)

@@ -13,7 +13,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import statistics
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
@@ -28,7 +27,7 @@ from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from viser import _messages
 
-from tests.browser_support import needs_chromium
+from tests.browser_support import drawn_fraction, needs_chromium, shot_when, wait_on_page
 from tests.scene_support import pipeline_for, scene_context
 from tests.support import FakeClock
 from trifuse.app.devtools.console_bandwidth import (
@@ -243,8 +242,10 @@ def test_low_mode_halves_the_cloud_rate_and_the_texture_rate(scene) -> None:
 
 
 class _Watch:
-    latest = None
-    enabled = True
+    def __init__(self) -> None:
+        self.latest = self.latest_pose = None
+        self.pose_listeners: list = []
+        self.enabled = True
 
 
 @pytest.fixture
@@ -414,11 +415,7 @@ SHOTS = Path("/tmp/shots")
 def wait_for(page: ConsolePage, condition, what: str, timeout_s: float = 240.0) -> None:
     """Let the page run until ``condition()`` holds (the WebSocket's frames are handed over
     while Playwright waits)."""
-    end = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > end:
-            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
-        page.page.wait_for_timeout(250)
+    wait_on_page(page.page, condition, what, timeout_s, poll_s=0.25)
 
 
 def updates_since(page: ConsolePage, start: int, kind: str) -> list:
@@ -513,16 +510,13 @@ def test_browser_receives_less_per_update_in_low_mode(console, browser) -> None:
         )
         page.page.mouse.move(5, 300)
         SHOTS.mkdir(parents=True, exist_ok=True)
-        end = time.monotonic() + 120.0
-        while True:
-            png = page.page.screenshot(path=str(SHOTS / "console-low-bandwidth.png"))
-            shot = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[20:580, 10:450]
-            drawn = float((np.abs(shot.astype(int) - 255).sum(axis=2) > 60).mean())
-            if drawn > 0.1:
-                break
-            if time.monotonic() > end:
-                pytest.fail(f"the low-bandwidth scene shows nearly nothing ({drawn:.3f})")
-            page.page.wait_for_timeout(500)
+        shot_when(
+            page.page,
+            SHOTS / "console-low-bandwidth.png",
+            lambda view: drawn_fraction(view) > 0.1,
+            "the low-bandwidth scene to show more than nearly nothing",
+            120.0,
+        )
         assert not errors, errors
     finally:
         page.close()

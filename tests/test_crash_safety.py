@@ -38,12 +38,13 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from tests.browser_support import ROOT, TEST_BOARD_POSES, wait_for_cache_warmup
+from tests.browser_support import TEST_BOARD_POSES, wait_for_cache_warmup
+from tests.support import ROOT, wait_for_exit, wait_until
 from trifuse.app.devtools.console_process import ConsoleProcess
 from trifuse.app.recording import ReplaySource
+from trifuse.app.recording.recorder import Recorder
 from trifuse.app.recording.sealed_file import SEAL
 from trifuse.app.recording.writer import RecordingWriter, recover_interrupted
-from trifuse.app.server.runtime.source_control import Recorder
 from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD
@@ -83,16 +84,7 @@ def _crash_in_child(action: Callable[[], Any], module: Any, name: str, nth: int 
             code = 0  # finished without reaching the crash point
         finally:
             os._exit(code)
-    deadline = time.monotonic() + 120
-    while True:
-        done, status = os.waitpid(pid, os.WNOHANG)
-        if done:
-            break
-        if time.monotonic() > deadline:
-            os.kill(pid, signal.SIGKILL)
-            os.waitpid(pid, 0)
-            pytest.fail(f"the child writing with a crash at {name} #{nth} hung")
-        time.sleep(0.02)
+    status = wait_for_exit(pid, f"the child writing with a crash at {name} #{nth}", 120)
     assert os.waitstatus_to_exitcode(status) == CRASHED, f"{name} #{nth} was never reached"
 
 
@@ -478,20 +470,19 @@ class Client(threading.Thread):
         elif self.calibrate == "save":
             status, body = s.call("POST", "/api/calibrate")
             assert status == 202, body
-            deadline = time.monotonic() + 600
-            while (job := s.get("/api/calibrate"))["state"] == "running":
-                assert time.monotonic() < deadline, job
-                time.sleep(0.5)
+            job = wait_until(
+                lambda: (j := s.get("/api/calibrate"))["state"] != "running" and j,
+                lambda: s.get("/api/calibrate"),
+                600,
+                poll_s=0.5,
+            )
             assert job["state"] == "done", job
             self.calibrated = True
             self.going.set()
             status, body = s.call("POST", "/api/rigs")
             assert status == 201, body
             self.rigs[body["name"]] = self._rig_files(body)
-        deadline = time.monotonic() + 600
-        while not self._capture():  # the source's first frames take a while
-            assert time.monotonic() < deadline, "no frames to capture"
-            time.sleep(0.2)
+        wait_until(self._capture, "frames to capture", 600, poll_s=0.2)  # the first take a while
         self.going.set()
         while True:
             if self.rng.random() < 0.65:
@@ -631,10 +622,12 @@ def _kill_and_restart(workdir: Path, log: Path, servers: list[Server]) -> None:
     status, body = server.call("POST", "/api/recording/start")
     assert status == 200 and body["active"], body
     name = Path(body["path"]).name
-    deadline = time.monotonic() + 300
-    while (state := server.get("/api/recording"))["size_bytes"] < 1_600_000:
-        assert time.monotonic() < deadline, state  # a chunk (1 MiB) is complete then
-        time.sleep(0.2)
+    wait_until(  # a chunk (1 MiB) is complete then
+        lambda: server.get("/api/recording")["size_bytes"] >= 1_600_000,
+        lambda: server.get("/api/recording"),
+        300,
+        poll_s=0.2,
+    )
     client = Client(server, workdir, random.Random(rng.random()))
     client.start()  # captures and saves go on while it records
     time.sleep(rng.uniform(0.0, 1.0))
@@ -658,19 +651,21 @@ def _kill_and_restart(workdir: Path, log: Path, servers: list[Server]) -> None:
         assert src.damage is not None and "not finished" in str(src.damage)
 
     # The console works on: a capture, a save, a recording.
-    status, body = server.call("POST", "/api/captures")
-    deadline = time.monotonic() + 120
-    while status != 201:
-        assert time.monotonic() < deadline, body
-        time.sleep(0.3)
-        status, body = server.call("POST", "/api/captures")
+    status, body = wait_until(
+        lambda: (reply := server.call("POST", "/api/captures"))[0] == 201 and reply,
+        "a capture",
+        120,
+        poll_s=0.3,
+    )
     assert body["name"] in [v["name"] for v in server.get("/api/captures")["views"]]
     assert server.call("POST", "/api/thermal/save")[0] == 201
     assert server.call("POST", "/api/recording/start")[0] == 200
-    deadline = time.monotonic() + 120
-    while server.get("/api/recording")["frames_written"] == 0:
-        assert time.monotonic() < deadline
-        time.sleep(0.2)
+    wait_until(
+        lambda: server.get("/api/recording")["frames_written"] > 0,
+        "frames written",
+        120,
+        poll_s=0.2,
+    )
     status, state = server.call("POST", "/api/recording/stop", timeout=180)
     assert status == 200 and not state["active"] and state["error"] is None, state
     with ReplaySource(state["files"][0], realtime=False) as src:

@@ -4,22 +4,23 @@ and goes on (app.server.runtime.periodic)."""
 
 from __future__ import annotations
 
+import collections
 import queue
 import threading
-import time
 from collections.abc import Callable, Iterator
 
 import numpy as np
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from tests.support import FakeClock, small_rig, synth_frame
+from tests.support import FakeClock, small_rig, synth_frame, wait_until
 from trifuse.app.errors import describe_error
+from trifuse.app.server.routers.stream_routes import make_stream_router
 from trifuse.app.server.runtime.board_watch import BoardWatch
 from trifuse.app.server.runtime.demand import Demand
 from trifuse.app.server.runtime.periodic import Periodic
 from trifuse.app.server.runtime.pipeline import FusionPipeline
-from trifuse.app.server.runtime.stream import FrameHub, make_stream_router
+from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.sources.base import FrameSource
 from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.calib.board import Board
@@ -28,11 +29,35 @@ from trifuse.calib.detect import Detection
 RIG = small_rig()
 
 
-def wait_for(condition: Callable[[], bool], what: str, timeout_s: float = 20.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.01)
+def wait_for(condition: Callable[[], object], what: str, timeout_s: float = 20.0) -> None:
+    wait_until(condition, what, timeout_s, poll_s=0.01)
+
+
+class _CountingDemand(Demand):
+    """A demand that counts the waits of the threads it keeps idle (:meth:`Demand.wait`),
+    in all and by thread name."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.waits = 0
+        self.waits_by: collections.Counter[str] = collections.Counter()
+
+    def wait(self, timeout_s: float) -> bool:
+        self.waits += 1
+        self.waits_by[threading.current_thread().name] += 1
+        return super().wait(timeout_s)
+
+
+class _CountingHub(FrameHub):
+    """A hub that counts the frames published to it."""
+
+    def __init__(self, demand: Demand) -> None:
+        super().__init__(demand)
+        self.published = 0
+
+    def publish(self, *args, **kwargs):
+        self.published += 1
+        return super().publish(*args, **kwargs)
 
 
 def test_holds_and_leases_make_a_demand_wanted() -> None:
@@ -81,7 +106,7 @@ def test_periodic_records_a_failing_tick_and_goes_on() -> None:
 
 
 def test_periodic_ticks_only_while_its_demand_is_wanted() -> None:
-    demand = Demand("test")
+    demand = _CountingDemand("test")
 
     class Counter(Periodic):
         ticks = 0
@@ -91,7 +116,8 @@ def test_periodic_ticks_only_while_its_demand_is_wanted() -> None:
 
     loop = Counter("counter", 0.01, demand).start()
     try:
-        time.sleep(0.2)
+        # unwanted: the loop waits for the demand, and again once the first wait timed out
+        wait_for(lambda: demand.waits >= 2, "the loop waiting for its demand a second time")
         assert loop.ticks == 0
         with demand.hold():
             wait_for(lambda: loop.ticks >= 3, "ticks while wanted")
@@ -106,6 +132,9 @@ class _Fed(FrameSource):
         self.sensors = list(RIG.names)
         self.rig = RIG
         self._q: queue.Queue[Frame | None] = queue.Queue()
+        self.asked = 0
+        """How many frames the consumer has asked for: one more than it was given means it
+        has done with every frame given."""
 
     def put_set(self, k: int, rng: np.random.Generator) -> int:
         stamp = 1_000_000_000 + k * 100_000_000
@@ -114,7 +143,10 @@ class _Fed(FrameSource):
         return stamp
 
     def frames(self) -> Iterator[Frame]:
-        while (f := self._q.get()) is not None:
+        while True:
+            self.asked += 1
+            if (f := self._q.get()) is None:
+                return
             yield f
 
     def close(self) -> None:
@@ -131,18 +163,20 @@ def test_the_pipeline_fuses_only_while_wanted_and_catches_up_at_once() -> None:
     listener arriving gets the newest set fused at once, even when the source then sends
     nothing (a paused replay); once nobody listens, the stream forgets its picture."""
     demand, source, rng = Demand("fusion"), _Fed(), np.random.default_rng(1)
-    hub = FrameHub(demand)
+    hub = _CountingHub(demand)
     pipeline = FusionPipeline(source, RIG, hub, demand=demand).start()
     try:
         stamps = [source.put_set(k, rng) for k in range(5)]
         wait_for(lambda: _stamp_of(pipeline) == stamps[-1], "the newest set")
-        time.sleep(0.2)
+        given = len(stamps) * len(RIG.names)
+        wait_for(lambda: source.asked > given, "the pipeline to be done with every frame")
         assert hub.latest is None and pipeline.status.frames_out == 0
         assert pipeline.status.last_stamp_ns == stamps[-1]
         with demand.hold():  # a viewer arrives; the source sends nothing more
             wait_for(lambda: hub.latest is not None, "the catch-up picture", 10.0)
             assert hub.latest.meta["stamp_ns"] == stamps[-1]
             assert pipeline.status.pictures_out == 1
+            assert hub.published == 1  # nothing fused while unwanted reached the hub later
         source.put_set(5, rng)
         source.put_set(6, rng)
         wait_for(lambda: hub.latest is None, "the stream to forget its picture")
@@ -167,7 +201,7 @@ def test_a_stream_viewer_holds_the_hubs_demand() -> None:
 
 
 def test_the_board_watch_searches_only_while_wanted() -> None:
-    demand, searched = Demand("board search"), threading.Event()
+    demand, searched = _CountingDemand("board search"), threading.Event()
     rng = np.random.default_rng(2)
     fs = FrameSet(1, {s: synth_frame(RIG, s, 1, rng) for s in RIG.names}, {})
 
@@ -178,7 +212,13 @@ def test_the_board_watch_searches_only_while_wanted() -> None:
     watch = BoardWatch(lambda: fs, RIG, Board(9, 6, 0.04), detect=detect, demand=demand)
     watch.start()
     try:
-        assert not searched.wait(0.3)
+        # unwanted: both loops (pose, full search) wait for the demand, and again once the
+        # first wait timed out, without a search
+        wait_for(
+            lambda: len(demand.waits_by) == 2 and min(demand.waits_by.values()) >= 2,
+            "both loops waiting for their demand a second time",
+        )
+        assert not searched.is_set()
         demand.touch(2.0)  # a client asked: a lease
         assert searched.wait(10.0)
         wait_for(lambda: watch.latest is not None, "the sighting")

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import pytest
-from conftest import OPENCV_LEFT_9X6
 
 import trifuse.calib.detect as detect_mod
+from tests.support import OPENCV_LEFT_9X6
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.sources.sim.scenarios import (
     CALIBRATION_BOARD,

@@ -21,10 +21,10 @@ from functools import cache
 import cv2
 import numpy as np
 import pytest
-from conftest import DATA_DIR
 
 import trifuse.calib.detect as detect_mod
-from tests.test_palette_thermal import render
+from tests.palette_support import render
+from tests.support import DATA_DIR
 from trifuse.app.devtools.real_sets import top_left_first
 from trifuse.calib.board import Board
 from trifuse.calib.detect import detect_board

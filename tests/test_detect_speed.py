@@ -19,9 +19,9 @@ from functools import cache
 import cv2
 import numpy as np
 import pytest
-from conftest import DATA_DIR
 
 import trifuse.calib.detect as detect_mod
+from tests.support import DATA_DIR
 from trifuse.calib.board import Board
 from trifuse.calib.detect import detect_board
 

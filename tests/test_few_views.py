@@ -18,9 +18,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import DATA_DIR, OPENCV_LEFT_9X6
 
 from tests.board_support import RIG, SPECS, noisy_corners
+from tests.support import DATA_DIR, OPENCV_LEFT_9X6
 from trifuse.app.cli import main
 from trifuse.app.cli.calibrate import ZHANG_MIN_VIEWS as CLI_ZHANG_MIN_VIEWS
 from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses

@@ -30,7 +30,7 @@ from mcap.reader import make_reader
 from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory
 
-from tests.support import run_cli, synth_frame, wait_until
+from tests.support import ROOT, run_cli, synth_frame, wait_until
 from trifuse.app.devtools.procfs import parse_proc_status
 from trifuse.app.recording import RecordingWriter
 from trifuse.app.recording.layout import FUSED_VIDEO_SCHEMA, FUSED_VIDEO_TOPIC, topic_of
@@ -54,13 +54,13 @@ from trifuse.app.server.runtime.foxglove_live import (
     start_foxglove_server,
 )
 from trifuse.app.server.runtime.pipeline import FusionPipeline
-from trifuse.app.server.runtime.source_control import SourceControl, SourceTap
+from trifuse.app.server.runtime.source_control import SourceControl
+from trifuse.app.server.runtime.source_tap import SourceTap
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.sources.sim.render import HeadModel
 from trifuse.app.sources.sim.scenarios import InspectionScenario
 from trifuse.app.sources.simulated import SimulatedHeadSource
 
-ROOT = Path(__file__).resolve().parent.parent
 RECV_S = 60.0
 """Longest wait for one message (the first pose renders in a few seconds)."""
 
@@ -295,11 +295,12 @@ def test_subscribers_get_decodable_messages_and_nobody_costs_nothing(console) ->
         lambda: not console.hub.takers and console.demand.fusion.holds == 0,
         "the fused video to stop",
     )
-    time.sleep(0.3)  # a frame set being published when the client left
+    wait_until(lambda: not live.busy, "the set being published when the client left")
     counts = (live.encoded, live.taken)
-    seen = console.pipeline.status.last_stamp_ns
-    wait_until(lambda: console.pipeline.status.last_stamp_ns != seen, "more frame sets")
-    time.sleep(0.5)
+    for _ in range(2):  # the second: the pipeline's listeners have had the first one
+        seen = console.pipeline.status.last_stamp_ns
+        wait_until(lambda s=seen: console.pipeline.status.last_stamp_ns != s, "more frame sets")
+    wait_until(lambda: not live.busy, "the publisher's thread idle")
     assert (live.encoded, live.taken) == counts
     assert live.failed == 0, live.last_error
 

@@ -5,7 +5,7 @@ file) gets random JSON values, mutated valid bodies, non-JSON bodies, wrong cont
 random path parameters and random query strings. Whatever arrives: never a 5xx; a 4xx
 carries a JSON ``detail`` and changes nothing (settings, replay, recording, views, saved
 rigs, files); nothing is created outside the session's work directory, and no temporary
-file is left in it. Also the request body limit (app/server/routers/limits.py).
+file is left in it. Also the request body limit (app/server/middleware/limits.py).
 """
 
 from __future__ import annotations
@@ -29,11 +29,10 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 from hypothesis.control import currently_in_test_context
 
-from tests.support import small_rig, synth_frames, write_recording
-from tests.test_push import serve
+from tests.support import serve, small_rig, synth_frames, write_recording
 from trifuse.app.recording import ReplaySource
-from trifuse.app.server.routers.app import create_app
-from trifuse.app.server.routers.limits import (
+from trifuse.app.server.app_factory import create_app
+from trifuse.app.server.middleware.limits import (
     DEFAULT_MAX_BODY_BYTES,
     BodyLimitMiddleware,
     add_body_limit,
@@ -41,7 +40,8 @@ from trifuse.app.server.routers.limits import (
 )
 from trifuse.app.server.routers.session_api import make_session_router
 from trifuse.app.server.runtime.pipeline import FusionPipeline
-from trifuse.app.server.runtime.source_control import SourceControl, SourceTap
+from trifuse.app.server.runtime.source_control import SourceControl
+from trifuse.app.server.runtime.source_tap import SourceTap
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.server.runtime.thermal_balance import ThermalBalancer
 from trifuse.app.sources.frames import FrameSet

@@ -28,7 +28,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from mcap_protobuf.decoder import DecoderFactory
 
-from tests.support import assert_same_frame, run_cli, small_rig, synth_frames, wait_until
+from tests.support import ROOT, assert_same_frame, run_cli, small_rig, synth_frames, wait_until
 from trifuse.app.recording import RecordingDamaged, RecordingWriter, ReplaySource
 from trifuse.app.recording.errors import ImageSizeError
 from trifuse.app.recording.images import plane_from_compressed, raw_plane, rgb_from_compressed
@@ -36,14 +36,14 @@ from trifuse.app.recording.map3d import MAX_IMAGE_AGE_S
 from trifuse.app.recording.mcapindex import MAX_CHUNK_BYTES
 from trifuse.app.recording.pieces import plan_fuse, plan_map
 from trifuse.app.server.runtime.pipeline import FusionPipeline
-from trifuse.app.server.runtime.source_control import SourceControl, SourceTap
+from trifuse.app.server.runtime.source_control import SourceControl
+from trifuse.app.server.runtime.source_tap import SourceTap
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.sources.frames import Frame
 from trifuse.app.storage.rigfile import save_rig
 from trifuse.calib.rig import Rig
 from trifuse.calib.units import encode_amplitude
 
-ROOT = Path(__file__).resolve().parent.parent
 GIB = 2**30
 SLACK_MB = 60
 """Peak memory a hostile input may add to the legitimate run's (noise: a few MB)."""

@@ -9,8 +9,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from tests.board_support import RIG, SPECS, noisy_corners
-from tests.test_rig_calibration import synthetic
+from tests.board_support import RIG, SPECS, noisy_corners, scenario_corners
 from trifuse.app.devtools.real_sets import REAL_SETS, load_views
 from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
 from trifuse.calib import rig_calibration
@@ -79,7 +78,7 @@ def test_consistent_views_are_left_alone(views: int, monkeypatch: pytest.MonkeyP
     """The simulator's consistent corners (the joint fit moves intrinsics at most 3 own sigmas
     there, RMS within 1.05x alone): no sensor is guarded, and the result is the one without
     the guard (to rounding: OpenCV's fit is not bit-reproducible)."""
-    obs = synthetic(views)
+    obs = scenario_corners(views)
     guarded = calibrate_rig(obs, CALIBRATION_BOARD, SPECS)
     assert _kept(guarded) == [] and not [n for n in guarded.notes if KEPT in n]
     monkeypatch.setattr(rig_calibration, "GUARD_RMS_RATIO", np.inf)

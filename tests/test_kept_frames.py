@@ -12,7 +12,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from trifuse.app.devtools.bench_link import draw_figures
-from trifuse.app.server.routers.app import create_app
+from trifuse.app.server.app_factory import create_app
 from trifuse.app.server.runtime.kept_frames import ENV, KeptFrames
 from trifuse.app.server.runtime.stream import FrameHub
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from plyfile import PlyData
 
-from tests.support import measure_in_child
+from tests.support import ROOT, measure_in_child
 from trifuse.app.storage import map_file
 from trifuse.app.storage.map_file import (
     MAP_FORMAT,
@@ -429,7 +429,7 @@ def test_a_map_too_large_for_the_memory_is_a_map_file_error(tmp_path: Path) -> N
     for room in (64 << 20, 2 << 30):
         child = subprocess.run(
             [sys.executable, "-c", LIMITED_CHILD, str(path), str(room)],
-            cwd=Path(__file__).resolve().parent.parent,
+            cwd=ROOT,
             capture_output=True,
             text=True,
             timeout=120,

@@ -21,6 +21,7 @@ import viser._gui_handles as viser_handles
 from markdown_it import MarkdownIt
 
 from tests.browser_support import needs_chromium
+from trifuse.app.recording.recorder import RecordingState
 from trifuse.app.server.markdown_text import MAX_CHARS, WORD_JOINER, md_text
 from trifuse.app.server.panels.calibration import CalibrationPanel, views_html
 from trifuse.app.server.panels.display import balance_text
@@ -30,7 +31,6 @@ from trifuse.app.server.panels.scene3d import rig_difference_markdown
 from trifuse.app.server.panels.source import health_text, recording_text
 from trifuse.app.server.routers.viser_bridge import VISER_IMAGE_READER, start_guarded_viser
 from trifuse.app.server.runtime.sensor_health import SensorHealth
-from trifuse.app.server.runtime.source_control import RecordingState
 from trifuse.app.server.runtime.thermal_balance import BalanceStatus
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.workflows.calib_session import ViewInfo
@@ -205,7 +205,7 @@ def test_an_upload_named_as_an_image_reads_no_file(server, secret_png, image_rea
     )
     panel = RigFilesPanel(ctx)  # type: ignore[arg-type]
     name = "![x](" + target.format(png=secret_png) + ")"
-    panel._act(lambda: panel.import_upload(SimpleNamespace(name=name, content=b"\xff\xfe")))
+    panel.upload_rig(SimpleNamespace(name=name, content=b"\xff\xfe"))
     md = panel.message.content
     assert image_reads == [] and "data:" not in panel.message._markdown
     assert panel.message._markdown == md and problems(md) == []
@@ -255,7 +255,7 @@ def panel_texts(server, nasty: str) -> list[tuple[str, bool]]:
         (zip_files(export_rig(rig, "ros").files), "Imported", True),
     ):
         upload = SimpleNamespace(name=nasty, content=content)
-        panel._act(lambda upload=upload: panel.import_upload(upload))
+        panel.upload_rig(upload)
         assert panel.message.content.startswith(outcome), panel.message.content
         texts.append((panel.message.content, shows_nasty))
     # sensor names in the Precision table and the 3D scene's rig comparison
@@ -282,6 +282,7 @@ def panel_texts(server, nasty: str) -> list[tuple[str, bool]]:
         polarity={nasty: SimpleNamespace(as_dict=lambda: polarity)},
         excluded_sensors={nasty: nasty},
         notes=[nasty],
+        verdict=None,
     )
     fake_panel = SimpleNamespace(ctx=SimpleNamespace(ground_truth_rig=None))
     texts.append((CalibrationPanel._results_md(fake_panel, result), True))  # type: ignore[arg-type]

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.support import poll_until
 from trifuse.app.devtools.netem import (
     IP,
     EmulatedLink,
@@ -168,9 +169,7 @@ def test_torn_down_after_an_error_and_stale_links_removed() -> None:
         with emulated_link(10, 5, 0, name="err") as link:
             assert _exists(link) == (True, True)
             raise RuntimeError("boom")
-    deadline = time.monotonic() + 10
-    while _exists(link) != (False, False) and time.monotonic() < deadline:
-        time.sleep(0.1)
+    poll_until(lambda: _exists(link) == (False, False), 10, poll_s=0.1)
     assert _exists(link) == (False, False)
     # a killed run's namespace: its pid is gone
     dead = next(p for p in range(4_100_000, 4_190_000) if not os.path.exists(f"/proc/{p}"))

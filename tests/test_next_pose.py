@@ -16,9 +16,9 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 import pytest
-from conftest import DATA_DIR, OPENCV_LEFT_9X6
 from test_few_views import RIG, SPECS, corners_of
 
+from tests.support import DATA_DIR, OPENCV_LEFT_9X6
 from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
 from trifuse.app.storage.capture import load_capture
 from trifuse.app.workflows.calibration_run import calibrate_capture

@@ -24,6 +24,7 @@ from tests.browser_support import (
     run_calibration,
     wait_for_cache_warmup,
 )
+from tests.support import poll_until
 from trifuse.app.devtools.console_process import ConsoleProcess
 
 pytestmark = [needs_chromium, pytest.mark.slow]
@@ -136,10 +137,6 @@ def _cyan_pixels(page, name: str) -> int:
 
 def _views_within(console: ConsoleProcess, n: int, timeout_s: float) -> bool:
     """Whether the session holds at least ``n`` views within ``timeout_s`` seconds."""
-    end = time.monotonic() + timeout_s
-    while True:
-        if len(console.get("/api/captures")["views"]) >= n:
-            return True
-        if time.monotonic() > end:
-            return False
-        time.sleep(0.5)
+    return poll_until(
+        lambda: len(console.get("/api/captures")["views"]) >= n, timeout_s, poll_s=0.5
+    )

@@ -20,10 +20,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import DATA_DIR
 from scipy.stats import spearmanr
 
-from tests.support import wait_searched
+from tests.palette_support import PALETTES, SIZE, opencv_map, render, text_mask
+from tests.support import DATA_DIR, wait_searched
 from trifuse.app.cli import main
 from trifuse.app.server.panels.calibration import views_html
 from trifuse.app.storage.capture import known_palettes, load_capture
@@ -34,7 +34,6 @@ from trifuse.calib.opencv_reference import calibrate_camera_opencv, find_chessbo
 from trifuse.calib.palette_inverse import PaletteError, builtin_palettes, invert_palette
 from trifuse.calib.polarity import detect_board_configured
 from trifuse.calib.rig import Rig, Sensor
-from trifuse.fusion.palettes import palette
 
 THERMAL = DATA_DIR / "czha626-thermal-visible" / "thermal"
 pytestmark = pytest.mark.skipif(
@@ -42,31 +41,8 @@ pytestmark = pytest.mark.skipif(
 )
 BOARD = Board(6, 5, 0.1)
 BOARD_YAML = "pattern: checkerboard\ninner_corners: [6, 5]\nsquare_size_m: 0.1\n"
-SIZE = (640, 480)
 
 
-def _vendor_palette() -> np.ndarray:
-    """A palette the code does not know: five evenly spaced control points, linear in RGB
-    (navy, purple, crimson, orange, pale yellow), luma rising; (256, 3) uint8 RGB."""
-    points = np.array(
-        [(0, 0, 64), (128, 0, 160), (224, 32, 96), (255, 144, 0), (255, 240, 160)], float
-    )
-    x = np.linspace(0.0, 4.0, 256)
-    return np.stack([np.interp(x, np.arange(5), points[:, k]) for k in range(3)], axis=1).round()
-
-
-def _opencv_map(code: int) -> np.ndarray:
-    ramp = np.arange(256, dtype=np.uint8).reshape(256, 1)
-    return cv2.applyColorMap(ramp, code).reshape(256, 3)[:, ::-1].copy()
-
-
-PALETTES = {
-    "iron": palette("iron"),
-    "rainbow": palette("rainbow"),
-    "jet": _opencv_map(cv2.COLORMAP_JET),
-    "vendor": _vendor_palette().astype(np.uint8),
-}
-"""Test palettes, (256, 3) uint8 RGB, cold end first."""
 READ_AS = {"iron": "iron", "rainbow": "rainbow", "jet": "opencv_jet", "vendor": "own curve"}
 """The palette each must be read as (the vendor's is known to no table: its own curve)."""
 
@@ -75,34 +51,6 @@ READ_AS = {"iron": "iron", "rainbow": "rainbow", "jet": "opencv_jet", "vendor": 
 def _greys() -> dict[str, np.ndarray]:
     """The 12 real LWIR images, name -> (480, 640) uint8 (display values 12-233)."""
     return {f.stem: cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in sorted(THERMAL.glob("*.jpg"))}
-
-
-def _text_mask() -> np.ndarray:
-    """(480, 640) bool: where the overlay's white text lies."""
-    mask = np.zeros(SIZE[::-1], np.uint8)
-    _draw_text(mask, 255)
-    return mask > 0
-
-
-def _draw_text(image: np.ndarray, colour: int | tuple[int, int, int]) -> None:
-    font = cv2.FONT_HERSHEY_SIMPLEX
-    cv2.putText(image, "34.2 C", (530, 28), font, 0.7, colour, 2, cv2.LINE_AA)
-    cv2.putText(image, "11.8 C", (530, 470), font, 0.7, colour, 2, cv2.LINE_AA)
-    cv2.putText(image, "LWIR 12:03:41", (8, 470), font, 0.55, colour, 1, cv2.LINE_AA)
-
-
-def render(grey: np.ndarray, name: str | None) -> np.ndarray:
-    """A grey image as a vendor tool saves it: a colour bar (the palette, hot at the top)
-    at the right edge, white text in three corners; (H, W, 3) uint8 RGB, or with ``name``
-    None the grey reference with the same overlay, (H, W) uint8."""
-    index = grey.copy()
-    index[40:440, 612:628] = np.linspace(255, 0, 400).round().astype(np.uint8)[:, None]
-    if name is None:
-        _draw_text(index, 255)
-        return index
-    rgb = PALETTES[name][index]
-    _draw_text(rgb, (255, 255, 255))
-    return rgb
 
 
 def _write_capture(root: Path, name: str | None, views: list[str]) -> Path:
@@ -123,7 +71,7 @@ def _write_capture(root: Path, name: str | None, views: list[str]) -> Path:
 def test_scalar_read_back_keeps_the_grey_order(name: str) -> None:
     """Every image's scalar is in the grey image's order (Spearman over the pixels outside
     the text); a known palette gives back the grey values themselves."""
-    outside = ~_text_mask()
+    outside = ~text_mask()
     for view, grey in _greys().items():
         scalar, fit = invert_palette(render(grey, name), known_palettes())
         assert fit.palette == READ_AS[name], view
@@ -139,7 +87,7 @@ def test_scalar_read_back_keeps_the_grey_order(name: str) -> None:
 def test_jpeg_palette_images_are_read_back_within_jpeg_noise(name: str) -> None:
     """A vendor's JPEG (quality 90): its colours leave the palette by a few RGB units, the
     same palette is still found and the order kept (Spearman measured 0.998-0.9995)."""
-    outside = ~_text_mask()
+    outside = ~text_mask()
     for view, grey in list(_greys().items())[::3]:
         ok, buf = cv2.imencode(
             ".jpg", render(grey, name)[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90]
@@ -163,7 +111,7 @@ def test_corners_on_palette_images_equal_the_grey_ones(name: str) -> None:
     0.07 px) and 0.3 px at worst (measured 0.26 px: Img16, the detector's fallback path)."""
     table = PALETTES[name].astype(float)
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(table, axis=0), axis=1))])
-    text = _text_mask()
+    text = text_mask()
     median, worst = (0.1, 0.3) if name == "vendor" else (1e-6, 1e-6)
 
     def both(grey: np.ndarray) -> tuple:
@@ -196,7 +144,7 @@ def test_corners_on_palette_images_equal_the_grey_ones(name: str) -> None:
 def _cyclic(grey: np.ndarray) -> np.ndarray:
     """HSV over the image's whole span (as a tool with an automatic span): its two ends meet."""
     full = cv2.normalize(grey, None, 0, 255, cv2.NORM_MINMAX)
-    return _opencv_map(cv2.COLORMAP_HSV)[full]
+    return opencv_map(cv2.COLORMAP_HSV)[full]
 
 
 def _random(grey: np.ndarray) -> np.ndarray:

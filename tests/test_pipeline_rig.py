@@ -38,7 +38,7 @@ def test_set_rig_takes_effect_with_the_next_frame_set(calibration_frame_sets) ->
     assert np.allclose(pipeline.fusion.rig["ccd_right"].T_rig_sensor, T)
 
 
-def test_set_rig_refuses_other_sensors() -> None:
+def test_set_rig_refuses_other_sensors(calibration_frame_sets) -> None:
     rig = default_rig()
     pipeline = FusionPipeline(ListSource(), rig, FrameHub())
     fewer = Rig(
@@ -48,4 +48,10 @@ def test_set_rig_refuses_other_sensors() -> None:
     )
     with pytest.raises(ValueError, match="must match the console's"):
         pipeline.set_rig(fewer)
-    assert pipeline._pending_rig is None and pipeline.rig is rig
+    assert pipeline.rig is rig
+    # nothing is left to swap in at the next frame sets: the rig stays
+    pipeline.source = ListSource.of_sets(calibration_frame_sets[:3])
+    pipeline.start()
+    wait_until(lambda: pipeline.status.frames_out >= 2, "two fused frame sets")
+    pipeline.stop()
+    assert pipeline.status.error is None and pipeline.rig is rig

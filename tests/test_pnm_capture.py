@@ -15,13 +15,14 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.support import DATA_DIR
 from trifuse.app.cli import main
 from trifuse.app.storage.capture import CaptureError, read_image_header
 from trifuse.calib.board import Board
 from trifuse.calib.image_header import ImageHeaderError, pnm_header
 from trifuse.calib.opencv_reference import calibrate_camera_opencv, find_chessboard_opencv
 
-THERMAL = Path(__file__).parent / "data" / "czha626-thermal-visible" / "thermal"
+THERMAL = DATA_DIR / "czha626-thermal-visible" / "thermal"
 BOARD_YAML = "pattern: checkerboard\ninner_corners: [6, 5]\nsquare_size_m: 0.1\n"
 
 

@@ -24,6 +24,7 @@ from trifuse.app.server.panels.display import (
 )
 from trifuse.app.server.panels.precision import PrecisionPanel, plot_data, short_names
 from trifuse.app.server.runtime.board_watch import BoardSighting
+from trifuse.app.server.runtime.context import ConsoleBandwidth
 from trifuse.app.server.runtime.video_presets import StreamSettings
 from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.app.sources.sim.head import default_rig
@@ -107,8 +108,8 @@ def test_panel_shows_table_1_of_the_rig_and_recomputes_when_it_is_replaced(serve
         key = next(iter(ref.distance_error))
         assert 1.0 < ref.distance_error[key]["ccd_left"].x_m < 3.0
         # two plots (|dx|, |dy|), each: distance + 8 curves (4 sensors x before/after) + threshold
-        assert len(panel._plots) == 2
-        dx_plot = panel._plots[0]
+        assert len(panel.plots) == 2
+        dx_plot = panel.plots[0]
         assert len(dx_plot.data) == 1 + 8 + 1 == len(dx_plot.series)
         np.testing.assert_array_equal(
             dx_plot.data[0], ref.distance_error[key]["ccd_left"].distance_m
@@ -127,7 +128,7 @@ def test_panel_shows_table_1_of_the_rig_and_recomputes_when_it_is_replaced(serve
         assert shown != expected  # a longer baseline: the threshold distances grow
         # the plot choice switches the curves to the TOF pixel error (4 curves + threshold)
         panel.kind_choice.value = "TOF pixel error"
-        assert len(panel._plots) == 2 and len(panel._plots[0].data) == 1 + 4 + 1
+        assert len(panel.plots) == 2 and len(panel.plots[0].data) == 1 + 4 + 1
     finally:
         panel.stop()
 
@@ -245,6 +246,8 @@ def test_not_found_board_shows_the_reason() -> None:
 class _Watch:
     def __init__(self, latest: BoardSighting | None) -> None:
         self.latest, self.enabled = latest, True
+        self.latest_pose = None
+        self.pose_listeners: list = []
 
 
 def _panels(server: viser.ViserServer, sighting: BoardSighting | None) -> Panels:
@@ -264,6 +267,7 @@ def _panels(server: viser.ViserServer, sighting: BoardSighting | None) -> Panels
         save_rig=None,
         stream_settings=StreamSettings(),
         next_outline={},
+        bandwidth=ConsoleBandwidth(),
     )
     return Panels(ctx)
 

@@ -12,7 +12,6 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -20,7 +19,7 @@ import pytest
 import ray
 from ray.cluster_utils import Cluster
 
-from tests.support import directory_bytes, record_survey_archive
+from tests.support import ROOT, directory_bytes, poll_until, record_survey_archive
 from trifuse.app.cli import main
 from trifuse.app.devtools.procfs import child_pids
 from trifuse.app.recording import jobs
@@ -238,17 +237,19 @@ def test_a_private_ray_instance_listens_on_loopback_only(
     with log.open("w") as stderr:  # (a file: a pipe nobody reads while polling can fill)
         job = subprocess.Popen(
             [sys.executable, "-c", code, "fuse", str(archive[0]), "--out", str(out), "--ray"],
-            cwd=Path(__file__).resolve().parent.parent,
+            cwd=ROOT,
             stdout=subprocess.DEVNULL,
             stderr=stderr,
         )
     seen: set[tuple[str, int, str]] = set()
-    deadline = time.monotonic() + 180
+
+    def ended() -> bool:
+        for pid in _tree(job.pid):
+            seen.update(_listening(pid))
+        return job.poll() is not None
+
     try:
-        while job.poll() is None and time.monotonic() < deadline:
-            for pid in _tree(job.pid):
-                seen |= _listening(pid)
-            time.sleep(0.2)
+        poll_until(ended, 180, poll_s=0.2)
     finally:
         if job.poll() is None:  # past the deadline: SIGTERM, so that Ray is shut down
             job.terminate()

@@ -4,7 +4,6 @@ ReplaySource.head_pose), the pose between poses, other robots' frame names, dama
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import foxglove
@@ -14,7 +13,7 @@ from foxglove.channels import FrameTransformChannel, FrameTransformsChannel
 from foxglove.messages import FrameTransform, FrameTransforms, Quaternion, Timestamp, Vector3
 from scipy.spatial.transform import Rotation
 
-from tests.support import small_rig, synth_frames, write_recording
+from tests.support import poll_until, small_rig, synth_frames, write_recording
 from trifuse.app.cli import main
 from trifuse.app.recording import RecordingError, RecordingWriter, ReplaySource
 from trifuse.app.recording.poses import interpolate_pose, read_poses
@@ -268,9 +267,7 @@ def test_the_simulated_heads_survey_shows_the_pose_it_reports(
         # once later poses are rendered, a frame 1.5 s on shows the one nearest its time
         # (1.5 s, or a neighbour on a slow machine): the head has turned, and truth_at says
         # so
-        deadline = time.monotonic() + 60
-        while src.rendered_count < 4 and time.monotonic() < deadline:  # type: ignore[attr-defined]
-            time.sleep(0.05)
+        poll_until(lambda: src.rendered_count >= 4, 60, poll_s=0.05)  # type: ignore[attr-defined]
         later = src.truth_at(src.start_ns + 1_500_000_000, sensors=[])  # type: ignore[attr-defined]
     finally:
         src.close()

@@ -28,6 +28,7 @@ from trifuse.app.cli import main
 from trifuse.app.devtools.image_quality import psnr, ssim
 from trifuse.app.recording import RecordingError, RecordingWriter, ReplaySource
 from trifuse.app.recording.layout import FUSED_VIDEO_TOPIC, parse_topic
+from trifuse.app.recording.recorder import Recorder
 from trifuse.app.recording.video_track import (
     FusedVideoEncoder,
     FusedVideoFuser,
@@ -39,13 +40,10 @@ from trifuse.app.server.panels.source import SourcePanel
 from trifuse.app.server.runtime.board_watch import BoardWatch
 from trifuse.app.server.runtime.context import ConsoleContext
 from trifuse.app.server.runtime.demand import Demand
+from trifuse.app.server.runtime.fused_video_tap import FusedVideoSource
 from trifuse.app.server.runtime.pipeline import FusionPipeline
-from trifuse.app.server.runtime.source_control import (
-    FusedVideoSource,
-    Recorder,
-    SourceControl,
-    SourceTap,
-)
+from trifuse.app.server.runtime.source_control import SourceControl
+from trifuse.app.server.runtime.source_tap import SourceTap
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.sources.base import frame_sets
 from trifuse.app.storage.rigfile import save_rig

@@ -17,11 +17,11 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from conftest import OPENCV_LEFT_9X6
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
 from tests.browser_support import needs_chromium
+from tests.support import OPENCV_LEFT_9X6
 from trifuse.app.cli import main
 from trifuse.app.server.routers.session_api import make_session_router
 from trifuse.app.sources.sim.head import default_rig
@@ -363,7 +363,7 @@ def test_panel_download_and_route_send_the_same_page(rig_run: dict, tmp_path: Pa
             panel = CalibrationPanel(ctx, session)
             sent: list[tuple[str, bytes]] = []
             fake = SimpleNamespace(send_file_download=lambda n, c, **_kw: sent.append((n, c)))
-            panel._act(lambda: panel._download(fake))
+            panel.send_report(fake)
             assert not sent and "Not done" in panel.message.content
             finished = time.time()
             session.job = CalibrationJob(
@@ -378,7 +378,7 @@ def test_panel_download_and_route_send_the_same_page(rig_run: dict, tmp_path: Pa
             )
             panel.tick()
             assert panel.download.visible
-            panel._act(lambda: panel._download(fake))
+            panel.send_report(fake)
             reply = client.get("/api/calibrate/report.html")
         assert reply.status_code == 200 and reply.headers["content-security-policy"] == CSP
         assert reply.headers["content-type"].startswith("text/html")

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
+from tests.support import OPENCV_LEFT_9X6
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.storage.rigfile import load_rig, save_rig
 from trifuse.calib.camera import MAX_DISTORTION_TERM, Intrinsics, corner_radius
@@ -556,7 +557,7 @@ def test_modality_of_a_sensor_name() -> None:
 # -- physical bounds: what calibrations produce stays loadable ---------------------------------
 
 
-PHOTOS = Path(__file__).resolve().parent / "data" / "opencv-left-9x6"
+PHOTOS = OPENCV_LEFT_9X6
 BOARD_9X6 = np.zeros((54, 3), np.float32)
 BOARD_9X6[:, :2] = np.mgrid[0:9, 0:6].T.reshape(-1, 2) * 0.025
 TERM_POWERS = (2, 4, 1, 1, 6, 2, 4, 6)  # of the corner radius, k1 k2 p1 p2 k3 k4 k5 k6

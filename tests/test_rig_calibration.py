@@ -8,7 +8,7 @@ from scipy import sparse
 from scipy.optimize import least_squares
 from threadpoolctl import threadpool_info
 
-from tests.board_support import NOISE, RIG, SPECS, noisy_corners
+from tests.board_support import NOISE, RIG, SPECS, scenario_corners
 from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
 from trifuse.calib import polarity
 from trifuse.calib.errors import CalibrationError
@@ -21,21 +21,6 @@ from trifuse.calib.transforms import make_T, rotation_from_rvec, rvec_from_rotat
 # Per-axis corner noise (px) of each modality, about what the detectors achieve.
 
 
-def synthetic(
-    views: int = 30,
-    seed: int = 0,
-    sensors: list[str] | None = None,
-    noise: dict[str, float] | None = None,
-) -> dict[str, dict[str, np.ndarray]]:
-    """Corners of the default head seeing the board at the calibration scenario's poses."""
-    return noisy_corners(
-        calibration_poses(views, seed=1, rig=RIG),
-        np.random.default_rng(seed),
-        sensors,
-        noise=noise or NOISE,
-    )
-
-
 def _param_errors(name: str, result, reference: str = "tof"):
     """Errors of T_ref_sensor's rotation vector (deg) and translation (m), per component."""
     T_true = RIG.T(reference, name)
@@ -46,7 +31,7 @@ def _param_errors(name: str, result, reference: str = "tof"):
 
 @pytest.fixture(scope="module")
 def full():
-    return calibrate_rig(synthetic(), CALIBRATION_BOARD, SPECS)
+    return calibrate_rig(scenario_corners(), CALIBRATION_BOARD, SPECS)
 
 
 def test_recovers_every_sensor_within_three_sigma(full) -> None:
@@ -105,7 +90,7 @@ def test_thirty_views_are_judged_good(full) -> None:
     [(["ccd_left", "ccd_right"], "ccd_left"), (["ccd_right", "thermal_right"], None)],
 )
 def test_subsets_of_sensors(sensors: list[str], reference: str | None) -> None:
-    obs = synthetic(sensors=sensors, seed=3)
+    obs = scenario_corners(sensors=sensors, seed=3)
     result = calibrate_rig(obs, CALIBRATION_BOARD, SPECS, CalibrationOptions(reference=reference))
     ref = reference or sorted(sensors)[0]  # no TOF: the first sensor by name
     assert result.reference == ref and sorted(result.sensors) == sorted(sensors)
@@ -120,7 +105,7 @@ def test_subsets_of_sensors(sensors: list[str], reference: str | None) -> None:
 
 
 def test_outlier_view_and_corners_are_flagged_and_left_out() -> None:
-    obs = synthetic(seed=5)
+    obs = scenario_corners(seed=5)
     rng = np.random.default_rng(11)
     obs["0007"]["thermal_left"] = obs["0007"]["thermal_left"] + rng.normal(0, 1.5, (54, 2))
     obs["0012"]["ccd_right"][20] += (4.0, -3.0)  # one mis-detected corner
@@ -140,10 +125,10 @@ def test_outlier_view_and_corners_are_flagged_and_left_out() -> None:
 def test_bad_input_gives_clear_errors() -> None:
     with pytest.raises(CalibrationError, match="not detected in any image"):
         calibrate_rig({}, CALIBRATION_BOARD, SPECS)
-    one = {"0001": synthetic(views=1)["0001"]}
+    one = {"0001": scenario_corners(views=1)["0001"]}
     with pytest.raises(CalibrationError, match=r"reference sensor 'tof': .*1 view"):
         calibrate_rig(one, CALIBRATION_BOARD, SPECS)
-    obs = synthetic(views=6)
+    obs = scenario_corners(views=6)
     with pytest.raises(CalibrationError, match="unknown sensor 'lidar'"):
         calibrate_rig(obs, CALIBRATION_BOARD, SPECS, CalibrationOptions(reference="lidar"))
     obs["0001"]["tof"] = obs["0001"]["tof"][:10]
@@ -152,7 +137,7 @@ def test_bad_input_gives_clear_errors() -> None:
 
 
 def test_sensor_with_too_few_views_is_left_out_and_said() -> None:
-    obs = synthetic(views=12, seed=2)
+    obs = scenario_corners(views=12, seed=2)
     seen = [v for v in obs if "thermal_right" in obs[v]]
     for v in seen[2:]:
         del obs[v]["thermal_right"]
@@ -168,7 +153,7 @@ def _problem(
     views: int = 6, refine_intrinsics: bool = True, seed: int = 0
 ) -> tuple[CornerProblem, np.ndarray, dict]:
     """A joint problem of the default head (every sensor), and a point near its solution."""
-    obs = synthetic(views=views, seed=seed)
+    obs = scenario_corners(views=views, seed=seed)
     sensors = ["tof", "ccd_left", "ccd_right", "thermal_left", "thermal_right"]
     names = sorted(obs)
     obj = CALIBRATION_BOARD.object_points()
@@ -352,5 +337,5 @@ def test_blas_runs_on_one_thread_during_the_calibration() -> None:
     def progress(_stage: str, _fraction: float) -> None:
         seen.append([p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"])
 
-    calibrate_rig(synthetic(views=10, seed=4), CALIBRATION_BOARD, SPECS, progress=progress)
+    calibrate_rig(scenario_corners(views=10, seed=4), CALIBRATION_BOARD, SPECS, progress=progress)
     assert len(seen) > 5 and all(threads and set(threads) == {1} for threads in seen)

@@ -86,7 +86,7 @@ def test_an_exported_zip_imports_as_the_next_rig_version(server, fmt) -> None:
 def test_bad_uploads_and_eyes_are_refused_with_a_reason(server) -> None:
     panel, _ = panel_with(server, [])
     panel.fmt.value = "urdf"
-    panel._act(lambda: panel.import_upload(SimpleNamespace(name="x.urdf", content=b"<robot/>")))
+    panel.upload_rig(SimpleNamespace(name="x.urdf", content=b"<robot/>"))
     assert "Not done" in panel.message.content and "export only" in panel.message.content
     with pytest.raises(ValueError, match="not a text file"):
         uploaded_files("x.bin", b"\xff\xfe\x00")
@@ -227,12 +227,10 @@ def test_a_deep_opencv_rig_is_refused_and_the_panel_imports_the_next(server) -> 
     deep = "%YAML:1.0\nrig: " + "[" * 40_000 + "]" * 40_000 + "\n"
     upload = SimpleNamespace(name="deep.zip", content=zip_files({"rig.yml": deep}))
     assert len(upload.content) < 1000
-    panel._act(lambda: panel.import_upload(upload))
+    panel.upload_rig(upload)
     assert "Not done" in panel.message.content and "nest" in panel.message.content
     assert saved == []
     sent = {}
     panel.export(SimpleNamespace(send_file_download=lambda n, d, **_kw: sent.update({n: d})))
-    panel._act(
-        lambda: panel.import_upload(SimpleNamespace(name="ok.zip", content=sent["rig-opencv.zip"]))
-    )
+    panel.upload_rig(SimpleNamespace(name="ok.zip", content=sent["rig-opencv.zip"]))
     assert "rig-0001" in panel.message.content and len(saved) == 1

@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 import pytest
 import yaml
-from conftest import DATA_DIR
 
+from tests.support import DATA_DIR
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.calib.camera import Intrinsics
 from trifuse.calib.errors import RigError
@@ -29,7 +29,14 @@ from trifuse.calib.rig_formats import (
     ros_format,
     urdf_format,
 )
-from trifuse.calib.transforms import invert, make_T, rotation_from_euler_deg, transform_points
+from trifuse.calib.transforms import (
+    invert,
+    make_T,
+    rotation_from_euler_deg,
+    rotation_from_rpy,
+    rpy_from_rotation,
+    transform_points,
+)
 
 ROS_SAMPLE = DATA_DIR / "rig_formats" / "ros" / "camera_info.yaml"
 DEFAULT_EYES = {"left": ("ccd_left", "thermal_left"), "right": ("ccd_right", "thermal_right")}
@@ -190,9 +197,9 @@ def test_rpy_round_trip_everywhere() -> None:
         angles += [(r, pitch, y) for r, y in rng.uniform(-180, 180, (20, 2))]
     for roll, pitch, yaw in angles:
         R = rotation_from_euler_deg(roll, pitch, yaw)
-        rpy = urdf_format.rpy_from_rotation(R)
+        rpy = rpy_from_rotation(R)
         assert -math.pi / 2 <= rpy[1] <= math.pi / 2
-        np.testing.assert_allclose(urdf_format.rotation_from_rpy(*rpy), R, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(rotation_from_rpy(*rpy), R, rtol=0, atol=1e-14)
 
 
 def test_urdf_options_name_the_links() -> None:
@@ -236,7 +243,7 @@ def test_poses_from_urdf_and_chains() -> None:
     T_mount_b = _pose(rng, -5.0, 90.0, 12.0)
 
     def joint(name: str, kind: str, parent: str, child: str, T: np.ndarray) -> str:
-        rpy = " ".join(repr(v) for v in urdf_format.rpy_from_rotation(T[:3, :3]))
+        rpy = " ".join(repr(v) for v in rpy_from_rotation(T[:3, :3]))
         xyz = " ".join(repr(float(v)) for v in T[:3, 3])
         return (
             f'<joint name="{name}" type="{kind}"><parent link="{parent}"/>'

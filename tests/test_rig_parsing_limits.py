@@ -33,7 +33,7 @@ import numpy as np
 import pytest
 import yaml
 
-from tests.support import run_cli
+from tests.support import DATA_DIR, ROOT, run_cli
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.workflows.rig_import import import_rig_isolated, run_isolated
 from trifuse.calib import yaml_text
@@ -498,10 +498,9 @@ def test_millions_of_integers_are_refused_at_once_with_bounded_memory(n: int) ->
     one just over the limit (counted event by event): refused in a second or two, the
     process's resident size growing by the text's copy, a few MiB (PyYAML's pure parser
     took 307 s and kept 0.9 GiB); past 512 MiB more it would fail with MemoryError."""
-    root = Path(__file__).resolve().parent.parent
     proc = subprocess.run(
         [sys.executable, "-c", _MEASURE, str(n)],
-        cwd=root,
+        cwd=ROOT,
         capture_output=True,
         text=True,
         timeout=120,
@@ -583,7 +582,7 @@ def test_the_c_loader_builds_what_the_pure_one_builds() -> None:
     docs.append(rig_to_yaml(rig))
     for fmt in ("ros", "kalibr"):
         docs += [t for name, t in export_rig(rig, fmt).files.items() if name.endswith(".yaml")]
-    data = Path(__file__).resolve().parent / "data" / "rig_formats"
+    data = DATA_DIR / "rig_formats"
     docs += [p.read_text() for p in sorted(data.rglob("*.yaml"))]
     for doc in docs:
         want = yaml.load(doc, Loader=yaml.SafeLoader)

@@ -4,6 +4,7 @@ pipeline: a real StereoFusion of the simulated head's rig fed one synthetic fram
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections.abc import Iterator
 from types import SimpleNamespace
 
@@ -19,6 +20,7 @@ from tests.scene_support import (
     ramp_distance,
     scene_context,
 )
+from tests.support import FakeClock
 from trifuse.app.server.panels import scene_layout as layout
 from trifuse.app.server.panels.display import NEXT_RGB, scale_corners
 from trifuse.app.server.panels.scene3d import (
@@ -330,7 +332,7 @@ def test_tick_survives_missing_sensors_nan_depth_and_broken_parts(scene) -> None
         raise OSError("rig store unreadable")
 
     s.ctx.rig_choices = broken
-    s._next_choices = s._next_texture = 0.0  # due now
+    s.clock = FakeClock(time.monotonic() + 60.0)  # a minute on: every part is due
     pipeline.latest_set = "not a frame set"
     s.ctx.board_watch.latest = BoardSighting(
         fs, {}, make_T(np.eye(3), [0.0, 0.0, 1.0]), "tof", False

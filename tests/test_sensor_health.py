@@ -15,8 +15,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from tests.support import ListSource, small_rig, synth_frame, wait_until
+from trifuse.app.server.app_factory import create_app
 from trifuse.app.server.panels.source import health_text
-from trifuse.app.server.routers.app import create_app
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.sensor_health import (
     SUBSAMPLE,
@@ -31,7 +31,8 @@ from trifuse.app.server.runtime.sensor_health import (
     short_error,
     silence_threshold_s,
 )
-from trifuse.app.server.runtime.source_control import SourceControl, SourceTap
+from trifuse.app.server.runtime.source_control import SourceControl
+from trifuse.app.server.runtime.source_tap import SourceTap
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.sources.base import FrameSetAssembler
 from trifuse.app.sources.frames import Frame
@@ -346,8 +347,7 @@ def test_pipeline_goes_on_without_the_left_colour_and_right_thermal() -> None:
             frames.append(good(s, t, k))
     hub = FrameHub()
     pipeline = FusionPipeline(ListSource(frames, RIG.names), RIG, hub).start()
-    pipeline._thread.join(60)
-    assert not pipeline._thread.is_alive() and pipeline.status.error is None
+    assert pipeline.join(60) and pipeline.status.error is None
     assert pipeline.status.frames_out >= 30 + 10  # fused frames went on without them
     meta = hub.latest.meta
     assert {"ccd_left", "thermal_right"} <= set(meta["missing"])

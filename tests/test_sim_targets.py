@@ -21,7 +21,6 @@ import contextlib
 import io
 import json
 import math
-import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -30,7 +29,7 @@ import numpy as np
 import pytest
 import viser
 
-from tests.browser_support import WAIT_MS, needs_chromium
+from tests.browser_support import WAIT_MS, drawn_fraction, needs_chromium, shot_when
 from tests.prerender_support import TARGET_VIEWS, prerendered
 from tests.support import FOCAL, POSE
 from trifuse.app.cli import main
@@ -420,14 +419,7 @@ def test_browser_shows_the_charuco_board_in_the_3d_scene(browser, tmp_path: Path
         page.mouse.move(5, 300)
         SHOTS.mkdir(parents=True, exist_ok=True)
         path = SHOTS / "charuco-in-scene.png"
-        deadline = time.monotonic() + 180.0
-        while True:  # software WebGL on a busy machine may take seconds to draw the view
-            shot = cv2.imdecode(np.frombuffer(page.screenshot(path=str(path)), np.uint8), 1)
-            view = shot[20:580, 10:450].astype(int)
-            if (np.abs(view - 255).sum(axis=2) > 60).mean() > 0.3:
-                break
-            assert time.monotonic() < deadline, "the view from the head was never drawn"
-            page.wait_for_timeout(500)
+        shot_when(page, path, lambda view: drawn_fraction(view) > 0.3, "the view from the head")
         page.close()
 
 

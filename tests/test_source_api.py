@@ -18,9 +18,10 @@ from tests.support import (
     write_recording,
 )
 from trifuse.app.recording import ReplaySource
-from trifuse.app.server.routers.app import create_app
+from trifuse.app.server.app_factory import create_app
 from trifuse.app.server.runtime.pipeline import FusionPipeline
-from trifuse.app.server.runtime.source_control import SourceControl, SourceTap
+from trifuse.app.server.runtime.source_control import SourceControl
+from trifuse.app.server.runtime.source_tap import SourceTap
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.sources.frames import Frame
 from trifuse.calib.rig import Rig

@@ -18,6 +18,7 @@ from viser import GuiEvent
 
 from tests.support import (
     WAIT_S,
+    FakeClock,
     ListSource,
     small_rig,
     synth_frame,
@@ -25,19 +26,17 @@ from tests.support import (
     wait_until,
     write_recording,
 )
+from trifuse.app.errors import ControlError
 from trifuse.app.recording import RecordingWriter, ReplaySource
+from trifuse.app.recording.recorder import Recorder
 from trifuse.app.server.panels import source as source_panel
 from trifuse.app.server.panels.source import SourcePanel, human_bytes
 from trifuse.app.server.runtime.board_watch import BoardWatch
 from trifuse.app.server.runtime.context import ConsoleContext
 from trifuse.app.server.runtime.pipeline import FusionPipeline
-from trifuse.app.server.runtime.source_control import (
-    ControlError,
-    RateMeter,
-    Recorder,
-    SourceControl,
-    SourceTap,
-)
+from trifuse.app.server.runtime.rates import RateWindow
+from trifuse.app.server.runtime.source_control import SourceControl
+from trifuse.app.server.runtime.source_tap import SourceTap
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.sources.frames import Frame
 from trifuse.calib.board import Board
@@ -87,13 +86,21 @@ def drag(slider, value: float) -> None:
 
 
 @pytest.fixture()
-def replay_panel(recording, rig, tmp_path) -> Iterator[tuple[SourcePanel, ReplaySource, Path]]:
+def clock() -> FakeClock:
+    """The Source panel's clock (how long a slider the operator moved is left alone)."""
+    return FakeClock(100.0)
+
+
+@pytest.fixture()
+def replay_panel(
+    recording, rig, tmp_path, clock
+) -> Iterator[tuple[SourcePanel, ReplaySource, Path]]:
     replay = ReplaySource(recording, loop=True, realtime=True)
     hub = FrameHub()
     pipeline = FusionPipeline(SourceTap(replay), rig, hub).start()
     control = SourceControl(pipeline, hub, f"replay of {recording.name}", tmp_path / "work")
     server = _server()
-    panel = SourcePanel(_ctx(server, pipeline, rig), control)  # not started: ticks by hand
+    panel = SourcePanel(_ctx(server, pipeline, rig), control, clock=clock)  # ticks by hand
     try:
         yield panel, replay, tmp_path / "work"
     finally:
@@ -134,7 +141,7 @@ def test_play_pause_and_the_position_slider(replay_panel) -> None:
     assert replay.rate == 2.0
 
 
-def test_the_slider_leaves_the_operators_drag_alone(replay_panel, monkeypatch) -> None:
+def test_the_slider_leaves_the_operators_drag_alone(replay_panel, clock, monkeypatch) -> None:
     panel, replay, _ = replay_panel
     seeks: list[float] = []
     monkeypatch.setattr(panel.control, "seek", seeks.append)  # the replay does not move
@@ -143,7 +150,7 @@ def test_the_slider_leaves_the_operators_drag_alone(replay_panel, monkeypatch) -
     assert seeks == [2.9]
     panel.tick()
     assert panel.position.value == 2.9  # mid-drag: not pulled back to where the replay is
-    panel._hold_until["position"] = 0.0  # the hold has passed
+    clock.advance(source_panel.HOLD_S)  # the hold has passed
     panel.tick()
     assert panel.position.value < 2.9  # follows the replay again
 
@@ -264,7 +271,7 @@ def test_nothing_recorded_leaves_no_file(rig, tmp_path) -> None:
 
 
 def test_rate_meter() -> None:
-    meter = RateMeter(window_s=2.0)
+    meter = RateWindow(window_s=2.0)
     for k in range(90):  # 30 Hz for 3 s
         meter.tick("ccd_left", 100.0 + k / 30)
     for k in range(15):  # 15 Hz for 1 s, then silence

@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from tests.support import ListSource, wait_until
-from trifuse.app.server.routers.app import create_app
+from trifuse.app.server.app_factory import create_app
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.sources.frames import Frame, FrameSet

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import threading
-import time
 from collections.abc import Iterator
 
 import cv2
@@ -15,16 +14,12 @@ import pytest
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from tests.support import FakeClock, small_rig, synth_frame
+from tests.support import FakeClock, poll_until, small_rig, synth_frame
 from trifuse.app.server.panels.source import stream_text
+from trifuse.app.server.routers.stream_routes import make_stream_router
 from trifuse.app.server.runtime.pipeline import FusionPipeline, PipelineStatus, _Job, _StreamEncoder
 from trifuse.app.server.runtime.rates import RatesSnapshot, StreamRates
-from trifuse.app.server.runtime.stream import (
-    MAX_MESSAGE_CHARS,
-    FrameHub,
-    StreamFrame,
-    make_stream_router,
-)
+from trifuse.app.server.runtime.stream import MAX_MESSAGE_CHARS, FrameHub, StreamFrame
 from trifuse.app.server.runtime.video_stats import VideoViewerStats
 from trifuse.app.sources.base import FrameSource
 from trifuse.app.sources.frames import Frame
@@ -121,9 +116,7 @@ def test_jpeg_is_encoded_only_while_a_jpeg_viewer_listens() -> None:
     def publish(job: _Job) -> StreamFrame:
         seq = hub.latest.seq if hub.latest is not None else 0
         assert encoder.submit(job)
-        deadline = time.monotonic() + 30
-        while (hub.latest is None or hub.latest.seq == seq) and time.monotonic() < deadline:
-            time.sleep(0.005)
+        poll_until(lambda: hub.latest is not None and hub.latest.seq != seq, 30, poll_s=0.005)
         assert hub.latest is not None and hub.latest.seq == seq + 1, status.error
         return hub.latest
 
@@ -249,9 +242,9 @@ def _run(
 ) -> tuple[FusionPipeline, FrameHub]:
     hub = hub or FrameHub()
     pipeline = FusionPipeline(source, RIG, hub, settings).start()
-    pipeline._thread.join(60)
+    pipeline.join(60)
     pipeline.stop()
-    assert not pipeline._thread.is_alive() and pipeline.status.error is None
+    assert pipeline.join(0) and pipeline.status.error is None
     assert hub.latest is not None
     json.dumps(hub.latest.meta)  # JSON-able as sent
     return pipeline, hub

@@ -15,9 +15,9 @@ from functools import lru_cache
 import cv2
 import numpy as np
 import pytest
-from conftest import OPENCV_LEFT_9X6
 
 from tests.prerender_support import THERMAL_MORE_SEEDS, prerendered
+from tests.support import OPENCV_LEFT_9X6
 from trifuse.app.sources.sim.condition_views import ThermalView, thermal_condition_views
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.sources.sim.render import Renderer
@@ -270,6 +270,12 @@ def test_low_contrast_is_1_to_3_kelvin() -> None:
     assert len(seen) >= 4
 
 
+def _black(material, st: np.ndarray) -> np.ndarray:
+    """Where the board ``material`` draws black (a mark) at board points ``st`` (N, 2) m: its
+    albedo, dark (0.045) there and bright (0.8) elsewhere."""
+    return material.albedo(st)[:, 0] < 0.5
+
+
 def test_diffusion_blurs_the_square_pattern_exactly() -> None:
     """``blurred_black``: the indicator without blur; with blur, the Monte-Carlo average of
     the indicator over Gaussian-displaced points (seeded, 4000 samples: standard error
@@ -281,10 +287,10 @@ def test_diffusion_blurs_the_square_pattern_exactly() -> None:
     )
     mat = board_solid(np.eye(4), BOARD).material
     sharp = blurred_black(BOARD, pts, 0.0)
-    np.testing.assert_array_equal(sharp, mat._black(pts).astype(float))  # type: ignore[attr-defined]
+    np.testing.assert_array_equal(sharp, _black(mat, pts).astype(float))
     sigma = 0.015
     samples = pts[:, None, :] + sigma * rng.standard_normal((len(pts), 4000, 2))
-    mc = mat._black(samples.reshape(-1, 2)).reshape(len(pts), -1).mean(axis=1)  # type: ignore[attr-defined]
+    mc = _black(mat, samples.reshape(-1, 2)).reshape(len(pts), -1).mean(axis=1)
     np.testing.assert_allclose(blurred_black(BOARD, pts, sigma), mc, atol=0.03)
     corner = np.array([[s, s]])  # an inner corner: half black
     assert abs(blurred_black(BOARD, corner, sigma)[0] - 0.5) < 1e-9

@@ -30,7 +30,7 @@ import numpy as np
 import pytest
 
 from tests.board_support import NOISE, RIG, SPECS, noisy_corners
-from tests.test_real_pose2sim_published import CAMERAS, SET, TARGET, _recipe
+from tests.pose2sim_support import CAMERAS, SET, TARGET, pose2sim_recipe
 from trifuse.app.devtools.bench_real_calib import (
     TrifuseRun,
     _sensor_row,
@@ -172,7 +172,7 @@ def pose2sim(tmp_path_factory):
             if d["found"]:
                 found.setdefault(name, []).append(view)
     trifuse = TrifuseRun(found=found, result=result)  # what the bench's rows are made from
-    return trifuse, report, run_opencv(SET, None), {c: _recipe(c).fx_clean for c in CAMERAS}
+    return trifuse, report, run_opencv(SET, None), {c: pose2sim_recipe(c).fx_clean for c in CAMERAS}
 
 
 def test_pose2sim_in_one_capture_every_camera_within_1_percent(pose2sim):

@@ -24,8 +24,8 @@ from starlette.websockets import WebSocketDisconnect
 from tests.support import wait_until
 from trifuse.app.devtools.image_quality import psnr, ssim
 from trifuse.app.recording.h264 import VideoEncoder, codec_string, is_idr
-from trifuse.app.server.routers.app import create_app
-from trifuse.app.server.routers.auth import AuthConfig
+from trifuse.app.server.app_factory import create_app
+from trifuse.app.server.middleware.auth import AuthConfig
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.stream import FrameHub, StreamFrame
 from trifuse.app.server.runtime.video_presets import LEVEL_BY_NAME, LEVELS

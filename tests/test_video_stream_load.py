@@ -32,7 +32,7 @@ from fastapi.testclient import TestClient
 from websockets.sync.client import connect
 
 from tests.support import wait_until
-from trifuse.app.server.routers.app import create_app
+from trifuse.app.server.app_factory import create_app
 from trifuse.app.server.runtime.stream import MAX_MESSAGE_CHARS, MAX_MESSAGES_PER_S, FrameHub
 from trifuse.app.server.runtime.video_presets import LEVEL_BY_NAME
 from trifuse.app.server.runtime.video_rate import WINDOW

@@ -13,6 +13,7 @@ from urllib.parse import unquote, urlsplit
 
 from trifuse.app.cli.args import UsageError
 from trifuse.app.cli.output import out
+from trifuse.app.storage.numbered import backup_names, first_free
 
 if TYPE_CHECKING:
     from trifuse.calib.rig import Rig
@@ -71,16 +72,6 @@ def add_rig_out_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def numbered_backup(path: Path) -> Path:
-    """``path.~N~`` with the first N not taken (GNU cp's numbered backups)."""
-    n = 1
-    while True:
-        candidate = path.with_name(f"{path.name}.~{n}~")
-        if not candidate.exists():
-            return candidate
-        n += 1
-
-
 def _same_file(a: Path, b: Path | None) -> bool:
     return b is not None and a.exists() and b.exists() and a.resolve() == b.resolve()
 
@@ -102,7 +93,7 @@ def write_rig_out(rig_out: Path, rig_path: Path | None, rig: Rig, what: str) -> 
 
     same = _same_file(rig_out, rig_path)
     if same:
-        backup = numbered_backup(rig_out)
+        backup = first_free(backup_names(rig_out), Path.exists)
         os.link(rig_out, backup)  # the rig as it was stays, under a new name
         out(f"previous rig kept as {backup}")
     save_rig(rig_out, rig, overwrite=same)

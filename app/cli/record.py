@@ -125,9 +125,10 @@ def run(args: argparse.Namespace) -> int:
 
 def _record(args: argparse.Namespace) -> int:
     """Record from ``--source`` into ``--out``; the simulated head in :mod:`app.cli.record_sim`."""
-    from trifuse.app.recording import RecordingDamaged, RecordingWriter
+    from trifuse.app.recording import RecordingDamaged
     from trifuse.app.recording.open_source import NeedsRig, open_source
     from trifuse.app.recording.poses import read_poses
+    from trifuse.app.recording.recording import Recording
     from trifuse.app.storage.rigfile import load_rig
 
     rec_out = Path(args.out)
@@ -176,7 +177,7 @@ def _record(args: argparse.Namespace) -> int:
     poses = read_poses(path, opened.rig.reference) if kind == "replay" else None
     pose_list = [] if poses is None else list(zip(poses.stamps_ns, poses.T_world_rig, strict=True))
     next_pose = 0
-    with src, RecordingWriter(rec_out, opened.rig, jpeg_quality=args.jpeg_quality) as writer:
+    with src, Recording(opened.rig, path=rec_out, jpeg_quality=args.jpeg_quality) as writer:
         say_where(writer)
         if args.fused_video:
             fuser = attach_fused_video(writer, args)

@@ -11,10 +11,10 @@ from trifuse.app.cli.args import PROG
 from trifuse.app.cli.output import out
 
 if TYPE_CHECKING:
-    from trifuse.app.recording.writer import RecordingWriter
+    from trifuse.app.recording.recording import Recording
 
 
-def say_where(writer: RecordingWriter) -> None:
+def say_where(writer: Recording) -> None:
     """Where the recording is written until it is finished."""
     out(
         f"Writing into {writer.temp_path}; it becomes {writer.path} when the recording is "
@@ -23,7 +23,7 @@ def say_where(writer: RecordingWriter) -> None:
     )
 
 
-def record_summary(path: Path, writer: RecordingWriter) -> None:
+def record_summary(path: Path, writer: Recording) -> None:
     """What the finished recording holds, and the commands that use it."""
     from trifuse.app.recording import ReplaySource
 

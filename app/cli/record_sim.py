@@ -16,8 +16,8 @@ from trifuse.app.cli.record_output import record_summary, say_where
 from trifuse.app.cli.record_video import attach_fused_video, fused_video_cost_s, video_summary
 
 if TYPE_CHECKING:
+    from trifuse.app.recording.recording import Recording
     from trifuse.app.recording.video_track import FusedVideoFuser
-    from trifuse.app.recording.writer import RecordingWriter
     from trifuse.calib.rig import Rig
 
 
@@ -82,7 +82,7 @@ def record_sim(args: argparse.Namespace, rec_out: Path, rig: Rig | None) -> int:
 
     fusers: list[FusedVideoFuser] = []
 
-    def opened(writer: RecordingWriter) -> None:
+    def opened(writer: Recording) -> None:
         say_where(writer)
         if args.fused_video:
             fusers.append(attach_fused_video(writer, args))

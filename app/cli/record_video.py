@@ -1,6 +1,7 @@
 """``trifuse record --fused-video``: the fused stereo picture kept in the recording as H.264
 (``/fused/video``, docs/FORMATS.md "Recordings"), made while the frames are written
-(:class:`app.recording.video_track.FusedVideoFuser`)."""
+(:class:`app.recording.video_track.FusedVideoFuser`, watching the
+:class:`~app.recording.recording.Recording` the console's recorder writes with too)."""
 
 from __future__ import annotations
 
@@ -13,8 +14,8 @@ from trifuse.app.cli.output import err, out
 from trifuse.fusion.compose import DISPLAY_MODES
 
 if TYPE_CHECKING:
+    from trifuse.app.recording.recording import Recording
     from trifuse.app.recording.video_track import FusedVideoFuser
-    from trifuse.app.recording.writer import RecordingWriter
     from trifuse.calib.rig import Rig
 
 FUSED_VIDEO_S_PER_MPX = 0.013
@@ -67,7 +68,7 @@ def fused_video_cost_s(rig: Rig, schedule: list[tuple[int, list[str]]]) -> float
     return pictures * FUSED_VIDEO_S_PER_MPX * len(rig.eyes) * w * h / 1e6
 
 
-def attach_fused_video(writer: RecordingWriter, args: argparse.Namespace) -> FusedVideoFuser:
+def attach_fused_video(writer: Recording, args: argparse.Namespace) -> FusedVideoFuser:
     """Make ``writer`` fuse the frames written and keep the video (per ``args``)."""
     from trifuse.app.recording.video_track import FusedVideoFuser, VideoSettings
     from trifuse.fusion.compose import DisplaySettings

@@ -21,7 +21,7 @@ from trifuse.app.cli.args import (
 from trifuse.app.recording.open_source import SCENARIOS
 
 if TYPE_CHECKING:
-    from trifuse.app.server.routers.auth import AuthConfig
+    from trifuse.app.server.middleware.auth import AuthConfig
     from trifuse.app.server.runtime.serve import TLSFiles
     from trifuse.calib.board import Board
 
@@ -166,13 +166,8 @@ def load_board_arg(path: str | None) -> Board:
 def serve_auth(args: argparse.Namespace) -> AuthConfig:
     """The console's authentication from ``--token`` / ``TRIFUSE_TOKEN`` / ``--no-token``,
     ``--host``, ``--allow-origin`` and TLS; UsageError for an unsafe or unusable choice."""
-    from trifuse.app.server.routers.auth import (
-        TOKEN_ENV,
-        AuthConfig,
-        check_token,
-        is_loopback,
-        new_token,
-    )
+    from trifuse.app.server.middleware.auth import AuthConfig, check_token, is_loopback, new_token
+    from trifuse.app.sources.push.clients import TOKEN_ENV
 
     given = args.token if args.token is not None else os.environ.get(TOKEN_ENV)
     if args.no_token:

@@ -77,7 +77,8 @@ def agc(repeat: int) -> dict[str, float]:
         index_entropy_bits,
         tone_map,
     )
-    from trifuse.fusion.compose import DisplaySettings, resolve_span
+    from trifuse.fusion.compose import DisplaySettings
+    from trifuse.fusion.span import resolve_span
     from trifuse.fusion.stereo import StereoFusion
 
     scenario = InspectionScenario(seed=0)

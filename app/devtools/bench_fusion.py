@@ -15,7 +15,7 @@ from trifuse.fusion.compose import DISPLAY_MODES
     default_repeat=30,
 )
 def compose(repeat: int) -> dict[str, float]:
-    """Medians over ``repeat`` calls of ``fusion.compose.Composer.compose`` per mode.
+    """Medians over ``repeat`` calls of ``fusion.composer.Composer.compose`` per mode.
 
     Synthetic eye (seeded): a colour image with gradients and noise; a thermal image of
     290-310 K with a hot blob, NaN on the left 10 % and top 5 % (outside the thermal
@@ -31,15 +31,11 @@ def compose(repeat: int) -> dict[str, float]:
     import cv2
     import numpy as np
 
-    from trifuse.fusion.compose import (
-        Composer,
-        DisplaySettings,
-        anaglyph,
-        auto_span,
-        resolve_span,
-        stereo_halves,
-    )
+    from trifuse.fusion.compose import DisplaySettings
+    from trifuse.fusion.composer import Composer
     from trifuse.fusion.palettes import apply_palette
+    from trifuse.fusion.span import auto_span, resolve_span
+    from trifuse.fusion.stereo_pair import anaglyph, stereo_halves
 
     w, h = 1280, 960
     rng = np.random.default_rng(0)
@@ -120,8 +116,11 @@ def fuse(repeat: int) -> dict[str, float]:
 
     from trifuse.app.sources.sim.scenarios import InspectionScenario
     from trifuse.fusion.accuracy import fixed_depth_mapping
-    from trifuse.fusion.compose import Composer, DisplaySettings, resolve_span, stereo_halves
+    from trifuse.fusion.compose import DisplaySettings
+    from trifuse.fusion.composer import Composer
+    from trifuse.fusion.span import resolve_span
     from trifuse.fusion.stereo import StereoFusion
+    from trifuse.fusion.stereo_pair import stereo_halves
 
     scenario = InspectionScenario(seed=0)
     frames, _ = scenario.render(3.0)

@@ -18,34 +18,39 @@ then measures:
 2. What a task costs besides its work: an empty Ray task's round trip, the progress
    actor each Ray job starts, and each piece's fixed cost (open, seek, warm-up replay).
 3. Where a frame set's time goes, node by node, in small loops over the first recording
-   with OpenCV on one thread: the implied bound per node for one core.
+   with OpenCV on one thread: the implied bound per node for one core
+   (:mod:`app.devtools.bench_ray_nodes`).
 4. The map job (:func:`~app.recording.jobs.run_map_job`, poses from the recording)
    locally and on 2 CPUs: TOF frames per second, the PLY and the map's arrays compared.
 
 It prints a table and returns the figures (``trifuse bench`` prints those after it).
-A Ray step that fails or gives no answer in :data:`RAY_STEP_TIMEOUT_S` stops the benchmark
-with a RuntimeError saying which step (the Ray instance shut down).
+A Ray step that fails or gives no answer in
+:data:`~app.devtools.ray_instances.RAY_STEP_TIMEOUT_S` stops the benchmark with a
+RuntimeError saying which step (the Ray instance shut down; :mod:`app.devtools.ray_instances`).
 """
 
 from __future__ import annotations
 
-import _thread
-import contextlib
 import dataclasses
 import hashlib
-import os
 import shutil
 import statistics
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+from trifuse.app.devtools.bench_ray_nodes import node_breakdown
 from trifuse.app.devtools.benchmark import benchmark, check_repeat
+from trifuse.app.devtools.ray_instances import (
+    EMPTY_TASKS,
+    ray_step,
+    start_ray,
+    task_overheads,
+)
 
 RECORDING_S = 3.0
 """Length of each recording fused, seconds (90 colour frame sets at 30 Hz)."""
@@ -65,18 +70,6 @@ MAP_CHUNK_S = 1.0
 """``--chunk-s`` of the map job: three pieces."""
 MAP_VOXEL_M = 0.03
 """``trifuse map``'s default voxel."""
-EMPTY_TASKS = 50
-"""Empty Ray tasks timed one after the other per Ray instance."""
-DECODE_SETS = 15
-"""Frame sets whose messages the decode loop decodes."""
-NODE_SETS = 8
-"""Decoded frame sets the compose, JPEG, video and file loops cycle through."""
-VIDEO_FRAMES = 30
-"""Pictures per timed video (its opening and closing included)."""
-WORKER_HOLD_S = 0.3
-"""How long each warm-up task holds its worker (not counted in the workers' start)."""
-RAY_STEP_TIMEOUT_S = 180.0
-"""A Ray step (a start, the workers' start, a job) taking longer stops the benchmark."""
 RECORD_TIMEOUT_S = 600.0
 RUNNERS = ("local", "ray1", "ray2")
 LABELS = {"local": "local (LocalRunner)", "ray1": "Ray, 1 CPU", "ray2": "Ray, 2 CPUs"}
@@ -85,124 +78,6 @@ CPUS = {"ray1": 1, "ray2": 2}
 
 def _say(line: str = "") -> None:
     print(line, flush=True)
-
-
-class RayStepFailed(RuntimeError):
-    """A Ray step failed or did not finish in time (the message says which)."""
-
-
-@contextlib.contextmanager
-def _ray_step(
-    what: str, logs: str | None = None, timeout_s: float = RAY_STEP_TIMEOUT_S
-) -> Iterator[None]:
-    """Run a Ray step: RayStepFailed naming it if it raises, or if it gives no answer in
-    ``timeout_s`` (then the main thread is interrupted, as by Ctrl-C); ``logs``: the Ray
-    instance's log directory, for the message."""
-    where = f"; Ray's logs: {logs}" if logs else ""
-    fired = threading.Event()
-
-    def fire() -> None:
-        fired.set()
-        _thread.interrupt_main()
-
-    timer = threading.Timer(timeout_s, fire)
-    timer.daemon = True
-    if threading.current_thread() is threading.main_thread():  # else no watchdog
-        timer.start()
-    try:
-        yield
-    except KeyboardInterrupt:
-        if not fired.is_set():
-            raise
-        raise RayStepFailed(
-            f"Ray: {what}: no answer in {timeout_s:g} s, stopped (did Ray's processes "
-            f"start?{where})"
-        ) from None
-    except RayStepFailed:
-        raise
-    except Exception as exc:
-        hint = ""
-        if type(exc).__module__.startswith("ray."):  # Ray's own, not the task's error
-            hint = " (a Ray instance also dies when something on this machine runs 'ray stop' "
-            hint += f"or kills its raylet{where})"
-        raise RayStepFailed(f"Ray: {what} failed: {type(exc).__name__}: {exc}{hint}") from exc
-    finally:
-        timer.cancel()
-
-
-# -- what Ray workers run -------------------------------------------------------------------
-
-
-def _warm_worker(hold_s: float) -> int:
-    """Import what a job's task imports, hold the worker a moment (so that the tasks of a
-    warm-up land on different workers); the worker's pid."""
-    import trifuse.app.recording.jobs  # noqa: F401
-
-    time.sleep(hold_s)
-    return os.getpid()
-
-
-def _empty() -> None:
-    return None
-
-
-@dataclasses.dataclass
-class RayInstance:
-    """A local Ray instance started for one configuration, and what starting it took."""
-
-    runner: Any
-    init_s: float
-    workers_s: float
-    workers: int
-    logs: str | None
-
-
-def _start_ray(cpus: int) -> RayInstance:
-    """A new local Ray instance of ``cpus`` CPUs with its ``cpus`` workers started."""
-    from trifuse.app.recording.jobs import RayRunner
-
-    with _ray_step(f"starting a local instance of {cpus} CPU(s) (ray.init)"):
-        t0 = time.perf_counter()
-        runner = RayRunner(num_cpus=cpus)
-        init_s = time.perf_counter() - t0
-    try:
-        node = getattr(runner.ray._private.worker, "_global_node", None)
-        logs = node.get_logs_dir_path() if node is not None else None
-    except Exception:
-        logs = None
-    try:
-        with _ray_step(f"starting {cpus} worker(s)", logs):
-            ray = runner.ray
-            warm = ray.remote(num_cpus=1)(_warm_worker)
-            t0 = time.perf_counter()
-            refs = [warm.remote(WORKER_HOLD_S) for _ in range(cpus)]
-            pids = ray.get(refs, timeout=RAY_STEP_TIMEOUT_S)
-            workers_s = time.perf_counter() - t0 - WORKER_HOLD_S
-    except BaseException:
-        runner.close()
-        raise
-    return RayInstance(runner, init_s, workers_s, len(set(pids)), logs)
-
-
-def _task_overheads(ray: Any) -> tuple[list[float], float]:
-    """Round trips of :data:`EMPTY_TASKS` empty tasks (ms each, after one untimed), and the
-    start of the progress actor (ms: created and first answered, as a
-    :class:`~app.recording.jobs.RayRunner` does once)."""
-    from trifuse.app.progress_actor import JobTracker
-
-    empty = ray.remote(num_cpus=1)(_empty)
-    ray.get(empty.remote(), timeout=RAY_STEP_TIMEOUT_S)
-    trips = []
-    for _ in range(EMPTY_TASKS):
-        t0 = time.perf_counter()
-        ray.get(empty.remote(), timeout=RAY_STEP_TIMEOUT_S)
-        trips.append((time.perf_counter() - t0) * 1e3)
-    t0 = time.perf_counter()
-    tracker = ray.remote(num_cpus=0)(JobTracker).remote()
-    ray.get(tracker.snapshot.remote(), timeout=RAY_STEP_TIMEOUT_S)
-    actor_ms = (time.perf_counter() - t0) * 1e3
-    ray.kill(tracker)
-    return trips, actor_ms
 
 
 def _settings() -> Any:
@@ -370,175 +245,6 @@ def _map_run(survey: Path, runner: Any) -> MapOutcome:
     )
 
 
-# -- the per-node breakdown -----------------------------------------------------------------
-
-
-def _median_ms(samples: list[float]) -> float:
-    return statistics.median(samples) * 1e3
-
-
-def _node_breakdown(recording: Path, repeat: int, tmp: Path) -> dict[str, float]:
-    """ms per frame set of each node of a piece, in dedicated loops over ``recording``
-    (OpenCV on one thread, as in a Ray task); medians over ``repeat`` loops."""
-    import cv2
-    import numpy as np
-
-    from trifuse.app.recording import ReplaySource
-    from trifuse.app.recording.fuse import JPEG_QUALITY
-    from trifuse.app.recording.player import FRAME_KINDS
-    from trifuse.app.sources.base import frame_sets
-    from trifuse.app.storage.atomic import atomic_write_bytes
-    from trifuse.calib.radiometry import Radiometry
-    from trifuse.fusion.stereo import EYE_ORDER, StereoFusion
-
-    threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        with ReplaySource(recording, realtime=False) as src:
-            rig = src.rig
-            assert rig is not None
-            eyes = [rig.eyes[e] for e in EYE_ORDER]
-            ref = eyes[0].color
-            tof = StereoFusion(rig).tof
-            sets = src.message_count(ref, "color") or 0
-            tof_frames = src.message_count(tof, "tof_distance") or 0
-            if not sets:
-                raise RuntimeError(f"{recording}: no colour frames of {ref}")
-
-            # MCAP read + decompress: every message, none decoded
-            read = []
-            for _ in range(repeat):
-                t0 = time.perf_counter()
-                n = sum(1 for _m in src.index.messages())
-                read.append((time.perf_counter() - t0) / sets)
-            messages_per_set = n / sets
-
-            # decode: the frame messages of the first DECODE_SETS sets, through the
-            # replay's own routes (protobuf parse + JPEG / 16-bit conversion)
-            msgs = []
-            seen = 0
-            for m in src.index.messages():
-                route = src._route_of(m.channel_id)  # the replay's decoder of that channel
-                if route is None or route.kind not in FRAME_KINDS:
-                    continue
-                if route.kind == "color" and route.sensor == ref:
-                    seen += 1
-                    if seen > DECODE_SETS:
-                        break
-                msgs.append((route, m))
-            colour, other = [], []
-            for _ in range(repeat):
-                c = o = 0.0
-                for route, m in msgs:
-                    t0 = time.perf_counter()
-                    route.decode(m)
-                    dt = time.perf_counter() - t0
-                    if route.kind == "color":
-                        c += dt
-                    else:
-                        o += dt
-                colour.append(c / DECODE_SETS)
-                other.append(o / DECODE_SETS)
-
-            # the replay as a piece reads it: read + decode + grouping into frame sets
-            sensors = [ref] + [s for e in eyes for s in (e.color, e.thermal) if s != ref]
-            sensors.append(tof)
-            replay = []
-            kept: list[Any] = []
-            for r in range(repeat):
-                t0 = time.perf_counter()
-                count = 0
-                for fs in frame_sets(src, sensors, reference=ref):
-                    count += 1
-                    if r == 0 and len(kept) < NODE_SETS and all(s in fs for s in sensors):
-                        kept.append(fs)
-                replay.append((time.perf_counter() - t0) / max(count, 1))
-        if len(kept) < NODE_SETS:
-            raise RuntimeError(f"{recording}: fewer than {NODE_SETS} complete frame sets")
-
-        # fusion: the TOF mapping update, then radiometry + compose of both eyes
-        fusion = StereoFusion(rig)
-        settings = _settings()
-        tofs = list({fs[tof].stamp_ns: fs[tof] for fs in kept}.values())
-        update = []
-        for _ in range(repeat):
-            for f in tofs:
-                t0 = time.perf_counter()
-                fusion.update_depth(f.distance_m, f.image)
-                update.append(time.perf_counter() - t0)
-        radiometry = {e.thermal: rig[e.thermal].radiometry or Radiometry() for e in eyes}
-        kelvin = {e.thermal: np.empty(rig[e.thermal].image_size[::-1], np.float32) for e in eyes}
-        compose, pictures = [], []
-        for r in range(repeat + 1):  # the first pass warms the composer (not timed)
-            for fs in kept:
-                t0 = time.perf_counter()
-                colors = {n: fs[e.color].image for n, e in zip(EYE_ORDER, eyes, strict=True)}
-                thermals = {
-                    n: radiometry[e.thermal].apply(fs[e.thermal].image, out=kelvin[e.thermal])
-                    for n, e in zip(EYE_ORDER, eyes, strict=True)
-                }
-                picture = fusion.compose(colors, thermals, settings, fs.stamp_ns)
-                if r:
-                    compose.append(time.perf_counter() - t0)
-                else:
-                    pictures.append(picture.copy())
-
-        # JPEG encode (to BGR first, as fuse_piece does)
-        h, w = pictures[0].shape[:2]
-        bgr = np.empty((h, w, 3), np.uint8)
-        params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY]
-        jpeg, jpgs, bgrs = [], [], []
-        for r in range(repeat):
-            for p in pictures:
-                t0 = time.perf_counter()
-                cv2.cvtColor(p, cv2.COLOR_RGB2BGR, dst=bgr)
-                ok, jpg = cv2.imencode(".jpg", bgr, params)
-                jpeg.append(time.perf_counter() - t0)
-                if not ok:
-                    raise RuntimeError("OpenCV could not encode a picture as JPEG")
-                if r == 0:
-                    jpgs.append(jpg.tobytes())
-                    bgrs.append(bgr.copy())
-
-        # video: mp4v of VIDEO_FRAMES pictures, opening and closing included
-        video = []
-        for r in range(repeat):
-            path = tmp / f"video{r}.mp4"
-            t0 = time.perf_counter()
-            writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (w, h))
-            if not writer.isOpened():
-                raise RuntimeError("OpenCV has no mp4v encoder here")
-            for i in range(VIDEO_FRAMES):
-                writer.write(bgrs[i % len(bgrs)])
-            writer.release()
-            video.append((time.perf_counter() - t0) / VIDEO_FRAMES)
-            path.unlink()
-
-        # the driver's writing of a picture (FusedWriter: one atomic file each)
-        files = []
-        out = tmp / "jpegs"
-        for r in range(repeat):
-            for i, data in enumerate(jpgs):
-                t0 = time.perf_counter()
-                atomic_write_bytes(out / f"{r}-{i:06d}.jpg", data, False)
-                files.append(time.perf_counter() - t0)
-    finally:
-        cv2.setNumThreads(threads)
-    return {
-        "node_read_ms": _median_ms(read),
-        "node_decode_colour_ms": _median_ms(colour),
-        "node_decode_thermal_tof_ms": _median_ms(other),
-        "node_tof_update_ms": _median_ms(update) * tof_frames / sets,
-        "node_compose_ms": _median_ms(compose),
-        "node_jpeg_ms": _median_ms(jpeg),
-        "node_video_ms": _median_ms(video),
-        "node_file_write_ms": _median_ms(files),
-        "replay_ms": _median_ms(replay),
-        "messages_per_set": messages_per_set,
-        "tof_per_set": tof_frames / sets,
-    }
-
-
 # -- the benchmark --------------------------------------------------------------------------
 
 
@@ -636,18 +342,18 @@ def ray_jobs(repeat: int) -> dict[str, float]:
                     maps["local"].append(_map_run(survey, runner.inner))
                     extra = ""
                 else:
-                    inst = _start_ray(CPUS[name])
+                    inst = start_ray(CPUS[name])
                     try:
                         starts[name].append((inst.init_s, inst.workers_s))
                         label = LABELS[name]
-                        with _ray_step(f"empty tasks on {label}", inst.logs):
-                            t, a = _task_overheads(inst.runner.ray)
+                        with ray_step(f"empty tasks on {label}", inst.logs):
+                            t, a = task_overheads(inst.runner.ray)
                         trips += t
                         actors.append(a)
-                        with _ray_step(f"the fusion job on {label}", inst.logs):
+                        with ray_step(f"the fusion job on {label}", inst.logs):
                             seconds, pictures = _fuse_run(planned, inst.runner, run_dir)
                         if name == "ray2":
-                            with _ray_step(f"the map job on {label}", inst.logs):
+                            with ray_step(f"the map job on {label}", inst.logs):
                                 maps["ray2"].append(_map_run(survey, inst.runner))
                     finally:
                         t0 = time.perf_counter()
@@ -671,7 +377,7 @@ def ray_jobs(repeat: int) -> dict[str, float]:
                 )
 
         _say("per-node breakdown (OpenCV on 1 thread) ...")
-        nodes = _node_breakdown(recordings[0], repeat, tmp)
+        nodes = node_breakdown(recordings[0], repeat, tmp, _settings())
         one_thread = _unsplit_piece_s(recordings[0], 1)
 
     fig: dict[str, float] = {}

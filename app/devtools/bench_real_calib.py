@@ -72,6 +72,7 @@ from trifuse.app.devtools.real_sets import (
     sensor_files,
 )
 from trifuse.calib.opencv_reference import CharucoTarget
+from trifuse.calib.transforms import rotation_angle_deg
 
 SCRATCH_DIR = Path("/work/scratch")
 """Where the unlicensed sets are kept for measuring (never in the checkout)."""
@@ -410,8 +411,7 @@ def run_trifuse(capture_dir: Path, names: list[str]) -> TrifuseRun:
 def _relative(T_rig_a: np.ndarray, T_rig_b: np.ndarray) -> tuple[float, float]:
     """Baseline (mm) and rotation (deg) between two sensor poses in the rig frame."""
     T = np.linalg.inv(T_rig_a) @ T_rig_b
-    c = (np.trace(T[:3, :3]) - 1.0) / 2.0
-    return float(np.linalg.norm(T[:3, 3]) * 1000), math.degrees(math.acos(max(-1.0, min(1.0, c))))
+    return float(np.linalg.norm(T[:3, 3]) * 1000), rotation_angle_deg(T[:3, :3])
 
 
 def quick_step(rs: RealSet, root: Path | None, views: int = QUICK_VIEWS) -> int:

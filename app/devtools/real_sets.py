@@ -21,7 +21,6 @@ forbids committing it).
 from __future__ import annotations
 
 import argparse
-import math
 import re
 import sys
 from collections.abc import Iterable
@@ -38,6 +37,7 @@ from trifuse.calib.opencv_reference import (
     find_chessboard_opencv,
     stereo_calibrate_opencv,
 )
+from trifuse.calib.transforms import rotation_angle_deg
 
 DATA_DIR = Path(__file__).resolve().parents[2] / "tests" / "data"
 MIN_COMMON_CORNERS = 6
@@ -348,8 +348,7 @@ def published_relative_pose(
     world-to-camera ``x_cam = R x_world + t`` (caliscope's camera_array.toml)."""
     R = R_b @ R_a.T
     t = t_b - R @ t_a
-    c = (np.trace(R) - 1.0) / 2.0
-    return float(np.linalg.norm(t)), math.degrees(math.acos(max(-1.0, min(1.0, c))))
+    return float(np.linalg.norm(t)), rotation_angle_deg(R)
 
 
 # -- the registry -----------------------------------------------------------------------

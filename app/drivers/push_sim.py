@@ -24,8 +24,7 @@ from collections.abc import Sequence
 
 from websockets.exceptions import InvalidStatus, InvalidURI, WebSocketException
 
-from trifuse.app.server.routers.auth import TOKEN_ENV
-from trifuse.app.sources.push.clients import PushClient
+from trifuse.app.sources.push.clients import TOKEN_ENV, PushClient
 from trifuse.app.sources.simulated import SimulatedHeadSource
 
 

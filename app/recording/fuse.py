@@ -2,11 +2,13 @@
 
 A recording is fused in pieces (:mod:`app.recording.pieces`; one piece unless it is longer
 than the job's ``chunk_s``), each replayed as fast as possible and grouped into frame sets
-around the left eye's colour frames (:func:`app.sources.base.frame_sets`). Each new TOF
-frame updates both eyes' mappings (:meth:`fusion.stereo.StereoFusion.update_depth`, with
-the rig's range correction); every ``every``-th set with both eyes' colour and thermal
-frames (through the rig's radiometry) is composed into the side-by-side picture
-(:func:`fuse_piece`, pure of files: it runs where the job sends it); the messages the
+around the left eye's colour frames (:func:`app.sources.base.frame_sets`), and each set
+goes through the console's stereo-picture step (:class:`fusion.stereo_step.StereoStep`):
+each new TOF frame updates both eyes' mappings (with the rig's range correction); every
+``every``-th set is composed into the side-by-side picture (:func:`fuse_piece`, pure of
+files: it runs where the job sends it) under the step's
+:data:`~fusion.stereo_step.OFFLINE` policy: only sets with both eyes' colour and thermal
+frames after the first depth make a picture (the others are counted by reason); the messages the
 replay skips (undecodable, or an image of another size than the rig's:
 :mod:`app.recording.player`) are counted per piece and sensor. :class:`FusedWriter` writes
 the pieces' pictures in order as ``DIR/NNNNNN.jpg``, ``DIR/frames.csv`` (each picture's
@@ -30,10 +32,11 @@ from trifuse.app.recording.pieces import FusePiece
 from trifuse.app.recording.player import MessageReplay, Skips, add_skips, skips_between
 from trifuse.app.sources.base import frame_sets
 from trifuse.app.storage.atomic import atomic_write_bytes, atomic_write_text, fsync_dir
-from trifuse.calib.radiometry import Radiometry
 from trifuse.calib.rig import Rig
 from trifuse.fusion.compose import DisplaySettings
-from trifuse.fusion.stereo import EYE_ORDER, StereoFusion
+from trifuse.fusion.frame_meta import FrameMeta
+from trifuse.fusion.stereo import EYE_ORDER
+from trifuse.fusion.stereo_step import OFFLINE, MissingSensors, Skip, StereoStep
 
 VIDEO_NAME = "fused.mp4"
 JPEG_QUALITY = 90
@@ -45,13 +48,12 @@ class FusedFrame:
 
     Attributes:
         jpeg: the side-by-side picture, JPEG (quality :data:`JPEG_QUALITY`).
-        stamp_ns: the frame set's (left colour frame's) stamp.
-        tof_stamp_ns: the stamp of the TOF frame the mapping came from.
+        meta: its metadata: the frame set's (left colour frame's) stamp, the stamp of the
+            TOF frame the mapping came from, the mode and colour scale ...
     """
 
     jpeg: bytes
-    stamp_ns: int
-    tof_stamp_ns: int | None
+    meta: FrameMeta
 
 
 @dataclass
@@ -121,6 +123,7 @@ def fuse_piece(
     settings: DisplaySettings,
     every: int = 1,
     progress: Callable[[int], None] | None = None,
+    policy: MissingSensors = OFFLINE,
 ) -> Iterator[FusedFrame | PieceEnd]:
     """Fuse one piece of ``source`` (:mod:`app.recording.pieces`): a
     :class:`FusedFrame` per picture, in order, then a :class:`PieceEnd`.
@@ -133,22 +136,21 @@ def fuse_piece(
     (:meth:`~app.recording.player.MessageReplay.expect`); the messages skipped from the
     piece's first set written on are counted (``PieceEnd.messages_skipped``; those of the
     warm-up belong to the piece before). Damage in the recording ends the piece where it is
-    (``PieceEnd.damage``, without its traceback; nothing is raised for it).
+    (``PieceEnd.damage``, without its traceback; nothing is raised for it). ``policy``: what
+    sets missing a sensor make (:class:`~fusion.stereo_step.MissingSensors`).
     """
     if every < 1:
         raise ValueError(f"every: expected a positive integer, got {every}")
-    fusion = StereoFusion(rig)
-    eyes = {e: rig.eyes[e] for e in EYE_ORDER}
-    tof = fusion.tof
-    radiometry = {e.thermal: rig[e.thermal].radiometry or Radiometry() for e in eyes.values()}
-    kelvin = {n: np.empty(rig[e.thermal].image_size[::-1], np.float32) for n, e in eyes.items()}
+    step = StereoStep(rig, settings, policy)
+    eyes = step.eyes
     ref = eyes[EYE_ORDER[0]].color
-    sensors = [ref] + [s for e in eyes.values() for s in (e.color, e.thermal) if s != ref] + [tof]
+    others = [s for e in eyes.values() for s in (e.color, e.thermal) if s != ref]
+    sensors = [ref, *others, step.tof]
     source.realtime = False
     source.expect(rig)
     counted_from: Skips | None = {} if piece.start_set <= piece.first_set else None
     end = PieceEnd()
-    w, h = fusion.size
+    w, h = step.fusion.size
     fd, video_name = tempfile.mkstemp(prefix="trifuse-piece-", suffix=".mp4")
     os.close(fd)
     video_tmp = Path(video_name)
@@ -159,7 +161,6 @@ def fuse_piece(
     if not video.isOpened():
         video = None
         end.video_problem = "OpenCV has no mp4v encoder here"
-    last_tof: int | None = None
     bgr = np.empty((h, w * len(eyes), 3), np.uint8)
     considered = pictures = 0
     if piece.seek_ns is not None:
@@ -170,31 +171,18 @@ def fuse_piece(
                 break
             if counted_from is None and i >= piece.start_set:
                 counted_from = source.skipped
-            if tof in fs and fs[tof].stamp_ns != last_tof and fs[tof].distance_m is not None:
-                fusion.update_depth(fs[tof].distance_m, fs[tof].image)
-                last_tof = fs[tof].stamp_ns
-                end.tof_updates += 1
+            step.note(fs)
+            end.tof_updates += step.update_depth()
             warming = i < piece.start_set
             end.sets += not warming
             if i % every:
                 continue
-            missing = [s for s in sensors[:-1] if s not in fs]
-            if missing:
-                reason = f"no frame of {', '.join(missing)}"
-            elif not fusion.ready:
-                reason = "no TOF frame yet"
-            else:
-                reason = None
-            if reason is not None:
+            inputs = step.inputs(fs)
+            if isinstance(inputs, Skip):
                 if not warming:
-                    end.skipped[reason] = end.skipped.get(reason, 0) + 1
+                    end.skipped[inputs.reason] = end.skipped.get(inputs.reason, 0) + 1
             else:
-                colors = {e: fs[eye.color].image for e, eye in eyes.items()}
-                thermals = {
-                    e: radiometry[eye.thermal].apply(fs[eye.thermal].image, out=kelvin[e])
-                    for e, eye in eyes.items()
-                }
-                picture = fusion.compose(colors, thermals, settings, fs.stamp_ns)
+                picture = step.render(inputs)
                 if warming:
                     continue
                 cv2.cvtColor(picture, cv2.COLOR_RGB2BGR, dst=bgr)
@@ -204,7 +192,7 @@ def fuse_piece(
                 if video is not None:
                     video.write(bgr)
                 pictures += 1
-                yield FusedFrame(jpg.tobytes(), fs.stamp_ns, last_tof)
+                yield FusedFrame(jpg.tobytes(), step.meta(inputs))
             if not warming:
                 considered += 1
                 if progress is not None:
@@ -245,7 +233,8 @@ class FusedWriter:
         r = self.result
         if isinstance(item, FusedFrame):
             atomic_write_bytes(self.out_dir / f"{r.frames:06d}.jpg", item.jpeg, False)
-            self._rows.append(f"{r.frames},{item.stamp_ns},{item.tof_stamp_ns}")
+            meta = item.meta
+            self._rows.append(f"{r.frames},{meta.stamp_ns},{meta.tof_stamp_ns}")
             r.frames += 1
             return
         r.sets += item.sets

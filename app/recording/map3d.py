@@ -43,10 +43,10 @@ from trifuse.app.recording.player import Skips, add_skips, skips_between
 from trifuse.app.recording.poses import TOLERANCE_S, RecordingPoses, read_poses
 from trifuse.app.recording.reader import ReplaySource
 from trifuse.app.sources.frames import Frame
-from trifuse.calib.radiometry import Radiometry
 from trifuse.calib.rig import Rig, rig_to_yaml
 from trifuse.fusion.geometry import tof_sensor_name
 from trifuse.fusion.map_builder import MapBuilder
+from trifuse.fusion.stereo_step import ThermalKelvin
 from trifuse.fusion.voxel_map import MapSettings, VoxelMap
 
 PoseMode = Literal["auto", "recording", "estimate"]
@@ -217,9 +217,7 @@ def map_piece(
     builder = MapBuilder(rig, settings, estimate_pose=estimate)
     run = MapRun(builder.map, "estimate" if estimate else "recording")
     images = [n for n in rig.names if rig[n].modality in ("thermal", "color")]
-    radiometry = {
-        n: rig[n].radiometry or Radiometry() for n in images if rig[n].modality == "thermal"
-    }
+    kelvin = ThermalKelvin(rig, [n for n in images if rig[n].modality == "thermal"])
     age_ns = round(max_image_age_s * 1e9)
 
     def add(tof: Frame, history: dict[str, deque[Frame]], rec_poses: RecordingPoses | None) -> None:
@@ -237,8 +235,8 @@ def map_piece(
             if best is None or abs(best.stamp_ns - tof.stamp_ns) > age_ns:
                 run.images_missing[name] = run.images_missing.get(name, 0) + 1
                 continue
-            if name in radiometry:
-                chosen[name] = radiometry[name].apply(best.image)
+            if name in kelvin.radiometry:
+                chosen[name] = kelvin(name, best.image)
             else:
                 chosen[name] = best.image
         T = None

@@ -43,6 +43,7 @@ from trifuse.app.recording.errors import ImageSizeError, RecordingDamaged, Recor
 from trifuse.app.recording.mcapindex import McapDamage, McapIndex
 from trifuse.app.sources.base import FrameSource
 from trifuse.app.sources.frames import Frame
+from trifuse.calib.numbers import is_real
 from trifuse.calib.rig import Rig
 
 log = logging.getLogger(__name__)
@@ -163,6 +164,8 @@ class MessageReplay(FrameSource):
             every iteration since the source was opened.
         notes: non-fatal problems found when opening (damaged summary, missing topics).
     """
+
+    source_kind = "replay"
 
     def __init__(
         self,
@@ -314,7 +317,7 @@ class MessageReplay(FrameSource):
 
     @staticmethod
     def _check_rate(value: float) -> float:
-        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        if not is_real(value):
             raise RecordingError(f"rate: expected a positive number, got {value!r}")
         if not math.isfinite(value) or value <= 0:
             raise RecordingError(f"rate: expected a positive finite number, got {value!r}")
@@ -342,7 +345,7 @@ class MessageReplay(FrameSource):
         a fraction of the duration (0.0 = start, 1.0 = end). Clamped to the recording;
         returns the target log time. Takes effect before the next frame (or at the start of
         the next ``frames()``)."""
-        if isinstance(position, bool) or not isinstance(position, numbers.Real):
+        if not is_real(position):
             raise RecordingError(
                 f"seek: expected a log time in ns (int) or a fraction (float), got {position!r}"
             )

@@ -27,10 +27,10 @@ from typing import Any
 
 import numpy as np
 from mcap_protobuf.decoder import DecoderFactory
-from scipy.spatial.transform import Rotation
 
 from trifuse.app.recording.layout import METADATA_NAME, POSE_PARENTS, RIG_FRAME
 from trifuse.app.recording.mcapindex import McapDamage, McapIndex
+from trifuse.calib.transforms import rotation_from_quaternion, slerp_rotation
 
 TOLERANCE_S = 0.05
 """Default of :meth:`RecordingPoses.at`: a stamp outside the poses' span takes the nearest
@@ -100,10 +100,8 @@ class RecordingPoses:
 def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
     """(4, 4) the pose a fraction ``s`` (0..1) of the way from ``T0`` to ``T1``: the
     translation linearly, the rotation along the shortest arc (slerp)."""
-    R0 = Rotation.from_matrix(T0[:3, :3])
-    step = (R0.inv() * Rotation.from_matrix(T1[:3, :3])).as_rotvec()
     T = np.eye(4)
-    T[:3, :3] = (R0 * Rotation.from_rotvec(s * step)).as_matrix()
+    T[:3, :3] = slerp_rotation(T0[:3, :3], T1[:3, :3], s)
     T[:3, 3] = (1.0 - s) * T0[:3, 3] + s * T1[:3, 3]
     return T
 
@@ -122,7 +120,7 @@ def _pose_matrix(msg: Any) -> np.ndarray | None:
     if not (np.isfinite(norm) and norm > 1e-9 and np.isfinite(t).all()):
         return None
     T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(q / norm).as_matrix()
+    T[:3, :3] = rotation_from_quaternion(q / norm)
     T[:3, 3] = t
     return T
 

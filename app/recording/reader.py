@@ -41,7 +41,7 @@ from trifuse.app.recording.poses import RecordingPoses, read_poses
 from trifuse.calib.camera import Intrinsics
 from trifuse.calib.errors import RigError
 from trifuse.calib.rig import Eye, Rig, Sensor, check_physical, rig_from_yaml
-from trifuse.calib.transforms import invert, make_T
+from trifuse.calib.transforms import invert, make_T, rotation_from_quaternion
 from trifuse.calib.units import kelvin_from_counts, metres_from_counts
 
 RIG_PROBE_S = 2.0
@@ -310,7 +310,7 @@ class ReplaySource(MessageReplay):
                     if msg.parent_frame_id in POSE_PARENTS:
                         continue  # the head's pose, not the rig's
                     t, q = msg.translation, msg.rotation
-                    T = make_T(_rotation(q.x, q.y, q.z, q.w), (t.x, t.y, t.z))
+                    T = make_T(rotation_from_quaternion([q.x, q.y, q.z, q.w]), (t.x, t.y, t.z))
                     self._transforms.setdefault(msg.child_frame_id, (msg.parent_frame_id, T))
                 elif schema is not None and schema.name == "foxglove.CameraCalibration":
                     self._calibrations.setdefault(msg.frame_id, msg)
@@ -325,12 +325,6 @@ class ReplaySource(MessageReplay):
         if rig is not None:
             self.rig_source = "messages"
         return rig
-
-
-def _rotation(x: float, y: float, z: float, w: float) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_quat([x, y, z, w]).as_matrix()
 
 
 _SIDE_RE = re.compile(r"^(?P<base>.*?)[_-]?(?P<side>left|right|[lr])$", re.IGNORECASE)

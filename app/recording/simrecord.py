@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from trifuse.app.recording.writer import RecordingWriter
+from trifuse.app.recording.recording import Recording
 from trifuse.calib.rig import Rig
 
 if TYPE_CHECKING:
@@ -250,9 +250,9 @@ def record_simulation(
     pose_hz: float = POSE_HZ,
     progress: Callable[[SimProgress], None] | None = None,
     plan: SimRecordPlan | None = None,
-    opened: Callable[[RecordingWriter], None] | None = None,
+    opened: Callable[[Recording], None] | None = None,
     scenario: str = "inspection",
-) -> RecordingWriter:
+) -> Recording:
     """Render the ``scenario`` (:data:`SIM_SCENARIOS`) per :func:`plan_simulation` and
     record it at ``out``, with the head's pose per instant (:func:`shown_pose`).
 
@@ -262,7 +262,7 @@ def record_simulation(
     instant). ``exact``: every instant rendered accurately. ``plan``: the plan made
     beforehand (made here otherwise). ``opened(writer)`` is called once the file is open
     (its ``temp_path`` is where the frames go until it is finished), ``progress(SimProgress)``
-    after each instant. Returns the closed writer (its counters say what was written). A
+    after each instant. Returns the finished recording (its counters say what was written). A
     KeyboardInterrupt keeps what was recorded so far (the file is finished and named) and
     propagates.
     """
@@ -278,7 +278,7 @@ def record_simulation(
     total_cost = plan.estimate_s
     done_cost = 0.0
     t_start = time.perf_counter()
-    with RecordingWriter(out, rig, jpeg_quality=jpeg_quality) as writer:
+    with Recording(rig, path=Path(out), jpeg_quality=jpeg_quality) as writer:
         if opened is not None:
             opened(writer)
         for i, ((stamp, sensors), cost) in enumerate(

@@ -13,9 +13,9 @@ writes such a track (docs/FORMATS.md, "Recordings"):
 - :class:`FusedVideoTrack`: the channel of one recording file. It keeps the P-frame chain
   valid whatever it is handed: the first message of the file is a key frame, stamps
   increase, and after an access unit it could not write it waits for the next key frame.
-- :class:`StereoPictures`: frame sets -> the console's fused picture (the same
-  :class:`~fusion.stereo.StereoFusion` calls and the same rules for missing sensors as the
-  console's pipeline) for ``trifuse record --fused-video``; :class:`FusedVideoFuser` glues
+- :class:`StereoPictures`: frame sets -> the console's fused picture (the console's
+  stereo-picture step, :class:`~fusion.stereo_step.StereoStep`, with its rules for missing
+  sensors) for ``trifuse record --fused-video``; :class:`FusedVideoFuser` glues
   the three to a :class:`~app.recording.writer.RecordingWriter` (it watches the frames
   written and adds the video).
 
@@ -26,7 +26,6 @@ fuser logs it, keeps it in ``error`` and carries on without video.
 from __future__ import annotations
 
 import logging
-import numbers
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -45,10 +44,11 @@ from trifuse.app.recording.layout import (
     RIG_FRAME,
 )
 from trifuse.app.sources.base import FrameSetAssembler
-from trifuse.calib.radiometry import Radiometry
+from trifuse.calib.numbers import is_integral, is_real
 from trifuse.calib.rig import Rig
 from trifuse.fusion.compose import DisplaySettings
-from trifuse.fusion.stereo import EYE_ORDER, StereoFusion
+from trifuse.fusion.stereo import EYE_ORDER
+from trifuse.fusion.stereo_step import CONSOLE, Skip, StereoStep
 
 if TYPE_CHECKING:
     from trifuse.app.sources.frames import Frame, FrameSet
@@ -85,15 +85,15 @@ class VideoSettings:
 
     def __post_init__(self) -> None:
         bps = self.bitrate_bps
-        if isinstance(bps, bool) or not isinstance(bps, numbers.Integral):
+        if not is_integral(bps):
             raise ValueError(f"bitrate_bps: expected an integer bit/s, got {bps!r}")
         if not 100_000 <= bps <= 100_000_000:
             raise ValueError(f"bitrate_bps: expected 100 kbit/s .. 100 Mbit/s, got {bps} bit/s")
         k = self.keyint_s
-        if isinstance(k, bool) or not isinstance(k, numbers.Real) or not 0.1 <= k <= 10:
+        if not is_real(k) or not 0.1 <= k <= 10:
             raise ValueError(f"keyint_s: expected 0.1 .. 10 seconds, got {k!r}")
         fps = self.fps
-        if isinstance(fps, bool) or not isinstance(fps, numbers.Integral) or not 1 <= fps <= 120:
+        if not is_integral(fps) or not 1 <= fps <= 120:
             raise ValueError(f"fps: expected an integer 1 .. 120 frames/s, got {fps!r}")
 
 
@@ -284,81 +284,38 @@ def video_frame_id(rig: Rig) -> str:
 
 
 class StereoPictures:
-    """Frame sets -> the console's side-by-side picture (H, 2W, 3) uint8 RGB.
-
-    The same steps as the console's pipeline (app/server/runtime/pipeline.py): each new TOF
-    frame updates both eyes' mappings (with the rig's range correction); each thermal image
-    goes through its imager's radiometry; a set without both colour images makes no
-    picture; before the first TOF frame the picture is the two colour images side by side
-    (``raw``); a set without thermal images is shown in ``color`` mode; an eye without its
-    thermal image shows its colour image.
+    """Frame sets -> the console's side-by-side picture (H, 2W, 3) uint8 RGB, for the
+    recorded video: the console's stereo-picture step (:class:`~fusion.stereo_step.
+    StereoStep` under its :data:`~fusion.stereo_step.CONSOLE` policy for missing sensors)
+    and the console's grouping of frames into sets (:meth:`assembler`).
 
     Args:
         rig: the rig (two eyes whose colour cameras share one size).
         settings: display mode, palette, span ... (default: the console's).
+
+    Attributes:
+        step: the step; ``fusion``: its :class:`~fusion.stereo.StereoFusion`; ``sensors``:
+            the sensors a picture is made of (both colour cameras first).
     """
 
     def __init__(self, rig: Rig, settings: DisplaySettings | None = None) -> None:
-        self.rig = rig
-        self.settings = settings or DisplaySettings()
-        self.fusion = StereoFusion(rig)
-        self.eyes = {e: rig.eyes[e] for e in EYE_ORDER}
-        self.tof = self.fusion.tof
-        self.radiometry = {
-            e.thermal: rig[e.thermal].radiometry or Radiometry() for e in self.eyes.values()
-        }
-        self._kelvin = {
-            e: np.empty(rig[eye.thermal].image_size[::-1], np.float32)
-            for e, eye in self.eyes.items()
-        }
-        self._no_thermal = {
-            e: np.full(rig[eye.thermal].image_size[::-1], np.nan, np.float32)
-            for e, eye in self.eyes.items()
-        }
-        self._last_tof_ns: int | None = None
-
-    @property
-    def sensors(self) -> list[str]:
-        """The sensors a picture is made of: both colour cameras first (the left one opens
-        the sets), the thermal imagers, the TOF."""
-        e = self.eyes
-        return [e["left"].color, e["right"].color, e["left"].thermal, e["right"].thermal, self.tof]
+        self.step = StereoStep(rig, settings, CONSOLE)
+        self.fusion = self.step.fusion
+        self.sensors = self.step.sensors
 
     def assembler(self) -> FrameSetAssembler:
         """Groups frames into the sets :meth:`picture` takes, as the console does (the left
         colour camera opens them, the right one while it is silent)."""
+        eyes = self.step.eyes
         return FrameSetAssembler(
-            self.sensors, reference=self.eyes["left"].color, fallback=self.eyes["right"].color
+            self.sensors, reference=eyes["left"].color, fallback=eyes["right"].color
         )
 
     def picture(self, fs: FrameSet) -> np.ndarray | None:
-        """The picture of one frame set (the fusion's buffer, overwritten by the next
-        call), or None when the set lacks a colour image."""
-        tof = fs.frames.get(self.tof)
-        if tof is not None and tof.stamp_ns != self._last_tof_ns and tof.distance_m is not None:
-            self.fusion.update_depth(tof.distance_m, tof.image)
-            self._last_tof_ns = tof.stamp_ns
-        colors = {e: fs.frames[eye.color].image for e, eye in self.eyes.items() if eye.color in fs}
-        if len(colors) != len(self.eyes):
-            return None
-        w, h = self.fusion.size
-        for e, img in colors.items():
-            if img.shape[:2] != (h, w):
-                raise ValueError(
-                    f"frame of {self.eyes[e].color!r} is {img.shape[1]}x{img.shape[0]}, the "
-                    f"rig says {w}x{h}"
-                )
-        if not self.fusion.ready:
-            return np.hstack([colors[e] for e in self.eyes])
-        thermals = {
-            e: self.radiometry[eye.thermal].apply(fs.frames[eye.thermal].image, out=self._kelvin[e])
-            for e, eye in self.eyes.items()
-            if eye.thermal in fs
-        }
-        if not thermals:
-            return self.fusion.compose(colors, self._no_thermal, DisplaySettings(mode="color"))
-        thermals = {e: thermals.get(e, self._no_thermal[e]) for e in self.eyes}
-        return self.fusion.compose(colors, thermals, self.settings, fs.stamp_ns)
+        """The picture of one frame set (a buffer of the step's, overwritten by the next
+        call), or None when the policy makes none (:class:`~fusion.stereo_step.Skip`)."""
+        rgb = self.step.picture(fs)
+        return None if isinstance(rgb, Skip) else rgb
 
 
 class VideoWriter(Protocol):
@@ -389,8 +346,8 @@ class FusedVideoFuser:
 
     Attributes:
         pictures: pictures encoded and written; ``sets``: frame sets seen; ``skipped``:
-            sets without a picture (no colour image of an eye); ``error``: why the video
-            stopped, or None.
+            sets without a picture (a colour image missing: :class:`StereoPictures`);
+            ``error``: why the video stopped, or None.
     """
 
     def __init__(

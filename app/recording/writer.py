@@ -29,7 +29,6 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import logging
-import numbers
 import os
 import random
 import re
@@ -75,8 +74,10 @@ from trifuse.app.recording.sealed_file import SealedMcapFile
 from trifuse.app.recording.video_track import FusedVideoTrack, video_frame_id
 from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.app.storage.atomic import fsync_dir, make_dirs, umask
+from trifuse.app.storage.numbered import suffixed_names
+from trifuse.calib.numbers import is_int, is_integral
 from trifuse.calib.rig import Rig, Sensor, rig_to_yaml
-from trifuse.calib.transforms import rigidity_problem
+from trifuse.calib.transforms import quaternion_from_rotation, rigidity_problem
 from trifuse.calib.units import encode_amplitude, encode_distance, encode_thermal
 
 THERMAL_ENCODINGS = ("16UC1", "32FC1")
@@ -115,16 +116,6 @@ class FrameObserver(Protocol):
     def closing(self) -> None: ...
 
 
-def quaternion_from_rotation(R: np.ndarray) -> tuple[float, float, float, float]:
-    """(x, y, z, w) unit quaternion of a (3, 3) rotation matrix, w >= 0."""
-    from scipy.spatial.transform import Rotation
-
-    x, y, z, w = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
-    if w < 0:
-        x, y, z, w = -x, -y, -z, -w
-    return float(x), float(y), float(z), float(w)
-
-
 def distortion_model(distortion: tuple[float, ...]) -> tuple[str, list[float]]:
     """ROS/Foxglove distortion model name and coefficients for OpenCV's ``k1 k2 p1 p2 [k3
     [k4 k5 k6]]``: ``plumb_bob`` (5, a 4-coefficient model padded with k3 = 0) or
@@ -140,7 +131,7 @@ def _timestamp(stamp_ns: int) -> Timestamp:
 
 
 def _stamp(value: object, sensor: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+    if not is_integral(value):
         raise RecordingError(
             f"frame of {sensor!r}: stamp_ns: expected an integer number of nanoseconds, "
             f"got {value!r}"
@@ -343,11 +334,7 @@ class RecordingWriter:
         self.path = Path(path)
         if not isinstance(rig, Rig):
             raise RecordingError(f"rig: expected a calib.rig.Rig, got {type(rig).__name__}")
-        if (
-            isinstance(jpeg_quality, bool)
-            or not isinstance(jpeg_quality, numbers.Integral)
-            or not 1 <= jpeg_quality <= 100
-        ):
+        if not is_integral(jpeg_quality) or not 1 <= jpeg_quality <= 100:
             raise RecordingError(f"jpeg_quality: expected an integer 1..100, got {jpeg_quality!r}")
         if thermal_encoding not in THERMAL_ENCODINGS:
             raise RecordingError(
@@ -361,11 +348,7 @@ class RecordingWriter:
             raise RecordingError(
                 f"calibration_period_s: expected a positive number, got {calibration_period_s!r}"
             )
-        if (
-            isinstance(chunk_size, bool)
-            or not isinstance(chunk_size, int)
-            or not 1024 <= chunk_size <= MAX_CHUNK_SIZE
-        ):
+        if not is_int(chunk_size) or not 1024 <= chunk_size <= MAX_CHUNK_SIZE:
             raise RecordingError(
                 f"chunk_size: expected an integer 1024..{MAX_CHUNK_SIZE}, got {chunk_size!r}"
             )
@@ -754,8 +737,7 @@ def recover_interrupted(directory: str | Path) -> list[tuple[str, Path]]:
             candidates = [final] if _finished(temp) else []
             stem = m["name"][: -len(".mcap")]
             candidates += [
-                directory / f"{stem}{'' if k == 1 else f'-{k}'}{INTERRUPTED_SUFFIX}"
-                for k in range(1, 1000)
+                directory / n for n in suffixed_names(stem, INTERRUPTED_SUFFIX, limit=999)
             ]
             for target in candidates:
                 try:

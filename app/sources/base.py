@@ -16,7 +16,9 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Iterable, Iterator
+from typing import ClassVar
 
+from trifuse.app.sources.capabilities import SourceKind
 from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.calib.rig import Rig
 
@@ -28,10 +30,14 @@ class FrameSource(ABC):
         sensors: names of the sensors this source can deliver.
         rig: the rig the frames belong to, when the source knows it (a recording carries
             its calibration; a simulated head its ground truth), else None.
+        source_kind: what the source is (:data:`~app.sources.capabilities.SourceKind`);
+            what else it can do it declares through the protocols of
+            :mod:`app.sources.capabilities`.
     """
 
     sensors: list[str]
     rig: Rig | None = None
+    source_kind: ClassVar[SourceKind] = "live"
 
     @abstractmethod
     def frames(self) -> Iterator[Frame]:

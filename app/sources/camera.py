@@ -49,7 +49,7 @@ from trifuse.app.sources.base import FrameSource
 from trifuse.app.sources.frames import Frame
 from trifuse.app.sources.slots import NewestFrameSlots
 from trifuse.app.storage.text import read_text
-from trifuse.calib.numbers import finite_float
+from trifuse.calib.numbers import finite_float, is_int
 from trifuse.calib.rig import Rig, modality_of_name
 from trifuse.calib.units import KELVIN_PER_COUNT
 from trifuse.calib.yaml_text import YamlError, parse_yaml
@@ -129,7 +129,7 @@ class CameraConfig:
         where = f"sensor {self.sensor!r}"
         if not isinstance(self.sensor, str) or not self.sensor:
             raise CameraError(f"sensor: expected a non-empty name, got {self.sensor!r}")
-        if isinstance(self.device, bool) or not isinstance(self.device, int | str):
+        if not (is_int(self.device) or isinstance(self.device, str)):
             raise CameraError(
                 f"{where}: device: expected an index (0, 1, ...), a path or a URL, "
                 f"got {self.device!r}"
@@ -151,7 +151,7 @@ class CameraConfig:
             )
         for name in ("width", "height"):
             v = getattr(self, name)
-            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v <= 0):
+            if v is not None and (not is_int(v) or v <= 0):
                 raise CameraError(f"{where}: {name}: expected a positive integer, got {v!r}")
         for name in ("fps", "max_rate_hz"):
             v = getattr(self, name)

@@ -93,6 +93,7 @@ from trifuse.app.sources.sim.pose_cache import (
 from trifuse.app.sources.sim.render import SensorTruth
 from trifuse.app.sources.sim.render_process import RenderProcess, render_frames
 from trifuse.calib.rig import Rig
+from trifuse.calib.transforms import rotation_angle_deg
 
 DEFAULT_RATES_HZ: dict[str, float] = {"color": 30.0, "thermal": 27.0, "tof": 15.0}
 """Frame rate per modality when ``rates_hz`` does not name a sensor."""
@@ -197,6 +198,8 @@ class SimulatedHeadSource(FrameSource):
         rates_hz: the rate of each delivered sensor.
         first_pose_s: wall-clock seconds the first pose took to render (None until done).
     """
+
+    source_kind = "simulated"
 
     def __init__(
         self,
@@ -545,7 +548,7 @@ class SimulatedHeadSource(FrameSource):
 
         def angle(p: int) -> float:
             R = self._pose_T[p][:3, :3].T @ self._pose_T[pose][:3, :3]  # type: ignore[index]
-            return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+            return rotation_angle_deg(R)
 
         src = min(self._poses, key=lambda p: (angle(p), p))
         made = self._provisional.get(pose)

@@ -54,6 +54,7 @@ from trifuse.app.storage.capture import (
     load_view,
 )
 from trifuse.app.storage.capture_writer import write_board, write_rig, write_view
+from trifuse.app.storage.numbered import first_free, next_number, suffixed_names
 from trifuse.app.storage.rigfile import load_rig
 from trifuse.app.workflows.calibration_run import DetectionRun, calibrate_capture
 from trifuse.app.workflows.range_run import (
@@ -299,7 +300,7 @@ class CalibrationSession:
             if _VIEW_RE.match(p.name.split("-")[0])
         ]
         used += [int(p.name.split(".")[1]) for p in self.interrupted]  # not reused either
-        return f"{max([0, *used]) + 1:04d}"
+        return f"{next_number(used):04d}"
 
     def take(self, frames: FrameSet) -> ViewInfo:
         """Write ``frames`` as a new view now; the board search follows in the background.
@@ -366,11 +367,8 @@ class CalibrationSession:
                 raise SessionError(f"view {name} is being calibrated; wait for the run to end")
             trash = self.workdir / DELETED
             make_dirs(trash)
-            target = trash / f"{name}-{time.strftime('%Y%m%dT%H%M%S')}"
-            k = 1
-            while target.exists():
-                k += 1
-                target = trash / f"{name}-{time.strftime('%Y%m%dT%H%M%S')}-{k}"
+            stem = f"{name}-{time.strftime('%Y%m%dT%H%M%S')}"
+            target = trash / first_free(suffixed_names(stem), lambda n: (trash / n).exists())
             (self.captures / name).rename(target)
             fsync_dir(self.captures)
             fsync_dir(trash)
@@ -549,7 +547,7 @@ class CalibrationSession:
                     for p in self.rigs_dir.iterdir()
                     if (m := _VERSION_FILE_RE.match(p.name))
                 ]
-                name = f"rig-{max([0, *numbers]) + 1:04d}"
+                name = f"rig-{next_number(numbers):04d}"
                 path = self.rigs_dir / f"{name}.yaml"
                 try:
                     atomic_write_text(

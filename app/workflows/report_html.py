@@ -48,7 +48,8 @@ from trifuse.app.workflows.report_format import (
 )
 from trifuse.calib.board import POLARITY_KEYS, board_from_dict
 from trifuse.calib.coverage import PARAM_NAMES
-from trifuse.calib.transforms import rvec_from_rotation
+from trifuse.calib.numbers import is_int_or_float
+from trifuse.calib.transforms import rotation_angle_deg, rvec_from_rotation
 
 if TYPE_CHECKING:
     from trifuse.app.workflows.calib_session import CalibrationJob
@@ -165,7 +166,7 @@ def _e(text: Any) -> str:
 
 
 def _finite(x: Any) -> bool:
-    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+    return is_int_or_float(x) and math.isfinite(x)
 
 
 def _f(x: Any, digits: int = 2) -> str:
@@ -175,7 +176,7 @@ def _f(x: Any, digits: int = 2) -> str:
 
 def _g(x: Any) -> str:
     """A number of unknown scale: 4 significant digits (integers as they are)."""
-    if isinstance(x, bool) or not isinstance(x, int | float):
+    if not is_int_or_float(x):
         return _e(x)
     if isinstance(x, int):
         return str(x)
@@ -280,7 +281,7 @@ def generic(value: Any, depth: int = 0) -> str:
         items = list(value)
         if not items:
             return "–"
-        if all(isinstance(v, int | float) and not isinstance(v, bool) for v in items):
+        if all(is_int_or_float(v) for v in items):
             return ", ".join(_g(v) for v in items)
         if all(isinstance(v, Mapping) for v in items):
             keys = list(dict.fromkeys(k for v in items for k in v))
@@ -1086,7 +1087,7 @@ def pair_rows(report: Mapping[str, Any]) -> list[list[str]]:
             Ta = np.asarray(sensors[a]["T_rig_sensor"], dtype=float)
             Tb = np.asarray(sensors[b]["T_rig_sensor"], dtype=float)
             T_ab = np.linalg.inv(Ta) @ Tb
-            angle = float(np.degrees(np.linalg.norm(rvec_from_rotation(T_ab[:3, :3]))))
+            angle = rotation_angle_deg(T_ab[:3, :3])
             t_mm = 1000.0 * T_ab[:3, 3]
             s_rot, s_t, s_b, source = _pair_sigma(sensors, reference, a, b)
             v = joint.get((a, b))

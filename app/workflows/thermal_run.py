@@ -23,6 +23,7 @@ from trifuse.calib.radiometry import Radiometry
 from trifuse.calib.rig import Rig
 from trifuse.fusion.balance import BalanceEstimate, BalanceFilter, balance_terms, measure_balance
 from trifuse.fusion.stereo import EYE_ORDER, StereoFusion
+from trifuse.fusion.stereo_step import DepthFeed
 
 
 @dataclass
@@ -60,15 +61,14 @@ def balance_source(
     left, right = eyes["left"].thermal, eyes["right"].thermal
     fusion = StereoFusion(rig)
     tof = fusion.tof
+    depth = DepthFeed(fusion)  # the console's: each new TOF stamp mapped once
     radiometry = {s: rig[s].radiometry or Radiometry() for s in (left, right)}
     flt = BalanceFilter(time_constant_s)
     run = ThermalRun(None, {})
-    last_tof: int | None = None
     pairs: list[tuple[np.ndarray, np.ndarray, float]] = []
     for i, fs in enumerate(frame_sets(source, [left, right, tof], reference=left)):
-        if tof in fs and fs[tof].stamp_ns != last_tof and fs[tof].distance_m is not None:
-            fusion.update_depth(fs[tof].distance_m, fs[tof].image)
-            last_tof = fs[tof].stamp_ns
+        depth.note(fs.frames.get(tof))
+        depth.update()
         if i % every:
             continue
         if progress:

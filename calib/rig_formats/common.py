@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from trifuse.calib.errors import RigError
+from trifuse.calib.numbers import is_int
 from trifuse.calib.rig import (
     MODALITIES,
     Eye,
@@ -256,7 +257,7 @@ def sensor_name_for(declared: Any, path: str) -> tuple[str, str | None]:
     valid sensor name, else the file's stem. Returns (name, a ``lost`` note or None);
     RigError naming the file when neither is valid."""
     stem = PurePosixPath(path).stem
-    if isinstance(declared, str | int) and not isinstance(declared, bool):
+    if isinstance(declared, str) or is_int(declared):
         text = str(declared)
         if _SENSOR_NAME_RE.fullmatch(text) and not text.endswith("_distance"):
             return text, None

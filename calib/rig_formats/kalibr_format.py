@@ -51,7 +51,7 @@ import yaml
 
 from trifuse.calib.camera import Intrinsics
 from trifuse.calib.errors import RigError
-from trifuse.calib.numbers import finite_float
+from trifuse.calib.numbers import finite_float, is_int
 from trifuse.calib.rig import RIG_FORMAT, Eye, Rig, Sensor, modality_of_name, rig_from_dict
 from trifuse.calib.rig_formats import Exported, Imported
 from trifuse.calib.rig_formats.common import extras_lost
@@ -494,9 +494,7 @@ def _camera(raw: Any, i: int) -> _Camera:
 
     res = raw["resolution"]
     if not (
-        isinstance(res, list | tuple)
-        and len(res) == 2
-        and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in res)
+        isinstance(res, list | tuple) and len(res) == 2 and all(is_int(v) and v > 0 for v in res)
     ):
         raise RigError(f"{at}.resolution: expected [width, height] in pixels, got {res!r}")
 

@@ -50,6 +50,7 @@ import numpy as np
 import yaml
 
 from trifuse.calib.errors import RigError
+from trifuse.calib.numbers import is_int, is_int_or_float
 from trifuse.calib.rig import Rig, Sensor, modality_of_name
 from trifuse.calib.rig_formats import Exported, Imported, urdf_format
 from trifuse.calib.rig_formats.common import (
@@ -214,7 +215,7 @@ class CameraInfo:
 
 def _number(value: Any, where: str) -> float:
     """``value`` as a finite float (bools refused), else RigError naming ``where``."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
+    if not is_int_or_float(value):
         raise RigError(f"{where}: expected a number, got {value!r}")
     try:
         v = float(value)
@@ -240,7 +241,7 @@ def _ros_matrix(
         raise RigError(f"{where}: missing key(s) {missing}")
     rows, cols, values = block["rows"], block["cols"], block["data"]
     for label, n in (("rows", rows), ("cols", cols)):
-        if isinstance(n, bool) or not isinstance(n, int) or n < 0 or n > 1000:
+        if not is_int(n) or n < 0 or n > 1000:
             raise RigError(f"{where}: {label}: expected a small non-negative integer, got {n!r}")
     if shape is not None and (rows, cols) != shape:
         raise RigError(f"{where}: expected {shape[0]} x {shape[1]}, got {rows} x {cols}")
@@ -258,7 +259,7 @@ def _size(data: Mapping[str, Any], key: str, source: str) -> int:
     if key not in data:
         raise RigError(f"{source}: {key}: missing (camera_calibration_parsers requires it)")
     value = data[key]
-    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+    if not is_int(value) or value <= 0:
         raise RigError(f"{source}: {key}: expected a positive integer, got {value!r}")
     return value
 
@@ -307,7 +308,7 @@ def parse_camera_info(text: str, source: str) -> CameraInfo:
         )
     name = data.get("camera_name")
     if name is not None:
-        if isinstance(name, bool) or not isinstance(name, str | int | float):
+        if not (isinstance(name, str) or is_int_or_float(name)):
             raise RigError(f"{source}: camera_name: expected a name, got {name!r}")
         name = str(name)
     stated = "distortion_model" in data

@@ -44,7 +44,13 @@ from trifuse.calib.errors import RigError
 from trifuse.calib.rig import Rig
 from trifuse.calib.rig_formats import Exported
 from trifuse.calib.rig_formats.common import extras_lost
-from trifuse.calib.transforms import invert, make_T, rigidity_problem
+from trifuse.calib.transforms import (
+    invert,
+    make_T,
+    rigidity_problem,
+    rotation_from_rpy,
+    rpy_from_rotation,
+)
 
 OPTICAL_SUFFIX = "_optical_frame"
 """A sensor's link is ``<prefix><sensor>_optical_frame`` by default (``link_suffix``)."""
@@ -57,53 +63,12 @@ MAX_URDF_CHARS = 10_000_000
 
 _LINK_NAME_RE = re.compile(r"[A-Za-z0-9_./-]+")
 """Names written into the URDF: a tf frame id without spaces (``/`` allowed inside)."""
-_GIMBAL_EPS = 1e-12
-"""``cos(pitch)`` below which yaw is folded into roll (the two axes coincide)."""
 
 
 def sensor_link(sensor: str, prefix: str = "", suffix: str = OPTICAL_SUFFIX) -> str:
     """The URDF link (and tf frame) of ``sensor``: ``<prefix><sensor><suffix>``, by default
     ``<sensor>_optical_frame``."""
     return f"{prefix}{sensor}{suffix}"
-
-
-# -- roll, pitch, yaw -----------------------------------------------------------------------
-
-
-def rotation_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """(3, 3) rotation of URDF's ``rpy``: ``Rz(yaw) @ Ry(pitch) @ Rx(roll)``, radians.
-
-    Fixed axes: roll about the parent's x, then pitch about its y, then yaw about its z.
-    """
-    cr, sr = math.cos(roll), math.sin(roll)
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    return np.array(
-        [
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ]
-    )
-
-
-def rpy_from_rotation(R: np.ndarray) -> tuple[float, float, float]:
-    """URDF's ``(roll, pitch, yaw)`` in radians of a (3, 3) rotation (inverse of
-    :func:`rotation_from_rpy`), with pitch in [-pi/2, pi/2].
-
-    Pitch comes from ``atan2``, accurate everywhere. At gimbal lock (pitch = +-90 degrees)
-    roll and yaw turn about the same axis and only their difference (or sum) is defined:
-    yaw is set to 0 there. Roll is always taken from what is left once yaw and pitch are
-    undone, ``(Rz(yaw) Ry(pitch))^T R``, so an imprecise yaw near the lock is absorbed by
-    roll and ``rotation_from_rpy(*rpy_from_rotation(R))`` reproduces ``R`` to about 1e-16.
-    """
-    R = np.asarray(R, dtype=np.float64)
-    cos_pitch = math.hypot(float(R[0, 0]), float(R[1, 0]))
-    pitch = math.atan2(-float(R[2, 0]), cos_pitch)
-    yaw = math.atan2(float(R[1, 0]), float(R[0, 0])) if cos_pitch > _GIMBAL_EPS else 0.0
-    rest = rotation_from_rpy(0.0, pitch, yaw).T @ R  # = Rx(roll)
-    roll = math.atan2(float(rest[2, 1]), float(rest[1, 1]))
-    return roll, pitch, yaw
 
 
 # -- export ---------------------------------------------------------------------------------

@@ -151,7 +151,7 @@ class CalibrationPanel(Periodic):
         self.delete.on_click(lambda _e: self._act(self._delete))
         self.run.on_click(lambda _e: self._act(self._calibrate))
         self.drop.on_click(lambda _e: self._act(self._drop))
-        self.download.on_click(lambda e: self._act(lambda: self._download(e.client)))
+        self.download.on_click(lambda e: self.send_report(e.client))
         self.save.on_click(lambda _e: self._act(self._save))
         self.use.on_click(lambda _e: self._act(self._use))
         self._dirty = True
@@ -162,6 +162,11 @@ class CalibrationPanel(Periodic):
         ctx.rig_choices = self._rig_choices
 
     # -- actions --------------------------------------------------------------------------
+
+    def send_report(self, client) -> None:
+        """What Download report does: send the finished calibration's report page to the
+        browser ``client``; what happened, or why not, shown in :attr:`message`."""
+        self._act(lambda: self._download(client))
 
     def _act(self, action) -> None:
         """Run a button's action; its refusal is shown, never raised into Viser."""
@@ -349,7 +354,7 @@ class CalibrationPanel(Periodic):
                 f"| {md_text(name)} | {s.views_used}/{s.views_detected} | {s.rms_px:.3f} | "
                 f"{s.sigma.get('fx', 0.0):.2f} | pose unknown | |"
             )
-        if getattr(result, "verdict", None) is not None:
+        if result.verdict is not None:
             lines += ["", *verdict_md(result.verdict.as_dict())]
         if result.polarity:
             pol = {n: p.as_dict() for n, p in result.polarity.items()}

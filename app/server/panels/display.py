@@ -36,6 +36,14 @@ from trifuse.app.server.runtime.context import BANDWIDTH_MODES, ConsoleBandwidth
 from trifuse.app.server.runtime.periodic import Periodic
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.thermal_balance import BalanceStatus
+from trifuse.app.server.settings_spec import (
+    EDGE_STRENGTH,
+    MANUAL_OFFSET_K,
+    MAX_GAIN,
+    OPACITY,
+    PLATEAU,
+    SPAN_SMOOTHING_S,
+)
 from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.app.storage.preview import to_display
 from trifuse.app.workflows.calib_session import radiometry_report
@@ -244,8 +252,7 @@ class Panels(Periodic):
         super().__init__("panels", 1.0 / feed_hz)
         self.ctx = ctx
         self.clock = clock
-        # a context without the setting (a test's) runs at full bandwidth
-        self.bandwidth: ConsoleBandwidth = getattr(ctx, "bandwidth", None) or ConsoleBandwidth()
+        self.bandwidth: ConsoleBandwidth = ctx.bandwidth
         self.bandwidth_mode = self.bandwidth.mode
         self.profile = FEED_PROFILES[self.bandwidth_mode]
         self._next_feeds = 0.0
@@ -255,8 +262,8 @@ class Panels(Periodic):
         s = pipeline.settings
         with gui.add_folder("Fusion"):
             self.mode = gui.add_dropdown("Mode", DISPLAY_MODES, initial_value=s.mode)
-            self.opacity = gui.add_slider("Opacity", 0.0, 1.0, 0.05, s.opacity)
-            self.edges = gui.add_slider("Edge strength", 0.0, 10.0, 0.5, s.edge_strength)
+            self.opacity = gui.add_slider("Opacity", *OPACITY.slider(), s.opacity)
+            self.edges = gui.add_slider("Edge strength", *EDGE_STRENGTH.slider(), s.edge_strength)
             self.thr_lo = gui.add_number("Threshold low (°C)", 40.0, step=0.5)
             self.thr_hi = gui.add_number("Threshold high (°C)", 40.0, step=0.5)
             self.thr_dir = gui.add_dropdown(
@@ -274,18 +281,14 @@ class Panels(Periodic):
             )
             self.plateau = gui.add_slider(
                 "Plateau (%)",
-                0.1,
-                100.0,
-                0.1,
-                round(100.0 * s.plateau, 1),
+                *PLATEAU.slider(),
+                round(PLATEAU.gui_scale * s.plateau, 1),
                 hint="The largest share of the pixels one 0.1 K bin counts with "
                 "(100 %: plain histogram equalization)",
             )
             self.max_gain = gui.add_slider(
                 "Max gain (steps/K)",
-                1.0,
-                100.0,
-                1.0,
+                *MAX_GAIN.slider(),
                 float(min(100, round(s.max_gain))),
                 hint="Plateau and dde: the most palette steps one kelvin may take, so that a "
                 "flat wall's noise and the imagers' offset are not stretched",
@@ -306,10 +309,12 @@ class Panels(Periodic):
             self.level = gui.add_number("Level (°C)", 30.0, step=0.5)
             self.span = gui.add_number("Span (K)", 30.0, min=0.5, step=0.5)
             self.smoothing = gui.add_slider(
-                "Span smoothing (s)", 0.0, 10.0, 0.5, s.span_smoothing_s
+                "Span smoothing (s)", *SPAN_SMOOTHING_S.slider(), s.span_smoothing_s
             )
             self.offsets = {
-                name: gui.add_number(f"Offset {name} (K)", r.manual_offset_k, step=0.05)
+                name: gui.add_number(
+                    f"Offset {name} (K)", r.manual_offset_k, **MANUAL_OFFSET_K.number()
+                )
                 for name, r in pipeline.radiometry.items()
             }
             self.auto_balance = gui.add_checkbox(
@@ -382,7 +387,7 @@ class Panels(Periodic):
                 isotherm_k=(self.iso_lo.value + C_TO_K, self.iso_hi.value + C_TO_K),
                 mark_fallback=bool(self.mark.value),
                 agc=self.agc.value,
-                plateau=float(self.plateau.value) / 100.0,
+                plateau=float(self.plateau.value) / PLATEAU.gui_scale,
                 max_gain=float(self.max_gain.value),
                 span_k=None if self.auto.value else span,
                 span_smoothing_s=float(self.smoothing.value),

@@ -260,8 +260,8 @@ class NextPoseOverlay:
             self._shown = s
             self._show_ghost(nxt)
         watch = self.ctx.board_watch
-        sighting = getattr(watch, "latest", None) if getattr(watch, "enabled", True) else None
-        T_now = getattr(sighting, "T_rig_board", None)
+        sighting = watch.latest if watch.enabled else None
+        T_now = None if sighting is None else sighting.T_rig_board
         words = None
         if nxt is not None and s is not None and s.result is not None:
             words = nxt.words(T_now, s.result.sensors)

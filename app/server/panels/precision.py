@@ -340,6 +340,11 @@ class PrecisionPanel(Periodic):
         except Exception as exc:  # shown in the panel
             self.status.content = f"**Cannot plot:** {md_text(describe_error(exc))}"
 
+    @property
+    def plots(self) -> tuple[viser.GuiUplotHandle, ...]:
+        """The plots shown: |dx| and |dy| against radial distance (none before a result)."""
+        return tuple(self._plots)
+
     def _remove_plots(self) -> None:
         for plot in self._plots:
             plot.remove()

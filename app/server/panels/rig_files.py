@@ -152,7 +152,13 @@ class RigFilesPanel:
             self.upload = gui.add_upload_button("Import rig files", mime_type="*/*")
             self.message = gui.add_markdown("")
         self.export_button.on_click(lambda e: self._act(lambda: self.export(e.client)))
-        self.upload.on_upload(lambda e: self._act(lambda: self.import_upload(e.target.value)))
+        self.upload.on_upload(lambda e: self.upload_rig(e.target.value))
+
+    def upload_rig(self, upload) -> None:
+        """What the Upload button does with a file (``upload.name``, ``upload.content``
+        bytes): import it (:meth:`import_upload`); what happened, or why not, shown in
+        :attr:`message`."""
+        self._act(lambda: self.import_upload(upload))
 
     def _act(self, action) -> None:
         try:

@@ -96,7 +96,7 @@ from trifuse.app.server.runtime.periodic import Periodic
 from trifuse.app.workflows.report_format import markdown_table
 from trifuse.calib.rig import Rig, Sensor
 from trifuse.calib.transforms import invert, pose_error
-from trifuse.fusion.compose import CLOUD_COLORINGS
+from trifuse.fusion.cloud_colors import CLOUD_COLORINGS
 
 FRUSTUM_SIZE_RANGE_M = (0.05, 2.0)
 """The "Frustum size" slider: the frustums' depth, metres."""
@@ -345,9 +345,8 @@ class Scene3D(Periodic):
         self.bandwidth_choice.on_update(lambda _e: self._guard("bandwidth", self._on_bandwidth))
         self._apply_bandwidth(self.bandwidth_mode)
 
-        listeners = getattr(ctx.board_watch, "pose_listeners", None)
-        if listeners is not None:  # the board moves the moment its pose is known
-            listeners.append(lambda _s: self._guard("board", self.update_board))
+        # the board moves the moment its pose is known
+        ctx.board_watch.pose_listeners.append(lambda _s: self._guard("board", self.update_board))
 
         @server.on_client_connect
         def _start_view(client: viser.ClientHandle) -> None:
@@ -410,7 +409,7 @@ class Scene3D(Periodic):
         return self._rigs.get(IN_USE, self.ctx.pipeline.rig)
 
     def _tof_name(self) -> str:
-        return getattr(self.ctx.pipeline, "tof", None) or self.in_use.reference
+        return self.ctx.pipeline.tof or self.in_use.reference
 
     @staticmethod
     def _positions(rig: Rig) -> np.ndarray:
@@ -718,7 +717,7 @@ class Scene3D(Periodic):
             span = temperature_span(p, thermals)
         except (ValueError, KeyError, AttributeError):
             span = None
-        palette = getattr(p.settings, "palette", "iron")
+        palette = p.settings.palette
         outlines = self.ctx.next_outline
         for name, nodes in self.nodes.items():
             shown = frames.get(name) if name in self.shown_rig else None
@@ -736,7 +735,7 @@ class Scene3D(Periodic):
         when that sighting has no pose (:meth:`BoardMarker.show
         <app.server.panels.scene_board.BoardMarker.show>`)."""
         watch = self.ctx.board_watch
-        latest = getattr(watch, "latest_pose", None) or getattr(watch, "latest", None)
+        latest = watch.latest_pose or watch.latest
         self.board_marker.show(latest, self.ctx.pipeline.latest_set)
 
     # -- the loop ----------------------------------------------------------------------

@@ -11,6 +11,8 @@ import viser
 
 from trifuse.app.server.markdown_text import md_text
 from trifuse.app.server.panels.scene_sensors import wxyz_of
+from trifuse.app.server.runtime.board_watch import BoardSighting
+from trifuse.app.sources.frames import FrameSet
 from trifuse.calib.board import Board, aruco_dictionary
 
 BOARD_PX_PER_SQUARE = 16
@@ -51,20 +53,20 @@ def board_outline(board: Board) -> np.ndarray:
     return np.stack([c, np.roll(c, -1, axis=0)], axis=1)
 
 
-def board_lag_s(sighting: object, newest: object) -> float:
+def board_lag_s(sighting: BoardSighting | None, newest: object) -> float:
     """How much older (seconds) the frames a board sighting was found in are than the
     ``newest`` frame set: 0 when the newest set shows the very image the pose came from
-    (a simulated head holding a pose, a paused replay: the board drawn is current)."""
-    frames = getattr(sighting, "frames", None)
-    then = getattr(frames, "frames", None)
-    now = getattr(newest, "frames", None)
-    if not isinstance(then, dict) or not isinstance(now, dict):
+    (a simulated head holding a pose, a paused replay: the board drawn is current), or
+    without a sighting or a frame set (``newest`` is whatever the pipeline holds: the
+    board is drawn even if that is broken)."""
+    if sighting is None or not isinstance(newest, FrameSet):
         return 0.0
-    sensor = getattr(sighting, "pose_sensor", None)
-    seen, current = then.get(sensor), now.get(sensor)
-    if seen is not None and current is not None and seen.image is current.image:
-        return 0.0
-    return (newest.stamp_ns - frames.stamp_ns) / 1e9  # type: ignore[union-attr]
+    sensor = sighting.pose_sensor
+    if sensor is not None:
+        seen, current = sighting.frames.frames.get(sensor), newest.frames.get(sensor)
+        if seen is not None and current is not None and seen.image is current.image:
+            return 0.0
+    return (newest.stamp_ns - sighting.frames.stamp_ns) / 1e9
 
 
 class BoardMarker:
@@ -90,9 +92,9 @@ class BoardMarker:
             thickness_units="screen",
         )
         self.node, self.md = node, md
-        self._sighting: object = None
+        self._sighting: BoardSighting | None = None
 
-    def show(self, sighting: object, newest: object) -> None:
+    def show(self, sighting: BoardSighting | None, newest: object) -> None:
         """The board at ``sighting``'s pose ``T_rig_board`` (a
         :class:`~app.server.runtime.board_watch.BoardSighting`, or None), hidden when it
         has none; the line says how far away, from which sensor, who saw it and, from
@@ -102,8 +104,8 @@ class BoardMarker:
         if sighting is self._sighting:
             return
         self._sighting = sighting
-        T = getattr(sighting, "T_rig_board", None)
-        if T is None or np.shape(T) != (4, 4) or not np.isfinite(T).all():
+        T = None if sighting is None else sighting.T_rig_board
+        if sighting is None or T is None or np.shape(T) != (4, 4) or not np.isfinite(T).all():
             self.node.visible = False
             self.md.content = "Board: not detected"
             return
@@ -112,10 +114,10 @@ class BoardMarker:
         self.node.position = T[:3, 3].copy()
         self.node.visible = True
         dist = float(np.linalg.norm(T[:3, 3]))
-        pose_sensor = md_text(getattr(sighting, "pose_sensor", "?"))
+        pose_sensor = md_text(sighting.pose_sensor)
         text = f"Board: {dist:.2f} m away, pose from {pose_sensor}"
-        seen = ", ".join(getattr(sighting, "found", []) or [])
-        if not getattr(sighting, "complete", True):
+        seen = ", ".join(sighting.found)
+        if not sighting.complete:
             text += "; searching the other sensors"
         elif seen:
             text += f"; seen by {md_text(seen)}"

@@ -11,8 +11,8 @@ import numpy as np
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.sources.frames import FrameSet
 from trifuse.calib.rig import Sensor
-from trifuse.fusion.compose import auto_span, resolve_span
 from trifuse.fusion.palettes import PALETTE_NAMES
+from trifuse.fusion.span import auto_span, resolve_span
 
 DEPTH_PALETTE = "rainbow" if "rainbow" in PALETTE_NAMES else PALETTE_NAMES[0]
 NAN_GREY = (128, 128, 128)
@@ -27,7 +27,7 @@ def temperature_span(
     settings = pipeline.settings
     if settings.span_k is not None:
         return settings.span_k
-    span = getattr(pipeline.fusion, "span_k", None)
+    span = pipeline.fusion.span_k
     if span is not None:
         return span
     return resolve_span(settings, thermal_images) if thermal_images else None
@@ -48,7 +48,7 @@ def coloured_cloud(
     pipeline: FusionPipeline, fs: FrameSet, mode: str
 ) -> tuple[np.ndarray, np.ndarray, str, tuple[float, float] | None]:
     """The pipeline's TOF points coloured by ``mode`` (``color``, ``temperature``,
-    ``depth``: :data:`fusion.compose.CLOUD_COLORINGS`) with frame set ``fs``.
+    ``depth``: :data:`fusion.cloud_colors.CLOUD_COLORINGS`) with frame set ``fs``.
 
     Returns:
         (points (N, 3) metres in the in-use rig's TOF frame, colours (N, 3) uint8 RGB

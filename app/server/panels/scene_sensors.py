@@ -10,13 +10,13 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import viser
-import viser.transforms as vtf
 
 from trifuse.app.server.panels import scene_layout as layout
 from trifuse.app.server.panels.display import draw_outline
 from trifuse.app.sources.frames import Frame
 from trifuse.app.storage.preview import to_display
 from trifuse.calib.rig import Sensor
+from trifuse.calib.transforms import quaternion_from_rotation
 from trifuse.fusion.palettes import apply_palette
 
 FRUSTUM_COLORS = {"color": (40, 120, 240), "thermal": (240, 90, 30), "tof": (40, 200, 90)}
@@ -28,8 +28,10 @@ TEXTURE_JPEG_QUALITY = 75
 
 
 def wxyz_of(T: np.ndarray) -> np.ndarray:
-    """Quaternion (4,) ``(w, x, y, z)`` of the rotation of a (4, 4) or (3, 3) transform."""
-    return vtf.SO3.from_matrix(np.asarray(T, dtype=np.float64)[:3, :3]).wxyz
+    """Quaternion (4,) ``(w, x, y, z)``, ``w >= 0`` (viser's order), of the rotation of a
+    (4, 4) or (3, 3) transform."""
+    x, y, z, w = quaternion_from_rotation(np.asarray(T, dtype=np.float64)[:3, :3])
+    return np.array([w, x, y, z])
 
 
 def vertical_fov_rad(sensor: Sensor) -> float:

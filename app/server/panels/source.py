@@ -8,7 +8,7 @@ counted over the last few seconds (:data:`app.server.runtime.rates.RATE_WINDOW_S
 a play/pause button, a position slider that follows the replay (and leaves the operator's
 hand alone while it drags) and a speed slider (0.25x-4x). For every source: Record / Stop
 recording, which records the frames the console receives to
-``<workdir>/recordings/<time>.mcap`` (see :mod:`app.server.runtime.source_control`), with the
+``<workdir>/recordings/<time>.mcap`` (see :mod:`app.recording.recorder`), with the
 file's size and duration while it grows; "Record fused video" (off by default: encoding
 costs about 9 ms of CPU per 2560 x 960 picture, a quarter of a core at 30 pictures/s, and
 the console keeps fusing while it records, about 23 ms a picture when nobody watches) makes
@@ -20,22 +20,21 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import viser
 
+from trifuse.app.errors import ControlError
+from trifuse.app.recording.recorder import RecordingState
 from trifuse.app.server.markdown_text import md_text
 from trifuse.app.server.runtime.context import ConsoleContext
 from trifuse.app.server.runtime.periodic import Periodic
 from trifuse.app.server.runtime.rates import RatesSnapshot
 from trifuse.app.server.runtime.sensor_health import SensorHealth
-from trifuse.app.server.runtime.source_control import (
-    RATE_MAX,
-    RATE_MIN,
-    ControlError,
-    RecordingState,
-    SourceControl,
-)
+from trifuse.app.server.runtime.source_control import SourceControl
+from trifuse.app.server.settings_spec import REPLAY_RATE
+from trifuse.app.sources.capabilities import notes_of
 
 HOLD_S = 1.5
 """After the operator moves a slider, the panel leaves it alone for this long (seconds)."""
@@ -140,14 +139,21 @@ class SourcePanel(Periodic):
             comes first).
         control: the source's state and controls (shared with the REST API).
         refresh_hz: display updates per second.
+        clock: monotonic seconds, for how long a slider the operator moved is left alone
+            (tests pass their own).
     """
 
     def __init__(
-        self, ctx: ConsoleContext, control: SourceControl, refresh_hz: float = 2.0
+        self,
+        ctx: ConsoleContext,
+        control: SourceControl,
+        refresh_hz: float = 2.0,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         super().__init__("source-panel", 1.0 / refresh_hz)
         server = ctx.server
         self.server, self.control = server, control
+        self._clock = clock
         self._hold_until = {"position": 0.0, "rate": 0.0}
         gui = server.gui
         state = control.source_state()
@@ -173,9 +179,7 @@ class SourcePanel(Periodic):
                 )
                 self.rate = gui.add_slider(
                     "Speed (x)",
-                    RATE_MIN,
-                    RATE_MAX,
-                    0.25,
+                    *REPLAY_RATE.slider(),
                     float(state.rate or 1.0),
                     marks=((0.25, "¼"), (1.0, "1"), (2.0, "2"), (4.0, "4")),
                     hint="Replay speed, times real time",
@@ -220,7 +224,7 @@ class SourcePanel(Periodic):
     def _on_position(self, event: viser.GuiEvent) -> None:
         if event.client is None or self.position is None:
             return  # the panel's own update
-        self._hold_until["position"] = time.monotonic() + HOLD_S
+        self._hold_until["position"] = self._clock() + HOLD_S
         try:
             duration = self.control.source_state().duration_s or 0.0
             self.control.seek(min(max(float(self.position.value), 0.0), duration))
@@ -230,7 +234,7 @@ class SourcePanel(Periodic):
     def _on_rate(self, event: viser.GuiEvent) -> None:
         if event.client is None or self.rate is None:
             return
-        self._hold_until["rate"] = time.monotonic() + HOLD_S
+        self._hold_until["rate"] = self._clock() + HOLD_S
         try:
             self.control.set_rate(float(self.rate.value))
         except (ControlError, ValueError) as exc:
@@ -295,7 +299,7 @@ class SourcePanel(Periodic):
             )
         if status.error:
             text += f"\n\n**Error:** {md_text(status.error)}"
-        notes = getattr(c.source, "notes", None)
+        notes = notes_of(c.source)
         if notes:
             text += "\n\nNotes: " + "; ".join(md_text(n) for n in notes)
         return text
@@ -303,7 +307,7 @@ class SourcePanel(Periodic):
     def tick(self) -> None:
         c = self.control
         st = c.source_state()
-        now = time.monotonic()
+        now = self._clock()
         if st.kind == "replay" and self.position is not None and self.rate is not None:
             self._show_paused(bool(st.paused))
             if now >= self._hold_until["position"]:

@@ -14,12 +14,19 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, ConfigDict, Field
 
-from trifuse.app.server.routers.limits import require_json
+from trifuse.app.server.middleware.limits import require_json
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.thermal_balance import ThermalBalancer
-from trifuse.calib.radiometry import MAX_TRIM_K
+from trifuse.app.server.settings_spec import (
+    EDGE_STRENGTH,
+    MANUAL_OFFSET_K,
+    MAX_GAIN,
+    OPACITY,
+    PLATEAU,
+    SPAN_SMOOTHING_S,
+)
 from trifuse.calib.rig import rig_to_dict
-from trifuse.fusion.agc import MAX_MAX_GAIN, MIN_MAX_GAIN, MIN_PLATEAU, AgcMode
+from trifuse.fusion.agc import AgcMode
 from trifuse.fusion.balance import BalanceEstimate
 from trifuse.fusion.compose import DisplayMode, ThresholdDirection
 from trifuse.fusion.palettes import PaletteName
@@ -34,31 +41,19 @@ class FusionSettings(BaseModel):
 
     mode: DisplayMode
     palette: PaletteName
-    opacity: float = Field(ge=0.0, le=1.0)
+    opacity: float = OPACITY.field()
     threshold_k: tuple[float, float]
     threshold_direction: ThresholdDirection
     isotherm_k: tuple[float, float]
-    edge_strength: float = Field(ge=0.0, le=10.0)
+    edge_strength: float = EDGE_STRENGTH.field()
     mark_fallback: bool
     agc: AgcMode | None = Field(
         default=None,
         description="linear, plateau (equalization over both eyes) or dde (detail "
         "enhancement); omitted: unchanged",
     )
-    plateau: float | None = Field(
-        default=None,
-        ge=MIN_PLATEAU,
-        le=1.0,
-        description="plateau and dde: the largest share of the pixels one 0.1 K bin counts "
-        "with (1: plain histogram equalization); omitted: unchanged",
-    )
-    max_gain: float | None = Field(
-        default=None,
-        ge=MIN_MAX_GAIN,
-        le=MAX_MAX_GAIN,
-        description="plateau and dde: the steepest the mapping may be, palette steps per "
-        "kelvin (a flat scene is not stretched into noise); omitted: unchanged",
-    )
+    plateau: float | None = PLATEAU.field()
+    max_gain: float | None = MAX_GAIN.field()
 
 
 class Radiometry(BaseModel):
@@ -104,10 +99,8 @@ class ThermalSettings(BaseModel):
     model_config = ConfigDict(allow_inf_nan=False, extra="forbid")
 
     span_k: tuple[float, float] | None = None
-    span_smoothing_s: float | None = Field(default=None, ge=0.0, le=60.0)
-    offset_k: dict[str, Annotated[float, Field(ge=-MAX_TRIM_K, le=MAX_TRIM_K)]] = Field(
-        default_factory=dict
-    )
+    span_smoothing_s: float | None = SPAN_SMOOTHING_S.field()
+    offset_k: dict[str, Annotated[float, MANUAL_OFFSET_K.field()]] = Field(default_factory=dict)
     auto_balance: bool | None = None
     balance_reference: str | None = None
 

@@ -9,13 +9,11 @@ folder's Bandwidth dropdown shows the same setting (``ctx.bandwidth``); ``trifus
 
 from __future__ import annotations
 
-from typing import Literal
-
 from fastapi import APIRouter, Depends
 from pydantic import BaseModel, ConfigDict, Field
 
-from trifuse.app.server.routers.limits import require_json
-from trifuse.app.server.runtime.context import ConsoleBandwidth
+from trifuse.app.server.middleware.limits import require_json
+from trifuse.app.server.runtime.context import BandwidthMode, ConsoleBandwidth
 
 
 class ConsoleSettingsBody(BaseModel):
@@ -23,7 +21,7 @@ class ConsoleSettingsBody(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    bandwidth: Literal["full", "low"] = Field(
+    bandwidth: BandwidthMode = Field(
         description="what /console/ sends to each browser: full (every TOF point, 320 px "
         "images at 2 Hz) or low (every 2nd TOF pixel at 2 Hz, 160 px images and feeds at "
         "1 Hz: for a radio link shared with the viewer's video)"
@@ -37,13 +35,13 @@ def make_console_settings_router(bandwidth: ConsoleBandwidth) -> APIRouter:
     @router.get("/settings")
     def get_settings() -> ConsoleSettingsBody:
         """The 3D console's bandwidth mode."""
-        return ConsoleSettingsBody(bandwidth=bandwidth.mode)  # type: ignore[arg-type]
+        return ConsoleSettingsBody(bandwidth=bandwidth.mode)
 
     @router.put("/settings", dependencies=[Depends(require_json)])
     def put_settings(body: ConsoleSettingsBody) -> ConsoleSettingsBody:
         """Set the 3D console's bandwidth mode (422 for an unknown one); the scene and the
         feeds take it at their next update, for every browser."""
         bandwidth.mode = body.bandwidth
-        return ConsoleSettingsBody(bandwidth=bandwidth.mode)  # type: ignore[arg-type]
+        return ConsoleSettingsBody(bandwidth=bandwidth.mode)
 
     return router

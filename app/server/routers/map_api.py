@@ -12,7 +12,7 @@ from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, ConfigDict, Field
 
 from trifuse.app.errors import describe_error
-from trifuse.app.server.routers.limits import require_json
+from trifuse.app.server.middleware.limits import require_json
 from trifuse.app.server.runtime.map_worker import MapWorker
 
 

@@ -19,7 +19,8 @@ from fastapi import APIRouter, Depends, HTTPException
 from fastapi.responses import HTMLResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from trifuse.app.server.routers.limits import require_json
+from trifuse.app.server.middleware.limits import require_json
+from trifuse.app.server.settings_spec import HOLDOUT_EVERY
 from trifuse.app.sources.frames import FrameSet
 from trifuse.app.workflows.calib_session import (
     CalibrationJob,
@@ -176,7 +177,7 @@ class RangeStatus(BaseModel):
 class RangeStart(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    holdout_every: int = Field(default=4, ge=2, le=50)
+    holdout_every: int = HOLDOUT_EVERY.field()
 
 
 def range_model(job: RangeJob) -> RangeStatus:

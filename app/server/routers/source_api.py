@@ -15,17 +15,13 @@ from typing import Literal
 from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel, ConfigDict, Field
 
-from trifuse.app.server.routers.limits import require_json
+from trifuse.app.errors import ControlError
+from trifuse.app.recording.recorder import RecordingState
+from trifuse.app.server.middleware.limits import require_json
 from trifuse.app.server.runtime.pipeline import FusionPipeline
-from trifuse.app.server.runtime.source_control import (
-    RATE_MAX,
-    RATE_MIN,
-    ControlError,
-    RecordingState,
-    SourceControl,
-    SourceState,
-)
+from trifuse.app.server.runtime.source_control import SourceControl, SourceState
 from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.server.settings_spec import REPLAY_RATE, SEEK_POSITION_S
 
 
 class SourceInfo(BaseModel):
@@ -179,17 +175,13 @@ class Status(BaseModel):
 class SeekRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    position_s: float = Field(
-        ge=0.0, allow_inf_nan=False, description="seconds from the recording's start"
-    )
+    position_s: float = SEEK_POSITION_S.field(allow_inf_nan=False)
 
 
 class RateRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    rate: float = Field(
-        ge=RATE_MIN, le=RATE_MAX, allow_inf_nan=False, description="replay speed, x real time"
-    )
+    rate: float = REPLAY_RATE.field(allow_inf_nan=False)
 
 
 def _source(state: SourceState) -> SourceInfo:

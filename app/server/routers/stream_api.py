@@ -10,7 +10,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends
 from pydantic import BaseModel, ConfigDict, Field
 
-from trifuse.app.server.routers.limits import require_json
+from trifuse.app.server.middleware.limits import require_json
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.server.runtime.video_presets import VideoPreset
 

@@ -72,7 +72,7 @@ from trifuse.calib.board import Board
 from trifuse.calib.detect import Detection
 from trifuse.calib.polarity import detect_board_configured, orient_to_pose, override
 from trifuse.calib.rig import Rig
-from trifuse.calib.transforms import invert
+from trifuse.calib.transforms import invert, make_T, rotation_from_rvec
 
 STEADY_PX = 2.0
 """A board is steady when no corner moved more than this many pixels (in any sensor that
@@ -169,10 +169,7 @@ def board_pose(rig: Rig, sensor: str, corners: np.ndarray, board: Board) -> np.n
     )
     if not ok:
         return None
-    T = np.eye(4)
-    T[:3, :3] = cv2.Rodrigues(rvec)[0]
-    T[:3, 3] = tvec.ravel()
-    return rig[sensor].T_rig_sensor @ T
+    return rig[sensor].T_rig_sensor @ make_T(rotation_from_rvec(rvec.ravel()), tvec.ravel())
 
 
 def board_in_image(rig: Rig, sensor: str, T_rig_board: np.ndarray, board: Board) -> bool:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Literal, cast, get_args
 
 import numpy as np
 import viser
@@ -19,9 +20,12 @@ from trifuse.app.workflows.calib_session import RigVersion
 from trifuse.calib.board import Board
 from trifuse.calib.rig import Rig
 
-BANDWIDTH_MODES = ("full", "low")
+BandwidthMode = Literal["full", "low"]
 """The 3D console's bandwidth modes: ``full`` (every point, images at 2 Hz) and ``low``
-(a decimated cloud at 2 Hz, small images at 1 Hz: the panels' profiles say exactly)."""
+(a decimated cloud at 2 Hz, small images at 1 Hz: the panels' profiles say exactly); the
+REST model takes it as its type, the GUI's dropdown its values (:data:`BANDWIDTH_MODES`)."""
+
+BANDWIDTH_MODES: tuple[BandwidthMode, ...] = get_args(BandwidthMode)
 
 
 class ConsoleBandwidth:
@@ -31,18 +35,18 @@ class ConsoleBandwidth:
     ValueError. Thread-safe (a plain attribute swap)."""
 
     def __init__(self, mode: str = "full") -> None:
-        self._mode = "full"
+        self._mode: BandwidthMode = "full"
         self.mode = mode
 
     @property
-    def mode(self) -> str:
+    def mode(self) -> BandwidthMode:
         return self._mode
 
     @mode.setter
     def mode(self, value: str) -> None:
         if value not in BANDWIDTH_MODES:
             raise ValueError(f"console bandwidth {value!r}: expected one of {BANDWIDTH_MODES}")
-        self._mode = value
+        self._mode = cast(BandwidthMode, value)
 
 
 @dataclass

@@ -16,7 +16,7 @@ What goes out (the recording's message builders, :mod:`app.recording.writer`):
   (``source.head_pose(stamp_ns)``: the simulated head, a recording with poses);
 - ``/fused/video``: the console's fused stereo picture as a recording keeps it
   (``foxglove.CompressedVideo`` H.264, :class:`~app.recording.video_track.FusedVideoTrack`),
-  encoded by the recording's :class:`~app.server.runtime.source_control.FusedVideoTap` at
+  encoded by the recording's :class:`~app.server.runtime.fused_video_tap.FusedVideoTap` at
   :data:`LIVE_VIDEO` (4 Mbit/s, a key frame every second and for each new subscriber);
   while it is subscribed the tap holds the console's fusion demand (the console fuses);
 - live only (no recording has them): ``/<tof>/points`` (:data:`POINTS_STREAM`;
@@ -58,8 +58,6 @@ import secrets
 import socket
 import threading
 import time
-from collections import deque
-from collections.abc import Callable
 from typing import Any
 
 import foxglove
@@ -76,6 +74,7 @@ from foxglove.messages import (
 )
 
 from trifuse.app.errors import describe_error
+from trifuse.app.latest_worker import LatestWorker
 from trifuse.app.recording.layout import RIG_FRAME, TF_TOPIC, WORLD_FRAME
 from trifuse.app.recording.video_track import (
     FusedVideoTrack,
@@ -96,7 +95,9 @@ from trifuse.app.server.runtime.foxglove_gate import (
     FoxgloveGate,
     in_use_message,
 )
-from trifuse.app.server.runtime.source_control import FusedVideoSource, FusedVideoTap, SourceControl
+from trifuse.app.server.runtime.fused_video_tap import FusedVideoSource, FusedVideoTap
+from trifuse.app.server.runtime.source_control import SourceControl
+from trifuse.app.sources.capabilities import HeadPose, head_pose_of
 from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.calib.rig import Rig
 from trifuse.calib.transforms import rigidity_problem
@@ -248,7 +249,7 @@ class FoxgloveLive:
         self,
         control: SourceControl,
         port: int,
-        head_pose: Callable[[int], np.ndarray | None] | None = None,
+        head_pose: HeadPose | None = None,
         jpeg_quality: int = 90,
         video: VideoSettings = LIVE_VIDEO,
         max_clients: int = MAX_CLIENTS,
@@ -256,7 +257,7 @@ class FoxgloveLive:
     ) -> None:
         self.control = control
         self.pipeline = control.pipeline
-        self.head_pose = head_pose or getattr(control.source, "head_pose", None)
+        self.head_pose = head_pose or head_pose_of(control.source)
         self.jpeg_quality = jpeg_quality
         self.video_settings = video
         self.encoded = self.taken = self.dropped = self.failed = 0
@@ -280,9 +281,7 @@ class FoxgloveLive:
             ch.id() for (_, kind), ch in self._channels.items() if kind == "calibration"
         }
         self._subs: set[tuple[int, int]] = set()  # (client id, channel id)
-        self._lock = threading.Lock()  # _subs, the inbox, the due flags
-        self._cv = threading.Condition(self._lock)
-        self._inbox: deque[FrameSet] = deque()
+        self._lock = threading.Lock()  # _subs, the due flags
         self._static_due = False
         self._key_due = False
         self._sent: dict[str, int] = {}  # sensor -> stamp of its last frame published
@@ -291,8 +290,14 @@ class FoxgloveLive:
         self._grid: TofGrid | None = None
         self._tap: FusedVideoTap | None = None
         self._video_failed = False  # the tap stopped with an error while subscribed
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="foxglove-live", daemon=True)
+        self._worker: LatestWorker[FrameSet] = LatestWorker(
+            self._publish_set,
+            name="foxglove-live",
+            keep=INBOX_SETS,
+            on_error=self._failed,
+            housekeeping=self._housekeeping,
+            period_s=lambda: BUSY_WAKE_S if self._subs else IDLE_WAKE_S,
+        )
         try:
             self.server = self._start_server(message_backlog)
         except BaseException:
@@ -321,7 +326,7 @@ class FoxgloveLive:
 
     def start(self) -> FoxgloveLive:
         self.pipeline.set_listeners.append(self._on_set)
-        self._thread.start()
+        self._worker.start()
         self.gate.start()
         return self
 
@@ -329,11 +334,7 @@ class FoxgloveLive:
         """Stop publishing, end the fused video, close the server. Idempotent."""
         with contextlib.suppress(ValueError):
             self.pipeline.set_listeners.remove(self._on_set)
-        self._stop.set()
-        with self._cv:
-            self._cv.notify_all()
-        if self._thread.ident is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout_s)
+        self._worker.stop(timeout_s)
         self.gate.stop()
         self._stop_video()
         self.server.stop()
@@ -354,6 +355,11 @@ class FoxgloveLive:
         """Whether any client subscribes to any channel."""
         return bool(self._subs)
 
+    @property
+    def busy(self) -> bool:
+        """Whether the publisher's thread has a frame set waiting or in hand."""
+        return self._worker.busy
+
     def status(self) -> dict[str, int | str | None]:
         return {
             "port": self.port,
@@ -372,7 +378,7 @@ class FoxgloveLive:
     # -- the server's and the pipeline's threads ----------------------------------------
 
     def _subscribed(self, client: int, channel: int, on: bool) -> None:
-        with self._cv:
+        with self._lock:
             if on:
                 self._subs.add((client, channel))
                 if channel in self._static_ids:
@@ -381,39 +387,22 @@ class FoxgloveLive:
                     self._key_due = True  # a new viewer decodes from the next key frame
             else:
                 self._subs.discard((client, channel))
-            self._cv.notify()
+        self._worker.wake()
 
     def _on_set(self, fs: FrameSet) -> None:
         """The pipeline's listener (fusion thread): nothing without a subscriber; else the
         set goes to the inbox (never waits)."""
         if not self._subs:
             return
-        with self._cv:
-            if len(self._inbox) >= INBOX_SETS:
-                self._inbox.popleft()
-                self.dropped += 1
-            self._inbox.append(fs)
-            self.taken += 1
-            self._cv.notify()
+        if self._worker.submit(fs):
+            self.dropped += 1
+        self.taken += 1
 
-    # -- the publisher's thread -----------------------------------------------------------
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            with self._cv:
-                if not self._inbox and not self._static_due:
-                    self._cv.wait(BUSY_WAKE_S if self._subs else IDLE_WAKE_S)
-                fs = self._inbox.popleft() if self._inbox else None
-            if self._stop.is_set():
-                break
-            try:
-                if fs is not None:
-                    self._publish_set(fs)
-                self._housekeeping()
-            except Exception as exc:  # logged and counted; the console goes on
-                self._failed(exc)
+    # -- the publisher's thread (:attr:`_worker`: each set, then the housekeeping) --------
 
     def _failed(self, exc: BaseException) -> None:
+        """A frame or message that failed: logged (once per new error) and counted; the
+        console goes on."""
         self.failed += 1
         error = describe_error(exc)
         if error != self.last_error:
@@ -425,7 +414,7 @@ class FoxgloveLive:
         if not self._subs:
             return
         now = time.monotonic()
-        with self._cv:
+        with self._lock:
             static = self._static_due or now >= self._next_static
             self._static_due = False
         if static:
@@ -555,9 +544,7 @@ class FoxgloveLive:
             if tap is not None:
                 self._stop_video()
         elif tap is None:
-            source = FusedVideoSource(
-                self.control.hub, getattr(self.pipeline, "demand", None), self.video_settings
-            )
+            source = FusedVideoSource(self.control.hub, self.pipeline.demand, self.video_settings)
             self._key_due = False
             self._tap = FusedVideoTap(source, self._deliver_video).start()
         elif self._key_due:
@@ -578,7 +565,7 @@ class FoxgloveLive:
             tap = self._tap
             if self._video.awaiting_key and tap is not None:
                 tap.request_key()
-        return not self._stop.is_set()
+        return not self._worker.stopping
 
 
 class _Grid(TofGrid):

@@ -13,10 +13,7 @@ import collections
 import os
 import threading
 
-import cv2
 import numpy as np
-from fastapi import APIRouter, HTTPException
-from fastapi.responses import Response
 
 ENV = "TRIFUSE_BENCH_KEEP_FRAMES"
 MAX_KEPT = 1000
@@ -63,23 +60,3 @@ class KeptFrames:
         """Frame ``seq``'s (H, W, 3) uint8 BGR picture, or None when it is not kept."""
         with self._lock:
             return self._frames.get(seq)
-
-
-def make_kept_frames_router(kept: KeptFrames | None) -> APIRouter:
-    """``GET /api/stream/frame/{seq}.png``: a picture of ``kept`` (the hub's
-    ``FrameHub.kept``; None: off), see the module docstring."""
-    router = APIRouter()
-
-    @router.get("/api/stream/frame/{seq}.png", include_in_schema=False)
-    def _frame(seq: int) -> Response:
-        if kept is None:
-            raise HTTPException(404, f"pictures are not kept: the console runs without {ENV}")
-        bgr = kept.get(seq)
-        if bgr is None:
-            raise HTTPException(404, f"frame {seq}: not among the last {kept.size} kept")
-        ok, png = cv2.imencode(".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-        if not ok:
-            raise HTTPException(500, f"frame {seq}: could not be encoded as PNG")
-        return Response(png.tobytes(), media_type="image/png")
-
-    return router

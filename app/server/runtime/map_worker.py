@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -25,14 +24,14 @@ from pathlib import Path
 import numpy as np
 
 from trifuse.app.errors import describe_error
+from trifuse.app.latest_worker import LatestWorker
 from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.sources.capabilities import HeadPose
 from trifuse.app.sources.frames import FrameSet
 from trifuse.app.storage.map_file import MAP_SUFFIX, load_map, save_map, write_ply
+from trifuse.app.storage.numbered import first_free, suffixed_names
 from trifuse.fusion.map_builder import MapBuilder
 from trifuse.fusion.voxel_map import MapSettings, VoxelMap
-
-HeadPose = Callable[[int], np.ndarray | None]
-"""stamp (ns) -> ``T_world_rig`` (4, 4), or None where unknown."""
 
 
 @dataclass(frozen=True)
@@ -82,10 +81,7 @@ class MapWorker:
         self.T_world_rig: np.ndarray | None = None
         self._images: dict[str, np.ndarray] = {}
         self._last_tof_ns: int | None = None
-        self._job: _Job | None = None
-        self._wake = threading.Condition()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="thermal-map", daemon=True)
+        self._worker = LatestWorker(self._map, name="thermal-map", on_error=self._failed)
 
     @property
     def map(self) -> VoxelMap:
@@ -93,17 +89,13 @@ class MapWorker:
 
     def start(self) -> MapWorker:
         self.pipeline.set_listeners.append(self._on_set)
-        self._thread.start()
+        self._worker.start()
         return self
 
     def stop(self, timeout_s: float = 2.0) -> None:
-        self._stop.set()
-        with self._wake:
-            self._wake.notify_all()
         if self._on_set in self.pipeline.set_listeners:
             self.pipeline.set_listeners.remove(self._on_set)
-        if self._thread.ident is not None:
-            self._thread.join(timeout_s)
+        self._worker.stop(timeout_s)
 
     # -- operator actions ---------------------------------------------------------------
 
@@ -131,12 +123,13 @@ class MapWorker:
         if not stem or "/" in stem or stem.startswith("."):
             raise ValueError(f"name: expected a plain file name, got {name!r}")
         self.maps_dir.mkdir(parents=True, exist_ok=True)
-        base, k = stem, 1
-        while (self.maps_dir / f"{stem}{MAP_SUFFIX}").exists() or (
-            self.maps_dir / f"{stem}.ply"
-        ).exists():
-            k += 1
-            stem = f"{base}-{k}"
+
+        def taken(s: str) -> bool:
+            return (self.maps_dir / f"{s}{MAP_SUFFIX}").exists() or (
+                self.maps_dir / f"{s}.ply"
+            ).exists()
+
+        stem = first_free(suffixed_names(stem), taken)
         path, ply = self.maps_dir / f"{stem}{MAP_SUFFIX}", self.maps_dir / f"{stem}.ply"
         with self.lock:
             save_map(path, self.map)
@@ -206,41 +199,32 @@ class MapWorker:
         if frame is None or frame.distance_m is None or frame.stamp_ns == self._last_tof_ns:
             return
         self._last_tof_ns = frame.stamp_ns
-        with self._wake:
-            if self._job is not None:
-                self.skipped += 1
-            self._job = _Job(frame.stamp_ns, frame.distance_m, frame.image, dict(self._images))
-            self._wake.notify()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            with self._wake:
-                while self._job is None and not self._stop.is_set():
-                    self._wake.wait(0.5)
-                job, self._job = self._job, None
-            if job is not None:
-                self._map(job)
+        job = _Job(frame.stamp_ns, frame.distance_m, frame.image, dict(self._images))
+        if self._worker.submit(job):  # the job not taken yet is replaced
+            self.skipped += 1
 
     def _map(self, job: _Job) -> None:
-        try:
-            pose = self.head_pose(job.stamp_ns) if self.head_pose is not None else None
-            t0 = time.perf_counter()
-            with self.lock:
-                if self.builder.rig is not self.pipeline.rig:  # the rig in use changed
-                    kept = self.builder.map
-                    self.builder = MapBuilder(self.pipeline.rig, kept.settings)
-                    self.builder.map = kept
-                added = self.builder.add(
-                    job.stamp_ns * 1e-9, job.distance_m, job.images, pose, job.amplitude
+        """Add one TOF frame to the map (the worker thread)."""
+        pose = self.head_pose(job.stamp_ns) if self.head_pose is not None else None
+        t0 = time.perf_counter()
+        with self.lock:
+            if self.builder.rig is not self.pipeline.rig:  # the rig in use changed
+                kept = self.builder.map
+                self.builder = MapBuilder(self.pipeline.rig, kept.settings)
+                self.builder.map = kept
+            added = self.builder.add(
+                job.stamp_ns * 1e-9, job.distance_m, job.images, pose, job.amplitude
+            )
+            if added is not None:
+                self.frames += 1
+                self.T_world_rig = (
+                    pose
+                    if pose is not None
+                    else self.map.path[-1][1] @ np.linalg.inv(self.builder.T_rig_tof)
                 )
-                if added is not None:
-                    self.frames += 1
-                    self.T_world_rig = (
-                        pose
-                        if pose is not None
-                        else self.map.path[-1][1] @ np.linalg.inv(self.builder.T_rig_tof)
-                    )
-            self.costs_ms = [*self.costs_ms[-29:], (time.perf_counter() - t0) * 1e3]
-        except Exception as exc:  # shown in the panel; the console goes on
-            self.failed += 1
-            self.last_error = describe_error(exc)
+        self.costs_ms = [*self.costs_ms[-29:], (time.perf_counter() - t0) * 1e3]
+
+    def _failed(self, exc: Exception) -> None:
+        """A frame that could not be mapped: shown in the panel; the console goes on."""
+        self.failed += 1
+        self.last_error = describe_error(exc)

@@ -1,25 +1,29 @@
 """The live fusion loop: frames from a source, grouped, fused, encoded, published.
 
 Two background threads. The fusion thread: a :class:`FrameSource` ->
-:class:`FrameSetAssembler` (the left colour camera opens each set) -> :class:`StereoFusion`
-(depth mapping updated on each new TOF frame) -> a BGR copy of the picture. The encoder
+:class:`FrameSetAssembler` (the left colour camera opens each set) -> the stereo-picture
+step (:class:`fusion.stereo_step.StereoStep`: depth mapping updated on each new TOF frame,
+radiometry, composition) -> a BGR copy of the picture. The encoder
 thread: JPEG -> :class:`FrameHub`. OpenCV releases the GIL while it encodes, so the fusion
 of frame N+1 overlaps the encoding of frame N; two BGR buffers pass between the threads,
 and the fusion thread waits when both are taken (the source drops what a late consumer
-cannot take). A frame set that misses a sensor still produces a picture from what it has:
-an eye whose thermal imager is missing shows its colour image; an eye whose colour camera
-is gone (:data:`COLOR_GONE_S`) shows the thermal picture on black; the last depth while
-the TOF is missing.
+cannot take). A frame set that misses a sensor still produces a picture from what it has
+(the step's :data:`~fusion.stereo_step.CONSOLE` policy): an eye whose thermal imager is
+missing shows its colour image; an eye whose colour camera is gone
+(:data:`~fusion.stereo_step.COLOR_GONE_S`) shows the thermal picture on black; the last
+depth while the TOF is missing.
 When the left colour camera (which opens the frame sets) stops, the right one opens them
-(:class:`FrameSetAssembler` ``fallback``). Each frame's metadata carries ``missing`` and,
-when :attr:`FusionPipeline.sensor_notes` is set, ``health``: a line per sensor that is not
-ok (``{"thermal_right": "silent for 12 s"}``, :mod:`app.server.runtime.sensor_health`). For the
-viewer's colour scale it carries the palette and the span the picture was coloured with
-(:func:`scale_meta`: ``palette``, ``palette_rgb``, ``span_k``, ``span_auto``, the AGC mode
-``agc`` and ``palette_ticks_k``, the temperature at evenly spaced palette positions; null
-when the picture shows no palette colour). For the viewer's spot meter it carries each eye's hot
-and cold spot (``spots``: :meth:`fusion.spot.SpotFrame.extremes`); :attr:`FusionPipeline.spots`
-keeps the last picture's temperatures and depths for ``/api/spot`` and ``/api/area``.
+(:class:`FrameSetAssembler` ``fallback``). Each frame's metadata
+(:class:`fusion.frame_meta.FrameMeta`, built once a picture) carries ``missing`` and, when
+:attr:`FusionPipeline.sensor_notes` is set, ``health``: a line per sensor that is not ok
+(``{"thermal_right": "silent for 12 s"}``, :mod:`app.server.runtime.sensor_health`). For
+the viewer's colour scale it carries the palette and the span the picture was coloured
+with (``palette``, ``palette_rgb``, ``span_k``, ``span_auto``, the AGC mode ``agc`` and
+``palette_ticks_k``, the temperature at evenly spaced palette positions; null when the
+picture shows no palette colour). For the viewer's spot meter it carries each eye's hot
+and cold spot (``spots``: :meth:`fusion.spot.SpotFrame.extremes`);
+:attr:`FusionPipeline.spots` keeps the last picture's temperatures and depths for
+``/api/spot`` and ``/api/area``.
 
 Repeated inputs are not fused again. A source may hand out the very same read-only array
 for several frames (the simulated head shows each rendered pose for many frames). When
@@ -53,10 +57,9 @@ Without a ``demand`` every frame set is fused.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import queue
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -67,19 +70,12 @@ from trifuse.app.errors import describe_error
 from trifuse.app.server.runtime.demand import Demand
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.sources.base import FrameSetAssembler, FrameSource
-from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.sources.frames import FrameSet
 from trifuse.calib.radiometry import Radiometry
 from trifuse.calib.rig import Rig
-from trifuse.fusion.agc import ToneMap
 from trifuse.fusion.compose import DisplaySettings
-from trifuse.fusion.palettes import palette
 from trifuse.fusion.spot import SpotFrame, SpotMeter
-from trifuse.fusion.stereo import StereoFusion
-
-EYES = ("left", "right")
-COLOR_GONE_S = 0.5
-"""A colour camera missing from a frame set for less than this (seconds of frame time since
-it was last in one) skips the picture; for longer, its eye is drawn on black."""
+from trifuse.fusion.stereo_step import CONSOLE, PictureInputs, Skip, StereoStep
 
 
 @dataclass
@@ -95,65 +91,12 @@ class PipelineStatus:
     error: str | None = None
 
 
-def shows_palette(settings: DisplaySettings) -> bool:
-    """Whether a picture made with ``settings`` shows palette colours (so the viewer shows
-    a colour scale): not in ``color`` mode, not in ``blend`` at opacity 0, not in
-    ``isotherm`` with a fixed highlight colour."""
-    if settings.mode == "color" or (settings.mode == "blend" and settings.opacity == 0.0):
-        return False
-    return not (settings.mode == "isotherm" and settings.isotherm_color is not None)
-
-
-@functools.cache
-def palette_hex(name: str) -> str:
-    """Palette ``name``'s 256 RGB entries, cold end first, as one string of 1536 hex digits
-    (``"000000..."``: two per channel), for the viewer's colour scale."""
-    return palette(name).tobytes().hex()
-
-
-PALETTE_TICKS = 9
-"""The colour scale's ticks: palette positions 0, 1/8, ..., 1 (first entry to last)."""
-
-
-def scale_meta(
-    settings: DisplaySettings, span_k: tuple[float, float] | None, tone: ToneMap | None = None
-) -> dict[str, Any]:
-    """What the viewer's colour scale needs (JSON-able): ``palette`` (name), ``palette_rgb``
-    (:func:`palette_hex`), ``span_k`` ([low, high] kelvin: the palette's first entry is
-    ``low``, its last ``high``), ``span_auto`` (the span follows the picture, or is the
-    operator's), ``agc`` (the AGC mode of ``tone``, the picture's mapping; "linear" without
-    one), ``palette_ticks_k`` (the temperatures, kelvin, at :data:`PALETTE_TICKS` evenly
-    spaced palette positions from the first entry to the last: non-linear under
-    equalization) and ``mark_fallback`` (the legend of the marking). All None when the
-    picture shows no palette colour or there is no span."""
-    if span_k is None or not shows_palette(settings):
-        keys = ("palette", "palette_rgb", "span_k", "span_auto", "agc", "palette_ticks_k")
-        return {**dict.fromkeys(keys), "mark_fallback": None}
-    tone = tone or ToneMap.linear(span_k)
-    return {
-        "palette": settings.palette,
-        "palette_rgb": palette_hex(settings.palette),
-        "span_k": [float(span_k[0]), float(span_k[1])],
-        "span_auto": settings.span_k is None,
-        "agc": tone.mode,
-        "palette_ticks_k": [round(t, 3) for t in tone.ticks_k(PALETTE_TICKS)],
-        "mark_fallback": settings.mark_fallback,
-    }
-
-
 def _encode_jpeg(bgr: np.ndarray, quality: int) -> bytes:
     """``bgr`` ((H, W, 3) uint8) as JPEG of ``quality`` (RuntimeError if OpenCV fails)."""
     ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
     if not ok:
         raise RuntimeError("OpenCV could not encode the fused picture as JPEG")
     return buf.tobytes()
-
-
-def _unchanged(a: np.ndarray | None, b: np.ndarray | None) -> bool:
-    """``a`` is ``b`` and cannot have been written to since (read-only), or both None."""
-    if a is None or b is None:
-        return a is b
-    return a is b and not a.flags.writeable
 
 
 @dataclass
@@ -300,8 +243,7 @@ class FusionPipeline:
         (``health``); set by the console (``SourceControl``). Called in the fusion thread:
         it must be quick (cached)."""
         self._pending_rig: Rig | None = None
-        self.radiometry: dict[str, Radiometry] = {}
-        self._init_rig(rig)
+        self._init_rig(rig, {})
         self._stop = threading.Event()
         self._encoder = _StreamEncoder(hub, self.status, self._stop)
         self._thread = threading.Thread(target=self._run, name="fusion", daemon=True)
@@ -311,42 +253,41 @@ class FusionPipeline:
         if demand is not None:
             demand.on_wanted.append(self._catch_up)
 
-    def _init_rig(self, rig: Rig) -> None:
-        """Everything that depends on the rig: the fusion, the frame-set assembly, the
-        per-imager buffers; forgets the previous depth and picture."""
+    def _init_rig(self, rig: Rig, radiometry: Mapping[str, Radiometry]) -> None:
+        """Everything that depends on the rig: the stereo-picture step (fusion, buffers),
+        the frame-set assembly; forgets the previous depth and picture. ``radiometry``: the
+        imagers' radiometry in use, kept for an imager the rig gives none."""
         self.rig = rig
-        self.fusion = StereoFusion(rig)
+        self.step = StereoStep(rig, self.settings, CONSOLE)
+        self.fusion = self.step.fusion
         self.spot_meter = SpotMeter(self.fusion)
         self.spots: SpotFrame | None = None
         """The spot meter's view of the last fused picture (``/api/spot``, the metadata's
         ``spots``); None before the first, after a rig change and while resting."""
         left, right = rig.eyes["left"], rig.eyes["right"]
         self.tof = self.fusion.tof
-        sensors = [left.color, right.color, left.thermal, right.thermal, self.tof]
         self.assembler = FrameSetAssembler(
-            sensors, reference=left.color, tolerance_s=self.tolerance_s, fallback=right.color
+            self.step.sensors,
+            reference=left.color,
+            tolerance_s=self.tolerance_s,
+            fallback=right.color,
         )
-        thermals = (left.thermal, right.thermal)
-        self._offset_buf = {s: np.empty(rig[s].image_size[::-1], np.float32) for s in thermals}
         # A rig's own radiometry replaces the imager's current one; without it, the live
         # balance and trims stay (e.g. a new geometric calibration keeps the balance).
-        self.radiometry = {
-            s: rig[s].radiometry or self.radiometry.get(s, Radiometry()) for s in thermals
+        self.step.radiometry = {
+            s: rig[s].radiometry or radiometry.get(s, Radiometry()) for s in self.step.radiometry
         }
-        self._no_thermal = {
-            e: np.full(rig[rig.eyes[e].thermal].image_size[::-1], np.nan, np.float32) for e in EYES
-        }
-        self._no_color = {
-            e: np.zeros((*rig[rig.eyes[e].color].image_size[::-1], 3), np.uint8) for e in EYES
-        }
-        for a in (*self._no_thermal.values(), *self._no_color.values()):
-            a.flags.writeable = False
-        self._last_tof_ns: int | None = None
-        self._newest_tof: Frame | None = None  # the newest TOF frame seen, fused or not
-        self._last_distance: np.ndarray | None = None
-        self._depth_version = 0  # counts mapping updates: part of what a picture is made of
-        self._color_seen: dict[str, int] = {}  # eye -> stamp of the last set with its colour
-        self._made_of: tuple | None = None  # what the previous picture was made of
+        self._made_of: PictureInputs | None = None  # what the previous picture was made of
+
+    @property
+    def radiometry(self) -> dict[str, Radiometry]:
+        """Thermal imager -> the radiometry its readings go through (calibration, balance,
+        trims): the step's; replaced whole, never changed in place."""
+        return self.step.radiometry
+
+    @radiometry.setter
+    def radiometry(self, value: dict[str, Radiometry]) -> None:
+        self.step.radiometry = value
 
     def set_rig(self, rig: Rig) -> None:
         """Fuse with ``rig`` from the next frame set on (e.g. a new calibration).
@@ -373,6 +314,13 @@ class FusionPipeline:
         self.source.close()
         self._thread.join(timeout_s)
         self._encoder.close(timeout_s)
+
+    def join(self, timeout_s: float | None = None) -> bool:
+        """Wait (at most ``timeout_s``) for the fusion thread to end by itself (its source ran
+        out, or :meth:`stop`); whether it has. It ends after the encoder published every
+        frame it was given."""
+        self._thread.join(timeout_s)
+        return not self._thread.is_alive()
 
     @property
     def wanted(self) -> bool:
@@ -402,7 +350,7 @@ class FusionPipeline:
         with self._fuse_lock:
             rig, self._pending_rig = self._pending_rig, None
             if rig is not None:
-                self._init_rig(rig)
+                self._init_rig(rig, self.radiometry)
             self._note(fs)
             if self.wanted:
                 self._publish(fs)
@@ -426,8 +374,8 @@ class FusionPipeline:
                     self.status.error = describe_error(exc)
 
     def _note(self, fs: FrameSet) -> None:
-        """What every frame set updates, fused or not: the newest set, the status, the
-        newest TOF frame, when each eye's colour camera was last in a set."""
+        """What every frame set updates, fused or not: the newest set, the status, and the
+        step's note (the newest TOF frame, when each eye's colour camera was last seen)."""
         self.latest_set = fs
         for listener in list(self.set_listeners):
             try:
@@ -436,119 +384,53 @@ class FusionPipeline:
                 pass
         self.status.missing = dict(fs.missing)
         self.status.last_stamp_ns = fs.stamp_ns
-        tof = fs.frames.get(self.tof)
-        if tof is not None:
-            self._newest_tof = tof
-        eyes = self.rig.eyes
-        seen = [e for e in EYES if eyes[e].color in fs.frames]
-        if seen:
-            for e in EYES:
-                self._color_seen.setdefault(e, fs.stamp_ns)  # not yet: since the first set
-            for e in seen:
-                self._color_seen[e] = fs.stamp_ns
+        self.step.note(fs)
 
     def _publish(self, fs: FrameSet) -> bool:
         """Fuse one frame set (noted) and hand it to the encoder; False if it makes no
         picture."""
         self._fused_set, self._resting = fs, False
-        tof = self._newest_tof
-        if tof is not None and tof.stamp_ns != self._last_tof_ns and tof.distance_m is not None:
-            if not _unchanged(tof.distance_m, self._last_distance):
-                self.fusion.update_depth(tof.distance_m, tof.image)
-                self._depth_version += 1
-            self._last_tof_ns = tof.stamp_ns
-            self._last_distance = tof.distance_m
-        eyes = self.rig.eyes
-        colors = {e: fs.frames[eyes[e].color].image for e in EYES if eyes[e].color in fs.frames}
-        if not colors:
+        step = self.step
+        step.update_depth()
+        step.settings = self.settings
+        inputs = step.inputs(fs)
+        if isinstance(inputs, Skip):
             return False
-        for e in EYES:
-            seen = self._color_seen.get(e, fs.stamp_ns)
-            if e not in colors and abs(fs.stamp_ns - seen) <= COLOR_GONE_S * 1e9:
-                return False  # a late frame: wait for the next set rather than flash black
-        colors = {e: colors.get(e, self._no_color[e]) for e in EYES}  # a dead camera: black
-        thermals = {
-            e: fs.frames[eyes[e].thermal].image for e in EYES if eyes[e].thermal in fs.frames
-        }
-        settings = self.settings
-        if not self.fusion.ready:
-            path = "raw"
-        elif not thermals:
-            path, settings, thermals = "color", DisplaySettings(mode="color"), self._no_thermal
-        else:
-            path = "fused"  # an eye without its thermal imager shows its colour image
-            thermals = {e: thermals.get(e, self._no_thermal[e]) for e in EYES}
-        radiometry = tuple(sorted(self.radiometry.items()))
-        made_of = (
-            path,
-            settings,
-            radiometry,
-            self._depth_version,
-            *(colors[e] for e in EYES),
-            *(thermals[e] for e in EYES),
-        )
-        previous = self._made_of
         if (
-            previous is not None
-            and (self._encoder.kept_bgr is not None or not self.hub.wants_bgr)
-            and previous[:4] == made_of[:4]
+            (self._encoder.kept_bgr is not None or not self.hub.wants_bgr)
+            and inputs.same_picture(self._made_of)
             and self.fusion.span_settled
-            and all(_unchanged(a, b) for a, b in zip(made_of[4:], previous[4:], strict=True))
         ):
-            return self._encoder.submit(_Job(self._meta(fs, path, settings), None))
+            return self._encoder.submit(_Job(self._meta(inputs), None))
         self._made_of = None  # until the new picture is submitted
-        if path == "raw":
-            rgb = np.hstack([colors["left"], colors["right"]])
-        elif path == "color":
-            rgb = self.fusion.compose(colors, thermals, settings)
-        else:
-            kelvin = {
-                e: thermals[e]
-                if thermals[e] is self._no_thermal[e]
-                else self.kelvin(eyes[e].thermal, thermals[e])
-                for e in EYES
-            }
-            rgb = self.fusion.compose(colors, kelvin, settings, fs.stamp_ns)
-        if path != "raw":  # the spot meter's copy of this picture's temperatures and depths
+        rgb = step.render(inputs)
+        if inputs.path != "raw":  # the spot meter's copy of this picture's temperatures and depths
             self.spots = self.spot_meter.capture(fs.stamp_ns)
         bgr = self._encoder.buffer(rgb.shape)
         if bgr is None:
             return False
         cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR, dst=bgr)
-        job = _Job(self._meta(fs, path, settings), bgr, self.jpeg_quality)
+        job = _Job(self._meta(inputs), bgr, self.jpeg_quality)
         if not self._encoder.submit(job):
             return False
-        self._made_of = made_of
+        self._made_of = inputs
         return True
 
-    def _meta(self, fs: FrameSet, path: str, settings: DisplaySettings) -> dict[str, Any]:
-        """What the viewer overlays with the frame (JSON-able)."""
-        mode = "color" if path == "raw" else settings.mode
-        meta = {
-            "stamp_ns": fs.stamp_ns,
-            "mode": mode,
-            **scale_meta(
-                settings, self.fusion.span_k if mode != "color" else None, self.fusion.tone
-            ),
-            "missing": sorted(fs.missing),
-        }
-        if self.spots is not None and path != "raw":  # hot and cold spot per eye
-            meta["spots"] = self.spots.extremes()
+    def _meta(self, inputs: PictureInputs) -> dict[str, Any]:
+        """What the viewer overlays with the frame (JSON-able: :meth:`fusion.frame_meta.
+        FrameMeta.as_json`), with the spot meter's hot and cold spots and the sensors'
+        health."""
+        spots = None
+        if self.spots is not None and inputs.path != "raw":  # hot and cold spot per eye
+            spots = self.spots.extremes()
+        health = None
         notes = self.sensor_notes
         if notes is not None:
             try:
-                meta["health"] = dict(notes())
+                health = dict(notes())
             except Exception as exc:  # the picture goes out whatever the report does
-                meta["health"] = {"console": f"health unavailable: {describe_error(exc)}"}
-        return meta
-
-    def kelvin(self, sensor: str, image: np.ndarray) -> np.ndarray:
-        """The imager's readings through its radiometry (calibration, balance, trim), in a
-        preallocated buffer (the image itself when the radiometry is the identity)."""
-        r = self.radiometry.get(sensor)
-        if r is None or r.identity:
-            return image
-        return r.apply(image, out=self._offset_buf[sensor])
+                health = {"console": f"health unavailable: {describe_error(exc)}"}
+        return self.step.meta(inputs, spots, health).as_json()
 
     def set_manual_offset(self, sensor: str, offset_k: float) -> None:
         """The operator's trim of one imager, kelvin (from the next frame on)."""

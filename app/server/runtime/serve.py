@@ -13,6 +13,9 @@ from pathlib import Path
 import uvicorn
 
 from trifuse.app.recording.open_source import OpenedSource, simulated_source
+from trifuse.app.server.app_factory import create_app
+from trifuse.app.server.middleware.auth import AuthConfig, is_loopback
+from trifuse.app.server.middleware.connections import GuardedH11Protocol, quiet_repeated_logs
 from trifuse.app.server.panels.calibration import CalibrationPanel
 from trifuse.app.server.panels.display import Panels
 from trifuse.app.server.panels.map_panel import MapPanel
@@ -21,9 +24,6 @@ from trifuse.app.server.panels.range import RangePanel
 from trifuse.app.server.panels.rig_files import RigFilesPanel
 from trifuse.app.server.panels.scene3d import Scene3D
 from trifuse.app.server.panels.source import SourcePanel
-from trifuse.app.server.routers.app import create_app
-from trifuse.app.server.routers.auth import AuthConfig, is_loopback
-from trifuse.app.server.routers.connections import GuardedH11Protocol, quiet_repeated_logs
 from trifuse.app.server.routers.console_api import make_console_settings_router
 from trifuse.app.server.routers.map_api import make_map_router
 from trifuse.app.server.routers.session_api import make_session_router
@@ -34,9 +34,11 @@ from trifuse.app.server.runtime.demand import ConsoleDemand, hold_while_connecte
 from trifuse.app.server.runtime.foxglove_live import FoxgloveLive
 from trifuse.app.server.runtime.map_worker import MapWorker
 from trifuse.app.server.runtime.pipeline import FusionPipeline
-from trifuse.app.server.runtime.source_control import SourceControl, SourceTap
+from trifuse.app.server.runtime.source_control import SourceControl
+from trifuse.app.server.runtime.source_tap import SourceTap
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.server.runtime.thermal_balance import ThermalBalancer
+from trifuse.app.sources.capabilities import head_pose_of
 from trifuse.app.workflows.calib_session import CalibrationSession
 from trifuse.calib.board import Board
 
@@ -145,7 +147,7 @@ def serve(
         raise
     demand = ConsoleDemand()  # who listens: the work is done only then (demand.py)
     hub = FrameHub(demand.fusion)  # each stream viewer holds it
-    tap = SourceTap(source)  # per-sensor rates and recording (source_control.py)
+    tap = SourceTap(source)  # per-sensor rates and recording (source_tap.py)
     pipeline = FusionPipeline(tap, rig, hub, demand=demand.fusion).start()
     server, viser_secret = start_guarded_viser()
     # A Viser client wants the GUI's updates, the fused depth and the balance (3D cloud,
@@ -178,9 +180,7 @@ def serve(
             session.close()
             server.stop()
             raise
-    mapper = MapWorker(
-        pipeline, getattr(source, "head_pose", None), workdir / "maps", enabled=build_map
-    )
+    mapper = MapWorker(pipeline, head_pose_of(source), workdir / "maps", enabled=build_map)
     panels = [
         SourcePanel(ctx, control),  # first: the Source panel tops the GUI
         CalibrationPanel(ctx, session),  # holds demand.board while auto-capture is on

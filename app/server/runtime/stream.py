@@ -2,7 +2,8 @@
 
 A producer thread publishes JPEG frames into a :class:`FrameHub`; each viewer (WebSocket or
 MJPEG) waits for a frame newer than the last one it sent and sends the newest there is, so
-a slow viewer skips frames instead of building a queue, and never slows the others.
+a slow viewer skips frames instead of building a queue, and never slows the others. The
+routes ``/stream`` and ``/stream.mjpg`` are in :mod:`app.server.routers.stream_routes`.
 
 The hub measures the stream (:class:`app.server.runtime.rates.StreamRates`): frames published and
 new pictures per second over the last few seconds. Each frame's metadata carries these
@@ -23,7 +24,6 @@ cannot hold the server's loop (docs/SECURITY.md).
 from __future__ import annotations
 
 import asyncio
-import json
 import threading
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
@@ -32,8 +32,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from fastapi import APIRouter, WebSocket, WebSocketDisconnect
-from fastapi.responses import StreamingResponse
+from fastapi import WebSocket, WebSocketDisconnect
 
 from trifuse.app.server.runtime.demand import Demand
 from trifuse.app.server.runtime.kept_frames import KeptFrames
@@ -143,7 +142,7 @@ class FrameHub:
         """The last pictures by seq, for benchmarks (None: off; kept_frames.py)."""
         self.takers: list[Callable[[StreamFrame], None]] = []
         """Called with every frame published, in the publishing thread (they must be quick),
-        by other takers of the pictures (a recording of the fused video, source_control.py):
+        by other takers of the pictures (a recording of the fused video, fused_video_tap.py):
         while there is one, frames carry their BGR."""
 
     @property
@@ -255,53 +254,6 @@ class FrameHub:
                         await asyncio.wait_for(event.wait(), poll_s)
                     except TimeoutError:
                         pass
-
-
-def make_stream_router(hub: FrameHub) -> APIRouter:
-    """``/stream`` (WebSocket: per frame a JSON text message, then the JPEG as binary; the
-    viewer answers each frame with a message, ``"ack"``, before the next is sent; one over
-    :data:`MAX_MESSAGE_CHARS` closes the socket with 1009) and ``/stream.mjpg``
-    (multipart/x-mixed-replace for a plain ``<img>``)."""
-    router = APIRouter()
-
-    @router.websocket("/stream")
-    async def _ws(ws: WebSocket) -> None:
-        # Flow control: one frame in flight. The viewer acknowledges each frame (any
-        # message) once drawn; only then is the newest frame sent. Transport buffers
-        # cannot fill up with stale frames however slow the viewer or its network is, and
-        # a viewer's messages are read no faster than frames are sent.
-        await ws.accept()
-        limits = ViewerMessages()
-        with hub.watching(jpeg=True):
-            try:
-                async for frame, jpeg in hub.jpeg_frames():
-                    await ws.send_text(json.dumps(frame.meta))
-                    await ws.send_bytes(jpeg)
-                    message = await ws.receive()
-                    if message["type"] == "websocket.disconnect":
-                        return
-                    limits.admit(message)
-            except ViewerMessageRefused as exc:
-                await close_quietly(ws, exc.code, str(exc))
-            except (WebSocketDisconnect, RuntimeError):
-                pass
-
-    @router.get("/stream.mjpg")
-    async def _mjpeg() -> StreamingResponse:
-        async def parts() -> AsyncIterator[bytes]:
-            with hub.watching(jpeg=True):
-                async for _frame, jpeg in hub.jpeg_frames():
-                    yield (
-                        b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
-                        + str(len(jpeg)).encode()
-                        + b"\r\n\r\n"
-                        + jpeg
-                        + b"\r\n"
-                    )
-
-        return StreamingResponse(parts(), media_type="multipart/x-mixed-replace; boundary=frame")
-
-    return router
 
 
 async def close_quietly(ws: WebSocket, code: int, reason: str) -> None:

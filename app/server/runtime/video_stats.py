@@ -6,9 +6,10 @@ them while the viewer is connected (:attr:`app.server.runtime.stream.FrameHub.vi
 
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
+
+from trifuse.app.server.runtime.rates import RateWindow
 
 FPS_WINDOW_S = 2.0
 """The frame rate is counted over this many seconds."""
@@ -62,20 +63,21 @@ class VideoViewerStats:
     undone_events: int = 0
     queue_ms: float | None = None
     last_congestion: str | None = None
-    _sent_t: deque[float] = field(default_factory=deque, repr=False)
+    _sent: RateWindow = field(
+        default_factory=lambda: RateWindow(FPS_WINDOW_S, from_first=False), repr=False
+    )
 
     def count_sent(self, t: float, nbytes: int, key: bool) -> None:
         """A frame of ``nbytes`` went out at ``t``."""
         self.frames_sent += 1
         self.keyframes += key
         self.bytes_sent += nbytes
-        self._sent_t.append(t)
-        while self._sent_t and self._sent_t[0] < t - FPS_WINDOW_S:
-            self._sent_t.popleft()
+        self._sent.tick("sent", t)
 
     def fps(self, t: float) -> float:
-        """Frames sent per second over the last :data:`FPS_WINDOW_S` before ``t``."""
-        return sum(1 for s in self._sent_t if s >= t - FPS_WINDOW_S) / FPS_WINDOW_S
+        """Frames sent per second over the last :data:`FPS_WINDOW_S` before ``t``
+        (divided by the whole window from the first frame on)."""
+        return self._sent.rate("sent", t)
 
     def as_dict(self, t: float) -> dict[str, Any]:
         """The figures (JSON-able), with ``fps`` at ``t``."""

@@ -1,4 +1,5 @@
-"""``/stream.video``: the fused stereo stream as H.264, adapting to the viewer's link.
+"""``/stream.video``: the fused stereo stream as H.264, adapting to the viewer's link (the
+route: :mod:`app.server.routers.stream_routes`).
 
 Protocol (docs/FORMATS.md, "The video stream"): per frame a JSON text message (the
 ``/stream`` metadata plus ``codec``, ``key``, ``width``, ``height``, ``bitrate_bps``,
@@ -49,12 +50,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from fastapi import WebSocket, WebSocketDisconnect
 
 from trifuse.app.errors import describe_error
 from trifuse.app.recording.h264 import EncodedFrame, VideoEncoder
 from trifuse.app.server.runtime.stream import (
-    POLICY_VIOLATION,
     FrameHub,
     StreamFrame,
     ViewerMessageRefused,
@@ -64,6 +64,7 @@ from trifuse.app.server.runtime.stream import (
 from trifuse.app.server.runtime.video_presets import PRESETS, Rung, rung_for
 from trifuse.app.server.runtime.video_rate import WINDOW, RateController, Target
 from trifuse.app.server.runtime.video_stats import VideoViewerStats
+from trifuse.calib.numbers import is_int, is_int_or_float
 
 log = logging.getLogger(__name__)
 
@@ -459,7 +460,7 @@ class VideoSession:
             return
         now = self.clock()
         seq = data.get("ack")
-        if isinstance(seq, int) and not isinstance(seq, bool):
+        if is_int(seq):
             self.ctl.on_ack(seq, now, _seconds(data.get("recv_ms")))
             sent_ns = self._sent_ns.get(seq)
             if sent_ns is not None:
@@ -499,23 +500,6 @@ class VideoSession:
 
 def _seconds(ms: object) -> float | None:
     """A finite number of milliseconds from the viewer, in seconds; None otherwise."""
-    if isinstance(ms, int | float) and not isinstance(ms, bool) and math.isfinite(ms):
+    if is_int_or_float(ms) and math.isfinite(ms):
         return float(ms) / 1000
     return None
-
-
-def make_video_router(hub: FrameHub) -> APIRouter:
-    """``/stream.video`` (WebSocket; see the module doc)."""
-    router = APIRouter()
-
-    @router.websocket("/stream.video")
-    async def _video(ws: WebSocket) -> None:
-        await ws.accept()
-        preset = ws.query_params.get("preset") or hub.stream_settings.preset
-        if preset not in PRESETS:
-            reason = f"unknown preset {preset[:40]!r}: expected one of {', '.join(PRESETS)}"
-            await ws.close(code=POLICY_VIOLATION, reason=reason)
-            return
-        await VideoSession(hub, ws, preset).run()
-
-    return router

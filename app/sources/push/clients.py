@@ -17,6 +17,9 @@ from trifuse.app.sources.frames import Frame
 from trifuse.app.sources.push.encode import encode_frame
 from trifuse.calib.rig import Rig
 
+TOKEN_ENV = "TRIFUSE_TOKEN"
+"""Environment variable holding the console's token, read by ``trifuse serve`` and by the
+drivers (safer than ``--token``: not shown by ``ps``)."""
 MAX_REPLY_BYTES = 1 << 20
 """Largest reply a client accepts (replies are short JSON objects)."""
 

@@ -27,7 +27,7 @@ from trifuse.app.sources.push.protocol import (
     parse_header,
 )
 from trifuse.calib.image_header import ImageHeaderError, image_header
-from trifuse.calib.numbers import check_finite
+from trifuse.calib.numbers import check_finite, is_int
 
 _ZERO_INVALID = {("thermal", "image"), ("tof", "distance")}  # 16-bit 0 counts -> NaN
 _BYTES_PER_PIXEL = {"raw8": 3, "raw16": 2, "raw32f": 4}
@@ -120,7 +120,7 @@ def _check_part(
         )
     for key in ("width", "height", "length"):
         v = part.get(key)
-        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+        if not is_int(v) or v < 0:
             raise PushError(f"{pwhere}: '{key}' must be a non-negative integer, got {v!r}")
     w, h = part["width"], part["height"]
     if not (0 < w <= MAX_SIDE_PX and 0 < h <= MAX_SIDE_PX) or w * h > max_pixels:

@@ -31,6 +31,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from trifuse.calib.numbers import is_int
 from trifuse.calib.units import KELVIN_PER_COUNT, METRES_PER_COUNT
 
 MAGIC = b"TFP1"
@@ -166,7 +167,7 @@ def parse_header(
     if not isinstance(sensor, str) or not sensor:
         raise PushError(f"header: 'sensor' must be a non-empty string, got {sensor!r}")
     stamp = header.get("stamp_ns")
-    if isinstance(stamp, bool) or not isinstance(stamp, int) or not 0 <= stamp < 2**63:
+    if not is_int(stamp) or not 0 <= stamp < 2**63:
         raise PushError(f"header: 'stamp_ns' must be an integer in [0, 2^63), got {stamp!r}")
     ack = header.get("ack", False)
     if not isinstance(ack, bool):

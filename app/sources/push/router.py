@@ -29,7 +29,7 @@ def make_push_router(
     path: str = INGEST_PATH,
 ) -> APIRouter:
     """A FastAPI router with the push ingest WebSocket endpoint at ``path``. The console's
-    authentication and Origin checks (app/server/routers/auth.py) guard it like every route.
+    authentication and Origin checks (app/server/middleware/auth.py) guard it like every route.
 
     Each binary message is decoded in a worker thread (the event loop stays free) and its
     frame stored in the source; messages of one connection are handled in order. A bad

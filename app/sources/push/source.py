@@ -49,6 +49,8 @@ class PushSource(FrameSource):
         image_sizes: sensor -> (width, height), where known.
     """
 
+    source_kind = "push"
+
     def __init__(
         self,
         rig: Rig | None = None,

@@ -34,7 +34,7 @@ from trifuse.app.sources.sim.scene import (
 )
 from trifuse.calib.board import aruco_dictionary
 from trifuse.calib.rig import Rig, Sensor, rig_to_yaml
-from trifuse.calib.transforms import make_T, rotation_from_euler_deg
+from trifuse.calib.transforms import make_T, rotation_about, rotation_from_euler_deg
 
 CALIBRATION_BOARD = Board(cols=9, rows=6, square_size_m=0.06)
 BOARD_MARGIN_M = 0.04  # bare aluminium around the patterned area
@@ -265,7 +265,7 @@ def calibration_poses(
             y = np.cross(z, x)
             R_face = np.stack([x, y, z], axis=1)
             axis = np.array([np.cos(tilt_dir), np.sin(tilt_dir), 0.0])
-            R_tilt = _axis_angle(axis, tilt)
+            R_tilt = rotation_about(axis, tilt)
             R = R_face @ R_tilt @ rotation_from_euler_deg(0.0, 0.0, roll)
             t = distance * ray - R @ centre_b
             T_s_b = make_T(R, t)
@@ -298,12 +298,6 @@ def _readable_within_m(sensor: Sensor, board: Board, far_m: float) -> float:
     cells = int(aruco_dictionary(board.dictionary).markerSize) + 2  # type: ignore[arg-type]
     cell_m = float(board.marker_size_m) / cells  # type: ignore[arg-type]
     return min(far_m, max(1.0, sensor.intrinsics.fx * cell_m / MARKER_CELL_PX))
-
-
-def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
-    k = axis / np.linalg.norm(axis)
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
 
 
 PARTIAL_EVERY = 3
@@ -691,7 +685,7 @@ def partial_view_poses(
         distance = rng.uniform(0.8, 3.0)
         tilt = np.radians(rng.uniform(0.0, 35.0))
         tilt_dir = rng.uniform(0.0, 2 * np.pi)
-        R_extra = _axis_angle(np.array([np.cos(tilt_dir), np.sin(tilt_dir), 0.0]), tilt)
+        R_extra = rotation_about(np.array([np.cos(tilt_dir), np.sin(tilt_dir), 0.0]), tilt)
         R_extra = R_extra @ rotation_from_euler_deg(0.0, 0.0, rng.uniform(-15.0, 15.0))
         side = sides[int(rng.integers(len(sides)))]
         over = rng.uniform(*overhang)

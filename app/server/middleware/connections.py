@@ -27,6 +27,7 @@ import logging
 import os
 import resource
 import time
+from collections.abc import Callable
 
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
@@ -91,17 +92,19 @@ class GuardedH11Protocol(H11Protocol):
 
 class _RepeatFilter(logging.Filter):
     """Lets a message through once per ``period_s`` (by its text, with its traceback only
-    the first time), and says how many it left out."""
+    the first time), and says how many it left out. ``clock``: monotonic seconds (tests pass
+    their own)."""
 
-    def __init__(self, period_s: float) -> None:
+    def __init__(self, period_s: float, clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__()
         self.period_s = period_s
+        self._clock = clock
         self._last: dict[str, float] = {}
         self._dropped: dict[str, int] = {}
 
     def filter(self, record: logging.LogRecord) -> bool:
         key = str(record.msg).split("\n", 1)[0][:200]
-        now = time.monotonic()
+        now = self._clock()
         if key in self._last:
             if now - self._last[key] < self.period_s:
                 self._dropped[key] = self._dropped.get(key, 0) + 1

@@ -20,6 +20,8 @@ from typing import Any
 from fastapi import HTTPException, Request
 from fastapi.responses import JSONResponse
 
+from trifuse.calib.numbers import is_int
+
 DEFAULT_MAX_BODY_BYTES = 1 << 20  # 1 MiB: the API's JSON bodies are a few hundred bytes
 
 
@@ -48,7 +50,7 @@ class BodyLimitMiddleware:
     """
 
     def __init__(self, app: Any, max_bytes: int = DEFAULT_MAX_BODY_BYTES) -> None:
-        if isinstance(max_bytes, bool) or not isinstance(max_bytes, int) or max_bytes < 0:
+        if not is_int(max_bytes) or max_bytes < 0:
             raise ValueError(f"max_bytes: expected a non-negative integer, got {max_bytes!r}")
         self.app = app
         self.max_bytes = max_bytes

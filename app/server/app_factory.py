@@ -1,34 +1,35 @@
-"""The console's FastAPI application: viewer, stream, 3D console, status."""
+"""The console's FastAPI application (:func:`create_app`): its middleware (authentication,
+body limit) and its routers (viewer pages, streams, 3D console, status and controls)."""
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, JSONResponse
+from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 
+from trifuse.app.server.middleware.auth import AuthConfig, AuthMiddleware
+from trifuse.app.server.middleware.limits import add_body_limit
 from trifuse.app.server.routers.api import make_api_router
-from trifuse.app.server.routers.auth import AuthConfig, AuthMiddleware
 from trifuse.app.server.routers.docs_pages import add_docs_pages
-from trifuse.app.server.routers.limits import add_body_limit
+from trifuse.app.server.routers.pages import STATIC, make_pages_router
 from trifuse.app.server.routers.source_api import make_source_router
 from trifuse.app.server.routers.spot_api import make_spot_router
 from trifuse.app.server.routers.stream_api import make_stream_settings_router
+from trifuse.app.server.routers.stream_routes import (
+    make_kept_frames_router,
+    make_stream_router,
+    make_video_router,
+)
 from trifuse.app.server.routers.viser_bridge import make_viser_router
-from trifuse.app.server.runtime.kept_frames import make_kept_frames_router
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.source_control import SourceControl
-from trifuse.app.server.runtime.stream import FrameHub, make_stream_router
+from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.server.runtime.thermal_balance import ThermalBalancer
-from trifuse.app.server.runtime.video_stream import make_video_router
-
-STATIC = Path(__file__).resolve().parents[3] / "static"
-FAVICON = "favicon.svg"
 
 
 def _json_safe(value: Any) -> Any:
@@ -63,8 +64,8 @@ def create_app(
     """The app: ``/`` viewer, ``/stream`` + ``/stream.mjpg``, ``/console/`` (Viser),
     ``/api/status`` and the source and recording controls (``source_control``; default:
     one over ``pipeline`` without recording), ``/docs`` (OpenAPI). With ``auth`` every
-    request and WebSocket, also of routers added later, is authenticated (auth.py); ``trifuse
-    serve`` always passes one, and ``viser_secret`` (viser_bridge.start_guarded_viser)."""
+    request and WebSocket, also of routers added later, is authenticated (middleware/auth.py);
+    ``trifuse serve`` always passes one, and ``viser_secret`` (viser_bridge.start_guarded_viser)."""
     app = FastAPI(
         title="trifuse",
         summary="Calibration and fused stereo telepresence",
@@ -72,13 +73,13 @@ def create_app(
         redoc_url=None,
     )
     add_docs_pages(app)
-    add_body_limit(app)  # 413 over 1 MiB (limits.py)
+    add_body_limit(app)  # 413 over 1 MiB (middleware/limits.py)
     if auth is not None:  # added last: the outermost, nothing is read before it passes
         app.add_middleware(AuthMiddleware, config=auth)
     app.add_exception_handler(RequestValidationError, _invalid_request)
-    app.include_router(make_stream_router(hub))
-    app.include_router(make_kept_frames_router(hub.kept))  # benchmarks only (kept_frames.py)
-    app.include_router(make_video_router(hub))  # /stream.video (video_stream.py)
+    app.include_router(make_stream_router(hub))  # /stream, /stream.mjpg (stream_routes.py)
+    app.include_router(make_kept_frames_router(hub.kept))  # benchmarks only
+    app.include_router(make_video_router(hub))  # /stream.video
     app.include_router(make_stream_settings_router(hub))  # /api/stream/settings
     if viser_port is not None:
         app.include_router(make_viser_router(viser_port, viser_secret))
@@ -88,16 +89,5 @@ def create_app(
         app.include_router(make_spot_router(pipeline))  # /api/spot, /api/area (spot_api.py)
     # /api/status, /api/source/*, /api/recording/* (source_api.py)
     app.include_router(make_source_router(hub, pipeline, source_control))
-
-    @app.get("/", include_in_schema=False)
-    async def _viewer() -> FileResponse:
-        # the viewer has no inline script: nothing but this server's scripts may run in it
-        csp = "script-src 'self'; object-src 'none'; base-uri 'self'; frame-ancestors 'none'"
-        return FileResponse(STATIC / "viewer.html", headers={"Content-Security-Policy": csp})
-
-    @app.get("/favicon.ico", include_in_schema=False)
-    async def _favicon() -> FileResponse:
-        """Browsers ask for it whatever the page links: the console's icon (SVG)."""
-        return FileResponse(STATIC / FAVICON, media_type="image/svg+xml")
-
+    app.include_router(make_pages_router())  # / (the viewer), /favicon.ico (pages.py)
     return app

@@ -45,8 +45,6 @@ Receive = Callable[[], Awaitable[Message]]
 Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
-TOKEN_ENV = "TRIFUSE_TOKEN"
-"""Environment variable holding the token (safer than ``--token``: not shown by ``ps``)."""
 MIN_TOKEN_CHARS = 16
 """Shortest token accepted on a loopback address."""
 MIN_NETWORK_TOKEN_CHARS = 22
