@@ -7,7 +7,7 @@ Two stages, as FIELD-NOTES advise (OpenCV's joint solve of low-resolution intrin
 2. Sensor poses with ``cv2.calibrateMultiviewExtended`` with those intrinsics held fixed.
 
 OpenCV 5.0.0 facts this module relies on (verified numerically with synthetic rigs, see
-tests/test_opencv_baseline.py):
+tests/calib/test_opencv_baseline.py):
 
 * Python signature::
 

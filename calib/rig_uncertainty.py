@@ -67,7 +67,7 @@ def covariance_estimates(
       corrected for its own leverage, ``J_g^T (I - H_gg)^+ r_g`` with ``H_gg = J_g B J_g^T``
       and ``B = (J^T J)^-1``, and the sum is scaled by ``(g - 1) / g``. With few views an
       image pulls the solution towards itself, so its fitted residuals understate its
-      errors. On rendered captures of 4-8 views (tests/test_few_views.py) the plain form
+      errors. On rendered captures of 4-8 views (tests/calib/test_few_views.py) the plain form
       (``J_g^T r_g``) gave translation sigmas 2-3 times too small (errors up to 6.7
       sigma); this one errors of RMS 0.6-1.1 sigma. It is conservative where errors are
       independent (synthetic corners: RMS 0.4-0.9 sigma) and where one view alone

@@ -49,7 +49,7 @@ Rules common to all modes:
   reading (only its registration is approximate), so its palette colour must stay readable,
   and the mark must not draw the eye more than the scene does (issue 19: the diagonal hatch
   it replaces did). The veil changes a pixel by a small fraction of its value (a bound in
-  ``tests/test_agc.py``); a uniform grey at the veil's fixed point (mid-grey) does not
+  ``tests/fusion/test_agc.py``); a uniform grey at the veil's fixed point (mid-grey) does not
   change. Only painted pixels are marked: the colour image itself does not depend on depth.
   Pixels without a thermal view keep the plain colour image (above); the viewer's legend
   names both.

@@ -1,6 +1,6 @@
 """Synthetic board detections for the calibration tests (noisy corners of the simulated
-head: :func:`noisy_corners`) and the polarity and ordering tests (tests/test_polarity.py,
-tests/test_symmetric_board.py): exact projections of the simulated head's ground truth plus
+head: :func:`noisy_corners`) and the polarity and ordering tests (tests/calib/test_polarity.py,
+tests/calib/test_symmetric_board.py): exact projections of the simulated head's ground truth plus
 seeded noise, their poses, the screening and the calibration's input shape, and hard-edged
 synthetic board images."""
 

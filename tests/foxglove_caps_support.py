@@ -1,5 +1,5 @@
 """A console's Foxglove port on a synthetic head, in a process of its own, for the memory
-tests of tests/test_foxglove_live.py (issue 29): its resident memory is that process's.
+tests of tests/app/server/test_foxglove_live.py (issue 29): its resident memory is that process's.
 
 ``python -c "from tests.foxglove_caps_support import main; main()" [RATE_HZ]`` starts
 :class:`~app.server.runtime.foxglove_live.FoxgloveLive` with the default head's rig

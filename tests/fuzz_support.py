@@ -1,7 +1,7 @@
 """Shared machinery of the property-based tests of every file loader (issue 8, "Bad input,
-everywhere"): tests/test_fuzz_files.py (rig, board and ground-truth files, capture
-directories) and tests/test_fuzz_streams.py (recordings, ROS 2 bags, topic maps, live camera
-configurations, pushed frames, and every number of every format).
+everywhere"): tests/app/storage/test_fuzz_files.py (rig, board and ground-truth files, capture
+directories) and tests/app/recording/test_fuzz_streams.py (recordings, ROS 2 bags, topic maps,
+live camera configurations, pushed frames, and every number of every format).
 
 Each loader gets valid inputs made by the project's own writers, then mutated (keys
 deleted, values replaced by junk, text truncated, bytes flipped, images swapped), and
@@ -14,8 +14,9 @@ numpy or OpenCV errors ...); what is accepted is well-formed; a refused write le
 The tests are deterministic (``derandomize=True``, no example database). Cases per test
 (``max_examples``) are in :data:`EXAMPLES`; each test counts the cases it ran in its module's
 ``CASES`` and the counts are printed at the end of each module by the fixture that
-:func:`case_report` makes (``pytest -q tests/test_fuzz_files.py tests/test_fuzz_streams.py``;
-add ``--hypothesis-show-statistics`` for hypothesis' own statistics).
+:func:`case_report` makes (``pytest -q tests/app/storage/test_fuzz_files.py
+tests/app/recording/test_fuzz_streams.py``; add ``--hypothesis-show-statistics`` for
+hypothesis' own statistics).
 
 Here: :data:`EXAMPLES`, :func:`fuzz`, :func:`case_report`, the strategies (:data:`JUNK` ...),
 the mutators (:func:`mutate_document`, :func:`mutate_bytes`), :func:`rejects`,

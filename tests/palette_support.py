@@ -1,5 +1,5 @@
-"""Grey thermal images as a vendor tool saves them (tests/test_palette_thermal.py,
-tests/test_detect_parity.py): a palette, a colour bar at the right edge, white text in three
+"""Grey thermal images as a vendor tool saves them (tests/calib/test_palette_thermal.py,
+tests/calib/test_detect_parity.py): a palette, a colour bar at the right edge, white text in three
 corners (:func:`render`), on 640 x 480 images (:data:`SIZE`)."""
 
 from __future__ import annotations

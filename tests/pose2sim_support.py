@@ -1,6 +1,6 @@
 """Pose2Sim's four cameras (tests/data/pose2sim-4cam-checker): the set, issue 30's target on
 them, and Pose2Sim's own calibration recipe run on their images (:func:`pose2sim_recipe`), which
-gives the published calibration (tests/test_real_pose2sim_published.py)."""
+gives the published calibration (tests/calib/test_real_pose2sim_published.py)."""
 
 from __future__ import annotations
 

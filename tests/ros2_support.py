@@ -1,6 +1,6 @@
 """ROS 2 bags stored as MCAP, written with mcap-ros2-support: what a robot's recorder makes,
-for the replay through a topic map (tests/test_ros2_replay.py) and the loaders' fuzzing
-(tests/test_fuzz_streams.py)."""
+for the replay through a topic map (tests/app/recording/test_ros2_replay.py) and the loaders'
+fuzzing (tests/app/recording/test_fuzz_streams.py)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,7 @@
 """The console's 3D scene without a console: a small fake of the FusionPipeline (the
 simulated head's rig, a real StereoFusion, one synthetic frame set) and the console context
-around a Viser server (tests/test_scene3d.py, tests/test_browser_scene.py)."""
+around a Viser server (tests/app/server/test_scene3d.py,
+tests/app/server/browser/test_browser_scene.py)."""
 
 from __future__ import annotations
 

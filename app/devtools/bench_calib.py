@@ -100,7 +100,7 @@ def calibrate(repeat: int) -> dict[str, float]:
 
 
 # Per-axis corner noise (px) of the projected detections of ``calib-scale``: about what the
-# detectors achieve on the simulated head (tests/test_rig_calibration.py uses the same).
+# detectors achieve on the simulated head (tests/calib/test_rig_calibration.py uses the same).
 _SCALE_NOISE_PX = {"color": 0.08, "thermal": 0.06, "tof": 0.05}
 # Two CPU-bound neighbours for ``calib-scale``'s busy figure: a numpy matrix product with
 # OpenBLAS's default threads (one per core) and a pure-Python loop.

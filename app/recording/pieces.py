@@ -16,7 +16,7 @@ that had to be scanned: cut short, or its summary damaged) is one piece.
   TOF mapping are settled when it starts. The span's remaining difference to an unsplit run
   is ``exp(-warmup / time constant)`` of its change at the warm-up's start; the AGC table,
   renormalised every frame, settles more slowly (a picture or two after a piece's start
-  can differ by a grey level or two on average: ``tests/test_jobs.py``).
+  can differ by a grey level or two on average: ``tests/app/recording/test_jobs.py``).
 * Map (:class:`MapPiece`): the stream is the TOF's distance frames. A piece adds the TOF
   frames of its range; it reads from ``2 * max_image_age`` before the first one, so that
   every TOF frame finds the same nearest thermal and colour images as in an unsplit run.

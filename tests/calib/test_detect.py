@@ -388,6 +388,6 @@ def test_wrong_image(modality: str, image: object, match: str) -> None:
 
 
 def test_not_a_board() -> None:
-    # Boards that look the same turned (8x6, 7x7) are accepted: tests/test_symmetric_board.py
+    # Boards that look the same turned (8x6, 7x7) are accepted: tests/calib/test_symmetric_board.py
     with pytest.raises(ValueError, match=r"calib\.board\.Board"):
         detect_board(np.zeros((48, 64), np.uint8), (9, 6), "color")  # type: ignore[arg-type]

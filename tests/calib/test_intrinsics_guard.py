@@ -38,7 +38,7 @@ def test_caliscope_cam_1_keeps_its_own_intrinsics() -> None:
     OpenCV's calibrateCamera's (on OpenCV's own ChArUco corners, same run) within 1.5 %, and
     the note and the report say why; cam_0 -> cam_1 and cam_2 are then within 1 % and 0.5-0.6
     deg of the published poses (before: +8 % and -7.3 deg for cam_1). Every frame is needed
-    (on every second frame the poses differ, see tests/test_charuco.py); 11-25 s, mostly our
+    (on every second frame the poses differ, see tests/calib/test_charuco.py); 11-25 s, mostly our
     detector."""
     ours: dict[str, dict[str, np.ndarray]] = {}
     with ThreadPoolExecutor(max_workers=2) as pool:

@@ -1,6 +1,6 @@
 """Seeded thermal views of the heated board under real-world conditions, with their truth:
 what the ``thermal-detect`` benchmark (app/devtools/bench_detect.py) and
-tests/test_thermal_conditions.py run the detectors on. The conditions themselves are
+tests/app/sources/test_thermal_conditions.py run the detectors on. The conditions themselves are
 app.sources.sim.thermal_conditions."""
 
 from __future__ import annotations

@@ -4,9 +4,9 @@ number of every format (rig, board, topic map, ground truth, push header, camera
 by huge / negative / NaN / inf numbers and other junk.
 
 The contract, the strategies and the mutators are in tests/fuzz_support.py; the rig, board,
-capture and ground-truth files are fuzzed by tests/test_fuzz_files.py. The tests are
+capture and ground-truth files are fuzzed by tests/app/storage/test_fuzz_files.py. The tests are
 deterministic; cases per test are in ``fuzz_support.EXAMPLES``, and the cases each test ran
-are printed at the end of the module (``pytest -q tests/test_fuzz_streams.py``; add
+are printed at the end of the module (``pytest -q tests/app/recording/test_fuzz_streams.py``; add
 ``--hypothesis-show-statistics`` for hypothesis' own statistics).
 """
 

@@ -138,7 +138,8 @@ def test_rate_changes_the_replay_speed(console) -> None:
     r = console.client.put("/api/source/rate", json={"rate": 2.0})
     assert r.status_code == 200 and r.json()["rate"] == 2.0
     assert console.replay.rate == 2.0
-    s = console.status()  # the pacing at a rate: tests/test_recording.py (a simulated clock)
+    # the pacing at a rate: tests/app/recording/test_recording.py (a simulated clock)
+    s = console.status()
     assert s["source"]["rate"] == 2.0
 
 
@@ -176,7 +177,7 @@ def test_recording_from_the_console_reads_back(console, recording) -> None:
     r = console.client.post("/api/recording/stop")
     assert r.status_code == 200, r.text
     first = r.json()
-    # (a disk too slow for the stream drops frames, counted: tests/test_source_panel.py)
+    # (a disk too slow for the stream drops frames, counted: tests/app/server/test_source_panel.py)
     assert not first["active"] and first["error"] is None and first["frames_dropped"] >= 0
     assert console.client.post("/api/recording/stop").status_code == 409
 

@@ -1,6 +1,6 @@
 """The spot meter's REST routes (/api/spot, /api/area) and the hot and cold spots in the
 stream's metadata, on a console pipeline fusing the simulated inspection room (seed 0, the
-picture of tests/test_spot.py)."""
+picture of tests/fusion/test_spot.py)."""
 
 from __future__ import annotations
 
@@ -68,7 +68,7 @@ def test_spot_route_reads_the_person(console, room) -> None:
     assert 33.0 < s["temperature_c"] < 35.5  # 34 C skin, +0.75 K imager offset
     assert s["temperature_k"] == pytest.approx(s["temperature_c"] + 273.15)
     truth_m = float(room[2]["ccd_left"].range_m[y, x])
-    assert s["distance_m"] == pytest.approx(truth_m, abs=0.2)  # tests/test_spot.py's bound
+    assert s["distance_m"] == pytest.approx(truth_m, abs=0.2)  # tests/fusion/test_spot.py's bound
     assert s["stamp_ns"] == pipeline.spots.stamp_ns
     assert s["eyes_px"]["left"] == pytest.approx([x, y])
     assert len(s["eyes_px"]["right"]) == 2

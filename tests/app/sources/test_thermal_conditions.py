@@ -356,7 +356,7 @@ def corner_tolerance_px(view: ThermalView, cond: ThermalConditions) -> float:
     stripes or narcissus after flattening, moves the saddle of ``C x y / (pi sigma^2) + g x``
     by ``pi sigma^2 g / C`` (C: the squares' contrast, sigma: the edge blur). On the clean
     board (C about 10 K, sigma = the 0.7 px optics blur) this plus the pixel integration
-    stays under 0.07 px, and tests/test_detect.py bounds it at 0.1 px. Here the bound
+    stays under 0.07 px, and tests/calib/test_detect.py bounds it at 0.1 px. Here the bound
     scales with sigma^2 / C: 0.1 px x (10 K / C) x (sigma / 0.7 px)^2 with C measured in
     the image and sigma including the heat diffusion's blur (its length in pixels at the
     board's scale), capped at 1 px: still far below a misplaced or misordered grid (a

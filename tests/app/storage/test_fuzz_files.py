@@ -4,9 +4,9 @@ refused writes of rigs and views.
 
 The contract, the strategies and the mutators are in tests/fuzz_support.py; the streams
 (recordings, ROS 2 bags, topic maps, live camera configurations, pushed frames) and every
-number of every format are fuzzed by tests/test_fuzz_streams.py. The tests are deterministic;
-cases per test are in ``fuzz_support.EXAMPLES``, and the cases each test ran are printed at
-the end of the module (``pytest -q tests/test_fuzz_files.py``; add
+number of every format are fuzzed by tests/app/recording/test_fuzz_streams.py. The tests are
+deterministic; cases per test are in ``fuzz_support.EXAMPLES``, and the cases each test ran
+are printed at the end of the module (``pytest -q tests/app/storage/test_fuzz_files.py``; add
 ``--hypothesis-show-statistics`` for hypothesis' own statistics).
 """
 

@@ -6,7 +6,7 @@ WebXR gaze and controller rays map to the pixels a picture drawn over each eye's
 shows under them.
 
 The console replays a recording of one moment of the room (seed 0, t = 18 s, live quality;
-tests/test_spot.py's picture), so the picture stands still and its ground truth is known:
+tests/fusion/test_spot.py's picture), so the picture stands still and its ground truth is known:
 a click lands where the truth says the person is. A screenshot goes to
 /tmp/shots/viewer-spot.png (docs/screenshots/spot-meter.png is a copy a person looked at).
 """
