@@ -18,7 +18,7 @@ file of the recording begins with a key frame). A failure of the video is shown 
 recording state; the sensor recording goes on without video.
 
 A recording the console was writing when it was killed is kept: when the recorder is made
-again, :func:`trifuse.app.recording.writer.recover_interrupted` names it
+again, :func:`trifuse.app.recording.recovery.recover_interrupted` names it
 ``<YYYYmmdd-HHMMSS>.partial.mcap`` (readable up to its last complete chunk), its stale
 reservation is removed, and the recording state says so (``interrupted``, ``error``; the
 Source panel shows it) until the next recording starts.
@@ -41,8 +41,8 @@ import numpy as np
 from trifuse.app.errors import ControlError, describe_error
 from trifuse.app.recording.errors import RecordingError
 from trifuse.app.recording.recording import Recording, VideoTap
+from trifuse.app.recording.recovery import recover_interrupted
 from trifuse.app.recording.video_track import VideoSettings, VideoUnit, video_metadata
-from trifuse.app.recording.writer import recover_interrupted
 from trifuse.app.sources.frames import Frame
 from trifuse.calib.rig import Rig
 

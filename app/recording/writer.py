@@ -1,27 +1,26 @@
 """Writing recordings: frames of a sensor head into an MCAP file that Foxglove opens as is.
 
 The layout (topics, schemas, encodings) is in :mod:`app.recording.layout` and
-docs/FORMATS.md ("Recordings"). Writing goes through foxglove-sdk (one private
-``foxglove.Context`` per writer, so writers never share channels) into a temporary file in
-the target's directory; :meth:`RecordingWriter.close` finishes the MCAP (summary, indexes),
-fsyncs it and links it to its name, refusing to replace a file that exists by then.
+docs/FORMATS.md ("Recordings"); the messages are built by :mod:`app.recording.messages`
+(shared with the console's live Foxglove server: live and recorded, the same bytes).
+Writing goes through foxglove-sdk (one private ``foxglove.Context`` per writer, so writers
+never share channels) into a temporary file in the target's directory;
+:meth:`RecordingWriter.close` finishes the MCAP (summary, indexes), fsyncs it and links it
+to its name, refusing to replace a file that exists by then.
 
-While it is written, the temporary file ``.<name>.<random>.partial`` is locked (``flock``)
-and is a complete MCAP at every moment (:mod:`app.recording.sealed_file`): about once a
-second (``seal_period_s``) the chunk in progress is finished and put on disk with an ending
-(``DataEnd``, a footer without summary), so a killed program leaves a file that every MCAP
-reader (the ``mcap`` package, Foxglove) opens, with only complete records, holding all but
-the last second. :func:`recover_interrupted` (called when the console starts) finds such a
-file and keeps it under a visible name.
+While it is written, the temporary file ``.<name>.<random>.partial``
+(:func:`~app.recording.recovery.new_partial`) is locked (``flock``) and is a complete MCAP
+at every moment (:mod:`app.recording.sealed_file`): about once a second (``seal_period_s``)
+the chunk in progress is finished and put on disk with an ending (``DataEnd``, a footer
+without summary), so a killed program leaves a file that every MCAP reader (the ``mcap``
+package, Foxglove) opens, with only complete records, holding all but the last second.
+:func:`~app.recording.recovery.recover_interrupted` (called when the console starts) finds
+such a file and keeps it under a visible name.
 
 A recording may also keep the fused stereo picture as H.264 (``/fused/video``,
 :meth:`RecordingWriter.add_fused_video`, :meth:`RecordingWriter.write_video`;
 :mod:`app.recording.video_track` makes it). Observers (:attr:`RecordingWriter.observers`)
 see every frame written and the file's end: ``trifuse record --fused-video`` fuses there.
-
-The messages are built by module functions (:func:`sensor_channels`, :func:`frame_messages`,
-:func:`calibration_message`, :func:`transform_message`) that the console's live Foxglove
-server shares (:mod:`app.server.runtime.foxglove_live`): live and recorded, the same bytes.
 """
 
 from __future__ import annotations
@@ -30,34 +29,15 @@ import contextlib
 import fcntl
 import logging
 import os
-import random
-import re
-import string
 import time
-from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
 from typing import Protocol
 
-import cv2
 import foxglove
 import numpy as np
-from foxglove.channels import (
-    CameraCalibrationChannel,
-    CompressedImageChannel,
-    FrameTransformChannel,
-    RawImageChannel,
-)
+from foxglove.channels import FrameTransformChannel
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions
-from foxglove.messages import (
-    CameraCalibration,
-    CompressedImage,
-    FrameTransform,
-    Quaternion,
-    RawImage,
-    Timestamp,
-    Vector3,
-)
 
 from trifuse.app.recording.errors import RecordingError
 from trifuse.app.recording.layout import (
@@ -67,20 +47,24 @@ from trifuse.app.recording.layout import (
     RIG_FRAME,
     TF_TOPIC,
     WORLD_FRAME,
-    topic_of,
 )
-from trifuse.app.recording.mcapindex import MAX_CHUNK_BYTES, McapIndex
-from trifuse.app.recording.sealed_file import SealedMcapFile
+from trifuse.app.recording.mcapindex import MAX_CHUNK_BYTES
+from trifuse.app.recording.messages import (
+    THERMAL_ENCODINGS,
+    calibration_message,
+    frame_messages,
+    largest_message_bytes,
+    sensor_channels,
+    transform_message,
+)
+from trifuse.app.recording.recovery import new_partial
 from trifuse.app.recording.video_track import FusedVideoTrack, video_frame_id
 from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.app.storage.atomic import fsync_dir, make_dirs, umask
-from trifuse.app.storage.numbered import suffixed_names
 from trifuse.calib.numbers import is_int, is_integral
 from trifuse.calib.rig import Rig, Sensor, rig_to_yaml
-from trifuse.calib.transforms import quaternion_from_rotation, rigidity_problem
-from trifuse.calib.units import encode_amplitude, encode_distance, encode_thermal
+from trifuse.calib.transforms import rigidity_problem
 
-THERMAL_ENCODINGS = ("16UC1", "32FC1")
 COMPRESSIONS = {"zstd": MCAPCompression.Zstd, "lz4": MCAPCompression.Lz4, "none": None}
 MAX_CHUNK_SIZE = 16 * 2**20
 """The largest ``chunk_size`` a writer takes, bytes."""
@@ -89,14 +73,6 @@ MAX_MESSAGE_BYTES = MAX_CHUNK_BYTES - MAX_CHUNK_SIZE - 2**20
 frame's uncompressed size, which bounds its JPEG): a chunk (at most ``chunk_size`` plus one
 message) then stays within what a reader takes (:data:`app.recording.mcapindex.
 MAX_CHUNK_BYTES`). A rig whose sensors' frames are larger is refused."""
-
-
-def largest_message_bytes(s: Sensor, thermal_encoding: str = "16UC1") -> int:
-    """Bytes of a sensor's largest frame message as :func:`frame_messages` writes it (for
-    colour, its RGB size, more than its JPEG takes)."""
-    w, h = s.image_size
-    per_pixel = {"color": 3, "thermal": 2 if thermal_encoding == "16UC1" else 4, "tof": 2}
-    return w * h * per_pixel[s.modality]
 
 
 _MAX_STAMP_NS = 2**63 - 1
@@ -116,20 +92,6 @@ class FrameObserver(Protocol):
     def closing(self) -> None: ...
 
 
-def distortion_model(distortion: tuple[float, ...]) -> tuple[str, list[float]]:
-    """ROS/Foxglove distortion model name and coefficients for OpenCV's ``k1 k2 p1 p2 [k3
-    [k4 k5 k6]]``: ``plumb_bob`` (5, a 4-coefficient model padded with k3 = 0) or
-    ``rational_polynomial`` (8)."""
-    d = [float(c) for c in distortion]
-    if len(d) == 8:
-        return "rational_polynomial", d
-    return "plumb_bob", (d + [0.0] * 5)[:5]
-
-
-def _timestamp(stamp_ns: int) -> Timestamp:
-    return Timestamp(stamp_ns // 1_000_000_000, stamp_ns % 1_000_000_000)
-
-
 def _stamp(value: object, sensor: str) -> int:
     if not is_integral(value):
         raise RecordingError(
@@ -142,150 +104,6 @@ def _stamp(value: object, sensor: str) -> int:
             f"frame of {sensor!r}: stamp_ns: expected 0 <= stamp_ns < 2**63, got {stamp}"
         )
     return stamp
-
-
-# -- the messages (shared with the console's live Foxglove server, foxglove_live.py) ---------
-
-
-def channel_kinds(s: Sensor, thermal_encoding: str = "16UC1") -> list[tuple[str, type, str]]:
-    """(kind, foxglove channel class, ``trifuse.unit``) of each channel a sensor has in a
-    recording, its calibration last (:data:`app.recording.layout.SCHEMA_OF_KIND`)."""
-    kinds: list[tuple[str, type, str]]
-    if s.modality == "color":
-        kinds = [("color", CompressedImageChannel, "rgb")]
-    elif s.modality == "thermal":
-        unit = "centikelvin" if thermal_encoding == "16UC1" else "kelvin"
-        kinds = [("thermal", RawImageChannel, unit)]
-    else:
-        kinds = [
-            ("tof_distance", RawImageChannel, "millimetre"),
-            ("tof_amplitude", RawImageChannel, "amplitude"),
-        ]
-    return [*kinds, ("calibration", CameraCalibrationChannel, "pixel")]
-
-
-def sensor_channels(
-    context: foxglove.Context, s: Sensor, thermal_encoding: str = "16UC1"
-) -> dict[tuple[str, str], object]:
-    """A sensor's channels in ``context``, keyed by (sensor, kind): topics
-    (:func:`~app.recording.layout.topic_of`), schemas and metadata (``trifuse.sensor``,
-    ``trifuse.kind``, ``trifuse.unit``) as a recording has them."""
-    name = s.name
-    return {
-        (name, kind): cls(
-            topic_of(name, kind),
-            context=context,
-            metadata={"trifuse.sensor": name, "trifuse.kind": kind, "trifuse.unit": unit},
-        )
-        for kind, cls, unit in channel_kinds(s, thermal_encoding)
-    }
-
-
-def check_plane(a: object, s: Sensor, what: str) -> np.ndarray:
-    """``a`` if it is a (H, W) array of numbers of the sensor's size, else RecordingError."""
-    w, h = s.image_size
-    if not isinstance(a, np.ndarray) or a.shape != (h, w):
-        got = a.shape if isinstance(a, np.ndarray) else type(a).__name__
-        raise RecordingError(
-            f"frame of {s.name!r}: {what}: expected an array of shape ({h}, {w}) "
-            f"(the rig's {w}x{h}), got {got}"
-        )
-    if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
-        raise RecordingError(f"frame of {s.name!r}: {what}: expected numbers, got dtype {a.dtype}")
-    return a
-
-
-def frame_messages(
-    frame: Frame,
-    s: Sensor,
-    stamp: int,
-    jpeg_quality: int = 90,
-    thermal_encoding: str = "16UC1",
-    wanted: Callable[[str], bool] | None = None,
-) -> list[tuple[str, object]]:
-    """(kind, message) of each stream of a sensor's frame taken at ``stamp`` (ns): a
-    colour image as JPEG ``foxglove.CompressedImage``, a thermal image as
-    ``foxglove.RawImage`` (``16UC1`` centi-kelvin or ``32FC1`` kelvin), a TOF frame's
-    distance (if it has one) and amplitude as ``16UC1`` RawImages; frame id the sensor.
-
-    The frame is checked against the sensor first (RecordingError: wrong type or size);
-    ``wanted(kind)`` False leaves that message out (not encoded: nobody takes it).
-    """
-    name = s.name
-    ts = _timestamp(stamp)
-    w, h = s.image_size
-    want = wanted or (lambda _kind: True)
-    if s.modality == "color":
-        img = frame.image
-        if (
-            not isinstance(img, np.ndarray)
-            or img.dtype != np.uint8
-            or img.shape not in ((h, w, 3), (h, w))
-        ):
-            got = f"{img.dtype} {img.shape}" if isinstance(img, np.ndarray) else type(img).__name__
-            raise RecordingError(
-                f"frame of {name!r}: expected a colour image uint8 ({h}, {w}, 3) RGB, got {got}"
-            )
-        if not want("color"):
-            return []
-        bgr = cv2.cvtColor(img, cv2.COLOR_RGB2BGR) if img.ndim == 3 else img
-        ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
-        if not ok:
-            raise RecordingError(f"frame of {name!r}: OpenCV could not encode it as JPEG")
-        msg = CompressedImage(timestamp=ts, frame_id=name, data=buf.tobytes(), format="jpeg")
-        return [("color", msg)]
-    if frame.distance_m is not None and s.modality != "tof":
-        raise RecordingError(f"frame of {name!r}: a {s.modality} frame has no distance_m")
-    image = check_plane(frame.image, s, "image")
-    if s.modality == "thermal":
-        if not want("thermal"):
-            return []
-        if thermal_encoding == "16UC1":
-            raw = _raw(ts, name, encode_thermal(image), "16UC1")
-        else:
-            raw = _raw(ts, name, image.astype("<f4"), "32FC1")
-        return [("thermal", raw)]
-    out: list[tuple[str, object]] = []
-    if frame.distance_m is not None:
-        distance = check_plane(frame.distance_m, s, "distance_m")
-        if want("tof_distance"):
-            out.append(("tof_distance", _raw(ts, name, encode_distance(distance))))
-    if want("tof_amplitude"):
-        out.append(("tof_amplitude", _raw(ts, name, encode_amplitude(image))))
-    return out
-
-
-def calibration_message(s: Sensor, stamp: int) -> CameraCalibration:
-    """The sensor's ``foxglove.CameraCalibration`` (K, D, size; frame id the sensor)."""
-    i = s.intrinsics
-    model, d = distortion_model(i.distortion)
-    K = [float(v) for v in i.K.ravel()]
-    P = [i.fx, 0.0, i.cx, 0.0, 0.0, i.fy, i.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
-    return CameraCalibration(
-        timestamp=_timestamp(stamp),
-        frame_id=s.name,
-        width=int(s.image_size[0]),
-        height=int(s.image_size[1]),
-        distortion_model=model,
-        D=d,
-        K=K,
-        R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-        P=P,
-    )
-
-
-def transform_message(T: np.ndarray, parent: str, child: str, stamp: int) -> FrameTransform:
-    """A ``foxglove.FrameTransform`` of the (4, 4) pose ``T`` of ``child`` in ``parent``:
-    ``T_rig_<sensor>`` (parent :data:`~app.recording.layout.RIG_FRAME`) or the head's pose
-    ``T_world_rig`` (parent :data:`~app.recording.layout.WORLD_FRAME`)."""
-    x, y, z, w = quaternion_from_rotation(T[:3, :3])
-    return FrameTransform(
-        timestamp=_timestamp(stamp),
-        parent_frame_id=parent,
-        child_frame_id=child,
-        translation=Vector3(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
-        rotation=Quaternion(x=x, y=y, z=z, w=w),
-    )
 
 
 class RecordingWriter:
@@ -388,7 +206,7 @@ class RecordingWriter:
 
         parent = self.path.parent
         make_dirs(parent)
-        self._file = _new_partial(self.path)
+        self._file = new_partial(self.path)
         self.temp_path = self._file.path
         self._lock_fd: int | None = self._file.fd  # locked while the file is written
         try:
@@ -650,129 +468,3 @@ class RecordingWriter:
         if not getattr(self, "_closed", True):
             with contextlib.suppress(Exception):
                 self.abort()
-
-
-def _new_partial(path: Path) -> SealedMcapFile:
-    """A new ``.<name>.<random>.partial`` beside ``path`` (never an existing file)."""
-    for _ in range(100):
-        token = "".join(random.choices(string.ascii_lowercase + string.digits + "_", k=8))
-        try:
-            return SealedMcapFile(path.parent / f".{path.name}.{token}.partial")
-        except FileExistsError:
-            continue
-    raise FileExistsError(f"{path.parent}: no free temporary name for {path.name}")
-
-
-def _raw(ts: Timestamp, frame_id: str, plane: np.ndarray, encoding: str = "16UC1") -> RawImage:
-    """A RawImage of a (H, W) uint16 (little-endian) or float32 plane."""
-    h, w = plane.shape
-    if encoding == "16UC1":
-        data = np.ascontiguousarray(plane, dtype="<u2")
-        step = 2 * w
-    else:
-        data = np.ascontiguousarray(plane, dtype="<f4")
-        step = 4 * w
-    return RawImage(
-        timestamp=ts,
-        frame_id=frame_id,
-        width=w,
-        height=h,
-        encoding=encoding,
-        step=step,
-        data=data.tobytes(),
-    )
-
-
-_PARTIAL_RE = re.compile(r"^\.(?P<name>.+\.mcap)\.[a-z0-9_]{8}\.partial$")
-INTERRUPTED_SUFFIX = ".partial.mcap"
-"""``<name>.partial.mcap``: a recording that was being written when the program died."""
-
-
-def recover_interrupted(directory: str | Path) -> list[tuple[str, Path]]:
-    """Give the recordings whose writer died (killed, crashed) a visible name.
-
-    Returns (the name the recording was to have, where it is now) for each one kept.
-
-    A temporary file ``.<name>.mcap.<random>.partial`` that no living writer holds (its lock
-    is free) is what a recording had written when its program died. It is never deleted:
-
-    * a finished file (footer and summary intact: the writer died while naming it) becomes
-      ``<name>.mcap`` (or is dropped if it is ``<name>.mcap`` already, as a second link);
-    * a file cut short becomes ``<name>.partial.mcap`` (``-2``, ``-3`` ... if taken); it
-      reads up to its last seal (:class:`~app.recording.ReplaySource` reports the
-      damage where it ends);
-    * a file without frames (nothing was recorded) is removed once it is a minute old.
-
-    Files being written (locked) are left alone. Names are never reused: each file is
-    hard-linked to its new name, which fails rather than replacing a file.
-    """
-    directory = Path(directory)
-    try:
-        entries = sorted(directory.iterdir())
-    except (FileNotFoundError, NotADirectoryError):
-        return []
-    out: list[tuple[str, Path]] = []
-    for temp in entries:
-        m = _PARTIAL_RE.match(temp.name)
-        if m is None or not temp.is_file() or temp.is_symlink():
-            continue
-        try:
-            fd = os.open(temp, os.O_RDONLY)
-        except FileNotFoundError:
-            continue
-        try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
-                continue  # a writer is alive (or the file system cannot tell: leave it)
-            final = directory / m["name"]
-            st = os.fstat(fd)
-            if st.st_size == 0 or not _has_frames(temp):  # nothing recorded (a writer may
-                if time.time() - st.st_mtime > 60:  # be starting: wait a minute)
-                    temp.unlink(missing_ok=True)
-                continue
-            if final.exists() and os.path.samefile(final, temp):
-                temp.unlink(missing_ok=True)  # finished and named; this is a second link
-                continue
-            candidates = [final] if _finished(temp) else []
-            stem = m["name"][: -len(".mcap")]
-            candidates += [
-                directory / n for n in suffixed_names(stem, INTERRUPTED_SUFFIX, limit=999)
-            ]
-            for target in candidates:
-                try:
-                    os.link(temp, target)
-                except FileExistsError:
-                    continue
-                temp.unlink()
-                fsync_dir(directory)
-                out.append((m["name"], target))
-                break
-        finally:
-            os.close(fd)
-    return out
-
-
-def _has_frames(path: Path) -> bool:
-    """Whether an MCAP file holds any chunk of messages (a sealed file that got no frame
-    holds only its header, metadata and attachment)."""
-    try:
-        index = McapIndex.open(path)
-    except Exception:
-        return True  # damaged: keep it for a person to look at
-    try:
-        return bool(index.chunks)
-    finally:
-        index.close()
-
-
-def _finished(path: Path) -> bool:
-    """Whether an MCAP file is complete (its summary section and footer are intact)."""
-    try:
-        index = McapIndex.open(path)
-    except Exception:
-        return False
-    try:
-        return index.indexed_by == "summary" and index.damage is None
-    finally:
-        index.close()

@@ -18,19 +18,10 @@ the scene's "up" is therefore -y):
   display ("in use", "ground truth", saved versions; the list is re-read every
   ``choices_period_s``), the cloud's colouring, the point size, the frustums' depth
   ("Frustum size") and whether the live images are shown, the console's "Bandwidth"
-  (``full`` or ``low``: :data:`SCENE_PROFILES`; console-wide, ``ctx.bandwidth``, also
-  ``/api/console/settings`` and ``trifuse serve --console-bandwidth``), and per sensor
-  the displayed rig's pose difference to the rig in use (rotation deg, translation mm).
-
-Bandwidth (issue 18: the console beside the viewer's video over a 10 Mbit/s radio link):
-in ``full`` the cloud carries every valid TOF point (about 23k, float32: 15 bytes each with
-its colour) at up to ``rate_hz`` and the live images are 320 px wide at ``texture_hz``:
-about 6 Mbit/s, nearly all of it the cloud. ``low`` sends every 2nd pixel of every 2nd row
-of the TOF (at most :data:`LOW_CLOUD_MAX_POINTS` points, float16 positions: 9 bytes each)
-at 2 Hz, drawn twice as large so that the surface stays closed, and the images 160 px wide
-at JPEG quality 50 once a second: about 1 Mbit/s (``trifuse bench``'s console figures;
-:mod:`app.devtools.console_bandwidth` measures it per kind). The Feeds follow the same
-setting (:mod:`app.server.panels.display`).
+  (``full`` or ``low``: :mod:`app.server.panels.scene_profiles`; console-wide,
+  ``ctx.bandwidth``, also ``/api/console/settings`` and ``trifuse serve
+  --console-bandwidth``), and per sensor the displayed rig's pose difference to the rig in
+  use (rotation deg, translation mm).
 
 First sight (the layout and the views are :mod:`app.server.panels.scene_layout`'s pure functions;
 its docstring says why): the head is about 15 cm wide and the scene 0.5-8 m away, and the
@@ -47,7 +38,7 @@ image panel below it covers none of it, framed in the part of the canvas that Vi
 control panel leaves free; the first cloud re-frames browsers that connected before it.
 The view from the head clips what lies nearer than the frustums' ends (their lines would
 cross the view), never beyond 0.55 m. The views frame the clouds of the last 45 seconds (a
-panning head sweeps its cloud round).
+panning head sweeps its cloud round). What each browser needs: :mod:`app.server.panels.scene_views`.
 
 The point cloud and the board are measured with the rig in use; they hang under the node
 ``/live``, placed so that the TOF camera of the displayed rig carries them (for two rigs
@@ -66,10 +57,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 import viser
@@ -84,13 +72,9 @@ from trifuse.app.server.panels.scene_cloud import (
     grid_stride,
     temperature_span,
 )
-from trifuse.app.server.panels.scene_sensors import (
-    TEXTURE_JPEG_QUALITY,
-    TEXTURE_MAX_W,
-    SensorNodes,
-    vertical_fov_rad,
-    wxyz_of,
-)
+from trifuse.app.server.panels.scene_profiles import scene_profiles
+from trifuse.app.server.panels.scene_sensors import SensorNodes, vertical_fov_rad, wxyz_of
+from trifuse.app.server.panels.scene_views import BrowserViews, apply_camera
 from trifuse.app.server.runtime.context import BANDWIDTH_MODES, ConsoleContext
 from trifuse.app.server.runtime.periodic import Periodic
 from trifuse.app.workflows.report_format import markdown_table
@@ -111,66 +95,9 @@ VIEW_BUTTONS = {
     "View from side": "side",
 }
 """The "3D scene" folder's view buttons: label -> :data:`scene_layout.VIEWS` name."""
-FALLBACK_VIEWPORT = (1280, 800)
-"""Canvas size (CSS px) assumed for a browser that has not reported its own."""
-FRAME_MEMORY_S = 45.0
-"""The views frame the clouds of this many seconds (a panning head sweeps its cloud)..."""
-FRAME_SAMPLE_S = 2.0
-"""... sampled this often."""
 TICK_SLACK_S = 0.05
 """A part updated every ``period`` seconds is due again this much before (ticks come a
 little late: a part at half the tick rate would otherwise skip two ticks of three)."""
-
-
-@dataclass(frozen=True)
-class SceneProfile:
-    """What the 3D scene sends in one bandwidth mode.
-
-    Attributes:
-        cloud_hz: point cloud updates per second, at most (also bounded by the tick rate
-            and the TOF's frame rate: an unchanged cloud is not sent again).
-        cloud_max_points: decimate the cloud on the TOF grid to at most this many points
-            (:func:`~app.server.panels.scene_cloud.grid_stride`); None: every point.
-        cloud_precision: the positions on the wire: ``float32`` (4 bytes per coordinate,
-            sub-millimetre) or ``float16`` (2 bytes; steps of 2-4 mm at 2-8 m).
-        texture_hz: live image updates per second (each sends up to 5 JPEGs).
-        texture_max_w: the live images' width at most, pixels.
-        texture_jpeg_quality: their JPEG quality (0-100).
-    """
-
-    cloud_hz: float
-    cloud_max_points: int | None
-    cloud_precision: Literal["float16", "float32"]
-    texture_hz: float
-    texture_max_w: int
-    texture_jpeg_quality: int
-
-
-LOW_CLOUD_MAX_POINTS = 6400
-"""The low-bandwidth cloud's points at most: the TOF's 176 x 144 pixels at a stride of 2
-(6336 pixels)."""
-LOW_PROFILE = SceneProfile(
-    cloud_hz=2.0,
-    cloud_max_points=LOW_CLOUD_MAX_POINTS,
-    cloud_precision="float16",
-    texture_hz=1.0,
-    texture_max_w=TEXTURE_MAX_W // 2,
-    texture_jpeg_quality=50,
-)
-"""``low``: at most 57 kB per cloud update (6336 points x 9 bytes; 53 kB measured on the
-simulated room, whose 5.8k of them are valid) and about 10 kB per round of the five live
-images, against 366 kB (23k points x 15 bytes) and 26 kB in ``full``."""
-
-
-def scene_profiles(rate_hz: float = 4.0, texture_hz: float = 2.0) -> dict[str, SceneProfile]:
-    """The profile of each mode of :data:`BANDWIDTH_MODES`: ``full`` (every point, float32,
-    at ``rate_hz``; 320 px images at ``texture_hz``) and :data:`LOW_PROFILE`."""
-    full = SceneProfile(rate_hz, None, "float32", texture_hz, TEXTURE_MAX_W, TEXTURE_JPEG_QUALITY)
-    return {"full": full, "low": LOW_PROFILE}
-
-
-SCENE_PROFILES = scene_profiles()
-"""The 3D scene's profiles at its default rates."""
 
 
 def rig_difference_markdown(shown_label: str, shown: Rig, in_use: Rig) -> str:
@@ -196,31 +123,6 @@ def rig_difference_markdown(shown_label: str, shown: Rig, in_use: Rig) -> str:
     )
 
 
-def apply_camera(camera: object, pose: layout.CameraPose) -> None:
-    """Move a browser's camera (a :class:`viser.CameraHandle` or anything with its
-    ``fov``, ``near``, ``up_direction``, ``position`` and ``look_at``) to ``pose``. The
-    position goes before the look-at point: Viser moves the look-at point along with the
-    position."""
-    camera.fov = pose.fov_rad  # type: ignore[attr-defined]
-    camera.near = pose.near_m  # type: ignore[attr-defined]
-    camera.up_direction = pose.up  # type: ignore[attr-defined]
-    camera.position = pose.position  # type: ignore[attr-defined]
-    camera.look_at = pose.look_at  # type: ignore[attr-defined]
-
-
-def viewport_of(
-    camera: object, fallback: tuple[int, int] | None = FALLBACK_VIEWPORT
-) -> tuple[int, int]:
-    """(width, height) pixels of a browser's canvas as its camera reports them, or
-    ``fallback`` ((0, 0) for None) before it has reported them."""
-    missing = fallback or (0, 0)
-    try:
-        w, h = int(camera.image_width), int(camera.image_height)  # type: ignore[attr-defined]
-    except (AssertionError, AttributeError, TypeError, ValueError):
-        return missing
-    return (w, h) if w > 0 and h > 0 else missing
-
-
 class Scene3D(Periodic):
     """The 3D scene and its "3D scene" GUI folder; :meth:`start` runs the updates.
 
@@ -238,7 +140,7 @@ class Scene3D(Periodic):
             frame and the default frustum depth come from.
         user_sized: whether an operator has moved the "Frustum size" slider (then the
             first cloud leaves the frustum depth alone).
-        profiles: :class:`SceneProfile` of each bandwidth mode.
+        profiles: :class:`~app.server.panels.scene_profiles.SceneProfile` of each bandwidth mode.
         bandwidth_mode, profile: the bandwidth mode applied now and its profile.
         cloud_stride: the cloud keeps every this-many-th TOF pixel in each direction.
     """
@@ -267,13 +169,9 @@ class Scene3D(Periodic):
         self.cloud_span: tuple[float, float] | None = None
         self._cloud_key: tuple | None = None
         self.box: layout.SceneBox | None = None
-        self._recent: deque[tuple[float, np.ndarray]] = deque()  # (time, (M, 3) sample)
         self.user_sized = False
         self._sizing = False  # the scene itself is setting the slider
-        self._unframed: set[int] = set()  # clients framed before the first cloud
-        self._canvas: dict[int, tuple[int, int]] = {}  # client -> canvas (px), largest seen
-        self._shadows: dict[int, tuple[object, str]] = {}  # client -> (its /panel, view)
-        self._canvas_lock = threading.Lock()
+        self.views = BrowserViews()  # each browser's canvas, panel and framing
 
         server.scene.set_up_direction("-y")
 
@@ -354,16 +252,13 @@ class Scene3D(Periodic):
             client.camera.on_update(lambda camera: self._note_canvas(client.client_id, camera))
             with self._lock:
                 if self.box is None:
-                    self._unframed.add(client.client_id)
+                    self.views.wait_for_cloud(client.client_id)
             self._guard("view", lambda: self.set_view(client, "overview"))
 
         @server.on_client_disconnect
         def _gone(client: viser.ClientHandle) -> None:
             with self._lock:
-                self._unframed.discard(client.client_id)
-                self._shadows.pop(client.client_id, None)
-            with self._canvas_lock:
-                self._canvas.pop(client.client_id, None)
+                self.views.forget(client.client_id)
 
     # -- building ----------------------------------------------------------------------
 
@@ -420,13 +315,10 @@ class Scene3D(Periodic):
 
     def view_pose(self, view: str, viewport: tuple[int, int]) -> layout.CameraPose:
         """The camera of ``view`` (:data:`scene_layout.VIEWS`) for a canvas of ``viewport``
-        (width, height) CSS px: framing the clouds of the last :data:`FRAME_MEMORY_S`
-        seconds (or :data:`scene_layout.DEFAULT_BOX` before any), the head and the image
-        panel."""
-        box = None
-        if self._recent:
-            samples = np.vstack([sample for _, sample in self._recent])
-            box = layout.scene_box(samples, self._positions(self.shown_rig))
+        (width, height) CSS px: framing the clouds of the last
+        :data:`~app.server.panels.scene_views.FRAME_MEMORY_S` seconds (or
+        :data:`scene_layout.DEFAULT_BOX` before any), the head and the image panel."""
+        box = self.views.recent_box(self._positions(self.shown_rig))
         box = box or self.box or layout.DEFAULT_BOX
         extra = None if self.panel is None else self.panel.placed(view).corners()
         fov = max(vertical_fov_rad(s) for s in self.shown_rig.sensors.values())
@@ -434,23 +326,14 @@ class Scene3D(Periodic):
         return layout.view_pose(view, box, viewport, extra, fov, frustum_depth_m=depth)
 
     def _note_canvas(self, client_id: int, camera: object) -> None:
-        """Remember a browser's canvas size: the largest it has reported at its present
-        aspect ratio. Viser reports the size of the drawing buffer, which its client
-        shrinks (to 0.75 x) while drawing is slow; the largest is the canvas's own."""
-        w, h = viewport_of(camera, None)
-        if w <= 0:
-            return
-        with self._canvas_lock:
-            old = self._canvas.get(client_id)
-            if old is None or w > old[0] or abs(old[0] / old[1] - w / h) > 0.02 * w / h:
-                self._canvas[client_id] = (w, h)
+        """Remember a browser's canvas size (:meth:`BrowserViews.note_canvas
+        <app.server.panels.scene_views.BrowserViews.note_canvas>`)."""
+        self.views.note_canvas(client_id, camera)
 
     def canvas_of(self, client: object) -> tuple[int, int]:
-        """(width, height) of a browser's canvas (:meth:`_note_canvas`), else what its
-        camera reports now, else :data:`FALLBACK_VIEWPORT`."""
-        with self._canvas_lock:
-            known = self._canvas.get(getattr(client, "client_id", None))  # type: ignore[arg-type]
-        return known or viewport_of(client.camera)  # type: ignore[attr-defined]
+        """(width, height) of a browser's canvas (:meth:`BrowserViews.canvas_of
+        <app.server.panels.scene_views.BrowserViews.canvas_of>`)."""
+        return self.views.canvas_of(client)
 
     def set_view(self, client: viser.ClientHandle | None, view: str) -> None:
         """Move ``client``'s camera to ``view`` (nothing without a client) and turn the
@@ -458,35 +341,11 @@ class Scene3D(Periodic):
         if client is None:
             return
         apply_camera(client.camera, self.view_pose(view, self.canvas_of(client)))
-        self._turn_panel(client, view)
-
-    def _turn_panel(self, client: object, view: str) -> None:
-        """The image panel faces ``view``'s camera in ``client``'s browser: a client-scoped
-        node ``/panel`` shadows the shared one (Viser 1.1.1: same name, this client only)
-        and carries its pictures; hidden in the view from the head; none for the
-        overview (the shared panel faces it)."""
-        scene = getattr(client, "scene", None)
-        client_id = getattr(client, "client_id", None)
-        if scene is None or client_id is None:
-            return
-        old = self._shadows.pop(client_id, None)
-        if old is not None:
-            old[0].remove()
-        if view == "overview" or self.panel is None:
-            return
-        T = self.panel.placed(view).T_rig_panel
-        handle = scene.add_frame(
-            "/panel",
-            show_axes=False,
-            wxyz=wxyz_of(T),
-            position=T[:3, 3].copy(),
-            visible=view != "head",
-        )
-        self._shadows[client_id] = (handle, view)
+        self.views.turn_panel(client, view, self.panel)
 
     def _frame_waiting_clients(self) -> None:
         """Re-frame the browsers that connected before the first cloud (once)."""
-        waiting, self._unframed = self._unframed, set()
+        waiting = self.views.take_waiting()
         if not waiting:
             return
         for client_id, client in self.server.get_clients().items():
@@ -523,22 +382,7 @@ class Scene3D(Periodic):
         self.panel_node.position = self.panel.T_rig_panel[:3, 3].copy()
         for name, cell in self.panel.cells.items():
             shown[name].set_cell(cell)
-        for handle, view in self._shadows.values():  # the browsers' own views follow
-            T = self.panel.placed(view).T_rig_panel
-            handle.wxyz = wxyz_of(T)  # type: ignore[attr-defined]
-            handle.position = T[:3, 3].copy()  # type: ignore[attr-defined]
-
-    def _remember(self, points: np.ndarray) -> None:
-        """Keep a sample of the cloud (N, 3) every :data:`FRAME_SAMPLE_S` for the views."""
-        now = time.monotonic()
-        if self._recent and now - self._recent[-1][0] < FRAME_SAMPLE_S:
-            return
-        box = layout.scene_box(points)
-        if box is None:
-            return
-        self._recent.append((now, box.sample[:-1]))  # without the rig origin
-        while self._recent and now - self._recent[0][0] > FRAME_MEMORY_S:
-            self._recent.popleft()
+        self.views.follow_panel(self.panel)  # the browsers' own views follow
 
     def _set_first_sight(self, points: np.ndarray) -> None:
         """The first cloud: the scene's extent; the image panel sized from it, the
@@ -684,7 +528,7 @@ class Scene3D(Periodic):
         self._cloud_key = key
         if self.box is None:
             self._set_first_sight(pts)
-        self._remember(pts)
+        self.views.remember(pts)
 
     # -- textures ----------------------------------------------------------------------
 

@@ -3,7 +3,7 @@ receives on foxglove-sdk's WebSocket server (subprotocol ``foxglove.sdk.v1``), w
 topics and schemas of a recording, so that one Foxglove layout shows a recording and the
 live head (docs/FORMATS.md, "Foxglove live").
 
-What goes out (the recording's message builders, :mod:`app.recording.writer`):
+What goes out (the recording's message builders, :mod:`app.recording.messages`):
 
 - each sensor's frames as a recording has them (:mod:`app.recording.layout`):
   ``/<sensor>/image`` (``foxglove.CompressedImage`` JPEG), ``/<sensor>/temperature``
@@ -76,18 +76,18 @@ from foxglove.messages import (
 from trifuse.app.errors import describe_error
 from trifuse.app.latest_worker import LatestWorker
 from trifuse.app.recording.layout import RIG_FRAME, TF_TOPIC, WORLD_FRAME
+from trifuse.app.recording.messages import (
+    calibration_message,
+    frame_messages,
+    sensor_channels,
+    transform_message,
+)
 from trifuse.app.recording.video_track import (
     FusedVideoTrack,
     VideoSettings,
     VideoUnit,
     video_frame_id,
     video_metadata,
-)
-from trifuse.app.recording.writer import (
-    calibration_message,
-    frame_messages,
-    sensor_channels,
-    transform_message,
 )
 from trifuse.app.server.runtime.foxglove_gate import (
     LOOPBACK,

@@ -38,8 +38,9 @@ from trifuse.app.devtools.console_bandwidth import (
     set_console_bandwidth,
 )
 from trifuse.app.server.panels.display import FEED_PROFILES, Panels
-from trifuse.app.server.panels.scene3d import LOW_CLOUD_MAX_POINTS, SCENE_PROFILES, Scene3D
+from trifuse.app.server.panels.scene3d import Scene3D
 from trifuse.app.server.panels.scene_cloud import decimate_cloud, grid_stride
+from trifuse.app.server.panels.scene_profiles import LOW_CLOUD_MAX_POINTS, SCENE_PROFILES
 from trifuse.app.server.routers.console_api import make_console_settings_router
 from trifuse.app.server.runtime.context import BANDWIDTH_MODES, ConsoleBandwidth
 from trifuse.app.server.runtime.video_presets import StreamSettings

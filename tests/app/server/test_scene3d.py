@@ -23,12 +23,7 @@ from tests.scene_support import (
 from tests.support import FakeClock
 from trifuse.app.server.panels import scene_layout as layout
 from trifuse.app.server.panels.display import NEXT_RGB, scale_corners
-from trifuse.app.server.panels.scene3d import (
-    FALLBACK_VIEWPORT,
-    Scene3D,
-    rig_difference_markdown,
-    viewport_of,
-)
+from trifuse.app.server.panels.scene3d import Scene3D, rig_difference_markdown
 from trifuse.app.server.panels.scene_board import board_checker_image, board_lag_s
 from trifuse.app.server.panels.scene_cloud import DEPTH_PALETTE, NAN_GREY
 from trifuse.app.server.panels.scene_sensors import (
@@ -38,6 +33,7 @@ from trifuse.app.server.panels.scene_sensors import (
     vertical_fov_rad,
     wxyz_of,
 )
+from trifuse.app.server.panels.scene_views import FALLBACK_VIEWPORT, viewport_of
 from trifuse.app.server.runtime.board_watch import BoardSighting
 from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.app.sources.sim.head import default_rig

@@ -43,8 +43,9 @@ from tests.support import ROOT, wait_for_exit, wait_until
 from trifuse.app.devtools.console_process import ConsoleProcess
 from trifuse.app.recording import ReplaySource
 from trifuse.app.recording.recorder import Recorder
+from trifuse.app.recording.recovery import recover_interrupted
 from trifuse.app.recording.sealed_file import SEAL
-from trifuse.app.recording.writer import RecordingWriter, recover_interrupted
+from trifuse.app.recording.writer import RecordingWriter
 from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD

@@ -31,10 +31,10 @@ from trifuse.app.workflows.calibration_run import DetectionRun, build_report
 from trifuse.app.workflows.report_html import (
     CSP,
     REPORT_HTML_NAME,
-    pm,
     render_report_html,
     session_report_html,
 )
+from trifuse.app.workflows.report_markup import pm
 from trifuse.calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
 from trifuse.calib.rig_compare import compare_rigs
 from trifuse.calib.transforms import transform_points

@@ -1,0 +1,444 @@
+"""The calibration report's sections on the whole calibration (:mod:`report_html`): summary
+and verdict (with the sensors calibrated alone), decisions and any key the report gains
+later, the outliers, every view, the comparison with a true rig, how the report was made.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from trifuse.app.workflows.report_format import (
+    INTRINSICS_HEAD,
+    POLARITY_HEAD,
+    polarity_caption,
+    polarity_rows,
+)
+from trifuse.app.workflows.report_markup import (
+    _advice,
+    _and,
+    _e,
+    _f,
+    _finite,
+    _g,
+    _id,
+    _label,
+    _table,
+    _verdict_box,
+    _views_list,
+    generic,
+    pm,
+)
+from trifuse.app.workflows.report_sensors import _sigma, _vec_sigma
+from trifuse.calib.board import POLARITY_KEYS, board_from_dict
+
+KNOWN_KEYS = frozenset(
+    {
+        "format",
+        "reference",
+        "board",
+        "rms_px",
+        "seconds",
+        "sensors",
+        "sensors_intrinsics_only",
+        "excluded_sensors",
+        "polarity",
+        "notes",
+        "views",
+        "outliers",
+        "board_poses",
+        "capture",
+        "detections",
+        "comparison",
+        "verdict",
+        "advice",
+        "min_views",
+    }
+)
+"""Top-level report keys with a section of their own; any other is shown generically."""
+
+
+MAX_CORNER_ROWS = 100
+"""Outlier corners listed one by one; the rest are counted (report.json has them all)."""
+
+
+def _summary(report: Mapping[str, Any]) -> str:
+    sensors = report.get("sensors") or {}
+    excluded = report.get("excluded_sensors") or {}
+    parts = ["<section id='summary'><h2>Summary and verdict</h2>"]
+    if report.get("verdict") is not None:
+        parts.append(_verdict_box(report["verdict"]))
+    cmp = report.get("comparison")
+    if isinstance(cmp, Mapping) and "passed" in cmp:
+        parts.append(_verdict_box(_comparison_verdict(cmp), "Against the true rig"))
+    calibrated = (
+        f"{len(sensors)} sensor(s) calibrated ({_e(_and(list(sensors)))})"
+        if sensors
+        else "no sensor calibrated"
+    )
+    if alone := list(report.get("sensors_intrinsics_only") or {}):
+        calibrated += f", intrinsics only ({_e(_and(alone))}: pose unknown)"
+    rms = report.get("rms_px")
+    line = f"<p>{calibrated}, reference <b>{_e(report.get('reference', '–'))}</b>"
+    if _finite(rms):
+        line += f", overall RMS reprojection error <b>{rms:.3f} px</b>"
+    n_views = len(report.get("detections") or report.get("views") or {})
+    line += f", {n_views} view(s)"
+    if _finite(report.get("seconds")):
+        line += f", solved in {report['seconds']:.1f} s"
+    parts.append(line + ".</p>")
+    if excluded:
+        parts.append(
+            "<p class='bad'><b>Not calibrated:</b></p><ul>"
+            + "".join(f"<li><b>{_e(s)}</b>: {_e(why)}</li>" for s, why in excluded.items())
+            + "</ul>"
+        )
+    if report.get("advice"):
+        parts.append(_advice(report["advice"]))
+    rows = []
+    for name, s in sensors.items():
+        intr = s.get("intrinsics") or {}
+        cov = s.get("coverage") or {}
+        size = s.get("image_size") or ["?", "?"]
+        rot = float(np.linalg.norm(_vec_sigma(s, "rotation_deg")))
+        trans = float(np.linalg.norm(_vec_sigma(s, "translation_m", 1000.0)))
+        reference = name == report.get("reference")
+        rows.append(
+            [
+                f"<a href='#sensor-{_id(name)}'>{_e(name)}</a>",
+                f"{_e(size[0])}&nbsp;×&nbsp;{_e(size[1])}",
+                f"{_e(s.get('views_used', '?'))} / {_e(s.get('views_detected', '?'))}",
+                _f(s.get("rms_px"), 3),
+                pm(intr.get("fx"), _sigma(s, "fx")),
+                pm(intr.get("fy"), _sigma(s, "fy")),
+                "reference" if reference else _f(rot, 3),
+                "reference" if reference else _f(trans, 2),
+                f"{100 * cov['reached']:.0f}" if _finite(cov.get("reached")) else "–",
+            ]
+        )
+    if rows:
+        parts.append(
+            _table(
+                [
+                    "sensor",
+                    "image px",
+                    "views used / found",
+                    "RMS px",
+                    "fx px",
+                    "fy px",
+                    "σ rot °",
+                    "σ trans mm",
+                    "coverage %",
+                ],
+                rows,
+                numeric=(1, 2, 3, 4, 5, 6, 7, 8),
+                raw=True,
+                caption="Per sensor, ± 1-sigma. σ rot, σ trans: norms of the 1-sigma of its "
+                "pose relative to the reference (rotation vector, translation); coverage: "
+                "share of the image's cells (6 × 8) that a corner reached",
+                attrs=" id='overview' class='small'",
+            )
+        )
+    parts.append(_intrinsics_only(report.get("sensors_intrinsics_only") or {}))
+    notes = report.get("notes") or []
+    if notes:
+        parts.append(
+            "<h3>Decided on its own</h3><ul>"
+            + "".join(f"<li>{_e(n)}</li>" for n in notes)
+            + "</ul>"
+        )
+    parts.append("</section>")
+    return "".join(parts)
+
+
+def _intrinsics_only(alone: Mapping[str, Any]) -> str:
+    """The sensors calibrated alone (``sensors_intrinsics_only``): their intrinsics ± 1-sigma,
+    then why their pose is unknown (the sensors with the same reason together)."""
+    if not alone:
+        return ""
+    rows, why = [], {}
+    for name, s in alone.items():
+        intr = s.get("intrinsics") or {}
+        size = s.get("image_size") or ["?", "?"]
+        rows.append(
+            [
+                _e(name),
+                f"{_e(size[0])}&nbsp;×&nbsp;{_e(size[1])}",
+                f"{_e(s.get('views_used', '?'))} / {_e(s.get('views_detected', '?'))}",
+                _f(s.get("rms_px"), 3),
+                *(pm(intr.get(k), _sigma(s, k)) for k in ("fx", "fy", "cx", "cy")),
+            ]
+        )
+        why.setdefault(str(s.get("pose_unknown") or "pose unknown"), []).append(name)
+    table = _table(
+        ["sensor", "image px", "views used / found", "RMS px", "fx px", "fy px", "cx px", "cy px"],
+        rows,
+        numeric=(1, 2, 3, 4, 5, 6, 7),
+        raw=True,
+        caption="Sensors calibrated alone, on their own views, ± 1-sigma; not in the rig",
+        attrs=" id='intrinsics-only' class='small'",
+    )
+    reasons = "".join(f"<li><b>{_e(_and(n))}</b>: {_e(w)}</li>" for w, n in why.items())
+    return f"<h3>Intrinsics only: pose unknown</h3>{table}<ul>{reasons}</ul>"
+
+
+def _comparison_verdict(cmp: Mapping[str, Any]) -> str:
+    fails = list(cmp.get("failures") or [])
+    n = len(cmp.get("sensors") or {})
+    if cmp.get("passed"):
+        return f"PASS: every judged figure meets its target ({n} sensors and every pair)."
+    shown = ", ".join(fails[:6]) + (f" and {len(fails) - 6} more" if len(fails) > 6 else "")
+    return f"FAIL: {len(fails)} figure(s) miss their target: {shown}."
+
+
+def _decisions(report: Mapping[str, Any]) -> str:
+    parts = []
+    polarity = report.get("polarity") or {}
+    if polarity:
+        parts.append(
+            _table(
+                POLARITY_HEAD,
+                polarity_rows(polarity),
+                numeric=(3, 4),
+                caption=_e(polarity_caption(polarity)),
+            )
+        )
+        turned = {n: p for n, p in polarity.items() if p.get("turned") or p.get("turned_views")}
+        for n, p in turned.items():
+            what = "its corners were relabelled by the half turn" if p.get("turned") else ""
+            views = p.get("turned_views") or []
+            if views:
+                what += ("; " if what else "") + f"view(s) {_views_list(views)} turned alone"
+            parts.append(f"<p>{_e(n)}: {_e(what)}.</p>")
+        problems = {n: p["problem"] for n, p in polarity.items() if p.get("problem")}
+        for n, why in problems.items():
+            parts.append(f"<p class='bad'>{_e(n)} refused: {_e(why)}</p>")
+    for key, value in report.items():
+        if key not in KNOWN_KEYS and value not in (None, [], {}):
+            parts.append(f"<h3>{_e(_label(key).capitalize())}</h3>" + generic(value))
+    if not parts:
+        return ""
+    return (
+        "<section id='decisions'><h2>Decisions and other findings</h2>"
+        + "".join(parts)
+        + "</section>"
+    )
+
+
+def _outliers(report: Mapping[str, Any]) -> str:
+    outliers = report.get("outliers") or []
+    views = [o for o in outliers if o.get("corner") is None]
+    corners = [o for o in outliers if o.get("corner") is not None]
+    parts = [
+        "<section id='outliers'><h2>Outliers</h2>",
+        f"<p>{len(views)} view(s) and {len(corners)} corner(s) were left out of the final "
+        "solution, with the error that had them flagged.</p>",
+    ]
+    if views:
+        parts.append(
+            _table(
+                ["view", "sensor", "RMS px", "why"],
+                [
+                    [str(o["view"]), str(o["sensor"]), _f(o.get("error_px")), str(o.get("reason"))]
+                    for o in views
+                ],
+                numeric=(2,),
+            )
+        )
+    if corners:
+        shown = corners[:MAX_CORNER_ROWS]
+        parts.append(
+            _table(
+                ["view", "sensor", "corner", "error px", "why"],
+                [
+                    [
+                        str(o["view"]),
+                        str(o["sensor"]),
+                        str(o["corner"]),
+                        _f(o.get("error_px")),
+                        str(o.get("reason")),
+                    ]
+                    for o in shown
+                ],
+                numeric=(2, 3),
+            )
+        )
+        if len(corners) > len(shown):
+            parts.append(f"<p>… and {len(corners) - len(shown)} more corners (report.json).</p>")
+    parts.append("</section>")
+    return "".join(parts)
+
+
+def _views_table(report: Mapping[str, Any]) -> str:
+    """Every view and sensor: RMS px when used, the outlier's RMS in red, × [n] when the
+    board was not found (n: the reason, listed below)."""
+    detections = report.get("detections") or {}
+    views = report.get("views") or {}
+    names = sorted(set(detections) | set(views))
+    if not names:
+        return ""
+    sensors = list(
+        dict.fromkeys(
+            [*(report.get("sensors") or {}), *(s for per in detections.values() for s in per)]
+        )
+    )
+    reasons: dict[str, int] = {}
+    excluded = report.get("excluded_sensors") or {}
+    rows = []
+    for v in names:
+        row = [_e(v)]
+        for s in sensors:
+            e = (views.get(v) or {}).get(s)
+            d = (detections.get(v) or {}).get(s)
+            if e is not None:
+                rms = _f(e.get("rms_px"), 3)
+                row.append(f"<span class='bad'>{rms} out</span>" if e.get("outlier") else rms)
+            elif d is not None and not d.get("found"):
+                n = reasons.setdefault(str(d.get("reason") or "not found"), len(reasons) + 1)
+                row.append(f"<span class='muted'>× [{n}]</span>")
+            elif d is not None:
+                row.append("<span class='muted'>found</span>" if s in excluded else "found")
+            else:
+                row.append("")
+        rows.append(row)
+    legend = "".join(f"<li>[{n}] {_e(r)}</li>" for r, n in reasons.items())
+    return (
+        "<section id='views'><h2>Every view</h2>"
+        + _table(
+            ["view", *sensors],
+            rows,
+            numeric=tuple(range(1, len(sensors) + 1)),
+            raw=True,
+            caption="RMS reprojection error per view and sensor, px; red “out”: left out as an "
+            "outlier; ×: no usable board, for the reason numbered below; “found”: found in a "
+            "sensor that was not calibrated",
+            attrs=" class='small'",
+        )
+        + (
+            f"<ol class='small' style='list-style:none;padding-left:0'>{legend}</ol>"
+            if legend
+            else ""
+        )
+        + "</section>"
+    )
+
+
+def _comparison(report: Mapping[str, Any]) -> str:
+    cmp = report.get("comparison")
+    if not isinstance(cmp, Mapping):
+        return ""
+    parts = [
+        "<section id='truth'><h2>Against the true rig</h2>",
+        f"<p>Compared with <code>{_e(cmp.get('truth', '?'))}</code> (reference "
+        f"{_e(cmp.get('truth_reference', '?'))}); errors are estimate − truth.</p>",
+    ]
+    for what in ("estimate", "truth"):
+        only = cmp.get(f"only_in_{what}") or []
+        if only:
+            parts.append(f"<p>Only in the {what}, not compared: {_e(', '.join(only))}.</p>")
+    rows = []
+    for n, e in (cmp.get("sensors") or {}).items():
+        fails = [f for f in ("fx", "fy") if e.get(f"{f}_ok") is False]
+        rows.append(
+            [
+                _e(n),
+                _f(e.get("fx_px")),
+                _f(e.get("fy_px")),
+                _f(e.get("fx_percent"), 3),
+                _f(e.get("fy_percent"), 3),
+                f"±{_g(e.get('focal_target_percent'))}",
+                _pass(fails),
+                _f(e.get("cx_px")),
+                _f(e.get("cy_px")),
+                _f(e.get("distortion_px")),
+            ]
+        )
+    parts.append(
+        _table(
+            INTRINSICS_HEAD,
+            rows,
+            numeric=(1, 2, 3, 4, 5, 7, 8, 9),
+            raw=True,
+            caption="Intrinsics; distortion px: how far apart the two distortion models put a "
+            "pixel, at most over the image (not judged)",
+        )
+    )
+    rows = []
+    for p in cmp.get("pairs") or []:
+        fails = [
+            f for f, k in (("rot", "rotation_ok"), ("trans", "translation_ok")) if p.get(k) is False
+        ]
+        rows.append(
+            [
+                _e(f"{p.get('a')} – {p.get('b')}"),
+                _f(p.get("rotation_deg"), 3),
+                _g(p.get("target_deg")),
+                _f(p.get("translation_mm"), 2),
+                _g(p.get("target_mm")),
+                _pass(fails),
+            ]
+        )
+    if rows:
+        parts.append(
+            _table(
+                [
+                    "pair",
+                    "rotation error °",
+                    "target °",
+                    "translation error mm",
+                    "target mm",
+                    "pose",
+                ],
+                rows,
+                numeric=(1, 2, 3, 4),
+                raw=True,
+                caption="Relative pose of every pair, inv(T_rig_a) @ T_rig_b, estimate against "
+                "truth",
+            )
+        )
+    parts.append(_verdict_box(_comparison_verdict(cmp)) + "</section>")
+    return "".join(parts)
+
+
+def _pass(failed: list[str]) -> str:
+    return (
+        "<span class='good'>pass</span>"
+        if not failed
+        else f"<span class='bad'>FAIL ({_e(', '.join(failed))})</span>"
+    )
+
+
+def _run(report: Mapping[str, Any], command: str | None, versions: Mapping[str, str]) -> str:
+    board = report.get("board") or {}
+    rows = []
+    if command:
+        rows.append(["command", f"<code>{_e(command)}</code>"])
+    if report.get("capture"):
+        rows.append(["capture", f"<code>{_e(report['capture'])}</code>"])
+    if board:
+        rows.append(["board", _e(_board_text(board))])
+    if _finite(report.get("min_views")):
+        rows.append(["fewest views per sensor", _e(report["min_views"])])
+    rows.append(["report format", _e(report.get("format", "?"))])
+    if versions:
+        rows.append(["software", _e(", ".join(f"{k} {v}" for k, v in versions.items()))])
+    return (
+        "<section id='run'><h2>How this was made</h2>"
+        + _table(["", ""], rows, raw=True)
+        + "</section>"
+    )
+
+
+def _board_text(board: Mapping[str, Any]) -> str:
+    """:meth:`Board.describe` of the report's board (its polarity keys in brackets); a
+    board the report format does not know: its keys as they are."""
+    try:
+        text, described = board_from_dict(board).describe(), set(board) - set(POLARITY_KEYS)
+    except ValueError:
+        text, described = "board", set()
+    extra = {k: v for k, v in board.items() if k not in described}
+    if extra:
+        text += " (" + ", ".join(f"{_label(k)}: {v}" for k, v in extra.items()) + ")"
+    return text

@@ -1,0 +1,416 @@
+"""The calibration report's sections on the sensors (:mod:`report_html`): one per calibrated
+sensor (verdict, intrinsics and distortion, pose ± 1-sigma, the views left out and why, its
+plots from :mod:`report_svg`) and the relative pose of every pair with where its 1-sigma
+comes from; the reading of a sensor's pose and sigmas out of ``report.json``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from trifuse.app.workflows.report_format import coverage_sentence, sensor_colour
+from trifuse.app.workflows.report_markup import (
+    FIGURE_HEAD,
+    _advice,
+    _e,
+    _f,
+    _figure_rows,
+    _figures_table,
+    _finite,
+    _g,
+    _grade,
+    _graded,
+    _id,
+    _table,
+    _verdict_box,
+    _views_list,
+    generic,
+    pm,
+    sigma_decimals,
+)
+from trifuse.app.workflows.report_svg import (
+    LEFT_CORNER,
+    LEFT_VIEW,
+    USED,
+    _rgb,
+    coverage_svg,
+    scatter_svg,
+    vectors_svg,
+    view_rms_svg,
+)
+from trifuse.calib.coverage import PARAM_NAMES
+from trifuse.calib.transforms import rotation_angle_deg, rvec_from_rotation
+
+if TYPE_CHECKING:
+    from trifuse.calib.rig_result import CornerResiduals
+
+
+SENSOR_KEYS = frozenset(
+    {
+        "modality",
+        "image_size",
+        "views_detected",
+        "views_used",
+        "rms_px",
+        "worst_view",
+        "intrinsics",
+        "distortion",
+        "T_rig_sensor",
+        "sigma",
+        "coverage",
+        "verdict",
+        "advice",
+    }
+)
+"""Per-sensor keys with a place of their own; any other goes under "Other figures"."""
+
+
+DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+
+
+def _sigma(entry: Mapping[str, Any], key: str) -> Any:
+    return (entry.get("sigma") or {}).get(key)
+
+
+def _pose(entry: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation vector (deg) and translation (mm) of a sensor's ``T_rig_sensor``."""
+    T = np.asarray(entry["T_rig_sensor"], dtype=float)
+    return np.degrees(rvec_from_rotation(T[:3, :3])), 1000.0 * T[:3, 3]
+
+
+def _vec_sigma(entry: Mapping[str, Any], key: str, scale: float = 1.0) -> np.ndarray:
+    s = _sigma(entry, key)
+    if not isinstance(s, Sequence) or len(s) != 3 or not all(_finite(v) for v in s):
+        return np.full(3, np.nan)
+    return scale * np.asarray(s, dtype=float)
+
+
+def _sensor_views(
+    report: Mapping[str, Any], name: str
+) -> tuple[list[str], list[float | None], list[str]]:
+    """Views showing ``name`` (every view of the report), its RMS and state per view."""
+    detections = report.get("detections") or {}
+    views = report.get("views") or {}
+    names = sorted(set(detections) | set(views))
+    rms: list[float | None] = []
+    state: list[str] = []
+    for v in names:
+        e = (views.get(v) or {}).get(name)
+        d = (detections.get(v) or {}).get(name)
+        if e is not None:
+            rms.append(e.get("rms_px"))
+            state.append("outlier" if e.get("outlier") else "used")
+        else:
+            rms.append(None)
+            state.append("not found" if d is not None and not d.get("found") else "no image")
+    return names, rms, state
+
+
+def _left_out(report: Mapping[str, Any], name: str) -> str:
+    """What of the sensor's views was left out, and why."""
+    by_reason: dict[str, list[str]] = {}
+    for v, per in sorted((report.get("detections") or {}).items()):
+        d = per.get(name)
+        if d is not None and not d.get("found"):
+            by_reason.setdefault(str(d.get("reason") or "not found"), []).append(v)
+    items = [
+        f"<li>board not found in {len(vs)} view(s) ({_e(_views_list(vs))}): {_e(r)}</li>"
+        for r, vs in by_reason.items()
+    ]
+    outliers = report.get("outliers") or []
+    for o in outliers:
+        if o.get("sensor") == name and o.get("corner") is None:
+            items.append(
+                f"<li>view {_e(o.get('view'))} left out (RMS {_f(o.get('error_px'))} px when "
+                "flagged): "
+                f"{_e(o.get('reason'))}</li>"
+            )
+    corners = [o for o in outliers if o.get("sensor") == name and o.get("corner") is not None]
+    if corners:
+        views = sorted({str(o.get("view")) for o in corners})
+        items.append(
+            f"<li>{len(corners)} outlier corner(s) left out, in view(s) {_e(_views_list(views))} "
+            "(<a href='#outliers'>Outliers</a>)</li>"
+        )
+    if not items:
+        return "<p>Nothing left out: every view that showed the board was used.</p>"
+    return "<ul>" + "".join(items) + "</ul>"
+
+
+def _rig_part(report: Mapping[str, Any], key: str) -> Any:
+    """``report["verdict"][key]`` (``sensors``: by name, ``pairs``: a list) when the
+    verdict is a graded rig verdict (calib.verdict), else empty."""
+    v = report.get("verdict")
+    empty: Any = {} if key == "sensors" else []
+    if not _graded(v):
+        return empty
+    part = v.get(key)
+    return part if isinstance(part, type(empty)) else empty
+
+
+def _sensor_section(
+    report: Mapping[str, Any], name: str, index: int, corners: CornerResiduals | None
+) -> str:
+    s = report["sensors"][name]
+    colour = _rgb(sensor_colour(index))
+    intr = s.get("intrinsics") or {}
+    size = list(s.get("image_size") or [0, 0])
+    parts = [
+        f"<section class='sensor' id='sensor-{_id(name)}'>",
+        f"<h2><span style='color:{colour}'>■</span> {_e(name)} <span class='sub'>"
+        f"({_e(s.get('modality', ''))}, {_e(size[0])} × {_e(size[1])} px)</span></h2>",
+    ]
+    verdict = s.get("verdict") or _rig_part(report, "sensors").get(name)
+    if verdict is not None:
+        parts.append(_verdict_box(verdict))
+    parts.append(
+        f"<p>Board found in {_e(s.get('views_detected', '?'))} view(s), "
+        f"{_e(s.get('views_used', '?'))} used; RMS reprojection error "
+        f"<b>{_f(s.get('rms_px'), 3)} px</b>; worst view {_e(s.get('worst_view') or '–')}.</p>"
+    )
+    if s.get("advice"):
+        parts.append(_advice(s["advice"]))
+    rows = [[k, pm(intr.get(k), _sigma(s, k)), "px"] for k in ("fx", "fy", "cx", "cy")]
+    dist = list(s.get("distortion") or [])
+    dsig = list(_sigma(s, "distortion") or [])
+    for i, v in enumerate(dist):
+        sg = dsig[i] if i < len(dsig) else None
+        rows.append(
+            [
+                DIST_NAMES[i] if i < len(DIST_NAMES) else f"d{i}",
+                "0 (fixed)" if v == 0 and not (_finite(sg) and sg > 0) else pm(v, sg, 4),
+                "",
+            ]
+        )
+    intr_table = _table(
+        ["", "value ± 1-sigma", "unit"],
+        rows,
+        numeric=(1,),
+        caption="Intrinsics and distortion (OpenCV's model)",
+    )
+    if name == report.get("reference"):
+        pose_table = "<p>The reference: its frame is the rig frame.</p>"
+    elif "T_rig_sensor" in s:
+        rvec, t = _pose(s)
+        rs, ts = _vec_sigma(s, "rotation_deg"), _vec_sigma(s, "translation_m", 1000.0)
+        pose_rows = [[f"rotation {a}", pm(rvec[i], rs[i], 3), "°"] for i, a in enumerate("xyz")]
+        pose_rows.append(["rotation angle", _f(float(np.linalg.norm(rvec)), 3), "°"])
+        pose_rows += [[f"translation {a}", pm(t[i], ts[i], 2), "mm"] for i, a in enumerate("xyz")]
+        pose_table = _table(
+            ["", "value", "unit"],
+            pose_rows,
+            numeric=(1,),
+            caption=f"Pose in the rig frame ({_e(report.get('reference', ''))}'s): "
+            "T_rig_sensor, rotation vector and translation ± 1-sigma",
+        )
+    else:
+        pose_table = ""
+    parts.append(f"<div>{_inline(intr_table)}{_inline(pose_table)}</div>")
+    parts.append("<h3>Views left out, and why</h3>" + _left_out(report, name))
+
+    views, rms, state = _sensor_views(report, name)
+    parts.append(
+        "<figure class='wide'>"
+        + view_rms_svg(views, rms, state, s.get("rms_px"))
+        + "<figcaption>RMS reprojection error per view (all its corners at the final "
+        f"solution): {_key(USED, 'used')}, {_key(LEFT_VIEW, 'left out as an outlier')}; "
+        "×: board not found; dashed: the sensor's RMS (used corners).</figcaption></figure>"
+    )
+    figures = []
+    outlier_views = {v for v, st in zip(views, state, strict=True) if st == "outlier"}
+    sel = _corners_of(corners, name, outlier_views)
+    if sel is not None:
+        uv, res, used, in_bad_view = sel
+        svg, lim, beyond = scatter_svg(res, used, in_bad_view)
+        note = f"; {beyond} beyond ±{_g(lim)} px drawn on the border" if beyond else ""
+        figures.append(
+            f"<figure>{svg}<figcaption>Residual of every corner, detected minus reprojected "
+            f"(du, dv) px: {_key(USED, f'{int(used.sum())} used')}, "
+            f"{_key(LEFT_VIEW, f'{int(in_bad_view.sum())} in views left out')}, "
+            f"{_key(LEFT_CORNER, f'{int((~used & ~in_bad_view).sum())} outlier corners')}; "
+            f"dashed circle: RMS{note}.</figcaption></figure>"
+        )
+        svg, gain = vectors_svg(uv, res, used, in_bad_view, size)
+        figures.append(
+            f"<figure>{svg}<figcaption>Where the corners fell in the image and their "
+            f"residuals drawn ×{_g(gain)}: {_key(USED, 'used')}, "
+            f"{_key(LEFT_VIEW, 'in views left out')}, {_key(LEFT_CORNER, 'outlier corners')} "
+            "(vectors cut short). A pattern (all pointing out at the edges, a swirl) is a "
+            "model error; directions at random are noise.</figcaption></figure>"
+        )
+    cov = s.get("coverage") or {}
+    if cov.get("corner_counts"):
+        counts = np.asarray(cov["corner_counts"], dtype=int)
+        bars = ", ".join(
+            f"{n} {_f(cov.get(k.lower()), 2)}"
+            for n, k in zip(PARAM_NAMES, ("x", "y", "size", "skew"), strict=True)
+        )
+        good = "enough" if cov.get("good_enough") else "not yet enough"
+        figures.append(
+            f"<figure>{coverage_svg(counts, size)}<figcaption>Corners of the views used, per "
+            f"region of the image: {_e(coverage_sentence(counts))}. Spread of the views (ROS "
+            f"bars, 1 = full): {_e(bars)} ({good}).</figcaption></figure>"
+        )
+    if sel is None:
+        figures.append(
+            "<p class='muted small'>Per-corner residuals are not in report.json: the "
+            "scatter and the residual vectors need the calibration itself (trifuse "
+            "calibrate --report-html, or the console).</p>"
+        )
+    parts.append("<div>" + "".join(figures) + "</div>")
+    extra = {k: v for k, v in s.items() if k not in SENSOR_KEYS}
+    if extra:
+        parts.append("<h3>Other figures</h3>" + generic(extra))
+    parts.append("</section>")
+    return "".join(parts)
+
+
+def _key(colour: str, text: str) -> str:
+    """A legend entry: a dot of ``colour`` and the text."""
+    return f"<span style='color:{colour}'>●</span>&nbsp;{_e(text)}"
+
+
+def _inline(block: str) -> str:
+    return (
+        f"<div style='display:inline-block;vertical-align:top;margin-right:8mm'>{block}</div>"
+        if block
+        else ""
+    )
+
+
+def _corners_of(
+    corners: CornerResiduals | None, name: str, outlier_views: set[str]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """One sensor's corners: (M, 2) uv px, (M, 2) residual px, (M,) used, (M,) in one of
+    ``outlier_views``; None without residuals or corners of that sensor."""
+    if corners is None or name not in corners.sensors:
+        return None
+    sel = np.asarray(corners.s_idx) == corners.sensors.index(name)
+    if not sel.any():
+        return None
+    bad = [i for i, v in enumerate(corners.views) if v in outlier_views]
+    return (
+        np.asarray(corners.uv_px, dtype=float)[sel],
+        np.asarray(corners.residual_px, dtype=float)[sel],
+        np.asarray(corners.inlier, dtype=bool)[sel],
+        np.isin(np.asarray(corners.v_idx)[sel], bad),
+    )
+
+
+def pair_rows(report: Mapping[str, Any]) -> list[list[str]]:
+    """Every pair of calibrated sensors: ``T_a_b = inv(T_rig_a) @ T_rig_b`` as its rotation
+    angle (deg), translation (mm, in a's frame) and baseline (mm), each ± 1-sigma, and
+    where the sigmas come from (the last cell).
+
+    ``joint``: the pair's verdict (calib.verdict, from the joint covariance) gives them
+    (rotation: the norm of its per-axis sigma; translation per axis; the baseline's
+    length). ``own``: a pair with the reference, its partner's sigmas relative to it.
+    ``≈``: other pairs, the two sensors' sigmas relative to the reference combined as if
+    independent. Without a joint figure the rotation sigma is the norm of the rotation
+    vector's sigma and the baseline's the translation sigma along the baseline."""
+    sensors = report.get("sensors") or {}
+    reference = report.get("reference")
+    joint = {tuple(v.get("sensors") or ()): v for v in _rig_part(report, "pairs") if _graded(v)}
+    names = [n for n in sensors if "T_rig_sensor" in sensors[n]]
+    rows = []
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            Ta = np.asarray(sensors[a]["T_rig_sensor"], dtype=float)
+            Tb = np.asarray(sensors[b]["T_rig_sensor"], dtype=float)
+            T_ab = np.linalg.inv(Ta) @ Tb
+            angle = rotation_angle_deg(T_ab[:3, :3])
+            t_mm = 1000.0 * T_ab[:3, 3]
+            s_rot, s_t, s_b, source = _pair_sigma(sensors, reference, a, b)
+            v = joint.get((a, b))
+            if v is not None:
+                figures = {
+                    f.get("unit"): f for f in v.get("figures") or [] if isinstance(f, Mapping)
+                }
+                rot, tr = figures.get("°") or {}, figures.get("mm") or {}
+                if _finite(rot.get("sigma")) and isinstance(tr.get("axes"), Sequence):
+                    s_rot, s_t = float(rot["sigma"]), np.asarray(tr["axes"], dtype=float)
+                    s_b = v.get("sigma_baseline_length_mm", s_b)
+                    source = "joint"
+            rows.append(
+                [
+                    f"{a} – {b}",
+                    pm(angle, s_rot, 3),
+                    ", ".join(
+                        _f(x, sigma_decimals(sx, 1)) for x, sx in zip(t_mm, s_t, strict=True)
+                    ),
+                    ", ".join(_f(x, sigma_decimals(x, 2)) for x in s_t),
+                    pm(float(np.linalg.norm(t_mm)), s_b, 2),
+                    source,
+                ]
+            )
+    return rows
+
+
+def _pair_sigma(
+    sensors: Mapping[str, Any], reference: Any, a: str, b: str
+) -> tuple[float, np.ndarray, float, str]:
+    """Rotation (deg), translation (3, mm) and baseline (mm) sigma of the pair from the
+    sensors' own sigmas relative to the reference, and ``own`` or ``≈`` (see
+    :func:`pair_rows`)."""
+    Ta = np.asarray(sensors[a]["T_rig_sensor"], dtype=float)
+    Tb = np.asarray(sensors[b]["T_rig_sensor"], dtype=float)
+    d = Tb[:3, 3] - Ta[:3, 3]
+    direction = d / max(float(np.linalg.norm(d)), 1e-12)
+    rot, trans, base = [], [], []
+    for n in (a, b):
+        if n == reference:
+            continue
+        ts = _vec_sigma(sensors[n], "translation_m", 1000.0)
+        rot.append(float(np.linalg.norm(_vec_sigma(sensors[n], "rotation_deg"))))
+        trans.append(ts)
+        base.append(float(np.sqrt(np.sum((direction * ts) ** 2))))
+    if not rot:
+        return float("nan"), np.full(3, np.nan), float("nan"), ""
+    s_t = np.sqrt(np.sum(np.square(trans), axis=0))
+    return math.hypot(*rot), s_t, math.hypot(*base), "own" if len(rot) == 1 else "≈"
+
+
+def _pairs(report: Mapping[str, Any]) -> str:
+    rows = pair_rows(report)
+    if not rows:
+        return ""
+    parts = [
+        "<section id='pairs'><h2>Relative poses of the sensors</h2>",
+        _table(
+            [
+                "pair a – b",
+                "rotation °",
+                "translation x, y, z mm",
+                "σ x, y, z mm",
+                "baseline mm",
+                "σ from",
+            ],
+            rows,
+            numeric=(1, 2, 3, 4),
+            caption="T_a_b = inv(T_rig_a) @ T_rig_b: the angle of its rotation, its "
+            "translation in a's frame (x right, y down, z forward) and its length, ± 1-sigma. "
+            "σ from: joint, the pair's own verdict (the joint covariance); own, a pair with "
+            f"the reference ({_e(report.get('reference', ''))}); ≈, the two sensors' 1-sigma "
+            "relative to the reference combined as if independent.",
+            attrs=" class='small'",
+        ),
+    ]
+    rows = []
+    for v in _rig_part(report, "pairs"):
+        if _graded(v):
+            for k, f in enumerate(_figure_rows(v.get("figures"))):
+                lead = [_e(v.get("label", "")), _grade(v["grade"])] if k == 0 else ["", ""]
+                rows.append([*lead, *f])
+    if rows:
+        parts.append(
+            "<p class='caption'>Verdicts of the eye and stereo pairs (calib.verdict): the "
+            "1-sigma of their relative pose from the joint covariance, per axis of a's frame "
+            "(horizontal, vertical, optical; sideways, vertical, depth)</p>"
+            + _figures_table(("pair", "grade", *FIGURE_HEAD), rows)
+        )
+    parts.append("</section>")
+    return "".join(parts)
