@@ -464,11 +464,12 @@ class Scene3D(Periodic):
 
     def follow_bandwidth(self) -> None:
         """Apply the console's mode if it changed elsewhere (``/api/console/settings``) and
-        show it in the dropdown."""
+        show it in the dropdown. A dropdown that merely differs is left alone: Viser sets its
+        value before the choice's callback runs, and writing the old mode back in between
+        would lose the operator's choice."""
         mode = self.ctx.bandwidth.mode
         if mode != self.bandwidth_mode:
             self._apply_bandwidth(mode)
-        if self.bandwidth_choice.value != mode:
             self.bandwidth_choice.value = mode
 
     def _apply_bandwidth(self, mode: str) -> None:

@@ -160,6 +160,21 @@ def test_low_mode_cloud_has_at_most_the_stated_points(scene) -> None:
     assert s.cloud.point_size == pytest.approx(0.008)
 
 
+def test_a_choice_from_the_browser_survives_a_tick_before_its_callback(scene) -> None:
+    """Viser stores a browser's dropdown choice first and runs the choice's callback after
+    (in another thread); a tick of the scene in between must not write the console's old
+    mode back into the dropdown, or the operator's choice is lost (it was, under load)."""
+    s, _, _ = scene
+    s.tick()
+    assert s.ctx.bandwidth.mode == "full"
+    s.bandwidth_choice._impl.value = "low"  # viser's first step with the browser's message
+    s.tick()  # the scene's tick runs before the callback
+    assert s.bandwidth_choice.value == "low"
+    for callback in s.bandwidth_choice._impl.update_cb:  # viser's second step
+        callback(None)
+    assert s.ctx.bandwidth.mode == "low" == s.bandwidth_mode
+
+
 def textured(fs: FrameSet, seed: int = 0) -> FrameSet:
     """``fs`` with noisy images (uniform ones would be all JPEG header)."""
     rng = np.random.default_rng(seed)
