@@ -42,14 +42,18 @@ class StreamPresetControl:
             hint="The viewer's H.264 stream: auto adapts bitrate and picture size to the "
             "link; a preset caps it. Each viewer may pick another (its Stream select).",
         )
+        self._shown = settings.preset
         self.dropdown.on_update(lambda _event: self.apply())
 
     def apply(self) -> None:
         """The dropdown's preset becomes the console's default."""
-        self.settings.preset = self._presets[self.dropdown.value]
+        self.settings.preset = self._shown = self._presets[self.dropdown.value]
 
     def follow(self) -> None:
-        """Show the setting as it is now (changed through ``/api/stream/settings``)."""
-        label = self.labels[self.settings.preset]
-        if self.dropdown.value != label:
-            self.dropdown.value = label
+        """Show the setting if it changed elsewhere (``/api/stream/settings``). A dropdown
+        that merely differs is left alone: Viser sets its value before the choice's callback
+        runs, and writing the old preset back in between would lose the operator's choice."""
+        preset = self.settings.preset
+        if preset != self._shown:
+            self._shown = preset
+            self.dropdown.value = self.labels[preset]
