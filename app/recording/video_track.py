@@ -13,11 +13,12 @@ writes such a track (docs/FORMATS.md, "Recordings"):
 - :class:`FusedVideoTrack`: the channel of one recording file. It keeps the P-frame chain
   valid whatever it is handed: the first message of the file is a key frame, stamps
   increase, and after an access unit it could not write it waits for the next key frame.
-- :class:`StereoPictures`: frame sets -> the console's fused picture (the console's
-  stereo-picture step, :class:`~fusion.stereo_step.StereoStep`, with its rules for missing
-  sensors) for ``trifuse record --fused-video``; :class:`FusedVideoFuser` glues
-  the three to a :class:`~app.recording.writer.RecordingWriter` (it watches the frames
-  written and adds the video).
+- :class:`FusedVideoFuser`: ``trifuse record --fused-video``. It watches the frames a
+  :class:`~app.recording.writer.RecordingWriter` writes, groups them as the console does
+  (:meth:`FrameSetAssembler.stereo <app.sources.base.FrameSetAssembler.stereo>`), makes
+  the console's picture (its stereo-picture step, :class:`~fusion.stereo_step.StereoStep`,
+  under its :data:`~fusion.stereo_step.CONSOLE` rules for missing sensors) and adds it to
+  the video through the two above.
 
 A failure of the video (the encoder, a picture) never costs the sensor recording: the
 fuser logs it, keeps it in ``error`` and carries on without video.
@@ -283,41 +284,6 @@ def video_frame_id(rig: Rig) -> str:
 # -- fusing frame sets (trifuse record --fused-video) -------------------------------------
 
 
-class StereoPictures:
-    """Frame sets -> the console's side-by-side picture (H, 2W, 3) uint8 RGB, for the
-    recorded video: the console's stereo-picture step (:class:`~fusion.stereo_step.
-    StereoStep` under its :data:`~fusion.stereo_step.CONSOLE` policy for missing sensors)
-    and the console's grouping of frames into sets (:meth:`assembler`).
-
-    Args:
-        rig: the rig (two eyes whose colour cameras share one size).
-        settings: display mode, palette, span ... (default: the console's).
-
-    Attributes:
-        step: the step; ``fusion``: its :class:`~fusion.stereo.StereoFusion`; ``sensors``:
-            the sensors a picture is made of (both colour cameras first).
-    """
-
-    def __init__(self, rig: Rig, settings: DisplaySettings | None = None) -> None:
-        self.step = StereoStep(rig, settings, CONSOLE)
-        self.fusion = self.step.fusion
-        self.sensors = self.step.sensors
-
-    def assembler(self) -> FrameSetAssembler:
-        """Groups frames into the sets :meth:`picture` takes, as the console does (the left
-        colour camera opens them, the right one while it is silent)."""
-        eyes = self.step.eyes
-        return FrameSetAssembler(
-            self.sensors, reference=eyes["left"].color, fallback=eyes["right"].color
-        )
-
-    def picture(self, fs: FrameSet) -> np.ndarray | None:
-        """The picture of one frame set (a buffer of the step's, overwritten by the next
-        call), or None when the policy makes none (:class:`~fusion.stereo_step.Skip`)."""
-        rgb = self.step.picture(fs)
-        return None if isinstance(rgb, Skip) else rgb
-
-
 class VideoWriter(Protocol):
     """What :class:`FusedVideoFuser` needs of a recording writer
     (:class:`app.recording.writer.RecordingWriter`)."""
@@ -332,9 +298,10 @@ class VideoWriter(Protocol):
 class FusedVideoFuser:
     """Adds the fused video to a recording as its frames are written (``trifuse record
     --fused-video``): an observer of a :class:`~app.recording.writer.RecordingWriter`
-    (append it to ``writer.observers``). Frames -> sets -> pictures
-    (:class:`StereoPictures`) -> access units (:class:`FusedVideoEncoder`) ->
-    ``/fused/video`` (:class:`FusedVideoTrack`), all in the writer's thread.
+    (append it to ``writer.observers``). Frames -> sets (the console's grouping) ->
+    pictures (:class:`~fusion.stereo_step.StereoStep`, the console's policy) -> access
+    units (:class:`FusedVideoEncoder`) -> ``/fused/video`` (:class:`FusedVideoTrack`), all
+    in the writer's thread.
 
     Never raises from the writer's calls: a failure is logged, kept in :attr:`error`, and
     the recording goes on without video.
@@ -346,7 +313,8 @@ class FusedVideoFuser:
 
     Attributes:
         pictures: pictures encoded and written; ``sets``: frame sets seen; ``skipped``:
-            sets without a picture (a colour image missing: :class:`StereoPictures`);
+            sets without a picture (a colour image missing:
+            :class:`~fusion.stereo_step.Skip`);
             ``error``: why the video stopped, or None.
     """
 
@@ -363,8 +331,8 @@ class FusedVideoFuser:
         self._encoder: FusedVideoEncoder | None = None
         self._bgr: np.ndarray | None = None
         try:
-            self._stereo = StereoPictures(writer.rig, display)
-            self._assembler = self._stereo.assembler()
+            self._step = StereoStep(writer.rig, display, CONSOLE)
+            self._assembler = FrameSetAssembler.stereo(self._step.sensors)
             self._track = writer.add_fused_video(metadata=video_metadata(self.settings))
             self._encoder = FusedVideoEncoder(self.settings)
         except Exception as exc:
@@ -409,8 +377,8 @@ class FusedVideoFuser:
         if encoder is None:
             return
         self.sets += 1
-        rgb = self._stereo.picture(fs)
-        if rgb is None:
+        rgb = self._step.picture(fs)
+        if isinstance(rgb, Skip):
             self.skipped += 1
             return
         if self._bgr is None or self._bgr.shape != rgb.shape:

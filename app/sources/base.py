@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections import deque
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from typing import ClassVar
 
 from trifuse.app.sources.capabilities import SourceKind
@@ -104,6 +104,14 @@ class FrameSetAssembler:
         self._pending: deque[Frame] = deque()
         self._last_ref_ns: int | None = None  # the reference's latest stamp (or the first frame's)
         self._since_ref = 0  # fallback frames since then
+
+    @classmethod
+    def stereo(cls, sensors: Sequence[str], tolerance_s: float = 0.05) -> FrameSetAssembler:
+        """The console's grouping for the stereo picture: ``sensors`` in the order of
+        :attr:`fusion.stereo_step.StereoStep.sensors` (left colour camera, right colour
+        camera, ...); the left colour camera opens the sets, the right one while the left
+        is silent."""
+        return cls(sensors, reference=sensors[0], tolerance_s=tolerance_s, fallback=sensors[1])
 
     def push(self, frame: Frame) -> list[FrameSet]:
         """Add one frame; returns the frame sets that are complete now (possibly none).

@@ -5,7 +5,7 @@ the TOF (before its first frame, and a stretch without it: TOF stamps that do no
 
 The frames come from one recording (colour through JPEG), read back once and handed to
 each path; pictures are compared before any encoding: the console's BGR, the video's RGB
-(:class:`StereoPictures`, what the recorder encodes), and ``fuse``'s JPEG against the
+(the step as ``record --fused-video`` runs it, what it encodes), and ``fuse``'s JPEG against the
 console's picture encoded the same way.
 """
 
@@ -21,14 +21,21 @@ from support import WAIT_S, ListSource, small_rig, synth_frames, write_recording
 from trifuse.app.recording import ReplaySource
 from trifuse.app.recording.fuse import JPEG_QUALITY, FusedFrame, PieceEnd, fuse_piece
 from trifuse.app.recording.pieces import FusePiece
-from trifuse.app.recording.video_track import StereoPictures
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.sources.base import FrameSetAssembler
 from trifuse.app.sources.frames import Frame
 from trifuse.calib.rig import Rig
 from trifuse.fusion.compose import DisplaySettings
 from trifuse.fusion.geometry import tof_sensor_name
-from trifuse.fusion.stereo_step import COLOR_GONE_S, CONSOLE, OFFLINE, MissingSensors
+from trifuse.fusion.stereo_step import (
+    COLOR_GONE_S,
+    CONSOLE,
+    OFFLINE,
+    MissingSensors,
+    Skip,
+    StereoStep,
+)
 
 START_NS = 1_000_000_000
 GAPS_S = {  # sensor -> stretches (seconds from the start) without its frames
@@ -58,13 +65,13 @@ def frames(tmp_path_factory) -> tuple[list[Frame], Rig, Path]:
 
 def _video(frames, rig, settings) -> tuple[dict[int, np.ndarray], list]:
     """stamp -> the recorded video's picture (RGB, before encoding); and every set."""
-    stereo = StereoPictures(rig, settings)
-    asm = stereo.assembler()
+    step = StereoStep(rig, settings, CONSOLE)
+    asm = FrameSetAssembler.stereo(step.sensors)
     sets = [fs for f in frames for fs in asm.push(f)] + list(asm.flush())
     out = {}
     for fs in sets:
-        rgb = stereo.picture(fs)
-        if rgb is not None:
+        rgb = step.picture(fs)
+        if not isinstance(rgb, Skip):
             out[fs.stamp_ns] = rgb.copy()
     return out, sets
 

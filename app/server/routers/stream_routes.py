@@ -5,7 +5,6 @@ WebSocket, :mod:`trifuse.app.server.runtime.video_stream`) and, for benchmarks,
 
 from __future__ import annotations
 
-import json
 from collections.abc import AsyncIterator
 
 import cv2
@@ -42,7 +41,7 @@ def make_stream_router(hub: FrameHub) -> APIRouter:
         with hub.watching(jpeg=True):
             try:
                 async for frame, jpeg in hub.jpeg_frames():
-                    await ws.send_text(json.dumps(frame.meta))
+                    await ws.send_text(frame.header_text)
                     await ws.send_bytes(jpeg)
                     message = await ws.receive()
                     if message["type"] == "websocket.disconnect":

@@ -61,7 +61,7 @@ import queue
 import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -99,31 +99,28 @@ def _encode_jpeg(bgr: np.ndarray, quality: int) -> bytes:
     return buf.tobytes()
 
 
-@dataclass
-class _Job:
-    """One frame for the encoder: a BGR picture to encode, or None to publish the
-    previous JPEG again, with the frame's metadata; or, with ``forget``, the stream
-    forgets its picture (the pipeline rests)."""
-
-    meta: dict[str, Any]
-    bgr: np.ndarray | None = None
-    quality: int = 80
-    forget: bool = False
+_Frame = tuple[Mapping[str, Any], np.ndarray | None]
+"""One frame for the encoder: its metadata and the BGR picture to encode (None: publish
+the previous picture again)."""
+_FORGET = object()
+"""For the encoder: the stream forgets its picture (the pipeline rests)."""
 
 
 class _StreamEncoder:
-    """JPEG encoding and publishing in a thread of its own.
+    """JPEG encoding (at ``quality``) and publishing in a thread of its own.
 
     The fusion thread takes a free BGR buffer (:meth:`buffer`, blocks while both are being
-    encoded or waiting), fills it and :meth:`submit` s it; frames are published in the order
-    submitted. ``stop`` (any thread) ends the waits.
+    encoded or waiting), fills it and :meth:`submit` s it with the frame's metadata; frames
+    are published in the order submitted. ``stop`` (any thread) ends the waits.
     """
 
     BUFFERS = 2
 
-    def __init__(self, hub: FrameHub, status: PipelineStatus, stop: threading.Event) -> None:
-        self.hub, self.status, self._stop = hub, status, stop
-        self._jobs: queue.Queue[_Job | None] = queue.Queue(maxsize=1)
+    def __init__(
+        self, hub: FrameHub, status: PipelineStatus, stop: threading.Event, quality: int
+    ) -> None:
+        self.hub, self.status, self._stop, self.quality = hub, status, stop, quality
+        self._jobs: queue.Queue[_Frame | object | None] = queue.Queue(maxsize=1)
         self._free: queue.Queue[np.ndarray | None] = queue.Queue()
         for _ in range(self.BUFFERS):
             self._free.put(None)  # allocated on first use, at the picture's shape
@@ -155,12 +152,18 @@ class _StreamEncoder:
             buf = np.empty(shape, np.uint8)
         return buf
 
-    def submit(self, job: _Job) -> bool:
-        """Queue ``job`` (blocks while the encoder is one frame behind); False once stopping."""
-        ok = self._wait(lambda t: self._jobs.put(job, timeout=t) or True)
-        if not ok and job.bgr is not None:
-            self._free.put(job.bgr)
+    def submit(self, meta: Mapping[str, Any], bgr: np.ndarray | None) -> bool:
+        """Queue a frame: ``bgr`` (a buffer of :meth:`buffer`) to encode and publish with
+        ``meta``, or None to publish the previous picture again with ``meta``. Blocks while
+        the encoder is one frame behind; False once stopping."""
+        ok = self._wait(lambda t: self._jobs.put((meta, bgr), timeout=t) or True)
+        if not ok and bgr is not None:
+            self._free.put(bgr)
         return bool(ok)
+
+    def forget(self) -> bool:
+        """Queue the stream's forgetting its picture (see :meth:`submit`)."""
+        return bool(self._wait(lambda t: self._jobs.put(_FORGET, timeout=t) or True))
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Finish the queued frames, then end the thread."""
@@ -177,38 +180,39 @@ class _StreamEncoder:
             job = self._jobs.get()
             if job is None:
                 return
+            if job is _FORGET:
+                self._jpeg = self.kept_bgr = None
+                self.hub.forget()
+                continue
+            meta, bgr = cast(_Frame, job)
             try:
-                if job.forget:
-                    self._jpeg = self.kept_bgr = None
-                    self.hub.forget()
-                    continue
-                new = job.bgr is not None
-                if job.bgr is not None:
+                new = bgr is not None
+                if bgr is not None:
                     want = self.hub.wants_jpeg
-                    self._jpeg = _encode_jpeg(job.bgr, job.quality) if want else None
-                    self.kept_bgr = self._keep(job)
+                    self._jpeg = _encode_jpeg(bgr, self.quality) if want else None
+                    self.kept_bgr, bgr = self._keep(bgr)
                 elif self._jpeg is None and self.kept_bgr is not None and self.hub.wants_jpeg:
-                    self._jpeg = _encode_jpeg(self.kept_bgr, job.quality)  # a JPEG viewer came
+                    self._jpeg = _encode_jpeg(self.kept_bgr, self.quality)  # a JPEG viewer came
                 if self._jpeg is not None or self.kept_bgr is not None:
-                    self.hub.publish(self._jpeg, job.meta, new=new, bgr=self.kept_bgr)
+                    self.hub.publish(self._jpeg, meta, new=new, bgr=self.kept_bgr)
                     self.status.frames_out += 1
                     self.status.pictures_out += new
             except Exception as exc:  # shown in the status; the next frame is tried
                 self.status.error = describe_error(exc)
             finally:
-                if job.bgr is not None:
-                    self._free.put(job.bgr)
+                if bgr is not None:
+                    self._free.put(bgr)
 
-    def _keep(self, job: _Job) -> np.ndarray | None:
+    def _keep(self, bgr: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
         """While video viewers want the picture itself (:attr:`FrameHub.wants_bgr`), the
-        job's buffer goes out with the frame, read-only, and is never reused (a new one
-        takes its place in the pool: ``job.bgr`` becomes None); otherwise None."""
-        if job.bgr is None or not self.hub.wants_bgr:
-            return None
-        kept, job.bgr = job.bgr, None
-        kept.flags.writeable = False
+        buffer ``bgr`` goes out with the frame, read-only, and is never reused (a new one
+        takes its place in the pool): (it, None); otherwise (None, ``bgr``, back to the
+        pool)."""
+        if not self.hub.wants_bgr:
+            return None, bgr
+        bgr.flags.writeable = False
         self._free.put(None)  # allocated afresh by the next buffer()
-        return kept
+        return bgr, None
 
 
 class FusionPipeline:
@@ -231,7 +235,6 @@ class FusionPipeline:
         self.source, self.hub = source, hub
         self.demand = demand
         self.settings = settings or DisplaySettings()
-        self.jpeg_quality = jpeg_quality
         self.tolerance_s = tolerance_s
         self.status = PipelineStatus()
         self.latest_set: FrameSet | None = None
@@ -245,7 +248,7 @@ class FusionPipeline:
         self._pending_rig: Rig | None = None
         self._init_rig(rig, {})
         self._stop = threading.Event()
-        self._encoder = _StreamEncoder(hub, self.status, self._stop)
+        self._encoder = _StreamEncoder(hub, self.status, self._stop, jpeg_quality)
         self._thread = threading.Thread(target=self._run, name="fusion", daemon=True)
         self._fuse_lock = threading.Lock()  # one frame set at a time (fusion, catch-up)
         self._fused_set: FrameSet | None = None  # the last set handed to _publish
@@ -264,14 +267,8 @@ class FusionPipeline:
         self.spots: SpotFrame | None = None
         """The spot meter's view of the last fused picture (``/api/spot``, the metadata's
         ``spots``); None before the first, after a rig change and while resting."""
-        left, right = rig.eyes["left"], rig.eyes["right"]
         self.tof = self.fusion.tof
-        self.assembler = FrameSetAssembler(
-            self.step.sensors,
-            reference=left.color,
-            tolerance_s=self.tolerance_s,
-            fallback=right.color,
-        )
+        self.assembler = FrameSetAssembler.stereo(self.step.sensors, self.tolerance_s)
         # A rig's own radiometry replaces the imager's current one; without it, the live
         # balance and trims stay (e.g. a new geometric calibration keeps the balance).
         self.step.radiometry = {
@@ -356,7 +353,7 @@ class FusionPipeline:
                 self._publish(fs)
             elif not self._resting:  # the last picture would soon be stale: forget it
                 self._resting, self._made_of, self.spots = True, None, None
-                self._encoder.submit(_Job({}, forget=True))
+                self._encoder.forget()
 
     def _catch_up(self) -> None:
         """The demand turned wanted: fuse the newest frame set now, in a thread of its own
@@ -401,7 +398,7 @@ class FusionPipeline:
             and inputs.same_picture(self._made_of)
             and self.fusion.span_settled
         ):
-            return self._encoder.submit(_Job(self._meta(inputs), None))
+            return self._encoder.submit(self._meta(inputs), None)
         self._made_of = None  # until the new picture is submitted
         rgb = step.render(inputs)
         if inputs.path != "raw":  # the spot meter's copy of this picture's temperatures and depths
@@ -410,8 +407,7 @@ class FusionPipeline:
         if bgr is None:
             return False
         cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR, dst=bgr)
-        job = _Job(self._meta(inputs), bgr, self.jpeg_quality)
-        if not self._encoder.submit(job):
+        if not self._encoder.submit(self._meta(inputs), bgr):
             return False
         self._made_of = inputs
         return True

@@ -24,11 +24,13 @@ cannot hold the server's loop (docs/SECURITY.md).
 from __future__ import annotations
 
 import asyncio
+import functools
+import json
 import threading
 import time
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -36,7 +38,7 @@ from fastapi import WebSocket, WebSocketDisconnect
 
 from trifuse.app.server.runtime.demand import Demand
 from trifuse.app.server.runtime.kept_frames import KeptFrames
-from trifuse.app.server.runtime.rates import StreamRates
+from trifuse.app.server.runtime.rates import RatesSnapshot, StreamRates
 from trifuse.app.server.runtime.video_presets import StreamSettings
 from trifuse.app.server.runtime.video_stats import VideoViewerStats
 
@@ -98,18 +100,43 @@ class ViewerMessages:
 
 @dataclass(frozen=True)
 class StreamFrame:
-    """One encoded stereo frame and what the viewer overlays with it.
+    """One stereo frame of the stream, as the hub published it.
 
-    ``jpeg``: the picture as JPEG; None while no JPEG viewer listens and the picture goes
-    as itself (:attr:`FrameHub.wants_jpeg`). ``bgr``: the fused picture itself, (H, W, 3)
-    uint8 BGR, read-only and never written again (the video viewers encode it,
-    :mod:`app.server.runtime.video_stream`); None when nobody takes it
-    (:attr:`FrameHub.wants_bgr`)."""
+    Attributes:
+        seq: its number in the stream (1, 2, ...).
+        jpeg: the picture as JPEG; None while no JPEG viewer listens and the picture goes
+            as itself (:attr:`FrameHub.wants_jpeg`).
+        meta: the picture's metadata as its producer gave it (JSON-able, never copied or
+            changed: :meth:`fusion.frame_meta.FrameMeta.as_json` from the console); a
+            viewer receives it in :meth:`header`.
+        bgr: the fused picture itself, (H, W, 3) uint8 BGR, read-only and never written
+            again (the video viewers encode it, :mod:`app.server.runtime.video_stream`);
+            None when nobody takes it (:attr:`FrameHub.wants_bgr`).
+        sent_ns: when it was published, wall clock (ns since the epoch).
+        rates: the stream's rates then (:class:`app.server.runtime.rates.RatesSnapshot`).
+    """
 
     seq: int
     jpeg: bytes | None
-    meta: dict[str, Any] = field(default_factory=dict)
-    bgr: np.ndarray | None = None
+    meta: Mapping[str, Any]
+    bgr: np.ndarray | None
+    sent_ns: int
+    rates: RatesSnapshot
+
+    def header(self) -> dict[str, Any]:
+        """What a viewer overlays with the frame (JSON-able): :attr:`meta` with ``seq``,
+        ``sent_ns`` and ``rates`` (:meth:`~app.server.runtime.rates.RatesSnapshot.as_dict`)."""
+        return {
+            **self.meta,
+            "seq": self.seq,
+            "sent_ns": self.sent_ns,
+            "rates": self.rates.as_dict(),
+        }
+
+    @functools.cached_property
+    def header_text(self) -> str:
+        """:meth:`header` as JSON text, made once for all the frame's JPEG viewers."""
+        return json.dumps(self.header())
 
 
 class FrameHub:
@@ -161,26 +188,22 @@ class FrameHub:
     def publish(
         self,
         jpeg: bytes | None,
-        meta: dict[str, Any],
+        meta: Mapping[str, Any],
         new: bool = True,
         bgr: np.ndarray | None = None,
     ) -> StreamFrame:
-        """Make ``jpeg`` the newest frame (any thread). ``meta`` must be JSON-able.
+        """Make ``jpeg`` the newest frame (any thread). ``meta`` must be JSON-able; the
+        frame keeps it as it is (the caller never changes it again).
 
         ``new``: the picture is new (False: the previous picture published again because
         its input did not change). ``bgr``: the picture (see :class:`StreamFrame`; the
-        caller never writes to it again). The frame's metadata gains ``seq``, ``sent_ns``
-        and ``rates`` (:meth:`app.server.runtime.rates.RatesSnapshot.as_dict`)."""
+        caller never writes to it again). The frame gets its ``seq``, ``sent_ns`` and the
+        stream's ``rates`` (:class:`StreamFrame`)."""
         self.rates.tick(new)
-        rates = self.rates.snapshot().as_dict()
+        rates = self.rates.snapshot()
         with self._lock:
             self._seq += 1
-            frame = StreamFrame(
-                self._seq,
-                jpeg,
-                {**meta, "seq": self._seq, "sent_ns": time.time_ns(), "rates": rates},
-                bgr,
-            )
+            frame = StreamFrame(self._seq, jpeg, meta, bgr, time.time_ns(), rates)
             self._frame = frame
             waiters = list(self._waiters)
         if self.kept is not None:
@@ -198,8 +221,7 @@ class FrameHub:
         frame = self._frame
         if frame is None:
             return None
-        meta = {k: v for k, v in frame.meta.items() if k not in ("seq", "sent_ns", "rates")}
-        return self.publish(frame.jpeg, meta, new=False, bgr=frame.bgr)
+        return self.publish(frame.jpeg, frame.meta, new=False, bgr=frame.bgr)
 
     def forget(self) -> None:
         """No frame until the next :meth:`publish` (the producer rests: its last frame

@@ -101,7 +101,7 @@ class Unit:
             level = self.rung.level
             text = self._meta[preset] = json.dumps(
                 {
-                    **self.frame.meta,
+                    **self.frame.header(),
                     "codec": self.enc.codec,
                     "key": self.enc.key,
                     "width": self.enc.width,
@@ -421,7 +421,7 @@ class VideoSession:
         enc = unit.enc
         sent = self.clock()
         self.ctl.on_sent(unit.seq, len(enc.data), sent)  # before the ack can arrive
-        self._sent_ns[unit.seq] = int(unit.frame.meta.get("sent_ns", time.time_ns()))
+        self._sent_ns[unit.seq] = unit.frame.sent_ns
         s = self.stats
         s.count_sent(sent, len(enc.data), enc.key)
         s.codec, s.width, s.height, s.encode_ms = enc.codec, enc.width, enc.height, unit.encode_ms

@@ -32,7 +32,6 @@ from trifuse.app.recording.recorder import Recorder
 from trifuse.app.recording.video_track import (
     FusedVideoEncoder,
     FusedVideoFuser,
-    StereoPictures,
     VideoSettings,
     nal_types,
 )
@@ -45,10 +44,11 @@ from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.source_control import SourceControl
 from trifuse.app.server.runtime.source_tap import SourceTap
 from trifuse.app.server.runtime.stream import FrameHub
-from trifuse.app.sources.base import frame_sets
+from trifuse.app.sources.base import FrameSetAssembler, frame_sets
 from trifuse.app.storage.rigfile import save_rig
 from trifuse.calib.board import Board
 from trifuse.calib.rig import Rig
+from trifuse.fusion.stereo_step import CONSOLE, Skip, StereoStep
 
 DURATION_S = 2.5
 SPS, PPS, IDR = 7, 8, 5
@@ -99,15 +99,15 @@ def decode_all(messages: list[tuple[int, object]]) -> list[np.ndarray]:
 
 def fused_pictures(path: Path, rig: Rig) -> dict[int, np.ndarray]:
     """stamp -> the fused picture (BGR) of every frame set of a recording's sensors, made
-    as the recorder makes them (StereoPictures, the console's rules)."""
-    stereo = StereoPictures(rig)
+    as the recorder makes them (the console's grouping, step and rules)."""
+    step = StereoStep(rig, policy=CONSOLE)
     out = {}
     with ReplaySource(path, realtime=False) as src:
-        asm = stereo.assembler()
+        asm = FrameSetAssembler.stereo(step.sensors)
         sets = [fs for f in src.frames() for fs in asm.push(f)] + list(asm.flush())
     for fs in sets:
-        rgb = stereo.picture(fs)
-        if rgb is not None:
+        rgb = step.picture(fs)
+        if not isinstance(rgb, Skip):
             out[fs.stamp_ns] = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
     return out
 

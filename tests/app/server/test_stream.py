@@ -17,7 +17,7 @@ from fastapi.testclient import TestClient
 from tests.support import FakeClock, poll_until, small_rig, synth_frame
 from trifuse.app.server.panels.source import stream_text
 from trifuse.app.server.routers.stream_routes import make_stream_router
-from trifuse.app.server.runtime.pipeline import FusionPipeline, PipelineStatus, _Job, _StreamEncoder
+from trifuse.app.server.runtime.pipeline import FusionPipeline, PipelineStatus, _StreamEncoder
 from trifuse.app.server.runtime.rates import RatesSnapshot, StreamRates
 from trifuse.app.server.runtime.stream import MAX_MESSAGE_CHARS, FrameHub, StreamFrame
 from trifuse.app.server.runtime.video_stats import VideoViewerStats
@@ -110,27 +110,27 @@ def test_jpeg_is_encoded_only_while_a_jpeg_viewer_listens() -> None:
     hub = FrameHub()
     hub.video_viewers.append(VideoViewerStats(preset="auto"))
     status, stop = PipelineStatus(), threading.Event()
-    encoder = _StreamEncoder(hub, status, stop)
+    encoder = _StreamEncoder(hub, status, stop, 80)
     encoder.start()
 
-    def publish(job: _Job) -> StreamFrame:
+    def publish(bgr: np.ndarray | None) -> StreamFrame:
         seq = hub.latest.seq if hub.latest is not None else 0
-        assert encoder.submit(job)
+        assert encoder.submit({}, bgr)
         poll_until(lambda: hub.latest is not None and hub.latest.seq != seq, 30, poll_s=0.005)
         assert hub.latest is not None and hub.latest.seq == seq + 1, status.error
         return hub.latest
 
-    def picture(value: int) -> _Job:
+    def picture(value: int) -> np.ndarray:
         buf = encoder.buffer((16, 32, 3))
         assert buf is not None
         buf[:] = value
-        return _Job({}, buf)
+        return buf
 
     try:
         first = publish(picture(40))
         assert first.jpeg is None and first.bgr is not None and int(first.bgr[0, 0, 0]) == 40
         hub.jpeg_viewers += 1  # a JPEG viewer connects: the repeat brings the JPEG
-        again = publish(_Job({}))
+        again = publish(None)
         shown = cv2.imdecode(np.frombuffer(again.jpeg, np.uint8), cv2.IMREAD_COLOR)
         assert abs(int(shown[8, 16, 0]) - 40) <= 2
         fresh = publish(picture(200))

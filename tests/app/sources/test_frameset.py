@@ -64,3 +64,15 @@ def test_unknown_sensors_are_ignored_and_bad_arguments_rejected() -> None:
         FrameSetAssembler(["ccd_left"], reference="tof")
     with pytest.raises(ValueError, match="at least one"):
         FrameSetAssembler([])
+
+
+def test_the_stereo_grouping_falls_back_to_the_right_camera() -> None:
+    """The console's grouping: the left colour camera opens the sets; while it is silent
+    (more than 0.5 s and 3 of the right camera's frames), the right one does."""
+    asm = FrameSetAssembler.stereo(["ccd_left", "ccd_right", "tof"], tolerance_s=0.01)
+    assert (asm.reference, asm.fallback, asm.tolerance_ns) == ("ccd_left", "ccd_right", 10**7)
+    sets = asm.push(Frame("ccd_left", 0, IMG))
+    for k in range(1, 40):  # the left camera has stopped
+        sets += asm.push(Frame("ccd_right", k * 33_000_000, IMG))
+    opened = [fs for fs in sets if "ccd_left" in fs.missing]
+    assert opened and all(fs.stamp_ns > 500_000_000 for fs in opened)
