@@ -38,7 +38,7 @@ def make_stream_router(hub: FrameHub) -> APIRouter:
         # a viewer's messages are read no faster than frames are sent.
         await ws.accept()
         limits = ViewerMessages()
-        with hub.watching(jpeg=True):
+        with hub.watching():
             try:
                 async for frame, jpeg in hub.jpeg_frames():
                     await ws.send_text(frame.header_text)
@@ -55,7 +55,7 @@ def make_stream_router(hub: FrameHub) -> APIRouter:
     @router.get("/stream.mjpg")
     async def _mjpeg() -> StreamingResponse:
         async def parts() -> AsyncIterator[bytes]:
-            with hub.watching(jpeg=True):
+            with hub.watching():
                 async for _frame, jpeg in hub.jpeg_frames():
                     yield (
                         b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "

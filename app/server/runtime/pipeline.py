@@ -1,15 +1,17 @@
-"""The live fusion loop: frames from a source, grouped, fused, encoded, published.
+"""The live fusion loop: frames from a source, grouped, fused, published.
 
-Two background threads. The fusion thread: a :class:`FrameSource` ->
+One background thread, the fusion thread: a :class:`FrameSource` ->
 :class:`FrameSetAssembler` (the left colour camera opens each set) -> the stereo-picture
 step (:class:`fusion.stereo_step.StereoStep`: depth mapping updated on each new TOF frame,
-radiometry, composition) -> a BGR copy of the picture. The encoder
-thread: JPEG -> :class:`FrameHub`. OpenCV releases the GIL while it encodes, so the fusion
-of frame N+1 overlaps the encoding of frame N; two BGR buffers pass between the threads,
-and the fusion thread waits when both are taken (the source drops what a late consumer
-cannot take). A frame set that misses a sensor still produces a picture from what it has
-(the step's :data:`~fusion.stereo_step.CONSOLE` policy): an eye whose thermal imager is
-missing shows its colour image; an eye whose colour camera is gone
+radiometry, composition) -> a BGR copy of the picture, read-only, published to the
+:class:`FrameHub` (the JPEG for the JPEG viewers is made there when the first of them
+takes it, in a worker thread; the H.264 for the video viewers in theirs), and on to the
+next frame set: nothing the viewers do holds the fusion up (the source drops what a late
+consumer cannot take).
+
+A frame set that misses a sensor still produces a picture from what it has (the step's
+:data:`~fusion.stereo_step.CONSOLE` policy): an eye whose thermal imager is missing shows
+its colour image; an eye whose colour camera is gone
 (:data:`~fusion.stereo_step.COLOR_GONE_S`) shows the thermal picture on black; the last
 depth while the TOF is missing.
 When the left colour camera (which opens the frame sets) stops, the right one opens them
@@ -29,7 +31,7 @@ Repeated inputs are not fused again. A source may hand out the very same read-on
 for several frames (the simulated head shows each rendered pose for many frames). When
 both colour images, both thermal images, the depth behind the mapping, the display
 settings and the imagers' radiometry are all what the previous picture was made of (and
-an automatic span has settled), its JPEG is published again with the new frame's metadata
+an automatic span has settled), its picture is published again with the new frame's metadata
 (time stamp, missing sensors): the stream's time stamps advance at the source's rate while
 no pixel is computed twice. The stream counts the two apart (frames published and new
 pictures per second, :class:`app.server.runtime.rates.StreamRates`). Only arrays with
@@ -37,18 +39,12 @@ pictures per second, :class:`app.server.runtime.rates.StreamRates`). Only arrays
 is fused every frame. Likewise, a TOF frame whose distance array is the previous one (same
 read-only object) does not recompute the mapping.
 
-Work on demand (:mod:`app.server.runtime.demand`): given a ``demand``, the pipeline fuses,
-maps depth and encodes only while it is wanted (a stream viewer, a Viser client, a REST
-client of the status). Otherwise it still drains the source and groups its frames into
+Work on demand (:mod:`app.server.runtime.demand`): given a ``demand``, the pipeline fuses and
+maps depth only while it is wanted (a stream viewer, a Viser client, a REST client of the
+status). Otherwise it still drains the source and groups its frames into
 sets (``latest_set``, the missing sensors and the sensors' health stay current; the
 source never backs up), but makes no picture; the stream forgets its last picture (it
-would be stale). While a video viewer is connected (:attr:`FrameHub.wants_bgr
-<app.server.runtime.stream.FrameHub.wants_bgr>`), each frame also carries the BGR picture
-(``StreamFrame.bgr``: the encoder thread's buffer, handed over read-only and replaced by a
-new one in the pool; a repeat carries the previous picture), and the JPEG is encoded only
-while a JPEG viewer listens too (:attr:`FrameHub.wants_jpeg
-<app.server.runtime.stream.FrameHub.wants_jpeg>`; a repeat encodes it for a JPEG viewer
-that came meanwhile). When the demand turns wanted,
+would be stale). When the demand turns wanted,
 the newest frame set is fused at once (a new viewer waits at most one frame period; a
 paused replay shows its picture again), the depth from the newest TOF frame seen.
 Without a ``demand`` every frame set is fused.
@@ -57,14 +53,12 @@ Without a ``demand`` every frame set is fused.
 from __future__ import annotations
 
 import dataclasses
-import queue
 import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import Any
 
 import cv2
-import numpy as np
 
 from trifuse.app.errors import describe_error
 from trifuse.app.server.runtime.demand import Demand
@@ -89,130 +83,6 @@ class PipelineStatus:
     last_stamp_ns: int = 0
     missing: dict[str, str] = field(default_factory=dict)
     error: str | None = None
-
-
-def _encode_jpeg(bgr: np.ndarray, quality: int) -> bytes:
-    """``bgr`` ((H, W, 3) uint8) as JPEG of ``quality`` (RuntimeError if OpenCV fails)."""
-    ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
-    if not ok:
-        raise RuntimeError("OpenCV could not encode the fused picture as JPEG")
-    return buf.tobytes()
-
-
-_Frame = tuple[Mapping[str, Any], np.ndarray | None]
-"""One frame for the encoder: its metadata and the BGR picture to encode (None: publish
-the previous picture again)."""
-_FORGET = object()
-"""For the encoder: the stream forgets its picture (the pipeline rests)."""
-
-
-class _StreamEncoder:
-    """JPEG encoding (at ``quality``) and publishing in a thread of its own.
-
-    The fusion thread takes a free BGR buffer (:meth:`buffer`, blocks while both are being
-    encoded or waiting), fills it and :meth:`submit` s it with the frame's metadata; frames
-    are published in the order submitted. ``stop`` (any thread) ends the waits.
-    """
-
-    BUFFERS = 2
-
-    def __init__(
-        self, hub: FrameHub, status: PipelineStatus, stop: threading.Event, quality: int
-    ) -> None:
-        self.hub, self.status, self._stop, self.quality = hub, status, stop, quality
-        self._jobs: queue.Queue[_Frame | object | None] = queue.Queue(maxsize=1)
-        self._free: queue.Queue[np.ndarray | None] = queue.Queue()
-        for _ in range(self.BUFFERS):
-            self._free.put(None)  # allocated on first use, at the picture's shape
-        self._jpeg: bytes | None = None
-        self.kept_bgr: np.ndarray | None = None
-        """The last picture published with its BGR (read-only; repeats carry it too)."""
-        self._thread = threading.Thread(target=self._run, name="stream-encoder", daemon=True)
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def _wait(self, op: Any) -> Any:
-        """``op(timeout)`` of a queue until it succeeds; None once stopping."""
-        while not self._stop.is_set():
-            if not self._thread.is_alive():
-                raise RuntimeError("the stream encoder thread has stopped")
-            try:
-                return op(0.5)
-            except (queue.Empty, queue.Full):
-                continue
-        return None
-
-    def buffer(self, shape: tuple[int, ...]) -> np.ndarray | None:
-        """A free (H, W, 3) uint8 buffer of ``shape`` to fill; None once stopping."""
-        buf = self._wait(lambda t: self._free.get(timeout=t))
-        if buf is None and self._stop.is_set():
-            return None
-        if buf is None or buf.shape != shape:
-            buf = np.empty(shape, np.uint8)
-        return buf
-
-    def submit(self, meta: Mapping[str, Any], bgr: np.ndarray | None) -> bool:
-        """Queue a frame: ``bgr`` (a buffer of :meth:`buffer`) to encode and publish with
-        ``meta``, or None to publish the previous picture again with ``meta``. Blocks while
-        the encoder is one frame behind; False once stopping."""
-        ok = self._wait(lambda t: self._jobs.put((meta, bgr), timeout=t) or True)
-        if not ok and bgr is not None:
-            self._free.put(bgr)
-        return bool(ok)
-
-    def forget(self) -> bool:
-        """Queue the stream's forgetting its picture (see :meth:`submit`)."""
-        return bool(self._wait(lambda t: self._jobs.put(_FORGET, timeout=t) or True))
-
-    def close(self, timeout_s: float = 2.0) -> None:
-        """Finish the queued frames, then end the thread."""
-        if not self._thread.is_alive():
-            return
-        try:
-            self._jobs.put(None, timeout=timeout_s)
-        except queue.Full:
-            pass
-        self._thread.join(timeout_s)
-
-    def _run(self) -> None:
-        while True:
-            job = self._jobs.get()
-            if job is None:
-                return
-            if job is _FORGET:
-                self._jpeg = self.kept_bgr = None
-                self.hub.forget()
-                continue
-            meta, bgr = cast(_Frame, job)
-            try:
-                new = bgr is not None
-                if bgr is not None:
-                    want = self.hub.wants_jpeg
-                    self._jpeg = _encode_jpeg(bgr, self.quality) if want else None
-                    self.kept_bgr, bgr = self._keep(bgr)
-                elif self._jpeg is None and self.kept_bgr is not None and self.hub.wants_jpeg:
-                    self._jpeg = _encode_jpeg(self.kept_bgr, self.quality)  # a JPEG viewer came
-                if self._jpeg is not None or self.kept_bgr is not None:
-                    self.hub.publish(self._jpeg, meta, new=new, bgr=self.kept_bgr)
-                    self.status.frames_out += 1
-                    self.status.pictures_out += new
-            except Exception as exc:  # shown in the status; the next frame is tried
-                self.status.error = describe_error(exc)
-            finally:
-                if bgr is not None:
-                    self._free.put(bgr)
-
-    def _keep(self, bgr: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """While video viewers want the picture itself (:attr:`FrameHub.wants_bgr`), the
-        buffer ``bgr`` goes out with the frame, read-only, and is never reused (a new one
-        takes its place in the pool): (it, None); otherwise (None, ``bgr``, back to the
-        pool)."""
-        if not self.hub.wants_bgr:
-            return None, bgr
-        bgr.flags.writeable = False
-        self._free.put(None)  # allocated afresh by the next buffer()
-        return bgr, None
 
 
 class FusionPipeline:
@@ -247,8 +117,8 @@ class FusionPipeline:
         it must be quick (cached)."""
         self._pending_rig: Rig | None = None
         self._init_rig(rig, {})
+        hub.jpeg_quality = jpeg_quality
         self._stop = threading.Event()
-        self._encoder = _StreamEncoder(hub, self.status, self._stop, jpeg_quality)
         self._thread = threading.Thread(target=self._run, name="fusion", daemon=True)
         self._fuse_lock = threading.Lock()  # one frame set at a time (fusion, catch-up)
         self._fused_set: FrameSet | None = None  # the last set handed to _publish
@@ -302,7 +172,6 @@ class FusionPipeline:
         self._pending_rig = rig  # swapped in by the fusion thread, which owns that state
 
     def start(self) -> FusionPipeline:
-        self._encoder.start()
         self._thread.start()
         return self
 
@@ -310,12 +179,10 @@ class FusionPipeline:
         self._stop.set()
         self.source.close()
         self._thread.join(timeout_s)
-        self._encoder.close(timeout_s)
 
     def join(self, timeout_s: float | None = None) -> bool:
         """Wait (at most ``timeout_s``) for the fusion thread to end by itself (its source ran
-        out, or :meth:`stop`); whether it has. It ends after the encoder published every
-        frame it was given."""
+        out, or :meth:`stop`); whether it has. Every frame it fused is published by then."""
         self._thread.join(timeout_s)
         return not self._thread.is_alive()
 
@@ -339,8 +206,6 @@ class FusionPipeline:
                     self._arrived(fs)
         except Exception as exc:  # shown in the status, the server keeps running
             self.status.error = describe_error(exc)
-        finally:
-            self._encoder.close()
 
     def _arrived(self, fs: FrameSet) -> None:
         """A new frame set: noted always, fused while wanted."""
@@ -353,7 +218,7 @@ class FusionPipeline:
                 self._publish(fs)
             elif not self._resting:  # the last picture would soon be stale: forget it
                 self._resting, self._made_of, self.spots = True, None, None
-                self._encoder.forget()
+                self.hub.forget()
 
     def _catch_up(self) -> None:
         """The demand turned wanted: fuse the newest frame set now, in a thread of its own
@@ -384,8 +249,7 @@ class FusionPipeline:
         self.step.note(fs)
 
     def _publish(self, fs: FrameSet) -> bool:
-        """Fuse one frame set (noted) and hand it to the encoder; False if it makes no
-        picture."""
+        """Fuse one frame set (noted) and publish its picture; False if it makes none."""
         self._fused_set, self._resting = fs, False
         step = self.step
         step.update_depth()
@@ -393,24 +257,24 @@ class FusionPipeline:
         inputs = step.inputs(fs)
         if isinstance(inputs, Skip):
             return False
-        if (
-            (self._encoder.kept_bgr is not None or not self.hub.wants_bgr)
-            and inputs.same_picture(self._made_of)
-            and self.fusion.span_settled
-        ):
-            return self._encoder.submit(self._meta(inputs), None)
-        self._made_of = None  # until the new picture is submitted
+        if inputs.same_picture(self._made_of) and self.fusion.span_settled:
+            if self.hub.publish_again(self._meta(inputs)) is not None:
+                self._count(new=False)
+                return True
+        self._made_of = None  # until the new picture is published
         rgb = step.render(inputs)
         if inputs.path != "raw":  # the spot meter's copy of this picture's temperatures and depths
             self.spots = self.spot_meter.capture(fs.stamp_ns)
-        bgr = self._encoder.buffer(rgb.shape)
-        if bgr is None:
-            return False
-        cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR, dst=bgr)
-        if not self._encoder.submit(self._meta(inputs), bgr):
-            return False
+        bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)  # a new buffer: the last one went out
+        bgr.flags.writeable = False
+        self.hub.publish(None, self._meta(inputs), bgr=bgr)
+        self._count(new=True)
         self._made_of = inputs
         return True
+
+    def _count(self, new: bool) -> None:
+        self.status.frames_out += 1
+        self.status.pictures_out += new
 
     def _meta(self, inputs: PictureInputs) -> dict[str, Any]:
         """What the viewer overlays with the frame (JSON-able: :meth:`fusion.frame_meta.

@@ -1,9 +1,16 @@
 """The fused stereo stream: the newest frame only, to any number of viewers.
 
-A producer thread publishes JPEG frames into a :class:`FrameHub`; each viewer (WebSocket or
-MJPEG) waits for a frame newer than the last one it sent and sends the newest there is, so
-a slow viewer skips frames instead of building a queue, and never slows the others. The
-routes ``/stream`` and ``/stream.mjpg`` are in :mod:`app.server.routers.stream_routes`.
+A producer thread (the console's fusion thread) publishes pictures into a :class:`FrameHub`
+and goes on with the next; each viewer (WebSocket or MJPEG) waits for a frame newer than
+the last one it sent and sends the newest there is, so a slow viewer skips frames instead
+of building a queue, and never slows the others or the producer. The routes ``/stream``
+and ``/stream.mjpg`` are in :mod:`app.server.routers.stream_routes`; ``/stream.video`` in
+:mod:`app.server.runtime.video_stream`.
+
+A picture is encoded for JPEG viewers when the first of them takes it
+(:meth:`FrameHub.jpeg_of`, in a worker thread: OpenCV releases the GIL, so the fusion of
+the next frame set goes on meanwhile), once for all of them, and never for a picture no
+JPEG viewer takes (one watching H.264 only, a recording, nobody).
 
 The hub measures the stream (:class:`app.server.runtime.rates.StreamRates`): frames published and
 new pictures per second over the last few seconds. Each frame's metadata carries these
@@ -11,9 +18,7 @@ figures (``rates``), so the viewer shows the same numbers as the Source panel an
 ``/api/status``, next to the rate at which it receives frames itself.
 
 Each viewer holds the hub's :attr:`FrameHub.demand` while connected (:meth:`FrameHub.watching`):
-the console fuses and encodes only while someone listens (:mod:`app.server.runtime.demand`),
-and encodes JPEG only while a JPEG viewer listens or nobody takes the pictures themselves
-(:attr:`FrameHub.wants_jpeg`).
+the console fuses only while someone listens (:mod:`app.server.runtime.demand`).
 
 What a viewer sends back is small and rare (an ack a frame): :class:`ViewerMessages` refuses
 a message over :data:`MAX_MESSAGE_CHARS` (close 1009) and a viewer sending more than
@@ -30,9 +35,10 @@ import threading
 import time
 from collections.abc import AsyncIterator, Callable, Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+import cv2
 import numpy as np
 from fastapi import WebSocket, WebSocketDisconnect
 
@@ -98,20 +104,28 @@ class ViewerMessages:
         return text
 
 
+def encode_jpeg(bgr: np.ndarray, quality: int) -> bytes:
+    """``bgr`` ((H, W, 3) uint8) as JPEG of ``quality`` (RuntimeError if OpenCV fails)."""
+    ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise RuntimeError("OpenCV could not encode the fused picture as JPEG")
+    return buf.tobytes()
+
+
 @dataclass(frozen=True)
 class StreamFrame:
     """One stereo frame of the stream, as the hub published it.
 
     Attributes:
         seq: its number in the stream (1, 2, ...).
-        jpeg: the picture as JPEG; None while no JPEG viewer listens and the picture goes
-            as itself (:attr:`FrameHub.wants_jpeg`).
+        jpeg: the picture as JPEG if its producer gave one; None: the hub encodes
+            :attr:`bgr` when a JPEG viewer first asks (:meth:`FrameHub.jpeg_of`).
         meta: the picture's metadata as its producer gave it (JSON-able, never copied or
             changed: :meth:`fusion.frame_meta.FrameMeta.as_json` from the console); a
             viewer receives it in :meth:`header`.
         bgr: the fused picture itself, (H, W, 3) uint8 BGR, read-only and never written
-            again (the video viewers encode it, :mod:`app.server.runtime.video_stream`);
-            None when nobody takes it (:attr:`FrameHub.wants_bgr`).
+            again (JPEG viewers and the video viewers encode it, a recording takes it); None
+            when the producer gave only a JPEG.
         sent_ns: when it was published, wall clock (ns since the epoch).
         rates: the stream's rates then (:class:`app.server.runtime.rates.RatesSnapshot`).
     """
@@ -122,6 +136,9 @@ class StreamFrame:
     bgr: np.ndarray | None
     sent_ns: int
     rates: RatesSnapshot
+    made_jpeg: list[bytes | None] = field(default_factory=lambda: [None], compare=False)
+    """The JPEG the hub made of :attr:`bgr` (one cell shared by the frames that publish the
+    same picture again)."""
 
     def header(self) -> dict[str, Any]:
         """What a viewer overlays with the frame (JSON-able): :attr:`meta` with ``seq``,
@@ -153,8 +170,9 @@ class FrameHub:
         self._seq = 0
         self._waiters: set[tuple[asyncio.AbstractEventLoop, asyncio.Event]] = set()
         self.viewers = 0
-        self.jpeg_viewers = 0
-        """Viewers of ``/stream`` and ``/stream.mjpg`` (counted in :attr:`viewers` too)."""
+        self.jpeg_quality = 80
+        """The quality of the JPEG made of a picture for JPEG viewers (set by the pipeline)."""
+        self._jpeg_lock = threading.Lock()
         self.rates = StreamRates()
         """Frames published and new pictures per second (read by the panel and routes)."""
         self.stream_settings = StreamSettings()
@@ -169,21 +187,7 @@ class FrameHub:
         """The last pictures by seq, for benchmarks (None: off; kept_frames.py)."""
         self.takers: list[Callable[[StreamFrame], None]] = []
         """Called with every frame published, in the publishing thread (they must be quick),
-        by other takers of the pictures (a recording of the fused video, fused_video_tap.py):
-        while there is one, frames carry their BGR."""
-
-    @property
-    def wants_bgr(self) -> bool:
-        """Whether frames should carry their BGR picture (a video viewer is connected, or
-        pictures are kept for a benchmark: :attr:`kept`, or taken: :attr:`takers`)."""
-        return bool(self.video_viewers) or self.kept is not None or bool(self.takers)
-
-    @property
-    def wants_jpeg(self) -> bool:
-        """Whether frames should carry a JPEG: a JPEG viewer is connected, or nobody takes
-        the pictures themselves (:attr:`wants_bgr`; JPEG is the stream's default). Encoding
-        it for video viewers alone would cost CPU a frame for nobody."""
-        return self.jpeg_viewers > 0 or not self.wants_bgr
+        by other takers of the pictures (a recording of the fused video, fused_video_tap.py)."""
 
     def publish(
         self,
@@ -192,18 +196,38 @@ class FrameHub:
         new: bool = True,
         bgr: np.ndarray | None = None,
     ) -> StreamFrame:
-        """Make ``jpeg`` the newest frame (any thread). ``meta`` must be JSON-able; the
-        frame keeps it as it is (the caller never changes it again).
+        """Make a picture the newest frame (any thread): its ``jpeg``, or its ``bgr`` (see
+        :class:`StreamFrame`; the caller never writes to it again), or both. ``meta`` must be
+        JSON-able; the frame keeps it as it is (the caller never changes it again).
 
         ``new``: the picture is new (False: the previous picture published again because
-        its input did not change). ``bgr``: the picture (see :class:`StreamFrame`; the
-        caller never writes to it again). The frame gets its ``seq``, ``sent_ns`` and the
-        stream's ``rates`` (:class:`StreamFrame`)."""
+        its input did not change: :meth:`publish_again`). The frame gets its ``seq``,
+        ``sent_ns`` and the stream's ``rates`` (:class:`StreamFrame`)."""
+        if jpeg is None and bgr is None:
+            raise ValueError("publish: expected a JPEG or a BGR picture, got neither")
+        return self._publish(jpeg, meta, new, bgr, [None])
+
+    def publish_again(self, meta: Mapping[str, Any]) -> StreamFrame | None:
+        """Publish the newest frame's picture again (``new`` False: the same JPEG and BGR,
+        the JPEG made of it shared) with ``meta``; None without a frame."""
+        frame = self._frame
+        if frame is None:
+            return None
+        return self._publish(frame.jpeg, meta, False, frame.bgr, frame.made_jpeg)
+
+    def _publish(
+        self,
+        jpeg: bytes | None,
+        meta: Mapping[str, Any],
+        new: bool,
+        bgr: np.ndarray | None,
+        made_jpeg: list[bytes | None],
+    ) -> StreamFrame:
         self.rates.tick(new)
         rates = self.rates.snapshot()
         with self._lock:
             self._seq += 1
-            frame = StreamFrame(self._seq, jpeg, meta, bgr, time.time_ns(), rates)
+            frame = StreamFrame(self._seq, jpeg, meta, bgr, time.time_ns(), rates, made_jpeg)
             self._frame = frame
             waiters = list(self._waiters)
         if self.kept is not None:
@@ -215,13 +239,26 @@ class FrameHub:
         return frame
 
     def repeat(self) -> StreamFrame | None:
-        """Publish the newest frame again, as a repeat (``new`` False: the same picture,
-        JPEG and metadata, a new ``seq``); None without one. For a video encoder whose new
-        viewer needs a key frame while no new picture comes (a paused replay)."""
+        """Publish the newest frame again, as a repeat (:meth:`publish_again` with its own
+        metadata); None without one. For a video encoder whose new viewer needs a key frame
+        while no new picture comes (a paused replay)."""
         frame = self._frame
-        if frame is None:
-            return None
-        return self.publish(frame.jpeg, frame.meta, new=False, bgr=frame.bgr)
+        return None if frame is None else self.publish_again(frame.meta)
+
+    def jpeg_of(self, frame: StreamFrame) -> bytes:
+        """``frame``'s picture as JPEG: the producer's, else its BGR encoded at
+        :attr:`jpeg_quality`, once for every viewer and every frame that publishes the same
+        picture again (any thread; a second caller waits for the first's). RuntimeError if
+        OpenCV cannot encode it."""
+        if frame.jpeg is not None:
+            return frame.jpeg
+        if frame.bgr is None:
+            raise ValueError(f"frame {frame.seq} has no picture")
+        with self._jpeg_lock:
+            made = frame.made_jpeg[0]
+            if made is None:
+                made = frame.made_jpeg[0] = encode_jpeg(frame.bgr, self.jpeg_quality)
+            return made
 
     def forget(self) -> None:
         """No frame until the next :meth:`publish` (the producer rests: its last frame
@@ -234,17 +271,15 @@ class FrameHub:
         return self._frame
 
     @contextmanager
-    def watching(self, jpeg: bool = False) -> Iterator[None]:
-        """A viewer is connected for the block: counted in ``viewers`` (and with ``jpeg`` in
-        ``jpeg_viewers``), holding :attr:`demand`."""
+    def watching(self) -> Iterator[None]:
+        """A viewer is connected for the block: counted in ``viewers``, holding
+        :attr:`demand`."""
         self.viewers += 1
-        self.jpeg_viewers += jpeg
         try:
             with self.demand.hold():
                 yield
         finally:
             self.viewers -= 1
-            self.jpeg_viewers -= jpeg
 
     @contextmanager
     def notifying(self, event: asyncio.Event) -> Iterator[None]:
@@ -259,16 +294,19 @@ class FrameHub:
                 self._waiters.discard(key)
 
     async def jpeg_frames(self, poll_s: float = 1.0) -> AsyncIterator[tuple[StreamFrame, bytes]]:
-        """The newest frame that has a JPEG, with the JPEG, each time there is a newer one
-        (skipping what was missed)."""
+        """The newest frame with its JPEG (:meth:`jpeg_of`, made in a worker thread), each
+        time there is a newer one (skipping what was missed)."""
         event = asyncio.Event()
         last = 0
         with self.notifying(event):
             while True:
                 frame = self._frame
-                if frame is not None and frame.seq > last and frame.jpeg is not None:
+                if frame is not None and frame.seq > last:
                     last = frame.seq
-                    yield frame, frame.jpeg
+                    jpeg = frame.jpeg
+                    if jpeg is None:
+                        jpeg = await asyncio.to_thread(self.jpeg_of, frame)
+                    yield frame, jpeg
                     continue
                 event.clear()
                 if self._frame is frame:  # nothing newer since: wait for the next publish

@@ -280,7 +280,7 @@ def test_console_video_survives_a_replay_going_back(rig, tmp_path) -> None:
     hub, demand = FrameHub(), Demand("fusion")
     recorder = Recorder(tmp_path / "rec")
     recorder.start(rig, FusedVideoSource(hub, demand, VideoSettings()))
-    assert demand.wanted and hub.wants_bgr  # the console fuses and hands out its pictures
+    assert demand.wanted and hub.takers  # the console fuses; the recorder takes its pictures
     rng = np.random.default_rng(4)
     period = 1_000_000_000 // 30
     stamps = [1_000_000_000 + k * period for k in range(20)]

@@ -27,7 +27,7 @@ def _picture(value: int) -> np.ndarray:
 def test_off_without_the_variable(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv(ENV, raising=False)
     hub = FrameHub()
-    assert hub.kept is None and not hub.wants_bgr
+    assert hub.kept is None
     hub.publish(b"jpeg", {}, bgr=_picture(5))
     client = TestClient(create_app(hub))
     r = client.get("/api/stream/frame/1.png")
@@ -37,7 +37,7 @@ def test_off_without_the_variable(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_the_last_pictures_by_seq(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv(ENV, "3")
     hub = FrameHub()
-    assert hub.kept is not None and hub.wants_bgr  # the pipeline hands pictures over
+    assert hub.kept is not None
     for value in range(10, 15):  # seq 1..5
         hub.publish(b"jpeg", {}, bgr=_picture(value))
     hub.publish(b"jpeg", {}, new=False)  # seq 6: no picture, nothing kept

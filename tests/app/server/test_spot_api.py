@@ -15,7 +15,7 @@ from trifuse.app.server.app_factory import create_app
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.sources.frames import Frame, FrameSet
-from trifuse.app.sources.sim.scenarios import InspectionScenario
+from trifuse.app.sources.sim.inspection import InspectionScenario
 
 T_S = 18.0
 
@@ -44,7 +44,7 @@ def console(room) -> Iterator[tuple[TestClient, FusionPipeline, FrameHub]]:
     client = TestClient(create_app(hub, None, pipeline))
     r = client.get("/api/spot", params={"eye": "left", "x": 640, "y": 480})
     assert r.status_code == 503 and "no fused picture yet" in r.json()["detail"]
-    with hub.watching(jpeg=True):
+    with hub.watching():
         pipeline.start()
         wait_until(lambda: pipeline.status.frames_out >= 2, "two fused pictures")
     yield client, pipeline, hub

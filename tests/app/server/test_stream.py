@@ -5,7 +5,6 @@ colour scale (palette, span)."""
 from __future__ import annotations
 
 import json
-import threading
 from collections.abc import Iterator
 
 import cv2
@@ -14,13 +13,13 @@ import pytest
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from tests.support import FakeClock, poll_until, small_rig, synth_frame
+from tests.support import FakeClock, small_rig, synth_frame
 from trifuse.app.server.panels.source import stream_text
 from trifuse.app.server.routers.stream_routes import make_stream_router
-from trifuse.app.server.runtime.pipeline import FusionPipeline, PipelineStatus, _StreamEncoder
+from trifuse.app.server.runtime import stream as stream_mod
+from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.rates import RatesSnapshot, StreamRates
-from trifuse.app.server.runtime.stream import MAX_MESSAGE_CHARS, FrameHub, StreamFrame
-from trifuse.app.server.runtime.video_stats import VideoViewerStats
+from trifuse.app.server.runtime.stream import MAX_MESSAGE_CHARS, FrameHub
 from trifuse.app.sources.base import FrameSource
 from trifuse.app.sources.frames import Frame
 from trifuse.fusion.compose import DisplaySettings
@@ -89,59 +88,52 @@ def test_mjpeg_fallback_streams_jpeg_parts() -> None:
         assert b"Content-Type: image/jpeg" in chunk and b"\xff\xd8" in chunk
 
 
-def test_jpeg_viewers_skip_frames_that_carry_no_jpeg() -> None:
-    """A frame published for video viewers alone has no JPEG: a JPEG viewer waits for the
-    next one that has, and counts as a JPEG viewer while connected."""
+def test_a_picture_is_encoded_for_jpeg_viewers_once_when_first_taken(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A picture published as itself (BGR) is not encoded until a JPEG viewer takes it;
+    then once, at the hub's quality, for every JPEG viewer and for the frames that publish
+    it again; a JPEG given by the producer goes out as it is."""
+    encoded: list[int] = []
+
+    def counting(bgr: np.ndarray, quality: int) -> bytes:
+        encoded.append(quality)
+        return cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])[1].tobytes()
+
+    monkeypatch.setattr(stream_mod, "encode_jpeg", counting)
     hub = FrameHub()
-    app = FastAPI()
-    app.include_router(make_stream_router(hub))
-    with TestClient(app) as client, client.websocket_connect("/stream") as ws:
-        hub.publish(None, {"k": 1}, bgr=np.zeros((2, 2, 3), np.uint8))
-        hub.publish(_jpeg(2), {"k": 2})
-        assert json.loads(ws.receive_text())["k"] == 2
-        ws.receive_bytes()
-        assert hub.jpeg_viewers == 1 and hub.wants_jpeg
-    assert hub.jpeg_viewers == 0
-
-
-def test_jpeg_is_encoded_only_while_a_jpeg_viewer_listens() -> None:
-    """With only a video viewer the encoder thread publishes the picture without a JPEG;
-    a JPEG viewer arriving gets one at the next frame, a repeated picture included."""
-    hub = FrameHub()
-    hub.video_viewers.append(VideoViewerStats(preset="auto"))
-    status, stop = PipelineStatus(), threading.Event()
-    encoder = _StreamEncoder(hub, status, stop, 80)
-    encoder.start()
-
-    def publish(bgr: np.ndarray | None) -> StreamFrame:
-        seq = hub.latest.seq if hub.latest is not None else 0
-        assert encoder.submit({}, bgr)
-        poll_until(lambda: hub.latest is not None and hub.latest.seq != seq, 30, poll_s=0.005)
-        assert hub.latest is not None and hub.latest.seq == seq + 1, status.error
-        return hub.latest
+    hub.jpeg_quality = 90
 
     def picture(value: int) -> np.ndarray:
-        buf = encoder.buffer((16, 32, 3))
-        assert buf is not None
-        buf[:] = value
-        return buf
+        bgr = np.full((16, 32, 3), value, np.uint8)
+        bgr.flags.writeable = False
+        return bgr
 
-    try:
-        first = publish(picture(40))
-        assert first.jpeg is None and first.bgr is not None and int(first.bgr[0, 0, 0]) == 40
-        hub.jpeg_viewers += 1  # a JPEG viewer connects: the repeat brings the JPEG
-        again = publish(None)
-        shown = cv2.imdecode(np.frombuffer(again.jpeg, np.uint8), cv2.IMREAD_COLOR)
-        assert abs(int(shown[8, 16, 0]) - 40) <= 2
-        fresh = publish(picture(200))
-        shown = cv2.imdecode(np.frombuffer(fresh.jpeg, np.uint8), cv2.IMREAD_COLOR)
-        assert abs(int(shown[8, 16, 0]) - 200) <= 2 and fresh.bgr is not None
-        hub.jpeg_viewers -= 1
-        assert publish(picture(90)).jpeg is None
-    finally:
-        stop.set()
-        encoder.close()
-    assert status.error is None
+    def shown(jpeg: bytes) -> int:
+        return int(cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)[8, 16, 0])
+
+    first = hub.publish(None, {"k": 1}, bgr=picture(40))
+    assert encoded == [] and first.made_jpeg == [None]  # nobody asked for a JPEG
+    app = FastAPI()
+    app.include_router(make_stream_router(hub))
+    with TestClient(app) as client:
+        with client.websocket_connect("/stream") as a, client.websocket_connect("/stream") as b:
+            for ws in (a, b):
+                assert json.loads(ws.receive_text())["k"] == 1
+                assert abs(shown(ws.receive_bytes()) - 40) <= 2
+                ws.send_text("ack")
+            again = hub.publish_again({"k": 2})  # the same picture, new metadata
+            assert again is not None and again.bgr is first.bgr and again.meta is not first.meta
+            for ws in (a, b):
+                assert json.loads(ws.receive_text())["k"] == 2
+                assert ws.receive_bytes() == first.made_jpeg[0]
+                ws.send_text("ack")
+            assert encoded == [90]  # once, for two viewers and two frames
+            hub.publish(_jpeg(3), {"k": 3})
+            for ws in (a, b):
+                assert json.loads(ws.receive_text())["k"] == 3
+                assert ws.receive_bytes() == _jpeg(3)
+    assert encoded == [90] and hub.viewers == 0
 
 
 # -- the stream's rates ----------------------------------------------------------------------

@@ -32,8 +32,8 @@ from trifuse.app.server.runtime.video_presets import LEVEL_BY_NAME, LEVELS
 from trifuse.app.server.runtime.video_rate import WINDOW
 from trifuse.app.sources.base import FrameSource
 from trifuse.app.sources.frames import Frame
+from trifuse.app.sources.sim.inspection import InspectionScenario
 from trifuse.app.sources.sim.render import HeadModel
-from trifuse.app.sources.sim.scenarios import InspectionScenario
 from trifuse.app.sources.simulated import SimulatedHeadSource
 
 W, H = LEVELS[0].size
@@ -160,7 +160,7 @@ def test_first_frame_is_key_and_the_picture_matches(app_hub) -> None:
     client, hub, publish = app_hub
     with client.websocket_connect("/stream.video?preset=8") as ws:
         viewer = Viewer(ws)
-        wait_until(lambda: hub.wants_bgr, "the viewer registered")
+        wait_until(lambda: hub.video_viewers, "the viewer registered")
         kept = []  # compared after the stream: the client acknowledges at once
         for i in range(40):
             meta, data = _next_frame(viewer, publish)
@@ -183,7 +183,7 @@ def test_the_window_of_unacknowledged_frames_holds(app_hub) -> None:
     client, hub, publish = app_hub
     with client.websocket_connect("/stream.video?preset=2") as ws:
         viewer = Viewer(ws)
-        wait_until(lambda: hub.wants_bgr, "the viewer registered")
+        wait_until(lambda: hub.video_viewers, "the viewer registered")
         seqs = []
         for _ in range(WINDOW):
             publish()
@@ -205,7 +205,7 @@ def test_keyframe_request_and_preset_change_bring_an_idr(app_hub) -> None:
     client, hub, publish = app_hub
     with client.websocket_connect("/stream.video") as ws:  # the default preset: auto
         viewer = Viewer(ws)
-        wait_until(lambda: hub.wants_bgr, "the viewer registered")
+        wait_until(lambda: hub.video_viewers, "the viewer registered")
         metas = [_next_frame(viewer, publish)[0] for _ in range(3)]
         assert [m["key"] for m in metas] == [True, False, False]
         assert metas[0]["preset"] == "auto" and metas[0]["level"] == "8"
@@ -252,7 +252,7 @@ def test_default_preset_route_and_status_figures(app_hub) -> None:
     }
     with client.websocket_connect("/stream.video") as ws:
         viewer = Viewer(ws)
-        wait_until(lambda: hub.wants_bgr, "the viewer registered")
+        wait_until(lambda: hub.video_viewers, "the viewer registered")
         for _ in range(3):
             meta, data = _next_frame(viewer, publish)
             viewer.decode(data)
