@@ -300,7 +300,7 @@ def run(args: argparse.Namespace) -> int:
     out("or the per-view PNGs (thermal and TOF files are 16-bit centi-kelvin / amplitude and")
     out("millimetres, so they look flat in a plain viewer), or list what a calibration reads:")
     out(
-        f'  {sys.executable} -c "from app.storage.capture import load_capture; '
+        f'  {sys.executable} -c "from trifuse.app.storage.capture import load_capture; '
         f"print(load_capture('{out_dir}').summary())\""
     )
     out("Formats: docs/FORMATS.md")

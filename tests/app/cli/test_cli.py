@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -274,6 +275,9 @@ def test_simulate_calibration_writes_a_capture(
     assert code == 0, err
     assert "[1/2] view 0001" in stdout and "[2/2] view 0002" in stdout
     assert f"to {out}/" in stdout and "load_capture" in stdout
+    (hint,) = [line for line in stdout.splitlines() if "load_capture;" in line]
+    shown = subprocess.run(shlex.split(hint), capture_output=True, text=True, timeout=120)
+    assert shown.returncode == 0 and ": 2 views" in shown.stdout, shown.stderr  # the hint works
 
     cap = load_capture(out, verify=True)
     assert cap.board == scenarios.CALIBRATION_BOARD
