@@ -12,7 +12,7 @@ an odd number of squares on one side and an even number on the other, the colour
 the ordering under a half turn. Other boards look the same turned (:attr:`Board.orderings`):
 even x even or odd x odd inner corners under a half turn, a square board under a quarter
 turn too; each view's ordering is then decided across sensors from the data
-(:func:`calib.polarity.order_views`).
+(:func:`calib.board_ordering.order_views`).
 
 ChArUco (``pattern="charuco"``): a checkerboard of ``(cols + 1) x (rows + 1)`` squares with
 ArUco markers in its white squares (OpenCV's ``cv2.aruco.CharucoBoard``); points are its

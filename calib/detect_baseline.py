@@ -9,7 +9,7 @@ found is returned with the corners as that detector gives them (the classic dete
 own small sub-pixel pass, no further refinement).
 
 Only the corner order is normalised exactly as :func:`calib.detect.detect_board` does
-(:func:`calib.detect.canonical_order`: handedness, then the square colours' vote, never a
+(:func:`calib.detect_order.canonical_order`: handedness, then the square colours' vote, never a
 rejection), so that the corners compare with the truth corner for corner. Pure: arrays
 in, a :class:`~calib.detect.Detection` out.
 """
@@ -25,9 +25,9 @@ from trifuse.calib.detect import (
     Detection,
     _check_board,
     _check_image,
-    _finite_filled,
-    canonical_order,
 )
+from trifuse.calib.detect_order import canonical_order
+from trifuse.calib.detect_prepare import finite_filled
 
 FLATTEN_SIGMA_PX = 25.0
 """Sigma of the Gaussian blur subtracted from the image, pixels."""
@@ -71,7 +71,7 @@ def detect_board_baseline(
         grey = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
         x = grey.astype(np.float32)
     else:
-        filled = _finite_filled(img)
+        filled = finite_filled(img)
         if filled is None:
             return Detection(None, "board not found: the image has no finite pixels", None)
         x = filled

@@ -13,7 +13,7 @@ Run between the per-sensor intrinsics (Zhang) and the placement of the sensors
    for a sensor that shares too few views with the anchor. A ``board.yaml`` polarity key
    replaces the search for its modality and is only checked. A board that looks the same
    turned (``Board.orderings`` > 1) has no polarity to find: each view's ordering is
-   decided across the sensors instead (calib.polarity.order_views). A ChArUco board or an
+   decided across the sensors instead (calib.board_ordering.order_views). A ChArUco board or an
    asymmetric circle grid has neither: its markers or layout fix the order.
 
 A sensor that fails is excluded with a sentence naming what disagrees and the likely cause,
@@ -29,19 +29,18 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from trifuse.calib.board import Board
+from trifuse.calib.board_ordering import BoardOrdering, order_views
 from trifuse.calib.camera import Intrinsics
 from trifuse.calib.polarity import (
     AS_DETECTED,
     HALF_TURNED,
     MIN_AGREEING_FRACTION,
     MIN_SHARED_VIEWS,
-    BoardOrdering,
     OrderingCheck,
     SensorPolarity,
     check_ordering,
     detected_as,
     half_turn,
-    order_views,
     override,
     override_key,
     polarity_words,

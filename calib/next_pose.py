@@ -21,8 +21,8 @@ sight.
 
 **Choice.** Each feasible candidate's information (the Jacobian of its corners in every
 sensor that would see the whole board, its own board pose eliminated:
-:func:`calib.verdict.pose_information`) is added to the calibration's, and the figures are
-predicted as the verdicts predict them (:func:`calib.verdict.predictor`). The candidate with
+:func:`calib.verdict_judge.pose_information`) is added to the calibration's, and the figures are
+predicted as the verdicts predict them (:func:`calib.verdict_judge.predictor`). The candidate with
 the lowest worst ratio wins; candidates within :data:`TIE` of it are told apart by the sum of
 the squared ratios above 1 (the view that also helps the other figures).
 
@@ -51,14 +51,13 @@ from trifuse.calib.rig_result import CalibrationResult
 from trifuse.calib.rig_uncertainty import RigCovariance
 from trifuse.calib.sensor_result import SensorResult
 from trifuse.calib.transforms import invert, make_T, rotations_from_rvecs
-from trifuse.calib.verdict import (
-    Figure,
-    RigVerdict,
-    _pose_specs,
-    _sensor_specs,
-    _Spec,
+from trifuse.calib.verdict import Figure, RigVerdict
+from trifuse.calib.verdict_judge import (
+    FigureSpec,
     pose_information,
+    pose_specs,
     predictor,
+    sensor_specs,
 )
 
 FILLS = (0.3, 0.45, 0.65, 0.85)
@@ -272,7 +271,7 @@ def feasible(T_rig_board: np.ndarray, sensors: Sequence[SensorResult], board: Bo
 
 def judged_specs(
     result: CalibrationResult, c: RigCovariance, v: RigVerdict
-) -> list[tuple[tuple[str, ...], _Spec]]:
+) -> list[tuple[tuple[str, ...], FigureSpec]]:
     """(sensors that must see a view for it to help, figure spec) of every figure the
     verdicts ``v`` of ``result`` judge (``c``: its covariance), but those of verdicts whose
     views disagree."""
@@ -281,13 +280,13 @@ def judged_specs(
     for name, s in result.sensors.items():
         if v.sensors[name].disagreement is not None:
             continue
-        for spec in _sensor_specs(c, s, result.reference, modalities):
+        for spec in sensor_specs(c, s, result.reference, modalities):
             with_ref = spec.unit in ("°", "mm") and name != result.reference
             out.append(((name, result.reference) if with_ref else (name,), spec))
     for pair in v.pairs:
         if pair.disagreement is None:
             a, b = pair.sensors
-            out += [((a, b), spec) for spec in _pose_specs(c, a, b, modalities, "pair")]
+            out += [((a, b), spec) for spec in pose_specs(c, a, b, modalities, "pair")]
     return [(who, spec) for who, spec in out if spec.target is not None]
 
 

@@ -72,7 +72,8 @@ from trifuse.calib.rig_uncertainty import covariance_estimates, rig_covariance, 
 from trifuse.calib.schur_lm import SchurResult, least_squares_schur
 from trifuse.calib.sensor_result import SensorResult
 from trifuse.calib.transforms import invert, make_T, mean_rotation, rotation_from_rvec
-from trifuse.calib.verdict import ZHANG_MIN_VIEWS, Verdict, judge_rig
+from trifuse.calib.verdict import ZHANG_MIN_VIEWS, Verdict
+from trifuse.calib.verdict_judge import judge_rig
 
 Observations = Mapping[str, Mapping[str, np.ndarray]]
 Progress = Callable[[str, float], None]

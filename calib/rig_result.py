@@ -9,7 +9,8 @@ from typing import Any
 import numpy as np
 
 from trifuse.calib.board import Board
-from trifuse.calib.polarity import BoardOrdering, SensorPolarity
+from trifuse.calib.board_ordering import BoardOrdering
+from trifuse.calib.polarity import SensorPolarity
 from trifuse.calib.rig import Eye, Rig, Sensor
 from trifuse.calib.rig_uncertainty import RigCovariance
 from trifuse.calib.sensor_result import SensorResult

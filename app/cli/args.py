@@ -102,7 +102,7 @@ def add_every_argument(parser: argparse.ArgumentParser, what: str) -> None:
 
 def board_size(text: str) -> tuple[int, int]:
     """``COLSxROWS`` inner corners, at least 2x2 (a board that looks the same turned, such
-    as 4x6 or 6x6, is ordered from the data: calib.polarity.order_views)."""
+    as 4x6 or 6x6, is ordered from the data: calib.board_ordering.order_views)."""
     parts = text.lower().split("x")
     try:
         cols, rows = (int(p) for p in parts)

@@ -69,7 +69,7 @@ def agc(repeat: int) -> dict[str, float]:
     """
     import numpy as np
 
-    from trifuse.app.sources.sim.scenarios import InspectionScenario
+    from trifuse.app.sources.sim.inspection import InspectionScenario
     from trifuse.fusion.agc import (
         AGC_MODES,
         DEFAULT_MAX_GAIN,

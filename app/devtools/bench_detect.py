@@ -339,9 +339,9 @@ def _calibration(corners: list[np.ndarray], size: tuple[int, int]) -> tuple[floa
 
 def _in_order(corners: np.ndarray, grey: np.ndarray) -> np.ndarray:
     """A detector's corners (N, 2) in the board's canonical order (handedness, then the
-    square colours: :func:`calib.detect.canonical_order`), so that views calibrate
+    square colours: :func:`calib.detect_order.canonical_order`), so that views calibrate
     together and compare corner for corner."""
-    from trifuse.calib.detect import canonical_order
+    from trifuse.calib.detect_order import canonical_order
 
     return canonical_order(corners, REAL_12MP_BOARD, grey.astype(np.float32))[0]
 

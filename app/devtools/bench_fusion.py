@@ -114,7 +114,7 @@ def fuse(repeat: int) -> dict[str, float]:
     import cv2
     import numpy as np
 
-    from trifuse.app.sources.sim.scenarios import InspectionScenario
+    from trifuse.app.sources.sim.inspection import InspectionScenario
     from trifuse.fusion.accuracy import fixed_depth_mapping
     from trifuse.fusion.compose import DisplaySettings
     from trifuse.fusion.composer import Composer
@@ -231,8 +231,8 @@ def fuse_accuracy(repeat: int) -> dict[str, float]:
     """
     import numpy as np
 
+    from trifuse.app.sources.sim.inspection import InspectionScenario
     from trifuse.app.sources.sim.render import HeadModel
-    from trifuse.app.sources.sim.scenarios import InspectionScenario
     from trifuse.app.sources.sim.tof_error import RangeErrorModel
     from trifuse.fusion.accuracy import (
         BANDS_M,

@@ -18,7 +18,7 @@ Then, on the same views:
   :func:`app.workflows.calibration_run.detect_capture` (per sensor, its default 2 workers)
   and :func:`~app.workflows.calibration_run.calibrate_capture` with the options
   ``trifuse calibrate`` uses by default: the code that command runs;
-* OpenCV: :func:`app.devtools.real_sets.measure` (detection: classic then sector-based, the
+* OpenCV: :func:`app.devtools.opencv_figures.measure` (detection: classic then sector-based, the
   thermal variants; ``cv2.calibrateCamera`` per sensor; ``cv2.stereoCalibrate`` per pair).
 
 Per sensor: boards found, RMS (trifuse: the sensor alone, Zhang's fit with its own board
@@ -58,17 +58,16 @@ import cv2
 import numpy as np
 import yaml
 
-from trifuse.app.devtools import real_sets
+from trifuse.app.devtools import opencv_figures
 from trifuse.app.devtools.benchmark import benchmark
+from trifuse.app.devtools.opencv_figures import Measurement, measure
 from trifuse.app.devtools.real_sets import (
     REAL_SETS,
     UNCOMMITTED_SETS,
     Checkerboard,
-    Measurement,
     RealSet,
     Sensor,
     load_views,
-    measure,
     sensor_files,
 )
 from trifuse.calib.opencv_reference import CharucoTarget
@@ -311,7 +310,7 @@ def view_ids(rs: RealSet, sensor: Sensor, root: Path | None) -> list[str]:
 
 @dataclass
 class OpenCVRun:
-    """What :func:`real_sets.measure` gave: its figures (None if it failed: ``error``), and per
+    """What :func:`opencv_figures.measure` gave: its figures (None if it failed: ``error``), and per
     sensor the views with a board and the median detection ms per image."""
 
     measurement: Measurement | None = None
@@ -323,16 +322,16 @@ class OpenCVRun:
 
 
 def run_opencv(rs: RealSet, root: Path | None) -> OpenCVRun:
-    """:func:`real_sets.measure` (OpenCV's plain pipeline), its detector calls timed."""
+    """:func:`opencv_figures.measure` (OpenCV's plain pipeline), its detector calls timed."""
     out = OpenCVRun()
     t0 = time.perf_counter()
-    with timed_calls(real_sets, "find_chessboard_opencv", "find_charuco_opencv") as calls:
+    with timed_calls(opencv_figures, "find_chessboard_opencv", "find_charuco_opencv") as calls:
         try:
             out.measurement = measure(rs, root)
         except ValueError as exc:  # e.g. a sensor with < 3 boards (--quick)
             out.error = str(exc)
     out.seconds = time.perf_counter() - t0
-    # real_sets.detect looks at every sensor's views in turn, one detector call per image;
+    # opencv_figures.detect looks at every sensor's views in turn, one detector call per image;
     # find_chessboard_opencv returns (corners or None, variant), find_charuco_opencv a hit or None.
     k = 0
     for s in rs.sensors:

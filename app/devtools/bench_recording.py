@@ -32,7 +32,7 @@ def recording(repeat: int) -> dict[str, float]:
 
     from trifuse.app.recording import RecordingWriter, ReplaySource
     from trifuse.app.sources.frames import Frame
-    from trifuse.app.sources.sim.scenarios import InspectionScenario
+    from trifuse.app.sources.sim.inspection import InspectionScenario
 
     scenario = InspectionScenario(seed=0)
     frames, _ = scenario.render(3.0)

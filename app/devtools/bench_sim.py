@@ -23,7 +23,8 @@ def render(repeat: int) -> dict[str, float]:
     ``<sensor>_ms``: one sensor of that room alone; ``setup_ms``: a new renderer's first
     frame set (ray grids of all sensors, with undistortion, are built then).
     """
-    from trifuse.app.sources.sim.scenarios import InspectionScenario, calibration_views
+    from trifuse.app.sources.sim.inspection import InspectionScenario
+    from trifuse.app.sources.sim.scenarios import calibration_views
 
     stream = calibration_views(repeat + 1, seed=1000)
     figures = {"calibration_view_ms": median_ms(lambda _i: next(stream), repeat)}
@@ -64,7 +65,7 @@ def sim_live(repeat: int) -> dict[str, float]:
     import numpy as np
 
     from trifuse.app.recording.simrecord import record_simulation
-    from trifuse.app.sources.sim.scenarios import InspectionScenario
+    from trifuse.app.sources.sim.inspection import InspectionScenario
 
     sensors = _LIVE_SENSORS
     figures: dict[str, float] = {}

@@ -67,7 +67,7 @@ def stream(repeat: int) -> dict[str, float]:
     import cv2
     import numpy as np
 
-    from trifuse.app.sources.sim.scenarios import InspectionScenario
+    from trifuse.app.sources.sim.inspection import InspectionScenario
     from trifuse.fusion.compose import DisplaySettings
     from trifuse.fusion.stereo import StereoFusion
 

@@ -74,7 +74,7 @@ def inspection_pose_count(render_hz: float = 2.0) -> int:
     ``SimulatedHeadSource`` counts them: one pan period sampled at ``render_hz``)."""
     import numpy as np
 
-    from trifuse.app.sources.sim.scenarios import InspectionScenario
+    from trifuse.app.sources.sim.inspection import InspectionScenario
 
     scenario = InspectionScenario(seed=0)
     k = max(1, round(scenario.pan_period_s * render_hz))

@@ -43,8 +43,8 @@ from trifuse.calib.rig import Rig
 
 if TYPE_CHECKING:
     from trifuse.app.sources.frames import Frame
+    from trifuse.app.sources.sim.inspection import InspectionScenario
     from trifuse.app.sources.sim.live import CleanImage
-    from trifuse.app.sources.sim.scenarios import InspectionScenario
 
 SIM_SCENARIOS = ("inspection", "survey")
 """The scenarios :func:`record_simulation` renders: the panning inspection room, or its
@@ -106,7 +106,7 @@ def head_model_for(rig: Rig):  # -> HeadModel | None
 def sim_scenario(name: str, rig: Rig, seed: int = 0, live: bool = True) -> InspectionScenario:
     """The scenario ``name`` (one of :data:`SIM_SCENARIOS`) with ``rig``'s sensors
     (:func:`head_model_for`), noise seeded by ``seed``, in the live quality or not."""
-    from trifuse.app.sources.sim.scenarios import InspectionScenario
+    from trifuse.app.sources.sim.inspection import InspectionScenario
     from trifuse.app.sources.sim.survey import SurveyScenario
 
     kinds = {"inspection": InspectionScenario, "survey": SurveyScenario}

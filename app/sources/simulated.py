@@ -1,7 +1,7 @@
 """The simulated sensor head as a live-like frame source.
 
 :class:`SimulatedHeadSource` turns a simulator scenario (the panning inspection room by
-default, :class:`~app.sources.sim.scenarios.InspectionScenario`) into a stream of single
+default, :class:`~app.sources.sim.inspection.InspectionScenario`) into a stream of single
 frames, each sensor at its own rate (colour 30 Hz, thermal 27 Hz, TOF 15 Hz by default),
 time-stamped on a simulated clock, optionally paced in real time.
 
@@ -233,7 +233,7 @@ class SimulatedHeadSource(FrameSource):
                     "scene_key)"
                 )
         if scenario is None:
-            from trifuse.app.sources.sim.scenarios import InspectionScenario
+            from trifuse.app.sources.sim.inspection import InspectionScenario
 
             scenario = InspectionScenario(seed=seed, live=live)
         self.scenario = scenario

@@ -23,9 +23,9 @@ searched in each view's images *as written* (decoded from disk), so a calibratio
 the console and ``trifuse calibrate <workdir>/captures`` see the same corners.
 
 Auto-capture follows ROS ``camera_calibration``: a sighting of the board is taken when the
-board is steady (:class:`~app.server.runtime.board_watch.BoardSighting`) and, for at least one
-sensor that sees it, its (X, Y, size, skew) differ from every view of that sensor taken so
-far by more than :data:`~calib.coverage.NOVELTY_THRESHOLD` (L1 distance).
+board is steady (:class:`~app.server.runtime.board_sighting.BoardSighting`) and, for at least
+one sensor that sees it, its (X, Y, size, skew) differ from every view of that sensor taken
+so far by more than :data:`~calib.coverage.NOVELTY_THRESHOLD` (L1 distance).
 """
 
 from __future__ import annotations

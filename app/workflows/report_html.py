@@ -40,17 +40,17 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from trifuse.app.storage.atomic import atomic_write_text
-from trifuse.app.workflows.report_markup import _e, _id
+from trifuse.app.workflows.report_markup import esc, html_id
 from trifuse.app.workflows.report_sections import (
-    _board_text,
-    _comparison,
-    _decisions,
-    _outliers,
-    _run,
-    _summary,
-    _views_table,
+    comparison_section,
+    decisions_section,
+    outliers_section,
+    report_board_text,
+    run_section,
+    summary_section,
+    views_section,
 )
-from trifuse.app.workflows.report_sensors import _pairs, _sensor_section
+from trifuse.app.workflows.report_sensors import pairs_section, sensor_section
 
 if TYPE_CHECKING:
     from trifuse.app.workflows.calib_session import CalibrationJob
@@ -131,29 +131,29 @@ def render_report_html(
     sensors = list(report.get("sensors") or {})
     capture = str(report.get("capture") or "")
     title = "Calibration report" + (f" – {Path(capture).name}" if capture else "")
-    sub = [f"capture <code>{_e(capture)}</code>"] if capture else []
+    sub = [f"capture <code>{esc(capture)}</code>"] if capture else []
     if report.get("board"):
-        sub.append(_e(_board_text(report["board"])))
+        sub.append(esc(report_board_text(report["board"])))
     if generated:
-        sub.append(f"made {_e(generated)}")
+        sub.append(f"made {esc(generated)}")
     toc = [("summary", "Summary and verdict")]
-    toc += [(f"sensor-{_id(n)}", n) for n in sensors]
-    body = [_summary(report)]
-    body += [_sensor_section(report, n, i, corners) for i, n in enumerate(sensors)]
+    toc += [(f"sensor-{html_id(n)}", n) for n in sensors]
+    body = [summary_section(report)]
+    body += [sensor_section(report, n, i, corners) for i, n in enumerate(sensors)]
     for anchor, label, block in (
-        ("pairs", "Relative poses", _pairs(report)),
-        ("decisions", "Decisions and other findings", _decisions(report)),
-        ("outliers", "Outliers", _outliers(report)),
-        ("views", "Every view", _views_table(report)),
-        ("truth", "Against the true rig", _comparison(report)),
-        ("run", "How this was made", _run(report, command, versions or {})),
+        ("pairs", "Relative poses", pairs_section(report)),
+        ("decisions", "Decisions and other findings", decisions_section(report)),
+        ("outliers", "Outliers", outliers_section(report)),
+        ("views", "Every view", views_section(report)),
+        ("truth", "Against the true rig", comparison_section(report)),
+        ("run", "How this was made", run_section(report, command, versions or {})),
     ):
         if block:
             toc.append((anchor, label))
             body.append(block)
     nav = (
         "<nav><ol>"
-        + "".join(f"<li><a href='#{a}'>{_e(t)}</a></li>" for a, t in toc)
+        + "".join(f"<li><a href='#{a}'>{esc(t)}</a></li>" for a, t in toc)
         + "</ol></nav>"
     )
     return (
@@ -161,8 +161,8 @@ def render_report_html(
         f"<meta http-equiv='Content-Security-Policy' content=\"{CSP}\">"
         "<meta name='viewport' content='width=device-width, initial-scale=1'>"
         "<meta name='generator' content='trifuse'>"
-        f"<title>{_e(title)}</title><style>{_STYLE}</style></head><body>"
-        f"<header><h1>{_e(title)}</h1><p class='sub'>{' · '.join(sub)}</p></header>"
+        f"<title>{esc(title)}</title><style>{_STYLE}</style></head><body>"
+        f"<header><h1>{esc(title)}</h1><p class='sub'>{' · '.join(sub)}</p></header>"
         + nav
         + "\n".join(body)
         + "</body></html>\n"

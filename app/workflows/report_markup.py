@@ -17,23 +17,25 @@ from typing import Any
 from trifuse.calib.numbers import is_int_or_float
 
 
-def _e(text: Any) -> str:
+def esc(text: Any) -> str:
+    """``text`` as HTML text, quotes escaped too (safe in an attribute value)."""
     return html.escape(str(text), quote=True)
 
 
-def _finite(x: Any) -> bool:
+def is_finite_number(x: Any) -> bool:
+    """Whether ``x`` is an int or float (never a bool) and finite."""
     return is_int_or_float(x) and math.isfinite(x)
 
 
-def _f(x: Any, digits: int = 2) -> str:
+def fixed(x: Any, digits: int = 2) -> str:
     """A number with ``digits`` decimals; ``–`` when undefined."""
-    return f"{x:.{digits}f}" if _finite(x) else "–"
+    return f"{x:.{digits}f}" if is_finite_number(x) else "–"
 
 
-def _g(x: Any) -> str:
+def significant(x: Any) -> str:
     """A number of unknown scale: 4 significant digits (integers as they are)."""
     if not is_int_or_float(x):
-        return _e(x)
+        return esc(x)
     if isinstance(x, int):
         return str(x)
     return f"{x:.4g}" if math.isfinite(x) else "–"
@@ -42,7 +44,7 @@ def _g(x: Any) -> str:
 def sigma_decimals(sigma: Any, fallback: int = 2, most: int = 6) -> int:
     """Decimals that show ``sigma`` with two significant digits (``fallback`` when it is
     undefined or zero), at most ``most``."""
-    if not _finite(sigma) or sigma <= 0:
+    if not is_finite_number(sigma) or sigma <= 0:
         return fallback
     return int(min(most, max(0, 1 - math.floor(math.log10(sigma)))))
 
@@ -50,26 +52,30 @@ def sigma_decimals(sigma: Any, fallback: int = 2, most: int = 6) -> int:
 def pm(value: Any, sigma: Any, fallback: int = 2) -> str:
     """``value ± sigma``, both to the decimals of sigma's second significant digit."""
     d = sigma_decimals(sigma, fallback)
-    if not _finite(sigma):
-        return _f(value, d)
-    return f"{_f(value, d)} ± {_f(sigma, d)}"
+    if not is_finite_number(sigma):
+        return fixed(value, d)
+    return f"{fixed(value, d)} ± {fixed(sigma, d)}"
 
 
-def _id(name: str) -> str:
+def html_id(name: str) -> str:
+    """``name`` as an HTML id or anchor: every character but letters, digits, ``_``
+    and ``-`` replaced by ``-``."""
     return re.sub(r"[^A-Za-z0-9_-]", "-", name)
 
 
-def _and(names: Sequence[str]) -> str:
+def and_list(names: Sequence[str]) -> str:
+    """``a``, ``a and b``, ``a, b and c``: names as a phrase (at least one name)."""
     names = list(names)
     return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
 
 
-def _views_list(views: Sequence[str], at_most: int = 12) -> str:
+def views_list(views: Sequence[str], at_most: int = 12) -> str:
+    """View names, comma-separated, the first ``at_most`` of them and how many more."""
     shown = ", ".join(views[:at_most])
     return shown + (f" and {len(views) - at_most} more" if len(views) > at_most else "")
 
 
-def _table(
+def html_table(
     head: Sequence[str],
     rows: Sequence[Sequence[str]],
     numeric: Sequence[int] = (),
@@ -79,12 +85,12 @@ def _table(
 ) -> str:
     """A table (no header row when ``head`` is all empty); cells are escaped unless
     ``raw`` (then they are HTML already); the columns in ``numeric`` are right-aligned."""
-    cell = (lambda c: c) if raw else _e
+    cell = (lambda c: c) if raw else esc
     cls = [' class="n"' if i in numeric else "" for i in range(len(head))]
     out = [f"<p class='caption'>{caption}</p>"] if caption else []
     out.append(f"<table{attrs}>")
     if any(head):
-        heads = "".join(f"<th{c}>{_e(h)}</th>" for h, c in zip(head, cls, strict=True))
+        heads = "".join(f"<th{c}>{esc(h)}</th>" for h, c in zip(head, cls, strict=True))
         out.append(f"<thead><tr>{heads}</tr></thead>")
     out.append("<tbody>")
     for r in rows:
@@ -132,73 +138,77 @@ def generic(value: Any, depth: int = 0) -> str:
     if isinstance(value, bool):
         return "yes" if value else "no"
     if isinstance(value, int | float):
-        return _g(value)
+        return significant(value)
     if isinstance(value, str):
-        return _e(value)
+        return esc(value)
     if depth > 4:
-        return f"<code>{_e(value)}</code>"
+        return f"<code>{esc(value)}</code>"
     if isinstance(value, Sequence):
         items = list(value)
         if not items:
             return "–"
         if all(is_int_or_float(v) for v in items):
-            return ", ".join(_g(v) for v in items)
+            return ", ".join(significant(v) for v in items)
         if all(isinstance(v, Mapping) for v in items):
             keys = list(dict.fromkeys(k for v in items for k in v))
             rows = [[generic(v.get(k), depth + 1) for k in keys] for v in items]
-            return _table([_label(k) for k in keys], rows, raw=True)
+            return html_table([key_label(k) for k in keys], rows, raw=True)
         return "<ul>" + "".join(f"<li>{generic(v, depth + 1)}</li>" for v in items) + "</ul>"
     if isinstance(value, Mapping):
         if not value:
             return "–"
         if all(isinstance(v, scalar) for v in value.values()):
-            rows = [[_e(_label(k)), generic(v, depth + 1)] for k, v in value.items()]
-            return _table(["", ""], rows, raw=True)
+            rows = [[esc(key_label(k)), generic(v, depth + 1)] for k, v in value.items()]
+            return html_table(["", ""], rows, raw=True)
         inner = list(value.values())
         if all(isinstance(v, Mapping) for v in inner) and all(
             isinstance(x, scalar) for v in inner for x in v.values()
         ):
             keys = list(dict.fromkeys(k for v in inner for k in v))
             rows = [
-                [_e(n), *(generic(v.get(k), depth + 1) for k in keys)] for n, v in value.items()
+                [esc(n), *(generic(v.get(k), depth + 1) for k in keys)] for n, v in value.items()
             ]
-            return _table(["", *(_label(k) for k in keys)], rows, raw=True)
+            return html_table(["", *(key_label(k) for k in keys)], rows, raw=True)
         return (
             "<dl>"
             + "".join(
-                f"<dt>{_e(_label(k))}</dt><dd>{generic(v, depth + 1)}</dd>"
+                f"<dt>{esc(key_label(k))}</dt><dd>{generic(v, depth + 1)}</dd>"
                 for k, v in value.items()
             )
             + "</dl>"
         )
-    return _e(value)
+    return esc(value)
 
 
-def _label(key: Any) -> str:
+def key_label(key: Any) -> str:
+    """A report key as words: ``views_used`` -> ``views used``."""
     return str(key).replace("_", " ")
 
 
-def _verdict_box(value: Any, title: str = "Verdict") -> str:
+def verdict_box(value: Any, title: str = "Verdict") -> str:
     """A verdict in a coloured box: a graded one (calib.verdict's ``grade``, ``line``,
     ``figures``, ``advice``) as its grade, sentence and figures; text as it is; any other
     mapping generically."""
     if isinstance(value, str):
-        body = f"<p><b>{_e(value)}</b></p>"
-    elif _graded(value):
+        body = f"<p><b>{esc(value)}</b></p>"
+    elif is_graded(value):
         body = _graded_body(value)
     else:
         body = generic(value)
     tone = _tone(value)
     cls = f"box box-{tone}" if tone else "box"
-    return f'<div class="{cls}"><p class="small muted">{_e(title)}</p>{body}</div>'
+    return f'<div class="{cls}"><p class="small muted">{esc(title)}</p>{body}</div>'
 
 
-def _graded(value: Any) -> bool:
+def is_graded(value: Any) -> bool:
+    """Whether ``value`` is a graded verdict (calib.verdict: a mapping with a ``grade``
+    text)."""
     return isinstance(value, Mapping) and isinstance(value.get("grade"), str)
 
 
-def _grade(grade: Any) -> str:
-    return f"<b class='{_tone(str(grade))}'>{_e(str(grade).upper())}</b>"
+def grade_badge(grade: Any) -> str:
+    """A verdict's grade, upper case and bold, in its tone's colour."""
+    return f"<b class='{_tone(str(grade))}'>{esc(str(grade).upper())}</b>"
 
 
 def _sentence(entry: Mapping[str, Any]) -> str:
@@ -216,23 +226,25 @@ def _graded_body(v: Mapping[str, Any]) -> str:
     if isinstance(sensors, Mapping) or isinstance(pairs, list):
         alone = v.get("sensors_intrinsics_only") or {}
         entries = [*(sensors or {}).values(), *(pairs or []), *alone.values()]
-        entries = [e for e in entries if _graded(e)]
-        parts.append(f"<p style='font-size:12pt'>{_grade(v['grade'])}</p>")
-        rows = [[_e(e.get("label", "")), _grade(e["grade"]), _e(_sentence(e))] for e in entries]
+        entries = [e for e in entries if is_graded(e)]
+        parts.append(f"<p style='font-size:12pt'>{grade_badge(v['grade'])}</p>")
+        rows = [
+            [esc(e.get("label", "")), grade_badge(e["grade"]), esc(_sentence(e))] for e in entries
+        ]
         if rows:
-            parts.append(_table(["", "grade", "why"], rows, raw=True))
+            parts.append(html_table(["", "grade", "why"], rows, raw=True))
         share, factor = v.get("sigma_share"), v.get("poor_factor")
-        if _finite(share) and _finite(factor):
+        if is_finite_number(share) and is_finite_number(factor):
             parts.append(
                 "<p class='small muted'>A 1-sigma meets its target when it is at most "
-                f"{_g(share)} × the accuracy target; good: every judged 1-sigma meets its "
-                f"target, poor: one exceeds it {_g(factor)} times, usable: in between.</p>"
+                f"{significant(share)} × the accuracy target; good: every judged 1-sigma meets its "
+                f"target, poor: one exceeds it {significant(factor)} times, usable: in between.</p>"
             )
     else:
-        parts.append(f"<p>{_grade(v['grade'])} {_e(_sentence(v))}</p>")
-        figures = _figure_rows(v.get("figures"))
+        parts.append(f"<p>{grade_badge(v['grade'])} {esc(_sentence(v))}</p>")
+        figures = figure_rows(v.get("figures"))
         if figures:
-            parts.append(_figures_table(FIGURE_HEAD, figures))
+            parts.append(figures_table(FIGURE_HEAD, figures))
     rest = {k: x for k, x in v.items() if k not in _GRADED_SHOWN and x not in (None, [], {})}
     if rest:  # what its sentence says already, in figures (folded: open it to see)
         parts.append(f"<details class='small'><summary>more</summary>{generic(rest)}</details>")
@@ -265,17 +277,17 @@ the views to add and the baseline); any other is shown generically, folded."""
 FIGURE_HEAD = ("figure", "1-sigma", "target", "σ / target", "per axis", "mostly")
 
 
-def _figures_table(head: Sequence[str], rows: list[list[str]]) -> str:
-    """A table of verdict figures (:func:`_figure_rows`, maybe after leading cells), without
+def figures_table(head: Sequence[str], rows: list[list[str]]) -> str:
+    """A table of verdict figures (:func:`figure_rows`, maybe after leading cells), without
     the columns empty in every row."""
     keep = [i for i in range(len(head)) if any(r[i] for r in rows)]
     numeric = [k for k, i in enumerate(keep) if head[i] in ("1-sigma", "target", "σ / target")]
-    return _table(
+    return html_table(
         [head[i] for i in keep], [[r[i] for i in keep] for r in rows], numeric=numeric, raw=True
     )
 
 
-def _figure_rows(figures: Any) -> list[list[str]]:
+def figure_rows(figures: Any) -> list[list[str]]:
     """Rows of a verdict's figures: what, 1-sigma with its unit, target, ratio, per axis."""
     rows = []
     for f in figures or []:
@@ -287,22 +299,25 @@ def _figure_rows(figures: Any) -> list[list[str]]:
         axes, names = f.get("axes"), f.get("axis_names")
         per_axis = ""
         if isinstance(axes, Sequence) and isinstance(names, Sequence):
-            per_axis = ", ".join(f"{n} {_f(a, d)}" for n, a in zip(names, axes, strict=False))
+            per_axis = ", ".join(f"{n} {fixed(a, d)}" for n, a in zip(names, axes, strict=False))
         target = f.get("target")
         rows.append(
             [
-                _e(f.get("what", "")),
-                _e(f"{_f(f.get('sigma'), d)}{sep}{unit}"),
-                _e(f"{_g(target)}{sep}{unit}") if _finite(target) else "not judged",
-                _f(f.get("ratio"), 2) if _finite(f.get("ratio")) else "",
-                _e(per_axis),
-                _e(f.get("dominant_axis") or ""),
+                esc(f.get("what", "")),
+                esc(f"{fixed(f.get('sigma'), d)}{sep}{unit}"),
+                esc(f"{significant(target)}{sep}{unit}")
+                if is_finite_number(target)
+                else "not judged",
+                fixed(f.get("ratio"), 2) if is_finite_number(f.get("ratio")) else "",
+                esc(per_axis),
+                esc(f.get("dominant_axis") or ""),
             ]
         )
     return rows
 
 
-def _advice(value: Any) -> str:
+def advice_block(value: Any) -> str:
+    """An "Advice" heading and the advice (a text, or a list of them, as a list)."""
     if isinstance(value, str):
         value = [value]
     return "<h3>Advice</h3>" + generic(value)

@@ -17,21 +17,21 @@ from trifuse.app.workflows.report_format import (
     polarity_rows,
 )
 from trifuse.app.workflows.report_markup import (
-    _advice,
-    _and,
-    _e,
-    _f,
-    _finite,
-    _g,
-    _id,
-    _label,
-    _table,
-    _verdict_box,
-    _views_list,
+    advice_block,
+    and_list,
+    esc,
+    fixed,
     generic,
+    html_id,
+    html_table,
+    is_finite_number,
+    key_label,
     pm,
+    significant,
+    verdict_box,
+    views_list,
 )
-from trifuse.app.workflows.report_sensors import _sigma, _vec_sigma
+from trifuse.app.workflows.report_sensors import sigma_of, sigma_vector
 from trifuse.calib.board import POLARITY_KEYS, board_from_dict
 
 KNOWN_KEYS = frozenset(
@@ -64,63 +64,65 @@ MAX_CORNER_ROWS = 100
 """Outlier corners listed one by one; the rest are counted (report.json has them all)."""
 
 
-def _summary(report: Mapping[str, Any]) -> str:
+def summary_section(report: Mapping[str, Any]) -> str:
+    """The summary: the verdicts, what was calibrated and what not, the advice, a row
+    per sensor, the intrinsics-only sensors and the notes."""
     sensors = report.get("sensors") or {}
     excluded = report.get("excluded_sensors") or {}
     parts = ["<section id='summary'><h2>Summary and verdict</h2>"]
     if report.get("verdict") is not None:
-        parts.append(_verdict_box(report["verdict"]))
+        parts.append(verdict_box(report["verdict"]))
     cmp = report.get("comparison")
     if isinstance(cmp, Mapping) and "passed" in cmp:
-        parts.append(_verdict_box(_comparison_verdict(cmp), "Against the true rig"))
+        parts.append(verdict_box(_comparison_verdict(cmp), "Against the true rig"))
     calibrated = (
-        f"{len(sensors)} sensor(s) calibrated ({_e(_and(list(sensors)))})"
+        f"{len(sensors)} sensor(s) calibrated ({esc(and_list(list(sensors)))})"
         if sensors
         else "no sensor calibrated"
     )
     if alone := list(report.get("sensors_intrinsics_only") or {}):
-        calibrated += f", intrinsics only ({_e(_and(alone))}: pose unknown)"
+        calibrated += f", intrinsics only ({esc(and_list(alone))}: pose unknown)"
     rms = report.get("rms_px")
-    line = f"<p>{calibrated}, reference <b>{_e(report.get('reference', '–'))}</b>"
-    if _finite(rms):
+    line = f"<p>{calibrated}, reference <b>{esc(report.get('reference', '–'))}</b>"
+    if is_finite_number(rms):
         line += f", overall RMS reprojection error <b>{rms:.3f} px</b>"
     n_views = len(report.get("detections") or report.get("views") or {})
     line += f", {n_views} view(s)"
-    if _finite(report.get("seconds")):
+    if is_finite_number(report.get("seconds")):
         line += f", solved in {report['seconds']:.1f} s"
     parts.append(line + ".</p>")
     if excluded:
         parts.append(
             "<p class='bad'><b>Not calibrated:</b></p><ul>"
-            + "".join(f"<li><b>{_e(s)}</b>: {_e(why)}</li>" for s, why in excluded.items())
+            + "".join(f"<li><b>{esc(s)}</b>: {esc(why)}</li>" for s, why in excluded.items())
             + "</ul>"
         )
     if report.get("advice"):
-        parts.append(_advice(report["advice"]))
+        parts.append(advice_block(report["advice"]))
     rows = []
     for name, s in sensors.items():
         intr = s.get("intrinsics") or {}
         cov = s.get("coverage") or {}
         size = s.get("image_size") or ["?", "?"]
-        rot = float(np.linalg.norm(_vec_sigma(s, "rotation_deg")))
-        trans = float(np.linalg.norm(_vec_sigma(s, "translation_m", 1000.0)))
+        rot = float(np.linalg.norm(sigma_vector(s, "rotation_deg")))
+        trans = float(np.linalg.norm(sigma_vector(s, "translation_m", 1000.0)))
         reference = name == report.get("reference")
         rows.append(
             [
-                f"<a href='#sensor-{_id(name)}'>{_e(name)}</a>",
-                f"{_e(size[0])}&nbsp;×&nbsp;{_e(size[1])}",
-                f"{_e(s.get('views_used', '?'))} / {_e(s.get('views_detected', '?'))}",
-                _f(s.get("rms_px"), 3),
-                pm(intr.get("fx"), _sigma(s, "fx")),
-                pm(intr.get("fy"), _sigma(s, "fy")),
-                "reference" if reference else _f(rot, 3),
-                "reference" if reference else _f(trans, 2),
-                f"{100 * cov['reached']:.0f}" if _finite(cov.get("reached")) else "–",
+                f"<a href='#sensor-{html_id(name)}'>{esc(name)}</a>",
+                f"{esc(size[0])}&nbsp;×&nbsp;{esc(size[1])}",
+                f"{esc(s.get('views_used', '?'))} / {esc(s.get('views_detected', '?'))}",
+                fixed(s.get("rms_px"), 3),
+                pm(intr.get("fx"), sigma_of(s, "fx")),
+                pm(intr.get("fy"), sigma_of(s, "fy")),
+                "reference" if reference else fixed(rot, 3),
+                "reference" if reference else fixed(trans, 2),
+                f"{100 * cov['reached']:.0f}" if is_finite_number(cov.get("reached")) else "–",
             ]
         )
     if rows:
         parts.append(
-            _table(
+            html_table(
                 [
                     "sensor",
                     "image px",
@@ -146,7 +148,7 @@ def _summary(report: Mapping[str, Any]) -> str:
     if notes:
         parts.append(
             "<h3>Decided on its own</h3><ul>"
-            + "".join(f"<li>{_e(n)}</li>" for n in notes)
+            + "".join(f"<li>{esc(n)}</li>" for n in notes)
             + "</ul>"
         )
     parts.append("</section>")
@@ -164,15 +166,15 @@ def _intrinsics_only(alone: Mapping[str, Any]) -> str:
         size = s.get("image_size") or ["?", "?"]
         rows.append(
             [
-                _e(name),
-                f"{_e(size[0])}&nbsp;×&nbsp;{_e(size[1])}",
-                f"{_e(s.get('views_used', '?'))} / {_e(s.get('views_detected', '?'))}",
-                _f(s.get("rms_px"), 3),
-                *(pm(intr.get(k), _sigma(s, k)) for k in ("fx", "fy", "cx", "cy")),
+                esc(name),
+                f"{esc(size[0])}&nbsp;×&nbsp;{esc(size[1])}",
+                f"{esc(s.get('views_used', '?'))} / {esc(s.get('views_detected', '?'))}",
+                fixed(s.get("rms_px"), 3),
+                *(pm(intr.get(k), sigma_of(s, k)) for k in ("fx", "fy", "cx", "cy")),
             ]
         )
         why.setdefault(str(s.get("pose_unknown") or "pose unknown"), []).append(name)
-    table = _table(
+    table = html_table(
         ["sensor", "image px", "views used / found", "RMS px", "fx px", "fy px", "cx px", "cy px"],
         rows,
         numeric=(1, 2, 3, 4, 5, 6, 7),
@@ -180,7 +182,7 @@ def _intrinsics_only(alone: Mapping[str, Any]) -> str:
         caption="Sensors calibrated alone, on their own views, ± 1-sigma; not in the rig",
         attrs=" id='intrinsics-only' class='small'",
     )
-    reasons = "".join(f"<li><b>{_e(_and(n))}</b>: {_e(w)}</li>" for w, n in why.items())
+    reasons = "".join(f"<li><b>{esc(and_list(n))}</b>: {esc(w)}</li>" for w, n in why.items())
     return f"<h3>Intrinsics only: pose unknown</h3>{table}<ul>{reasons}</ul>"
 
 
@@ -193,16 +195,18 @@ def _comparison_verdict(cmp: Mapping[str, Any]) -> str:
     return f"FAIL: {len(fails)} figure(s) miss their target: {shown}."
 
 
-def _decisions(report: Mapping[str, Any]) -> str:
+def decisions_section(report: Mapping[str, Any]) -> str:
+    """The board polarity and what it decided, then every top-level key without a
+    section of its own (:data:`KNOWN_KEYS`); empty when there is none."""
     parts = []
     polarity = report.get("polarity") or {}
     if polarity:
         parts.append(
-            _table(
+            html_table(
                 POLARITY_HEAD,
                 polarity_rows(polarity),
                 numeric=(3, 4),
-                caption=_e(polarity_caption(polarity)),
+                caption=esc(polarity_caption(polarity)),
             )
         )
         turned = {n: p for n, p in polarity.items() if p.get("turned") or p.get("turned_views")}
@@ -210,14 +214,14 @@ def _decisions(report: Mapping[str, Any]) -> str:
             what = "its corners were relabelled by the half turn" if p.get("turned") else ""
             views = p.get("turned_views") or []
             if views:
-                what += ("; " if what else "") + f"view(s) {_views_list(views)} turned alone"
-            parts.append(f"<p>{_e(n)}: {_e(what)}.</p>")
+                what += ("; " if what else "") + f"view(s) {views_list(views)} turned alone"
+            parts.append(f"<p>{esc(n)}: {esc(what)}.</p>")
         problems = {n: p["problem"] for n, p in polarity.items() if p.get("problem")}
         for n, why in problems.items():
-            parts.append(f"<p class='bad'>{_e(n)} refused: {_e(why)}</p>")
+            parts.append(f"<p class='bad'>{esc(n)} refused: {esc(why)}</p>")
     for key, value in report.items():
         if key not in KNOWN_KEYS and value not in (None, [], {}):
-            parts.append(f"<h3>{_e(_label(key).capitalize())}</h3>" + generic(value))
+            parts.append(f"<h3>{esc(key_label(key).capitalize())}</h3>" + generic(value))
     if not parts:
         return ""
     return (
@@ -227,7 +231,8 @@ def _decisions(report: Mapping[str, Any]) -> str:
     )
 
 
-def _outliers(report: Mapping[str, Any]) -> str:
+def outliers_section(report: Mapping[str, Any]) -> str:
+    """The views and corners left out as outliers, with their error and why."""
     outliers = report.get("outliers") or []
     views = [o for o in outliers if o.get("corner") is None]
     corners = [o for o in outliers if o.get("corner") is not None]
@@ -238,10 +243,15 @@ def _outliers(report: Mapping[str, Any]) -> str:
     ]
     if views:
         parts.append(
-            _table(
+            html_table(
                 ["view", "sensor", "RMS px", "why"],
                 [
-                    [str(o["view"]), str(o["sensor"]), _f(o.get("error_px")), str(o.get("reason"))]
+                    [
+                        str(o["view"]),
+                        str(o["sensor"]),
+                        fixed(o.get("error_px")),
+                        str(o.get("reason")),
+                    ]
                     for o in views
                 ],
                 numeric=(2,),
@@ -250,14 +260,14 @@ def _outliers(report: Mapping[str, Any]) -> str:
     if corners:
         shown = corners[:MAX_CORNER_ROWS]
         parts.append(
-            _table(
+            html_table(
                 ["view", "sensor", "corner", "error px", "why"],
                 [
                     [
                         str(o["view"]),
                         str(o["sensor"]),
                         str(o["corner"]),
-                        _f(o.get("error_px")),
+                        fixed(o.get("error_px")),
                         str(o.get("reason")),
                     ]
                     for o in shown
@@ -271,7 +281,7 @@ def _outliers(report: Mapping[str, Any]) -> str:
     return "".join(parts)
 
 
-def _views_table(report: Mapping[str, Any]) -> str:
+def views_section(report: Mapping[str, Any]) -> str:
     """Every view and sensor: RMS px when used, the outlier's RMS in red, × [n] when the
     board was not found (n: the reason, listed below)."""
     detections = report.get("detections") or {}
@@ -288,12 +298,12 @@ def _views_table(report: Mapping[str, Any]) -> str:
     excluded = report.get("excluded_sensors") or {}
     rows = []
     for v in names:
-        row = [_e(v)]
+        row = [esc(v)]
         for s in sensors:
             e = (views.get(v) or {}).get(s)
             d = (detections.get(v) or {}).get(s)
             if e is not None:
-                rms = _f(e.get("rms_px"), 3)
+                rms = fixed(e.get("rms_px"), 3)
                 row.append(f"<span class='bad'>{rms} out</span>" if e.get("outlier") else rms)
             elif d is not None and not d.get("found"):
                 n = reasons.setdefault(str(d.get("reason") or "not found"), len(reasons) + 1)
@@ -303,10 +313,10 @@ def _views_table(report: Mapping[str, Any]) -> str:
             else:
                 row.append("")
         rows.append(row)
-    legend = "".join(f"<li>[{n}] {_e(r)}</li>" for r, n in reasons.items())
+    legend = "".join(f"<li>[{n}] {esc(r)}</li>" for r, n in reasons.items())
     return (
         "<section id='views'><h2>Every view</h2>"
-        + _table(
+        + html_table(
             ["view", *sensors],
             rows,
             numeric=tuple(range(1, len(sensors) + 1)),
@@ -325,38 +335,40 @@ def _views_table(report: Mapping[str, Any]) -> str:
     )
 
 
-def _comparison(report: Mapping[str, Any]) -> str:
+def comparison_section(report: Mapping[str, Any]) -> str:
+    """The errors against the true rig (``report["comparison"]``): per sensor, per
+    pair and the verdict; empty without a comparison."""
     cmp = report.get("comparison")
     if not isinstance(cmp, Mapping):
         return ""
     parts = [
         "<section id='truth'><h2>Against the true rig</h2>",
-        f"<p>Compared with <code>{_e(cmp.get('truth', '?'))}</code> (reference "
-        f"{_e(cmp.get('truth_reference', '?'))}); errors are estimate − truth.</p>",
+        f"<p>Compared with <code>{esc(cmp.get('truth', '?'))}</code> (reference "
+        f"{esc(cmp.get('truth_reference', '?'))}); errors are estimate − truth.</p>",
     ]
     for what in ("estimate", "truth"):
         only = cmp.get(f"only_in_{what}") or []
         if only:
-            parts.append(f"<p>Only in the {what}, not compared: {_e(', '.join(only))}.</p>")
+            parts.append(f"<p>Only in the {what}, not compared: {esc(', '.join(only))}.</p>")
     rows = []
     for n, e in (cmp.get("sensors") or {}).items():
         fails = [f for f in ("fx", "fy") if e.get(f"{f}_ok") is False]
         rows.append(
             [
-                _e(n),
-                _f(e.get("fx_px")),
-                _f(e.get("fy_px")),
-                _f(e.get("fx_percent"), 3),
-                _f(e.get("fy_percent"), 3),
-                f"±{_g(e.get('focal_target_percent'))}",
+                esc(n),
+                fixed(e.get("fx_px")),
+                fixed(e.get("fy_px")),
+                fixed(e.get("fx_percent"), 3),
+                fixed(e.get("fy_percent"), 3),
+                f"±{significant(e.get('focal_target_percent'))}",
                 _pass(fails),
-                _f(e.get("cx_px")),
-                _f(e.get("cy_px")),
-                _f(e.get("distortion_px")),
+                fixed(e.get("cx_px")),
+                fixed(e.get("cy_px")),
+                fixed(e.get("distortion_px")),
             ]
         )
     parts.append(
-        _table(
+        html_table(
             INTRINSICS_HEAD,
             rows,
             numeric=(1, 2, 3, 4, 5, 7, 8, 9),
@@ -372,17 +384,17 @@ def _comparison(report: Mapping[str, Any]) -> str:
         ]
         rows.append(
             [
-                _e(f"{p.get('a')} – {p.get('b')}"),
-                _f(p.get("rotation_deg"), 3),
-                _g(p.get("target_deg")),
-                _f(p.get("translation_mm"), 2),
-                _g(p.get("target_mm")),
+                esc(f"{p.get('a')} – {p.get('b')}"),
+                fixed(p.get("rotation_deg"), 3),
+                significant(p.get("target_deg")),
+                fixed(p.get("translation_mm"), 2),
+                significant(p.get("target_mm")),
                 _pass(fails),
             ]
         )
     if rows:
         parts.append(
-            _table(
+            html_table(
                 [
                     "pair",
                     "rotation error °",
@@ -398,7 +410,7 @@ def _comparison(report: Mapping[str, Any]) -> str:
                 "truth",
             )
         )
-    parts.append(_verdict_box(_comparison_verdict(cmp)) + "</section>")
+    parts.append(verdict_box(_comparison_verdict(cmp)) + "</section>")
     return "".join(parts)
 
 
@@ -406,32 +418,34 @@ def _pass(failed: list[str]) -> str:
     return (
         "<span class='good'>pass</span>"
         if not failed
-        else f"<span class='bad'>FAIL ({_e(', '.join(failed))})</span>"
+        else f"<span class='bad'>FAIL ({esc(', '.join(failed))})</span>"
     )
 
 
-def _run(report: Mapping[str, Any], command: str | None, versions: Mapping[str, str]) -> str:
+def run_section(report: Mapping[str, Any], command: str | None, versions: Mapping[str, str]) -> str:
+    """How the report was made: the command, capture, board, fewest views, format and
+    software versions."""
     board = report.get("board") or {}
     rows = []
     if command:
-        rows.append(["command", f"<code>{_e(command)}</code>"])
+        rows.append(["command", f"<code>{esc(command)}</code>"])
     if report.get("capture"):
-        rows.append(["capture", f"<code>{_e(report['capture'])}</code>"])
+        rows.append(["capture", f"<code>{esc(report['capture'])}</code>"])
     if board:
-        rows.append(["board", _e(_board_text(board))])
-    if _finite(report.get("min_views")):
-        rows.append(["fewest views per sensor", _e(report["min_views"])])
-    rows.append(["report format", _e(report.get("format", "?"))])
+        rows.append(["board", esc(report_board_text(board))])
+    if is_finite_number(report.get("min_views")):
+        rows.append(["fewest views per sensor", esc(report["min_views"])])
+    rows.append(["report format", esc(report.get("format", "?"))])
     if versions:
-        rows.append(["software", _e(", ".join(f"{k} {v}" for k, v in versions.items()))])
+        rows.append(["software", esc(", ".join(f"{k} {v}" for k, v in versions.items()))])
     return (
         "<section id='run'><h2>How this was made</h2>"
-        + _table(["", ""], rows, raw=True)
+        + html_table(["", ""], rows, raw=True)
         + "</section>"
     )
 
 
-def _board_text(board: Mapping[str, Any]) -> str:
+def report_board_text(board: Mapping[str, Any]) -> str:
     """:meth:`Board.describe` of the report's board (its polarity keys in brackets); a
     board the report format does not know: its keys as they are."""
     try:
@@ -440,5 +454,5 @@ def _board_text(board: Mapping[str, Any]) -> str:
         text, described = "board", set()
     extra = {k: v for k, v in board.items() if k not in described}
     if extra:
-        text += " (" + ", ".join(f"{_label(k)}: {v}" for k, v in extra.items()) + ")"
+        text += " (" + ", ".join(f"{key_label(k)}: {v}" for k, v in extra.items()) + ")"
     return text

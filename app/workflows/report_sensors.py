@@ -15,29 +15,29 @@ import numpy as np
 from trifuse.app.workflows.report_format import coverage_sentence, sensor_colour
 from trifuse.app.workflows.report_markup import (
     FIGURE_HEAD,
-    _advice,
-    _e,
-    _f,
-    _figure_rows,
-    _figures_table,
-    _finite,
-    _g,
-    _grade,
-    _graded,
-    _id,
-    _table,
-    _verdict_box,
-    _views_list,
+    advice_block,
+    esc,
+    figure_rows,
+    figures_table,
+    fixed,
     generic,
+    grade_badge,
+    html_id,
+    html_table,
+    is_finite_number,
+    is_graded,
     pm,
     sigma_decimals,
+    significant,
+    verdict_box,
+    views_list,
 )
 from trifuse.app.workflows.report_svg import (
     LEFT_CORNER,
     LEFT_VIEW,
     USED,
-    _rgb,
     coverage_svg,
+    hex_colour,
     scatter_svg,
     vectors_svg,
     view_rms_svg,
@@ -72,7 +72,8 @@ SENSOR_KEYS = frozenset(
 DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 
 
-def _sigma(entry: Mapping[str, Any], key: str) -> Any:
+def sigma_of(entry: Mapping[str, Any], key: str) -> Any:
+    """``entry["sigma"][key]`` of a sensor's report entry; None when it has none."""
     return (entry.get("sigma") or {}).get(key)
 
 
@@ -82,9 +83,11 @@ def _pose(entry: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     return np.degrees(rvec_from_rotation(T[:3, :3])), 1000.0 * T[:3, 3]
 
 
-def _vec_sigma(entry: Mapping[str, Any], key: str, scale: float = 1.0) -> np.ndarray:
-    s = _sigma(entry, key)
-    if not isinstance(s, Sequence) or len(s) != 3 or not all(_finite(v) for v in s):
+def sigma_vector(entry: Mapping[str, Any], key: str, scale: float = 1.0) -> np.ndarray:
+    """A sensor's 1-sigma of a 3-vector (``rotation_deg``, ``translation_m``) times
+    ``scale``, shape (3,); NaN when the report has no three finite numbers."""
+    s = sigma_of(entry, key)
+    if not isinstance(s, Sequence) or len(s) != 3 or not all(is_finite_number(v) for v in s):
         return np.full(3, np.nan)
     return scale * np.asarray(s, dtype=float)
 
@@ -118,22 +121,22 @@ def _left_out(report: Mapping[str, Any], name: str) -> str:
         if d is not None and not d.get("found"):
             by_reason.setdefault(str(d.get("reason") or "not found"), []).append(v)
     items = [
-        f"<li>board not found in {len(vs)} view(s) ({_e(_views_list(vs))}): {_e(r)}</li>"
+        f"<li>board not found in {len(vs)} view(s) ({esc(views_list(vs))}): {esc(r)}</li>"
         for r, vs in by_reason.items()
     ]
     outliers = report.get("outliers") or []
     for o in outliers:
         if o.get("sensor") == name and o.get("corner") is None:
             items.append(
-                f"<li>view {_e(o.get('view'))} left out (RMS {_f(o.get('error_px'))} px when "
+                f"<li>view {esc(o.get('view'))} left out (RMS {fixed(o.get('error_px'))} px when "
                 "flagged): "
-                f"{_e(o.get('reason'))}</li>"
+                f"{esc(o.get('reason'))}</li>"
             )
     corners = [o for o in outliers if o.get("sensor") == name and o.get("corner") is not None]
     if corners:
         views = sorted({str(o.get("view")) for o in corners})
         items.append(
-            f"<li>{len(corners)} outlier corner(s) left out, in view(s) {_e(_views_list(views))} "
+            f"<li>{len(corners)} outlier corner(s) left out, in view(s) {esc(views_list(views))} "
             "(<a href='#outliers'>Outliers</a>)</li>"
         )
     if not items:
@@ -146,47 +149,51 @@ def _rig_part(report: Mapping[str, Any], key: str) -> Any:
     verdict is a graded rig verdict (calib.verdict), else empty."""
     v = report.get("verdict")
     empty: Any = {} if key == "sensors" else []
-    if not _graded(v):
+    if not is_graded(v):
         return empty
     part = v.get(key)
     return part if isinstance(part, type(empty)) else empty
 
 
-def _sensor_section(
+def sensor_section(
     report: Mapping[str, Any], name: str, index: int, corners: CornerResiduals | None
 ) -> str:
+    """The section of sensor ``name`` (``index``: its place in the report, for its
+    colour): verdict and advice, intrinsics and pose ± 1-sigma, what was left out, the
+    per-view RMS chart, with ``corners`` the residual scatter and vectors, the coverage
+    map, and the sensor's keys this page does not know (:data:`SENSOR_KEYS`)."""
     s = report["sensors"][name]
-    colour = _rgb(sensor_colour(index))
+    colour = hex_colour(sensor_colour(index))
     intr = s.get("intrinsics") or {}
     size = list(s.get("image_size") or [0, 0])
     parts = [
-        f"<section class='sensor' id='sensor-{_id(name)}'>",
-        f"<h2><span style='color:{colour}'>■</span> {_e(name)} <span class='sub'>"
-        f"({_e(s.get('modality', ''))}, {_e(size[0])} × {_e(size[1])} px)</span></h2>",
+        f"<section class='sensor' id='sensor-{html_id(name)}'>",
+        f"<h2><span style='color:{colour}'>■</span> {esc(name)} <span class='sub'>"
+        f"({esc(s.get('modality', ''))}, {esc(size[0])} × {esc(size[1])} px)</span></h2>",
     ]
     verdict = s.get("verdict") or _rig_part(report, "sensors").get(name)
     if verdict is not None:
-        parts.append(_verdict_box(verdict))
+        parts.append(verdict_box(verdict))
     parts.append(
-        f"<p>Board found in {_e(s.get('views_detected', '?'))} view(s), "
-        f"{_e(s.get('views_used', '?'))} used; RMS reprojection error "
-        f"<b>{_f(s.get('rms_px'), 3)} px</b>; worst view {_e(s.get('worst_view') or '–')}.</p>"
+        f"<p>Board found in {esc(s.get('views_detected', '?'))} view(s), "
+        f"{esc(s.get('views_used', '?'))} used; RMS reprojection error "
+        f"<b>{fixed(s.get('rms_px'), 3)} px</b>; worst view {esc(s.get('worst_view') or '–')}.</p>"
     )
     if s.get("advice"):
-        parts.append(_advice(s["advice"]))
-    rows = [[k, pm(intr.get(k), _sigma(s, k)), "px"] for k in ("fx", "fy", "cx", "cy")]
+        parts.append(advice_block(s["advice"]))
+    rows = [[k, pm(intr.get(k), sigma_of(s, k)), "px"] for k in ("fx", "fy", "cx", "cy")]
     dist = list(s.get("distortion") or [])
-    dsig = list(_sigma(s, "distortion") or [])
+    dsig = list(sigma_of(s, "distortion") or [])
     for i, v in enumerate(dist):
         sg = dsig[i] if i < len(dsig) else None
         rows.append(
             [
                 DIST_NAMES[i] if i < len(DIST_NAMES) else f"d{i}",
-                "0 (fixed)" if v == 0 and not (_finite(sg) and sg > 0) else pm(v, sg, 4),
+                "0 (fixed)" if v == 0 and not (is_finite_number(sg) and sg > 0) else pm(v, sg, 4),
                 "",
             ]
         )
-    intr_table = _table(
+    intr_table = html_table(
         ["", "value ± 1-sigma", "unit"],
         rows,
         numeric=(1,),
@@ -196,15 +203,15 @@ def _sensor_section(
         pose_table = "<p>The reference: its frame is the rig frame.</p>"
     elif "T_rig_sensor" in s:
         rvec, t = _pose(s)
-        rs, ts = _vec_sigma(s, "rotation_deg"), _vec_sigma(s, "translation_m", 1000.0)
+        rs, ts = sigma_vector(s, "rotation_deg"), sigma_vector(s, "translation_m", 1000.0)
         pose_rows = [[f"rotation {a}", pm(rvec[i], rs[i], 3), "°"] for i, a in enumerate("xyz")]
-        pose_rows.append(["rotation angle", _f(float(np.linalg.norm(rvec)), 3), "°"])
+        pose_rows.append(["rotation angle", fixed(float(np.linalg.norm(rvec)), 3), "°"])
         pose_rows += [[f"translation {a}", pm(t[i], ts[i], 2), "mm"] for i, a in enumerate("xyz")]
-        pose_table = _table(
+        pose_table = html_table(
             ["", "value", "unit"],
             pose_rows,
             numeric=(1,),
-            caption=f"Pose in the rig frame ({_e(report.get('reference', ''))}'s): "
+            caption=f"Pose in the rig frame ({esc(report.get('reference', ''))}'s): "
             "T_rig_sensor, rotation vector and translation ± 1-sigma",
         )
     else:
@@ -226,7 +233,7 @@ def _sensor_section(
     if sel is not None:
         uv, res, used, in_bad_view = sel
         svg, lim, beyond = scatter_svg(res, used, in_bad_view)
-        note = f"; {beyond} beyond ±{_g(lim)} px drawn on the border" if beyond else ""
+        note = f"; {beyond} beyond ±{significant(lim)} px drawn on the border" if beyond else ""
         figures.append(
             f"<figure>{svg}<figcaption>Residual of every corner, detected minus reprojected "
             f"(du, dv) px: {_key(USED, f'{int(used.sum())} used')}, "
@@ -237,7 +244,7 @@ def _sensor_section(
         svg, gain = vectors_svg(uv, res, used, in_bad_view, size)
         figures.append(
             f"<figure>{svg}<figcaption>Where the corners fell in the image and their "
-            f"residuals drawn ×{_g(gain)}: {_key(USED, 'used')}, "
+            f"residuals drawn ×{significant(gain)}: {_key(USED, 'used')}, "
             f"{_key(LEFT_VIEW, 'in views left out')}, {_key(LEFT_CORNER, 'outlier corners')} "
             "(vectors cut short). A pattern (all pointing out at the edges, a swirl) is a "
             "model error; directions at random are noise.</figcaption></figure>"
@@ -246,14 +253,14 @@ def _sensor_section(
     if cov.get("corner_counts"):
         counts = np.asarray(cov["corner_counts"], dtype=int)
         bars = ", ".join(
-            f"{n} {_f(cov.get(k.lower()), 2)}"
+            f"{n} {fixed(cov.get(k.lower()), 2)}"
             for n, k in zip(PARAM_NAMES, ("x", "y", "size", "skew"), strict=True)
         )
         good = "enough" if cov.get("good_enough") else "not yet enough"
         figures.append(
             f"<figure>{coverage_svg(counts, size)}<figcaption>Corners of the views used, per "
-            f"region of the image: {_e(coverage_sentence(counts))}. Spread of the views (ROS "
-            f"bars, 1 = full): {_e(bars)} ({good}).</figcaption></figure>"
+            f"region of the image: {esc(coverage_sentence(counts))}. Spread of the views (ROS "
+            f"bars, 1 = full): {esc(bars)} ({good}).</figcaption></figure>"
         )
     if sel is None:
         figures.append(
@@ -271,7 +278,7 @@ def _sensor_section(
 
 def _key(colour: str, text: str) -> str:
     """A legend entry: a dot of ``colour`` and the text."""
-    return f"<span style='color:{colour}'>●</span>&nbsp;{_e(text)}"
+    return f"<span style='color:{colour}'>●</span>&nbsp;{esc(text)}"
 
 
 def _inline(block: str) -> str:
@@ -314,7 +321,7 @@ def pair_rows(report: Mapping[str, Any]) -> list[list[str]]:
     vector's sigma and the baseline's the translation sigma along the baseline."""
     sensors = report.get("sensors") or {}
     reference = report.get("reference")
-    joint = {tuple(v.get("sensors") or ()): v for v in _rig_part(report, "pairs") if _graded(v)}
+    joint = {tuple(v.get("sensors") or ()): v for v in _rig_part(report, "pairs") if is_graded(v)}
     names = [n for n in sensors if "T_rig_sensor" in sensors[n]]
     rows = []
     for i, a in enumerate(names):
@@ -331,7 +338,7 @@ def pair_rows(report: Mapping[str, Any]) -> list[list[str]]:
                     f.get("unit"): f for f in v.get("figures") or [] if isinstance(f, Mapping)
                 }
                 rot, tr = figures.get("°") or {}, figures.get("mm") or {}
-                if _finite(rot.get("sigma")) and isinstance(tr.get("axes"), Sequence):
+                if is_finite_number(rot.get("sigma")) and isinstance(tr.get("axes"), Sequence):
                     s_rot, s_t = float(rot["sigma"]), np.asarray(tr["axes"], dtype=float)
                     s_b = v.get("sigma_baseline_length_mm", s_b)
                     source = "joint"
@@ -340,9 +347,9 @@ def pair_rows(report: Mapping[str, Any]) -> list[list[str]]:
                     f"{a} – {b}",
                     pm(angle, s_rot, 3),
                     ", ".join(
-                        _f(x, sigma_decimals(sx, 1)) for x, sx in zip(t_mm, s_t, strict=True)
+                        fixed(x, sigma_decimals(sx, 1)) for x, sx in zip(t_mm, s_t, strict=True)
                     ),
-                    ", ".join(_f(x, sigma_decimals(x, 2)) for x in s_t),
+                    ", ".join(fixed(x, sigma_decimals(x, 2)) for x in s_t),
                     pm(float(np.linalg.norm(t_mm)), s_b, 2),
                     source,
                 ]
@@ -364,8 +371,8 @@ def _pair_sigma(
     for n in (a, b):
         if n == reference:
             continue
-        ts = _vec_sigma(sensors[n], "translation_m", 1000.0)
-        rot.append(float(np.linalg.norm(_vec_sigma(sensors[n], "rotation_deg"))))
+        ts = sigma_vector(sensors[n], "translation_m", 1000.0)
+        rot.append(float(np.linalg.norm(sigma_vector(sensors[n], "rotation_deg"))))
         trans.append(ts)
         base.append(float(np.sqrt(np.sum((direction * ts) ** 2))))
     if not rot:
@@ -374,13 +381,15 @@ def _pair_sigma(
     return math.hypot(*rot), s_t, math.hypot(*base), "own" if len(rot) == 1 else "≈"
 
 
-def _pairs(report: Mapping[str, Any]) -> str:
+def pairs_section(report: Mapping[str, Any]) -> str:
+    """The relative pose of every pair of sensors ± 1-sigma, and the pairs' verdicts;
+    empty when the report has no pair."""
     rows = pair_rows(report)
     if not rows:
         return ""
     parts = [
         "<section id='pairs'><h2>Relative poses of the sensors</h2>",
-        _table(
+        html_table(
             [
                 "pair a – b",
                 "rotation °",
@@ -394,23 +403,23 @@ def _pairs(report: Mapping[str, Any]) -> str:
             caption="T_a_b = inv(T_rig_a) @ T_rig_b: the angle of its rotation, its "
             "translation in a's frame (x right, y down, z forward) and its length, ± 1-sigma. "
             "σ from: joint, the pair's own verdict (the joint covariance); own, a pair with "
-            f"the reference ({_e(report.get('reference', ''))}); ≈, the two sensors' 1-sigma "
+            f"the reference ({esc(report.get('reference', ''))}); ≈, the two sensors' 1-sigma "
             "relative to the reference combined as if independent.",
             attrs=" class='small'",
         ),
     ]
     rows = []
     for v in _rig_part(report, "pairs"):
-        if _graded(v):
-            for k, f in enumerate(_figure_rows(v.get("figures"))):
-                lead = [_e(v.get("label", "")), _grade(v["grade"])] if k == 0 else ["", ""]
+        if is_graded(v):
+            for k, f in enumerate(figure_rows(v.get("figures"))):
+                lead = [esc(v.get("label", "")), grade_badge(v["grade"])] if k == 0 else ["", ""]
                 rows.append([*lead, *f])
     if rows:
         parts.append(
             "<p class='caption'>Verdicts of the eye and stereo pairs (calib.verdict): the "
             "1-sigma of their relative pose from the joint covariance, per axis of a's frame "
             "(horizontal, vertical, optical; sideways, vertical, depth)</p>"
-            + _figures_table(("pair", "grade", *FIGURE_HEAD), rows)
+            + figures_table(("pair", "grade", *FIGURE_HEAD), rows)
         )
     parts.append("</section>")
     return "".join(parts)

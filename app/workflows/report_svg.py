@@ -11,7 +11,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from trifuse.app.workflows.report_markup import _e, _finite, _g
+from trifuse.app.workflows.report_markup import esc, is_finite_number, significant
 
 USED, LEFT_VIEW, LEFT_CORNER, GREY = "#3b6ea5", "#e0a000", "#d62728", "#888"
 """Plot colours, the same for every sensor: a corner or view used, a view left out (an
@@ -42,14 +42,15 @@ def ticks(hi: float, n: int = 5) -> tuple[list[float], int]:
     return values, d
 
 
-def _rgb(c: tuple[int, int, int]) -> str:
+def hex_colour(c: tuple[int, int, int]) -> str:
+    """An (r, g, b) colour, 0-255 each, as ``#rrggbb``."""
     return "#{:02x}{:02x}{:02x}".format(*c)
 
 
 def _svg(width: float, height: float, body: Sequence[str], label: str) -> str:
     return (
         f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {width:g} {height:g}" '
-        f'width="{width:g}" height="{height:g}" role="img" aria-label="{_e(label)}" '
+        f'width="{width:g}" height="{height:g}" role="img" aria-label="{esc(label)}" '
         'font-size="10">' + "".join(body) + "</svg>"
     )
 
@@ -59,7 +60,7 @@ def _dots(xy: np.ndarray, colour: str, size: float = 2.6, title: str = "") -> st
     if len(xy) == 0:
         return ""
     d = "".join(f"M{x:.1f} {y:.1f}h0" for x, y in xy)
-    t = f"<title>{_e(title)}</title>" if title else ""
+    t = f"<title>{esc(title)}</title>" if title else ""
     return (
         f'<path d="{d}" stroke="{colour}" stroke-width="{size:g}" stroke-linecap="round" '
         f'fill="none">{t}</path>'
@@ -90,7 +91,7 @@ def view_rms_svg(
     width = 680.0
     height = 210.0
     pw, ph = width - left - right, height - top - bottom
-    values = [r for r in rms if _finite(r)]
+    values = [r for r in rms if is_finite_number(r)]
     hi = nice_ceil(max(values, default=1.0) * 1.08)
     tv, d = ticks(hi, 4)
     y = lambda v: top + ph * (1 - min(v, hi) / hi)  # noqa: E731
@@ -105,25 +106,25 @@ def view_rms_svg(
     label_every = max(1, math.ceil(n / 48))
     for i, (v, r, s) in enumerate(zip(views, rms, state, strict=True)):
         cx = left + slot * (i + 0.5)
-        if s in ("used", "outlier") and _finite(r):
+        if s in ("used", "outlier") and is_finite_number(r):
             fill = LEFT_VIEW if s == "outlier" else USED
             bw = max(1.0, slot * 0.7)
             body.append(
                 f'<rect x="{cx - bw / 2:.1f}" y="{y(r):.1f}" width="{bw:.1f}" '
-                f'height="{top + ph - y(r):.1f}" fill="{fill}"><title>{_e(v)}: '
+                f'height="{top + ph - y(r):.1f}" fill="{fill}"><title>{esc(v)}: '
                 f"{r:.3f} px{' (outlier)' if s == 'outlier' else ''}</title></rect>"
             )
         elif s == "not found":
             body.append(
                 f'<text x="{cx:.1f}" y="{top + ph - 2:.1f}" text-anchor="middle" '
-                f'fill="{GREY}">×<title>{_e(v)}: board not found</title></text>'
+                f'fill="{GREY}">×<title>{esc(v)}: board not found</title></text>'
             )
         if i % label_every == 0:
             body.append(
                 f'<text transform="translate({cx + 3:.1f} {top + ph + 5:.1f}) rotate(-60)" '
-                f'text-anchor="end" font-size="8.5">{_e(v[-10:])}</text>'
+                f'text-anchor="end" font-size="8.5">{esc(v[-10:])}</text>'
             )
-    if _finite(sensor_rms):
+    if is_finite_number(sensor_rms):
         body.append(
             f'<line x1="{left}" x2="{left + pw:g}" y1="{y(sensor_rms):.1f}" '
             f'y2="{y(sensor_rms):.1f}" stroke="#333" stroke-dasharray="4 3"/>'
@@ -270,7 +271,7 @@ def vectors_svg(
         _dots(a[lone], LEFT_CORNER, 3.0, "outlier corner"),
         f'<line x1="8" x2="{8 + bar:.1f}" y1="{height + 12:.1f}" y2="{height + 12:.1f}" '
         f'stroke="{USED}" stroke-width="2"/>'
-        f'<text x="{12 + bar:.1f}" y="{height + 15.5:.1f}">{_g(bar_px)} px residual '
-        f"(drawn ×{_g(gain)})</text>",
+        f'<text x="{12 + bar:.1f}" y="{height + 15.5:.1f}">{significant(bar_px)} px residual '
+        f"(drawn ×{significant(gain)})</text>",
     ]
     return _svg(width, round(height + 22, 1), body, "residual vectors over the image"), gain

@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 import trifuse.calib.detect as detect_mod
+import trifuse.calib.detect_order as order_mod
+import trifuse.calib.detect_prepare as prepare_mod
 from tests.support import OPENCV_LEFT_9X6
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.sources.sim.scenarios import (
@@ -205,7 +207,7 @@ def test_any_detector_ordering_gives_the_canonical_order(
     tried; the normalisation must also undo the other two (rows or columns flipped)."""
     c = _case(cases, sensor)
     grid = c.detection.corners.reshape(BOARD.rows, BOARD.cols, 2)
-    s = {"color": 1, "thermal": detect_mod.THERMAL_UPSAMPLE, "tof": detect_mod.TOF_UPSAMPLE}
+    s = {"color": 1, "thermal": prepare_mod.THERMAL_UPSAMPLE, "tof": prepare_mod.TOF_UPSAMPLE}
     scale = s[c.modality]
     for order in (grid, grid[::-1, ::-1], grid[::-1], grid[:, ::-1]):
         raw = ((order + 0.5) * scale - 0.5).reshape(-1, 2).astype(np.float32)
@@ -347,7 +349,7 @@ def test_ambiguous_colours_are_rejected_not_guessed(
     for _ in range(20):
         noise = rng.normal(size=(h // 8, w // 8)).astype(np.float32)
         img = cv2.resize(noise, (w, h), interpolation=cv2.INTER_NEAREST)
-        _, agreement, separation = detect_mod._colour_order(img, grid)
+        _, agreement, separation = order_mod._colour_order(img, grid)
         ambiguous += (
             agreement < detect_mod.COLOUR_AGREEMENT or separation < detect_mod.COLOUR_MIN_SEPARATION
         )
@@ -356,7 +358,7 @@ def test_ambiguous_colours_are_rejected_not_guessed(
 
 def test_non_finite_corners_are_rejected(cases: list[Case]) -> None:
     c = _case(cases, "ccd_left")
-    prep = detect_mod._prepare(c.image, "color", True)
+    prep = prepare_mod.prepare(c.image, "color", True)
     raw = c.detection.corners.copy()
     raw[7] = np.nan
     with pytest.raises(detect_mod._Rejected, match="non-finite"):

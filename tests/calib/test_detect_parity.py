@@ -22,10 +22,11 @@ import cv2
 import numpy as np
 import pytest
 
-import trifuse.calib.detect as detect_mod
+import trifuse.calib.detect_grid as grid_mod
+import trifuse.calib.detect_prepare as prepare_mod
 from tests.palette_support import render
 from tests.support import DATA_DIR
-from trifuse.app.devtools.real_sets import top_left_first
+from trifuse.app.devtools.opencv_figures import top_left_first
 from trifuse.calib.board import Board
 from trifuse.calib.detect import detect_board
 from trifuse.calib.opencv_reference import calibrate_camera_opencv, find_chessboard_opencv
@@ -133,11 +134,11 @@ def test_a_stray_corner_is_put_back_on_the_grid() -> None:
     grey, _ = _bumblebee_views()["left01"]
     corners, _ = find_chessboard_opencv(grey, (4, 6))
     truth = corners.reshape(6, 4, 2)
-    assert detect_mod._repaired(truth) is None  # nothing stray
-    spacing = detect_mod._min_spacing(truth)
+    assert grid_mod._repaired(truth) is None  # nothing stray
+    spacing = grid_mod._min_spacing(truth)
     moved = truth.copy()
     moved[2, 1] += 0.5 * spacing * np.array([0.6, 0.8])
-    repaired = detect_mod._repaired(moved)
+    repaired = grid_mod._repaired(moved)
     assert repaired is not None
     # Only the stray corner moves, back to within 1.5 px of the truth (a homography
     # ignores the lens distortion; measured 0.67 px at a spacing of 32 px) ...
@@ -146,13 +147,12 @@ def test_a_stray_corner_is_put_back_on_the_grid() -> None:
     assert np.linalg.norm(repaired[2, 1] - truth[2, 1]) < 1.5
     # ... and the narrow cornerSubPix after it puts it on the image's corner (every
     # corner within 0.45 px of OpenCV's, measured; the narrow window alone leaves it 15 px off).
-    prep = detect_mod._prepare(grey, "color", True)
+    prep = prepare_mod.prepare(grey, "color", True)
     grids = dict(
-        (sfx, G)
-        for G, sfx in detect_mod._refined(moved, prep, BUMBLEBEE_BOARD, False, fallback=True)
+        (sfx, G) for G, sfx in grid_mod.refined(moved, prep, BUMBLEBEE_BOARD, False, fallback=True)
     )
     assert np.linalg.norm(grids["+repaired"] - truth, axis=2).max() < 0.8
     # More than one corner in ten stray (3 of 24): not a grid to repair.
     moved[4, 2] += 0.5 * spacing
     moved[0, 3] -= 0.5 * spacing
-    assert detect_mod._repaired(moved) is None
+    assert grid_mod._repaired(moved) is None

@@ -13,7 +13,9 @@ import cv2
 import numpy as np
 import pytest
 
-import trifuse.calib.detect as detect_mod
+import trifuse.calib.detect_grid as grid_mod
+import trifuse.calib.detect_order as order_mod
+import trifuse.calib.detect_prepare as prepare_mod
 from tests.support import DATA_DIR
 from trifuse.app.devtools.real_sets import REAL_SETS
 from trifuse.calib.board import Board
@@ -32,7 +34,7 @@ LEVEL_TOLERANCE_PX = 2.0 * 4056 / LEVEL_PX
 # the same image with the same window, which stops once a step is below its epsilon
 # (SUBPIX_CRITERIA, 1e-3 px), so both stop within a few epsilons of the same point
 # (measured at most 0.0008 px on 4 views). Bound: 10 epsilons.
-FULL_RES_TOLERANCE_PX = 10 * detect_mod.SUBPIX_CRITERIA[2]
+FULL_RES_TOLERANCE_PX = 10 * grid_mod.SUBPIX_CRITERIA[2]
 
 # Reprojection RMS of one view's corners through OpenCV's calibration of the 12 views
 # (solvePnP with its intrinsics): our corners on all 47 views of the source 1.95 px at
@@ -127,16 +129,16 @@ def test_a_grid_shifted_onto_the_white_frame_is_refused() -> None:
     grey = _grey("Img49", "visible-extra")
     shifted = _opencv_at(grey, LEVEL_PX, "sb-normalized")
     assert shifted is not None
-    darkness = next(detect_mod._pyramid_levels(grey)).darkness
-    ordered = detect_mod.canonical_order(shifted, BOARD, darkness)[0]
+    darkness = next(prepare_mod.pyramid_levels(grey)).darkness
+    ordered = order_mod.canonical_order(shifted, BOARD, darkness)[0]
     assert _reprojection_rms(ordered) > ON_BOARD_RMS_PX  # not on the board's corners
-    problem = detect_mod._ring_problem(darkness, shifted)
+    problem = order_mod.ring_problem(darkness, shifted)
     assert problem is not None and "margin" in problem
 
     det = detect_board(grey, BOARD, "color")
     assert det.found, det.reason
     assert _reprojection_rms(det.corners) < ON_BOARD_RMS_PX
-    assert detect_mod._ring_problem(darkness, det.corners.reshape(BOARD.rows, -1, 2)) is None
+    assert order_mod.ring_problem(darkness, det.corners.reshape(BOARD.rows, -1, 2)) is None
 
 
 def test_a_board_filling_the_frame_is_found_on_the_500_px_copy() -> None:
@@ -184,7 +186,7 @@ def test_thermal_pairs_calibrate_as_well_as_with_opencv_s_corners() -> None:
         ours.append(det.corners)
         ok, raw = cv2.findChessboardCornersSB(grey, BOARD.pattern_size)
         assert ok, path.stem
-        plain.append(detect_mod.canonical_order(raw, BOARD, grey.astype(np.float32))[0])
+        plain.append(order_mod.canonical_order(raw, BOARD, grey.astype(np.float32))[0])
     obj = [BOARD.object_points().astype(np.float32)] * len(ours)
     rms, K, *_ = cv2.calibrateCamera(obj, [c.astype(np.float32) for c in ours], size, None, None)
     rms_cv, K_cv, *_ = cv2.calibrateCamera(

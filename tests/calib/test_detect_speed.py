@@ -6,7 +6,7 @@ These tests check the three steps' outcomes instead, on czha626's real LWIR imag
 squares:
 
 * one preparation at the original size serves both search levels: the upsampled level is
-  the same images as preparing upsampled (``calib.detect._upsampled``);
+  the same images as preparing upsampled (``calib.detect_prepare._upsampled``);
 * squares this large are searched at the original size first, and the corners (from the
   same fine stage) stay within noise of the upsampled search's;
 * no detector runs twice on one image, however many levels look at it.
@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 import trifuse.calib.detect as detect_mod
+import trifuse.calib.detect_prepare as prepare_mod
 from tests.support import DATA_DIR
 from trifuse.calib.board import Board
 from trifuse.calib.detect import detect_board
@@ -45,10 +46,10 @@ def test_the_upsampled_level_is_the_upsampled_preparation() -> None:
     """Thermal (2 x) and TOF (4 x): every image of the level built from the original-size
     preparation equals, bit for bit, what preparing upsampled gives."""
     image = _grey("Img05.jpg")
-    for modality, s in (("thermal", detect_mod.THERMAL_UPSAMPLE), ("tof", 4)):
-        native = detect_mod._prepare(image, modality, True, upsample=1)
-        direct = detect_mod._prepare(image, modality, True)
-        level = detect_mod._upsampled(native, s)
+    for modality, s in (("thermal", prepare_mod.THERMAL_UPSAMPLE), ("tof", 4)):
+        native = prepare_mod.prepare(image, modality, True, upsample=1)
+        direct = prepare_mod.prepare(image, modality, True)
+        level = prepare_mod._upsampled(native, s)
         assert level.scale == direct.scale == s
         for a, b in (
             (level.detect, direct.detect),

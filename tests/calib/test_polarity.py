@@ -29,6 +29,7 @@ from tests.board_support import (
 from tests.support import upside_down
 from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
 from trifuse.calib.board import Board
+from trifuse.calib.board_ordering import orient_to_pose
 from trifuse.calib.camera import Intrinsics
 from trifuse.calib.diagnosis import intrinsics_problem
 from trifuse.calib.polarity import (
@@ -37,7 +38,6 @@ from trifuse.calib.polarity import (
     check_ordering,
     detect_board_configured,
     half_turn,
-    orient_to_pose,
     reverse_corners,
 )
 from trifuse.calib.rig import Rig

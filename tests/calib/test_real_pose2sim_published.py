@@ -15,7 +15,7 @@ that is cam04's reference here, and the test checks that the published value mis
 this reason.
 
 Measured (fx against published; cam04 against the recipe without the bad view):
-trifuse -0.33, -0.28, -0.11, -0.01 %; OpenCV's plain pipeline (real_sets.measure: detectors'
+trifuse -0.33, -0.28, -0.11, -0.01 %; OpenCV's plain pipeline (opencv_figures.measure: detectors'
 own corners, 5 coefficients) +0.51, -0.24, +0.08, +1.35 %.
 
 Four boards have corners 0.07-0.12 of a corner spacing from the image's edge; calib.detect's
@@ -32,7 +32,7 @@ import pytest
 
 from tests.pose2sim_support import BAD_CORNER_PX, CAMERAS, SET, TARGET, pose2sim_recipe
 from trifuse.app.devtools.bench_real_calib import run_trifuse, trifuse_name, write_capture
-from trifuse.app.devtools.real_sets import measure
+from trifuse.app.devtools.opencv_figures import measure
 
 
 @pytest.fixture(scope="module")

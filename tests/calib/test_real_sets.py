@@ -12,14 +12,12 @@ import cv2
 import numpy as np
 import pytest
 
+from trifuse.app.devtools.opencv_figures import measure, reference_table, top_left_first
 from trifuse.app.devtools.real_sets import (
     REAL_SETS,
     Checkerboard,
-    measure,
     published_relative_pose,
-    reference_table,
     sensor_files,
-    top_left_first,
 )
 from trifuse.calib.camera import Intrinsics
 from trifuse.calib.errors import CalibrationError

@@ -325,7 +325,7 @@ def test_consensus_angles_in_chunks_equal_the_broadcast_formula(monkeypatch) -> 
     far = np.array([0.0, 0.0, 1.5])  # in front of the camera
     P = rng.normal(0, 0.2, (n, M, 3)) + far
     moved = rng.normal(0, 0.2, (n, K, M, 3)) + far
-    direct = polarity._angle_deg(moved[None], polarity._apply(T[:, None], P[None])[:, :, None])
+    direct = polarity.angle_deg(moved[None], polarity.apply_T(T[:, None], P[None])[:, :, None])
     monkeypatch.setattr(polarity, "_CHUNK_ELEMENTS", 3 * n * K * M)  # chunks of 3: 3+3+3+2
     assert direct.shape == (J, n, K)
     assert np.allclose(polarity._angle_deg_each(moved, P, T), direct, rtol=1e-12, atol=1e-12)

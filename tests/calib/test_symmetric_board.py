@@ -1,6 +1,6 @@
 """Boards that look the same turned (issue 30, 2): even x even, odd x odd and square boards
 are detected in any of their orderings, and a calibration decides each view's ordering
-across sensors from the data (calib.polarity.order_views).
+across sensors from the data (calib.board_ordering.order_views).
 
 Synthetic detections: exact projections of the simulated head's ground truth plus seeded
 noise (tests/board_support.py's ``corners_seen``), every (view, sensor) turned by a seeded
@@ -17,6 +17,8 @@ import numpy as np
 import pytest
 
 import trifuse.calib.detect as detect_mod
+import trifuse.calib.detect_grid as grid_mod
+import trifuse.calib.detect_order as order_mod
 from tests.board_support import (
     RIG,
     SPECS,
@@ -28,14 +30,16 @@ from tests.board_support import (
     screen,
 )
 from tests.prerender_support import prerendered
-from trifuse.app.devtools.real_sets import REAL_SETS, load_views, measure
+from trifuse.app.devtools.opencv_figures import measure
+from trifuse.app.devtools.real_sets import REAL_SETS, load_views
 from trifuse.app.storage.capture import load_capture
 from trifuse.app.storage.ground_truth import load_ground_truth
 from trifuse.app.workflows.calibration_run import calibrate_capture
 from trifuse.calib.board import Board
+from trifuse.calib.board_ordering import grid_turns, order_views, orient_to_pose
 from trifuse.calib.detect import detect_board
 from trifuse.calib.opencv_reference import calibrate_camera_opencv, stereo_calibrate_opencv
-from trifuse.calib.polarity import grid_turns, half_turn, order_views, orient_to_pose
+from trifuse.calib.polarity import half_turn
 from trifuse.calib.rig_calibration import SensorSpec, calibrate_rig
 from trifuse.calib.rig_compare import compare_rigs
 from trifuse.calib.transforms import invert, make_T, rotation_from_euler_deg, transform_points
@@ -479,8 +483,8 @@ def test_the_colour_vote_does_not_depend_on_the_grid_it_starts_from() -> None:
     image, truth = glared_view(board, 3, seed=0)
     grey = image.astype(np.float32)
     G = truth.reshape(board.rows, board.cols, 2)
-    a = detect_mod._colour_order(grey, G)
-    b = detect_mod._colour_order(grey, G[::-1, ::-1])
+    a = order_mod._colour_order(grey, G)
+    b = order_mod._colour_order(grey, G[::-1, ::-1])
     assert a[0] != b[0]  # a half turn of a 9 x 6 board swaps the colours
     assert a[1] == pytest.approx(b[1]) and a[2] == pytest.approx(b[2])
     assert a[1] < detect_mod.COLOUR_AGREEMENT
@@ -497,6 +501,6 @@ def test_the_fine_stage_takes_a_square_grid_found_from_another_side() -> None:
     G = intr.project(transform_points(T, board.object_points())).reshape(6, 6, 2)
     noise = np.random.default_rng(1).normal(0.0, 0.05, G.shape)
     for F in (G.transpose(1, 0, 2), G[::-1].transpose(1, 0, 2), G[:, ::-1].transpose(1, 0, 2)):
-        got = detect_mod._same_grid(F + noise, G)
+        got = grid_mod._same_grid(F + noise, G)
         assert got is not None and np.abs(got - G).max() < 0.3
-    assert detect_mod._same_grid(np.roll(G, 1, axis=0), G) is None
+    assert grid_mod._same_grid(np.roll(G, 1, axis=0), G) is None

@@ -16,7 +16,7 @@ sensors (a pose is required there).
    with views of its own. Every camera gets fx within 1 % of the reference of
    tests/calib/test_real_pose2sim_published.py (Pose2Sim's recipe without the view whose corner
    cornerSubPix leaves 14 px off; its recipe computed here), with OpenCV's plain
-   per-camera result (real_sets.measure) computed in the same test and shown beside it.
+   per-camera result (opencv_figures.measure) computed in the same test and shown beside it.
    Measured: -0.33, -0.28, -0.11, -0.01 % (OpenCV plain +0.51, -0.24, +0.08, +1.35 %).
 """
 

@@ -40,7 +40,7 @@ CRATE_K, CEILING_K, RADIATOR_K = 294.5, 294.3, 333.0
 
 def room(seed: int, shift_px: int = 0, netd_k: float = 0.08) -> tuple[np.ndarray, np.ndarray]:
     """A synthetic eye of the inspection room with its temperatures (as
-    ``app.sources.sim.scenarios.inspection_scene`` has them, surfaces as read): ceiling,
+    ``app.sources.sim.inspection.inspection_scene`` has them, surfaces as read): ceiling,
     wall (a gentle vertical gradient), floor, a person, a small very hot pipe, a crate, a
     cold fridge and a radiator; NaN on the left tenth (outside the thermal view).
     ``shift_px`` moves the objects (the other eye's parallax). Returns the kelvin image

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.inspection import inspection_scene
 from trifuse.app.sources.sim.render import HeadModel, Renderer
-from trifuse.app.sources.sim.scenarios import inspection_scene
 from trifuse.calib.radiometry import Radiometry
 from trifuse.calib.rig import Rig
 from trifuse.calib.transforms import make_T, rotation_from_euler_deg

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.inspection import InspectionScenario
 from trifuse.app.sources.sim.render import HeadModel, Renderer
-from trifuse.app.sources.sim.scenarios import InspectionScenario
 from trifuse.app.sources.sim.scene import Box, Material, Quad, Scene
 from trifuse.app.sources.sim.tof_error import RangeErrorModel
 from trifuse.calib.camera import Intrinsics

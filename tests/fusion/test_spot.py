@@ -20,13 +20,13 @@ import cv2
 import numpy as np
 import pytest
 
-from trifuse.app.sources.sim.render import HeadModel
-from trifuse.app.sources.sim.scenarios import (
+from trifuse.app.sources.sim.inspection import (
     INSPECTION_WALL_K,
     PERSON2_SKIN_K,
     WINDOW_K,
     InspectionScenario,
 )
+from trifuse.app.sources.sim.render import HeadModel
 from trifuse.app.sources.sim.tof_error import RangeErrorModel
 from trifuse.fusion.compose import DisplaySettings
 from trifuse.fusion.spot import SpotError, SpotFrame, SpotMeter, robust_extremes

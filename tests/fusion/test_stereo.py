@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from trifuse.app.sources.sim.scenarios import InspectionScenario
+from trifuse.app.sources.sim.inspection import InspectionScenario
 from trifuse.fusion.accuracy import band_errors, depth_edges, exact_mapping
 from trifuse.fusion.compose import DisplaySettings
 from trifuse.fusion.stereo import StereoFusion

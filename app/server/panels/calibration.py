@@ -19,7 +19,7 @@ import viser.uplot as uplot
 
 from trifuse.app.server.markdown_text import md_cells, md_text
 from trifuse.app.server.panels.next_pose_overlay import NextPoseOverlay, verdict_md
-from trifuse.app.server.runtime.board_watch import BoardSighting
+from trifuse.app.server.runtime.board_sighting import BoardSighting
 from trifuse.app.server.runtime.context import ConsoleContext
 from trifuse.app.server.runtime.demand import Hold
 from trifuse.app.server.runtime.periodic import Periodic

@@ -22,8 +22,9 @@ from __future__ import annotations
 import dataclasses
 import re
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 
 import cv2
 import numpy as np
@@ -31,7 +32,7 @@ import numpy as np
 from trifuse.app.errors import describe_error
 from trifuse.app.server.markdown_text import md_text
 from trifuse.app.server.panels.stream import StreamPresetControl
-from trifuse.app.server.runtime.board_watch import BoardSighting
+from trifuse.app.server.runtime.board_sighting import BoardSighting
 from trifuse.app.server.runtime.context import BANDWIDTH_MODES, ConsoleBandwidth, ConsoleContext
 from trifuse.app.server.runtime.periodic import Periodic
 from trifuse.app.server.runtime.pipeline import FusionPipeline
@@ -341,7 +342,7 @@ class Panels(Periodic):
                 for name in pipeline.rig.names
             }
             self.feeds_error = gui.add_markdown("")
-        # what each feed shows: (frame, detection), compared by identity
+        # what each feed shows (:attr:`feeds_shown`), compared by identity
         self._shown: dict[str, tuple[Frame, Detection | None, np.ndarray | None]] = {}
         for handle in (
             self.mode,
@@ -517,6 +518,14 @@ class Panels(Periodic):
                 frame, detection, self.ctx.board.cols, self.profile.width_px, outline
             )
             self._shown[name] = now
+
+    @property
+    def feeds_shown(self) -> Mapping[str, tuple[Frame, Detection | None, np.ndarray | None]]:
+        """What each feed shows now, by sensor name: (the frame drawn, its board detection
+        drawn on it or None, the next view's outline drawn or None: (N, 2) full-image
+        pixels). A feed with no image drawn yet (or since the bandwidth mode changed) is
+        absent. A read-only view that follows the feeds."""
+        return MappingProxyType(self._shown)
 
 
 SPLIT = "both (split evenly)"

@@ -11,7 +11,7 @@ import viser
 
 from trifuse.app.server.markdown_text import md_text
 from trifuse.app.server.panels.scene_sensors import wxyz_of
-from trifuse.app.server.runtime.board_watch import BoardSighting
+from trifuse.app.server.runtime.board_sighting import BoardSighting
 from trifuse.app.sources.frames import FrameSet
 from trifuse.calib.board import Board, aruco_dictionary
 
@@ -96,7 +96,7 @@ class BoardMarker:
 
     def show(self, sighting: BoardSighting | None, newest: object) -> None:
         """The board at ``sighting``'s pose ``T_rig_board`` (a
-        :class:`~app.server.runtime.board_watch.BoardSighting`, or None), hidden when it
+        :class:`~app.server.runtime.board_sighting.BoardSighting`, or None), hidden when it
         has none; the line says how far away, from which sensor, who saw it and, from
         :data:`BOARD_LAG_SHOWN_S` on, how much older its frames are than the ``newest``
         frame set. Nothing changes for the sighting shown already."""

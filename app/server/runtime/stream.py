@@ -303,8 +303,8 @@ class FrameHub:
                 frame = self._frame
                 if frame is not None and frame.seq > last:
                     last = frame.seq
-                    jpeg = frame.jpeg
-                    if jpeg is None:
+                    jpeg = frame.jpeg or frame.made_jpeg[0]
+                    if jpeg is None:  # the first to take it: encoded in a worker thread
                         jpeg = await asyncio.to_thread(self.jpeg_of, frame)
                     yield frame, jpeg
                     continue

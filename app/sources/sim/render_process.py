@@ -102,7 +102,7 @@ def _render_worker(
     and builds the renderer's ray grids before the first request.
     """
     if scenario is None:
-        from trifuse.app.sources.sim.scenarios import InspectionScenario
+        from trifuse.app.sources.sim.inspection import InspectionScenario
 
         scenario = InspectionScenario(seed=seed, live=live)
     rig = scenario.rig

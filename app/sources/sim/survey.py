@@ -19,7 +19,7 @@ import hashlib
 
 import numpy as np
 
-from trifuse.app.sources.sim.scenarios import InspectionScenario
+from trifuse.app.sources.sim.inspection import InspectionScenario
 from trifuse.calib.rig import rig_to_yaml
 from trifuse.calib.transforms import make_T, rotation_from_euler_deg
 

@@ -16,7 +16,7 @@ from tests.support import small_rig, synth_frames, write_recording
 from trifuse.app.cli import main
 from trifuse.app.recording import RecordingWriter, ReplaySource
 from trifuse.app.recording.poses import read_poses
-from trifuse.app.sources.sim.scenarios import inspection_scene
+from trifuse.app.sources.sim.inspection import inspection_scene
 from trifuse.app.storage.map_file import load_map, read_map_info
 from trifuse.app.storage.rigfile import save_rig
 from trifuse.fusion.mapping import TofGrid

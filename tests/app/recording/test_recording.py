@@ -84,7 +84,7 @@ def test_round_trip_gives_the_same_frames_and_stamps(recorded, rig):
 
 
 def test_real_scenario_frames_round_trip(tmp_path, rig):
-    from trifuse.app.sources.sim.scenarios import InspectionScenario
+    from trifuse.app.sources.sim.inspection import InspectionScenario
 
     fs, _ = InspectionScenario(rig=rig, model=head_model_for(rig), seed=1).render(0.5)
     path = tmp_path / "sim.mcap"

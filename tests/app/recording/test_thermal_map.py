@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from trifuse.app.sources.sim.inspection import inspection_scene
 from trifuse.app.sources.sim.render import HeadModel
-from trifuse.app.sources.sim.scenarios import inspection_scene
 from trifuse.app.sources.sim.survey import SURVEY_S, SurveyScenario, survey_pose
 from trifuse.app.sources.sim.tof_error import RangeErrorModel
 from trifuse.calib.transforms import rotation_angle_deg

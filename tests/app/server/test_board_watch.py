@@ -13,13 +13,8 @@ import pytest
 
 from tests.support import WAIT_S, FakeClock, wait_until
 from trifuse.app.server.runtime import board_watch
-from trifuse.app.server.runtime.board_watch import (
-    MAX_PAUSE_S,
-    BoardWatch,
-    board_in_image,
-    first_look,
-    sighting,
-)
+from trifuse.app.server.runtime.board_sighting import board_in_image, first_look, sighting
+from trifuse.app.server.runtime.board_watch import MAX_PAUSE_S, BoardWatch
 from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses

@@ -57,8 +57,8 @@ from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.source_control import SourceControl
 from trifuse.app.server.runtime.source_tap import SourceTap
 from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.sources.sim.inspection import InspectionScenario
 from trifuse.app.sources.sim.render import HeadModel
-from trifuse.app.sources.sim.scenarios import InspectionScenario
 from trifuse.app.sources.simulated import SimulatedHeadSource
 
 RECV_S = 60.0

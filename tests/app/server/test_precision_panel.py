@@ -23,7 +23,7 @@ from trifuse.app.server.panels.display import (
     short_reason,
 )
 from trifuse.app.server.panels.precision import PrecisionPanel, plot_data, short_names
-from trifuse.app.server.runtime.board_watch import BoardSighting
+from trifuse.app.server.runtime.board_sighting import BoardSighting
 from trifuse.app.server.runtime.context import ConsoleBandwidth
 from trifuse.app.server.runtime.video_presets import StreamSettings
 from trifuse.app.sources.frames import Frame, FrameSet
@@ -294,7 +294,7 @@ def test_feeds_draw_the_sightings_own_frames_while_it_is_recent(server) -> None:
     shown = panels.feeds["ccd_left"].image
     assert shown[10, 10].tolist() == [0, 0, 0]  # the sighting's frame, not the newest
     assert _colour_near(shown, 50, 50, ROW_COLOURS[0])
-    assert panels._shown["tof"][1] is sighting.detections["tof"]
+    assert panels.feeds_shown["tof"][1] is sighting.detections["tof"]
     assert panels.feeds["ccd_left"].label == "ccd_left (board search: 2 s ago)"
     assert panels.feeds["ccd_right"].label == "ccd_right"  # not in the sighting
     # a stale sighting is not drawn: the newest frame as it is
@@ -305,7 +305,7 @@ def test_feeds_draw_the_sightings_own_frames_while_it_is_recent(server) -> None:
     assert np.all(np.abs(shown.astype(int) - 90) <= 1)  # no markers
     assert panels.feeds["ccd_left"].label == "ccd_left"
     panels.update_feeds(later, None)  # no sighting at all: the same
-    assert panels._shown["ccd_left"][1] is None
+    assert panels.feeds_shown["ccd_left"][1] is None
 
 
 def test_feeds_draw_the_next_views_outline_and_redraw_when_it_changes(server) -> None:

@@ -34,7 +34,7 @@ from trifuse.app.server.panels.scene_sensors import (
     wxyz_of,
 )
 from trifuse.app.server.panels.scene_views import FALLBACK_VIEWPORT, viewport_of
-from trifuse.app.server.runtime.board_watch import BoardSighting
+from trifuse.app.server.runtime.board_sighting import BoardSighting
 from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.calib.board import Board

@@ -20,7 +20,7 @@ from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.server.runtime.thermal_balance import ThermalBalancer
 from trifuse.app.sources.frames import Frame, FrameSet
-from trifuse.app.sources.sim.scenarios import InspectionScenario
+from trifuse.app.sources.sim.inspection import InspectionScenario
 from trifuse.calib.radiometry import Radiometry
 from trifuse.calib.transforms import make_T, rotation_from_euler_deg
 from trifuse.fusion.balance import balance_terms, measure_balance

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.inspection import InspectionScenario
 from trifuse.app.sources.sim.render import HeadModel, Renderer
 from trifuse.app.sources.sim.scenarios import (
     CALIBRATION_BOARD,
-    InspectionScenario,
     board_solid,
     calibration_poses,
     lab_background,

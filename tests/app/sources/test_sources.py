@@ -26,8 +26,8 @@ from trifuse.app.sources.camera import (
 )
 from trifuse.app.sources.frames import Frame
 from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.inspection import InspectionScenario
 from trifuse.app.sources.sim.render import HeadModel
-from trifuse.app.sources.sim.scenarios import InspectionScenario
 from trifuse.app.sources.simulated import SimulatedHeadSource
 
 SENSOR_RATES = {

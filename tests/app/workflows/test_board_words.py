@@ -24,7 +24,7 @@ from trifuse.app.workflows.calibration_run import (
     dominant_failure,
     excluded_with_detection_reasons,
 )
-from trifuse.app.workflows.report_sections import _board_text as html_board_text
+from trifuse.app.workflows.report_sections import report_board_text as html_board_text
 from trifuse.calib.board import Board
 from trifuse.calib.errors import CalibrationError
 

@@ -24,7 +24,7 @@ import pytest
 from tests.browser_support import console_running, needs_chromium
 from tests.support import RATES_HZ, write_recording
 from trifuse.app.sources.frames import Frame
-from trifuse.app.sources.sim.scenarios import InspectionScenario
+from trifuse.app.sources.sim.inspection import InspectionScenario
 
 pytestmark = [needs_chromium, pytest.mark.slow]
 
