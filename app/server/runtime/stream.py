@@ -136,9 +136,12 @@ class StreamFrame:
     bgr: np.ndarray | None
     sent_ns: int
     rates: RatesSnapshot
-    made_jpeg: list[bytes | None] = field(default_factory=lambda: [None], compare=False)
-    """The JPEG the hub made of :attr:`bgr` (one cell shared by the frames that publish the
-    same picture again)."""
+    made_jpeg: list[asyncio.Future[bytes] | None] = field(
+        default_factory=lambda: [None], compare=False
+    )
+    """The encoding of :attr:`bgr` for the JPEG viewers, started by the first of them
+    (:meth:`FrameHub.jpeg_of`; one cell shared by the frames that publish the same picture
+    again)."""
 
     def header(self) -> dict[str, Any]:
         """What a viewer overlays with the frame (JSON-able): :attr:`meta` with ``seq``,
@@ -172,7 +175,6 @@ class FrameHub:
         self.viewers = 0
         self.jpeg_quality = 80
         """The quality of the JPEG made of a picture for JPEG viewers (set by the pipeline)."""
-        self._jpeg_lock = threading.Lock()
         self.rates = StreamRates()
         """Frames published and new pictures per second (read by the panel and routes)."""
         self.stream_settings = StreamSettings()
@@ -221,7 +223,7 @@ class FrameHub:
         meta: Mapping[str, Any],
         new: bool,
         bgr: np.ndarray | None,
-        made_jpeg: list[bytes | None],
+        made_jpeg: list[asyncio.Future[bytes] | None],
     ) -> StreamFrame:
         self.rates.tick(new)
         rates = self.rates.snapshot()
@@ -245,20 +247,21 @@ class FrameHub:
         frame = self._frame
         return None if frame is None else self.publish_again(frame.meta)
 
-    def jpeg_of(self, frame: StreamFrame) -> bytes:
-        """``frame``'s picture as JPEG: the producer's, else its BGR encoded at
-        :attr:`jpeg_quality`, once for every viewer and every frame that publishes the same
-        picture again (any thread; a second caller waits for the first's). RuntimeError if
-        OpenCV cannot encode it."""
+    async def jpeg_of(self, frame: StreamFrame) -> bytes:
+        """``frame``'s picture as JPEG, on the server's loop: the producer's, else its BGR
+        encoded at :attr:`jpeg_quality` in a worker thread (OpenCV releases the GIL), once
+        for every viewer awaiting it and every frame that publishes the same picture again.
+        RuntimeError if OpenCV cannot encode it."""
         if frame.jpeg is not None:
             return frame.jpeg
         if frame.bgr is None:
             raise ValueError(f"frame {frame.seq} has no picture")
-        with self._jpeg_lock:
-            made = frame.made_jpeg[0]
-            if made is None:
-                made = frame.made_jpeg[0] = encode_jpeg(frame.bgr, self.jpeg_quality)
-            return made
+        made = frame.made_jpeg[0]
+        if made is None or made.get_loop() is not asyncio.get_running_loop():
+            made = frame.made_jpeg[0] = asyncio.ensure_future(
+                asyncio.to_thread(encode_jpeg, frame.bgr, self.jpeg_quality)
+            )
+        return await asyncio.shield(made)  # a viewer leaving does not stop it for the others
 
     def forget(self) -> None:
         """No frame until the next :meth:`publish` (the producer rests: its last frame
@@ -303,10 +306,7 @@ class FrameHub:
                 frame = self._frame
                 if frame is not None and frame.seq > last:
                     last = frame.seq
-                    jpeg = frame.jpeg or frame.made_jpeg[0]
-                    if jpeg is None:  # the first to take it: encoded in a worker thread
-                        jpeg = await asyncio.to_thread(self.jpeg_of, frame)
-                    yield frame, jpeg
+                    yield frame, await self.jpeg_of(frame)
                     continue
                 event.clear()
                 if self._frame is frame:  # nothing newer since: wait for the next publish

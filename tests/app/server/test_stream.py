@@ -126,7 +126,7 @@ def test_a_picture_is_encoded_for_jpeg_viewers_once_when_first_taken(
             assert again is not None and again.bgr is first.bgr and again.meta is not first.meta
             for ws in (a, b):
                 assert json.loads(ws.receive_text())["k"] == 2
-                assert ws.receive_bytes() == first.made_jpeg[0]
+                assert ws.receive_bytes() == first.made_jpeg[0].result()
                 ws.send_text("ack")
             assert encoded == [90]  # once, for two viewers and two frames
             hub.publish(_jpeg(3), {"k": 3})
