@@ -26,6 +26,7 @@ from trifuse.app.devtools import (
     bench_fusion,
     bench_idle,
     bench_link,
+    bench_live,
     bench_map,
     bench_motion,
     bench_ray,
@@ -61,6 +62,7 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     bench_detect.real_12mp,
     bench_real_calib.real_calib,
     bench_idle.idle,
+    bench_live.live,
     bench_link.link,
 )
 

@@ -1,0 +1,142 @@
+"""Benchmark ``live`` (issue 32): how many frame sets a second the console fuses, against the
+rate the sensors give, in the same run.
+
+Two sources: a replay of a recording of the simulated head at its full rate (made first,
+``trifuse record --source sim --duration 2``; the sensors' rate is the recording's colour
+rate, from its statistics) and the simulated head itself (pose cache filled first, not
+timed). For each, two phases of ``repeat`` windows of :data:`WINDOW_S` seconds:
+
+- nobody watching the stream; a REST client asks ``/api/status`` once a second, which keeps
+  the console fusing (its demand), as an operator's status page does;
+- one local headless Chromium viewer of the H.264 stream (``/?stream=auto``), which decodes
+  and draws it on the same machine.
+
+Per window, from ``/api/status``: the fused frame sets a second (``fps``, the stream's own
+rate), the left colour camera's delivered rate (``rates_hz``: a replay that cannot keep up
+slows its clock, so this is also how close to real time it runs), and the console's cores
+(user + system CPU of its process tree over the window); with the viewer, the frames it
+drew a second (``trifuseStats.fps``). Medians over the windows.
+"""
+
+from __future__ import annotations
+
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from trifuse.app.devtools.benchmark import benchmark, check_repeat
+from trifuse.app.devtools.browser_console import headless_chromium, require_chromium
+from trifuse.app.devtools.console_process import ConsoleProcess, prewarm_pose_cache
+from trifuse.app.devtools.procfs import tree_cpu_s
+
+WINDOW_S = 10.0
+"""One reading spans this many seconds; ``--repeat`` sets how many windows a phase has."""
+SETTLE_S = 5.0
+"""Before a phase's first window: the demand turns wanted, the rates' 3 s window fills."""
+RECORD_S = 2.0
+"""The recording replayed: this many seconds of the simulated head (it loops)."""
+START_TIMEOUT_S = 180.0
+COLOR = "ccd_left"
+
+
+def _record(out: Path) -> float:
+    """Record :data:`RECORD_S` s of the simulated head into ``out``; its colour rate (Hz)."""
+    from trifuse.app.recording import ReplaySource
+
+    command = [sys.executable, "-m", "trifuse.app.cli", "record", "--source", "sim"]
+    command += ["--out", str(out), "--duration", f"{RECORD_S:g}"]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    if done.returncode != 0:
+        raise RuntimeError(f"live: trifuse record failed: {done.stderr.strip()[-500:]}")
+    with ReplaySource(out, realtime=False) as rec:
+        count = rec.message_count(COLOR, "color")
+        if not count or count < 2 or not rec.duration_s:
+            raise RuntimeError(f"live: {out} has no {COLOR} rate in its statistics")
+        return (count - 1) / rec.duration_s
+
+
+def _window(console: ConsoleProcess, page: Any | None) -> dict[str, float]:
+    """One window of :data:`WINDOW_S` s, asking the status once a second."""
+    fps, color = [], []
+    cpu0, t0 = tree_cpu_s(console.pid), time.monotonic()
+    while time.monotonic() - t0 < WINDOW_S:
+        status = console.status()
+        fps.append(float(status["fps"]))
+        color.append(float(status["rates_hz"].get(COLOR, 0.0)))
+        time.sleep(1.0)
+    out = {
+        "fps": statistics.median(fps),
+        "color_hz": statistics.median(color),
+        "cores": (tree_cpu_s(console.pid) - cpu0) / (time.monotonic() - t0),
+    }
+    if page is not None:
+        out["drawn_fps"] = float(page.evaluate("() => window.trifuseStats.fps"))
+    return out
+
+
+def _phase(console: ConsoleProcess, windows: int, page: Any | None) -> dict[str, float]:
+    console.status()  # the demand turns wanted
+    time.sleep(SETTLE_S)
+    seen = [_window(console, page) for _ in range(windows)]
+    return {k: statistics.median(w[k] for w in seen) for k in seen[0]}
+
+
+def _source(console: ConsoleProcess, browser: Any, windows: int, name: str) -> dict[str, float]:
+    """Both phases on one console; figures named ``{name}_...`` and ``{name}_viewer_...``."""
+    alone = _phase(console, windows, None)
+    page = browser.new_page(viewport={"width": 1400, "height": 700})
+    try:
+        url = console.signin("/")
+        page.goto(url + ("&" if "?" in url else "?") + "stream=auto")
+        page.wait_for_function(
+            "() => window.trifuseStats && window.trifuseStats.frames > 10",
+            timeout=START_TIMEOUT_S * 1000,
+        )
+        watched = _phase(console, windows, page)
+    finally:
+        page.close()
+    figures = {f"{name}_{k}": v for k, v in alone.items()}
+    figures.update({f"{name}_viewer_{k}": v for k, v in watched.items()})
+    return figures
+
+
+@benchmark(
+    "live",
+    "the console's fused frame sets a second against the sensors' rate (same run): a replay "
+    "of a full-rate recording and the simulated head, each with nobody watching and with one "
+    "local Chromium viewer of the H.264 stream; cores; --repeat N: N windows of "
+    f"{WINDOW_S:g} s per phase",
+    baselines=(
+        ("replay_fps", "sensor_fps"),
+        ("replay_color_hz", "sensor_fps"),
+        ("replay_viewer_fps", "sensor_fps"),
+        ("sim_fps", "sensor_fps"),
+        ("sim_viewer_fps", "sensor_fps"),
+    ),
+    default_repeat=2,
+)
+def live(repeat: int) -> dict[str, float]:
+    """See the module doc. ``sensor_fps``: the recording's colour rate (the simulated head
+    gives the same 30 Hz); ``replay_color_hz / sensor_fps`` is the replay's speed against
+    real time."""
+    check_repeat(repeat)
+    require_chromium("live")
+    prewarm_pose_cache()
+    figures: dict[str, float] = {}
+    with tempfile.TemporaryDirectory(prefix="trifuse-bench-live-") as tmp, headless_chromium() as b:
+        recording = Path(tmp) / "sim.mcap"
+        figures["sensor_fps"] = _record(recording)
+        for name, args in (("replay", ["--replay", str(recording)]), ("sim", [])):
+            log = Path(tmp) / f"{name}.log"
+            args = [*args, "--workdir", str(Path(tmp) / f"work-{name}")]
+            with ConsoleProcess(args, log_path=log, timeout_s=START_TIMEOUT_S) as console:
+                try:
+                    figures.update(_source(console, b, repeat, name))
+                except Exception as exc:
+                    tail = console.output()[-2000:]
+                    raise RuntimeError(f"live ({name}): {exc}; the console's log:\n{tail}") from exc
+    return figures
