@@ -4,8 +4,10 @@ own views; on consistent views nothing changes."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 
+import cv2
 import numpy as np
 import pytest
 
@@ -73,11 +75,25 @@ def test_caliscope_cam_1_keeps_its_own_intrinsics() -> None:
         assert abs(rot - pub[f"cam_0-{b}.rotation_deg"]) < deg_tol, (b, rot)
 
 
+@pytest.fixture
+def one_opencv_thread() -> Iterator[None]:
+    """OpenCV on one thread for the test: its calibration on its thread pool is not
+    bit-reproducible (two runs of the same fit differ by 1e-13 to 4e-9 relative:
+    docs/FINDINGS.md), on one thread it is."""
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
+
+
 @pytest.mark.parametrize("views", [8, 30])
+@pytest.mark.usefixtures("one_opencv_thread")
 def test_consistent_views_are_left_alone(views: int, monkeypatch: pytest.MonkeyPatch) -> None:
     """The simulator's consistent corners (the joint fit moves intrinsics at most 3 own sigmas
     there, RMS within 1.05x alone): no sensor is guarded, and the result is the one without
-    the guard (to rounding: OpenCV's fit is not bit-reproducible)."""
+    the guard, bit for bit."""
     obs = scenario_corners(views)
     guarded = calibrate_rig(obs, CALIBRATION_BOARD, SPECS)
     assert _kept(guarded) == [] and not [n for n in guarded.notes if KEPT in n]
@@ -85,8 +101,8 @@ def test_consistent_views_are_left_alone(views: int, monkeypatch: pytest.MonkeyP
     plain = calibrate_rig(obs, CALIBRATION_BOARD, SPECS)
     for s, r in guarded.sensors.items():
         i, j = r.intrinsics, plain.sensors[s].intrinsics
-        np.testing.assert_allclose([i.fx, i.fy, i.cx, i.cy], [j.fx, j.fy, j.cx, j.cy], rtol=1e-9)
-        np.testing.assert_allclose(r.T_rig_sensor, plain.sensors[s].T_rig_sensor, atol=1e-12)
+        assert [i.fx, i.fy, i.cx, i.cy] == [j.fx, j.fy, j.cx, j.cy], s
+        assert np.array_equal(r.T_rig_sensor, plain.sensors[s].T_rig_sensor), s
 
 
 def test_a_sensor_one_frame_late_is_guarded() -> None:
