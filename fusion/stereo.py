@@ -10,7 +10,7 @@ side-by-side buffer (left | right) ready for encoding.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Iterable, Mapping
 
 import cv2
 import numpy as np
@@ -28,6 +28,10 @@ from trifuse.fusion.stereo_pair import anaglyph, stereo_halves
 EYE_ORDER = ("left", "right")
 SPAN_SETTLED_K = 0.02
 """A smoothed span within this of its target is settled (far below one palette step)."""
+
+
+EyeMap = Callable[[Callable[[EyeFusion], None], Iterable[EyeFusion]], Iterable[None]]
+"""``map``'s shape: how :meth:`StereoFusion.update_depth` runs a step over the eyes."""
 
 
 class StereoFusion:
@@ -75,6 +79,10 @@ class StereoFusion:
         self.range_correction = tof.range_correction
         self._corrected = np.empty(tof.image_size[::-1], np.float32)
         self.distance_m: np.ndarray | None = None
+        self.map_eyes: EyeMap = map
+        """How :meth:`update_depth` updates the eyes' mappings: ``map`` (one after the other);
+        the console gives a map that runs them on both cores (the eyes share no state: the
+        mappings are the same)."""
 
     @property
     def points(self) -> np.ndarray:
@@ -99,8 +107,8 @@ class StereoFusion:
             distance_m = self.range_correction.apply(distance_m, amplitude, out=self._corrected)
         self.distance_m = distance_m
         points = self.grid.points(distance_m, self.options.edge_rel)
-        for f in self.fusion.values():
-            f.forward.update_points(points)
+        for _ in self.map_eyes(lambda f: f.forward.update_points(points), self.fusion.values()):
+            pass
         self._points = points
         self._reverse_fresh.clear()
 

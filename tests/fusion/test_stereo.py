@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 
@@ -38,6 +40,24 @@ def test_side_by_side_pair_with_one_shared_span(scene) -> None:
         t = fusion.thermal_on_color[e]
         assert np.nanpercentile(t, 50) > lo and np.nanpercentile(t, 50) < hi
     assert fusion.anaglyph().shape == (960, 1280, 3)
+
+
+def test_eyes_updated_on_two_threads_give_the_same_mappings(scene) -> None:
+    """The console updates the two eyes' mappings on two threads (``map_eyes``): the
+    mappings, and the picture composed from them, are those of one after the other."""
+    scenario, frames, _truth, colors, thermals = scene
+    one, two = StereoFusion(scenario.rig), StereoFusion(scenario.rig)
+    with ThreadPoolExecutor(2) as pool:
+        two.map_eyes = pool.map
+        for fusion in (one, two):
+            fusion.update_depth(frames["tof"].distance_m)
+    for e in ("left", "right"):
+        a, b = one.fusion[e].forward, two.fusion[e].forward
+        assert np.array_equal(a.map_x, b.map_x) and np.array_equal(a.map_y, b.map_y)
+    settings = DisplaySettings(mode="blend")
+    assert np.array_equal(
+        one.compose(colors, thermals, settings), two.compose(colors, thermals, settings)
+    )
 
 
 def test_reverse_direction_draws_colour_into_the_thermal_view(scene) -> None:

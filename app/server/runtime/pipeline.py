@@ -3,7 +3,8 @@
 One background thread, the fusion thread: a :class:`FrameSource` ->
 :class:`FrameSetAssembler` (the left colour camera opens each set) -> the stereo-picture
 step (:class:`fusion.stereo_step.StereoStep`: depth mapping updated on each new TOF frame,
-radiometry, composition) -> a BGR copy of the picture, read-only, published to the
+the right eye's in a worker thread while the fusion thread does the left one; radiometry,
+composition) -> a BGR copy of the picture, read-only, published to the
 :class:`FrameHub` (the JPEG for the JPEG viewers is made there when the first of them
 takes it, in a worker thread; the H.264 for the video viewers in theirs), and on to the
 next frame set: nothing the viewers do holds the fusion up (the source drops what a late
@@ -54,7 +55,8 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -116,6 +118,7 @@ class FusionPipeline:
         (``health``); set by the console (``SourceControl``). Called in the fusion thread:
         it must be quick (cached)."""
         self._pending_rig: Rig | None = None
+        self._eye_worker = ThreadPoolExecutor(1, thread_name_prefix="fusion-eye")
         self._init_rig(rig, {})
         hub.jpeg_quality = jpeg_quality
         self._stop = threading.Event()
@@ -133,6 +136,7 @@ class FusionPipeline:
         self.rig = rig
         self.step = StereoStep(rig, self.settings, CONSOLE)
         self.fusion = self.step.fusion
+        self.fusion.map_eyes = self._both_cores
         self.spot_meter = SpotMeter(self.fusion)
         self.spots: SpotFrame | None = None
         """The spot meter's view of the last fused picture (``/api/spot``, the metadata's
@@ -145,6 +149,13 @@ class FusionPipeline:
             s: rig[s].radiometry or radiometry.get(s, Radiometry()) for s in self.step.radiometry
         }
         self._made_of: PictureInputs | None = None  # what the previous picture was made of
+
+    def _both_cores(self, fn: Callable[[Any], None], items: Iterable[Any]) -> list[None]:
+        """``map(fn, items)`` with the items after the first in :attr:`_eye_worker` while
+        this thread does the first (NumPy and OpenCV release the GIL)."""
+        first, *rest = list(items)
+        futures = [self._eye_worker.submit(fn, item) for item in rest]
+        return [fn(first), *(f.result() for f in futures)]
 
     @property
     def radiometry(self) -> dict[str, Radiometry]:
@@ -179,6 +190,7 @@ class FusionPipeline:
         self._stop.set()
         self.source.close()
         self._thread.join(timeout_s)
+        self._eye_worker.shutdown(wait=False)
 
     def join(self, timeout_s: float | None = None) -> bool:
         """Wait (at most ``timeout_s``) for the fusion thread to end by itself (its source ran
