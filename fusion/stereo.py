@@ -11,6 +11,7 @@ side-by-side buffer (left | right) ready for encoding.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping
+from typing import Any
 
 import cv2
 import numpy as np
@@ -30,8 +31,9 @@ SPAN_SETTLED_K = 0.02
 """A smoothed span within this of its target is settled (far below one palette step)."""
 
 
-EyeMap = Callable[[Callable[[EyeFusion], None], Iterable[EyeFusion]], Iterable[None]]
-"""``map``'s shape: how :meth:`StereoFusion.update_depth` runs a step over the eyes."""
+EyeMap = Callable[[Callable[[Any], None], Iterable[Any]], Iterable[None]]
+"""``map``'s shape: how :class:`StereoFusion` runs a step over the eyes (the mapping update,
+the warp, the composition)."""
 
 
 class StereoFusion:
@@ -80,9 +82,10 @@ class StereoFusion:
         self._corrected = np.empty(tof.image_size[::-1], np.float32)
         self.distance_m: np.ndarray | None = None
         self.map_eyes: EyeMap = map
-        """How :meth:`update_depth` updates the eyes' mappings: ``map`` (one after the other);
-        the console gives a map that runs them on both cores (the eyes share no state: the
-        mappings are the same)."""
+        """How the eyes' own steps run (:meth:`update_depth`'s mapping update,
+        :meth:`compose`'s warp and composition): ``map``, one after the other; the console
+        gives a map that runs them on both cores (each eye has its own mapping, buffers,
+        composer and half of the frame: the results are the same)."""
 
     @property
     def points(self) -> np.ndarray:
@@ -132,8 +135,12 @@ class StereoFusion:
         """
         if not self.ready:
             raise RuntimeError("StereoFusion.compose: no TOF frame yet (call update_depth)")
-        for e in self.eyes:
+
+        def warp(e: str) -> None:
             self.fusion[e].forward.warp(thermals[e], out=self.thermal_on_color[e])
+
+        for _ in self.map_eyes(warp, self.eyes):
+            pass
         span = resolve_span(settings, [self.thermal_on_color[e] for e in self.eyes])
         if settings.span_k is None and settings.agc != "linear":
             span = gain_span(span, settings.max_gain)  # a flat scene: not stretched
@@ -154,7 +161,9 @@ class StereoFusion:
             settings.max_gain,
         )
         halves = stereo_halves(self.frame) if len(self.eyes) == 2 else (self.frame,)
-        for e, half in zip(self.eyes, halves, strict=True):
+
+        def compose(eye_half: tuple[str, np.ndarray]) -> None:
+            e, half = eye_half
             self.composers[e].compose(
                 colors[e],
                 self.thermal_on_color[e],
@@ -164,6 +173,9 @@ class StereoFusion:
                 out=half,
                 tone=self.tone,
             )
+
+        for _ in self.map_eyes(compose, zip(self.eyes, halves, strict=True)):
+            pass
         return self.frame
 
     @property

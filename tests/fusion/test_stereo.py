@@ -42,22 +42,32 @@ def test_side_by_side_pair_with_one_shared_span(scene) -> None:
     assert fusion.anaglyph().shape == (960, 1280, 3)
 
 
-def test_eyes_updated_on_two_threads_give_the_same_mappings(scene) -> None:
-    """The console updates the two eyes' mappings on two threads (``map_eyes``): the
-    mappings, and the picture composed from them, are those of one after the other."""
+@pytest.mark.parametrize(
+    "settings",
+    [
+        DisplaySettings(mode="blend"),
+        DisplaySettings(mode="edges", agc="dde"),
+        DisplaySettings(mode="pip", agc="linear"),
+    ],
+    ids=["blend", "edges-dde", "pip-linear"],
+)
+def test_eyes_on_two_threads_give_the_same_mappings_and_picture(scene, settings) -> None:
+    """The console runs each eye's mapping update, warp and composition on two threads
+    (``map_eyes``): the mappings and the picture are those of one eye after the other."""
     scenario, frames, _truth, colors, thermals = scene
     one, two = StereoFusion(scenario.rig), StereoFusion(scenario.rig)
     with ThreadPoolExecutor(2) as pool:
         two.map_eyes = pool.map
         for fusion in (one, two):
             fusion.update_depth(frames["tof"].distance_m)
-    for e in ("left", "right"):
-        a, b = one.fusion[e].forward, two.fusion[e].forward
-        assert np.array_equal(a.map_x, b.map_x) and np.array_equal(a.map_y, b.map_y)
-    settings = DisplaySettings(mode="blend")
-    assert np.array_equal(
-        one.compose(colors, thermals, settings), two.compose(colors, thermals, settings)
-    )
+        for e in ("left", "right"):
+            a, b = one.fusion[e].forward, two.fusion[e].forward
+            assert np.array_equal(a.map_x, b.map_x) and np.array_equal(a.map_y, b.map_y)
+        for stamp_ns in (0, 40_000_000):  # the second with the span smoothed over time
+            assert np.array_equal(
+                one.compose(colors, thermals, settings, stamp_ns),
+                two.compose(colors, thermals, settings, stamp_ns),
+            )
 
 
 def test_reverse_direction_draws_colour_into_the_thermal_view(scene) -> None:
