@@ -77,9 +77,18 @@ class DepthView:
         spacing = (self.sensor.intrinsics.fx / scale) / tof_s.intrinsics.fx
         self.radius = max(0, int(np.ceil(spacing / 2.0 - 0.25)))
         self.z = np.full(self.shape, np.inf, dtype=np.float32)
+        r = self.radius
+        self._padded = np.empty((self.shape[0] + 2 * r, self.shape[1] + 2 * r), np.float32)
+        self._footprint = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
 
     def render(self, points_tof: np.ndarray) -> np.ndarray:
-        """Splat valid TOF points (N, 3) into the z-buffer; returns it (inf = empty)."""
+        """Splat valid TOF points (N, 3) into the z-buffer; returns it (inf = empty).
+
+        Each point covers the cells within ``radius`` of its own; a cell keeps the nearest
+        depth covering it. Done as the nearest depth per cell (on a grid padded by
+        ``radius``, so points just outside still cover the border) followed by a minimum
+        over each cell's ``(2 radius + 1)^2`` neighbours (``cv2.erode``): the same minimum.
+        """
         R, t = self.T_sensor_tof[:3, :3], self.T_sensor_tof[:3, 3]
         P = points_tof @ R.T + t
         z = P[:, 2]
@@ -93,15 +102,14 @@ class DepthView:
         cu = np.floor((uv[:, 0] + 0.5) / s).astype(np.int32)
         cv = np.floor((uv[:, 1] + 0.5) / s).astype(np.int32)
         hc, wc = self.shape
-        self.z.fill(np.inf)
         r = self.radius
-        flat = self.z.ravel()
-        for dv in range(-r, r + 1):
-            for du in range(-r, r + 1):
-                u = cu + du
-                v = cv + dv
-                ok = (u >= 0) & (u < wc) & (v >= 0) & (v < hc)
-                np.minimum.at(flat, v[ok] * wc + u[ok], z[ok])
+        pad = self._padded
+        pad.fill(np.inf)
+        ok = (cu >= -r) & (cu < wc + r) & (cv >= -r) & (cv < hc + r)
+        np.minimum.at(pad.ravel(), (cv[ok] + r) * (wc + 2 * r) + (cu[ok] + r), z[ok])
+        if r:
+            cv2.erode(pad, self._footprint, dst=pad)
+        np.copyto(self.z, pad[r : r + hc, r : r + wc])
         return self.z
 
 
@@ -278,9 +286,8 @@ class ViewMapping:
             dst=self._edge_full,
             interpolation=near,
         )
-        e = self._edge_full.view(bool)
-        np.copyto(self.map_x, self._near_x, where=e)
-        np.copyto(self.map_y, self._near_y, where=e)
+        cv2.copyTo(self._near_x, self._edge_full, self.map_x)  # nearest on the edges
+        cv2.copyTo(self._near_y, self._edge_full, self.map_y)
         cv2.resize(
             missing.view(np.uint8), (w, h), dst=self.fallback.view(np.uint8), interpolation=near
         )

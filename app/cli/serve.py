@@ -261,6 +261,7 @@ def run(args: argparse.Namespace) -> int:
                 args.push,
                 load_rig(args.rig) if args.rig else None,
                 loop=True,
+                keep_time=True,
                 scenario=args.scenario,
                 board_poses=args.board_poses,
                 hold_s=args.hold,

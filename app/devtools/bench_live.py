@@ -12,8 +12,10 @@ timed). For each, two phases of ``repeat`` windows of :data:`WINDOW_S` seconds:
   and draws it on the same machine.
 
 Per window, from ``/api/status``: the fused frame sets a second (``fps``, the stream's own
-rate), the left colour camera's delivered rate (``rates_hz``: a replay that cannot keep up
-slows its clock, so this is also how close to real time it runs), and the console's cores
+rate), the left colour camera's delivered rate (``color_hz``, ``rates_hz``) and the frames of
+it a replay dropped to keep real time (``dropped_hz``, the source's ``dropped``); their sum
+(``speed_hz``) against the recording's rate is the replay's speed (a replay that slowed its
+clock would deliver fewer and drop none), and the console's cores
 (user + system CPU of its process tree over the window); with the viewer, the frames it
 drew a second (``trifuseStats.fps``). Medians over the windows.
 """
@@ -59,19 +61,29 @@ def _record(out: Path) -> float:
         return (count - 1) / rec.duration_s
 
 
+def _dropped(status: dict[str, Any]) -> int:
+    """The colour frames a replay dropped to keep real time so far (0 for other sources)."""
+    return int(((status.get("source") or {}).get("dropped") or {}).get(COLOR, 0))
+
+
 def _window(console: ConsoleProcess, page: Any | None) -> dict[str, float]:
     """One window of :data:`WINDOW_S` s, asking the status once a second."""
     fps, color = [], []
     cpu0, t0 = tree_cpu_s(console.pid), time.monotonic()
+    dropped0 = _dropped(console.status())
     while time.monotonic() - t0 < WINDOW_S:
         status = console.status()
         fps.append(float(status["fps"]))
         color.append(float(status["rates_hz"].get(COLOR, 0.0)))
         time.sleep(1.0)
+    elapsed = time.monotonic() - t0
+    dropped_hz = (_dropped(console.status()) - dropped0) / elapsed
     out = {
         "fps": statistics.median(fps),
         "color_hz": statistics.median(color),
-        "cores": (tree_cpu_s(console.pid) - cpu0) / (time.monotonic() - t0),
+        "dropped_hz": dropped_hz,
+        "speed_hz": statistics.median(color) + dropped_hz,
+        "cores": (tree_cpu_s(console.pid) - cpu0) / elapsed,
     }
     if page is not None:
         out["drawn_fps"] = float(page.evaluate("() => window.trifuseStats.fps"))
@@ -112,7 +124,7 @@ def _source(console: ConsoleProcess, browser: Any, windows: int, name: str) -> d
     f"{WINDOW_S:g} s per phase",
     baselines=(
         ("replay_fps", "sensor_fps"),
-        ("replay_color_hz", "sensor_fps"),
+        ("replay_speed_hz", "sensor_fps"),
         ("replay_viewer_fps", "sensor_fps"),
         ("sim_fps", "sensor_fps"),
         ("sim_viewer_fps", "sensor_fps"),
@@ -121,7 +133,7 @@ def _source(console: ConsoleProcess, browser: Any, windows: int, name: str) -> d
 )
 def live(repeat: int) -> dict[str, float]:
     """See the module doc. ``sensor_fps``: the recording's colour rate (the simulated head
-    gives the same 30 Hz); ``replay_color_hz / sensor_fps`` is the replay's speed against
+    gives the same 30 Hz); ``replay_speed_hz / sensor_fps`` is the replay's speed against
     real time."""
     check_repeat(repeat)
     require_chromium("live")

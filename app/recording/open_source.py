@@ -90,6 +90,7 @@ def open_source(
     *,
     realtime: bool = True,
     loop: bool = False,
+    keep_time: bool = False,
     scenario: str = "inspection",
     board_poses: int = 40,
     hold_s: float = 3.0,
@@ -102,7 +103,9 @@ def open_source(
 
     Args:
         replay: a recording (.mcap), replayed at its own pace (``realtime``) or as fast as
-            it is read, from the start again at its end when ``loop``.
+            it is read, from the start again at its end when ``loop``; with ``keep_time``
+            (the console) dropping the frames its consumer has no time for rather than
+            slowing down (:mod:`app.recording.player`).
         live: a live camera configuration (docs/FORMATS.md); needs ``rig``.
         push: frames pushed by an on-robot driver at ``/ingest`` (rig default: the
             simulated head's).
@@ -119,7 +122,7 @@ def open_source(
     if replay:
         from trifuse.app.recording.reader import ReplaySource
 
-        src = ReplaySource(Path(replay), loop=loop, realtime=realtime)
+        src = ReplaySource(Path(replay), loop=loop, realtime=realtime, keep_time=keep_time)
         rig = rig or src.rig
         if rig is None:
             src.close()

@@ -17,6 +17,15 @@ are decoded: :mod:`app.recording.images`), is left out and counted per sensor an
 health); the replay goes on. Damage to the file itself (a truncated or corrupted chunk)
 ends the replay (:class:`~app.recording.errors.RecordingDamaged`).
 
+Keeping time (``keep_time``, the console's replay): a consumer slower than the recording
+does not slow the replay's clock. When a frame's time has passed and a newer frame of the same
+sensor and kind is due too (the file is read ahead to its wall-clock time), the older one is
+dropped before its image is decoded, and counted (:attr:`MessageReplay.dropped`). The
+consumer gets the newest frames at the recording's pace; only a stall longer than
+:data:`MAX_LAG_S` (or a look-ahead of :data:`LOOKAHEAD_MESSAGES`) slows the clock.
+Without it (``trifuse fuse``, ``map``, ``record``, tests of pacing), every frame is
+delivered.
+
 Thread use: one thread iterates :meth:`MessageReplay.frames`; :meth:`pause`,
 :meth:`resume`, :meth:`seek` and the ``rate`` setter may be called from any thread and take
 effect before the next frame is delivered.
@@ -30,6 +39,7 @@ import numbers
 import threading
 import time
 from abc import abstractmethod
+from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,6 +62,12 @@ FRAME_KINDS = ("color", "thermal", "tof_distance", "tof_amplitude")
 MAX_LAG_S = 0.25
 """A real-time replay that falls further behind than this re-anchors its clock (plays on
 from where it is, slower) instead of delivering a burst of late frames."""
+LOOKAHEAD_MESSAGES = 512
+"""The most messages a time-keeping replay reads ahead to find the newest due frames (about
+4 s of a full-rate recording of the simulated head)."""
+SAME_INSTANT_NS = 10_000_000
+"""Frames within this log time of each other are one instant to a time-keeping replay (kept
+or dropped together)."""
 PAIR_WINDOW_NS = 50_000_000
 """A TOF half (distance or amplitude) whose partner has not come within this log time is
 delivered alone."""
@@ -133,6 +149,45 @@ def skips_text(skips: Skips) -> list[str]:
     ]
 
 
+class _Lookahead:
+    """A cursor over a file's messages that can read ahead of the one being handled.
+
+    ``next()`` gives the messages read ahead first, then the cursor's; damage met while
+    reading ahead is raised when the messages before it have been taken.
+    """
+
+    def __init__(self, cursor: Iterator[Message]) -> None:
+        self.cursor = cursor
+        self.ahead: deque[Message] = deque()
+        self._damage: McapDamage | None = None
+        self._ended = False
+
+    def __iter__(self) -> _Lookahead:
+        return self
+
+    def __next__(self) -> Message:
+        if self.ahead:
+            return self.ahead.popleft()
+        if self._damage is not None:
+            damage, self._damage = self._damage, None
+            raise damage
+        return next(self.cursor)
+
+    def newer_due(self, channel_id: int, now_ns: int) -> bool:
+        """Whether a later message of ``channel_id`` with log time at most ``now_ns`` is in
+        the file, reading ahead (up to :data:`LOOKAHEAD_MESSAGES`) to find it."""
+        while not self._ended and self._damage is None and len(self.ahead) < LOOKAHEAD_MESSAGES:
+            if self.ahead and self.ahead[-1].log_time > now_ns:
+                break
+            try:
+                self.ahead.append(next(self.cursor))
+            except StopIteration:
+                self._ended = True
+            except McapDamage as exc:
+                self._damage = exc
+        return any(m.channel_id == channel_id and m.log_time <= now_ns for m in self.ahead)
+
+
 class MessageReplay(FrameSource):
     """Base of :class:`~app.recording.reader.ReplaySource` and
     :class:`~app.recording.ros2.Ros2BagSource` (see the module docstring).
@@ -151,6 +206,8 @@ class MessageReplay(FrameSource):
         clock, sleep: the wall clock that paces ``realtime`` (seconds) and how to wait on
             it; None: ``time.monotonic`` and a wait that pause, seek and rate changes cut
             short (tests pass a simulated clock).
+        keep_time: with ``realtime``, drop the frames a slower consumer has no time for
+            rather than slowing the clock (see the module docstring).
 
     Attributes:
         sensors: the sensors of the source (the rig's or the topic map's), including any
@@ -162,6 +219,7 @@ class MessageReplay(FrameSource):
         damage: the damage met by the last iteration, else None.
         skipped: sensor -> reason -> messages skipped (see the module docstring), over
             every iteration since the source was opened.
+        dropped: sensor -> frames dropped to keep time (``keep_time``), likewise.
         notes: non-fatal problems found when opening (damaged summary, missing topics).
     """
 
@@ -178,6 +236,7 @@ class MessageReplay(FrameSource):
         pair_tolerance_s: float = 0.001,
         clock: Callable[[], float] | None = None,
         sleep: Callable[[float], object] | None = None,
+        keep_time: bool = False,
     ) -> None:
         if on_damage not in ("raise", "stop"):
             raise RecordingError(f"on_damage: expected 'raise' or 'stop', got {on_damage!r}")
@@ -188,16 +247,19 @@ class MessageReplay(FrameSource):
         self._rate = self._check_rate(rate)
         self.loop = bool(loop)
         self.realtime = bool(realtime)
+        self.keep_time = bool(keep_time)
         self.on_damage = on_damage
         self.pair_tolerance_ns = round(pair_tolerance_s * 1e9)
         self.damage: RecordingDamaged | None = None
         self._paused = False
         self._pending_seek: int | None = None
         self._anchor: tuple[int, float] | None = None  # (log ns, monotonic s)
+        self._judged: tuple[int, int] | None = None  # keep_time: (log ns, its "now" log ns)
         self._routes: dict[int, Route | None] = {}
         self._tof_parts: dict[str, set[str]] = {}
         self.frame_sizes: dict[str, tuple[int, int]] = {}
         self._skips: dict[str, _Skips] = {}
+        self._dropped: dict[str, int] = {}
         self.index = McapIndex.open(self.path)
         self.notes: list[str] = list(self.index.notes)
         start = self.index.start_ns
@@ -236,6 +298,12 @@ class MessageReplay(FrameSource):
         """sensor -> reason -> messages skipped (a copy)."""
         with self._cond:
             return {s: dict(k.reasons) for s, k in self._skips.items()}
+
+    @property
+    def dropped(self) -> dict[str, int]:
+        """sensor -> frames dropped to keep time (``keep_time``; a copy)."""
+        with self._cond:
+            return dict(self._dropped)
 
     def stats(self) -> dict[str, Any]:
         """``{"rejected_by_sensor": {sensor: {"since_accepted", "last_rejected_s",
@@ -378,14 +446,14 @@ class MessageReplay(FrameSource):
         delivered = 0
         pass_delivered = 0
         pending: dict[str, _TofHalf] = {}
-        cursor: Iterator[Message] = self.index.messages(start)
+        cursor = _Lookahead(self.index.messages(start))
         while True:
             with self._cond:
                 target = self._pending_seek
                 self._pending_seek = None
             if target is not None:
                 pending.clear()
-                cursor = self.index.messages(target)
+                cursor = _Lookahead(self.index.messages(target))
                 with self._cond:
                     self._position = target
                     self._anchor = (target, self._clock())
@@ -398,7 +466,7 @@ class MessageReplay(FrameSource):
             except McapDamage as exc:  # only its facts leave this block (not its frames)
                 msg, damage = None, (exc.reason, exc.offset, exc.stamp_ns)
             if damage is not None:
-                cursor = iter(())  # the chunks read so far go
+                cursor = _Lookahead(iter(()))  # the chunks read so far go
                 for s, h in sorted(pending.items(), key=lambda kv: kv[1].log_ns):
                     frame, _due = self._tof_frame(s, h)
                     delivered += 1
@@ -418,7 +486,7 @@ class MessageReplay(FrameSource):
                         yield frame
                 if self.loop and pass_delivered and self._pending_seek is None:
                     pass_delivered = 0
-                    cursor = self.index.messages(self.start_ns)
+                    cursor = _Lookahead(self.index.messages(self.start_ns))
                     with self._cond:
                         self._position = self.start_ns
                         self._anchor = None
@@ -436,6 +504,10 @@ class MessageReplay(FrameSource):
                     log.warning(
                         "%s: ignoring a malformed %s message: %s", self.path, route.kind, exc
                     )
+                continue
+            if self.keep_time and self._superseded(msg, cursor):
+                with self._cond:
+                    self._dropped[route.sensor] = self._dropped.get(route.sensor, 0) + 1
                 continue
             try:
                 stamp, data = route.decode(msg, self.frame_sizes.get(route.sensor))
@@ -494,6 +566,22 @@ class MessageReplay(FrameSource):
             assert distance is not None
             amplitude = np.full(distance.shape, np.nan, np.float32)
         return Frame(sensor, half.stamp_ns, amplitude, distance), half.log_ns
+
+    def _superseded(self, msg: Message, cursor: _Lookahead) -> bool:
+        """Whether ``msg``'s time has passed (real time) and a newer message of its channel
+        is due too (``keep_time``). The messages of one instant (within
+        :data:`SAME_INSTANT_NS` of the first of them) are judged at the same moment: the
+        two cameras of a stereo pair are kept or dropped together."""
+        with self._cond:
+            if not self.realtime or self._paused or self._anchor is None:
+                return False
+            judged = self._judged
+            if judged is None or not 0 <= msg.log_time - judged[0] <= SAME_INSTANT_NS:
+                anchor_ns, anchor_s = self._anchor
+                now_ns = anchor_ns + round((self._clock() - anchor_s) * self._rate * 1e9)
+                judged = self._judged = (msg.log_time, now_ns)
+        now_ns = judged[1]
+        return msg.log_time < now_ns and cursor.newer_due(msg.channel_id, now_ns)
 
     def _wait(self, due_ns: int) -> bool:
         """Block until a frame of log time ``due_ns`` is due, then count it as delivered

@@ -77,6 +77,10 @@ class ReplayControls(Protocol):
         """Continue from ``position`` (int: log time in ns; float: fraction of the
         duration); returns the target log time (ns)."""
 
+    @property
+    def dropped(self) -> dict[str, int]:
+        """Sensor -> frames dropped to keep real time (a consumer too slow for them)."""
+
     def stats(self) -> dict[str, Any]:
         """Skipped messages in the shape of :class:`RejectionStats`."""
 

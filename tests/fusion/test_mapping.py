@@ -129,6 +129,38 @@ def test_z_buffer_ignores_points_beyond_the_fold_and_on_the_image_plane() -> Non
     assert (z[119:122, u - 1 : u + 2] == 2.0).all()
 
 
+@pytest.mark.parametrize("scale", [1, 2, 4])
+def test_z_buffer_keeps_the_nearest_point_over_each_footprint(scale: int) -> None:
+    """The splat keeps, in every cell, the nearest of the points whose footprint (the cells
+    within ``radius`` of their own) covers it: compared with splatting each point over its
+    footprint one cell offset at a time, on points all over and around the image (those
+    just outside still cover the border)."""
+    view = DepthView(RIG, "ccd_left", "tof", scale)
+    assert view.radius >= 1
+    rng = np.random.default_rng(7)
+    points = rng.uniform((-4.0, -3.0, 0.3), (4.0, 3.0, 8.0), (30_000, 3)).astype(np.float32)
+    got = view.render(points).copy()
+
+    T = view.T_sensor_tof
+    P = points @ T[:3, :3].T + T[:3, 3]
+    uv = RIG["ccd_left"].intrinsics.project(P).astype(np.float32)
+    keep = (P[:, 2] > 0.05) & np.isfinite(uv).all(axis=1)
+    cu = np.floor((uv[keep, 0] + 0.5) / scale).astype(int)
+    cv = np.floor((uv[keep, 1] + 0.5) / scale).astype(int)
+    z = P[keep, 2]
+    want = np.full(view.shape, np.inf, np.float32)
+    hc, wc = view.shape
+    r = view.radius
+    for dv in range(-r, r + 1):
+        for du in range(-r, r + 1):
+            u, v = cu + du, cv + dv
+            ok = (u >= 0) & (u < wc) & (v >= 0) & (v < hc)
+            np.minimum.at(want, (v[ok], u[ok]), z[ok])
+    border = np.isfinite(want[0]).sum() + np.isfinite(want[:, 0]).sum()
+    assert border > 0 and np.isfinite(want).mean() > 0.3  # the border and many cells covered
+    np.testing.assert_array_equal(got, want)
+
+
 def test_mixed_pixels_are_only_those_between_two_surfaces() -> None:
     d = np.full((5, 7), 3.0, np.float32)
     d[:, :3] = 1.0

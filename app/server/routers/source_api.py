@@ -36,6 +36,11 @@ class SourceInfo(BaseModel):
     duration_s: float | None = Field(None, description="replay: the recording's length, s")
     paused: bool | None = Field(None, description="replay: held by pause")
     rate: float | None = Field(None, description="replay: speed, 1.0 = real time")
+    dropped: dict[str, int] | None = Field(
+        None,
+        description="replay: sensor -> frames dropped to keep real time (the console had no "
+        "time for them) since the replay was opened",
+    )
 
 
 class RecordingInfo(BaseModel):

@@ -50,7 +50,8 @@ HEALTH_CACHE_S = 0.5
 @dataclass
 class SourceState:
     """The source: what it is, and for a replay where it is (seconds from its start), its
-    length (seconds), whether it is paused and its speed (1.0 = real time)."""
+    length (seconds), whether it is paused, its speed (1.0 = real time) and the frames per
+    sensor it dropped to keep real time since it was opened."""
 
     description: str
     kind: SourceKind
@@ -59,6 +60,7 @@ class SourceState:
     duration_s: float | None = None
     paused: bool | None = None
     rate: float | None = None
+    dropped: dict[str, int] | None = None
 
 
 def check_rate(rate: float) -> float:
@@ -125,6 +127,7 @@ class SourceControl:
             st.duration_s = float(src.duration_s)
             st.paused = bool(src.paused)
             st.rate = float(src.rate)
+            st.dropped = dict(src.dropped)
         return st
 
     @property
