@@ -81,6 +81,7 @@ class StereoFusion:
         self.range_correction = tof.range_correction
         self._corrected = np.empty(tof.image_size[::-1], np.float32)
         self.distance_m: np.ndarray | None = None
+        self._aside: tuple[dict[str, EyeFusion], np.ndarray] | None = None  # map_aside's
         self.map_eyes: EyeMap = map
         """How the eyes' own steps run (:meth:`update_depth`'s mapping update,
         :meth:`compose`'s warp and composition): ``map``, one after the other; the console
@@ -106,14 +107,54 @@ class StereoFusion:
         The rig's range correction (``range_correction`` of the TOF), if it has one, is
         applied first; :attr:`distance_m` is the corrected image.
         """
-        if self.range_correction is not None:
-            distance_m = self.range_correction.apply(distance_m, amplitude, out=self._corrected)
-        self.distance_m = distance_m
-        points = self.grid.points(distance_m, self.options.edge_rel)
-        for _ in self.map_eyes(lambda f: f.forward.update_points(points), self.fusion.values()):
-            pass
-        self._points = points
+        self.distance_m, self._points = self._map(
+            distance_m, amplitude, self.fusion, self._corrected, self.map_eyes
+        )
         self._reverse_fresh.clear()
+
+    def map_aside(
+        self, distance_m: np.ndarray, amplitude: np.ndarray | None = None
+    ) -> Callable[[], None]:
+        """:meth:`update_depth` into a second set of mappings, not the ones in use; returns
+        the function that puts them in use (and the previous ones aside for the next call).
+
+        May run in another thread while :meth:`compose` and every reader of the mappings
+        use the current ones (the console maps each TOF frame in a worker thread and goes on
+        composing with the last depth meanwhile); the returned function must be called
+        where the mappings are read (the fusion thread), between two pictures. One call at a
+        time. The eyes are mapped one after the other (``map``). The mappings put in use
+        are those :meth:`update_depth` makes of the same frame.
+        """
+        if self._aside is None:
+            aside = {e: EyeFusion(self.rig, e, self.options, self.grid) for e in self.eyes}
+            self._aside = (aside, np.empty_like(self._corrected))
+        eyes, corrected = self._aside
+        distance, points = self._map(distance_m, amplitude, eyes, corrected, map)
+
+        def use() -> None:
+            self._aside = (self.fusion, self._corrected)
+            self.fusion, self._corrected = eyes, corrected
+            self.distance_m, self._points = distance, points
+            self._reverse_fresh.clear()
+
+        return use
+
+    def _map(
+        self,
+        distance_m: np.ndarray,
+        amplitude: np.ndarray | None,
+        eyes: Mapping[str, EyeFusion],
+        corrected: np.ndarray,
+        map_eyes: EyeMap,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Range correction (into ``corrected``), the frame's points and each eye's forward
+        mapping updated from them; returns (the corrected distances, the points)."""
+        if self.range_correction is not None:
+            distance_m = self.range_correction.apply(distance_m, amplitude, out=corrected)
+        points = self.grid.points(distance_m, self.options.edge_rel)
+        for _ in map_eyes(lambda f: f.forward.update_points(points), eyes.values()):
+            pass
+        return distance_m, points
 
     def compose(
         self,

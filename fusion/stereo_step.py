@@ -25,13 +25,15 @@ policy. Per frame set:
 from the inputs and the fusion's span (:meth:`StereoStep.meta`: :class:`fusion.frame_meta.
 FrameMeta`). Two parts serve loops that make no picture: :class:`DepthFeed` (the thermal
 balance over a recording, ``app/workflows/thermal_run.py``) and :class:`ThermalKelvin` (the
-3D map's thermal images, ``app/recording/map3d.py``). Pure: no threads, no I/O.
+3D map's thermal images, ``app/recording/map3d.py``). Pure: no threads (the console hands
+in the executors it wants used: :attr:`DepthFeed.submit`), no I/O.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
@@ -181,40 +183,89 @@ def _unchanged(a: np.ndarray | None, b: np.ndarray | None) -> bool:
     return a is b and not a.flags.writeable
 
 
+DEPTH_MAX_LAG_S = 0.2
+"""Mapping TOF frames aside (:attr:`DepthFeed.submit`), a picture goes on with the depth in
+use while a newer one is mapped, unless the depth in use is further than this from the
+picture's time (e.g. the first picture after a rest, or a seek): then it waits for it."""
+
+MapAside = Callable[[Callable[[], Callable[[], None]]], "Future[Callable[[], None]]"]
+"""``Executor.submit``'s shape, for :attr:`DepthFeed.submit`."""
+
+
 class DepthFeed:
     """The TOF side of the step: the newest TOF frame noted (:meth:`note`) is mapped
     (:meth:`update`) once per new stamp, with the rig's range correction
     (:meth:`fusion.stereo.StereoFusion.update_depth`); a frame without distances is not.
 
     Attributes:
-        tof_stamp_ns: the stamp of the TOF frame behind the mapping (None before the first).
+        tof_stamp_ns: the stamp of the TOF frame behind the mapping in use (None before
+            the first).
         version: counts the mapping's updates (a read-only distance array that is the
             previous one, same object, is not mapped again: the depth is the same).
+        submit: None (default): :meth:`update` maps a new TOF frame there and then. The
+            console gives an executor's ``submit``: a new TOF frame is mapped aside in its
+            worker (:meth:`fusion.stereo.StereoFusion.map_aside`) while the pictures go on
+            with the depth in use, which :meth:`update` replaces once the new one is done
+            (one TOF frame at a time: the newest noted when the worker is free). Only
+            without any depth, or with one more than :data:`DEPTH_MAX_LAG_S` from the
+            picture's time, does :meth:`update` wait for it.
     """
 
     def __init__(self, fusion: StereoFusion) -> None:
         self.fusion = fusion
         self.tof_stamp_ns: int | None = None
         self.version = 0
+        self.submit: MapAside | None = None
         self._newest: TofFrame | None = None  # the newest TOF frame noted
         self._last_distance: np.ndarray | None = None
+        self._job: tuple[Future[Callable[[], None]], TofFrame] | None = None  # mapped aside
 
     def note(self, frame: TofFrame | None) -> None:
         """A TOF frame arrived (None: none in this set)."""
         if frame is not None:
             self._newest = frame
 
-    def update(self) -> bool:
-        """Map the newest TOF frame noted if its stamp is new and it has distances; True if
-        it was taken."""
+    def update(self, stamp_ns: int | None = None) -> bool:
+        """Map the newest TOF frame noted if its stamp is new and it has distances (with
+        :attr:`submit`: start mapping it aside, and put in use a mapping done aside);
+        ``stamp_ns``: the picture's time (see :attr:`submit`). True if a TOF frame was taken
+        (mapped, or put in use)."""
+        taken = self._finish(stamp_ns)
         tof = self._newest
         if tof is None or tof.stamp_ns == self.tof_stamp_ns or tof.distance_m is None:
-            return False
-        if not _unchanged(tof.distance_m, self._last_distance):
+            return taken
+        if self._job is not None:  # the worker is busy: the newest frame waits
+            return taken
+        if _unchanged(tof.distance_m, self._last_distance):
+            self.tof_stamp_ns = tof.stamp_ns
+            return True
+        self._last_distance = tof.distance_m
+        if self.submit is None:
             self.fusion.update_depth(tof.distance_m, tof.image)
             self.version += 1
+            self.tof_stamp_ns = tof.stamp_ns
+            return True
+        fusion, distance, amplitude = self.fusion, tof.distance_m, tof.image
+        self._job = (self.submit(lambda: fusion.map_aside(distance, amplitude)), tof)
+        return self._finish(stamp_ns) or taken
+
+    def _finish(self, stamp_ns: int | None) -> bool:
+        """Put the mapping done aside in use, waiting for it only without a usable depth;
+        True if it was put in use."""
+        if self._job is None:
+            return False
+        job, tof = self._job
+        if not job.done():
+            lag_ns = None
+            if stamp_ns is not None and self.tof_stamp_ns is not None:
+                lag_ns = abs(stamp_ns - self.tof_stamp_ns)
+            stale = lag_ns is not None and lag_ns > DEPTH_MAX_LAG_S * 1e9
+            if self.fusion.ready and self.tof_stamp_ns is not None and not stale:
+                return False
+        self._job = None
+        job.result()()  # a failure of the mapping is raised here, in the caller's thread
+        self.version += 1
         self.tof_stamp_ns = tof.stamp_ns
-        self._last_distance = tof.distance_m
         return True
 
 
@@ -318,10 +369,10 @@ class StereoStep:
             for e in seen:
                 self._color_seen[e] = fs.stamp_ns
 
-    def update_depth(self) -> bool:
-        """Map the newest TOF frame noted if its stamp is new (:meth:`DepthFeed.update`);
-        True if it was taken."""
-        return self.depth.update()
+    def update_depth(self, stamp_ns: int | None = None) -> bool:
+        """Map the newest TOF frame noted if its stamp is new (:meth:`DepthFeed.update`;
+        ``stamp_ns``: the picture's time); True if it was taken."""
+        return self.depth.update(stamp_ns)
 
     def inputs(self, fs: FrameSetLike) -> PictureInputs | Skip:
         """What the picture of ``fs`` is made of under the policy, or why it makes none.
@@ -398,7 +449,7 @@ class StereoStep:
     def picture(self, fs: FrameSetLike) -> np.ndarray | Skip:
         """Steps 1-4 for one frame set: its picture (see :meth:`render`), or why none."""
         self.note(fs)
-        self.update_depth()
+        self.update_depth(fs.stamp_ns)
         inputs = self.inputs(fs)
         return inputs if isinstance(inputs, Skip) else self.render(inputs)
 

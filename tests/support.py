@@ -209,13 +209,16 @@ class FakeClock:
 
 
 class ListSource(FrameSource):
-    """The given frames, as fast as they are taken; none: a source that never delivers.
+    """The given frames, as fast as they are taken (not ``realtime``); none: a source that
+    never delivers.
 
     Args:
         frames: the frames, in time order.
         sensors: the source's sensors (default: those of ``frames``, sorted by name).
         rig: the rig the source reports (default None: it knows none).
     """
+
+    realtime = False
 
     def __init__(
         self,

@@ -18,6 +18,11 @@ it a replay dropped to keep real time (``dropped_hz``, the source's ``dropped``)
 clock would deliver fewer and drop none), and the console's cores
 (user + system CPU of its process tree over the window); with the viewer, the frames it
 drew a second (``trifuseStats.fps``). Medians over the windows.
+
+The replay's cost per frame set (the console's CPU over the frame sets it fused,
+``replay_set_ms``) is compared with what a set needs, its steps measured alone on the same
+recording in the same run (:mod:`app.devtools.live_steps`, ``step_*``), weighed by the rates
+the console ran at (``replay_necessary_ms``): ``replay_cost_ratio`` (issue 32: at most 1.5).
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from typing import Any
 from trifuse.app.devtools.benchmark import benchmark, check_repeat
 from trifuse.app.devtools.browser_console import headless_chromium, require_chromium
 from trifuse.app.devtools.console_process import ConsoleProcess, prewarm_pose_cache
+from trifuse.app.devtools.live_steps import necessary_ms, step_costs
 from trifuse.app.devtools.procfs import tree_cpu_s
 
 WINDOW_S = 10.0
@@ -43,6 +49,7 @@ RECORD_S = 2.0
 """The recording replayed: this many seconds of the simulated head (it loops)."""
 START_TIMEOUT_S = 180.0
 COLOR = "ccd_left"
+TOF = "tof"
 
 
 def _record(out: Path) -> float:
@@ -68,22 +75,26 @@ def _dropped(status: dict[str, Any]) -> int:
 
 def _window(console: ConsoleProcess, page: Any | None) -> dict[str, float]:
     """One window of :data:`WINDOW_S` s, asking the status once a second."""
-    fps, color = [], []
+    fps: list[float] = []
+    rates: dict[str, list[float]] = {}
     cpu0, t0 = tree_cpu_s(console.pid), time.monotonic()
     dropped0 = _dropped(console.status())
     while time.monotonic() - t0 < WINDOW_S:
         status = console.status()
         fps.append(float(status["fps"]))
-        color.append(float(status["rates_hz"].get(COLOR, 0.0)))
+        for sensor, hz in status["rates_hz"].items():
+            rates.setdefault(sensor, []).append(float(hz))
         time.sleep(1.0)
     elapsed = time.monotonic() - t0
     dropped_hz = (_dropped(console.status()) - dropped0) / elapsed
+    color_hz = statistics.median(rates.get(COLOR, [0.0]))
     out = {
         "fps": statistics.median(fps),
-        "color_hz": statistics.median(color),
+        "color_hz": color_hz,
         "dropped_hz": dropped_hz,
-        "speed_hz": statistics.median(color) + dropped_hz,
+        "speed_hz": color_hz + dropped_hz,
         "cores": (tree_cpu_s(console.pid) - cpu0) / elapsed,
+        **{f"rate_{s}_hz": statistics.median(v) for s, v in rates.items()},
     }
     if page is not None:
         out["drawn_fps"] = float(page.evaluate("() => window.trifuseStats.fps"))
@@ -97,8 +108,16 @@ def _phase(console: ConsoleProcess, windows: int, page: Any | None) -> dict[str,
     return {k: statistics.median(w[k] for w in seen) for k in seen[0]}
 
 
-def _source(console: ConsoleProcess, browser: Any, windows: int, name: str) -> dict[str, float]:
-    """Both phases on one console; figures named ``{name}_...`` and ``{name}_viewer_...``."""
+def _source(
+    console: ConsoleProcess,
+    browser: Any,
+    windows: int,
+    name: str,
+    costs: dict[str, float] | None,
+) -> dict[str, float]:
+    """Both phases on one console; figures named ``{name}_...`` and ``{name}_viewer_...``;
+    with the steps' ``costs`` (:func:`~app.devtools.live_steps.step_costs`), the console's
+    CPU per frame set (``set_ms``), what the set needs (``necessary_ms``) and their ratio."""
     alone = _phase(console, windows, None)
     page = browser.new_page(viewport={"width": 1400, "height": 700})
     try:
@@ -111,8 +130,15 @@ def _source(console: ConsoleProcess, browser: Any, windows: int, name: str) -> d
         watched = _phase(console, windows, page)
     finally:
         page.close()
-    figures = {f"{name}_{k}": v for k, v in alone.items()}
-    figures.update({f"{name}_viewer_{k}": v for k, v in watched.items()})
+    figures = {}
+    for prefix, phase, h264 in ((name, alone, False), (f"{name}_viewer", watched, True)):
+        rates = {k[5:-3]: v for k, v in phase.items() if k.startswith("rate_")}
+        figures.update({f"{prefix}_{k}": v for k, v in phase.items() if k not in rates})
+        if costs is not None:  # the replay: its frames are those the steps were measured on
+            need = necessary_ms(costs, rates, phase["fps"], TOF, h264)
+            cost = 1e3 * phase["cores"] / phase["fps"] if phase["fps"] > 0 else float("nan")
+            figures.update({f"{prefix}_set_ms": cost, f"{prefix}_necessary_ms": need})
+            figures[f"{prefix}_cost_ratio"] = cost / need
     return figures
 
 
@@ -126,6 +152,7 @@ def _source(console: ConsoleProcess, browser: Any, windows: int, name: str) -> d
         ("replay_fps", "sensor_fps"),
         ("replay_speed_hz", "sensor_fps"),
         ("replay_viewer_fps", "sensor_fps"),
+        ("replay_viewer_speed_hz", "sensor_fps"),
         ("sim_fps", "sensor_fps"),
         ("sim_viewer_fps", "sensor_fps"),
     ),
@@ -142,12 +169,15 @@ def live(repeat: int) -> dict[str, float]:
     with tempfile.TemporaryDirectory(prefix="trifuse-bench-live-") as tmp, headless_chromium() as b:
         recording = Path(tmp) / "sim.mcap"
         figures["sensor_fps"] = _record(recording)
-        for name, args in (("replay", ["--replay", str(recording)]), ("sim", [])):
+        costs = step_costs(recording)
+        figures.update({f"step_{k}": v for k, v in costs.items()})
+        runs = (("replay", ["--replay", str(recording)], costs), ("sim", [], None))
+        for name, args, source_costs in runs:
             log = Path(tmp) / f"{name}.log"
             args = [*args, "--workdir", str(Path(tmp) / f"work-{name}")]
             with ConsoleProcess(args, log_path=log, timeout_s=START_TIMEOUT_S) as console:
                 try:
-                    figures.update(_source(console, b, repeat, name))
+                    figures.update(_source(console, b, repeat, name, source_costs))
                 except Exception as exc:
                     tail = console.output()[-2000:]
                     raise RuntimeError(f"live ({name}): {exc}; the console's log:\n{tail}") from exc

@@ -33,10 +33,17 @@ class FrameSource(ABC):
         source_kind: what the source is (:data:`~app.sources.capabilities.SourceKind`);
             what else it can do it declares through the protocols of
             :mod:`app.sources.capabilities`.
+        realtime: frames come at the sensors' own pace (devices, pushed frames, a
+            simulated head or a replay in real time): a late consumer gets newer frames,
+            so what it makes depends on its timing anyway. False: every frame, as fast as
+            it is taken (a replay read as fast as possible): the console then makes exactly
+            the pictures ``trifuse fuse`` makes (it maps every TOF frame before the next
+            picture instead of aside, :attr:`fusion.stereo_step.DepthFeed.submit`).
     """
 
     sensors: list[str]
     rig: Rig | None = None
+    realtime: bool = True
     source_kind: ClassVar[SourceKind] = "live"
 
     @abstractmethod

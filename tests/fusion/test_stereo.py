@@ -111,3 +111,32 @@ def test_point_cloud_coloured_by_colour_temperature_and_depth(scene) -> None:
     assert np.percentile(lum, 99.5) > 200 and np.median(lum) < 80
     _, by_depth = fusion.point_cloud(colors, thermals, "depth", span=(0.5, 8.0))
     assert len(np.unique(by_depth, axis=0)) > 50
+
+
+def test_mapping_aside_leaves_the_depth_in_use_until_it_is_put_in_use(scene) -> None:
+    """``map_aside`` (the console's worker) maps a TOF frame without touching the mappings
+    in use: the picture composed meanwhile is that of the previous depth; once put in use,
+    the mappings and the picture are those ``update_depth`` makes of the same frame."""
+    scenario, frames, _truth, colors, thermals = scene
+    later, _ = scenario.render(3.4)
+    settings = DisplaySettings(mode="blend")
+    plain, aside = StereoFusion(scenario.rig), StereoFusion(scenario.rig)
+    for fusion in (plain, aside):
+        fusion.update_depth(frames["tof"].distance_m)
+    before = plain.compose(colors, thermals, settings).copy()
+    use = aside.map_aside(later["tof"].distance_m)
+    assert np.array_equal(aside.compose(colors, thermals, settings), before)
+    use()
+    plain.update_depth(later["tof"].distance_m)
+    for e in ("left", "right"):
+        a, b = plain.fusion[e].forward, aside.fusion[e].forward
+        assert np.array_equal(a.map_x, b.map_x) and np.array_equal(a.map_y, b.map_y)
+        assert np.array_equal(a.fallback, b.fallback)
+    assert np.array_equal(plain.points, aside.points)
+    after = plain.compose(colors, thermals, settings)
+    assert not np.array_equal(after, before)  # the head moved: the depth changed the picture
+    assert np.array_equal(aside.compose(colors, thermals, settings), after)
+    # and again: the set put aside by the first swap is the one mapped next
+    use = aside.map_aside(frames["tof"].distance_m)
+    use()
+    assert np.array_equal(aside.compose(colors, thermals, settings), before)

@@ -2,13 +2,18 @@
 
 One background thread, the fusion thread: a :class:`FrameSource` ->
 :class:`FrameSetAssembler` (the left colour camera opens each set) -> the stereo-picture
-step (:class:`fusion.stereo_step.StereoStep`: depth mapping updated on each new TOF frame,
-the right eye's in a worker thread while the fusion thread does the left one; radiometry,
-composition) -> a BGR copy of the picture, read-only, published to the
-:class:`FrameHub` (the JPEG for the JPEG viewers is made there when the first of them
-takes it, in a worker thread; the H.264 for the video viewers in theirs), and on to the
-next frame set: nothing the viewers do holds the fusion up (the source drops what a late
-consumer cannot take).
+step (:class:`fusion.stereo_step.StereoStep`) -> a BGR copy of the picture, read-only,
+published to the :class:`FrameHub` (the JPEG for the JPEG viewers is made there when the
+first of them takes it, in a worker thread; the H.264 for the video viewers in theirs), and
+on to the next frame set: nothing the viewers do holds the fusion up (the source drops what
+a late consumer cannot take).
+
+The step uses two workers of the pipeline's, so that it runs on both cores: each new TOF
+frame is mapped aside in ``fusion-depth`` while the pictures go on with the depth in use,
+which the new mapping replaces once done (:attr:`fusion.stereo_step.DepthFeed.submit`; a
+source that is not ``realtime`` gets every picture with its own depth instead); the
+right eye's warp and composition run in ``fusion-eye`` while the fusion thread does the
+left eye's (:attr:`fusion.stereo.StereoFusion.map_eyes`).
 
 A frame set that misses a sensor still produces a picture from what it has (the step's
 :data:`~fusion.stereo_step.CONSOLE` policy): an eye whose thermal imager is missing shows
@@ -119,6 +124,7 @@ class FusionPipeline:
         it must be quick (cached)."""
         self._pending_rig: Rig | None = None
         self._eye_worker = ThreadPoolExecutor(1, thread_name_prefix="fusion-eye")
+        self._depth_worker = ThreadPoolExecutor(1, thread_name_prefix="fusion-depth")
         self._init_rig(rig, {})
         hub.jpeg_quality = jpeg_quality
         self._stop = threading.Event()
@@ -137,6 +143,8 @@ class FusionPipeline:
         self.step = StereoStep(rig, self.settings, CONSOLE)
         self.fusion = self.step.fusion
         self.fusion.map_eyes = self._both_cores
+        if self.source.realtime:  # else every picture waits for its depth, as fuse's do
+            self.step.depth.submit = self._depth_worker.submit
         self.spot_meter = SpotMeter(self.fusion)
         self.spots: SpotFrame | None = None
         """The spot meter's view of the last fused picture (``/api/spot``, the metadata's
@@ -191,6 +199,7 @@ class FusionPipeline:
         self.source.close()
         self._thread.join(timeout_s)
         self._eye_worker.shutdown(wait=False)
+        self._depth_worker.shutdown(wait=False, cancel_futures=True)
 
     def join(self, timeout_s: float | None = None) -> bool:
         """Wait (at most ``timeout_s``) for the fusion thread to end by itself (its source ran
@@ -264,7 +273,7 @@ class FusionPipeline:
         """Fuse one frame set (noted) and publish its picture; False if it makes none."""
         self._fused_set, self._resting = fs, False
         step = self.step
-        step.update_depth()
+        step.update_depth(fs.stamp_ns)
         step.settings = self.settings
         inputs = step.inputs(fs)
         if isinstance(inputs, Skip):

@@ -40,6 +40,7 @@ class SourceTap(FrameSource):
         self.inner = inner
         self.sensors = list(inner.sensors)
         self.rig = inner.rig
+        self.realtime = inner.realtime
         self.meter = RateWindow()
         self.recorder = recorder
         self.health = HealthMonitor(self.sensors, expected_of(inner.rig, self.sensors))

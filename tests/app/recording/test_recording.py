@@ -576,7 +576,8 @@ def test_keeping_time_drops_the_frames_a_slow_consumer_has_no_time_for(tmp_path,
     slows a plain real-time replay down; with ``keep_time`` the replay stays on time (a frame
     is late by less than its period and one pair's work), every frame it gives was the
     newest of its sensor due when its instant was judged, the two cameras of an instant are
-    kept or dropped together, and the frames it drops are counted, never decoded."""
+    kept or dropped together (and decoded on two threads, to the same pixels), and the frames
+    it drops are counted, never decoded."""
     frames = synth_frames(rig, 1.0, seed=3)
     path = write_recording(tmp_path / "full.mcap", rig, frames)
     duration_s = (frames[-1].stamp_ns - frames[0].stamp_ns) / 1e9
@@ -617,6 +618,10 @@ def test_keeping_time_drops_the_frames_a_slow_consumer_has_no_time_for(tmp_path,
     for sensor in rig.sensors:  # each sensor's frames still come in time order
         stamps = [f.stamp_ns for _, f in kept if f.sensor == sensor]
         assert stamps == sorted(stamps) and len(stamps) >= 2
+    with ReplaySource(path, realtime=False) as src:  # the pair decoded on two threads: the same
+        every = {(f.sensor, f.stamp_ns): f for f in src.frames()}
+    for _, f in kept:
+        assert np.array_equal(f.image, every[f.sensor, f.stamp_ns].image, equal_nan=True)
 
 
 def test_pause_and_resume(tmp_path, rig):

@@ -5,7 +5,9 @@ replay time goes back) and the per-sensor rate meter."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
+import re
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -35,7 +37,7 @@ from trifuse.app.server.runtime.board_watch import BoardWatch
 from trifuse.app.server.runtime.context import ConsoleContext
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.rates import RateWindow
-from trifuse.app.server.runtime.source_control import SourceControl
+from trifuse.app.server.runtime.source_control import SourceControl, SourceState
 from trifuse.app.server.runtime.source_tap import SourceTap
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.sources.frames import Frame
@@ -121,6 +123,28 @@ def test_panel_shows_the_replay_and_its_rates(replay_panel) -> None:
     assert "| ccd_left |" in text and "| tof |" in text and "Fused:" in text
     assert panel.play.label == "Pause" and panel.record.label == "Record"
     assert "Not recording" in panel.recording.content
+
+
+def test_panel_says_what_a_replay_dropped_to_keep_real_time(replay_panel, monkeypatch) -> None:
+    """A replay that keeps real time (``keep_time``) drops what the console has no time for:
+    the rates table gets a column with the frames dropped per sensor."""
+    panel, _, _ = replay_panel
+    assert panel.control.source_state().dropped == {}  # nothing dropped: no column
+    panel.tick()
+    assert "dropped" not in panel.rates.content
+    state = panel.control.source_state
+
+    def dropping() -> SourceState:
+        return dataclasses.replace(state(), dropped={"ccd_left": 7, "tof": 2})
+
+    monkeypatch.setattr(panel.control, "source_state", dropping)
+    wait_until(lambda: panel.control.rates_hz().get("ccd_left", 0) > 0, "a rate")
+    panel.tick()
+    text = panel.rates.content
+    assert "| sensor | Hz | dropped to keep real time |" in text
+    assert re.search(r"\| ccd_left \| [0-9.]+ \| 7 \|", text)
+    assert re.search(r"\| tof \| [0-9.]+ \| 2 \|", text)
+    assert re.search(r"\| thermal_left \| [0-9.]+ \| 0 \|", text)
 
 
 def test_play_pause_and_the_position_slider(replay_panel) -> None:
