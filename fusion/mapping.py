@@ -291,7 +291,14 @@ class ViewMapping:
         cv2.resize(
             missing.view(np.uint8), (w, h), dst=self.fallback.view(np.uint8), interpolation=near
         )
-        self._coarse_z, self._coarse_visible = z, visible
+        self._coarse_z, self._coarse_visible, self._coarse_missing = z, visible, missing
+
+    def coarse_depth(self) -> tuple[np.ndarray, np.ndarray]:
+        """The coarse cells behind the mapping, (hc, wc) each: z float32 metres along the
+        target's axis (fallback included) and bool, the depth is the fallback; new arrays
+        at each update, never written afterwards. :attr:`depth_m` and :attr:`fallback` are
+        them brought to full resolution (``cv2.INTER_NEAREST``)."""
+        return self._coarse_z, self._coarse_missing
 
     @property
     def depth_m(self) -> np.ndarray:

@@ -152,13 +152,28 @@ class AreaReading:
 
 @dataclass(frozen=True)
 class _EyeState:
-    """One eye's frozen picture: kelvin (H, W) float32 (NaN: no thermal view), z (H, W)
-    float32 metres along the colour camera's axis (fallback included), fallback (H, W)
-    bool; read-only arrays."""
+    """One eye's frozen picture: kelvin (H, W) float32 (NaN: no thermal view); the depth of
+    the mapping's coarse cells (:meth:`fusion.mapping.ViewMapping.coarse_depth`): z_m (hc,
+    wc) float32 metres along the colour camera's axis (fallback included) and fallback (hc,
+    wc) bool; arrays nobody writes."""
 
     kelvin: np.ndarray
     z_m: np.ndarray | None
     fallback: np.ndarray | None
+
+
+def nearest_cells(
+    xs: np.ndarray, ys: np.ndarray, size: tuple[int, int], cells: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The (row, column) of the coarse cell whose value full-resolution pixels (``xs``,
+    ``ys``) get from ``cv2.resize(..., size, interpolation=cv2.INTER_NEAREST)`` of a
+    ``cells`` (hc, wc) grid to ``size`` (W, H): ``floor(x * (1 / (W / wc)))``, clipped,
+    as OpenCV computes it."""
+    w, h = size
+    hc, wc = cells
+    cols = np.minimum(np.floor(xs * (1.0 / (w / wc))).astype(np.int64), wc - 1)
+    rows = np.minimum(np.floor(ys * (1.0 / (h / hc))).astype(np.int64), hc - 1)
+    return rows, cols
 
 
 class _Geometry:
@@ -265,8 +280,9 @@ class SpotFrame:
             z = np.full(len(px), np.nan)
             kinds: list[DepthKind | None] = [None] * len(px)
         else:
-            z = st.z_m[ys, xs].astype(np.float64)
-            fb = st.fallback[ys, xs]
+            rows, cols = nearest_cells(xs, ys, self.size, st.z_m.shape)
+            z = st.z_m[rows, cols].astype(np.float64)
+            fb = st.fallback[rows, cols]
             kinds = ["fallback" if f else "measured" for f in fb]
         rays = self._geo.rays(eye, px.astype(np.float64))
         points = rays * z[:, None]  # NaN rows without depth
@@ -410,38 +426,38 @@ class SpotMeter:
         self._depth: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
     def _depth_now(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """Each eye's (z, fallback) of the current mapping, taken again after a new TOF
-        frame (:attr:`StereoFusion.points` is a new array then)."""
+        """Each eye's coarse (z, fallback) of the current mapping
+        (:meth:`fusion.mapping.ViewMapping.coarse_depth`: arrays of its own that no later
+        update writes), taken again after a new TOF frame (:attr:`StereoFusion.points` is a
+        new array then)."""
         f = self.fusion
         if not f.ready:
             return {}
         points = f.points
         if points is not self._depth_of:
-            depth = {}
-            for e in f.eyes:
-                fwd = f.fusion[e].forward
-                z = fwd.depth_m  # a new array
-                fb = fwd.fallback.copy()
-                z.flags.writeable = fb.flags.writeable = False
-                depth[e] = (z, fb)
-            self._depth, self._depth_of = depth, points
+            self._depth = {e: f.fusion[e].forward.coarse_depth() for e in f.eyes}
+            self._depth_of = points
         return self._depth
 
     def capture(self, stamp_ns: int) -> SpotFrame:
         """Freeze the fusion's last composed picture (call right after ``compose``):
         each eye's temperatures (copied), depths (taken when they changed) and its hot
-        and cold spots. Returns the :class:`SpotFrame`."""
+        and cold spots (each eye through the fusion's ``map_eyes``: on both cores in the
+        console). Returns the :class:`SpotFrame`."""
         f = self.fusion
         depth = self._depth_now()
-        states, extremes = {}, {}
-        for e in f.eyes:
+
+        def eye(e: str) -> tuple[_EyeState, tuple[Extreme | None, Extreme | None]]:
             kelvin = f.thermal_on_color[e].copy()
             kelvin.flags.writeable = False
             z, fb = depth.get(e, (None, None))
-            states[e] = _EyeState(kelvin, z, fb)
             hot, cold = robust_extremes(
                 kelvin, self.cell_px, self._last.get(e, (None, None)), self.hold_k
             )
+            return _EyeState(kelvin, z, fb), (hot, cold)
+
+        states, extremes = {}, {}
+        for e, (state, (hot, cold)) in zip(f.eyes, f.map_eyes(eye, f.eyes), strict=True):
+            states[e], extremes[e] = state, (hot, cold)
             self._last[e] = (None if hot is None else hot[:2], None if cold is None else cold[:2])
-            extremes[e] = (hot, cold)
         return SpotFrame(stamp_ns, self._geo, states, extremes)

@@ -31,9 +31,9 @@ SPAN_SETTLED_K = 0.02
 """A smoothed span within this of its target is settled (far below one palette step)."""
 
 
-EyeMap = Callable[[Callable[[Any], None], Iterable[Any]], Iterable[None]]
+EyeMap = Callable[[Callable[[Any], Any], Iterable[Any]], Iterable[Any]]
 """``map``'s shape: how :class:`StereoFusion` runs a step over the eyes (the mapping update,
-the warp, the composition)."""
+the warp, the composition; the spot meter's capture), results in the eyes' order."""
 
 
 class StereoFusion:

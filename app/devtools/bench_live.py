@@ -49,7 +49,6 @@ RECORD_S = 2.0
 """The recording replayed: this many seconds of the simulated head (it loops)."""
 START_TIMEOUT_S = 180.0
 COLOR = "ccd_left"
-TOF = "tof"
 
 
 def _record(out: Path) -> float:
@@ -78,7 +77,8 @@ def _window(console: ConsoleProcess, page: Any | None) -> dict[str, float]:
     fps: list[float] = []
     rates: dict[str, list[float]] = {}
     cpu0, t0 = tree_cpu_s(console.pid), time.monotonic()
-    dropped0 = _dropped(console.status())
+    first = console.status()
+    dropped0, mapped0 = _dropped(first), int(first.get("depth_updates", 0))
     while time.monotonic() - t0 < WINDOW_S:
         status = console.status()
         fps.append(float(status["fps"]))
@@ -86,7 +86,8 @@ def _window(console: ConsoleProcess, page: Any | None) -> dict[str, float]:
             rates.setdefault(sensor, []).append(float(hz))
         time.sleep(1.0)
     elapsed = time.monotonic() - t0
-    dropped_hz = (_dropped(console.status()) - dropped0) / elapsed
+    last = console.status()
+    dropped_hz = (_dropped(last) - dropped0) / elapsed
     color_hz = statistics.median(rates.get(COLOR, [0.0]))
     out = {
         "fps": statistics.median(fps),
@@ -94,6 +95,7 @@ def _window(console: ConsoleProcess, page: Any | None) -> dict[str, float]:
         "dropped_hz": dropped_hz,
         "speed_hz": color_hz + dropped_hz,
         "cores": (tree_cpu_s(console.pid) - cpu0) / elapsed,
+        "mapped_hz": (int(last.get("depth_updates", 0)) - mapped0) / elapsed,
         **{f"rate_{s}_hz": statistics.median(v) for s, v in rates.items()},
     }
     if page is not None:
@@ -135,7 +137,7 @@ def _source(
         rates = {k[5:-3]: v for k, v in phase.items() if k.startswith("rate_")}
         figures.update({f"{prefix}_{k}": v for k, v in phase.items() if k not in rates})
         if costs is not None:  # the replay: its frames are those the steps were measured on
-            need = necessary_ms(costs, rates, phase["fps"], TOF, h264)
+            need = necessary_ms(costs, rates, phase["fps"], phase["mapped_hz"], h264)
             cost = 1e3 * phase["cores"] / phase["fps"] if phase["fps"] > 0 else float("nan")
             figures.update({f"{prefix}_set_ms": cost, f"{prefix}_necessary_ms": need})
             figures[f"{prefix}_cost_ratio"] = cost / need

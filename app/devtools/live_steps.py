@@ -2,8 +2,8 @@
 the console's cost per frame set is compared with.
 
 Measured in the benchmark's own process on the recording it replays, in CPU time
-(``time.process_time``: OpenCV's own threads included, as the console's cores count them),
-medians:
+(``time.process_time``) on one OpenCV thread (the work itself: what OpenCV's thread pool
+adds, the console counts as its own), medians:
 
 - ``read_<sensor>_ms``: reading one frame of the sensor from the recording and decoding it
   (a colour JPEG, a thermal or TOF plane), as the replay does;
@@ -44,6 +44,15 @@ def _timed(fn: Callable[[], T]) -> tuple[T, float]:
 
 def step_costs(recording: Path) -> dict[str, float]:
     """The steps' CPU times (ms, see the module doc) on ``recording``'s frames."""
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        return _costs(recording)
+    finally:
+        cv2.setNumThreads(threads)
+
+
+def _costs(recording: Path) -> dict[str, float]:
     from trifuse.app.recording.h264 import VideoEncoder
     from trifuse.app.recording.reader import ReplaySource
     from trifuse.app.server.runtime.video_presets import LEVELS
@@ -94,15 +103,20 @@ def step_costs(recording: Path) -> dict[str, float]:
 
 
 def necessary_ms(
-    costs: Mapping[str, float], rates_hz: Mapping[str, float], fps: float, tof: str, h264: bool
+    costs: Mapping[str, float],
+    rates_hz: Mapping[str, float],
+    fps: float,
+    mapped_hz: float,
+    h264: bool,
 ) -> float:
     """The CPU a frame set needs (ms) at the console's rates: each sensor's frames read and
-    decoded at the rate the console took them, each TOF frame mapped, the picture composed
-    and (``h264``: a video viewer) encoded. ``rates_hz``: sensor -> frames a second the
-    console took; ``fps``: frame sets a second it fused."""
+    decoded at the rate the console took them, the TOF frames it mapped, the picture
+    composed and (``h264``: a video viewer) encoded. ``rates_hz``: sensor -> frames a
+    second the console took; ``fps``: frame sets a second it fused; ``mapped_hz``: TOF
+    frames a second it mapped (``depth_updates``)."""
     if fps <= 0:
         return float("nan")
     need = costs["compose_ms"] + (costs["h264_ms"] if h264 else 0.0)
     for sensor, hz in rates_hz.items():
         need += costs.get(f"read_{sensor}_ms", 0.0) * hz / fps
-    return need + costs["map_ms"] * rates_hz.get(tof, 0.0) / fps
+    return need + costs["map_ms"] * mapped_hz / fps

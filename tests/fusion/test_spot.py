@@ -29,7 +29,7 @@ from trifuse.app.sources.sim.inspection import (
 from trifuse.app.sources.sim.render import HeadModel
 from trifuse.app.sources.sim.tof_error import RangeErrorModel
 from trifuse.fusion.compose import DisplaySettings
-from trifuse.fusion.spot import SpotError, SpotFrame, SpotMeter, robust_extremes
+from trifuse.fusion.spot import SpotError, SpotFrame, SpotMeter, nearest_cells, robust_extremes
 from trifuse.fusion.stereo import StereoFusion
 
 T_S = 18.0
@@ -308,3 +308,19 @@ def test_errors_say_what_was_expected(room: Room, call, message: str) -> None:
         call(room.spots)
     assert message in str(e.value)
     assert isinstance(e.value, ValueError)
+
+
+@pytest.mark.parametrize(
+    ("size", "cells"),
+    [((1280, 960), (240, 320)), ((382, 288), (72, 96)), ((1000, 750), (188, 250))],
+)
+def test_a_pixel_reads_the_cell_opencv_brings_to_it(size, cells) -> None:
+    """The spot meter keeps each eye's depth at the mapping's coarse cells and reads a pixel
+    from the cell ``cv2.resize(..., INTER_NEAREST)`` would put there: the same value as the
+    full-resolution depth, without making it."""
+    w, h = size
+    coarse = np.random.default_rng(4).random(cells).astype(np.float32)
+    full = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_NEAREST)
+    ys, xs = np.mgrid[0:h, 0:w]
+    rows, cols = nearest_cells(xs.ravel(), ys.ravel(), size, cells)
+    np.testing.assert_array_equal(coarse[rows, cols].reshape(h, w), full)

@@ -162,6 +162,9 @@ class Status(BaseModel):
     new_fps: float = Field(
         0.0, description="of these, new pictures per second (the rest repeat an unchanged one)"
     )
+    depth_updates: int = Field(
+        0, description="TOF frames mapped (depth put in use for the pictures) since the start"
+    )
     missing: dict[str, str] = Field(description="sensors missing from the last frame set: why")
     error: str | None = Field(description="the pipeline's error, if it stopped")
     source: SourceInfo | None = None
@@ -242,6 +245,7 @@ def make_source_router(
             frames_out=s.frames_out,
             fps=rates.stream_fps,
             new_fps=rates.new_fps,
+            depth_updates=s.depth_updates,
             missing=dict(s.missing),
             error=s.error,
             source=_source(control.source_state()),

@@ -87,6 +87,8 @@ class PipelineStatus:
     """Frames published to the stream since the start (new pictures and repeats)."""
     pictures_out: int = 0
     """Of these, new pictures (fused, not a repeat of the previous one)."""
+    depth_updates: int = 0
+    """TOF frames mapped and put in use for the pictures since the start."""
     last_stamp_ns: int = 0
     missing: dict[str, str] = field(default_factory=dict)
     error: str | None = None
@@ -158,7 +160,7 @@ class FusionPipeline:
         }
         self._made_of: PictureInputs | None = None  # what the previous picture was made of
 
-    def _both_cores(self, fn: Callable[[Any], None], items: Iterable[Any]) -> list[None]:
+    def _both_cores(self, fn: Callable[[Any], Any], items: Iterable[Any]) -> list[Any]:
         """``map(fn, items)`` with the items after the first in :attr:`_eye_worker` while
         this thread does the first (NumPy and OpenCV release the GIL)."""
         first, *rest = list(items)
@@ -273,7 +275,9 @@ class FusionPipeline:
         """Fuse one frame set (noted) and publish its picture; False if it makes none."""
         self._fused_set, self._resting = fs, False
         step = self.step
+        version = step.depth.version
         step.update_depth(fs.stamp_ns)
+        self.status.depth_updates += step.depth.version - version
         step.settings = self.settings
         inputs = step.inputs(fs)
         if isinstance(inputs, Skip):

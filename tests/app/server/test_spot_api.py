@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from tests.support import ListSource, wait_until
+from tests.support import WAIT_S, ListSource
 from trifuse.app.server.app_factory import create_app
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.stream import FrameHub
@@ -46,7 +46,8 @@ def console(room) -> Iterator[tuple[TestClient, FusionPipeline, FrameHub]]:
     assert r.status_code == 503 and "no fused picture yet" in r.json()["detail"]
     with hub.watching():
         pipeline.start()
-        wait_until(lambda: pipeline.status.frames_out >= 2, "two fused pictures")
+        # all three sets fused (a route read before the last would race with it)
+        assert pipeline.join(WAIT_S), "the pipeline did not fuse the three sets"
     yield client, pipeline, hub
     pipeline.stop()
 
