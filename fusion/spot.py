@@ -9,8 +9,10 @@ A :class:`SpotMeter` reads a :class:`fusion.stereo.StereoFusion` right after
   the thermal imager does not see the point), copied;
 * each eye's depth per colour pixel: the z (along the colour camera's optical axis) of the
   TOF z-buffer cell the forward mapping used, and whether that cell had TOF depth
-  (``measured``) or the mapping's fallback depth (``fallback``); taken again only when a
-  new TOF frame changed the mapping.
+  (``measured``) or the mapping's fallback depth (``fallback``); the mapping's coarse cells
+  themselves (:meth:`fusion.mapping.ViewMapping.coarse_depth`, never written again), a
+  pixel read from the cell the mapping's full-resolution maps give it
+  (:func:`nearest_cells`); taken again only when a new TOF frame changed the mapping.
 
 Coordinates are the eye's colour-camera pixels (``x`` column 0..W-1, ``y`` row 0..H-1,
 pixel centres at integers, OpenCV's convention). The distance of a pixel is measured from
@@ -34,8 +36,9 @@ as a thermal camera's box tool shows them.
 
 Cost, measured on a 2-core machine busy with other work (load average 4.4; default head,
 two eyes of 1280 x 960): :meth:`SpotMeter.capture` 2.5 ms a picture (median; the hot and
-cold spots 0.5 ms an eye, the copies 0.08 ms an eye, the four spots' readings about 1 ms)
-plus 0.9 ms after a new TOF frame (each eye's depth); a spot query 0.2 ms, a 161 x 101
+cold spots 0.5 ms an eye, the copies 0.08 ms an eye, the four spots' readings about 1 ms);
+after a new TOF frame nothing more since the depth is kept at the mapping's coarse cells
+(it was 0.9 ms for full-resolution copies); a spot query 0.2 ms, a 161 x 101
 box 0.3 ms, a whole eye 4.8 ms. Composing the picture itself took 23 ms.
 """
 

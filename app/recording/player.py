@@ -268,7 +268,8 @@ class MessageReplay(FrameSource):
         self._paused = False
         self._pending_seek: int | None = None
         self._anchor: tuple[int, float] | None = None  # (log ns, monotonic s)
-        self._judged: tuple[int, int] | None = None  # keep_time: (log ns, its "now" log ns)
+        # keep_time: (log ns of an instant, the "now" it was judged at, the anchor then)
+        self._judged: tuple[int, int, tuple[int, float]] | None = None
         self._routes: dict[int, Route | None] = {}
         self._tof_parts: dict[str, set[str]] = {}
         self.frame_sizes: dict[str, tuple[int, int]] = {}
@@ -521,6 +522,7 @@ class MessageReplay(FrameSource):
                     )
                 continue
             if self.keep_time and self._superseded(msg, cursor):
+                cursor.decoding.pop(id(msg), None)  # a decoding started for it goes too
                 with self._cond:
                     self._dropped[route.sensor] = self._dropped.get(route.sensor, 0) + 1
                 continue
@@ -610,10 +612,14 @@ class MessageReplay(FrameSource):
             if not self.realtime or self._paused or self._anchor is None:
                 return False
             judged = self._judged
-            if judged is None or not 0 <= msg.log_time - judged[0] <= SAME_INSTANT_NS:
+            if (
+                judged is None
+                or judged[2] is not self._anchor  # a seek, resume or new rate since
+                or not 0 <= msg.log_time - judged[0] <= SAME_INSTANT_NS
+            ):
                 anchor_ns, anchor_s = self._anchor
                 now_ns = anchor_ns + round((self._clock() - anchor_s) * self._rate * 1e9)
-                judged = self._judged = (msg.log_time, now_ns)
+                judged = self._judged = (msg.log_time, now_ns, self._anchor)
         now_ns = judged[1]
         return msg.log_time < now_ns and cursor.newer_due(msg.channel_id, now_ns)
 

@@ -309,6 +309,17 @@ class CalibrationPanel(Periodic):
         self.run.disabled = running
         self.progress.visible = running
         self.progress.value = 100.0 * job.progress
+        self.save.disabled = job.state != "done" or job.saved_as is not None
+        done = job.state == "done" and job.result is not None
+        # the results go out before the line that says they are there (a browser that
+        # reads "Calibrated" finds them)
+        if not done:
+            self.results.content = ""
+        elif self._shown_job is not job:
+            self._shown_job = job
+            self.results.content = self._results_md(job.result)
+            self._chart(job.result)
+        self.chart.visible = self.drop.visible = self.download.visible = done
         if job.state == "idle":
             self.stage.content = ""
         elif running:
@@ -319,17 +330,6 @@ class CalibrationPanel(Periodic):
             took = (job.finished or 0) - (job.started or 0)
             saved = f", saved as **{md_text(job.saved_as)}**" if job.saved_as else ""
             self.stage.content = f"Calibrated {len(job.views)} views in {took:.0f} s{saved}."
-        self.save.disabled = job.state != "done" or job.saved_as is not None
-        done = job.state == "done" and job.result is not None
-        self.chart.visible = self.drop.visible = self.download.visible = done
-        if not done:
-            self.results.content = ""
-            return
-        if self._shown_job is job:
-            return
-        self._shown_job = job
-        self.results.content = self._results_md(job.result)
-        self._chart(job.result)
 
     def _results_md(self, result) -> str:
         """Per-sensor RMS and 1-sigma; on the simulated head a second table of errors

@@ -624,6 +624,24 @@ def test_keeping_time_drops_the_frames_a_slow_consumer_has_no_time_for(tmp_path,
         assert np.array_equal(f.image, every[f.sensor, f.stamp_ns].image, equal_nan=True)
 
 
+def test_keeping_time_drops_nothing_for_a_consumer_on_time_and_seeks_cleanly(tmp_path, rig):
+    """A consumer that keeps up loses no frame to ``keep_time``, before and after a seek."""
+    frames = synth_frames(rig, 1.0, seed=4)
+    path = write_recording(tmp_path / "seek.mcap", rig, frames)
+    clock = FakeClock(100.0)
+    with ReplaySource(path, clock=clock, sleep=clock.sleep, keep_time=True) as src:
+        it = src.frames()
+        first = [next(it) for _ in range(20)]
+        clock.advance(0.004)  # a little work, well within a frame period
+        mid = src.seek(0.5)
+        rest = list(it)
+        assert src.dropped == {}
+    keys = [(f.sensor, f.stamp_ns) for f in first + rest]
+    want = [(f.sensor, f.stamp_ns) for f in frames]
+    assert keys[:20] == want[:20]
+    assert keys[20:] == [k for k in want if k[1] >= mid]
+
+
 def test_pause_and_resume(tmp_path, rig):
     """Paused after the third frame, the replay holds; resumed, it plays the rest at its
     rate from the moment of the resume (the pause is not caught up)."""
