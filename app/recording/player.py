@@ -22,7 +22,7 @@ does not slow the replay's clock. When a frame's time has passed and a newer fra
 sensor and kind is due too (the file is read ahead to its wall-clock time), the older one is
 dropped before its image is decoded, and counted (:attr:`MessageReplay.dropped`). The
 consumer gets the newest frames at the recording's pace; only a stall longer than
-:data:`MAX_LAG_S` (or a look-ahead of :data:`LOOKAHEAD_MESSAGES`) slows the clock. The two
+:data:`KEEP_TIME_MAX_LAG_S` (or a look-ahead of :data:`LOOKAHEAD_MESSAGES`) slows the clock. The two
 colour images of an instant are decoded at once, the second in a worker thread.
 Without it (``trifuse fuse``, ``map``, ``record``, tests of pacing), every frame is
 delivered.
@@ -64,6 +64,9 @@ FRAME_KINDS = ("color", "thermal", "tof_distance", "tof_amplitude")
 MAX_LAG_S = 0.25
 """A real-time replay that falls further behind than this re-anchors its clock (plays on
 from where it is, slower) instead of delivering a burst of late frames."""
+KEEP_TIME_MAX_LAG_S = 2.0
+"""A time-keeping replay re-anchors its clock only when this far behind (a stall, a machine
+that froze): short of it the frames the consumer had no time for are dropped instead."""
 LOOKAHEAD_MESSAGES = 512
 """The most messages a time-keeping replay reads ahead to find the newest due frames (about
 4 s of a full-rate recording of the simulated head)."""
@@ -523,8 +526,10 @@ class MessageReplay(FrameSource):
                 continue
             if self.keep_time and self._superseded(msg, cursor):
                 cursor.decoding.pop(id(msg), None)  # a decoding started for it goes too
-                with self._cond:
-                    self._dropped[route.sensor] = self._dropped.get(route.sensor, 0) + 1
+                parts = self._tof_parts.get(route.sensor, {"tof_distance"})
+                if route.kind != "tof_amplitude" or "tof_distance" not in parts:
+                    with self._cond:  # a TOF frame is counted once, by its distance half
+                        self._dropped[route.sensor] = self._dropped.get(route.sensor, 0) + 1
                 continue
             try:
                 stamp, data = self._decode(route, msg, cursor)
@@ -643,7 +648,7 @@ class MessageReplay(FrameSource):
                     if now < due_s:
                         self._sleep(due_s - now)
                         continue
-                    if now - due_s > MAX_LAG_S:
+                    if now - due_s > (KEEP_TIME_MAX_LAG_S if self.keep_time else MAX_LAG_S):
                         self._anchor = (due_ns, now)
                 self._position = max(self._position, due_ns)
                 return True
