@@ -135,7 +135,7 @@ def _source(
     figures = {}
     for prefix, phase, h264 in ((name, alone, False), (f"{name}_viewer", watched, True)):
         rates = {k[5:-3]: v for k, v in phase.items() if k.startswith("rate_")}
-        figures.update({f"{prefix}_{k}": v for k, v in phase.items() if k not in rates})
+        figures.update({f"{prefix}_{k}": v for k, v in phase.items()})
         if costs is not None:  # the replay: its frames are those the steps were measured on
             need = necessary_ms(costs, rates, phase["fps"], phase["mapped_hz"], h264)
             cost = 1e3 * phase["cores"] / phase["fps"] if phase["fps"] > 0 else float("nan")
