@@ -8,7 +8,10 @@ the fastest, a colour camera at 30 Hz) opens a frame set, which takes for every 
 sensor its frame nearest in time within ``tolerance_s``. A sensor without such a frame is
 reported in ``FrameSet.missing`` with the reason (never seen, or how old its latest frame
 is) and never blocks the others. When the reference sensor itself stops, a *fallback*
-sensor (the other colour camera) opens the sets until it comes back.
+sensor (the other colour camera) opens the sets until it comes back. When time goes back by
+more than :data:`TIME_BACK_S` (a replay that loops or is sought back), the sets still
+waiting are emitted and the frames kept so far are forgotten: the new time line's sets wait
+for its own frames.
 """
 
 from __future__ import annotations
@@ -62,6 +65,11 @@ class FrameSource(ABC):
         self.close()
 
 
+TIME_BACK_S = 1.0
+"""A frame this much older than the newest seen starts a new time line (no device's frames
+arrive a second late; a replay's loop or a seek back does that)."""
+
+
 class FrameSetAssembler:
     """Groups frames of several sensors, arriving at their own rates, into frame sets.
 
@@ -111,6 +119,7 @@ class FrameSetAssembler:
         self._pending: deque[Frame] = deque()
         self._last_ref_ns: int | None = None  # the reference's latest stamp (or the first frame's)
         self._since_ref = 0  # fallback frames since then
+        self._newest_ns: int | None = None  # the newest stamp of any sensor
 
     @classmethod
     def stereo(cls, sensors: Sequence[str], tolerance_s: float = 0.05) -> FrameSetAssembler:
@@ -130,6 +139,14 @@ class FrameSetAssembler:
         """
         if frame.sensor not in self._recent:
             return []  # a sensor this consumer does not use
+        out = []
+        newest = self._newest_ns
+        if newest is not None and newest - frame.stamp_ns > TIME_BACK_S * 1e9:
+            out = self.flush()  # the old time line's waiting sets, then a new one
+            for recent in self._recent.values():
+                recent.clear()
+            self._last_ref_ns, self._since_ref, newest = None, 0, None
+        self._newest_ns = frame.stamp_ns if newest is None else max(newest, frame.stamp_ns)
         self._recent[frame.sensor].append(frame)
         if self._last_ref_ns is None:
             self._last_ref_ns = frame.stamp_ns
@@ -143,7 +160,6 @@ class FrameSetAssembler:
                 and frame.stamp_ns - self._last_ref_ns > self.fallback_after_ns
             ):
                 self._pending.append(frame)
-        out = []
         while self._pending:
             ref = self._pending[0]
             newer_ref = len(self._pending) > 1

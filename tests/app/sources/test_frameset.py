@@ -76,3 +76,31 @@ def test_the_stereo_grouping_falls_back_to_the_right_camera() -> None:
         sets += asm.push(Frame("ccd_right", k * 33_000_000, IMG))
     opened = [fs for fs in sets if "ccd_left" in fs.missing]
     assert opened and all(fs.stamp_ns > 500_000_000 for fs in opened)
+
+
+def test_a_replay_that_loops_starts_a_new_time_line() -> None:
+    """A looping replay goes back 2 s: the sets still waiting come out, and the first sets
+    of the new pass wait for its own frames instead of reporting the old pass's as seconds
+    in the future ("latest -1.97 s old")."""
+    rates = {"ccd_left": 30.0, "thermal_left": 27.0, "tof": 15.0}
+    one = stream(rates, 2.0)
+    src = ListSource(one + one)  # the same 2 s twice: time goes back at the seam
+    sets = list(frame_sets(src, ["ccd_left", "thermal_left", "tof"], tolerance_s=0.04))
+    assert len(sets) == 120
+    assert [fs.stamp_ns for fs in sets[60:]] == [fs.stamp_ns for fs in sets[:60]]
+    for fs in sets:
+        assert not fs.missing, (fs.stamp_ns, fs.missing)
+
+
+def test_frames_late_by_less_than_a_second_stay_in_their_time_line() -> None:
+    """A live device's frame that arrives after newer frames of other sensors (a thermal
+    core's latency) is grouped as usual, not taken for a new time line."""
+    asm = FrameSetAssembler(["ccd_left", "thermal_left"], tolerance_s=0.05)
+    out = []
+    for k in range(10):  # the thermal frame of each instant arrives 0.3 s (9 frames) late
+        out += asm.push(Frame("ccd_left", k * 33_333_333, IMG))
+    for k in range(10):
+        out += asm.push(Frame("thermal_left", k * 33_333_333, IMG))
+    out += asm.flush()
+    assert len(out) == 10
+    assert sum("thermal_left" in fs.frames for fs in out) >= 1  # the last set waited for it
