@@ -152,8 +152,7 @@ class StereoFusion:
         if self.range_correction is not None:
             distance_m = self.range_correction.apply(distance_m, amplitude, out=corrected)
         points = self.grid.points(distance_m, self.options.edge_rel)
-        for _ in map_eyes(lambda f: f.forward.update_points(points), eyes.values()):
-            pass
+        list(map_eyes(lambda f: f.forward.update_points(points), eyes.values()))
         return distance_m, points
 
     def compose(
@@ -180,8 +179,7 @@ class StereoFusion:
         def warp(e: str) -> None:
             self.fusion[e].forward.warp(thermals[e], out=self.thermal_on_color[e])
 
-        for _ in self.map_eyes(warp, self.eyes):
-            pass
+        list(self.map_eyes(warp, self.eyes))
         span = resolve_span(settings, [self.thermal_on_color[e] for e in self.eyes])
         if settings.span_k is None and settings.agc != "linear":
             span = gain_span(span, settings.max_gain)  # a flat scene: not stretched
@@ -215,8 +213,7 @@ class StereoFusion:
                 tone=self.tone,
             )
 
-        for _ in self.map_eyes(compose, zip(self.eyes, halves, strict=True)):
-            pass
+        list(self.map_eyes(compose, zip(self.eyes, halves, strict=True)))
         return self.frame
 
     @property

@@ -255,13 +255,9 @@ class DepthFeed:
         if self._job is None:
             return False
         job, tof = self._job
-        if not job.done():
-            lag_ns = None
-            if stamp_ns is not None and self.tof_stamp_ns is not None:
-                lag_ns = abs(stamp_ns - self.tof_stamp_ns)
-            stale = lag_ns is not None and lag_ns > DEPTH_MAX_LAG_S * 1e9
-            if self.fusion.ready and self.tof_stamp_ns is not None and not stale:
-                return False
+        if not job.done() and self.fusion.ready and self.tof_stamp_ns is not None:
+            if stamp_ns is None or abs(stamp_ns - self.tof_stamp_ns) <= DEPTH_MAX_LAG_S * 1e9:
+                return False  # the depth in use will do meanwhile
         self._job = None
         job.result()()  # a failure of the mapping is raised here, in the caller's thread
         self.version += 1

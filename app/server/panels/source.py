@@ -285,15 +285,12 @@ class SourcePanel(Periodic):
         status = c.pipeline.status
         rates = c.rates_hz()
         dropped = c.source_state().dropped  # a replay keeping real time
-        if dropped:
-            lines = ["| sensor | Hz | dropped to keep real time |", "| :--- | ---: | ---: |"]
-            lines += [
-                f"| {md_text(name)} | {hz:.1f} | {dropped.get(name, 0)} |"
-                for name, hz in rates.items()
-            ]
-        else:
-            lines = ["| sensor | Hz |", "| :--- | ---: |"]
-            lines += [f"| {md_text(name)} | {hz:.1f} |" for name, hz in rates.items()]
+        extra = " dropped to keep real time |" if dropped else ""
+        lines = ["| sensor | Hz |" + extra, "| :--- | ---: |" + (" ---: |" if dropped else "")]
+        lines += [
+            f"| {md_text(name)} | {hz:.1f} |" + (f" {dropped.get(name, 0)} |" if dropped else "")
+            for name, hz in rates.items()
+        ]
         text = "\n".join(lines) if rates else "No per-sensor rates (the source is not tapped)"
         sick = health_text(c.sensor_health())
         if sick:
