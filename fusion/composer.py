@@ -59,6 +59,10 @@ class Composer:
         self._mask = np.zeros((h, w), np.uint8)
         self._mask2 = np.zeros((h, w), np.uint8)
         self._indexer = PaletteIndexer(w, h)
+        # The fallback veil as one colour transform: RGB -> (1 - d - f) RGB + d Y + 128 f
+        d, f = FALLBACK_DESATURATION, FALLBACK_FADE
+        luma = np.array([0.299, 0.587, 0.114])  # cv2.COLOR_RGB2GRAY's weights
+        self._veil = np.hstack([(1.0 - d - f) * np.eye(3) + d * luma, np.full((3, 1), 128.0 * f)])
 
     # -- checks ------------------------------------------------------------------------------
 
@@ -124,8 +128,8 @@ class Composer:
         """Veil the fallback pixels inside ``box`` (x0, y0, x1, y1), within ``paint``
         (a 0/255 or bool-as-uint8 mask, None = all) if given: ``(1 - d - f) * c + d * Y +
         f * 128`` (``d`` FALLBACK_DESATURATION, ``f`` FALLBACK_FADE, ``Y`` the pixel's
-        luma). Work is limited to the intersection with ``fallback_box``, the bounding box
-        of the fallback pixels. Uses ``_pal`` and ``_mask`` as scratch."""
+        luma, not rounded). Work is limited to the intersection with ``fallback_box``, the
+        bounding box of the fallback pixels. Uses ``_pal`` and ``_mask2`` as scratch."""
         x0, y0 = max(box[0], fallback_box[0]), max(box[1], fallback_box[1])
         x1, y1 = min(box[2], fallback_box[2]), min(box[3], fallback_box[3])
         if x0 >= x1 or y0 >= y1:
@@ -135,11 +139,7 @@ class Composer:
         if paint is not None:
             base = cv2.bitwise_and(base, paint[sl], dst=self._mask2[sl])
         o = out[sl]
-        grey = cv2.cvtColor(o, cv2.COLOR_RGB2GRAY, dst=self._mask[sl])
-        veil = cv2.cvtColor(grey, cv2.COLOR_GRAY2RGB, dst=self._pal[sl])
-        d, f = FALLBACK_DESATURATION, FALLBACK_FADE
-        cv2.addWeighted(o, 1.0 - d - f, veil, d, 128.0 * f, dst=veil)
-        cv2.copyTo(veil, base, dst=o)
+        cv2.copyTo(cv2.transform(o, self._veil, dst=self._pal[sl]), base, dst=o)
 
     def _restore_nan(self, out: np.ndarray, color: np.ndarray, sl: tuple[slice, slice]) -> bool:
         """Colour back on NaN pixels (within ``sl``); ``self._nan[sl]`` holds the NaN mask."""

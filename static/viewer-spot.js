@@ -40,7 +40,6 @@
 
   const overlay = document.createElement("canvas");
   overlay.id = "spot-overlay";
-  overlay.width = view.width; overlay.height = view.height;
   overlay.setAttribute("aria-label", "spot meter: click for a spot, drag for a box");
   Object.assign(overlay.style, {
     position: "absolute", left: "0", top: "0", width: "100%", height: "100%",
@@ -223,6 +222,12 @@
 
   // -- drawing ---------------------------------------------------------------------------------
 
+  // The rectangles [x0, y0, x1, y1] (canvas px) the overlay's redraw covers, while it draws:
+  // the next redraw clears only them (clearing and re-compositing the whole 2560 x 960
+  // overlay at every frame cost Chromium's software compositor about 3 ms a frame).
+  let covered = null;
+  const cover = (x0, y0, x1, y1) => { if (covered) covered.push([x0, y0, x1, y1]); };
+
   // A label with a dark background at canvas (x, y), kept inside the eye's half.
   function label(ctx, text, x, y, eye, w, color) {
     const q = w / 100;
@@ -235,6 +240,7 @@
     if (ly < 0) ly = y + 1.2 * q;
     ctx.fillStyle = "rgba(0,0,0,0.68)";
     ctx.fillRect(lx, ly, tw, th);
+    cover(lx, ly, lx + tw, ly + th);
     ctx.fillStyle = color || "#fff";
     ctx.textAlign = "left";
     ctx.textBaseline = "middle";
@@ -243,6 +249,7 @@
 
   function crosshair(ctx, x, y, w) {
     const q = w / 100, r = 0.9 * q;
+    cover(x - 1.7 * r, y - 1.7 * r, x + 1.7 * r, y + 1.7 * r);
     for (const [color, width] of [["rgba(0,0,0,0.8)", 0.35 * q], ["#fff", 0.15 * q]]) {
       ctx.strokeStyle = color;
       ctx.lineWidth = width;
@@ -259,6 +266,7 @@
   // A triangle pointing up (hot) or down (cold) with its tip at (x, y).
   function triangle(ctx, x, y, w, hot) {
     const q = w / 100, s = 0.9 * q, dir = hot ? 1 : -1;
+    cover(x - s, Math.min(y, y + dir * 1.6 * s), x + s, Math.max(y, y + dir * 1.6 * s));
     ctx.beginPath();
     ctx.moveTo(x, y);
     ctx.lineTo(x - s, y + dir * 1.6 * s);
@@ -306,6 +314,7 @@
       ctx.strokeStyle = "#fff";
       ctx.lineWidth = w / 1000;
       ctx.strokeRect(x0, y0, x1 - x0, y1 - y0);
+      cover(x0, y0, x1, y1);
       ctx.setLineDash([]);
       const a = b === state.box ? state.boxReading : null;
       if (a && a.max) {
@@ -317,6 +326,7 @@
             ctx.lineWidth = w / 1500;
             ctx.beginPath();
             ctx.arc(cx, cy, w / 350, 0, 2 * Math.PI);
+            cover(cx - w / 350, cy - w / 350, cx + w / 350, cy + w / 350);
             ctx.fill();
             ctx.stroke();
           }
@@ -348,22 +358,61 @@
     }
   }
 
+  // The overlay's size in device pixels: as shown (the picture's 2560 x 960 while hidden).
+  // Drawn at the picture's size and scaled down, it cost the browser's compositor as much
+  // as a second picture at every frame.
+  function shownSize() {
+    const r = window.devicePixelRatio || 1;
+    const w = Math.round(overlay.clientWidth * r), h = Math.round(overlay.clientHeight * r);
+    return w > 0 && h > 0 ? [w, h] : [view.width, view.height];
+  }
+
+  // Everything drawAll and readoutText read: the same inputs draw the same overlay.
+  function inputs() {
+    const m = window.trifuseStats && window.trifuseStats.meta;
+    return JSON.stringify([overlay.width, overlay.height, state.extremes && m ? m.spots : null,
+      state.drag && state.drag.moved ? state.drag : null, state.box, state.boxReading,
+      state.spot, state.spotReading, state.lastError]);
+  }
+
+  // The overlay again if what it shows changed: only the rectangles drawn last time are
+  // cleared (strokes, miters and anti-aliasing reach out a little: cleared with a margin).
+  let drawnInputs = null, drawnRects = [];
   function redraw() {
-    if (overlay.width !== view.width || overlay.height !== view.height) {
-      overlay.width = view.width; overlay.height = view.height;
+    const [w, h] = shownSize();
+    if (overlay.width !== w || overlay.height !== h) {
+      overlay.width = w; overlay.height = h;  // cleared
+      drawnInputs = null; drawnRects = [];
     }
-    g.clearRect(0, 0, overlay.width, overlay.height);
-    drawAll(g, overlay.width, overlay.height, false);
-    readout.textContent = readoutText();
+    const now = inputs();
+    if (now === drawnInputs) return;
+    const pad = overlay.width / 100;
+    for (const [x0, y0, x1, y1] of drawnRects) {
+      g.clearRect(x0 - pad, y0 - pad, x1 - x0 + 2 * pad, y1 - y0 + 2 * pad);
+    }
+    covered = [];
+    try {
+      drawAll(g, overlay.width, overlay.height, false);
+    } finally {
+      drawnRects = covered;
+      covered = null;
+    }
+    drawnInputs = now;
+    const text = readoutText();
+    if (readout.textContent !== text) readout.textContent = text;
     state.drawn += 1;
   }
 
-  // Redraw when a new frame came (its hot and cold spots) or the picture changed size.
+  // Redraw when a new frame came (its hot and cold spots) or the overlay changed size.
   let seenFrames = -1;
   function tick() {
     const stats = window.trifuseStats;
     const n = stats ? stats.frames : 0;
-    if (n !== seenFrames || overlay.width !== view.width) { seenFrames = n; redraw(); }
+    const [w, h] = shownSize();
+    if (n !== seenFrames || overlay.width !== w || overlay.height !== h) {
+      seenFrames = n;
+      redraw();
+    }
     requestAnimationFrame(tick);
   }
   requestAnimationFrame(tick);

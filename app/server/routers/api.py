@@ -191,6 +191,8 @@ def make_api_router(pipeline: FusionPipeline, balancer: ThermalBalancer | None =
         """Span, smoothing, each imager's radiometry and the live balance (a client asking
         for it is listening: the balance is measured for the next few seconds)."""
         pipeline.touch_demand()
+        if balancer is not None:
+            balancer.touch()
         return thermal()
 
     @router.put("/thermal", dependencies=[Depends(require_json)])

@@ -142,11 +142,15 @@ class ConsoleDemand:
         fusion: fused pictures, their JPEG encoding, the depth mapping behind the point
             cloud and the thermal balance: stream viewers, Viser clients, REST clients of
             the status and the thermal state.
+        balance: the thermal balance's measurement while it is not applied automatically
+            (the Thermal panel's live difference): Viser clients, REST clients of the
+            thermal state.
         board: the live board search: Viser clients (the Calibration panel, the feeds'
             corners, the 3D board), auto-capture.
         gui: the Viser panels' and the 3D scene's updates: Viser clients.
     """
 
     fusion: Demand = field(default_factory=lambda: Demand("fusion"))
+    balance: Demand = field(default_factory=lambda: Demand("thermal balance"))
     board: Demand = field(default_factory=lambda: Demand("board search"))
     gui: Demand = field(default_factory=lambda: Demand("console GUI"))

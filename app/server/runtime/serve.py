@@ -153,9 +153,9 @@ def serve(
     # A Viser client wants the GUI's updates, the fused depth and the balance (3D cloud,
     # Thermal panel) and the board search (Calibration panel, feeds, 3D board): Viser does
     # not tell which folder a browser has open.
-    hold_while_connected(server, demand.gui, demand.fusion, demand.board)
+    hold_while_connected(server, demand.gui, demand.fusion, demand.board, demand.balance)
     watch = BoardWatch(lambda: pipeline.latest_set, rig, board, demand=demand.board)
-    balancer = ThermalBalancer(pipeline)  # while demand.fusion is wanted
+    balancer = ThermalBalancer(pipeline, listeners=demand.balance)  # and demand.fusion
     ctx = ConsoleContext(
         server=server,
         source=source,

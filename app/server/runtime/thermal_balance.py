@@ -9,18 +9,27 @@ becomes both imagers' balance terms (split evenly, or onto a reference imager). 
 whose estimate is refused (no overlap, too few TOF points) changes nothing; the status
 says why. The live left-right difference is measured over the same points, as displayed
 (calibration, balance and the operator's trims).
+
+With ``auto`` off, the balance is only read: it is measured while someone reads it (its
+``listeners``: a Viser client, a REST client of ``/api/thermal``), and once more before a
+measurement older than :data:`STALE_S` is applied.
 """
 
 from __future__ import annotations
 
 import math
+import threading
+import time
 from dataclasses import dataclass
 
+from trifuse.app.server.runtime.demand import Demand
 from trifuse.app.server.runtime.periodic import Periodic
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.fusion.balance import BalanceEstimate, BalanceFilter, balance_terms, measure_balance
 
 MIN_SHARED_POINTS = 200
+STALE_S = 1.5
+"""A measurement older than this (seconds) is taken again before it is applied once."""
 
 
 @dataclass(frozen=True)
@@ -57,7 +66,8 @@ class BalanceStatus:
 class ThermalBalancer(Periodic):
     """Measures (and, when ``auto``, applies) the balance at ``rate_hz``, while the
     pipeline's pictures are wanted (its ``demand``: the balance changes only pictures, and
-    the depth it measures on is mapped only then).
+    the depth it measures on is mapped only then) and, with ``auto`` off, while
+    ``listeners`` is wanted (None: always).
 
     Attributes:
         auto: apply the filtered estimate continuously.
@@ -66,15 +76,27 @@ class ThermalBalancer(Periodic):
     """
 
     def __init__(
-        self, pipeline: FusionPipeline, rate_hz: float = 2.0, time_constant_s: float = 3.0
+        self,
+        pipeline: FusionPipeline,
+        rate_hz: float = 2.0,
+        time_constant_s: float = 3.0,
+        listeners: Demand | None = None,
     ) -> None:
         super().__init__("thermal-balance", 1.0 / rate_hz, pipeline.demand)
         self.pipeline = pipeline
+        self.listeners = listeners
         self.auto = False
         self.reference: str | None = None
         self.filter = BalanceFilter(time_constant_s)
         self.status = BalanceStatus()
         self._seen: tuple | None = None
+        self._measured_at = -math.inf  # time.monotonic() of the newest measurement
+        self._lock = threading.Lock()  # one measurement at a time: the thread's, a request's
+
+    def touch(self) -> None:
+        """Someone reads the balance: measure it for the next few seconds."""
+        if self.listeners is not None:
+            self.listeners.touch()
 
     def set_auto(self, on: bool) -> None:
         """Turn automatic balancing on (from a fresh estimate) or off (the balance stays)."""
@@ -84,7 +106,11 @@ class ThermalBalancer(Periodic):
         self.auto = bool(on)
 
     def apply_filtered(self) -> BalanceEstimate:
-        """Apply the filtered estimate once (SessionError-like ValueError when none)."""
+        """Apply the filtered estimate once, measured again first if its newest measurement
+        is older than :data:`STALE_S` (SessionError-like ValueError when none)."""
+        self.touch()
+        if time.monotonic() - self._measured_at > STALE_S:
+            self._measure()
         state = self.filter.state
         if state is None:
             raise ValueError(
@@ -105,6 +131,15 @@ class ThermalBalancer(Periodic):
         p.set_balance(balance_terms(state, left, right, self.reference))
 
     def tick(self) -> None:
+        if self.auto or self.listeners is None or self.listeners.wanted:
+            self._measure()
+
+    def _measure(self) -> None:
+        with self._lock:
+            self._measure_locked()
+
+    def _measure_locked(self) -> None:
+        self._measured_at = time.monotonic()
         p = self.pipeline
         fs, fusion = p.latest_set, p.fusion
         rig = p.rig

@@ -16,6 +16,7 @@ import yaml
 from tests.support import ListSource
 from trifuse.app.cli import main
 from trifuse.app.recording.writer import RecordingWriter
+from trifuse.app.server.runtime.demand import Demand
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.server.runtime.thermal_balance import ThermalBalancer
@@ -61,6 +62,30 @@ def test_balancer_applies_the_filtered_balance(inspection) -> None:
     assert "Left - right: **+0.0" in b.status.difference_text() or "**-0.0" in (
         b.status.difference_text()
     )
+
+
+def test_balance_is_measured_only_while_read_or_applied(inspection) -> None:
+    rig, (fs, later) = inspection
+    p = _pipeline_at(rig, fs)
+    listeners = Demand("thermal balance")
+    b = ThermalBalancer(p, listeners=listeners)
+    b.tick()  # nobody reads it, auto off: nothing measured
+    assert b.status.waiting == "waiting for frames" and b.filter.state is None
+    with listeners.hold():  # a Viser client
+        b.tick()
+    assert abs(b.status.difference_k - SIM_DIFFERENCE_K) <= 0.03
+    first = b.status
+    p.latest_set = later  # newer frames, and nobody read the balance for 10 s
+    b._measured_at -= 10.0
+    b.apply_filtered()  # stale: measured again first, then applied
+    assert b.status is not first and b.status.estimate.ok
+    assert p.radiometry["thermal_left"].balance_offset_k == pytest.approx(-0.75, abs=0.015)
+    assert listeners.wanted  # the request renewed the lease
+    q = _pipeline_at(rig, fs)
+    c = ThermalBalancer(q, listeners=Demand("nobody"))
+    c.set_auto(True)  # applied continuously: measured whoever reads it
+    c.tick()
+    assert q.radiometry["thermal_right"].balance_offset_k == pytest.approx(0.75, abs=0.015)
 
 
 def test_refused_estimate_leaves_the_balance_and_says_why(inspection) -> None:

@@ -104,10 +104,12 @@ def _client_xy(page: Any, eye: str, x: float, y: float) -> tuple[float, float]:
 
 
 def _overlay_rgba(page: Any, x: float, y: float) -> list[int]:
-    """The marker canvas's pixel at canvas coordinates (x, y)."""
+    """The marker canvas's pixel over picture pixel (x, y) of the 2560 x 960 side-by-side
+    picture (the canvas has the size it is shown at)."""
     return page.evaluate(
-        "([x, y]) => Array.from(document.getElementById('spot-overlay').getContext('2d')"
-        ".getImageData(Math.round(x), Math.round(y), 1, 1).data)",
+        "([x, y]) => { const c = document.getElementById('spot-overlay');"
+        " return Array.from(c.getContext('2d').getImageData("
+        "Math.floor(x * c.width / 2560), Math.floor(y * c.height / 960), 1, 1).data); }",
         [x, y],
     )
 
