@@ -320,7 +320,7 @@ class Panels(Periodic):
             }
             self.auto_balance = gui.add_checkbox(
                 "Auto-balance",
-                False,
+                ctx.balancer is not None and ctx.balancer.auto,
                 hint="Estimate the left-right offset from points both imagers see, "
                 "filtered over time, and apply it",
             )
@@ -485,6 +485,8 @@ class Panels(Periodic):
         self._follow_auto_span()
         balancer = self.ctx.balancer
         if balancer is not None:
+            if self.auto_balance.value != balancer.auto:  # set through the REST API
+                self.auto_balance.value = balancer.auto
             status = balancer.status
             self.difference.content = status.difference_text()
             self.balance_md.content = balance_text(status, balancer.auto, self.pipeline)

@@ -31,7 +31,8 @@ with (``palette``, ``palette_rgb``, ``span_k``, ``span_auto``, the AGC mode ``ag
 picture shows no palette colour). For the viewer's spot meter it carries each eye's hot
 and cold spot (``spots``: :meth:`fusion.spot.SpotFrame.extremes`);
 :attr:`FusionPipeline.spots` keeps the last picture's temperatures and depths for
-``/api/spot`` and ``/api/area``.
+``/api/spot`` and ``/api/area``. When :attr:`FusionPipeline.balance_note` is set and the
+picture shows palette colour, it carries ``balance``: which thermal balance it shows.
 
 Repeated inputs are not fused again. A source may hand out the very same read-only array
 for several frames (the simulated head shows each rendered pose for many frames). When
@@ -124,6 +125,10 @@ class FusionPipeline:
         """Sensor -> a line for each sensor that is not ok, put in each frame's metadata
         (``health``); set by the console (``SourceControl``). Called in the fusion thread:
         it must be quick (cached)."""
+        self.balance_note: Callable[[], dict[str, Any]] | None = None
+        """The thermal balance the pictures show, put in each frame's metadata (``balance``;
+        :meth:`ThermalBalancer.describe <app.server.runtime.thermal_balance.ThermalBalancer.
+        describe>`); set by the console. Called in the fusion thread: it must be quick."""
         self._pending_rig: Rig | None = None
         self._eye_worker = ThreadPoolExecutor(1, thread_name_prefix="fusion-eye")
         self._depth_worker = ThreadPoolExecutor(1, thread_name_prefix="fusion-depth")
@@ -315,7 +320,10 @@ class FusionPipeline:
                 health = dict(notes())
             except Exception as exc:  # the picture goes out whatever the report does
                 health = {"console": f"health unavailable: {describe_error(exc)}"}
-        return self.step.meta(inputs, spots, health).as_json()
+        meta = self.step.meta(inputs, spots, health).as_json()
+        if self.balance_note is not None and meta["span_k"] is not None:  # palette colour shown
+            meta["balance"] = self.balance_note()
+        return meta
 
     def set_manual_offset(self, sensor: str, offset_k: float) -> None:
         """The operator's trim of one imager, kelvin (from the next frame on)."""

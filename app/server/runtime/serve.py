@@ -155,7 +155,9 @@ def serve(
     # not tell which folder a browser has open.
     hold_while_connected(server, demand.gui, demand.fusion, demand.board, demand.balance)
     watch = BoardWatch(lambda: pipeline.latest_set, rig, board, demand=demand.board)
-    balancer = ThermalBalancer(pipeline, listeners=demand.balance)  # and demand.fusion
+    # automatic unless the rig brings a balance; measured while demand.fusion is wanted
+    balancer = ThermalBalancer(pipeline, listeners=demand.balance, auto=None)
+    pipeline.balance_note = balancer.describe  # the viewer's overlay says which balance
     ctx = ConsoleContext(
         server=server,
         source=source,

@@ -10,9 +10,14 @@ whose estimate is refused (no overlap, too few TOF points) changes nothing; the 
 says why. The live left-right difference is measured over the same points, as displayed
 (calibration, balance and the operator's trims).
 
-With ``auto`` off, the balance is only read: it is measured while someone reads it (its
-``listeners``: a Viser client, a REST client of ``/api/thermal``), and once more before a
-measurement older than :data:`STALE_S` is applied.
+The console balances automatically by default, unless the rig brings a balance of its own
+(:func:`balance_in_rig`): two units of one imager model differ by about 1.5 K, which paints
+the two eyes in different colours. With nobody reading the balance, a settled automatic
+balance is measured every :data:`SETTLED_PERIOD_S`. With ``auto`` off the balance is only
+read: it is measured while someone reads it (its ``listeners``: a Viser client, a REST
+client of ``/api/thermal``), and once more before a measurement older than :data:`STALE_S`
+is applied. :meth:`ThermalBalancer.describe` says which balance the pictures show (the
+viewer's overlay).
 """
 
 from __future__ import annotations
@@ -25,11 +30,23 @@ from dataclasses import dataclass
 from trifuse.app.server.runtime.demand import Demand
 from trifuse.app.server.runtime.periodic import Periodic
 from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.calib.rig import Rig
 from trifuse.fusion.balance import BalanceEstimate, BalanceFilter, balance_terms, measure_balance
 
 MIN_SHARED_POINTS = 200
 STALE_S = 1.5
 """A measurement older than this (seconds) is taken again before it is applied once."""
+SETTLED_PERIOD_S = 2.0
+"""Seconds between measurements of a settled automatic balance that nobody reads."""
+
+
+def balance_in_rig(rig: Rig) -> bool:
+    """Whether a thermal imager of ``rig`` carries a balance (a rig saved with one)."""
+    return any(
+        s.radiometry is not None
+        and (s.radiometry.balance_gain != 1.0 or s.radiometry.balance_offset_k != 0.0)
+        for s in rig.sensors.values()
+    )
 
 
 @dataclass(frozen=True)
@@ -69,6 +86,10 @@ class ThermalBalancer(Periodic):
     the depth it measures on is mapped only then) and, with ``auto`` off, while
     ``listeners`` is wanted (None: always).
 
+    Args:
+        auto: apply the filtered estimate continuously from the start; None: unless the
+            pipeline's rig carries a balance (:func:`balance_in_rig`).
+
     Attributes:
         auto: apply the filtered estimate continuously.
         reference: None (split the correction evenly) or the imager left unchanged.
@@ -81,11 +102,14 @@ class ThermalBalancer(Periodic):
         rate_hz: float = 2.0,
         time_constant_s: float = 3.0,
         listeners: Demand | None = None,
+        auto: bool | None = False,
     ) -> None:
         super().__init__("thermal-balance", 1.0 / rate_hz, pipeline.demand)
         self.pipeline = pipeline
         self.listeners = listeners
-        self.auto = False
+        in_rig = balance_in_rig(pipeline.rig)
+        self.auto = not in_rig if auto is None else bool(auto)
+        self._held = "rig" if in_rig else "off"  # the balance shown while auto is off
         self.reference: str | None = None
         self.filter = BalanceFilter(time_constant_s)
         self.status = BalanceStatus()
@@ -103,6 +127,8 @@ class ThermalBalancer(Periodic):
         if on and not self.auto:
             self.filter.reset()
             self._seen = None  # measure the frames on screen again, even if unchanged
+        elif self.auto and not on:
+            self._held = "applied"  # the balance stays as it was
         self.auto = bool(on)
 
     def apply_filtered(self) -> BalanceEstimate:
@@ -118,12 +144,31 @@ class ThermalBalancer(Periodic):
                 + (self.filter.last_reason or "waiting for frames with both imagers and depth")
             )
         self._apply(state)
+        self._held = "applied"
         return state
 
     def reset_balance(self) -> None:
         """Both imagers back to no balance (their calibration and trims stay)."""
         self.set_auto(False)
         self.pipeline.set_balance({s: (1.0, 0.0) for s in self.pipeline.radiometry})
+        self._held = "off"
+
+    def describe(self) -> dict[str, object]:
+        """Which balance the pictures show, for the viewer: ``mode`` (``auto``; ``rig``:
+        the rig's; ``applied``: once, by the operator; ``off``) and ``correction_k``, the
+        balance's left offset minus the right one, kelvin (0.0 when off), and while off
+        ``difference_k``, the left - right difference measured last (None: none)."""
+        rad, rig = self.pipeline.radiometry, self.pipeline.rig
+        left, right = (rad.get(rig.eyes[e].thermal) for e in ("left", "right"))
+        correction = 0.0
+        if left is not None and right is not None:
+            correction = left.balance_offset_k - right.balance_offset_k
+        mode = "auto" if self.auto else self._held
+        out: dict[str, object] = {"mode": mode, "correction_k": round(correction, 3)}
+        if mode == "off":
+            d = self.status.difference_k
+            out["difference_k"] = round(d, 3) if math.isfinite(d) else None
+        return out
 
     def _apply(self, state: BalanceEstimate) -> None:
         p = self.pipeline
@@ -131,8 +176,13 @@ class ThermalBalancer(Periodic):
         p.set_balance(balance_terms(state, left, right, self.reference))
 
     def tick(self) -> None:
-        if self.auto or self.listeners is None or self.listeners.wanted:
-            self._measure()
+        listened = self.listeners is None or self.listeners.wanted
+        if not (self.auto or listened):
+            return
+        settled = self.filter.state is not None
+        if not listened and settled and time.monotonic() - self._measured_at < SETTLED_PERIOD_S:
+            return
+        self._measure()
 
     def _measure(self) -> None:
         with self._lock:

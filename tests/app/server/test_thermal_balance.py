@@ -88,6 +88,37 @@ def test_balance_is_measured_only_while_read_or_applied(inspection) -> None:
     assert q.radiometry["thermal_right"].balance_offset_k == pytest.approx(0.75, abs=0.015)
 
 
+def test_console_balances_by_default_unless_the_rig_brings_a_balance(inspection) -> None:
+    rig, (fs, _) = inspection
+    p = _pipeline_at(rig, fs)
+    b = ThermalBalancer(p, listeners=Demand("nobody"), auto=None)  # as the console makes it
+    assert b.auto and b.describe() == {"mode": "auto", "correction_k": 0.0}
+    b.tick()  # nobody reads it, but it is applied: measured
+    described = b.describe()
+    assert described["mode"] == "auto"
+    assert described["correction_k"] == pytest.approx(-SIM_DIFFERENCE_K, abs=0.03)
+    first = b.status
+    b.tick()  # settled, nobody reading: kept up every SETTLED_PERIOD_S, not at each tick
+    assert b.status is first
+    b.set_auto(False)  # off: the balance stays, applied
+    assert b.describe()["mode"] == "applied"
+    b.reset_balance()
+    assert b.describe() == {
+        "mode": "off",
+        "correction_k": 0.0,
+        "difference_k": pytest.approx(SIM_DIFFERENCE_K, abs=0.03),
+    }
+    # a rig saved with a balance: that one is shown, not replaced
+    saved = p.rig_with_radiometry()
+    for name, offset in (("thermal_left", -0.7), ("thermal_right", 0.7)):
+        saved = saved.with_sensor(
+            dataclasses.replace(saved[name], radiometry=Radiometry().with_balance(1.0, offset))
+        )
+    q = _pipeline_at(saved, fs)
+    c = ThermalBalancer(q, auto=None)
+    assert not c.auto and c.describe() == {"mode": "rig", "correction_k": -1.4}
+
+
 def test_refused_estimate_leaves_the_balance_and_says_why(inspection) -> None:
     rig, (fs, _) = inspection
     p = _pipeline_at(rig, fs)

@@ -45,12 +45,29 @@ def test_viewer_shows_moving_fused_frames(console, browser) -> None:
 
 
 def test_console_balances_the_thermal_imagers(console, browser) -> None:
-    """The 3D console loads through /console/; the Thermal panel shows the imagers' 1.5 K
-    disagreement over shared points, and a manual offset removes it."""
+    """The 3D console loads through /console/; the two imagers' 1.5 K disagreement is
+    balanced by default (the Thermal panel and the viewer's metadata say so); with the
+    balance reset the panel shows the disagreement over shared points, and a manual offset
+    removes it."""
     page = browser.new_page(viewport={"width": 800, "height": 900})
     page.goto(console.signin("/console/"))
     page.wait_for_function("() => !document.body.innerText.includes('Connecting...')")
-    page.wait_for_function("() => document.body.innerText.includes('shared points')")
+    page.wait_for_function("() => document.body.innerText.includes('(automatic)')")
+    page.wait_for_function(
+        "() => /Left - right: \\*?\\*?[+-]0\\.[01]\\d K/.test(document.body.innerText)"
+    )
+    viewer = browser.new_page(viewport={"width": 800, "height": 400})
+    viewer.goto(console.signin("/"))
+    viewer.wait_for_function(
+        "() => window.trifuseStats.meta && window.trifuseStats.meta.balance"
+        " && Math.abs(window.trifuseStats.meta.balance.correction_k + 1.5) < 0.1"
+    )
+    assert viewer.evaluate("() => window.trifuseStats.meta.balance.mode") == "auto"
+    viewer.close()
+    page.get_by_role("button", name="Reset balance").click()
+    page.wait_for_function(
+        "() => /Left - right: \\*?\\*?[+-]1\\.\\d\\d K/.test(document.body.innerText)"
+    )
     text = page.evaluate("() => document.body.innerText")
     line = next(t for t in text.splitlines() if t.startswith("Left - right"))
     # The simulated imagers are +0.75 K and -0.75 K off. The median over shared points

@@ -25,6 +25,14 @@ def test_auto_balance_brings_the_imagers_together(console, browser) -> None:
     page = browser.new_page(viewport={"width": 800, "height": 1200})
     page.goto(console.signin("/console/"))
     page.wait_for_function("() => document.body.innerText.includes('shared points')")
+    # balanced by default: switched off and reset, the imagers' own difference shows
+    assert page.get_by_label("Auto-balance").is_checked()
+    page.get_by_role("button", name="Reset balance").click()
+    page.wait_for_function(
+        "() => /Left - right: \\*?\\*?[+-]1\\.\\d\\d K/.test(document.body.innerText)"
+    )
+    assert not page.get_by_label("Auto-balance").is_checked()
+    assert console.get("/api/thermal")["balance"]["auto"] is False
     # the simulated imagers are +0.75 K and -0.75 K off (test_browser.py says why +-0.03)
     assert abs(_difference(page) - 1.50) <= 0.03
     page.get_by_label("Auto-balance").check()
