@@ -71,6 +71,7 @@ from trifuse.app.server.panels.scene_cloud import (
     decimate_cloud,
     grid_stride,
     temperature_span,
+    thermal_k,
 )
 from trifuse.app.server.panels.scene_profiles import scene_profiles
 from trifuse.app.server.panels.scene_sensors import SensorNodes, vertical_fov_rad, wxyz_of
@@ -552,11 +553,12 @@ class Scene3D(Periodic):
         p = self.ctx.pipeline
         fs = p.latest_set
         frames = fs.frames if fs is not None else {}
+        radiometry = p.radiometry  # the thermal images as the fused picture reads them
         span = None
         try:
             thermals = [
-                np.asarray(f.image)
-                for n, f in frames.items()
+                thermal_k(p, fs, n)
+                for n in frames
                 if n in self.shown_rig and self.shown_rig[n].modality == "thermal"
             ]
             span = temperature_span(p, thermals)
@@ -566,7 +568,9 @@ class Scene3D(Periodic):
         outlines = self.ctx.next_outline
         for name, nodes in self.nodes.items():
             shown = frames.get(name) if name in self.shown_rig else None
-            why = nodes.show_frame(shown, span, palette, max_width, outlines.get(name))
+            why = nodes.show_frame(
+                shown, span, palette, max_width, outlines.get(name), radiometry.get(name)
+            )
             if why is None:
                 self.errors.pop(f"texture {name}", None)
             else:

@@ -15,6 +15,7 @@ from trifuse.app.server.panels import scene_layout as layout
 from trifuse.app.server.panels.display import draw_outline
 from trifuse.app.sources.frames import Frame
 from trifuse.app.storage.preview import to_display
+from trifuse.calib.radiometry import Radiometry
 from trifuse.calib.rig import Sensor
 from trifuse.calib.transforms import quaternion_from_rotation
 from trifuse.fusion.palettes import apply_palette
@@ -147,6 +148,7 @@ class SensorNodes:
         self.cell: layout.Cell | None = None
         self.shown_frame: object = None  # the Frame whose image the picture shows
         self.shown_outline: np.ndarray | None = None  # the next view's outline drawn on it
+        self.shown_radiometry: Radiometry | None = None  # the thermal image read through it
 
     def _add_picture(self, name: str, width_m: float, height_m: float) -> viser.ImageHandle:
         """The (hidden) live image node ``name``, ``width_m`` x ``height_m`` metres, encoded
@@ -216,23 +218,32 @@ class SensorNodes:
         palette: str,
         max_width: int = TEXTURE_MAX_W,
         outline: np.ndarray | None = None,
+        radiometry: Radiometry | None = None,
     ) -> str | None:
         """The picture shows ``frame``'s image (None: no picture) at most ``max_width``
-        pixels wide, made again only for a new frame or outline (or after
+        pixels wide, made again only for a new frame, outline or radiometry (or after
         :meth:`set_jpeg_quality`, or with ``shown_frame`` set to None); returns why it
         cannot be shown (the picture is then hidden), else None. ``span_k``, ``palette``: a
-        thermal image's colours (:func:`sensor_texture`). ``outline``: (4, 2) full-image
-        pixels of the next view's board, drawn cyan
-        (:func:`~app.server.panels.display.draw_outline`)."""
+        thermal image's colours (:func:`sensor_texture`), kelvin; ``radiometry``: the
+        imager's raw values -> kelvin, as the fused picture reads them (None: the raw
+        values are kelvin). ``outline``: (4, 2) full-image pixels of the next view's board,
+        drawn cyan (:func:`~app.server.panels.display.draw_outline`)."""
         if frame is None:
             if self.shown_frame is not None:
                 self.show_image(None)
                 self.shown_frame = None
             return None
-        if frame is self.shown_frame and outline is self.shown_outline:
+        if (
+            frame is self.shown_frame
+            and outline is self.shown_outline
+            and radiometry == self.shown_radiometry
+        ):
             return None
+        image = frame.image
+        if radiometry is not None and self.modality == "thermal":
+            image = radiometry.apply(np.asarray(image, dtype=np.float32))
         try:
-            tex = sensor_texture(frame.image, self.modality, max_width, span_k, palette)
+            tex = sensor_texture(image, self.modality, max_width, span_k, palette)
         except (ValueError, cv2.error) as exc:
             self.show_image(None)
             self.shown_frame = None
@@ -242,6 +253,7 @@ class SensorNodes:
             draw_outline(tex, outline, (frame.image.shape[1], frame.image.shape[0]))
         self.show_image(tex)
         self.shown_frame, self.shown_outline = frame, outline
+        self.shown_radiometry = radiometry
         return None
 
     def hide(self) -> None:

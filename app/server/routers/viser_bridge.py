@@ -204,6 +204,18 @@ def _no_file_reads(url: str, image_root: Path | None) -> str:
     return url
 
 
+CONSOLE_SCRIPT = b'<script src="/static/console-gpu.js" defer></script>'
+"""Added to Viser's client page: a note suggesting the low bandwidth mode where WebGL is
+drawn in software (``static/console-gpu.js``)."""
+
+
+def with_console_script(page: bytes) -> bytes:
+    """Viser's client page with :data:`CONSOLE_SCRIPT` before ``</body>`` (at the end if it
+    has none)."""
+    at = page.rfind(b"</body>")
+    return page + CONSOLE_SCRIPT if at < 0 else page[:at] + CONSOLE_SCRIPT + page[at:]
+
+
 def make_viser_router(
     viser_port: int,
     secret: str | None = None,
@@ -216,7 +228,7 @@ def make_viser_router(
     refused upload closes that client's connection with the reason."""
     router = APIRouter()
     gate = uploads if uploads is not None else UploadGate()
-    page = CLIENT_PAGE.read_bytes()
+    page = with_console_script(CLIENT_PAGE.read_bytes())
     upstream_url = f"ws://127.0.0.1:{viser_port}/"
     relay_headers = {RELAY_HEADER: secret} if secret is not None else None
 

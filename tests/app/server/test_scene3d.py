@@ -174,6 +174,30 @@ def test_the_image_panel_shows_small_live_images(scene) -> None:
     assert not any(n.picture.visible for n in s.nodes.values())
 
 
+def test_thermal_images_in_raw_counts_are_shown_through_their_radiometry(scene) -> None:
+    """An imager that delivers raw counts (a radiometric calibration of 0.04 K per count)
+    shows the temperatures the fused picture shows: the pipeline's span is in kelvin, the
+    counts (about 7,400) would all lie above it and paint the tile one colour."""
+    s, pipeline, _ = scene
+    fs = pipeline.latest_set
+    gain = 0.04
+    raw = {
+        n: dataclasses.replace(f, image=(np.asarray(f.image, np.float32) / gain))
+        for n, f in fs.frames.items()
+        if n.startswith("thermal")
+    }
+    pipeline.latest_set = FrameSet(fs.stamp_ns, {**fs.frames, **raw})
+    pipeline.radiometry = {n: Radiometry(gain=gain) for n in raw}
+    s.update_textures()
+    want = palette_colors(np.array([LEFT_K]), SPAN_K, "iron")[0]
+    np.testing.assert_array_equal(s.nodes["thermal_left"].picture.image[10, 10], want)
+    # the radiometry changes (a new calibration, the balance): the tile follows
+    pipeline.radiometry = {n: Radiometry(gain=gain, balance_offset_k=50.0) for n in raw}
+    s.update_textures()
+    hot = palette_colors(np.array([SPAN_K[1]]), SPAN_K, "iron")[0]  # above the span
+    np.testing.assert_array_equal(s.nodes["thermal_left"].picture.image[10, 10], hot)
+
+
 def test_the_next_views_outline_is_drawn_in_the_live_images(scene) -> None:
     """``ctx.next_outline`` (full-image pixels) is drawn cyan at the texture's scale in
     that sensor's live image only, on the same frame when it changes, never into the

@@ -8,6 +8,7 @@ import re
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.browser_support import needs_chromium, wait_on_page
@@ -141,24 +142,65 @@ def test_viewer_and_console_load_without_a_missing_file(console, browser) -> Non
 
 SCALE_SHOT = Path("/tmp/shots/viewer-scale.png")
 
-# Both eyes' colour scales as drawn (DOM text, place, the ramp's end colours), the picture's
-# box and the metadata of the frame shown, read at one instant.
+# Both eyes' colour scales as drawn (DOM text, place, the ramp's end colours, the tick labels
+# shown and their boxes), the picture's box, the readout's box and the metadata of the frame
+# shown, read at one instant.
 _SCALES = """() => {
+  const box = (e) => { const r = e.getBoundingClientRect();
+                       return {x: r.x, y: r.y, w: r.width, h: r.height}; };
   const scales = [...document.querySelectorAll('.scale')].map((el) => {
-    const r = el.getBoundingClientRect();
     const ramp = el.querySelector('canvas.ramp');
-    const px = (y) => ramp
-      ? [...ramp.getContext('2d').getImageData(0, y, 1, 1).data.slice(0, 3)] : null;
+    const px = (x) => ramp
+      ? [...ramp.getContext('2d').getImageData(x, 0, 1, 1).data.slice(0, 3)] : null;
     const text = (sel) => { const e = el.querySelector(sel); return e ? e.textContent : null; };
-    return {eye: el.dataset.eye, hidden: el.hidden, x: r.x, y: r.y, w: r.width, h: r.height,
+    const shown = [...el.querySelectorAll('.tick')]
+      .filter((t) => getComputedStyle(t).visibility === 'visible')
+      .map((t) => ({text: t.textContent, ...box(t)}));
+    return {eye: el.dataset.eye, hidden: el.hidden, ...box(el),
             palette: el.dataset.palette || null, high: text('.tick.end.high'),
-            low: text('.tick.end.low'), caption: text('.caption.bottom'),
-            ticks: [...el.querySelectorAll('.tick')].map((t) => t.textContent),
-            hot: px(0), cold: px(255)};
+            low: text('.tick.end.low'), caption: text('.caption.mode'),
+            ticks: [...el.querySelectorAll('.tick')].map((t) => t.textContent), shown,
+            parts: [...el.children].map(box), hot: px(255), cold: px(0)};
   });
-  const c = document.getElementById('view').getBoundingClientRect();
-  return {meta: window.trifuseStats.meta, scales, canvas: {x: c.x, w: c.width}};
+  return {meta: window.trifuseStats.meta, scales, canvas: box(document.getElementById('view')),
+          readout: box(document.getElementById('spot-readout')),
+          window: {w: innerWidth, h: innerHeight}};
 }"""
+
+
+def _apart(a: dict[str, float], b: dict[str, float]) -> bool:
+    """Whether boxes ``a`` and ``b`` ({x, y, w, h}, CSS px) do not overlap (touching is apart)."""
+    eps = 0.5
+    return (
+        a["x"] + a["w"] <= b["x"] + eps
+        or b["x"] + b["w"] <= a["x"] + eps
+        or a["y"] + a["h"] <= b["y"] + eps
+        or b["y"] + b["h"] <= a["y"] + eps
+    )
+
+
+def _check_scales_beside_the_picture(s: dict, where: str) -> None:
+    """Each eye's scale under its half of the picture, covering none of it, inside the window,
+    its parts and its tick labels shown (both ends at least) apart from each other and from
+    the spot meter's readout."""
+    c, win = s["canvas"], s["window"]
+    for sc in s["scales"]:
+        assert not sc["hidden"], (where, sc)
+        assert _apart(sc, c) and sc["y"] >= c["y"] + c["h"] - 0.5, (where, sc, c)
+        x0 = c["x"] + (c["w"] / 2 if sc["eye"] == "right" else 0)
+        assert sc["x"] == pytest.approx(x0, abs=1) and sc["w"] == pytest.approx(c["w"] / 2, abs=1)
+        assert sc["y"] + sc["h"] <= win["h"] + 0.5, (where, sc, win)
+        unit, ramp, _, mode = sc["parts"]  # the unit, the ramp, the ticks' row, auto/manual
+        assert _apart(unit, ramp) and _apart(ramp, mode) and unit["w"] > 0 < mode["w"], (where, sc)
+        shown = sc["shown"]
+        assert {t["text"] for t in shown} >= {sc["high"], sc["low"]}, (where, shown)
+        for i, a in enumerate(shown):
+            inside = sc["x"] - 0.5 <= a["x"] and a["x"] + a["w"] <= sc["x"] + sc["w"] + 0.5
+            assert inside, (where, a, sc)
+            assert a["y"] + a["h"] <= sc["y"] + sc["h"] + 0.5, (where, a, sc)
+            for b in [*shown[i + 1 :], unit, ramp, mode]:
+                assert _apart(a, b), (where, a, b)
+        assert _apart(sc, s["readout"]), (where, sc, s["readout"])
 
 
 def _end_label(eye: str, which: str) -> str:
@@ -166,9 +208,10 @@ def _end_label(eye: str, which: str) -> str:
 
 
 def test_viewer_colour_scale_shows_the_palette_and_span_in_each_eye(console, browser) -> None:
-    """A scale in each eye, at the same place, with the frame's span at its ends (°C) and its
-    palette's colours; a span or palette set through the REST API shows up on it; colour
-    only hides it. A screenshot goes to /tmp/shots/viewer-scale.png."""
+    """A scale under each eye, at the same place, with the frame's span at its ends (°C) and
+    its palette's colours; a span or palette set through the REST API shows up on it; colour
+    only hides it (and the picture takes its row). A screenshot goes to
+    /tmp/shots/viewer-scale.png."""
     fusion = console.get("/api/fusion")
     page = browser.new_page(viewport={"width": 1280, "height": 720})
     try:
@@ -179,12 +222,14 @@ def test_viewer_colour_scale_shows_the_palette_and_span_in_each_eye(console, bro
         assert meta["palette"] == fusion["palette"] and meta["span_auto"] is True
         low_c, high_c = (k - 273.15 for k in meta["span_k"])
         table = palette(meta["palette"])
+        _check_scales_beside_the_picture(s, "1280x720")
         for sc in (left, right):
-            assert not sc["hidden"] and sc["w"] > 30 and sc["h"] > 150, sc
+            assert not sc["hidden"] and sc["w"] > 300 and sc["h"] > 25, sc
             assert (sc["high"], sc["low"]) == (f"{high_c:.1f}", f"{low_c:.1f}"), (sc, meta)
             assert sc["caption"] == "auto" and sc["palette"] == meta["palette"]
             assert sc["hot"] == table[255].tolist() and sc["cold"] == table[0].tolist()
         assert left["ticks"] == right["ticks"] and len(left["ticks"]) >= 4  # ends + round values
+        assert [t["text"] for t in left["shown"]] == left["ticks"]  # room for all of them
         # equalized (the default AGC): ticks at evenly spaced palette positions, labelled
         # with the temperatures there (the metadata's palette_ticks_k)
         assert meta["agc"] == fusion["agc"] == "plateau"
@@ -228,9 +273,83 @@ def test_viewer_colour_scale_shows_the_palette_and_span_in_each_eye(console, bro
         )
         s = page.evaluate(_SCALES)
         assert s["meta"]["palette"] is None and all(sc["w"] == 0 for sc in s["scales"])
+        # the scales' row gone: the picture may take its height
+        assert page.evaluate("() => document.getElementById('scales').offsetHeight") == 0
     finally:
         console.request("/api/fusion", "PUT", fusion)
         console.request("/api/thermal", "PUT", {"span_k": None})
+        page.close()
+
+
+# The WebXR texture as viewer.js composes it (the picture, the scales' strip under it), with
+# the rows of its picture part that differ from the page's picture and the strip's colours.
+_XR_TEXTURE = """() => {
+  const v = document.getElementById('view'), x = window.trifuseXrScales;
+  const sc = window.trifuseStats.scale, strip = x.xrStrip(v.width);
+  const c = document.createElement('canvas');
+  c.width = v.width; c.height = v.height + strip;
+  const g = c.getContext('2d');
+  g.drawImage(v, 0, 0);
+  const before = g.getImageData(0, 0, v.width, v.height).data;
+  x.drawScales(g, sc, v.width, v.height, x.rampCanvas(sc.rgb));
+  const after = g.getImageData(0, 0, v.width, v.height).data;
+  let changed = 0;
+  for (let i = 0; i < before.length; i += 1) changed += before[i] !== after[i];
+  const row = (y) => [...g.getImageData(0, y, v.width, 1).data];
+  const s = g.getImageData(0, v.height, v.width, strip).data;
+  let bright = 0;
+  for (let i = 0; i < s.length; i += 4) bright += s[i] + s[i + 1] + s[i + 2] > 600;
+  return {strip, h: v.height, font: x.xrFont(v.width), changed, bright,
+          ramp: row(v.height + Math.round(strip * 0.25))};
+}"""
+
+
+def test_viewer_colour_scale_stays_beside_the_picture(console, browser) -> None:
+    """At any window size, in full screen and in the WebXR texture, each eye's colour scale is
+    under its half of the picture and covers none of it; its tick labels shown do not collide
+    (some are left out in a small window, never the span's ends). Screenshots go to
+    /tmp/shots/viewer-scale-WxH.png."""
+    page = browser.new_page(viewport={"width": 1400, "height": 700})
+    try:
+        page.goto(console.signin("/"))
+        page.wait_for_function("() => window.trifuseStats && window.trifuseStats.scale")
+        for w, h in [(1400, 700), (900, 500), (600, 400), (1000, 300)]:
+            page.set_viewport_size({"width": w, "height": h})
+            page.wait_for_function(
+                f"() => Math.abs(document.getElementById('pair').offsetWidth"
+                f" - Math.min({w}, ({h} - document.getElementById('scales').offsetHeight)"
+                f" * 2560 / 960)) < 2",
+            )
+            page.wait_for_timeout(100)  # the ResizeObservers' callbacks
+            s = page.evaluate(_SCALES)
+            _check_scales_beside_the_picture(s, f"{w}x{h}")
+            page.screenshot(path=str(SCALE_SHOT.with_name(f"viewer-scale-{w}x{h}.png")))
+            if w == 600:  # too small for every tick: the ends and some between them
+                left = s["scales"][0]
+                assert 2 <= len(left["shown"]) < len(left["ticks"]), left
+        page.set_viewport_size({"width": 1400, "height": 700})
+        page.get_by_role("button", name="Full screen").click()
+        page.wait_for_function("() => document.fullscreenElement && document.fullscreenElement.id")
+        assert page.evaluate("() => document.fullscreenElement.id") == "stage"
+        page.wait_for_timeout(100)
+        s = page.evaluate(_SCALES)
+        s["readout"] = {"x": 0, "y": 0, "w": 0, "h": 0}  # not in the full screen
+        _check_scales_beside_the_picture(s, "full screen")
+        page.screenshot(path=str(SCALE_SHOT.with_name("viewer-scale-fullscreen.png")))
+        page.evaluate("() => document.exitFullscreen()")
+
+        # WebXR: the strip under the picture, the picture's rows untouched, the ramp legible
+        xr = page.evaluate(_XR_TEXTURE)
+        assert xr["changed"] == 0 and xr["strip"] >= 0.08 * xr["h"], xr["strip"]
+        assert xr["bright"] > 2000  # the captions, ticks and the ramp's hot end, in white/yellow
+        row = np.array(xr["ramp"]).reshape(-1, 4)[:, :3].astype(int)
+        table = palette(page.evaluate("() => window.trifuseStats.scale.palette")).astype(int)
+        for left in (0, 1280):  # each eye's ramp: the palette from cold (left) to hot (right)
+            x0, x1 = left + 3.6 * xr["font"], left + 1280 - 3.6 * xr["font"]
+            for frac in (0.01, 0.25, 0.5, 0.75, 0.99):
+                got = row[round(x0 + frac * (x1 - x0))]
+                assert np.abs(got - table[round(frac * 255)]).sum() < 40, (left, frac, got)
+    finally:
         page.close()
 
 
@@ -314,3 +433,63 @@ def test_api_docs_load_nothing_from_another_site(console, browser) -> None:
     page.wait_for_function("() => document.body.innerText.includes('Put Thermal')")
     page.close()
     assert foreign == []
+
+
+def test_console_without_a_gpu_suggests_the_low_bandwidth_mode(console, browser) -> None:
+    """Headless Chromium without a GPU draws WebGL with SwiftShader: /console/ says so and
+    offers the low bandwidth mode; the button sets it for the console, and once it is low
+    (or the note was dismissed) the note is not shown again."""
+    context = browser.new_context(viewport={"width": 1000, "height": 700})
+    page = context.new_page()
+    page.goto(console.signin("/console/"))
+    page.wait_for_function("() => window.trifuseGpu !== undefined")
+    gpu = page.evaluate("() => window.trifuseGpu")
+    assert gpu["software"] is True and "SwiftShader" in gpu["renderer"], gpu
+    note = page.locator("#software-webgl-note")
+    note.wait_for()
+    assert "without a GPU" in note.inner_text()
+    try:
+        page.get_by_role("button", name="Use low bandwidth").click()
+        page.wait_for_function(
+            "() => document.getElementById('software-webgl-note').innerText"
+            ".includes('Low bandwidth is on')"
+        )
+        assert console.get("/api/console/settings") == {"bandwidth": "low"}
+        page.reload()
+        page.wait_for_function("() => window.trifuseGpu !== undefined")
+        page.wait_for_timeout(500)  # the settings' answer came: no note
+        assert page.locator("#software-webgl-note").count() == 0
+    finally:
+        console.request("/api/console/settings", "PUT", {"bandwidth": "full"})
+    page.reload()  # full again: the note, until dismissed in this browser
+    page.get_by_role("button", name="Dismiss").click()
+    page.reload()
+    page.wait_for_function("() => window.trifuseGpu !== undefined")
+    page.wait_for_timeout(500)
+    assert page.locator("#software-webgl-note").count() == 0
+    context.close()
+
+
+def test_a_folder_title_folds_that_folder_only(console, browser) -> None:
+    """A click on a GUI folder's title folds that folder and no other, also once the
+    panels have updated (issue 33 saw other folders fold; Viser 1.1.1 here does not)."""
+    page = browser.new_page(viewport={"width": 1200, "height": 900})
+    page.goto(console.signin("/console/"))
+    buttons = {"Source": "Record", "Calibration": "Capture", "3D scene": "Overview"}
+
+    def shown() -> dict[str, bool]:
+        return {
+            folder: page.get_by_role("button", name=name).first.is_visible()
+            for folder, name in buttons.items()
+        }
+
+    page.get_by_role("button", name="Overview").first.wait_for()
+    assert shown() == dict.fromkeys(buttons, True)
+    page.get_by_text("Source", exact=True).first.click()
+    page.get_by_role("button", name="Record").first.wait_for(state="hidden")
+    page.wait_for_timeout(2000)  # a few panel updates
+    assert shown() == {"Source": False, "Calibration": True, "3D scene": True}
+    page.get_by_text("Source", exact=True).first.click()
+    page.get_by_role("button", name="Record").first.wait_for()
+    assert shown() == dict.fromkeys(buttons, True)
+    page.close()
