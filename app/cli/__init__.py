@@ -59,6 +59,26 @@ def _version() -> str:
         return "(source tree)"
 
 
+class _VersionAction(argparse.Action):
+    """``--version``: argparse's, but the version is looked up only when asked for (the
+    package metadata takes longer to read than the rest of the parser to build)."""
+
+    def __init__(self, option_strings: list[str], dest: str, help: str | None = None) -> None:
+        super().__init__(
+            option_strings, argparse.SUPPRESS, nargs=0, default=argparse.SUPPRESS, help=help
+        )
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: object,
+        option_string: str | None = None,
+    ) -> None:
+        print(f"{parser.prog} {_version()}")
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``trifuse`` parser; each command sets ``func`` to its handler."""
     parser = Parser(
@@ -66,7 +86,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Calibrate and operate a colour / thermal / time-of-flight sensor head.",
         epilog=f"Run '{PROG} COMMAND --help' for a command's options.",
     )
-    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    parser.add_argument(
+        "--version", action=_VersionAction, help="show program's version number and exit"
+    )
     commands = parser.add_subparsers(title="commands", metavar="COMMAND", dest="command")
     for command in COMMANDS:
         command.add_parser(commands).set_defaults(func=command.run)

@@ -4,6 +4,7 @@ directory, optionally compared with a true rig."""
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -101,7 +102,9 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Calibrate ``args.capture_dir``; write the rig (and report); compare with ``--truth``."""
+    """Calibrate ``args.capture_dir``; write the rig (and report); compare with ``--truth``;
+    say how long it all took (the summary's time is the calibration's alone)."""
+    t_start = time.perf_counter()
     from trifuse.app.storage.capture import load_capture
     from trifuse.app.storage.rigfile import save_rig
     from trifuse.app.workflows.calibration_run import (
@@ -121,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
     if truth is not None:
         check_truth_fits(truth, capture, args.truth)
     out(capture.summary())
+    t_loaded = time.perf_counter()
     options = CalibrationOptions(
         reference=args.reference,
         refine_intrinsics=not args.fixed_intrinsics,
@@ -128,6 +132,7 @@ def run(args: argparse.Namespace) -> int:
     )
     sensors = args.sensors.split(",") if args.sensors else None
     result, report = calibrate_capture(capture, options, sensors, stage_progress())
+    t_calibrated = time.perf_counter()
     out("")
     out(format_summary(result, report))
     if truth is not None:
@@ -153,7 +158,27 @@ def run(args: argparse.Namespace) -> int:
 
         write_report_html(html_path, report, result.corners, command_line(args))
         out(f"HTML report written to {html_path}")
+    out(
+        time_text(
+            time.perf_counter() - t_start,
+            t_loaded - t_start,
+            t_calibrated - t_loaded - result.seconds,
+            result.seconds,
+        )
+    )
     return EXIT_OK
+
+
+def time_text(total_s: float, reading_s: float, detecting_s: float, calibrating_s: float) -> str:
+    """``Took 14.2 s in all: starting and reading the capture 0.4 s, detecting the board
+    10.6 s, calibrating 2.9 s, the rest 0.3 s`` (starting: the imports; the rest: comparing,
+    writing)."""
+    rest_s = max(0.0, total_s - reading_s - detecting_s - calibrating_s)
+    return (
+        f"Took {total_s:.1f} s in all: starting and reading the capture {reading_s:.1f} s, "
+        f"detecting the board {detecting_s:.1f} s, calibrating {calibrating_s:.1f} s, the rest "
+        f"{rest_s:.1f} s"
+    )
 
 
 def check_truth_fits(truth: Rig, capture: Capture, path: str) -> None:

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from trifuse.app.cli.args import UsageError, non_negative
+from trifuse.app.cli.choices import DEFAULT_CHUNK_S
 
 if TYPE_CHECKING:
     from trifuse.app.recording.jobs import Runner
@@ -19,8 +20,6 @@ LOCAL_RAY = "local"
 
 def add_cluster_arguments(parser: argparse.ArgumentParser) -> None:
     """``--ray [ADDRESS]`` and ``--chunk-s S``."""
-    from trifuse.app.recording.pieces import DEFAULT_CHUNK_S
-
     parser.add_argument(
         "--ray",
         nargs="?",

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from trifuse.app.cli.args import EXIT_OK, PROG, Commands, UsageError, add_every_argument
+from trifuse.app.cli.choices import DISPLAY_MODES
 from trifuse.app.cli.cluster import add_cluster_arguments, open_runner, pieces_text
 from trifuse.app.cli.files import (
     add_out_dir_argument,
@@ -15,7 +16,6 @@ from trifuse.app.cli.files import (
     recording_paths,
 )
 from trifuse.app.cli.output import err, frame_progress, out
-from trifuse.fusion.compose import DISPLAY_MODES
 
 
 def add_parser(commands: Commands) -> argparse.ArgumentParser:

@@ -6,15 +6,16 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from trifuse.app.cli.args import EXIT_OK, PROG, Commands, UsageError, positive_float
+from trifuse.app.cli.choices import POSE_MODES
 from trifuse.app.cli.cluster import add_cluster_arguments, open_runner, pieces_text
 from trifuse.app.cli.files import load_rig_arg, recording_paths
 from trifuse.app.cli.output import err, frame_progress, out
-from trifuse.app.recording.map3d import MAX_IMAGE_AGE_S, POSE_MODES
-from trifuse.app.storage.map_file import MAP_SUFFIX
+
+if TYPE_CHECKING:
+    import numpy as np
 
 DEFAULT_VOXEL_M = 0.03
 
@@ -85,6 +86,8 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
 
 def output_paths(args: argparse.Namespace) -> tuple[Path, Path]:
     """(PLY, map file): distinct, not directories, new unless ``--force``."""
+    from trifuse.app.storage.map_file import MAP_SUFFIX
+
     ply = Path(args.out)
     map_file = Path(args.map_file) if args.map_file else ply.with_suffix(MAP_SUFFIX)
     if map_file.resolve() == ply.resolve():
@@ -119,7 +122,7 @@ def extent_text(centres: np.ndarray) -> str:
 def run(args: argparse.Namespace) -> int:
     """Build the map of the recordings; write the PLY and the map file; say what was done."""
     from trifuse.app.recording.jobs import run_map_job
-    from trifuse.app.recording.map3d import open_recordings
+    from trifuse.app.recording.map3d import MAX_IMAGE_AGE_S, open_recordings
     from trifuse.app.recording.player import skips_text
     from trifuse.app.storage.map_file import save_map, write_ply
     from trifuse.fusion.voxel_map import MapSettings

@@ -18,11 +18,12 @@ from trifuse.app.cli.args import (
     positive_seconds,
     seed,
 )
+from trifuse.app.cli.choices import SIM_SCENARIOS
 from trifuse.app.cli.files import refuse_existing
 from trifuse.app.cli.output import err, out
 from trifuse.app.cli.record_output import record_summary, say_where
+from trifuse.app.cli.record_sim import DEFAULT_DURATION_S
 from trifuse.app.cli.record_video import add_video_arguments, attach_fused_video, video_summary
-from trifuse.app.recording.simrecord import SIM_SCENARIOS
 
 
 def add_parser(commands: Commands) -> argparse.ArgumentParser:
@@ -64,7 +65,9 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         "--duration",
         type=positive_seconds,
         metavar="S",
-        help="seconds to record (sim default: 2; replay default: all of it)",
+        help="seconds to record (sim default: "
+        f"{', '.join(f'{s} {d:g}' for s, d in DEFAULT_DURATION_S.items())}; "
+        "replay default: all of it)",
     )
     rec.add_argument(
         "--rig",
@@ -76,7 +79,7 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         "--scenario",
         choices=SIM_SCENARIOS,
         help="sim: what the simulated head sees: the inspection room (panning) or the "
-        "survey of it (pan and tilt, then a drive; 36 s) (default: inspection)",
+        "survey of it (pan and tilt, then a drive; 36 s in all) (default: inspection)",
     )
     rec.add_argument(
         "--seed", type=seed, default=0, metavar="N", help="simulator noise seed (default: 0)"

@@ -10,8 +10,8 @@ import math
 from typing import TYPE_CHECKING
 
 from trifuse.app.cli.args import PROG, checked
+from trifuse.app.cli.choices import DISPLAY_MODES
 from trifuse.app.cli.output import err, out
-from trifuse.fusion.compose import DISPLAY_MODES
 
 if TYPE_CHECKING:
     from trifuse.app.recording.recording import Recording

@@ -17,10 +17,9 @@ from pathlib import Path, PurePosixPath
 from typing import Any
 
 from trifuse.app.cli.args import EXIT_OK, PROG, Commands, UsageError
+from trifuse.app.cli.choices import IMPORT_FORMATS, MODALITIES, RIG_FORMATS
 from trifuse.app.cli.files import load_rig_arg
 from trifuse.app.cli.output import out
-from trifuse.calib.rig import MODALITIES
-from trifuse.calib.rig_formats import IMPORT_FORMATS, RIG_FORMATS
 
 READ_SUFFIXES = (".yaml", ".yml", ".urdf", ".xml")
 """The files ``rig import DIR`` reads from a directory (not its subfolders, not hidden)."""

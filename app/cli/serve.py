@@ -4,6 +4,7 @@ other, authentication, TLS, the port, the work directory) that come before anyth
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -16,11 +17,14 @@ from trifuse.app.cli.args import (
     UsageError,
     bounded_int,
     bounded_seconds,
-    positive_int,
+    listen_port,
+    port_number,
 )
-from trifuse.app.recording.open_source import SCENARIOS
+from trifuse.app.cli.choices import SCENARIOS
 
 if TYPE_CHECKING:
+    import socket
+
     from trifuse.app.server.middleware.auth import AuthConfig
     from trifuse.app.server.runtime.serve import TLSFiles
     from trifuse.calib.board import Board
@@ -99,7 +103,13 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         help="address to bind (default: %(default)s; e.g. 0.0.0.0 for every interface, "
         "which needs a token)",
     )
-    srv.add_argument("--port", type=positive_int, default=8000, help="port (default: %(default)s)")
+    srv.add_argument(
+        "--port",
+        type=listen_port,
+        default=8000,
+        help="port, 1-65535, or 0 for any free port; the URL printed names the port bound "
+        "(default: %(default)s)",
+    )
     srv.add_argument(
         "--token",
         help="the secret that opens the console (at least 16 characters; default: "
@@ -137,7 +147,7 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
     )
     srv.add_argument(
         "--foxglove-port",
-        type=bounded_int(1, 65535),
+        type=port_number,
         metavar="N",
         help="also publish the live sensor images, the fused pair (H.264), the rig's "
         "transforms and calibrations, the TOF point cloud and the sensor health to Foxglove "
@@ -220,6 +230,13 @@ def serve_tls(args: argparse.Namespace) -> TLSFiles | None:
     return TLSFiles(Path(args.certfile), Path(args.keyfile))
 
 
+def bound_auth(auth: AuthConfig, sock: socket.socket) -> AuthConfig:
+    """``auth`` for the port ``sock`` is bound to: the one the system chose for ``--port 0``
+    (the URL printed and the session cookie's name use it)."""
+    port = int(sock.getsockname()[1])
+    return auth if port == auth.port else dataclasses.replace(auth, port=port)
+
+
 def run(args: argparse.Namespace) -> int:
     """Check everything, bind the port, lock the work directory, open the source, serve."""
     from trifuse.app.recording.open_source import open_source
@@ -241,6 +258,7 @@ def run(args: argparse.Namespace) -> int:
         sock = bind_public_socket(args.host, args.port)
     except OSError as e:
         raise UsageError(f"{PROG} serve: {e}") from None
+    auth = bound_auth(auth, sock)
     try:
         if args.foxglove_port is not None:
             from trifuse.app.server.runtime.foxglove_live import check_foxglove_port

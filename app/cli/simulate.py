@@ -10,8 +10,6 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from trifuse.app.cli.args import (
     EXIT_OK,
     PROG,
@@ -27,6 +25,8 @@ from trifuse.app.cli.files import add_out_dir_argument, check_output_dir
 from trifuse.app.cli.output import out
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from trifuse.calib.board import Board
 
 PATTERNS = ("checkerboard", "charuco", "asymmetric_circles", "symmetric_circles")

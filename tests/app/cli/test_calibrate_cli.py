@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -14,6 +15,7 @@ import pytest
 
 from tests.support import FOCAL, OPENCV_LEFT_9X6, POSE
 from trifuse.app.cli import main
+from trifuse.app.cli.calibrate import time_text
 from trifuse.app.workflows.report_format import coverage_sentence
 from trifuse.calib.coverage import coarse_reached
 from trifuse.calib.transforms import pose_error, rvec_from_rotation
@@ -189,6 +191,25 @@ def test_summary_gives_coverage_in_a_line_and_rejected_images_by_view(
     reason = report["detections"]["left05"]["ccd_left"]["reason"]
     assert "not found" in reason
     assert f"  ccd_left, view left05: {reason}" in lines
+    # the summary's time is the calibration's; the last line gives the whole time
+    calibrated = re.search(r"^Calibrated 1 sensor\(s\) in ([\d.]+) s,", out, re.MULTILINE)
+    took = re.fullmatch(
+        r"Took ([\d.]+) s in all: starting and reading the capture ([\d.]+) s, detecting the "
+        r"board ([\d.]+) s, calibrating ([\d.]+) s, the rest ([\d.]+) s",
+        lines[-1],
+    )
+    assert calibrated is not None and took is not None, lines[-1]
+    total, reading, detecting, calibrating, rest = map(float, took.groups())
+    assert calibrating == float(calibrated.group(1)) and detecting > 0
+    assert total == pytest.approx(reading + detecting + calibrating + rest, abs=0.25)
+
+
+def test_time_text() -> None:
+    assert time_text(14.24, 0.41, 10.6, 2.93) == (
+        "Took 14.2 s in all: starting and reading the capture 0.4 s, detecting the board "
+        "10.6 s, calibrating 2.9 s, the rest 0.3 s"
+    )
+    assert time_text(1.0, 0.5, 0.3, 0.3).endswith("the rest 0.0 s")  # rounding, never < 0
 
 
 # -- malformed input: one clear line, exit 2, no traceback ----------------------------------
