@@ -34,6 +34,7 @@
     xrReading: null,   // the last /api/spot answer under the XR pointer
     errors: 0,         // failed readings (shown in the readout)
     drawn: 0,          // overlay redraws (for the tests)
+    labels: [],        // the overlay's labels: {text, eye, rect: [x0, y0, x1, y1]} (canvas px)
   };
 
   // -- the overlay canvas, the readout and the buttons ----------------------------------------
@@ -57,6 +58,19 @@
   });
   readout.textContent = "spot meter: click for a spot, drag for a box";
   document.body.appendChild(readout);
+
+  // The readout at the window's bottom left: under the colour scales' row (viewer.html) when
+  // it fits there, else just above the row, over the picture's corner: never on the scales.
+  const scalesRow = document.getElementById("scales");
+  function placeReadout() {
+    const room = innerHeight - scalesRow.getBoundingClientRect().bottom;
+    const bottom = room >= readout.offsetHeight + 12 ? 8
+      : Math.max(8, innerHeight - frameBox.getBoundingClientRect().bottom + 8);
+    if (readout.style.bottom !== `${bottom}px`) readout.style.bottom = `${bottom}px`;
+  }
+  const readoutPlacer = new ResizeObserver(placeReadout);
+  for (const el of [readout, frameBox, scalesRow]) readoutPlacer.observe(el);
+  addEventListener("resize", placeReadout);
 
   function button(id, text, title) {
     const b = document.createElement("button");
@@ -228,28 +242,67 @@
   let covered = null;
   const cover = (x0, y0, x1, y1) => { if (covered) covered.push([x0, y0, x1, y1]); };
 
-  // A label with a dark background at canvas (x, y), kept inside the eye's half.
-  function label(ctx, text, x, y, eye, w, color) {
-    const q = w / 100;
-    ctx.font = `600 ${1.0 * q}px system-ui, sans-serif`;
-    const tw = ctx.measureText(text).width + 0.8 * q, th = 1.5 * q;
+  // Whether rectangles a and b ([x0, y0, x1, y1]) overlap or come within `pad` of each other.
+  const near = (a, b, pad) =>
+    a[0] < b[2] + pad && b[0] < a[2] + pad && a[1] < b[3] + pad && b[1] < a[3] + pad;
+
+  // Where a label goes, [x0, y0, x1, y1]: the first of its places (`where(tw, th)`: top left
+  // corners, the preferred first) that, kept within its eye's half of the picture (w x h),
+  // meets neither a label placed before it nor a marker (`drawn`'s rectangles); else the
+  // first that meets no label; else one of the first two moved down or up by a label's
+  // height at a time until it meets none. A later label moves, the earlier ones keep their
+  // place: labels never cover each other (nor the colour scale: it is under the picture).
+  function place(ctx, text, where, eye, w, h, drawn) {
+    const f = drawn.font;
+    ctx.font = `600 ${f}px system-ui, sans-serif`;
+    const tw = ctx.measureText(text).width + 0.8 * f, th = 1.5 * f, pad = 0.2 * f;
     const lo = eye === "right" ? w / 2 : 0, hi = lo + w / 2;
-    let lx = x + 1.2 * q, ly = y - 1.2 * q - th;
-    if (lx + tw > hi) lx = x - 1.2 * q - tw;
-    lx = Math.max(lo, lx);
-    if (ly < 0) ly = y + 1.2 * q;
+    const fit = ([x, y]) => {
+      const lx = Math.max(lo, Math.min(hi - tw, x)), ly = Math.max(0, Math.min(h - th, y));
+      return [lx, ly, lx + tw, ly + th];
+    };
+    const free = (r, rects) => rects.every((o) => !near(r, o, pad));
+    const spots = where(tw, th).map(fit);
+    let r = spots.find((a) => free(a, drawn.labels) && free(a, drawn.marks)) ||
+      spots.find((a) => free(a, drawn.labels));
+    for (let k = 1; !r && k * th < h; k += 1) {
+      for (const a of spots.slice(0, 2)) {
+        for (const dy of [k, -k]) {
+          const m = fit([a[0], a[1] + dy * (th + pad)]);
+          if (!r && free(m, drawn.labels)) r = m;
+        }
+      }
+    }
+    r = r || spots[0];
+    drawn.labels.push(r);
+    return r;
+  }
+
+  // A label with a dark background in rectangle r, its text `f` px high.
+  function label(ctx, text, r, f, color) {
+    ctx.font = `600 ${f}px system-ui, sans-serif`;
     ctx.fillStyle = "rgba(0,0,0,0.68)";
-    ctx.fillRect(lx, ly, tw, th);
-    cover(lx, ly, lx + tw, ly + th);
+    ctx.fillRect(r[0], r[1], r[2] - r[0], r[3] - r[1]);
+    cover(...r);
     ctx.fillStyle = color || "#fff";
     ctx.textAlign = "left";
     ctx.textBaseline = "middle";
-    ctx.fillText(text, lx + 0.4 * q, ly + th / 2);
+    ctx.fillText(text, r[0] + 0.4 * f, (r[1] + r[3]) / 2);
   }
 
+  // A marker's label places around its rectangle m, `g` off it: above it on the right, above
+  // on the left, below on the right, below on the left, on its right, on its left.
+  const around = (m, g) => (tw, th) => [
+    [m[2] + g, m[1] - g - th], [m[0] - g - tw, m[1] - g - th],
+    [m[2] + g, m[3] + g], [m[0] - g - tw, m[3] + g],
+    [m[2] + g, (m[1] + m[3] - th) / 2], [m[0] - g - tw, (m[1] + m[3] - th) / 2],
+  ];
+
+  // A crosshair on (x, y); its rectangle.
   function crosshair(ctx, x, y, w) {
     const q = w / 100, r = 0.9 * q;
-    cover(x - 1.7 * r, y - 1.7 * r, x + 1.7 * r, y + 1.7 * r);
+    const rect = [x - 1.7 * r, y - 1.7 * r, x + 1.7 * r, y + 1.7 * r];
+    cover(...rect);
     for (const [color, width] of [["rgba(0,0,0,0.8)", 0.35 * q], ["#fff", 0.15 * q]]) {
       ctx.strokeStyle = color;
       ctx.lineWidth = width;
@@ -261,12 +314,14 @@
       }
       ctx.stroke();
     }
+    return rect;
   }
 
-  // A triangle pointing up (hot) or down (cold) with its tip at (x, y).
+  // A triangle pointing up (hot) or down (cold) with its tip at (x, y); its rectangle.
   function triangle(ctx, x, y, w, hot) {
     const q = w / 100, s = 0.9 * q, dir = hot ? 1 : -1;
-    cover(x - s, Math.min(y, y + dir * 1.6 * s), x + s, Math.max(y, y + dir * 1.6 * s));
+    const rect = [x - s, Math.min(y, y + dir * 1.6 * s), x + s, Math.max(y, y + dir * 1.6 * s)];
+    cover(...rect);
     ctx.beginPath();
     ctx.moveTo(x, y);
     ctx.lineTo(x - s, y + dir * 1.6 * s);
@@ -277,6 +332,7 @@
     ctx.strokeStyle = "#fff";
     ctx.lineWidth = 0.15 * q;
     ctx.stroke();
+    return rect;
   }
 
   // Pixel (x, y) of `eye` in a context of size w x h (the page's overlay or the XR texture).
@@ -291,8 +347,14 @@
     return [[r.eye, r.x, r.y]];
   }
 
-  // Everything the spot meter shows, into a 2D context of the side-by-side picture (w x h).
-  function drawAll(ctx, w, h, withXr) {
+  // Everything the spot meter shows, into a 2D context of the side-by-side picture (w x h):
+  // the markers first, then their labels (text 1 % of w high, `minFont` px at least),
+  // placed so that none covers another (place()); the labels, {text, eye, rect}.
+  function drawAll(ctx, w, h, withXr, minFont = 0) {
+    const q = w / 100;
+    // rectangles: the labels placed, the markers; the labels' text size
+    const drawn = { labels: [], marks: [], font: Math.max(q, minFont) };
+    const labels = [];  // [text, where (place()), eye, color], in the order they are placed
     const m = window.trifuseStats && window.trifuseStats.meta;
     if (state.extremes && m && m.spots) {
       for (const kind of ["hot", "cold"]) {
@@ -300,9 +362,10 @@
           const s = m.spots[kind] && m.spots[kind][eye];
           if (!s) continue;
           const [x, y] = at(eye, s.x, s.y, w, h);
-          triangle(ctx, x, y, w, kind === "hot");
-          label(ctx, `${kind === "hot" ? "▲" : "▼"} ${celsius(s.temperature_k)}`, x, y, eye, w,
-            kind === "hot" ? "#ffb3ad" : "#b3d4ff");
+          const rect = triangle(ctx, x, y, w, kind === "hot");
+          drawn.marks.push(rect);
+          labels.push([`${kind === "hot" ? "▲" : "▼"} ${celsius(s.temperature_k)}`,
+            around(rect, 0.3 * q), eye, kind === "hot" ? "#ffb3ad" : "#b3d4ff"]);
         }
       }
     }
@@ -326,15 +389,22 @@
             ctx.lineWidth = w / 1500;
             ctx.beginPath();
             ctx.arc(cx, cy, w / 350, 0, 2 * Math.PI);
-            cover(cx - w / 350, cy - w / 350, cx + w / 350, cy + w / 350);
+            const rect = [cx - w / 350, cy - w / 350, cx + w / 350, cy + w / 350];
+            cover(...rect);
+            drawn.marks.push(rect);
             ctx.fill();
             ctx.stroke();
           }
         }
-        // the figures beside the box: max above its top left corner, min below its bottom
-        const q = w / 100;
-        label(ctx, `max ${celsius(a.max.temperature_k)}`, x0 - 1.2 * q, y0, b.eye, w, "#ffb3ad");
-        label(ctx, `min ${celsius(a.min.temperature_k)}`, x0 - 1.2 * q, y1 + 2.9 * q, b.eye, w, "#b3d4ff");
+        // the figures beside the box: max above it (else beside its top, or in it), min below
+        // it (else beside its bottom, or in it)
+        const g = 0.3 * q;
+        labels.push([`max ${celsius(a.max.temperature_k)}`, (tw, th) => [
+          [x0, y0 - g - th], [x1 - tw, y0 - g - th], [x0 - g - tw, y0], [x1 + g, y0], [x0 + g, y0 + g],
+        ], b.eye, "#ffb3ad"]);
+        labels.push([`min ${celsius(a.min.temperature_k)}`, (tw, th) => [
+          [x0, y1 + g], [x1 - tw, y1 + g], [x0 - g - tw, y1 - th], [x1 + g, y1 - th], [x0 + g, y1 - g - th],
+        ], b.eye, "#b3d4ff"]);
       }
     }
     const s = state.spot, r = state.spotReading;
@@ -342,8 +412,9 @@
       const spots = r ? places(r) : [[s.eye, s.x, s.y]];
       for (const [eye, x, y] of spots) {
         const [cx, cy] = at(eye, x, y, w, h);
-        crosshair(ctx, cx, cy, w);
-        if (r) label(ctx, `${celsius(r.temperature_k)}  ${metres(r)}`, cx, cy, eye, w);
+        const rect = crosshair(ctx, cx, cy, w);
+        drawn.marks.push(rect);
+        if (r) labels.push([`${celsius(r.temperature_k)}  ${metres(r)}`, around(rect, 0.2 * q), eye]);
       }
     }
     if (withXr && state.xr) {
@@ -352,10 +423,18 @@
         const p = xr.px[eye];
         if (!p) continue;
         const [cx, cy] = at(eye, p[0], p[1], w, h);
-        crosshair(ctx, cx, cy, w);
-        if (xrR) label(ctx, `${celsius(xrR.temperature_k)}  ${metres(xrR)}`, cx, cy, eye, w);
+        const rect = crosshair(ctx, cx, cy, w);
+        drawn.marks.push(rect);
+        if (xrR) {
+          labels.push([`${celsius(xrR.temperature_k)}  ${metres(xrR)}`, around(rect, 0.2 * q), eye]);
+        }
       }
     }
+    return labels.map(([text, where, eye, color]) => {
+      const rect = place(ctx, text, where, eye, w, h, drawn);
+      label(ctx, text, rect, drawn.font, color);
+      return { text, eye, rect };
+    });
   }
 
   // The overlay's size in device pixels: as shown (the picture's 2560 x 960 while hidden).
@@ -392,7 +471,9 @@
     }
     covered = [];
     try {
-      drawAll(g, overlay.width, overlay.height, false);
+      // labels of 11 CSS px at least: legible in a small window
+      const minFont = 11 * (window.devicePixelRatio || 1);
+      state.labels = drawAll(g, overlay.width, overlay.height, false, minFont);
     } finally {
       drawnRects = covered;
       covered = null;
@@ -420,10 +501,12 @@
   // -- WebXR: the gaze or a controller's ray --------------------------------------------------
 
   // The colour pixel [x, y] (float) that direction `dir` ([x, y, z] in a view's eye space:
-  // x right, y up, -z ahead) points at in that eye's picture, which viewer.js draws over
-  // the whole view (a picture at infinity: only the direction matters); null outside it
-  // or behind. `proj`: the view's 4 x 4 projection matrix, column-major (XRView's).
-  function xrDirToPixel(proj, dir, colorW, colorH) {
+  // x right, y up, -z ahead) points at in that eye's picture, which viewer.js draws across
+  // the view (a picture at infinity: only the direction matters), its colour scale's strip
+  // under it, `below` picture heights high (0: none), filling the view's bottom; null off
+  // the picture (on the scale) or behind. `proj`: the view's 4 x 4 projection matrix,
+  // column-major (XRView's).
+  function xrDirToPixel(proj, dir, colorW, colorH, below = 0) {
     const [x, y, z] = dir;
     const cx = proj[0] * x + proj[4] * y + proj[8] * z;
     const cy = proj[1] * x + proj[5] * y + proj[9] * z;
@@ -431,7 +514,9 @@
     if (!(cw > 0)) return null;
     const nx = cx / cw, ny = cy / cw;
     if (nx < -1 || nx > 1 || ny < -1 || ny > 1) return null;
-    return [(nx + 1) / 2 * colorW - 0.5, (1 - ny) / 2 * colorH - 0.5];
+    const py = (1 - ny) / 2 * colorH * (1 + below) - 0.5;
+    if (py > colorH - 0.5) return null;
+    return [(nx + 1) / 2 * colorW - 0.5, py];
   }
 
   // Vector `v` turned by unit quaternion `q` ({x, y, z, w}, DOMPointReadOnly).
@@ -443,11 +528,12 @@
   }
   const conj = (q) => ({ x: -q.x, y: -q.y, z: -q.z, w: q.w });
 
-  // Per XR frame (viewer.js): where the pointer is in each eye's picture. A tracked
-  // controller's ray when there is one, else the gaze (the viewer's forward direction).
+  // Per XR frame (viewer.js): where the pointer is in each eye's picture (`below`: the
+  // scale's strip under it, xrDirToPixel). A tracked controller's ray when there is one,
+  // else the gaze (the viewer's forward direction).
   const sessions = new WeakSet();  // sessions whose end clears the XR pointer
 
-  function xrFrame(frame, pose, space) {
+  function xrFrame(frame, pose, space, below = 0) {
     const session = frame.session;
     if (session && !sessions.has(session)) {
       sessions.add(session);
@@ -464,7 +550,7 @@
     for (const v of pose.views) {
       const eye = v.eye === "right" ? "right" : "left";
       px[eye] = xrDirToPixel(v.projectionMatrix, rotate(conj(v.transform.orientation), dir),
-        state.colorW, state.colorH);
+        state.colorW, state.colorH, below);
     }
     state.xr = { mode, px };
     return state.xr;

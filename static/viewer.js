@@ -1,6 +1,7 @@
-// The operator's stereo viewer: fused side-by-side frames, a colour scale in each eye (the
-// metadata's palette and span), an overlay of frame rates, data rate, latency, display mode
-// and the sensors that are not ok (the metadata's `health`), full screen, and WebXR.
+// The operator's stereo viewer: fused side-by-side frames, a colour scale under each eye (the
+// metadata's palette and span; beside the picture, never over it), an overlay of frame
+// rates, data rate, latency, display mode and the sensors that are not ok (the metadata's
+// `health`), full screen, and WebXR.
 //
 // Two streams, picked with the "Stream" select (stored in localStorage; `?stream=jpeg|auto|
 // 8|4|2|1` in the URL overrides it for the page; the console's default preset,
@@ -21,7 +22,7 @@
 const canvas = document.getElementById("view");
 const ctx = canvas.getContext("2d");
 const overlay = document.getElementById("overlay");
-const frameBox = document.getElementById("frame");
+const pairBox = document.getElementById("pair");  // the picture and the scales' row under it
 const scaleEls = [...document.querySelectorAll(".scale")];
 const streamSelect = document.getElementById("stream");
 const stats = {
@@ -119,7 +120,7 @@ function connectJpeg() {
     if (conn.stopped) { bitmap.close(); return; }
     if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
       canvas.width = bitmap.width; canvas.height = bitmap.height;
-      frameBox.style.setProperty("--ar", String(bitmap.width / bitmap.height));
+      pairBox.style.setProperty("--ar", String(bitmap.width / bitmap.height));
     }
     ctx.drawImage(bitmap, 0, 0);
     ws.send("ack");  // flow control: the server sends the newest frame after this
@@ -296,26 +297,62 @@ function scaleOf(m) {
   };
 }
 
-// The palette as a 1 x 256 image, hot end at the top.
+// The palette as a 256 x 1 image, cold end at the left.
 function rampCanvas(hex) {
   const c = document.createElement("canvas");
-  c.width = 1; c.height = 256;
+  c.width = 256; c.height = 1;
   const g = c.getContext("2d");
-  const img = g.createImageData(1, 256);
+  const img = g.createImageData(256, 1);
   for (let i = 0; i < 256; i += 1) {
-    const row = 255 - i, at = i * 6;
-    for (let ch = 0; ch < 3; ch += 1) img.data[row * 4 + ch] = parseInt(hex.substr(at + 2 * ch, 2), 16);
-    img.data[row * 4 + 3] = 255;
+    const at = i * 6;
+    for (let ch = 0; ch < 3; ch += 1) img.data[i * 4 + ch] = parseInt(hex.substr(at + 2 * ch, 2), 16);
+    img.data[i * 4 + 3] = 255;
   }
   g.putImageData(img, 0, 0);
   return c;
 }
+
+// Which ticks to label on a ramp `length` long (px): both ends, and each other tick whose
+// label (`widths[i]` px wide, centred on its place) keeps `gap` px from the ones kept; the
+// others would collide in a small window.
+function keptTicks(ticks, widths, length, gap) {
+  const span = (i) => {
+    const x = ticks[i].frac * length;
+    return [x - widths[i] / 2 - gap / 2, x + widths[i] / 2 + gap / 2];
+  };
+  const kept = ticks.map((t) => !!t.end);
+  const taken = ticks.map((t, i) => i).filter((i) => kept[i]).map(span);
+  const inner = ticks.map((t, i) => i).filter((i) => !kept[i]).sort((a, b) => ticks[a].frac - ticks[b].frac);
+  for (const i of inner) {
+    const [a, b] = span(i);
+    if (taken.every(([c, d]) => b <= c || d <= a)) { kept[i] = true; taken.push([a, b]); }
+  }
+  return kept;
+}
+
+// Hide the tick labels that would collide at the scales' size now (called again on resize).
+function thinTicks() {
+  const model = stats.scale;
+  if (!model) return;
+  for (const el of scaleEls) {
+    const spans = [...el.querySelectorAll(".tick")];
+    const ramp = el.querySelector(".ramp");
+    if (spans.length !== model.ticks.length || !ramp) continue;
+    for (const s of spans) s.classList.remove("crowded");
+    const widths = spans.map((s) => s.getBoundingClientRect().width);
+    const gap = parseFloat(getComputedStyle(el).fontSize) * 0.6;
+    const kept = keptTicks(model.ticks, widths, ramp.getBoundingClientRect().width, gap);
+    spans.forEach((s, i) => s.classList.toggle("crowded", !kept[i]));
+  }
+}
+new ResizeObserver(thinTicks).observe(document.getElementById("scales"));
 
 function showScale(model) {
   const key = model ? model.key : null;
   if (stats.scale && key === stats.scale.key) return;
   if (!model) {
     for (const el of scaleEls) el.hidden = true;
+    pairBox.classList.add("no-scale");  // the picture takes the scales' row
     stats.scale = null;
     return;
   }
@@ -327,65 +364,84 @@ function showScale(model) {
       ramp.className = "ramp";
       const ticks = document.createElement("div");
       ticks.className = "ticks";
-      const top = document.createElement("div");
-      top.className = "caption top";
-      top.textContent = "°C";
-      const bottom = document.createElement("div");
-      bottom.className = "caption bottom";
-      el.append(top, ramp, ticks, bottom);
+      const unit = document.createElement("div");
+      unit.className = "caption unit";
+      unit.textContent = "°C";
+      const mode = document.createElement("div");
+      mode.className = "caption mode";
+      el.append(unit, ramp, ticks, mode);
     }
     const ticks = el.querySelector(".ticks");
     ticks.replaceChildren(...model.ticks.map((t) => {
       const s = document.createElement("span");
       s.className = t.end ? `tick end ${t.end}` : "tick";
-      s.style.top = `${(100 * (1 - t.frac)).toFixed(3)}%`;
+      s.style.left = `${(100 * t.frac).toFixed(3)}%`;
       s.textContent = t.label;
       return s;
     }));
-    el.querySelector(".caption.bottom").textContent = model.auto ? "auto" : "manual";
+    el.querySelector(".caption.mode").textContent = model.auto ? "auto" : "manual";
     el.dataset.palette = model.palette;
     el.setAttribute("aria-label",
       `colour scale ${model.palette}, ${model.ticks[1].label} to ${model.ticks[0].label} °C`);
     el.hidden = false;
   }
+  pairBox.classList.remove("no-scale");
   stats.scale = model;
+  thinTicks();
 }
 
-// The same scale drawn into a 2D context (the WebXR texture), at the place and size the
-// page's CSS gives it in each eye: `w` is the picture's width (cqw = w / 100), `h` its height.
+// The scales' strip in the WebXR texture, under the picture (`w` its width): its height (px).
+// Its font is 1.2 % of the picture's width, 31 px of 2560: with an eye's half (1280 px)
+// over about 100 degrees of a headset's view, some 2.4 degrees, digits about 1.7 degrees
+// high: legible (the page's font at its smallest, 11 px at arm's length, is about 0.4).
+const xrFont = (w) => 1.2 * w / 100;
+const xrStrip = (w) => Math.round(3.3 * xrFont(w));
+
+// The same scales drawn into a 2D context (the WebXR texture) as the page shows them: under
+// each eye's half of the picture (`w` x `h`), in the strip of xrStrip(w) px below it. The
+// ramps' ends, [x0, x1] (px).
 function drawScales(g, model, w, h, ramp) {
-  const q = w / 100;
-  for (const eyeRight of [w / 2, w]) {
-    const right = eyeRight - 1.5 * q, width = 5.8 * q, top = 0.14 * h, height = 0.72 * h;
-    const left = right - width;
-    g.fillStyle = "rgba(0,0,0,0.62)";
-    g.beginPath();
-    g.roundRect(left, top, width, height, 0.5 * q);
-    g.fill();
-    const r0 = top + 2.4 * q, r1 = top + height - 2.4 * q;
+  const f = xrFont(w), font = (weight) => `${weight} ${f}px system-ui, sans-serif`;
+  g.fillStyle = "#000";
+  g.fillRect(0, h, w, xrStrip(w));
+  const mode = model.auto ? "auto" : "manual";
+  g.font = font(600);
+  const widths = model.ticks.map((t) => g.measureText(t.label).width);
+  const unitW = Math.max(3 * f, g.measureText("°C").width);
+  g.font = font(400);
+  const modeW = Math.max(3 * f, g.measureText(mode).width);
+  const ends = [];
+  for (const left of [0, w / 2]) {
+    // the captions 0.4 f from the eye's edges and 0.6 f from the ramp (the page's padding and gap)
+    const x0 = left + unitW + 1.0 * f, x1 = left + w / 2 - modeW - 1.0 * f, top = h + 0.4 * f;
+    ends.push([x0, x1]);
     g.imageSmoothingEnabled = true;
-    g.drawImage(ramp, right - 1.8 * q, r0, q, r1 - r0);
+    g.drawImage(ramp, x0, top, x1 - x0, 0.9 * f);
     g.strokeStyle = "rgba(255,255,255,0.85)";
-    g.lineWidth = 0.1 * q;
-    g.strokeRect(right - 1.8 * q, r0, q, r1 - r0);
+    g.lineWidth = Math.max(1, 0.08 * f);
+    g.strokeRect(x0, top, x1 - x0, 0.9 * f);
     g.fillStyle = "#fff";
-    g.textAlign = "center";
     g.textBaseline = "middle";
-    g.font = `600 ${0.95 * q}px system-ui, sans-serif`;
-    g.fillText("°C", left + width / 2, top + 0.95 * q);
-    g.font = `400 ${0.8 * q}px system-ui, sans-serif`;
-    g.fillText(model.auto ? "auto" : "manual", left + width / 2, top + height - 0.95 * q);
     g.textAlign = "right";
-    const x = right - 1.8 * q;
-    for (const t of model.ticks) {
-      const y = r1 - t.frac * (r1 - r0);
-      g.fillRect(x - 0.5 * q, y - 0.05 * q, 0.5 * q, 0.1 * q);
-      g.font = `${t.end ? 800 : 600} ${(t.end ? 1.05 : 0.95) * q}px system-ui, sans-serif`;
-      g.fillText(t.label, x - 0.7 * q, y);
-    }
+    g.font = font(600);
+    g.fillText("°C", x0 - 0.6 * f, top + 0.45 * f);
+    g.textAlign = "left";
+    g.font = font(400);
+    g.fillText(mode, x1 + 0.6 * f, top + 0.45 * f);
+    g.textAlign = "center";
+    const kept = keptTicks(model.ticks, widths, x1 - x0, 0.6 * f);
+    model.ticks.forEach((t, i) => {
+      if (!kept[i]) return;
+      const x = x0 + t.frac * (x1 - x0), y = h + 1.3 * f;
+      g.fillRect(x - g.lineWidth / 2, y, g.lineWidth, 0.4 * f);
+      g.font = font(t.end ? 800 : 600);
+      g.fillText(t.label, x, y + 1.0 * f);
+    });
   }
+  return ends;
 }
-window.trifuseDrawScales = drawScales;  // for a check of the WebXR rendering on a 2D canvas
+// for a check of the WebXR rendering on a 2D canvas
+window.trifuseXrScales = { drawScales, rampCanvas, xrStrip, xrFont };
 
 // -- the overlay -----------------------------------------------------------------------------
 
@@ -425,15 +481,27 @@ function showOverlay() {
   const scale = sc ? `${sc.palette}, ${sc.auto ? "auto" : "manual"} span, ${sc.agc} AGC` : "no colour scale";
   // the legend of the marking: what the muted and the uncoloured pixels mean
   const legend = sc ? `\nplain colour: no thermal view${sc.marking ? "; muted colours: no TOF depth (registration approximate)" : ""}` : "";
+  const balance = sc && m.balance ? `\n${balanceLine(m.balance)}` : "";
   // sensors that are not ok (silent, no frame yet, failing), one line each, from the frame's metadata
   const health = Object.values(m.health || {}).map((line) => `\n⚠ ${line}`).join("");
   stats.mbps = receivedMbps(now);
   overlay.textContent =
     `${stats.codec || "–"} (${stats.mode}): received ${stats.fps.toFixed(1)} fps, ` +
     `${stats.mbps.toFixed(2)} Mbit/s, latency ${median(stats.latencyMs).toFixed(0)} ms\n` +
-    videoLine() + `console: ${ratesLine(now)}\nrates over the last ${windowS()} s; mode ${m.mode || "–"}, ${scale}` + legend + health;
+    videoLine() + `console: ${ratesLine(now)}\nrates over the last ${windowS()} s; mode ${m.mode || "–"}, ${scale}` + legend + balance + health;
 }
 setInterval(showOverlay, 500);
+
+// The thermal balance between the two imagers the picture shows (the metadata's `balance`).
+function balanceLine(b) {
+  const k = (v) => `${v >= 0 ? "+" : "−"}${Math.abs(v).toFixed(2)} K`;
+  const fix = `left − right corrected by ${k(b.correction_k)}`;
+  if (b.mode === "auto") return `thermal balance: automatic, ${fix}`;
+  if (b.mode === "rig") return `thermal balance: the rig's, ${fix}`;
+  if (b.mode === "applied") return `thermal balance: applied once, ${fix}`;
+  const d = typeof b.difference_k === "number" ? ` (left − right ${k(b.difference_k)} measured)` : "";
+  return `thermal balance: off, the eyes may differ in colour${d}`;
+}
 
 document.getElementById("fullscreen").onclick = () => {
   const el = document.getElementById("stage");  // the picture with its colour scales
@@ -441,7 +509,8 @@ document.getElementById("fullscreen").onclick = () => {
 };
 
 // WebXR: draw the left half to the left eye and the right half to the right eye, each with
-// its colour scale (composed on a 2D canvas as on the page).
+// its colour scale under it (composed on a 2D canvas as on the page: each eye's view shows
+// its half of the picture above its scale).
 async function setupVr() {
   const button = document.getElementById("vr");
   if (!navigator.xr || !(await navigator.xr.isSessionSupported("immersive-vr").catch(() => false))) {
@@ -464,14 +533,17 @@ async function setupVr() {
     const composite = document.createElement("canvas");
     const g = composite.getContext("2d");
     let shown = null, ramp = null, rampRgb = null;
+    let below = 0;  // the scales' strip under the picture in the texture, in picture heights
     const onFrame = (t, frame) => {
       session.requestAnimationFrame(onFrame);
       const pose = frame.getViewerPose(space);
       if (!pose || !stats.frames) return;
-      if (window.trifuseSpot) window.trifuseSpot.xrFrame(frame, pose, space);  // gaze/controller (viewer-spot.js)
+      if (window.trifuseSpot) window.trifuseSpot.xrFrame(frame, pose, space, below);  // gaze/controller (viewer-spot.js)
       if (shown !== stats.frames) {  // compose each new picture once (JPEG or video: the page's canvas)
         shown = stats.frames;
-        composite.width = canvas.width; composite.height = canvas.height;
+        const strip = stats.scale ? xrStrip(canvas.width) : 0;
+        composite.width = canvas.width; composite.height = canvas.height + strip;
+        below = strip / canvas.height;
         g.drawImage(canvas, 0, 0);
         if (stats.scale) {
           if (rampRgb !== stats.scale.rgb) { ramp = rampCanvas(stats.scale.rgb); rampRgb = stats.scale.rgb; }

@@ -64,11 +64,16 @@ def test_console_balances_the_thermal_imagers(console, browser) -> None:
         " && Math.abs(window.trifuseStats.meta.balance.correction_k + 1.5) < 0.1"
     )
     assert viewer.evaluate("() => window.trifuseStats.meta.balance.mode") == "auto"
-    viewer.close()
+    overlay = "() => document.getElementById('overlay').textContent"
+    viewer.wait_for_function(f"() => ({overlay})().includes('thermal balance: automatic')")
+    assert re.search(r"left − right corrected by −1\.[45]\d K", viewer.evaluate(overlay))
     page.get_by_role("button", name="Reset balance").click()
     page.wait_for_function(
         "() => /Left - right: \\*?\\*?[+-]1\\.\\d\\d K/.test(document.body.innerText)"
     )
+    viewer.wait_for_function(f"() => ({overlay})().includes('thermal balance: off')")
+    viewer.wait_for_function(f"() => /left − right \\+1\\.[45]\\d K measured/.test(({overlay})())")
+    viewer.close()
     text = page.evaluate("() => document.body.innerText")
     line = next(t for t in text.splitlines() if t.startswith("Left - right"))
     # The simulated imagers are +0.75 K and -0.75 K off. The median over shared points
@@ -148,6 +153,9 @@ SCALE_SHOT = Path("/tmp/shots/viewer-scale.png")
 _SCALES = """() => {
   const box = (e) => { const r = e.getBoundingClientRect();
                        return {x: r.x, y: r.y, w: r.width, h: r.height}; };
+  const inked = (e) => { const n = document.createRange(); n.selectNodeContents(e);
+                         const r = n.getBoundingClientRect();
+                         return {x: r.x, y: r.y, w: r.width, h: r.height}; };  // its text
   const scales = [...document.querySelectorAll('.scale')].map((el) => {
     const ramp = el.querySelector('canvas.ramp');
     const px = (x) => ramp
@@ -155,12 +163,14 @@ _SCALES = """() => {
     const text = (sel) => { const e = el.querySelector(sel); return e ? e.textContent : null; };
     const shown = [...el.querySelectorAll('.tick')]
       .filter((t) => getComputedStyle(t).visibility === 'visible')
-      .map((t) => ({text: t.textContent, ...box(t)}));
+      .map((t) => ({text: t.textContent, ...inked(t)}));
     return {eye: el.dataset.eye, hidden: el.hidden, ...box(el),
             palette: el.dataset.palette || null, high: text('.tick.end.high'),
             low: text('.tick.end.low'), caption: text('.caption.mode'),
             ticks: [...el.querySelectorAll('.tick')].map((t) => t.textContent), shown,
-            parts: [...el.children].map(box), hot: px(255), cold: px(0)};
+            parts: [...el.children].map((e) => e.tagName === 'DIV' && !e.children.length
+                                                   ? inked(e) : box(e)),
+            hot: px(255), cold: px(0)};
   });
   return {meta: window.trifuseStats.meta, scales, canvas: box(document.getElementById('view')),
           readout: box(document.getElementById('spot-readout')),
@@ -192,6 +202,9 @@ def _check_scales_beside_the_picture(s: dict, where: str) -> None:
         assert sc["y"] + sc["h"] <= win["h"] + 0.5, (where, sc, win)
         unit, ramp, _, mode = sc["parts"]  # the unit, the ramp, the ticks' row, auto/manual
         assert _apart(unit, ramp) and _apart(ramp, mode) and unit["w"] > 0 < mode["w"], (where, sc)
+        for part in (unit, ramp, mode):  # their text too, "manual" is the widest
+            inside = sc["x"] - 0.5 <= part["x"] and part["x"] + part["w"] <= sc["x"] + sc["w"] + 0.5
+            assert inside, (where, part, sc)
         shown = sc["shown"]
         assert {t["text"] for t in shown} >= {sc["high"], sc["low"]}, (where, shown)
         for i, a in enumerate(shown):
@@ -249,6 +262,7 @@ def test_viewer_colour_scale_shows_the_palette_and_span_in_each_eye(console, bro
             " && window.trifuseStats.scale.agc === 'linear'",
         )
         s = page.evaluate(_SCALES)
+        _check_scales_beside_the_picture(s, "1280x720, manual")
         for sc in s["scales"]:
             assert (sc["high"], sc["low"], sc["caption"]) == ("40.0", "20.0", "manual"), sc
             assert sorted(sc["ticks"]) == ["20.0", "25", "30", "35", "40.0"]  # every 5 °C
@@ -291,7 +305,7 @@ _XR_TEXTURE = """() => {
   const g = c.getContext('2d');
   g.drawImage(v, 0, 0);
   const before = g.getImageData(0, 0, v.width, v.height).data;
-  x.drawScales(g, sc, v.width, v.height, x.rampCanvas(sc.rgb));
+  const ends = x.drawScales(g, sc, v.width, v.height, x.rampCanvas(sc.rgb));
   const after = g.getImageData(0, 0, v.width, v.height).data;
   let changed = 0;
   for (let i = 0; i < before.length; i += 1) changed += before[i] !== after[i];
@@ -299,7 +313,7 @@ _XR_TEXTURE = """() => {
   const s = g.getImageData(0, v.height, v.width, strip).data;
   let bright = 0;
   for (let i = 0; i < s.length; i += 4) bright += s[i] + s[i + 1] + s[i + 2] > 600;
-  return {strip, h: v.height, font: x.xrFont(v.width), changed, bright,
+  return {strip, h: v.height, ends, changed, bright,
           ramp: row(v.height + Math.round(strip * 0.25))};
 }"""
 
@@ -344,8 +358,9 @@ def test_viewer_colour_scale_stays_beside_the_picture(console, browser) -> None:
         assert xr["bright"] > 2000  # the captions, ticks and the ramp's hot end, in white/yellow
         row = np.array(xr["ramp"]).reshape(-1, 4)[:, :3].astype(int)
         table = palette(page.evaluate("() => window.trifuseStats.scale.palette")).astype(int)
-        for left in (0, 1280):  # each eye's ramp: the palette from cold (left) to hot (right)
-            x0, x1 = left + 3.6 * xr["font"], left + 1280 - 3.6 * xr["font"]
+        for left, (x0, x1) in zip((0, 1280), xr["ends"], strict=True):
+            # each eye's ramp under its half: the palette from cold (left) to hot (right)
+            assert left + 60 < x0 < left + 200 and left + 1080 < x1 < left + 1220, (x0, x1)
             for frac in (0.01, 0.25, 0.5, 0.75, 0.99):
                 got = row[round(x0 + frac * (x1 - x0))]
                 assert np.abs(got - table[round(frac * 255)]).sum() < 40, (left, frac, got)

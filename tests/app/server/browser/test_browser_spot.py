@@ -7,8 +7,8 @@ shows under them.
 
 The console replays a recording of one moment of the room (seed 0, t = 18 s, live quality;
 tests/fusion/test_spot.py's picture), so the picture stands still and its ground truth is known:
-a click lands where the truth says the person is. A screenshot goes to
-/tmp/shots/viewer-spot.png (docs/screenshots/spot-meter.png is a copy a person looked at).
+a click lands where the truth says the person is. Screenshots go to /tmp/shots/viewer-spot.png
+and viewer-spot-labels.png (docs/screenshots/spot-meter.png is a copy a person looked at).
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ pytestmark = [needs_chromium, pytest.mark.slow]
 
 T_S = 18.0
 SHOT = Path("/tmp/shots/viewer-spot.png")
+LABELS_SHOT = Path("/tmp/shots/viewer-spot-labels.png")
 DURATION_S = 1.0
 READING = re.compile(r"spot (-?\d+\.\d) °C, (\d+\.\d\d) m \(left (\d+), (\d+)\)")
 
@@ -115,7 +116,7 @@ def _overlay_rgba(page: Any, x: float, y: float) -> list[int]:
 
 
 def test_click_box_markers_and_clear(console, browser, room) -> None:
-    page = browser.new_page(viewport={"width": 1400, "height": 640})
+    page = browser.new_page(viewport={"width": 1400, "height": 700})
     errors: list[str] = []
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
@@ -192,6 +193,70 @@ def test_click_box_markers_and_clear(console, browser, room) -> None:
     page.close()
 
 
+_LABELS = """() => {
+  const box = (e) => { const r = e.getBoundingClientRect(); return [r.x, r.y, r.right, r.bottom]; };
+  const o = document.getElementById('spot-overlay');
+  return {labels: window.trifuseSpot.state.labels, w: o.width, h: o.height, overlay: box(o),
+          scales: [...document.querySelectorAll('.scale')].map(box)};
+}"""
+
+
+def _overlap(a: list[float], b: list[float]) -> bool:
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+
+
+def _labels_apart(page: Any, want: int) -> list[dict[str, Any]]:
+    """The overlay's labels (at least ``want`` of them): each inside its eye's half of the
+    picture, none over another, none over a colour scale (drawn beside the picture)."""
+    page.wait_for_function(f"() => window.trifuseSpot.state.labels.length >= {want}")
+    got = page.evaluate(_LABELS)
+    w, h, ov, labels = got["w"], got["h"], got["overlay"], got["labels"]
+    for i, a in enumerate(labels):
+        x0, y0, x1, y1 = a["rect"]
+        lo = w / 2 if a["eye"] == "right" else 0
+        assert lo <= x0 < x1 <= lo + w / 2 and 0 <= y0 < y1 <= h, a
+        for b in labels[i + 1 :]:
+            assert not _overlap(a["rect"], b["rect"]), (a, b)
+        sx, sy = (ov[2] - ov[0]) / w, (ov[3] - ov[1]) / h  # canvas px to the page's
+        shown = [ov[0] + x0 * sx, ov[1] + y0 * sy, ov[0] + x1 * sx, ov[1] + y1 * sy]
+        for sc in got["scales"]:
+            assert not _overlap(shown, sc), (a, sc)
+    return labels
+
+
+def test_labels_move_apart_near_the_hot_spot(console, browser) -> None:
+    """A spot just beside the hot spot and a box just beside the cold spot: their labels would
+    take the same place as the hot and cold spots' (above right of the marker); the later
+    ones move (beside or below their marker), none covers another or a colour scale."""
+    console.post("/api/source/resume")  # frames again (another test may have paused them)
+    page = browser.new_page(viewport={"width": 1400, "height": 700})
+    page.goto(console.signin("/"))
+    page.wait_for_function(
+        "() => window.trifuseStats.frames > 3 && window.trifuseStats.meta"
+        " && window.trifuseStats.meta.spots && window.trifuseSpot"
+    )
+    _hold_a_whole_picture(console, page)
+    spots = page.evaluate("() => window.trifuseStats.meta.spots")
+    hot, cold = spots["hot"]["left"], spots["cold"]["left"]
+    page.evaluate(
+        "([x, y]) => window.trifuseSpot.setSpot('left', x, y)", [hot["x"] + 12, hot["y"] + 4]
+    )
+    page.wait_for_function("() => window.trifuseSpot.state.spotReading !== null")
+    labels = _labels_apart(page, 6)  # hot and cold in each eye, the spot in each eye
+    texts = [a["text"] for a in labels]
+    assert sum(t.startswith("▲") for t in texts) == 2 and sum(" m" in t for t in texts) == 2, texts
+    page.evaluate(
+        "([x, y]) => window.trifuseSpot.setBox('left', x - 40, y - 30, x + 40, y + 20)",
+        [cold["x"], cold["y"]],
+    )
+    page.wait_for_function("() => window.trifuseSpot.state.boxReading !== null")
+    labels = _labels_apart(page, 8)  # and the box's max and min
+    assert {a["text"].split()[0] for a in labels} >= {"max", "min", "▲", "▼"}, labels
+    LABELS_SHOT.parent.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(LABELS_SHOT))
+    page.close()
+
+
 def _perspective(fov_y_deg: float, aspect: float, shift_x: float = 0.0) -> list[float]:
     """A WebXR-style projection matrix (column-major, near 0.1, far 100), optionally with
     an off-centre frustum (``shift_x``: straight ahead lands at NDC x = -shift_x, as on a
@@ -225,6 +290,12 @@ def test_xr_gaze_and_controller_rays_map_to_pixels(console, browser) -> None:
     assert page.evaluate(to_px, [sym, d]) == pytest.approx([want_x, 479.5], abs=1e-6)
     assert page.evaluate(to_px, [sym, [0, 0, 1]]) is None  # behind
     assert page.evaluate(to_px, [sym, [0, 1, -0.1]]) is None  # above the picture
+    # the colour scale's strip under the picture (a tenth of its height): the middle of the
+    # view is lower in the picture, the view's bottom is on the scale
+    under = "([p, d]) => window.trifuseSpot.xrDirToPixel(p, d, 1280, 960, 0.1)"
+    assert page.evaluate(under, [sym, [0, 0, -1]]) == pytest.approx([639.5, 0.55 * 960 - 0.5])
+    low = float(np.tan(np.radians(44)))  # 1 degree above the view's bottom edge
+    assert page.evaluate(under, [sym, [0, -low, -1]]) is None
 
     # one XR frame with a fake session: the gaze, then a controller turned 10 degrees right
     fake = """([proj, ctrl]) => {
