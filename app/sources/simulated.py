@@ -108,8 +108,11 @@ class Scenario(Protocol):
     ``t_s``; optionally ``T_world_rig(t_s)`` (the head pose, used to share renderings
     between equal poses and returned by :meth:`SimulatedHeadSource.truth_at`),
     ``scene_key(t_s)`` (a hashable; times with equal keys share one rendering, overriding
-    the head pose, for scenes where something other than the head moves) and
-    ``pan_period_s`` (the default loop length).
+    the head pose, for scenes where something other than the head moves),
+    ``pan_period_s`` (the default loop length) and ``scenario_time(stamp_ns, start_ns)``
+    (the scenario time a frame stamped ``stamp_ns`` of a stream started at ``start_ns``
+    shows, for a scenario that paces itself: the calibration board waiting for a capture;
+    default ``(stamp_ns - start_ns) / 1e9``).
     """
 
     rig: Rig
@@ -237,6 +240,9 @@ class SimulatedHeadSource(FrameSource):
 
             scenario = InspectionScenario(seed=seed, live=live)
         self.scenario = scenario
+        self._scenario_clock: Callable[[int, int], float] | None = getattr(
+            scenario, "scenario_time", None
+        )
         self.rig: Rig = scenario.rig
         names = list(self.rig.names)
         if sensors is None:
@@ -505,6 +511,8 @@ class SimulatedHeadSource(FrameSource):
     # -- which pose a stamp shows -------------------------------------------------------
 
     def _scenario_t(self, stamp_ns: int) -> float:
+        if self._scenario_clock is not None:  # a scenario that paces itself
+            return self._scenario_clock(stamp_ns, self.start_ns)
         return (stamp_ns - self.start_ns) / 1e9
 
     def _sample_for(self, stamp_ns: int) -> int:

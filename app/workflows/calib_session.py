@@ -26,6 +26,10 @@ Auto-capture follows ROS ``camera_calibration``: a sighting of the board is take
 board is steady (:class:`~app.server.runtime.board_sighting.BoardSighting`) and, for at least
 one sensor that sees it, its (X, Y, size, skew) differ from every view of that sensor taken
 so far by more than :data:`~calib.coverage.NOVELTY_THRESHOLD` (L1 distance).
+:meth:`CalibrationSession.assess` says which, and why a sighting is not taken in words an
+operator can act on (:class:`CaptureVerdict`), the first that applies of: the board is not
+seen, the views' searches are still running, the pose is captured already (the nearest
+view, and how far its board pose is, from :attr:`ViewInfo.T_rig_board`), it is moving.
 """
 
 from __future__ import annotations
@@ -40,6 +44,8 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
+
+import numpy as np
 
 from trifuse.app.errors import describe_error
 from trifuse.app.sources.frames import FrameSet
@@ -64,6 +70,7 @@ from trifuse.app.workflows.range_run import (
     with_range_correction,
 )
 from trifuse.calib.board import POLARITY_KEYS, Board
+from trifuse.calib.board_pose import board_pose_single
 from trifuse.calib.coverage import NOVELTY_THRESHOLD, Coverage, coverage, pose_novelty, view_params
 from trifuse.calib.detect import Detection
 from trifuse.calib.errors import CalibrationError
@@ -72,6 +79,7 @@ from trifuse.calib.polarity import detect_board_configured
 from trifuse.calib.rig import Rig, rig_to_yaml
 from trifuse.calib.rig_calibration import CalibrationOptions
 from trifuse.calib.rig_result import CalibrationResult
+from trifuse.calib.transforms import pose_error
 from trifuse.calib.verdict import ZHANG_MIN_VIEWS
 
 CAPTURES = "captures"
@@ -101,6 +109,9 @@ class ViewInfo:
             missing while its search is still running.
         params: sensor -> (X, Y, size, skew) of the detection (calib.coverage).
         palettes: thermal sensor -> how its false-colour image was read back (not kelvin).
+        T_rig_board: (4, 4) the board's pose in the rig frame, metres, by the session's
+            rig from the finest sensor that found it (None: not found, or not searched
+            yet).
     """
 
     name: str
@@ -108,6 +119,7 @@ class ViewInfo:
     detections: dict[str, Detection] = field(default_factory=dict)
     params: dict[str, tuple[float, float, float, float]] = field(default_factory=dict)
     palettes: dict[str, PaletteFit] = field(default_factory=dict)
+    T_rig_board: np.ndarray | None = None
 
     @property
     def searched(self) -> bool:
@@ -141,6 +153,30 @@ class RigVersion:
     @property
     def label(self) -> str:
         return f"{self.name} ({self.saved[:16]})"
+
+
+VerdictKind = Literal["new pose", "not seen", "moving", "searching", "captured"]
+"""Why a sighting is taken (``new pose``) or not: the board is seen by no sensor, it is
+moving, the views' board searches are still running (novelty needs them), or the pose is
+captured already."""
+
+
+@dataclass(frozen=True)
+class CaptureVerdict:
+    """Whether auto-capture takes a sighting, and why (:meth:`CalibrationSession.assess`).
+
+    Attributes:
+        take: take it.
+        kind: the reason's kind (:data:`VerdictKind`).
+        reason: the reason for the operator, e.g. ``new pose for ccd_left, tof`` or
+            ``already captured: view 0007 is 3.1 cm / 2.0° away``.
+        nearest: the captured view nearest the sighting (``captured``), else None.
+    """
+
+    take: bool
+    kind: VerdictKind
+    reason: str
+    nearest: str | None = None
 
 
 JobState = Literal["idle", "running", "done", "failed"]
@@ -346,6 +382,7 @@ class CalibrationSession:
                 found[sensor] = det
                 if det.found:
                     params[sensor] = view_params(det.corners, self.board, s.image_size)
+            pose = self._board_pose(found)
         except (CaptureError, KeyError, OSError) as exc:  # deleted meanwhile, or unreadable
             with self._lock:
                 info = self._views.get(name)
@@ -357,7 +394,21 @@ class CalibrationSession:
             info = self._views.get(name)
             if info is not None:
                 info.detections, info.params, info.palettes = found, params, view.palettes
+                info.T_rig_board = pose
         self._changed()
+
+    def _board_pose(self, detections: dict[str, Detection]) -> np.ndarray | None:
+        """(4, 4) ``T_rig_board`` by the session's rig from the finest sensor (largest
+        focal length) whose corners give one, or None."""
+        found = [n for n, d in detections.items() if d.found and n in self.rig]
+        for name in sorted(found, key=lambda n: -self.rig[n].intrinsics.fx):
+            try:
+                T = board_pose_single(self.rig, name, detections[name].corners, self.board)
+            except ValueError:
+                continue
+            if T is not None:
+                return T
+        return None
 
     def delete(self, name: str) -> Path:
         """Move a view out of the capture into ``deleted/`` (kept, not destroyed)."""
@@ -408,15 +459,83 @@ class CalibrationSession:
 
     def worth_taking(self, detections: dict[str, Detection], steady: bool) -> str | None:
         """Why a sighting should be auto-captured (None: it should not)."""
-        if not steady:
-            return None
+        verdict = self.assess(detections, steady)
+        return verdict.reason if verdict.take else None
+
+    def assess(
+        self,
+        detections: dict[str, Detection],
+        steady: bool,
+        motion: str | None = None,
+        T_rig_board: np.ndarray | None = None,
+    ) -> CaptureVerdict:
+        """Whether auto-capture takes a sighting, and why (module docstring).
+
+        Args:
+            detections: sensor -> the sighting's detection.
+            steady: the board held still (the board watch's judgement, in frame time).
+            motion: how it moved, in words, for the reason when it is not steady.
+            T_rig_board: (4, 4) the sighting's board pose in the rig frame, metres: the
+                distance to the nearest view's pose is named when the pose is captured
+                already.
+        """
+        if not any(d.found for s, d in detections.items() if s in self.rig):
+            return CaptureVerdict(False, "not seen", "the board is not seen")
         with self._lock:
-            if any(not v.searched for v in self._views.values()):
-                return None  # novelty needs every view's detections
-        novel = {s: n for s, n in self.novelty(detections).items() if n > NOVELTY_THRESHOLD}
-        if not novel:
-            return None
-        return "new pose for " + ", ".join(sorted(novel))
+            pending = sorted(n for n, v in self._views.items() if not v.searched)
+        if pending:  # novelty needs every view's detections
+            return CaptureVerdict(
+                False,
+                "searching",
+                f"waiting for the board search of view {', '.join(pending)}",
+            )
+        novelty = self.novelty(detections)
+        novel = {s: n for s, n in novelty.items() if n > NOVELTY_THRESHOLD}
+        if not novel:  # before "moving": holding still here would not help
+            return self._captured_already(detections, novelty, T_rig_board)
+        if not steady:
+            return CaptureVerdict(False, "moving", motion or "moving")
+        return CaptureVerdict(True, "new pose", "new pose for " + ", ".join(sorted(novel)))
+
+    def _captured_already(
+        self,
+        detections: dict[str, Detection],
+        novelty: dict[str, float],
+        T_rig_board: np.ndarray | None,
+    ) -> CaptureVerdict:
+        """The ``captured`` verdict: the view nearest the sighting (smallest X/Y/size/skew
+        distance, the novelty's measure, in any sensor that sees the board) and how far
+        its board pose is."""
+        best: tuple[float, str] | None = None
+        with self._lock:
+            views = list(self._views.values())
+        for s, det in detections.items():
+            if not det.found or s not in self.rig:
+                continue
+            p = np.asarray(view_params(det.corners, self.board, self.rig[s].image_size))
+            for v in views:
+                if s in v.params:
+                    d = float(np.sum(np.abs(np.asarray(v.params[s]) - p)))
+                    if best is None or d < best[0]:
+                        best = (d, v.name)
+        worst = max(novelty.values(), default=0.0)
+        if best is None:  # pragma: no cover - not novel means some view is near
+            return CaptureVerdict(False, "captured", "already captured")
+        name = best[1]
+        where = f"view {name}"
+        T_view = self.view(name).T_rig_board
+        if T_rig_board is not None and T_view is not None:
+            rot_deg, trans_m = pose_error(np.asarray(T_rig_board, float), T_view)
+            where += f" is {100 * trans_m:.1f} cm / {rot_deg:.1f}° away"
+        else:
+            where += " looks alike"
+        return CaptureVerdict(
+            False,
+            "captured",
+            f"already captured: {where} (every sensor has a view within {worst:.2f} in X, "
+            f"Y, size and skew; a new one needs > {NOVELTY_THRESHOLD:g} in one sensor)",
+            name,
+        )
 
     # -- calibration ----------------------------------------------------------------------
 

@@ -1,7 +1,13 @@
 """The console's Calibration panel (Viser GUI) over a :class:`CalibrationSession`.
 
 Capture (the newest frames, written at once) and auto-capture (steady, novel board
-sightings, as ROS ``camera_calibration`` does); coverage bars per sensor; the views with
+sightings, as ROS ``camera_calibration`` does), with the reason a pose is not taken shown
+live under the checkbox (moving and how much in frame time, captured already and how near,
+seen by which sensors, waiting for frames or for the views' searches:
+:meth:`CalibrationSession.assess`); on the simulated head, auto-capture asks the board to
+wait at each pose until it is captured (the scenario's ``capture_hold``, reached through the
+source without importing it: a slow machine still gets every pose); coverage bars per
+sensor; the views with
 the board found or not per sensor; delete a view; run the calibration with progress; then
 per-sensor RMS, the per-view error chart with "drop this view and calibrate again", the
 1-sigma table, the board polarity found per sensor (which squares read dark/cold or
@@ -23,7 +29,12 @@ from trifuse.app.server.runtime.board_sighting import BoardSighting
 from trifuse.app.server.runtime.context import ConsoleContext
 from trifuse.app.server.runtime.demand import Hold
 from trifuse.app.server.runtime.periodic import Periodic
-from trifuse.app.workflows.calib_session import CalibrationSession, SessionError, ViewInfo
+from trifuse.app.workflows.calib_session import (
+    CalibrationSession,
+    CaptureVerdict,
+    SessionError,
+    ViewInfo,
+)
 from trifuse.app.workflows.report_format import (
     POLARITY_PANEL_HEAD,
     TRUTH_HEAD,
@@ -39,6 +50,7 @@ from trifuse.calib.coverage import PARAM_NAMES
 from trifuse.calib.errors import RigError
 from trifuse.calib.rig import Rig
 from trifuse.calib.rig_compare import compare_rigs
+from trifuse.calib.rig_result import CalibrationResult
 
 NONE = "(none)"
 
@@ -100,6 +112,38 @@ def views_html(views: list[ViewInfo], sensors: list[str]) -> str:
     )
 
 
+STALE_SEARCH_S = 1.0
+"""The reason line says how old the searched frames were when they are older than this
+(seconds of frame time behind the newest frame set: the board search lags)."""
+
+
+def rms_chart(
+    result: CalibrationResult, sensors: list[str]
+) -> tuple[tuple[np.ndarray, ...], tuple[float, float]]:
+    """The "RMS error per view" chart of ``result``: its data and its y range.
+
+    Returns:
+        (data, (y_min, y_max)): data is the views' numbers (x; a view named otherwise
+        counts by its place) and, per sensor of ``sensors`` in that order, its RMS
+        reprojection error in each view, pixels (NaN where the sensor has none in that
+        view: not seen, left out, or not calibrated at all). The y range runs from 0 to a
+        little above the largest error: uPlot cannot range an axis itself over a series
+        with no number in it (the whole chart stays empty), so the range is given.
+    """
+    views = sorted(result.views)
+    x = np.array([int(v) if v.isdigit() else i for i, v in enumerate(views, 1)], float)
+    ys = tuple(
+        np.array(
+            [result.views[v][s].rms_px if s in result.views[v] else np.nan for v in views],
+            dtype=np.float64,
+        )
+        for s in sensors
+    )
+    finite = [float(np.nanmax(y)) for y in ys if np.isfinite(y).any()]
+    top = max(finite, default=0.0)
+    return (x, *ys), (0.0, 1.1 * top if top > 0 else 1.0)
+
+
 class CalibrationPanel(Periodic):
     """Builds the Calibration folder and keeps it current (refreshed at ``rate_hz``)."""
 
@@ -118,6 +162,7 @@ class CalibrationPanel(Periodic):
                 False,
                 hint="Take the board whenever it is steady and at a new pose",
             )
+            self.why = gui.add_markdown("")  # auto-capture: why the pose is not taken
             self.message = gui.add_markdown("")
             self.next_pose = NextPoseOverlay(ctx, session)  # where to hold the board next
             self.coverage = gui.add_html(coverage_html({s: (0, 0, 0, 0) for s in self.sensors}, {}))
@@ -146,6 +191,8 @@ class CalibrationPanel(Periodic):
             self.version_pick = gui.add_dropdown("Saved rig", (NONE,))
             self.use = gui.add_button("Use this rig")
         self._auto_hold: Hold | None = None  # the board search while auto-capture is on
+        # the simulated calibration board's wait for captures (None: another source)
+        self.capture_hold = getattr(getattr(ctx.source, "scenario", None), "capture_hold", None)
         self.auto.on_update(lambda _e: self._want_board(bool(self.auto.value)))
         self.capture.on_click(lambda _e: self._act(self._capture))
         self.delete.on_click(lambda _e: self._act(self._delete))
@@ -180,7 +227,14 @@ class CalibrationPanel(Periodic):
         fs = self.ctx.pipeline.latest_set
         if fs is None:
             raise SessionError("no frames yet")
-        return f"Captured view {md_text(self.session.take(fs).name)}."
+        name = self.session.take(fs).name
+        self._release(fs.stamp_ns)
+        return f"Captured view {md_text(name)}."
+
+    def _release(self, stamp_ns: int) -> None:
+        """The simulated board need not wait at the pose of ``stamp_ns`` any more."""
+        if self.capture_hold is not None:
+            self.capture_hold.release(stamp_ns)
 
     def _delete(self) -> str:
         name = self.view_pick.value
@@ -219,27 +273,74 @@ class CalibrationPanel(Periodic):
         return f"The console now fuses with **{md_text(name)}**."
 
     def _want_board(self, on: bool) -> None:
-        """Auto-capture needs the board search whether or not a browser is connected."""
+        """Auto-capture needs the board search whether or not a browser is connected, and
+        asks the simulated board to wait at each pose until it is captured."""
+        if self.capture_hold is not None:
+            self.capture_hold.waiting = on
         if on and self._auto_hold is None:
             self._auto_hold = self.ctx.demand.board.hold()
+            self.why.content = self._waiting_text()
         elif not on and self._auto_hold is not None:
             self._auto_hold, hold = None, self._auto_hold
             hold.release()
+            self.why.content = ""
 
     def _on_sighting(self, s: BoardSighting) -> None:
-        """Auto-capture (in the board watch's thread)."""
+        """Auto-capture (in the board watch's thread): take the sighting or say why not."""
         self._sighting_text(s)
         if not self.auto.value:
             return
-        why = self.session.worth_taking(s.detections, s.steady)
-        if why is None:
+        verdict = self.session.assess(s.detections, s.steady, self._motion_text(s), s.T_rig_board)
+        if not verdict.take:
+            if verdict.kind in ("captured", "not seen"):  # nothing to wait for there
+                self._release(s.frames.stamp_ns)
+            self.why.content = self._why_text(s, verdict)
             return
         try:
             view = self.session.take(s.frames)
         except SessionError as exc:
             self.message.content = f"**Auto-capture failed:** {md_text(exc)}"
             return
-        self.message.content = f"Auto-captured view {md_text(view.name)} ({md_text(why)})."
+        self._release(s.frames.stamp_ns)
+        self.why.content = f"Auto-capture took view {md_text(view.name)}."
+        self.message.content = (
+            f"Auto-captured view {md_text(view.name)} ({md_text(verdict.reason)})."
+        )
+
+    @staticmethod
+    def _motion_text(s: BoardSighting) -> str:
+        """How the board moved, in words (the reason when it is not steady)."""
+        if s.motion is None:
+            return "waiting for frames: a second look at the board tells whether it is still"
+        return s.motion.describe()
+
+    def _why_text(self, s: BoardSighting, verdict: CaptureVerdict) -> str:
+        """The reason line: why the sighting is not taken, which sensors see the board,
+        how old the searched frames are when the search lags, the simulated board's
+        wait."""
+        parts = [verdict.reason]
+        rig = [n for n in self.sensors if n in s.frames.frames]
+        found = [n for n in rig if s.detections.get(n) is not None and s.detections[n].found]
+        if found and len(found) < len(rig):
+            missing = ", ".join(n for n in rig if n not in found)
+            parts.append(f"seen by {len(found)} of {len(rig)} sensors (missing {missing})")
+        newest = self.ctx.pipeline.latest_set
+        if newest is not None:
+            lag_s = (newest.stamp_ns - s.frames.stamp_ns) / 1e9
+            if lag_s > STALE_SEARCH_S:
+                parts.append(f"searched frames {lag_s:.1f} s old")
+        status = self.capture_hold.status() if self.capture_hold is not None else None
+        if status:
+            parts.append(status)
+        return "**Not taken:** " + md_text("; ".join(parts))
+
+    def _waiting_text(self) -> str:
+        """The reason line before the first sighting while auto-capture is on."""
+        if self.ctx.pipeline.latest_set is None:
+            why = "waiting for frames: none has arrived yet"
+        else:
+            why = "waiting for frames: the board search has not finished a look yet"
+        return "**Not taken:** " + md_text(why)
 
     def _rig_choices(self) -> dict[str, Rig]:
         """Saved versions by label; each file is read once (versions are never rewritten)."""
@@ -263,11 +364,20 @@ class CalibrationPanel(Periodic):
         if not found:
             self.seen.content = "Board: not seen"
             return
-        state = "steady" if s.steady else "moving"
+        if s.steady:
+            state = "steady"
+        elif s.motion is None or not s.motion.decided:
+            state = "waiting for frames"
+        else:
+            state = "moving"
         self.seen.content = f"Board ({state}): seen by {md_text(', '.join(found))}"
 
     def tick(self) -> None:
         self.next_pose.tick()
+        if self.auto.value and self._auto_hold is not None:
+            latest = self.ctx.board_watch.latest
+            if latest is None:
+                self.why.content = self._waiting_text()
         if not self._dirty:
             return
         self._dirty = False
@@ -289,17 +399,19 @@ class CalibrationPanel(Periodic):
             self.version_pick.value = versions[-1]
         self._show_job()
 
-    def _series(self) -> tuple[uplot.Series, ...]:
+    def _series(self, labels: list[str] | None = None) -> tuple[uplot.Series, ...]:
+        """The chart's series: the view number, then one per sensor (``labels``: their
+        legend, default the sensors' names)."""
         return (
             uplot.Series(label="view"),
             *(
                 uplot.Series(
-                    label=s,
+                    label=label,
                     stroke="rgb({}, {}, {})".format(*sensor_colour(i)),
                     width=1.5,
                     points={"show": True, "size": 5},
                 )
-                for i, s in enumerate(self.sensors)
+                for i, label in enumerate(labels or self.sensors)
             ),
         )
 
@@ -402,20 +514,23 @@ class CalibrationPanel(Periodic):
             md_text(verdict_line(cmp)),
         ]
 
-    def _chart(self, result) -> None:
-        """Per-view RMS of every sensor against the view number; the worst view is
-        preselected for "Drop view"."""
+    def _chart(self, result: CalibrationResult) -> None:
+        """Per-view RMS of every sensor against the view number (:func:`rms_chart`; a
+        sensor without any is labelled so); the worst view is preselected for "Drop
+        view"."""
+        data, y_range = rms_chart(result, self.sensors)
+        labels = [
+            s if np.isfinite(y).any() else f"{s} (none)"
+            for s, y in zip(self.sensors, data[1:], strict=True)
+        ]
+        # new series and scales make the browser build the chart anew, with this data
+        self.chart.series = self._series(labels)
+        self.chart.scales = {
+            "x": uplot.Scale(time=False),
+            "y": uplot.Scale(auto=False, range=y_range),
+        }
+        self.chart.data = data
         views = sorted(result.views)
-        x = np.array([int(v) if v.isdigit() else i for i, v in enumerate(views, 1)], float)
-        self.chart.data = (
-            x,
-            *(
-                np.array(
-                    [result.views[v][s].rms_px if s in result.views[v] else np.nan for v in views]
-                )
-                for s in self.sensors
-            ),
-        )
         if views:
             self.view_pick.value = max(
                 views, key=lambda v: max((e.rms_px for e in result.views[v].values()), default=0)

@@ -4,9 +4,21 @@
 for the pose (:data:`POSE_PREFERENCE`: colour, thermal, TOF) and gives a
 :class:`BoardSighting`: each sensor's corners (or why not), the board's pose in the rig frame
 (:func:`board_pose`, from the most trusted sensor that found it) and whether the board held
-still since the previous sighting (:data:`STEADY_PX`). :class:`LookCache` shares the looks
+still since the previous sighting (:class:`Motion`). :class:`LookCache` shares the looks
 at each image between threads; :class:`~app.server.runtime.board_watch.BoardWatch` decides
 when and on which threads the searches run.
+
+Stillness is judged in frame time, never per search: two looks at the board (two frame
+sets) are compared by how far its corners moved and how far apart the frames' own time
+stamps are (:func:`compare_looks`). A board is still when its corners moved at most
+:data:`STEADY_PX` (the detector's noise) plus :data:`STILL_PX_PER_S` for each second of
+frame time between the looks, counted up to :data:`STILL_WINDOW_S` (a pose change is never
+still, however long the looks took); looks at different pictures less than
+:data:`STILL_MIN_SPAN_S` apart tell nothing yet, and the very same pictures (a simulated
+board holding its pose, a source repeating a frame) moved by nothing. A machine whose
+searches take seconds therefore still decides: its two looks are far apart in frame time
+and allowed the drift of that time, and the board watch compares each search with a look at
+the newest frames as well (:meth:`~app.server.runtime.board_watch.BoardWatch.tick`).
 
 Colour images of at least :data:`COARSE_MIN_WIDTH` pixels are searched at half resolution
 first (:func:`first_look`), the corners then found at full resolution in a crop around the
@@ -42,8 +54,18 @@ from trifuse.calib.rig import Rig
 from trifuse.calib.transforms import invert, make_T, rotation_from_rvec
 
 STEADY_PX = 2.0
-"""A board is steady when no corner moved more than this many pixels (in any sensor that
-saw it both times) since the previous sighting."""
+"""The detector's noise: two looks at a board that did not move agree within this many
+pixels (every corner, in every sensor that saw it both times)."""
+STILL_PX_PER_S = 4.0
+"""Beyond :data:`STEADY_PX`, a still board's corners may drift this many pixels per second of
+frame time between two looks (a hand holding the board; 0.13 px per frame at 30 Hz)."""
+STILL_WINDOW_S = 1.0
+"""The drift allowed grows with frame time up to this many seconds and no further: looks
+farther apart (a slow machine) allow :data:`STEADY_PX` + :data:`STILL_PX_PER_S` x this at
+most, so a board moved to another pose never reads still."""
+STILL_MIN_SPAN_S = 0.2
+"""Looks at different pictures closer than this in frame time (seconds) do not tell whether
+the board is still: a later frame must be looked at."""
 
 POSE_PREFERENCE = ("color", "thermal", "tof")
 """Modalities in the order their detection is trusted for the board's pose."""
@@ -69,9 +91,11 @@ class BoardSighting:
         T_rig_board: (4, 4) board pose in the rig frame, metres (from the most trusted
             sensor that found it, with the rig's intrinsics and pose), or None.
         pose_sensor: the sensor the pose comes from, or None.
-        steady: found in at least one sensor, and no sensor that found it in the previous
-            sighting too saw a corner move more than :data:`STEADY_PX`.
+        steady: the board was still (:attr:`motion`): found in at least one sensor, and
+            compared with another look at it in frame time, within the drift allowed.
         complete: every sensor was searched (False: the pose was published early).
+        motion: how far the board moved against the look it was compared with, in frame
+            time (None: nothing to compare with, such as a first sighting).
     """
 
     frames: FrameSet
@@ -80,11 +104,118 @@ class BoardSighting:
     pose_sensor: str | None
     steady: bool
     complete: bool = True
+    motion: Motion | None = None
 
     @property
     def found(self) -> list[str]:
         """Sensors whose image shows the board."""
         return [s for s, d in self.detections.items() if d.found]
+
+
+def still_limit_px(span_s: float) -> float:
+    """How far (pixels) a still board's corners may move between two looks ``span_s``
+    seconds of frame time apart: :data:`STEADY_PX` + :data:`STILL_PX_PER_S` x the span,
+    counted up to :data:`STILL_WINDOW_S`."""
+    return STEADY_PX + STILL_PX_PER_S * min(max(span_s, 0.0), STILL_WINDOW_S)
+
+
+@dataclass(frozen=True)
+class Motion:
+    """How far the board moved between two looks at it, in frame time.
+
+    Attributes:
+        moved_px: the largest corner displacement, pixels, in ``sensor`` (inf: the board
+            was lost, or a partial view shares no corner with the other look).
+        span_s: frame time between the two looks at ``sensor`` (its frames' stamps),
+            seconds; 0 for the very same picture.
+        sensor: the sensor compared (of several, the one that moved most for its span).
+        same_picture: ``sensor``'s image is the very object looked at before (a
+            simulated board holding its pose, a source repeating a frame): nothing moved.
+    """
+
+    moved_px: float
+    span_s: float
+    sensor: str
+    same_picture: bool = False
+
+    @property
+    def limit_px(self) -> float:
+        """How far the corners may move for :attr:`span_s` (:func:`still_limit_px`)."""
+        return still_limit_px(self.span_s)
+
+    @property
+    def decided(self) -> bool:
+        """Whether the looks tell: the same picture, or at least :data:`STILL_MIN_SPAN_S`
+        apart."""
+        return self.same_picture or self.span_s >= STILL_MIN_SPAN_S
+
+    @property
+    def still(self) -> bool:
+        """Decided, and the corners moved no more than :attr:`limit_px`."""
+        return self.decided and self.moved_px <= self.limit_px
+
+    @property
+    def speed_px_s(self) -> float:
+        """Mean speed of the corners between the looks, pixels per second of frame time
+        (inf: lost, or no time between them)."""
+        if self.same_picture:
+            return 0.0
+        return self.moved_px / self.span_s if self.span_s > 0 else math.inf
+
+    def describe(self) -> str:
+        """One line for the operator, e.g. ``moving: 7.3 px in 1.20 s of frame time
+        (6.1 px/s); still needs at most 6.0 px``."""
+        if self.same_picture:
+            return "still: the same picture as before"
+        if not self.decided:
+            return (
+                f"waiting for frames: the looks at {self.sensor} are "
+                f"{1000 * self.span_s:.0f} ms apart, {1000 * STILL_MIN_SPAN_S:.0f} ms tell"
+            )
+        word = "still" if self.still else "moving"
+        if not math.isfinite(self.moved_px):
+            return f"{word}: the board left {self.sensor}'s view"
+        return (
+            f"{word}: {self.moved_px:.1f} px in {self.span_s:.2f} s of frame time "
+            f"({self.speed_px_s:.1f} px/s) in {self.sensor}; still needs at most "
+            f"{self.limit_px:.1f} px"
+        )
+
+
+def compare_looks(
+    before: FrameSet,
+    before_detections: dict[str, Detection],
+    now: FrameSet,
+    now_detections: dict[str, Detection],
+) -> Motion | None:
+    """How the board moved from one look to another (:class:`Motion`), from every sensor
+    that found it both times: the pictures' own time stamps, not when they were searched.
+
+    A sensor whose image is the very object of the other look moved by nothing. Of the
+    sensors whose looks tell (:attr:`Motion.decided`), the one that moved most for its
+    span is returned; if none tells, the one whose looks are farthest apart. None when no
+    sensor found the board both times.
+    """
+    compared: list[Motion] = []
+    for name, det in now_detections.items():
+        old = before_detections.get(name)
+        if not det.found or old is None or not old.found:
+            continue
+        a, b = before.frames.get(name), now.frames.get(name)
+        if a is None or b is None:
+            continue
+        if a.image is b.image:
+            compared.append(Motion(0.0, abs(b.stamp_ns - a.stamp_ns) / 1e9, name, True))
+            continue
+        span_s = abs(b.stamp_ns - a.stamp_ns) / 1e9
+        compared.append(Motion(_moved_px(det.corners, old.corners), span_s, name))
+    if not compared:
+        return None
+    decided = [m for m in compared if m.decided]
+    if not decided:
+        return max(compared, key=lambda m: m.span_s)
+    # the most moved for its span; of equals, a look at a new picture (it says more)
+    return max(decided, key=lambda m: (m.moved_px / m.limit_px, not m.same_picture))
 
 
 MIN_POSE_CORNERS = 6
@@ -366,17 +497,12 @@ def sighting(
                 pose_sensor, pose = name, T
                 break
     detections = orient_by_colour(detections, rig, board, pose, pose_sensor)
-    moved = [
-        _moved_px(det.corners, previous.detections[name].corners)
-        for name, det in detections.items()
-        if det.found
-        and previous is not None
-        and name in previous.detections
-        and previous.detections[name].found
-    ]
-    steady = bool(moved) and max(moved) <= STEADY_PX
+    motion = None
+    if previous is not None:
+        motion = compare_looks(previous.frames, previous.detections, frames, detections)
+    steady = motion is not None and motion.still
     ordered = {n: detections[n] for n in frames.frames if n in detections}
-    return BoardSighting(frames, ordered, pose, pose_sensor, steady)
+    return BoardSighting(frames, ordered, pose, pose_sensor, steady, motion=motion)
 
 
 def _moved_px(now: np.ndarray, before: np.ndarray) -> float:

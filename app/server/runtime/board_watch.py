@@ -40,6 +40,14 @@ up to 3.8 s before; now no later than the cloud (median), 0.4 s at worst: BENCHM
   most every :data:`FULL_SEARCH_PERIOD_S` per camera, after the pose is published, and
   not when the pose from another sensor puts the board (partly) outside the image
   (:func:`board_in_image`).
+- **Stillness in frame time.** A complete sighting is compared with the previous one by
+  the frames' time stamps (:class:`~app.server.runtime.board_sighting.Motion`), and,
+  when that does not show the board still (the previous one was of another pose, or
+  too close in time), with a second look at the newest frame set
+  (:meth:`BoardWatch.second_look`): the same picture again costs nothing, another one a
+  look at the most trusted sensor that found the board. A machine whose passes take
+  seconds (the board moved on between two passes) thus still finds the board still
+  while it is, and auto-capture takes it.
 - While the last pass found the board nowhere, complete passes are ``idle_period_s``
   apart and the pose loop rests (a failed search costs the most).
 - **Only while someone looks.** Given a ``demand`` (:mod:`app.server.runtime.demand`), both
@@ -50,6 +58,7 @@ up to 3.8 s before; now no later than the cloud (median), 0.4 s at worst: BENCHM
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 import time
@@ -61,10 +70,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from trifuse.app.server.runtime.board_sighting import (
+    STILL_MIN_SPAN_S,
     BoardSighting,
     Detector,
     LookCache,
+    Motion,
     board_pose,
+    compare_looks,
     safe_look,
     sighting,
     trusted,
@@ -293,6 +305,47 @@ class BoardWatch(Periodic):
 
     # -- the complete passes -------------------------------------------------------------
 
+    def second_look(self, s: BoardSighting) -> BoardSighting:
+        """``s`` judged still or moving against the newest frame set as well (module
+        docstring): sensors whose image there is the very one ``s`` searched moved by
+        nothing; the most trusted sensor that found the board whose image is new is
+        looked at (shared with the pose loop: often looked at already), if its frame is
+        at least :data:`~app.server.runtime.board_sighting.STILL_MIN_SPAN_S` later. A
+        board that sensor no longer finds (at full resolution) has moved. Returns ``s``
+        itself when the newest frames tell nothing more, else ``s`` with the new
+        :class:`Motion` and ``steady``."""
+        newest = self.latest_frames()
+        if newest is None or newest is s.frames:
+            return s
+        rig = self.rig
+        names = trusted(rig, [n for n in s.found if n in newest.frames and n in rig])
+        now: dict[str, Detection] = {}
+        lost: Motion | None = None
+        looked = False
+        for name in names:
+            old, new = s.frames.frames[name], newest.frames[name]
+            if new.image is old.image:
+                now[name] = s.detections[name]
+                continue
+            span_s = abs(new.stamp_ns - old.stamp_ns) / 1e9
+            if looked or span_s < STILL_MIN_SPAN_S:
+                continue
+            looked = True
+            det, coarse = safe_look(self._looks, name, new.image, rig[name].modality)
+            if not det.found:
+                if not coarse:  # (half resolution only: too small to tell)
+                    lost = Motion(math.inf, span_s, name)
+                continue
+            if rig[name].modality != "color" and self.board.pattern != "charuco":
+                det = _nearer_ordering(det, s.detections[name].corners)
+            now[name] = det
+        motion = compare_looks(s.frames, s.detections, newest, now)
+        if lost is not None and (motion is None or motion.still):
+            motion = lost
+        if motion is None or not motion.decided:
+            return s
+        return dataclasses.replace(s, steady=motion.still, motion=motion)
+
     def tick(self) -> None:
         """One look: a complete pass over the newest frame set if it is new and due."""
         with self._pass_lock:
@@ -323,6 +376,8 @@ class BoardWatch(Periodic):
                 detect=self.detect,
                 looker=self._looks,
             )
+            if s.found and not s.steady:
+                s = self.second_look(s)
             done = time.monotonic()
             self._next_start = self._pause_after(started, done)
             for name in allowed:
@@ -341,3 +396,13 @@ class BoardWatch(Periodic):
             self.timings.append(PassTiming(fs.stamp_ns, pose_s, took, age_s, reused))
         if self.on_sighting is not None:
             self.on_sighting(s)
+
+
+def _nearer_ordering(det: Detection, before: np.ndarray) -> Detection:
+    """``det`` or its corners in the reversed order (the half turn a thermal or TOF
+    detection may come in before it is put in the colour camera's ordering), whichever
+    lies nearer ``before`` (N, 2) pixels."""
+    turned = det.corners[::-1]
+    a = np.nanmax(np.linalg.norm(det.corners - before, axis=1))
+    b = np.nanmax(np.linalg.norm(turned - before, axis=1))
+    return Detection(turned.copy(), None, det.method) if b < a else det

@@ -2,7 +2,10 @@
 
 ``calibration``: the head stands still (world = rig frame) and the heated board is held at
 poses that cover every sensor's image, corners included, 0.6-4 m away, tilted up to 45
-degrees, in a lab with a warm radiator and a cold window behind it. The inspection room
+degrees, in a lab with a warm radiator and a cold window behind it. Like an operator who
+waits for the console's beep, the board can wait at a pose until it is captured
+(:class:`CaptureHold`: the console's auto-capture asks it to, so that a slow machine still
+gets every pose). The inspection room
 and its scenario are in :mod:`app.sources.sim.inspection` (the survey in
 :mod:`app.sources.sim.survey`); the lab and the inspection room are built with :func:`room`
 and :func:`quad`.
@@ -10,9 +13,13 @@ and :func:`quad`.
 
 from __future__ import annotations
 
+import bisect
 import hashlib
+import math
+import threading
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -375,15 +382,163 @@ def kept_views(views: int, n: int) -> frozenset[int]:
     return frozenset(round(k * (views - 1) / (n - 1)) for k in range(n))
 
 
+CAPTURE_WAIT_S = 30.0
+"""How much longer than its hold (seconds of stream time) the simulated board waits at a
+pose for a capture at most (:class:`CaptureHold`)."""
+
+
+class CaptureHold:
+    """The simulated board waits at a pose until it is captured, at most ``max_hold_s``.
+
+    The simulated head asks :meth:`scenario_time` which scenario time its frame stamped
+    ``stamp_ns`` shows (:class:`~app.sources.simulated.SimulatedHeadSource`). Without
+    :attr:`waiting`, that is the stream's own time, ``(stamp_ns - start_ns) / 1e9``: each
+    pose is shown for ``hold_s`` seconds. While :attr:`waiting` is set (the console does
+    while auto-capture is on) and the pose shown has not been released (:meth:`release`,
+    which the console calls when it captured a view of the pose or found nothing to take
+    there), the scenario time stands still at the last moment of that pose instead of
+    moving on to the next one, until the pose has been shown for ``max_hold_s`` seconds;
+    then, or once released, the scenario time goes on from the end of that pose (the next
+    pose follows at once). Poses are those the head shows: scenario time ``t`` shows pose
+    ``round(t / hold_s) mod n_poses`` (one rendering per pose, ``render_hz = 1 / hold_s``).
+
+    Stamps asked for again or out of order get the scenario time they were given (a
+    history of the changes is kept); a new stream (another ``start_ns``) starts afresh,
+    keeping what was released.
+
+    Args:
+        hold_s: seconds each pose is held without waiting.
+        n_poses: how many poses the board cycles through.
+        max_hold_s: the longest a pose is shown while waiting (at least ``hold_s``),
+            seconds of stream time.
+
+    Attributes:
+        waiting: whether to wait at poses not released yet (set by the console).
+
+    Thread-safe.
+    """
+
+    def __init__(self, hold_s: float, n_poses: int, max_hold_s: float) -> None:
+        if not (hold_s > 0 and n_poses >= 1 and max_hold_s >= hold_s):
+            raise ValueError(
+                "capture hold: expected hold_s > 0, n_poses >= 1 and max_hold_s >= hold_s, "
+                f"got hold_s={hold_s}, n_poses={n_poses}, max_hold_s={max_hold_s}"
+            )
+        self.hold_s, self.n_poses, self.max_hold_s = float(hold_s), n_poses, float(max_hold_s)
+        self.waiting = False
+        self._lock = threading.Lock()
+        self._released: set[int] = set()
+        self._restart(None)
+
+    def _restart(self, start_ns: int | None) -> None:
+        self._start_ns = start_ns
+        self._shift = 0.0  # scenario time = stream time - shift (while not frozen)
+        self._frozen: float | None = None  # the scenario time standing still
+        self._last_s = -math.inf  # the latest stream time asked for
+        self._last_t = 0.0  # the scenario time given for it
+        self._pose = 0  # the pose shown since stream time _since
+        self._since = 0.0
+        # (stream time, shift, frozen) from which on the mapping holds: for stamps asked
+        # for again or out of order
+        self._changes: list[tuple[float, float, float | None]] = [(-math.inf, 0.0, None)]
+
+    def __getstate__(self) -> dict[str, Any]:  # a scenario may be pickled to a process
+        state = dict(self.__dict__)
+        del state["_lock"]
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+
+    def pose_at(self, t_s: float) -> int:
+        """The pose the head shows at scenario time ``t_s`` (seconds)."""
+        loop_s = self.n_poses * self.hold_s
+        return round((t_s % loop_s) / self.hold_s) % self.n_poses
+
+    def _holding(self, s: float) -> bool:
+        return (
+            self.waiting and self._pose not in self._released and s - self._since < self.max_hold_s
+        )
+
+    def _past(self, s: float) -> float:
+        """The scenario time given for stream time ``s`` before the latest one."""
+        i = bisect.bisect_right(self._changes, s, key=lambda c: c[0]) - 1
+        _, shift, frozen = self._changes[max(i, 0)]
+        return frozen if frozen is not None else s - shift
+
+    def _change(self, s: float) -> None:
+        self._changes.append((s, self._shift, self._frozen))
+        if len(self._changes) > 4096:
+            del self._changes[1:1025]
+
+    def scenario_time(self, stamp_ns: int, start_ns: int) -> float:
+        """The scenario time (seconds) the frame stamped ``stamp_ns`` of a stream started
+        at ``start_ns`` shows (class docstring)."""
+        with self._lock:
+            if start_ns != self._start_ns:
+                self._restart(start_ns)
+            s = (stamp_ns - start_ns) / 1e9
+            if s < self._last_s:
+                return self._past(s)
+            self._last_s = s
+            if self._frozen is not None:
+                if self._holding(s):
+                    return self._frozen
+                # on from the end of the held pose: the next one at once
+                end = (round(self._frozen / self.hold_s) + 0.5 + 1e-6) * self.hold_s
+                self._shift, self._frozen = s - end, None
+                self._change(s)
+            t = s - self._shift
+            pose = self.pose_at(t)
+            if pose != self._pose:
+                if self._holding(s):
+                    self._frozen = self._last_t
+                    self._change(s)
+                    return self._frozen
+                self._pose, self._since = pose, s
+            self._last_t = t
+            return t
+
+    def release(self, stamp_ns: int) -> int | None:
+        """The pose shown at ``stamp_ns`` (a frame of the current stream) needs no more
+        waiting: it was captured, or there is nothing to take there. Returns that pose
+        (None before any stream)."""
+        with self._lock:
+            if self._start_ns is None:
+                return None
+            s = (stamp_ns - self._start_ns) / 1e9
+            if s < self._last_s:
+                t = self._past(s)
+            else:
+                t = self._frozen if self._frozen is not None else s - self._shift
+            pose = self.pose_at(t)
+            self._released.add(pose)
+            return pose
+
+    def status(self) -> str | None:
+        """What the board is waiting for, for the operator (None: it is not waiting)."""
+        with self._lock:
+            if self._frozen is None:
+                return None
+            there = self._last_s - self._since
+            return (
+                f"the simulated board waits at pose {self._pose + 1} of {self.n_poses} for "
+                f"a capture ({there:.0f} s there, at most {self.max_hold_s:.0f} s)"
+            )
+
+
 class CalibrationScenario:
     """The calibration session as a live scene: the head stands still and the heated
     ``board`` (any pattern) is held at each of ``n_poses`` poses (:func:`calibration_poses`;
     a ChArUco board leaves the image in every :data:`PARTIAL_EVERY`-th) for ``hold_s``
-    seconds, then jumps to the next; the sequence loops every ``loop_s`` seconds.
+    seconds, then jumps to the next; the sequence loops every ``loop_s`` seconds. While
+    :attr:`capture_hold` is ``waiting``, a pose not captured yet is held up to
+    ``capture_wait_s`` seconds longer (:class:`CaptureHold`).
 
     For :class:`~app.sources.simulated.SimulatedHeadSource` use ``render_hz = 1 / hold_s``
     and ``loop_s = loop_s``: one rendering per board pose (``scene_key`` tells the source
-    which times show the same scene).
+    which times show the same scene, :meth:`scenario_time` which time a frame shows).
     """
 
     def __init__(
@@ -394,9 +549,12 @@ class CalibrationScenario:
         hold_s: float = 3.0,
         seed: int = 1,
         board: Board = CALIBRATION_BOARD,
+        capture_wait_s: float = CAPTURE_WAIT_S,
     ) -> None:
         if not hold_s > 0:
             raise ValueError(f"hold_s: expected a positive number of seconds, got {hold_s}")
+        if not capture_wait_s >= 0:
+            raise ValueError(f"capture_wait_s: expected seconds >= 0, got {capture_wait_s}")
         self.rig = rig or default_rig()
         self.renderer = Renderer(self.rig, model)
         self.model = model
@@ -409,6 +567,8 @@ class CalibrationScenario:
         self.background = lab_background()
         self.n_poses, self.hold_s, self.seed = n_poses, float(hold_s), seed
         self.loop_s = n_poses * self.hold_s
+        self.capture_hold = CaptureHold(self.hold_s, n_poses, self.hold_s + capture_wait_s)
+        """Waits at poses not captured yet while the console's auto-capture is on."""
 
     def cache_key(self) -> str:
         """What identifies this scenario's pictures (for the simulated head's disk cache)."""
@@ -423,6 +583,11 @@ class CalibrationScenario:
     def scene_key(self, t_s: float) -> int:
         """Times with equal keys show the same scene (the same board pose)."""
         return self.pose_index(t_s)
+
+    def scenario_time(self, stamp_ns: int, start_ns: int) -> float:
+        """The scenario time (seconds) a frame stamped ``stamp_ns`` of a stream started at
+        ``start_ns`` shows: :meth:`CaptureHold.scenario_time`."""
+        return self.capture_hold.scenario_time(stamp_ns, start_ns)
 
     def T_world_rig(self, t_s: float) -> np.ndarray:
         """The head does not move: the world frame is the rig frame."""

@@ -5,6 +5,7 @@ frame set)."""
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
 from types import SimpleNamespace
 
@@ -13,7 +14,15 @@ import pytest
 
 from tests.support import WAIT_S, FakeClock, wait_until
 from trifuse.app.server.runtime import board_watch
-from trifuse.app.server.runtime.board_sighting import board_in_image, first_look, sighting
+from trifuse.app.server.runtime.board_sighting import (
+    STEADY_PX,
+    STILL_PX_PER_S,
+    STILL_WINDOW_S,
+    board_in_image,
+    compare_looks,
+    first_look,
+    sighting,
+)
 from trifuse.app.server.runtime.board_watch import MAX_PAUSE_S, BoardWatch
 from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.app.sources.sim.head import default_rig
@@ -388,3 +397,101 @@ def test_bad_settings_are_refused() -> None:
     rig = default_rig()
     with pytest.raises(ValueError, match="duty"):
         BoardWatch(lambda: None, rig, CALIBRATION_BOARD, duty=0.0)
+
+
+# -- stillness in frame time ------------------------------------------------------------------
+
+
+def _look(stamp_s: float, shift_px: float, image: np.ndarray | None = None):
+    """One look at a 9 x 6 board in ccd_left: a frame stamped ``stamp_s`` (its own image
+    unless ``image`` is given) and corners moved ``shift_px`` to the right."""
+    grid = np.stack(np.meshgrid(np.arange(9.0), np.arange(6.0)), -1).reshape(-1, 2)
+    corners = 100.0 + 40.0 * grid + np.array([shift_px, 0.0])
+    img = np.zeros((4, 4, 3), np.uint8) if image is None else image
+    fs = FrameSet(round(stamp_s * 1e9), {"ccd_left": Frame("ccd_left", round(stamp_s * 1e9), img)})
+    return fs, {"ccd_left": Detection(corners, None, "stand-in")}
+
+
+def test_stillness_is_judged_in_frame_time_not_per_search() -> None:
+    """The same 4 px seen between two searches: a board still over 1.5 s of frame time (a
+    slow machine's searches), moving over 0.3 s; a jump to another pose is never still,
+    however long between the looks; looks too close in time, or no new picture, tell
+    nothing, and the very same picture moved by nothing."""
+    still_px = STEADY_PX + STILL_PX_PER_S * STILL_WINDOW_S
+
+    def motion(span_s: float, moved_px: float, same: bool = False):
+        a_fs, a_det = _look(10.0, 0.0)
+        image = a_fs.frames["ccd_left"].image if same else None
+        b_fs, b_det = _look(10.0 + span_s, moved_px, image)
+        return compare_looks(a_fs, a_det, b_fs, b_det)
+
+    slow = motion(1.5, 4.0)
+    assert slow.decided and slow.still, slow.describe()  # was "moving" (4 px > 2 px)
+    fast = motion(0.3, 4.0)
+    assert fast.decided and not fast.still and fast.speed_px_s == pytest.approx(13.3, abs=0.1)
+    assert "moving: 4.0 px in 0.30 s of frame time" in fast.describe()
+    assert not motion(10.0, still_px + 1.0).still  # a pose change, ten seconds apart
+    assert motion(30.0, still_px - 0.1).still
+    close = motion(0.05, 0.5)
+    assert not close.decided and not close.still and "waiting for frames" in close.describe()
+    same = motion(0.0, 0.0, same=True)
+    assert same.decided and same.still and same.same_picture
+    # a sighting compared with the previous one the same way
+    a_fs, a_det = _look(0.0, 0.0)
+    b_fs, b_det = _look(1.5, 4.0)
+    assert compare_looks(b_fs, b_det, a_fs, a_det).still  # order does not matter
+    assert compare_looks(a_fs, {}, b_fs, b_det) is None  # nothing seen both times
+
+
+def test_a_slow_watch_finds_a_held_board_still_by_a_second_look(calibration_frame_sets) -> None:
+    """A machine whose passes take longer than the board is held: the previous sighting
+    was of another pose, so this one alone cannot tell. The watch looks at the newest
+    frames as well: the board held there (the very same images, as the simulated head
+    delivers a held pose, or new images of the same pose, as a camera does) makes the
+    sighting steady; a board that moved on leaves it moving."""
+    rig = default_rig()
+    pose_a, pose_b = calibration_frame_sets[0], calibration_frame_sets[1]
+    latest = {"fs": restamped_frames(pose_b, 0)}
+    seen: list = []
+    watch = BoardWatch(
+        lambda: latest["fs"], rig, CALIBRATION_BOARD, on_sighting=seen.append, rate_hz=1000.0
+    )
+    watch.duty = 1.0
+    try:
+        watch.tick()  # the board at pose b
+        searched = restamped_frames(pose_a, 3.0)  # 3 s later: pose a
+        cases = {
+            "same images 1.5 s later": (restamped_frames(pose_a, 4.5), True),
+            "new images of the same pose": (restamped_frames(pose_a, 4.5, copy=True), True),
+            "moved on to pose b": (restamped_frames(pose_b, 4.5), False),
+        }
+        for what, (newest, still) in cases.items():
+            alone = sighting(searched, rig, CALIBRATION_BOARD, previous=seen[0])
+            assert not alone.steady, what  # against the previous pose: it moved
+            latest["fs"] = searched
+            watch.latest = seen[0]
+            watch._searched = None
+            watch._next_start = -math.inf
+
+            def arrive(p, newest=newest) -> None:  # frames arrive during the pass
+                latest["fs"] = newest
+
+            watch.pose_listeners[:] = [arrive]
+            watch.tick()
+            s = seen[-1]
+            assert s.frames is searched, what
+            assert s.steady == still, (what, s.motion and s.motion.describe())
+            assert s.motion is not None and s.motion.decided, what
+    finally:
+        watch.stop()
+
+
+def restamped_frames(fs: FrameSet, stamp_s: float, copy: bool = False) -> FrameSet:
+    """``fs``'s pictures as frames stamped ``stamp_s`` (their images the very arrays, or
+    copies with ``copy``: another camera frame of the same scene)."""
+    stamp = round(stamp_s * 1e9)
+    frames = {
+        n: Frame(n, stamp, f.image.copy() if copy else f.image, f.distance_m)
+        for n, f in fs.frames.items()
+    }
+    return FrameSet(stamp, frames)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -10,13 +11,13 @@ import pytest
 from tests.support import wait_searched
 from trifuse.app.sources.frames import FrameSet
 from trifuse.app.sources.sim.head import default_rig
-from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD
+from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
 from trifuse.app.storage.capture import load_capture
 from trifuse.app.storage.rigfile import load_rig
 from trifuse.app.workflows.calib_session import CalibrationSession, SessionError
 from trifuse.calib.board import Board
 from trifuse.calib.detect import Detection
-from trifuse.calib.transforms import pose_error
+from trifuse.calib.transforms import pose_error, rotation_from_euler_deg
 
 N_VIEWS = 12
 
@@ -55,6 +56,48 @@ def test_novelty_decides_auto_capture(tmp_path, views) -> None:
     why = session.worth_taking(moved, steady=True)
     assert why is not None and "ccd_left" in why
     assert session.worth_taking(moved, steady=False) is None
+    session.close()
+
+
+def test_auto_capture_says_why_a_sighting_is_not_taken(tmp_path, views) -> None:
+    """The reasons an operator reads under Auto-capture: not seen, moving (in the board
+    watch's words), the views' searches still running, captured already (the nearest
+    view and how far its board pose is); a new pose is taken."""
+    rig = default_rig()
+    session = CalibrationSession(tmp_path, rig, CALIBRATION_BOARD)
+    session.take(views[0])
+    pending = session.assess({}, steady=True)
+    assert not pending.take and pending.kind == "not seen", pending
+    wait_searched(session)
+    view = session.view("0001")
+    assert view.T_rig_board is not None  # its board pose, from the finest sensor
+    truth = calibration_poses(N_VIEWS, 1, rig, CALIBRATION_BOARD)[0]
+    rot_deg, trans_m = pose_error(view.T_rig_board, truth)
+    assert rot_deg < 0.2 and trans_m < 0.003, (rot_deg, trans_m)
+    same = view.detections
+    moved = {s: Detection(d.corners * 0.5, None, d.method) for s, d in same.items()}
+    words = "moving: 7.3 px in 0.50 s"
+    moving = session.assess(moved, steady=False, motion=words)  # a new pose, not still
+    assert (moving.take, moving.kind, moving.reason) == (False, "moving", words)
+    # captured already says more than moving: holding still there would not help
+    assert session.assess(same, steady=False, motion=words).kind == "captured"
+    # the same pose, 3 cm and 2 degrees away by the sighting's board pose
+    near = truth.copy()
+    near[:3, :3] = rotation_from_euler_deg(2.0, 0.0, 0.0) @ near[:3, :3]
+    near[:3, 3] += (0.03, 0.0, 0.0)
+    captured = session.assess(same, steady=True, T_rig_board=near)
+    assert not captured.take and captured.kind == "captured" and captured.nearest == "0001"
+    assert re.search(r"already captured: view 0001 is 3\.\d cm / 2\.\d° away", captured.reason)
+    assert "a new one needs > 0.2" in captured.reason
+    session.take(views[1])  # its search runs: novelty waits for it
+    searching = session.assess(same, steady=True)
+    if searching.kind == "searching":  # (unless the search was quicker than this line)
+        assert searching.reason == "waiting for the board search of view 0002"
+    wait_searched(session)
+    again = session.assess(session.view("0002").detections, steady=True)
+    assert not again.take and again.nearest == "0002"  # view 0002 itself is captured now
+    taken = session.assess(moved, steady=True)
+    assert taken.take and taken.kind == "new pose" and taken.reason.startswith("new pose for")
     session.close()
 
 
