@@ -397,7 +397,10 @@ class CalibrationPanel(Periodic):
         if tuple(self.version_pick.options) != versions:
             self.version_pick.options = versions
             self.version_pick.value = versions[-1]
-        self._show_job()
+        # nothing to act on: no view to delete or calibrate, no saved rig to use
+        self.delete.disabled = not views
+        self.use.disabled = versions == (NONE,)
+        self._show_job(len(views))
 
     def _series(self, labels: list[str] | None = None) -> tuple[uplot.Series, ...]:
         """The chart's series: the view number, then one per sensor (``labels``: their
@@ -415,10 +418,11 @@ class CalibrationPanel(Periodic):
             ),
         )
 
-    def _show_job(self) -> None:
+    def _show_job(self, n_views: int) -> None:
+        """The calibration job's state; ``n_views``: the session's views now."""
         job = self.session.job
         running = job.state == "running"
-        self.run.disabled = running
+        self.run.disabled = running or n_views == 0
         self.progress.visible = running
         self.progress.value = 100.0 * job.progress
         self.save.disabled = job.state != "done" or job.saved_as is not None

@@ -207,3 +207,25 @@ def test_the_chart_after_a_calibration_run_from_the_panel(tmp_path, calibration_
         labels = [s["label"] for s in panel.chart.series]
         assert labels == ["view", "tof", "ccd_left", "ccd_right", "thermal_left",
                           "thermal_right (none)"]  # fmt: skip
+
+
+def test_buttons_with_nothing_to_act_on_are_disabled(tmp_path, calibration_frame_sets):
+    """No view: Delete view and Run calibration are disabled; no saved rig: Use this rig
+    is. Each turns on once there is something to act on, and off again when it is gone."""
+    with panel_on(tmp_path) as (panel, session):
+        panel.tick()
+        assert panel.delete.disabled and panel.run.disabled and panel.use.disabled
+        assert not panel.capture.disabled
+        name = session.take(calibration_frame_sets[0]).name
+        panel._mark_dirty()
+        panel.tick()
+        assert not panel.delete.disabled and not panel.run.disabled
+        assert panel.use.disabled  # nothing saved yet
+        session.save_rig(default_rig(), {})
+        panel._mark_dirty()
+        panel.tick()
+        assert not panel.use.disabled
+        session.delete(name)
+        panel._mark_dirty()
+        panel.tick()
+        assert panel.delete.disabled and panel.run.disabled
