@@ -8,11 +8,16 @@ segments before it (APPn, DQT, DHT, ...). It reads only the header, so it takes 
 (``bytes``, a ``memoryview``, an ``mmap`` of a file). :func:`pnm_header` reads a binary
 PGM or PPM's (``P5``, ``P6``: what thermal and machine-vision cameras' SDKs save, 16-bit
 too); only capture directories take those.
+
+:func:`image_damage` says whether a PNG or PNM holds its whole picture (a file cut short, a
+PNG chunk that fails its CRC) before a decoder meets the damage: libpng writes its own
+complaint straight to stderr, outside OpenCV's logging.
 """
 
 from __future__ import annotations
 
 import struct
+import zlib
 from dataclasses import dataclass
 from typing import Literal
 
@@ -45,6 +50,7 @@ class ImageHeader:
             and alpha, 3, 4).
         png_colour_type: the IHDR's colour type (0 grey, 2 RGB, 3 palette, 4 grey and
             alpha, 6 RGBA); None for a JPEG or PNM.
+        data_offset: a PNM's: the byte its pixels start at; None for a PNG or JPEG.
     """
 
     format: Literal["png", "jpeg", "pnm"]
@@ -53,6 +59,7 @@ class ImageHeader:
     bit_depth: int
     channels: int
     png_colour_type: int | None = None
+    data_offset: int | None = None
 
 
 def image_header(data: bytes | bytearray | memoryview) -> ImageHeader:
@@ -147,4 +154,64 @@ def pnm_header(data: bytes | bytearray | memoryview) -> ImageHeader:
         raise ImageHeaderError(
             f"corrupt {magic.decode()} header (width {width}, height {height}, maxval {maxval})"
         )
-    return ImageHeader("pnm", width, height, 16 if maxval > 255 else 8, _PNM_CHANNELS[magic])
+    depth = 16 if maxval > 255 else 8
+    # one whitespace byte after maxval, then the pixels
+    return ImageHeader("pnm", width, height, depth, _PNM_CHANNELS[magic], data_offset=2 + i + 1)
+
+
+_PNG_IEND = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+"""The whole IEND chunk (no data, so always the same 12 bytes), a PNG's last."""
+_PNG_MAX_CHUNK = 0x7FFFFFFF
+"""The PNG specification's largest chunk length, bytes."""
+
+
+def image_damage(
+    data: bytes | bytearray | memoryview, header: ImageHeader, crc: bool = True
+) -> str | None:
+    """Why the image in ``data`` (whose ``header`` :func:`image_header` or
+    :func:`pnm_header` read) cannot be decoded whole, in a phrase that names the format
+    ("a PNG cut short: the file ends inside its IDAT chunk (6307 of 8192 bytes present)"),
+    or None when nothing says so.
+
+    A PNG's chunks are walked from the signature to IEND: one that the file ends inside, a
+    length or type that is no chunk's, no IDAT before IEND, and with ``crc`` a critical
+    chunk (IHDR, PLTE, IDAT, IEND) failing its CRC check are damage; bytes after IEND and
+    ancillary chunks failing their CRC are not (libpng ignores them too). Without ``crc`` a
+    file ending in the IEND chunk is taken as whole without the walk (what a file's last
+    bytes show: a PNG cut short never ends so). A PNM is damaged when it is shorter than
+    its header and pixels; a JPEG is not checked (None).
+    """
+    if header.format == "pnm" and header.data_offset is not None:
+        need = header.width * header.height * header.channels * (header.bit_depth // 8)
+        have = len(data) - header.data_offset
+        if have < need:
+            return f"a PGM/PPM cut short: {max(have, 0)} of its {need} bytes of pixels present"
+        return None
+    if header.format != "png":
+        return None
+    n = len(data)
+    if not crc and n >= 20 and bytes(data[n - 12 :]) == _PNG_IEND:
+        return None
+    pos, image_data = len(PNG_SIGNATURE), False
+    while True:
+        if pos + 8 > n:
+            return f"a PNG cut short: the file ends after {n} bytes, before its IEND chunk"
+        length, kind = struct.unpack_from(">I4s", data, pos)
+        if not kind.isalpha() or length > _PNG_MAX_CHUNK:
+            return f"a corrupted PNG: no chunk at byte {pos} (length {length}, type {kind!r})"
+        name = kind.decode("ascii")
+        end = pos + 12 + length
+        if end > n:
+            present = min(max(n - pos - 8, 0), length)
+            return (
+                f"a PNG cut short: the file ends inside its {name} chunk ({present} of "
+                f"{length} bytes present)"
+            )
+        if crc and name[0].isupper():
+            (stored,) = struct.unpack_from(">I", data, pos + 8 + length)
+            if zlib.crc32(memoryview(data)[pos + 4 : pos + 8 + length]) != stored:
+                return f"a corrupted PNG: its {name} chunk at byte {pos} fails its CRC check"
+        if name == "IEND":
+            return None if image_data else "a corrupted PNG: no image data (IDAT) before IEND"
+        image_data = image_data or name == "IDAT"
+        pos = end

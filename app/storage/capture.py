@@ -25,6 +25,14 @@ into place). :mod:`app.storage.ground_truth` reads and writes the ground truth f
 Reading is lazy: :func:`load_capture` checks the directory and the image
 headers (sizes, bit depths) without decoding pixels; :meth:`CaptureView.frame` decodes one
 image when asked, so 30 views x 5 sensors cost the memory of what the caller keeps.
+
+An image file that cannot be read (empty, not an image, cut short, corrupted:
+:class:`UnreadableImageError`) costs its view that image only: found when indexing, it is
+set aside (:attr:`CaptureView.unreadable`) and its view keeps its other sensors; found when
+decoding, :meth:`CaptureView.frame` raises it and sets the file aside too. A damaged PNG or
+PNM is recognised before OpenCV decodes it (:func:`calib.image_header.image_damage`), and
+OpenCV's own complaints are kept off the terminal (:func:`quiet_opencv`): the caller names
+the file instead.
 """
 
 from __future__ import annotations
@@ -32,8 +40,10 @@ from __future__ import annotations
 import mmap
 import os
 import re
+import threading
 from collections import Counter
 from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -46,7 +56,7 @@ from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.app.storage.rigfile import load_rig
 from trifuse.app.storage.text import read_text
 from trifuse.calib.board import Board, board_from_dict
-from trifuse.calib.image_header import ImageHeaderError, image_header, pnm_header
+from trifuse.calib.image_header import ImageHeaderError, image_damage, image_header, pnm_header
 from trifuse.calib.palette_inverse import PaletteError, PaletteFit, invert_palette
 from trifuse.calib.rig import MODALITY_PREFIXES, Modality, Rig, modality_of_name
 from trifuse.calib.units import kelvin_from_counts, metres_from_counts
@@ -74,6 +84,47 @@ class CaptureError(ValueError):
 
 class ViewExistsError(CaptureError):
     """A view folder of that name exists already; captures are never overwritten."""
+
+
+class UnreadableImageError(CaptureError):
+    """An image file that cannot be read or decoded: empty, not an image, cut short or
+    corrupted (not one of another size or kind than the capture wants: that is a plain
+    CaptureError). Its view can do without it (see the module docstring).
+
+    Attributes:
+        path: the file.
+        why: what is wrong with it, without the path (the message is ``"<path>: <why>"``).
+    """
+
+    def __init__(self, path: Path, why: str) -> None:
+        super().__init__(f"{path}: {why}")
+        self.path = path
+        self.why = why
+
+    def __reduce__(self) -> tuple[type[UnreadableImageError], tuple[Path, str]]:
+        return type(self), (self.path, self.why)
+
+
+@dataclass(frozen=True)
+class UnreadableImage:
+    """An image file set aside: its view goes on without it.
+
+    Attributes:
+        sensor: whose image it is.
+        path: the file.
+        why: what is wrong with it (:attr:`UnreadableImageError.why`).
+        distance: it is the TOF sensor's distance image (the sensor keeps its amplitude
+            image), not the sensor's image itself.
+    """
+
+    sensor: str
+    path: Path
+    why: str
+    distance: bool = False
+
+    def describe(self) -> str:
+        """``unreadable image <file name>, skipped: <why>`` (the view is said elsewhere)."""
+        return f"unreadable image {self.path.name}, skipped: {self.why}"
 
 
 # -- names and modalities -------------------------------------------------------------------
@@ -127,22 +178,28 @@ class ImageFile:
 def read_image_header(path: str | Path) -> ImageFile:
     """Size, bit depth and channels of a PNG, JPEG or binary PGM/PPM file from its header
     (the file is mapped, not read: a JPEG's frame header may follow large metadata segments).
+    A PNG or PNM cut short is found here too (:func:`calib.image_header.image_damage`
+    without CRCs: a PNG's last bytes, its chunk headers only when those are not IEND).
 
-    Raises CaptureError naming the file when it cannot be read or is neither format.
+    Raises UnreadableImageError naming the file when it cannot be read, is empty, is
+    neither format or is cut short.
     """
     path = Path(path)
     try:
         with path.open("rb") as f:
             if os.fstat(f.fileno()).st_size == 0:
-                raise CaptureError(f"{path}: not an image: an empty file")
+                raise UnreadableImageError(path, "not an image: an empty file")
             with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
                 header = pnm_header(data) if data[:1] == b"P" else image_header(data)
+                damage = image_damage(data, header, crc=False)
     except OSError as exc:
-        raise CaptureError(f"{path}: cannot read image: {exc.strerror}") from None
+        raise UnreadableImageError(path, f"cannot read image: {exc.strerror}") from None
     except ImageHeaderError as exc:
         if "expected JPEG or PNG" in str(exc) or "expected a binary PGM" in str(exc):
-            raise CaptureError(f"{path}: not an image: {exc}") from None
-        raise CaptureError(f"{path}: {exc}") from None
+            raise UnreadableImageError(path, f"not an image: {exc}") from None
+        raise UnreadableImageError(path, str(exc)) from None
+    if damage is not None:
+        raise UnreadableImageError(path, damage)
     return ImageFile(
         path, header.width, header.height, header.bit_depth, header.channels, header.format
     )
@@ -150,21 +207,59 @@ def read_image_header(path: str | Path) -> ImageFile:
 
 # -- decoding -------------------------------------------------------------------------------
 
+_quiet_lock = threading.Lock()
+_quiet_depth = 0
+_loud_level: int | None = None
+
+
+@contextmanager
+def quiet_opencv() -> Iterator[None]:
+    """Silence OpenCV's own log (``[ WARN ...]``, ``[ERROR ...]`` lines on stderr) while
+    inside, as long as any thread is inside (the level is the process's); the level before
+    the first entry is restored when the last one leaves."""
+    global _quiet_depth, _loud_level
+    with _quiet_lock:
+        if _quiet_depth == 0:
+            _loud_level = cv2.utils.logging.getLogLevel()
+            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+        _quiet_depth += 1
+    try:
+        yield
+    finally:
+        with _quiet_lock:
+            _quiet_depth -= 1
+            if _quiet_depth == 0 and _loud_level is not None:
+                cv2.utils.logging.setLogLevel(_loud_level)
+
 
 def _decode(info: ImageFile) -> np.ndarray:
-    """Decode a file with OpenCV (unchanged depth and channels); CaptureError if corrupt."""
+    """Decode a file with OpenCV (unchanged depth and channels); UnreadableImageError if
+    it cannot be read, is damaged (checked first: :func:`calib.image_header.image_damage`,
+    CRCs too) or does not decode."""
     try:
         data = np.fromfile(info.path, dtype=np.uint8)
     except OSError as exc:
-        raise CaptureError(f"{info.path}: cannot read image: {exc.strerror}") from None
+        raise UnreadableImageError(info.path, f"cannot read image: {exc.strerror}") from None
+    if not data.size:
+        raise UnreadableImageError(info.path, "not an image: an empty file")
     try:
-        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+        header = pnm_header(data) if data[:1].tobytes() == b"P" else image_header(data)
+    except ImageHeaderError as exc:  # changed since it was indexed
+        raise UnreadableImageError(info.path, str(exc)) from None
+    damage = image_damage(data, header)
+    if damage is not None:
+        raise UnreadableImageError(info.path, damage)
+    try:
+        with quiet_opencv():
+            image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     except cv2.error as exc:  # e.g. a header claiming more pixels than OpenCV decodes
-        raise CaptureError(
-            f"{info.path}: OpenCV refuses to decode a {info.width}x{info.height} image ({exc.err})"
+        raise UnreadableImageError(
+            info.path, f"OpenCV refuses to decode a {info.width}x{info.height} image ({exc.err})"
         ) from None
     if image is None:
-        raise CaptureError(f"{info.path}: corrupt or unreadable image (OpenCV cannot decode it)")
+        raise UnreadableImageError(
+            info.path, "corrupt or unreadable image (OpenCV cannot decode it)"
+        )
     if image.shape[:2] != (info.height, info.width):
         raise CaptureError(
             f"{info.path}: decoded {image.shape[1]}x{image.shape[0]}, "
@@ -310,6 +405,9 @@ class CaptureView:
         thermal_encoding: how 16-bit thermal images are read (see :func:`read_thermal`).
         palettes: thermal sensor -> how its false-colour image was read back, filled in by
             :meth:`frame` (the values are palette positions, not kelvin).
+        unreadable: the image files set aside, in the order found: when indexing (their
+            sensor is then not in :attr:`files`, or a TOF sensor there without its distance
+            image) and when :meth:`frame` met one.
     """
 
     name: str
@@ -317,6 +415,7 @@ class CaptureView:
     files: dict[str, SensorFiles]
     thermal_encoding: ThermalEncoding = "centikelvin"
     palettes: dict[str, PaletteFit] = field(default_factory=dict)
+    unreadable: list[UnreadableImage] = field(default_factory=list)
 
     @property
     def sensors(self) -> list[str]:
@@ -343,25 +442,40 @@ class CaptureView:
                 f"view {self.name!r} has no image of sensor {sensor!r} (has: {self.sensors})"
             ) from None
 
-    def frame(self, sensor: str) -> Frame:
+    def frame(self, sensor: str, *, distance: bool = True) -> Frame:
         """Decode one sensor's image(s) into a Frame (``stamp_ns`` 0: captures carry no time).
 
         Colour -> (H, W, 3) uint8 RGB; thermal -> (H, W) float32 (kelvin for 16-bit files,
         see :meth:`thermal_is_kelvin`; palette positions 0-255 for a false-colour image,
-        noted in :attr:`palettes`); TOF -> amplitude (H, W) float32 and, if present,
-        ``distance_m`` (H, W) float32 metres, NaN where invalid. Raises CaptureError naming
-        the file if it is corrupt, or false-colour with colours that cannot be read back.
+        noted in :attr:`palettes`); TOF -> amplitude (H, W) float32 and, if present and
+        ``distance`` asks for it, ``distance_m`` (H, W) float32 metres, NaN where invalid.
+        Raises UnreadableImageError naming the file if it cannot be decoded (and sets it
+        aside in :attr:`unreadable`), CaptureError if it is false-colour with colours that
+        cannot be read back.
         """
         f = self._files(sensor)
-        if f.modality == "color":
-            return Frame(sensor, 0, decode_color(f.image))
-        if f.modality == "thermal":
-            image, fit = read_thermal(f.image, self.thermal_encoding)
-            if fit is not None:
-                self.palettes[sensor] = fit
-            return Frame(sensor, 0, image)
-        distance = decode_distance(f.distance) if f.distance is not None else None
-        return Frame(sensor, 0, decode_amplitude(f.image), distance)
+        info = f.image
+        try:
+            if f.modality == "color":
+                return Frame(sensor, 0, decode_color(info))
+            if f.modality == "thermal":
+                image, fit = read_thermal(info, self.thermal_encoding)
+                if fit is not None:
+                    self.palettes[sensor] = fit
+                return Frame(sensor, 0, image)
+            amplitude = decode_amplitude(info)
+            if f.distance is None or not distance:
+                return Frame(sensor, 0, amplitude)
+            info = f.distance
+            return Frame(sensor, 0, amplitude, decode_distance(info))
+        except UnreadableImageError as exc:
+            self.set_aside(UnreadableImage(sensor, exc.path, exc.why, info is f.distance))
+            raise
+
+    def set_aside(self, image: UnreadableImage) -> None:
+        """Add ``image`` to :attr:`unreadable` (once)."""
+        if image not in self.unreadable:
+            self.unreadable.append(image)
 
     def frames(self, sensors: Iterable[str] | None = None) -> FrameSet:
         """Decode the view's images (all, or the given sensors) into a FrameSet (stamp 0)."""
@@ -398,6 +512,11 @@ class Capture:
         """Sensors that appear in at least one view (rig order, else sorted by name)."""
         seen = {s for v in self.views for s in v.files}
         return [s for s in self.modalities if s in seen]
+
+    @property
+    def unreadable(self) -> list[tuple[CaptureView, UnreadableImage]]:
+        """The image files set aside so far (:attr:`CaptureView.unreadable`), by view."""
+        return [(v, u) for v in self.views for u in v.unreadable]
 
     def view(self, name: str) -> CaptureView:
         """The view of that folder name."""
@@ -471,6 +590,9 @@ class Capture:
         ]
         for s in self.sensors:
             lines.append(f"  {s} ({self.modalities[s]}): in {len(self.views_with(s))} views")
+        if unreadable := self.unreadable:
+            lines.append(f"  unreadable images, skipped ({len(unreadable)}):")
+            lines += [f"    {v.name}/{u.path.name}: {u.why}" for v, u in unreadable]
         return "\n".join(lines)
 
 
@@ -531,6 +653,7 @@ def _scan_view(
         target[stem] = entry
 
     files: dict[str, SensorFiles] = {}
+    unreadable: list[UnreadableImage] = []
     for sensor in sorted(images.keys() | distances.keys()):
         if rig is not None:
             if sensor not in rig:
@@ -550,8 +673,23 @@ def _scan_view(
                 f"{distances[sensor]}: a distance image needs its amplitude image "
                 f"{sensor}.png beside it; none found"
             )
-        image = read_image_header(images[sensor])
-        distance = read_image_header(distances[sensor]) if sensor in distances else None
+        try:
+            image = read_image_header(images[sensor])
+        except UnreadableImageError as exc:
+            unreadable.append(UnreadableImage(sensor, exc.path, exc.why))
+            modalities.setdefault(sensor, modality)
+            continue
+        distance = None
+        if sensor in distances:
+            try:
+                distance = read_image_header(distances[sensor])
+            except UnreadableImageError as exc:
+                if modality != "tof":
+                    raise CaptureError(
+                        f"{exc.path}: only TOF sensors have distance images; "
+                        f"{sensor!r} is {modality}"
+                    ) from None
+                unreadable.append(UnreadableImage(sensor, exc.path, exc.why, distance=True))
         if distance is not None and modality != "tof":
             raise CaptureError(
                 f"{distance.path}: only TOF sensors have distance images; {sensor!r} is {modality}"
@@ -580,7 +718,7 @@ def _scan_view(
             )
         modalities.setdefault(sensor, modality)
         files[sensor] = SensorFiles(sensor, modality, image, distance)
-    return CaptureView(path.name, path, files, thermal_encoding)
+    return CaptureView(path.name, path, files, thermal_encoding, unreadable=unreadable)
 
 
 def load_view(capture_dir: str | Path, name: str, rig: Rig) -> CaptureView:
@@ -606,11 +744,14 @@ def load_capture(
         thermal_encoding: how 16-bit thermal PNGs are read: ``"centikelvin"`` (the format)
             or ``"counts"`` (raw sensor counts, returned as float32 values, not kelvin).
         verify: also decode every image once (slower) so that corrupt pixel data is found
-            now rather than when a view is read.
+            now rather than when a view is read: such a file is set aside as those found
+            when indexing are (taken out of its view's files).
 
     Every folder not starting with ``.`` is a view; files at the top level (board.yaml,
     rig.yaml, ground_truth*.yaml, anything else) and hidden folders (e.g. a view being
-    written) are not. Raises CaptureError (or RigError for a bad rig.yaml) naming the path.
+    written) are not. An image file that cannot be read is set aside, not raised (see the
+    module docstring; :attr:`Capture.unreadable` lists them). Raises CaptureError (or
+    RigError for a bad rig.yaml) naming the path for anything else.
     """
     capture_dir = Path(capture_dir)
     if not capture_dir.is_dir():
@@ -641,5 +782,12 @@ def load_capture(
     if verify:
         for v in views:
             for s in v.sensors:
-                v.frame(s)
+                try:
+                    v.frame(s)
+                except UnreadableImageError as exc:
+                    files = v.files[s]
+                    if files.distance is not None and exc.path == files.distance.path:
+                        v.files[s] = SensorFiles(s, files.modality, files.image)
+                    else:
+                        del v.files[s]
     return capture

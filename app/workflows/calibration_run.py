@@ -1,5 +1,11 @@
 """Calibrating a capture directory: detection in every image, the joint calibration,
-coverage, and the report (``trifuse calibrate`` and, later, the console use this)."""
+coverage, and the report (``trifuse calibrate`` and, later, the console use this).
+
+An image file that cannot be read (empty, not an image, cut short, corrupted:
+:class:`~app.storage.capture.UnreadableImageError`) is skipped: its view keeps its other
+sensors, and the file is named where images without a board are (the detections' reasons,
+the summary's list, the report's ``detections``) and in the report's ``unreadable_images``.
+"""
 
 from __future__ import annotations
 
@@ -16,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from trifuse.app.storage.atomic import atomic_write_text
-from trifuse.app.storage.capture import Capture, CaptureError
+from trifuse.app.storage.capture import Capture, CaptureError, UnreadableImageError
 from trifuse.app.workflows.report_format import (
     POLARITY_HEAD,
     coverage_sentence,
@@ -92,16 +98,27 @@ def detect_capture(
 
     Thermal and TOF images are searched with the board's polarity overrides when
     ``board.yaml`` sets them (:func:`calib.polarity.detect_board_configured`), else as the
-    detector assumes; the calibration then finds each sensor's polarity from the data."""
+    detector assumes; the calibration then finds each sensor's polarity from the data.
+
+    An image that cannot be read (set aside when the capture was indexed, or failing to
+    decode now) is rejected with its reason, ``unreadable image <file>, skipped: <why>``
+    (:meth:`app.storage.capture.UnreadableImage.describe`); TOF distance images are not
+    read (the board is found in the amplitude)."""
     jobs = [(v, s) for v in capture.views for s in v.sensors if sensors is None or s in sensors]
     if not jobs:
+        unreadable = [u for _v, u in capture.unreadable if sensors is None or u.sensor in sensors]
         raise CaptureError(
-            f"{capture.path}: no images to calibrate ({len(capture.views)} view folders)"
+            f"{capture.path}: no images to calibrate ({len(capture.views)} view folders"
+            + (f"; {len(unreadable)} unreadable image(s) skipped" if unreadable else "")
+            + ")"
         )
 
-    def one(job: tuple[Any, str]) -> tuple[str, str, Detection]:
+    def one(job: tuple[Any, str]) -> tuple[str, str, Detection | None]:
         view, sensor = job
-        frame = view.frame(sensor)
+        try:
+            frame = view.frame(sensor, distance=False)
+        except UnreadableImageError:  # set aside by frame(): rejected below
+            return view.name, sensor, None
         return (
             view.name,
             sensor,
@@ -111,13 +128,16 @@ def detect_capture(
     run = DetectionRun({}, {}, {})
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         for k, (view, sensor, det) in enumerate(pool.map(one, jobs)):
-            if det.found:
+            if det is not None and det.found:
                 run.observations.setdefault(view, {})[sensor] = det.corners
                 run.methods.setdefault(view, {})[sensor] = det.method or ""
-            else:
+            elif det is not None:
                 run.rejected.setdefault(view, {})[sensor] = det.reason or "not found"
             if progress:
                 progress(f"detecting the board ({k + 1}/{len(jobs)})", (k + 1) / len(jobs))
+    for v, u in capture.unreadable:
+        if not u.distance and (sensors is None or u.sensor in sensors):
+            run.rejected.setdefault(v.name, {})[u.sensor] = u.describe()
     return run
 
 
@@ -253,6 +273,7 @@ def build_report(
         for s, reason in per.items():
             report["detections"].setdefault(v, {})[s] = {"found": False, "reason": reason}
     report["detections"] = dict(sorted(report["detections"].items()))
+    report["unreadable_images"] = unreadable_images(capture)
     for name, entry in report["sensors"].items():
         used = [
             detections.observations[v][name]
@@ -272,6 +293,23 @@ def build_report(
             "corner_counts": cov.corner_counts.tolist(),
         }
     return _finite(report)
+
+
+def unreadable_images(capture: Capture) -> list[dict[str, Any]]:
+    """The report's ``unreadable_images``: every image file of the capture set aside so
+    far, as ``view``, ``sensor``, ``file`` (the path in the capture directory, e.g.
+    ``0003/thermal_left.png``), ``why`` and ``distance`` (a TOF distance image: not read by
+    the calibration, its sensor kept its amplitude image)."""
+    return [
+        {
+            "view": view.name,
+            "sensor": u.sensor,
+            "file": f"{view.name}/{u.path.name}",
+            "why": u.why,
+            "distance": u.distance,
+        }
+        for view, u in capture.unreadable
+    ]
 
 
 class _NotOutlier:
@@ -377,6 +415,11 @@ def format_summary(result: CalibrationResult, report: dict[str, Any]) -> str:
         lines.append("images without a usable board (sensor, view folder: why):")
         for (sensor, reason), views in sorted(rejected.items(), key=lambda i: (i[0][0], i[1])):
             lines.append(f"  {sensor}, {_views_text(views)}: {reason}")
+    distances = [u for u in report.get("unreadable_images") or [] if u["distance"]]
+    if distances:
+        lines.append("")
+        lines.append("unreadable TOF distance images, skipped (not needed to calibrate):")
+        lines += [f"  {u['file']}: {u['why']}" for u in distances]
     return "\n".join(lines)
 
 

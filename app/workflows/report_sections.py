@@ -5,7 +5,7 @@ later, the outliers, every view, the comparison with a true rig, how the report 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -55,6 +55,7 @@ KNOWN_KEYS = frozenset(
         "verdict",
         "advice",
         "min_views",
+        "unreadable_images",
     }
 )
 """Top-level report keys with a section of their own; any other is shown generically."""
@@ -65,8 +66,9 @@ MAX_CORNER_ROWS = 100
 
 
 def summary_section(report: Mapping[str, Any]) -> str:
-    """The summary: the verdicts, what was calibrated and what not, the advice, a row
-    per sensor, the intrinsics-only sensors and the notes."""
+    """The summary: the verdicts, what was calibrated and what not, the image files that
+    could not be read, the advice, a row per sensor, the intrinsics-only sensors and the
+    notes."""
     sensors = report.get("sensors") or {}
     excluded = report.get("excluded_sensors") or {}
     parts = ["<section id='summary'><h2>Summary and verdict</h2>"]
@@ -97,6 +99,7 @@ def summary_section(report: Mapping[str, Any]) -> str:
             + "".join(f"<li><b>{esc(s)}</b>: {esc(why)}</li>" for s, why in excluded.items())
             + "</ul>"
         )
+    parts.append(_unreadable(report.get("unreadable_images") or []))
     if report.get("advice"):
         parts.append(advice_block(report["advice"]))
     rows = []
@@ -153,6 +156,21 @@ def summary_section(report: Mapping[str, Any]) -> str:
         )
     parts.append("</section>")
     return "".join(parts)
+
+
+def _unreadable(images: Sequence[Any]) -> str:
+    """The image files skipped because they could not be read (``unreadable_images``):
+    each file and why, or nothing."""
+    items = [
+        f"<li><b>{esc(u.get('file'))}</b>: {esc(u.get('why'))}"
+        + (" (a TOF distance image: not needed to calibrate)" if u.get("distance") else "")
+        + "</li>"
+        for u in images
+        if isinstance(u, Mapping)
+    ]
+    if not items:
+        return ""
+    return f"<p class='bad'><b>Unreadable images, skipped:</b></p><ul>{''.join(items)}</ul>"
 
 
 def _intrinsics_only(alone: Mapping[str, Any]) -> str:

@@ -114,15 +114,22 @@ def _sensor_views(
 
 
 def _left_out(report: Mapping[str, Any], name: str) -> str:
-    """What of the sensor's views was left out, and why."""
-    by_reason: dict[str, list[str]] = {}
+    """What of the sensor's views was left out, and why (an image that could not be read,
+    listed in the report's ``unreadable_images``, as not read rather than without a board)."""
+    unread = {
+        str(u.get("view"))
+        for u in report.get("unreadable_images") or []
+        if isinstance(u, Mapping) and u.get("sensor") == name and not u.get("distance")
+    }
+    by_reason: dict[tuple[str, bool], list[str]] = {}
     for v, per in sorted((report.get("detections") or {}).items()):
         d = per.get(name)
         if d is not None and not d.get("found"):
-            by_reason.setdefault(str(d.get("reason") or "not found"), []).append(v)
+            by_reason.setdefault((str(d.get("reason") or "not found"), v in unread), []).append(v)
     items = [
-        f"<li>board not found in {len(vs)} view(s) ({esc(views_list(vs))}): {esc(r)}</li>"
-        for r, vs in by_reason.items()
+        f"<li>{'image not read' if not_read else 'board not found'} in {len(vs)} view(s) "
+        f"({esc(views_list(vs))}): {esc(r)}</li>"
+        for (r, not_read), vs in by_reason.items()
     ]
     outliers = report.get("outliers") or []
     for o in outliers:

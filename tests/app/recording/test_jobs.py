@@ -16,9 +16,11 @@ from tests.support import directory_bytes, record_survey_archive, small_rig
 from trifuse.app.cli import main
 from trifuse.app.recording import ReplaySource
 from trifuse.app.recording.fuse import FusedWriter, PieceEnd, fuse_piece
-from trifuse.app.recording.jobs import LocalRunner, plan_fuse_job, run_fuse_job
+from trifuse.app.recording.jobs import LocalRunner, plan_fuse_job, run_fuse_job, run_map_job
+from trifuse.app.recording.map3d import open_recordings
 from trifuse.app.recording.pieces import FusePiece, plan_fuse, plan_map, ranges
 from trifuse.fusion.compose import DisplaySettings
+from trifuse.fusion.voxel_map import MapSettings
 
 DURATION_S = 3.0
 
@@ -90,6 +92,30 @@ def test_map_pieces_add_every_tof_frame_once(recordings: list[Path]) -> None:
     finally:
         for src in sources:
             src.close()
+
+
+def test_a_cut_recording_is_mapped_up_to_its_damage(recordings: list[Path], tmp_path: Path) -> None:
+    """Issue 33: a recording cut short (``head -c`` of one: no summary, so no statistics)
+    is mapped as ``trifuse fuse`` reads it: every TOF frame before the cut is added and the
+    damage is named in the replay's words. (Counting the TOF distances by the statistics
+    refused it: "no TOF distances ... nothing to map".)"""
+    cut = tmp_path / "cut.mcap"
+    data = recordings[0].read_bytes()
+    cut.write_bytes(data[: len(data) * 2 // 5])  # about the first 1.2 s of 3 s
+    with ReplaySource(cut, realtime=False, on_damage="stop") as src:
+        tof = sum(f.sensor == "tof" and f.distance_m is not None for f in src.frames())
+        named = str(src.damage)
+    assert 14 <= tof < 45 and "truncated" in named and str(cut) in named
+    sources, rig = open_recordings([cut], None)
+    try:
+        assert sources[0].message_count("tof", "tof_distance") is None  # no statistics
+        run = run_map_job(sources, rig, MapSettings(voxel_m=0.05), "auto", 1.0, LocalRunner())
+    finally:
+        for src in sources:
+            src.close()
+    assert run.pose_source == "recording" and run.tof_frames == run.integrated == tof
+    assert [str(d) for d in run.damage] == [named]
+    assert run.map.occupied().sum() > 1000
 
 
 def test_split_fusion_writes_the_unsplit_sets_and_stamps(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -15,9 +16,11 @@ from tests.support import CAPTURE_BOARD, capture_frames, small_capture_rig
 from trifuse.app.sources.frames import FrameSet
 from trifuse.app.storage.capture import (
     CaptureError,
+    UnreadableImageError,
     ViewExistsError,
     load_capture,
     modality_from_name,
+    quiet_opencv,
     read_image_header,
 )
 from trifuse.app.storage.capture_writer import write_board, write_rig, write_view
@@ -244,25 +247,93 @@ def test_sensor_not_in_rig(capture: tuple[Path, Rig, FrameSet]) -> None:
         load_capture(path)
 
 
-def test_corrupt_png_found_when_indexing(capture: tuple[Path, Rig, FrameSet]) -> None:
-    path, _, _ = capture
-    bad = path / "0001" / "tof.png"
-    bad.write_bytes(b"this is not an image at all")
-    with pytest.raises(CaptureError, match="not an image: expected JPEG or PNG") as exc:
-        load_capture(path)
-    assert str(bad) in str(exc.value)
+def test_an_unreadable_image_is_set_aside_when_indexing(
+    capture: tuple[Path, Rig, FrameSet],
+) -> None:
+    """Issue 33: a file that is no image, an empty one or a PNG cut short costs its view
+    that image only: the view keeps its other sensors, and the file is named with why."""
+    path, _, frames = capture
+    view = path / "0001"
+    (view / "tof.png").write_bytes(b"this is not an image at all")
+    (view / "thermal_left.png").write_bytes(b"")
+    data = (view / "ccd_left.png").read_bytes()
+    (view / "ccd_left.png").write_bytes(data[:200])  # header intact, pixel data cut off
+    cap = load_capture(path)
+    [v] = cap.views
+    assert v.sensors == [] and cap.sensors == []
+    assert [(u.sensor, u.path.name, u.distance) for u in v.unreadable] == [
+        ("ccd_left", "ccd_left.png", False),
+        ("thermal_left", "thermal_left.png", False),
+        ("tof", "tof.png", False),
+    ]
+    why = [u.why for u in v.unreadable]
+    assert why[0].startswith("a PNG cut short: the file ends inside its IDAT chunk (")
+    assert why[1] == "not an image: an empty file"
+    assert why[2].startswith("not an image: expected JPEG or PNG")
+    summary = cap.summary()
+    for u in v.unreadable:
+        assert f"0001/{u.path.name}: {u.why}" in summary
+    # the distance image alone: the TOF keeps its amplitude
+    write_view(path, "0002", frames, small_capture_rig())
+    (path / "0002" / "tof_distance.png").write_bytes(b"\x89PNG\r\n\x1a\n")
+    cap = load_capture(path)
+    two = cap.view("0002")
+    assert two.sensors == ["tof", "ccd_left", "thermal_left"]
+    assert two.files["tof"].distance is None and two.frame("tof").distance_m is None
+    [u] = two.unreadable
+    assert (u.sensor, u.path.name, u.distance) == ("tof", "tof_distance.png", True)
+    assert "no IHDR chunk" in u.why
 
 
-def test_truncated_png_found_when_decoding(capture: tuple[Path, Rig, FrameSet]) -> None:
+def test_a_corrupted_png_is_found_when_decoding_and_set_aside(
+    capture: tuple[Path, Rig, FrameSet], capfd: pytest.CaptureFixture[str]
+) -> None:
+    """A PNG whole in length but corrupted inside (a flipped byte: its chunk fails its CRC
+    check) is found before OpenCV decodes it, so libpng says nothing on stderr; frame()
+    raises UnreadableImageError naming the file and sets the file aside; verify=True sets
+    it aside when indexing."""
     path, _, _ = capture
     bad = path / "0001" / "ccd_left.png"
-    bad.write_bytes(bad.read_bytes()[:200])  # header intact, pixel data cut off
+    data = bytearray(bad.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    bad.write_bytes(data)
     cap = load_capture(path)  # headers only: still fine
-    with pytest.raises(CaptureError, match="corrupt or unreadable image") as exc:
-        cap.views[0].frame("ccd_left")
-    assert str(bad) in str(exc.value)
-    with pytest.raises(CaptureError, match="corrupt or unreadable image"):
-        load_capture(path, verify=True)
+    view = cap.views[0]
+    with pytest.raises(
+        UnreadableImageError, match=r"a corrupted PNG: its IDAT chunk at byte \d+ "
+    ) as exc:
+        view.frame("ccd_left")
+    assert str(exc.value).startswith(f"{bad}: ") and exc.value.path == bad
+    assert [(u.sensor, u.path) for u in view.unreadable] == [("ccd_left", bad)]
+    assert view.frame("tof").image.size  # the view's other images are read
+    cap = load_capture(path, verify=True)
+    assert cap.views[0].sensors == ["tof", "thermal_left"]
+    assert "0001/ccd_left.png: a corrupted PNG" in cap.summary()
+    assert capfd.readouterr().err == ""
+
+
+def test_opencv_is_quiet_inside_and_as_loud_as_before_after(
+    capfd: pytest.CaptureFixture[str],
+) -> None:
+    """OpenCV's own log (an [ERROR] line for a PGM cut short) is kept off stderr inside
+    quiet_opencv, nested and from threads, and its level is restored after."""
+    ok, enc = cv2.imencode(".pgm", np.zeros((10, 12), np.uint8))
+    assert ok
+    cut = enc[: enc.size // 2]
+    before = cv2.utils.logging.getLogLevel()
+    with quiet_opencv():
+        with quiet_opencv():
+            assert cv2.imdecode(cut, cv2.IMREAD_UNCHANGED) is None
+        with ThreadPoolExecutor(2) as pool:
+            assert list(pool.map(lambda _: quiet_decode(cut), range(8))) == [None] * 8
+        assert cv2.utils.logging.getLogLevel() == cv2.utils.logging.LOG_LEVEL_SILENT
+    assert cv2.utils.logging.getLogLevel() == before
+    assert capfd.readouterr().err == ""
+
+
+def quiet_decode(data: np.ndarray) -> np.ndarray | None:
+    with quiet_opencv():
+        return cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
 
 
 def test_unknown_sensor_prefix_without_rig(tmp_path: Path) -> None:

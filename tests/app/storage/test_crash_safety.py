@@ -22,6 +22,7 @@ import hashlib
 import json
 import os
 import random
+import re
 import shutil
 import signal
 import subprocess
@@ -674,8 +675,9 @@ def _kill_and_restart(workdir: Path, log: Path, servers: list[Server]) -> None:
 
 
 def _record_until(out: Path, instants: int) -> tuple[subprocess.Popen, Path, str]:
-    """``trifuse record --source sim`` into ``out`` until it has written ``instants``
-    instants; returns the process, the file it writes into and what it printed."""
+    """``trifuse record --source sim`` into ``out`` until it says it has written at least
+    ``instants`` instants (its progress lines in a pipe come every few seconds); returns
+    the process, the file it writes into and what it printed."""
     main = "import sys; from trifuse.app.cli import main; sys.exit(main(sys.argv[1:]))"
     argv = ["record", "--source", "sim", "--out", str(out), "--duration", "60"]
     proc = subprocess.Popen(
@@ -690,7 +692,8 @@ def _record_until(out: Path, instants: int) -> tuple[subprocess.Popen, Path, str
         said += line
         if line.startswith("Writing into "):
             temp = Path(line.split()[2].rstrip(";"))
-        if line.startswith(f"[{instants}/"):
+        done = re.match(r"\[(\d+)/", line)
+        if done and int(done.group(1)) >= instants:
             break
     assert temp is not None and temp.name.startswith(f".{out.name}."), said
     return proc, temp, said

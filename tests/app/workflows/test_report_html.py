@@ -237,7 +237,9 @@ def rig_run() -> dict:
     )
     methods = {v: {s: "test" for s in per} for v, per in obs.items()}
     detections = DetectionRun(obs, {MISSED_VIEW: {"ccd_right": "not found (test)"}}, methods)
-    capture = SimpleNamespace(path=Path("simulated"), board=CALIBRATION_BOARD, palette_report=dict)
+    capture = SimpleNamespace(
+        path=Path("simulated"), board=CALIBRATION_BOARD, palette_report=dict, unreadable=[]
+    )
     report = build_report(result, detections, capture)  # type: ignore[arg-type]
     report["comparison"] = {"truth": "true.yaml", **compare_rigs(result.rig(), RIG).as_dict()}
     page = render_report_html(report, result.corners, "test", {"trifuse": "test"}, "now")
