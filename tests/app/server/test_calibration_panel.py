@@ -3,56 +3,23 @@ the simulated board's wait for captures, and the "RMS error per view" chart."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 import math
 import re
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import viser
 
-from tests.scene_support import pipeline_for
+from tests.panel_support import panel_on
 from tests.support import WAIT_S, wait_searched
-from trifuse.app.server.panels.calibration import CalibrationPanel, rms_chart
+from trifuse.app.server.panels.calibration import rms_chart
 from trifuse.app.server.runtime.board_sighting import BoardSighting, Motion
-from trifuse.app.server.runtime.context import ConsoleContext
 from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.app.sources.sim.head import default_rig
-from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, CaptureHold
+from trifuse.app.sources.sim.scenarios import CaptureHold
 from trifuse.app.workflows import calib_session
-from trifuse.app.workflows.calib_session import CalibrationSession
 from trifuse.calib.detect import Detection
 from trifuse.calib.rig_result import ViewError
-
-
-@contextlib.contextmanager
-def panel_on(tmp_path, source: object = None, latest_set: FrameSet | None = None):
-    """A Calibration panel on a real Viser server over a fresh session of the simulated
-    head (9 x 6 board); ``source`` stands for the console's source."""
-    with contextlib.redirect_stdout(io.StringIO()):
-        server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    pipeline = pipeline_for()
-    pipeline.rig = default_rig()
-    pipeline.latest_set = latest_set
-    ctx = ConsoleContext(
-        server=server,
-        source=source,  # type: ignore[arg-type]
-        description="test",
-        hub=None,  # type: ignore[arg-type]
-        pipeline=pipeline,  # type: ignore[arg-type]
-        board=CALIBRATION_BOARD,
-        board_watch=SimpleNamespace(  # type: ignore[arg-type]
-            latest=None, latest_pose=None, pose_listeners=[], enabled=True, on_sighting=None
-        ),
-    )
-    session = CalibrationSession(tmp_path / "work", default_rig(), CALIBRATION_BOARD)
-    try:
-        yield CalibrationPanel(ctx, session), session
-    finally:
-        session.close()
-        server.stop()
 
 
 def plain(markdown: str) -> str:
@@ -109,7 +76,7 @@ def test_auto_capture_says_live_why_a_pose_is_not_taken_and_holds_the_simulated_
     monkeypatch.setattr(calib_session, "detect_board_configured", stand_in_detector)
     hold = CaptureHold(hold_s=2.0, n_poses=4, max_hold_s=30.0)
     source = SimpleNamespace(scenario=SimpleNamespace(capture_hold=hold))
-    with panel_on(tmp_path, source, FrameSet(0, {})) as (panel, session):
+    with panel_on(tmp_path, source, FrameSet(0, {})) as (panel, session, _):
         assert panel.capture_hold is hold and not hold.waiting
         panel.auto.value = True
         assert hold.waiting
@@ -180,7 +147,7 @@ def test_the_chart_after_a_calibration_run_from_the_panel(tmp_path, calibration_
     not calibrated): the chart is shown with one point per view and calibrated sensor, the
     RMS of the result, its y axis ranged by the panel, thermal_right marked as without
     points."""
-    with panel_on(tmp_path) as (panel, session):
+    with panel_on(tmp_path) as (panel, session, _):
         for k, fs in enumerate(calibration_frame_sets):
             frames = {n: f for n, f in fs.frames.items() if n != "thermal_right" or k < 2}
             session.take(FrameSet(fs.stamp_ns, frames))
@@ -212,7 +179,7 @@ def test_the_chart_after_a_calibration_run_from_the_panel(tmp_path, calibration_
 def test_buttons_with_nothing_to_act_on_are_disabled(tmp_path, calibration_frame_sets):
     """No view: Delete view and Run calibration are disabled; no saved rig: Use this rig
     is. Each turns on once there is something to act on, and off again when it is gone."""
-    with panel_on(tmp_path) as (panel, session):
+    with panel_on(tmp_path) as (panel, session, _):
         panel.tick()
         assert panel.delete.disabled and panel.run.disabled and panel.use.disabled
         assert not panel.capture.disabled

@@ -5,25 +5,16 @@ without any point and drew nothing). Fixture ``browser`` is in conftest.py."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 import math
-from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
-import viser
 
 from tests.browser_support import needs_chromium
-from tests.scene_support import pipeline_for
+from tests.panel_support import panel_on
 from tests.support import WAIT_S
-from trifuse.app.server.panels.calibration import CalibrationPanel
-from trifuse.app.server.runtime.context import ConsoleContext
 from trifuse.app.sources.frames import FrameSet
-from trifuse.app.sources.sim.head import default_rig
-from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD
-from trifuse.app.workflows.calib_session import CalibrationSession
 from trifuse.app.workflows.report_format import sensor_colour
 
 pytestmark = [needs_chromium, pytest.mark.slow]
@@ -44,24 +35,7 @@ def test_rms_chart_draws_every_calibrated_sensors_points(
     """Twelve simulated views, thermal_right in two only (not calibrated); Run calibration
     in the panel; the browser's chart holds one point per view and calibrated sensor, the
     result's RMS, on a finite y axis, and its canvas shows the sensors' colours."""
-    with contextlib.redirect_stdout(io.StringIO()):
-        server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-    pipeline = pipeline_for()
-    pipeline.rig = default_rig()
-    ctx = ConsoleContext(
-        server=server,
-        source=None,  # type: ignore[arg-type]
-        description="test",
-        hub=None,  # type: ignore[arg-type]
-        pipeline=pipeline,  # type: ignore[arg-type]
-        board=CALIBRATION_BOARD,
-        board_watch=SimpleNamespace(  # type: ignore[arg-type]
-            latest=None, latest_pose=None, pose_listeners=[], enabled=True, on_sighting=None
-        ),
-    )
-    session = CalibrationSession(tmp_path / "work", default_rig(), CALIBRATION_BOARD)
-    panel = CalibrationPanel(ctx, session)
-    try:
+    with panel_on(tmp_path) as (panel, session, server):
         for k, fs in enumerate(calibration_frame_sets):
             frames = {n: f for n, f in fs.frames.items() if n != "thermal_right" or k < 2}
             session.take(FrameSet(fs.stamp_ns, frames))
@@ -96,6 +70,3 @@ def test_rms_chart_draws_every_calibrated_sensors_points(
             colour = np.array(sensor_colour(i), float)
             near = np.linalg.norm(rgb.astype(float) - colour, axis=2) < 40
             assert near.sum() > 60, (name, int(near.sum()))
-    finally:
-        session.close()
-        server.stop()
