@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from trifuse.app.workflows.report_markup import and_list
 from trifuse.calib.coverage import COARSE_NAMES, coarse_reached, reached_fraction
 
 if TYPE_CHECKING:
@@ -47,10 +48,6 @@ def limit_distance_cell(value_m: float | None, range_max_m: float) -> str:
     return f"{value_m:.2f}"
 
 
-def _and(names: list[str]) -> str:
-    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
-
-
 def coverage_sentence(corner_counts: np.ndarray, sparse_at_most: float = 0.5) -> str:
     """How much of a sensor's image the board's corners reached, in one short sentence.
 
@@ -76,9 +73,9 @@ def coverage_sentence(corner_counts: np.ndarray, sparse_at_most: float = 0.5) ->
                 few.append(COARSE_NAMES[r][c])
     text = f"corners cover {math.floor(100 * reached + 1e-9)} % of the image"  # 0.29 * 100
     if none:
-        text += f"; none in the {_and(none)}"
+        text += f"; none in the {and_list(none)}"
     if few:
-        text += f"; few in the {_and(few)}"
+        text += f"; few in the {and_list(few)}"
     return text
 
 
