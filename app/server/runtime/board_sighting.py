@@ -3,10 +3,11 @@
 :func:`sighting` searches the sensors of a frame set in the order their detection is trusted
 for the pose (:data:`POSE_PREFERENCE`: colour, thermal, TOF) and gives a
 :class:`BoardSighting`: each sensor's corners (or why not), the board's pose in the rig frame
-(:func:`board_pose`, from the most trusted sensor that found it) and whether the board held
-still since the previous sighting (:class:`Motion`). :class:`LookCache` shares the looks
-at each image between threads; :class:`~app.server.runtime.board_watch.BoardWatch` decides
-when and on which threads the searches run.
+(:func:`calib.board_pose.board_pose_single`, from the most trusted sensor that found it)
+and whether the board held still since the previous sighting (:class:`Motion`).
+:class:`LookCache` shares the looks at each image between threads;
+:class:`~app.server.runtime.board_watch.BoardWatch` decides when and on which threads the
+searches run.
 
 Stillness is judged in frame time, never per search: two looks at the board (two frame
 sets) are compared by how far its corners moved and how far apart the frames' own time
@@ -46,12 +47,13 @@ import cv2
 import numpy as np
 
 from trifuse.app.sources.frames import FrameSet
-from trifuse.calib.board import Board
+from trifuse.calib.board import MIN_POSE_POINTS, Board
 from trifuse.calib.board_ordering import orient_to_pose
+from trifuse.calib.board_pose import board_pose_single
 from trifuse.calib.detect import Detection
 from trifuse.calib.polarity import detect_board_configured, override
 from trifuse.calib.rig import Rig
-from trifuse.calib.transforms import invert, make_T, rotation_from_rvec
+from trifuse.calib.transforms import invert
 
 STEADY_PX = 2.0
 """The detector's noise: two looks at a board that did not move agree within this many
@@ -218,35 +220,10 @@ def compare_looks(
     return max(decided, key=lambda m: (m.moved_px / m.limit_px, not m.same_picture))
 
 
-MIN_POSE_CORNERS = 6
-"""A partial view (ChArUco) gives a pose from at least this many corners."""
-
-
-def board_pose(rig: Rig, sensor: str, corners: np.ndarray, board: Board) -> np.ndarray | None:
-    """(4, 4) ``T_rig_board`` from one sensor's corners (N, 2) pixels, NaN rows for corners
-    not seen (a partial view: at least :data:`MIN_POSE_CORNERS`), by PnP with the rig's
-    intrinsics; None when PnP fails or too few corners were seen."""
-    intr = rig[sensor].intrinsics
-    corners = np.asarray(corners, dtype=np.float64)
-    seen = np.isfinite(corners).all(axis=1)
-    if seen.sum() < min(MIN_POSE_CORNERS, len(corners)):
-        return None
-    ok, rvec, tvec = cv2.solvePnP(
-        board.object_points()[seen].astype(np.float64),
-        corners[seen].reshape(-1, 1, 2),
-        intr.K,
-        np.asarray(intr.distortion, dtype=np.float64),
-        flags=cv2.SOLVEPNP_ITERATIVE,
-    )
-    if not ok:
-        return None
-    return rig[sensor].T_rig_sensor @ make_T(rotation_from_rvec(rvec.ravel()), tvec.ravel())
-
-
 def board_in_image(rig: Rig, sensor: str, T_rig_board: np.ndarray, board: Board) -> bool:
     """Whether every inner corner of the board at ``T_rig_board`` (4, 4) projects into
     ``sensor``'s image (in front of it, within its pixels), by the rig's calibration; of a
-    board seen in part (ChArUco), whether at least :data:`MIN_POSE_CORNERS` do."""
+    board seen in part (ChArUco), whether at least :data:`MIN_POSE_POINTS` do."""
     s = rig[sensor]
     T = invert(s.T_rig_sensor) @ np.asarray(T_rig_board, dtype=np.float64)
     P = board.object_points() @ T[:3, :3].T + T[:3, 3]
@@ -255,7 +232,7 @@ def board_in_image(rig: Rig, sensor: str, T_rig_board: np.ndarray, board: Board)
     inside = (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
     inside &= np.isfinite(uv).all(axis=1) & (P[:, 2] > 0)
     if board.partial_views:
-        return int(inside.sum()) >= MIN_POSE_CORNERS
+        return int(inside.sum()) >= MIN_POSE_POINTS
     return bool(np.all(inside))
 
 
@@ -470,7 +447,7 @@ def sighting(
         if coarse:
             missed.append(name)
         if pose_sensor is None and det.found:
-            pose = board_pose(rig, name, det.corners, board)
+            pose = board_pose_single(rig, name, det.corners, board)
             if pose is not None:
                 pose_sensor = name
         if pose is not None and not published and on_pose is not None:
@@ -493,7 +470,7 @@ def sighting(
         pose_sensor, pose = None, None
         for name in names:
             det = detections[name]
-            if det.found and (T := board_pose(rig, name, det.corners, board)) is not None:
+            if det.found and (T := board_pose_single(rig, name, det.corners, board)) is not None:
                 pose_sensor, pose = name, T
                 break
     detections = orient_by_colour(detections, rig, board, pose, pose_sensor)

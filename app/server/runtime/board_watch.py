@@ -75,7 +75,6 @@ from trifuse.app.server.runtime.board_sighting import (
     Detector,
     LookCache,
     Motion,
-    board_pose,
     compare_looks,
     safe_look,
     sighting,
@@ -85,6 +84,7 @@ from trifuse.app.server.runtime.demand import Demand
 from trifuse.app.server.runtime.periodic import Periodic
 from trifuse.app.sources.frames import FrameSet
 from trifuse.calib.board import Board
+from trifuse.calib.board_pose import board_pose_single
 from trifuse.calib.detect import Detection
 from trifuse.calib.polarity import detect_board_configured
 from trifuse.calib.rig import Rig
@@ -292,7 +292,10 @@ class BoardWatch(Periodic):
             for name in names:
                 det, _ = safe_look(self._looks, name, fs.frames[name].image, rig[name].modality)
                 detections[name] = det
-                if det.found and (T := board_pose(rig, name, det.corners, self.board)) is not None:
+                if (
+                    det.found
+                    and (T := board_pose_single(rig, name, det.corners, self.board)) is not None
+                ):
                     found = BoardSighting(fs, dict(detections), T, name, False, False)
                     break
             done = time.monotonic()
