@@ -326,11 +326,14 @@ def test_viewer_colour_scale_stays_beside_the_picture(console, browser) -> None:
     page = browser.new_page(viewport={"width": 1400, "height": 700})
     try:
         page.goto(console.signin("/"))
-        page.wait_for_function("() => window.trifuseStats && window.trifuseStats.scale")
+        # the scales shown (the module's previous test ended in colour mode: a picture of
+        # it may still come first)
+        shown = "[...document.querySelectorAll('.scale')].every((e) => !e.hidden)"
+        page.wait_for_function(f"() => window.trifuseStats && window.trifuseStats.scale && {shown}")
         for w, h in [(1400, 700), (900, 500), (600, 400), (1000, 300)]:
             page.set_viewport_size({"width": w, "height": h})
             page.wait_for_function(
-                f"() => Math.abs(document.getElementById('pair').offsetWidth"
+                f"() => {shown} && Math.abs(document.getElementById('pair').offsetWidth"
                 f" - Math.min({w}, ({h} - document.getElementById('scales').offsetHeight)"
                 f" * 2560 / 960)) < 2",
             )
