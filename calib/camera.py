@@ -134,6 +134,54 @@ class Intrinsics:
         xd, _ = self._distort_with_jacobian(xy, jacobian=False)
         return xd
 
+    def _radial(self, r2: np.ndarray) -> np.ndarray:
+        """The radial factor ``(1 + k1 r2 + k2 r2^2 + k3 r2^3) / (1 + k4 r2 + ...)`` at the
+        squared normalised radii ``r2`` (a new array). The division is left out when k4-k6
+        are zero (a division by exactly 1)."""
+        k1, k2, _p1, _p2, k3, k4, k5, k6 = self._coeffs
+        rad = r2 * k3
+        rad += k2
+        rad *= r2
+        rad += k1
+        rad *= r2
+        rad += 1.0
+        if k4 or k5 or k6:
+            den = r2 * k6
+            den += k5
+            den *= r2
+            den += k4
+            den *= r2
+            den += 1.0
+            rad /= den
+        return rad
+
+    def _distorted(
+        self, x: np.ndarray, y: np.ndarray, r2: np.ndarray, rad: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Distorted normalised coordinates (new arrays) of ``x``, ``y`` (any shape, the
+        same), with ``r2 = x^2 + y^2`` and ``rad`` its :meth:`_radial` factor. In place
+        where it can: a per-frame path (:meth:`project`)."""
+        _k1, _k2, p1, p2 = self._coeffs[:4]
+        xd = x * rad
+        t = (2.0 * p1) * x
+        t *= y
+        xd += t
+        t = 2.0 * x
+        t *= x
+        t += r2
+        t *= p2
+        xd += t
+        yd = y * rad
+        t = 2.0 * y
+        t *= y
+        t += r2
+        t *= p1
+        yd += t
+        t = (2.0 * p2) * x
+        t *= y
+        yd += t
+        return xd, yd
+
     def _distort_with_jacobian(
         self, xy: np.ndarray, jacobian: bool = True
     ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -141,14 +189,13 @@ class Intrinsics:
         x = xy[..., 0]
         y = xy[..., 1]
         r2 = x * x + y * y
-        num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
-        rad = num / den
+        rad = self._radial(r2)
         out = np.empty(xy.shape, dtype=np.float64)
-        out[..., 0] = x * rad + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-        out[..., 1] = y * rad + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        out[..., 0], out[..., 1] = self._distorted(x, y, r2, rad)
         if not jacobian:
             return out, None
+        num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
         dnum = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
         dden = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2)
         drad = (dnum * den - num * dden) / (den * den)  # d rad / d r2
@@ -213,14 +260,28 @@ class Intrinsics:
         P = np.asarray(points, dtype=np.float64)
         if P.shape[-1] != 3:
             raise ValueError(f"points: expected shape (..., 3), got {P.shape}")
-        z = P[..., 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xy = P[..., :2] / np.where(z > 0, z, np.nan)[..., None]
-            r_max = min(monotonic_radius(self), MAX_RAY_RADIUS)
-            xy[~(np.hypot(xy[..., 0], xy[..., 1]) <= r_max)] = np.nan
-        uv = self.distort(xy)
-        uv[..., 0] = uv[..., 0] * self.fx + self.cx
-        uv[..., 1] = uv[..., 1] * self.fy + self.cy
+        r_max = min(monotonic_radius(self), MAX_RAY_RADIUS)
+        uv = np.empty((*P.shape[:-1], 2), dtype=np.float64)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            z = P[..., 2]
+            z = np.where(z > 0, z, np.nan)
+            x = P[..., 0] / z
+            y = P[..., 1] / z
+            r2 = x * x
+            r2 += y * y
+            # Beyond r_max (or NaN): hypot decides where r2 is too close to r_max^2 to tell.
+            beyond = ~(r2 <= r_max * r_max * (1.0 - 1e-9))
+            if beyond.any():
+                i = np.flatnonzero(beyond)
+                beyond.flat[i] = ~(np.hypot(x.flat[i], y.flat[i]) <= r_max)
+            u, v = self._distorted(x, y, r2, self._radial(r2))
+        u *= self.fx
+        u += self.cx
+        v *= self.fy
+        v += self.cy
+        uv[..., 0] = u
+        uv[..., 1] = v
+        uv[beyond] = np.nan
         return uv
 
     def normalized(self, pixels: npt.ArrayLike) -> np.ndarray:
