@@ -64,6 +64,12 @@ COEFFICIENT_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 
 # Normalised radii scanned for the fold of the distortion: step 1e-3 up to 2 (63 degrees off
 # axis), then geometric up to MAX_RAY_RADIUS.
+PROJECT_CHUNK = 8192
+"""Points projected at a time by :meth:`Intrinsics.project`: its float64 temporaries stay
+at 64 KiB, which the allocator reuses; larger ones are mapped and unmapped at each call, and
+their page faults took 3-4 times the arithmetic (76,800 points: 3.5-4.5 ms whole, 1.0 ms in
+chunks)."""
+
 _FOLD_SCAN = np.concatenate(
     [np.linspace(0.0, 2.0, 2001), np.geomspace(2.0, MAX_RAY_RADIUS, 2001)[1:]]
 )
@@ -260,29 +266,34 @@ class Intrinsics:
         P = np.asarray(points, dtype=np.float64)
         if P.shape[-1] != 3:
             raise ValueError(f"points: expected shape (..., 3), got {P.shape}")
+        flat = P.reshape(-1, 3)
+        uv = np.empty((flat.shape[0], 2), dtype=np.float64)
+        for i in range(0, flat.shape[0], PROJECT_CHUNK):
+            self._project_into(flat[i : i + PROJECT_CHUNK], uv[i : i + PROJECT_CHUNK])
+        return uv.reshape(*P.shape[:-1], 2)
+
+    def _project_into(self, P: np.ndarray, uv: np.ndarray) -> None:
+        """:meth:`project` of points (N, 3) float64 into ``uv`` (N, 2)."""
         r_max = min(monotonic_radius(self), MAX_RAY_RADIUS)
-        uv = np.empty((*P.shape[:-1], 2), dtype=np.float64)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            z = P[..., 2]
-            z = np.where(z > 0, z, np.nan)
-            x = P[..., 0] / z
-            y = P[..., 1] / z
+            z = np.where(P[:, 2] > 0, P[:, 2], np.nan)
+            x = P[:, 0] / z
+            y = P[:, 1] / z
             r2 = x * x
             r2 += y * y
             # Beyond r_max (or NaN): hypot decides where r2 is too close to r_max^2 to tell.
             beyond = ~(r2 <= r_max * r_max * (1.0 - 1e-9))
             if beyond.any():
                 i = np.flatnonzero(beyond)
-                beyond.flat[i] = ~(np.hypot(x.flat[i], y.flat[i]) <= r_max)
+                beyond[i] = ~(np.hypot(x[i], y[i]) <= r_max)
             u, v = self._distorted(x, y, r2, self._radial(r2))
         u *= self.fx
         u += self.cx
         v *= self.fy
         v += self.cy
-        uv[..., 0] = u
-        uv[..., 1] = v
+        uv[:, 0] = u
+        uv[:, 1] = v
         uv[beyond] = np.nan
-        return uv
 
     def normalized(self, pixels: npt.ArrayLike) -> np.ndarray:
         """Undistorted normalised coordinates ``(..., 2)`` of pixels ``(..., 2)``."""
