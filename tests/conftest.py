@@ -18,6 +18,7 @@ Tests check behaviour, not speed: code paced by the wall clock takes a simulated
 
 import contextlib
 import io
+import os
 import sys
 from pathlib import Path
 
@@ -30,21 +31,39 @@ if str(ROOT) not in sys.path:
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Tests that need the 30-view simulated capture (fixtures ``simulated`` and
-    ``simulated_capture``, about 40 s once per run) are slow ones too."""
+    ``simulated_capture``, about 40 s once per run) are slow ones too. Under pytest-xdist
+    the test files with slow tests run first (in their order), the others after them: the
+    workers take a file at a time, and the short ones then fill the end of the run instead
+    of one worker finishing a browser session alone. (Alone, a run keeps the files' order:
+    the quick tests run while the background renders what the slow ones need.)"""
+    from tests.prerender_support import xdist_worker
+
     for item in items:
         if {"simulated", "simulated_capture"} & set(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.slow)
+    if xdist_worker() is None:
+        return
+    slow_files = {item.path for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.path not in slow_files)  # stable: order kept within
+
+
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """``-n auto`` (pyproject.toml's options): one worker a core, at most 4 (a worker of
+    the slow tests runs a console and a browser beside it)."""
+    return max(1, min(os.cpu_count() or 1, 4))
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
     """A run with slow tests (the consoles and browser sessions) warms the simulator's disk
-    cache in the background from the start (tests/browser_support.py); then a background
-    process renders the simulated captures and views the run's tests will ask for
+    cache in the background from the start (tests/browser_support.py: under xdist, the
+    first worker does, for all); then, outside xdist, a background process renders the
+    simulated captures and views the run's tests will ask for
     (tests/prerender_support.py)."""
     from tests import prerender_support
     from tests.browser_support import cache_warmups, start_cache_warmup
 
-    if any(item.get_closest_marker("slow") for item in session.items):
+    slow = any(item.get_closest_marker("slow") for item in session.items)
+    if slow and prerender_support.xdist_worker() in (None, "gw0"):
         start_cache_warmup()
     prerender_support.start(session, after=cache_warmups())
 
@@ -92,11 +111,15 @@ def browser():
 
 
 @pytest.fixture(scope="session")
-def calibration_frame_sets():
-    """Twelve simulated views of the calibration board (seed 1), all five sensors."""
-    from trifuse.app.sources.sim.scenarios import calibration_views
+def calibration_frame_sets(tmp_path_factory: pytest.TempPathFactory):
+    """Twelve simulated views of the calibration board (seed 1), all five sensors (rendered
+    once a run: tests/prerender_support.py)."""
+    import pickle
 
-    return [v.frames for v in calibration_views(12, seed=1)]
+    from tests.prerender_support import prerendered
+
+    out = prerendered("calibration-frame-sets", tmp_path_factory)
+    return pickle.loads((out / "frames.pkl").read_bytes())
 
 
 @pytest.fixture(scope="session")

@@ -15,6 +15,11 @@ simulated capture's first 10 views against test_crash_safety.py's former renderi
 thermal views of a condition against rendering them in the test). A job the background
 was not given (a test the collection hook did not see) runs in the test's own process.
 
+With pytest-xdist's workers (the README's test command) both cores already run tests: there
+is no background, and the workers of one run share each job (:class:`_Shared`): the first
+worker whose test asks for it runs it, in its own process, while another that asks waits for
+it to finish.
+
 Add a job: a function ``f(out: Path) -> None`` writing into ``out`` in :data:`JOBS`, its
 prerequisites in :data:`NEEDS`, and the tests that want it in :func:`jobs_of`.
 """
@@ -27,12 +32,13 @@ import pickle
 import subprocess
 import sys
 import threading
+import traceback
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import pytest
 
-from tests.support import ROOT
+from tests.support import ROOT, wait_until
 
 NICE = 10
 """The background's niceness: it takes what the tests (and their consoles and browsers)
@@ -131,7 +137,18 @@ def _thermal_views(name: str) -> Callable[[Path], None]:
     return job
 
 
+def _calibration_frame_sets(out: Path) -> None:
+    """conftest.py's ``calibration_frame_sets``: twelve views of the calibration scenario
+    (seed 1), every sensor's frames, pickled (``frames.pkl``)."""
+    from trifuse.app.sources.sim.scenarios import calibration_views
+
+    out.mkdir()
+    frames = [v.frames for v in calibration_views(12, seed=1)]
+    (out / "frames.pkl").write_bytes(pickle.dumps(frames))
+
+
 JOBS: dict[str, Callable[[Path], None]] = {
+    "calibration-frame-sets": _calibration_frame_sets,
     "simulated-capture": lambda out: _simulate(out / "captures", "--views", "30", "--seed", "1"),
     "simulated": _simulated,
     # test_calibration_matrix.py's captures (its docstring says what each varies)
@@ -178,6 +195,8 @@ def jobs_of(item: pytest.Item) -> list[str]:
         jobs.append("simulated-capture")
     if "simulated" in fixtures:
         jobs.append("simulated")
+    if "calibration_frame_sets" in fixtures:
+        jobs.append("calibration-frame-sets")
     if module == "test_calibration_matrix.py" and "captures" in fixtures:
         jobs += ["matrix-white-hot", "matrix-cooled", "matrix-few-views"]
     params = getattr(getattr(item, "callspec", None), "params", {})
@@ -188,6 +207,11 @@ def jobs_of(item: pytest.Item) -> list[str]:
     if getattr(item, "originalname", "") == "test_detection_under_condition_more_seeds":
         jobs.append(THERMAL_JOB + params["name"])
     return jobs
+
+
+def xdist_worker() -> str | None:
+    """This process's pytest-xdist worker (``gw0``, ``gw1``, ...), None outside xdist."""
+    return os.environ.get("PYTEST_XDIST_WORKER")
 
 
 # -- the background run ----------------------------------------------------------------------
@@ -210,6 +234,40 @@ class _Jobs:
                 self.run_here(dep)
             job(key)(self.out(key))
             self.finished.add(key)
+        return self.out(key)
+
+
+class _Shared(_Jobs):
+    """Jobs run into folders under ``base``, a folder every xdist worker of the run sees:
+    each job once in the run, by the worker that claims it first (an exclusive create of
+    ``KEY.claim``); it leaves ``KEY.done``, or ``KEY.failed`` with the error, and the other
+    workers wait for one of them."""
+
+    def run_here(self, key: str) -> Path:
+        if key in self.finished:
+            return self.out(key)
+        for dep in NEEDS.get(key, ()):
+            self.run_here(dep)
+        done, failed = self.base / f"{key}.done", self.base / f"{key}.failed"
+        try:
+            os.close(os.open(self.base / f"{key}.claim", os.O_CREAT | os.O_EXCL))
+        except FileExistsError:  # another worker runs it
+            wait_until(
+                lambda: done.exists() or failed.exists(),
+                f"another worker's render of {key}",
+                TIMEOUT_S,
+                poll_s=0.5,
+            )
+            if failed.exists():
+                pytest.fail(f"another worker's render of {key} failed:\n{failed.read_text()}")
+        else:
+            try:
+                job(key)(self.out(key))
+            except BaseException:
+                failed.write_text(traceback.format_exc()[-4000:])
+                raise
+            done.touch()
+        self.finished.add(key)
         return self.out(key)
 
 
@@ -300,7 +358,7 @@ def start(session: pytest.Session, after: Iterable[subprocess.Popen] = ()) -> No
     """Start making the captures the session's tests will ask for, in their order, once
     the processes ``after`` have ended, in a folder of the session's temporary ones."""
     global _background
-    if session.config.option.collectonly:
+    if session.config.option.collectonly or xdist_worker() is not None:
         return
     queue: list[str] = []
     for item in session.items:
@@ -321,10 +379,16 @@ def stop() -> None:
 
 def prerendered(key: str, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The folder job ``key`` wrote: the background's, waiting for it if need be, or
-    (not queued there) one of ``tmp_path_factory``'s, where this process runs it now."""
+    (not queued there) one of ``tmp_path_factory``'s, where this process runs it now (under
+    xdist, the run's folder shared by the workers: :class:`_Shared`)."""
     global _here
     if _background is not None and (out := _background.wait(key)) is not None:
         return out
     if _here is None:
-        _here = _Jobs(tmp_path_factory.mktemp("prerender"))
+        if xdist_worker() is None:
+            _here = _Jobs(tmp_path_factory.mktemp("prerender"))
+        else:  # the workers' temporary folders are beside each other
+            shared = tmp_path_factory.getbasetemp().parent / "prerender"
+            shared.mkdir(exist_ok=True)
+            _here = _Shared(shared)
     return _here.run_here(key)

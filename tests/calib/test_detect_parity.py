@@ -104,6 +104,7 @@ def test_textured_squares_cost_no_board_against_opencv() -> None:
 
 
 @pytest.mark.skipif(not THERMAL.is_dir(), reason="tests/data/czha626-thermal-visible absent")
+@pytest.mark.slow  # both detectors on every image of a real set: about 6 s
 def test_burnt_in_thermal_text_costs_no_board_against_opencv() -> None:
     ours = opencv = 0
     for f in sorted(THERMAL.glob("*.jpg")):

@@ -352,6 +352,7 @@ def test_real_colour_views_subsampled_to_four_to_six_against_opencv() -> None:
 
 
 @pytest.mark.skipif(not CZHA626.is_dir(), reason="tests/data/czha626-thermal-visible not copied")
+@pytest.mark.slow  # calibrates many subsets of a real set twice: about 8 s
 def test_real_thermal_views_subsampled_against_opencv() -> None:
     """czha626's LWIR views (640 x 480, a 6 x 5 board outdoors), 4-8 at a time. Measured
     (5 subsets): on OpenCV's detections trifuse's RMS equals OpenCV's; on its own

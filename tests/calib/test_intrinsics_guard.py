@@ -34,6 +34,7 @@ def _kept(result: CalibrationResult) -> list[str]:
     return [s for s, r in result.sensors.items() if r.intrinsics_source.startswith("own views")]
 
 
+@pytest.mark.slow  # calibrations of a real set: about 6 s
 def test_caliscope_cam_1_keeps_its_own_intrinsics() -> None:
     """caliscope's cam_1 runs about a frame late: refined jointly its fx went 770 -> 939 px
     (14 of its own sigmas) and its RMS 10x its own. With the guard it keeps its own: fx is

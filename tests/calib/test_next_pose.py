@@ -63,6 +63,7 @@ def iid_worst_ratio(result: CalibrationResult) -> float:
     )
 
 
+@pytest.mark.slow  # repeated calibrations and suggestions: about 7 s
 def test_the_suggested_view_beats_ordinary_ones() -> None:
     """Five views of the head (three seeds); one more view, either the suggested one or
     one of six ordinary poses of the simulator's calibration scenario (each seen by the
@@ -99,6 +100,7 @@ def test_the_suggested_view_beats_ordinary_ones() -> None:
     assert np.mean(ours) < np.mean(theirs), (ours, theirs)
 
 
+@pytest.mark.slow  # repeated calibrations and suggestions: about 6 s
 def test_suggestions_converge_and_then_stop() -> None:
     """From four views, take the suggested view (synthetic corners with the detectors'
     noise), calibrate again, repeat: after a few suggestions every verdict is good and the

@@ -76,6 +76,7 @@ def _capture(root: Path, ext: str) -> Path:
     return root
 
 
+@pytest.mark.slow  # two calibrations of a real set: about 6 s
 def test_16_bit_pgm_thermal_calibrates_as_its_png(tmp_path: Path) -> None:
     reports = {}
     for ext in (".pgm", ".png"):

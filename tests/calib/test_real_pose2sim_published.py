@@ -34,6 +34,8 @@ from tests.pose2sim_support import BAD_CORNER_PX, CAMERAS, SET, TARGET, pose2sim
 from trifuse.app.devtools.bench_real_calib import run_trifuse, trifuse_name, write_capture
 from trifuse.app.devtools.opencv_figures import measure
 
+pytestmark = pytest.mark.slow  # calibrations of Pose2Sim's real set: about 10 s
+
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):

@@ -175,6 +175,7 @@ def pose2sim(tmp_path_factory):
     return trifuse, report, run_opencv(SET, None), {c: pose2sim_recipe(c).fx_clean for c in CAMERAS}
 
 
+@pytest.mark.slow  # a calibration of Pose2Sim's real set: about 10 s
 def test_pose2sim_in_one_capture_every_camera_within_1_percent(pose2sim):
     trifuse, _report, opencv, reference = pose2sim
     assert trifuse.failure == "", trifuse.failure
@@ -202,6 +203,7 @@ def test_pose2sim_in_one_capture_every_camera_within_1_percent(pose2sim):
         assert r.outcome.startswith("intrinsics only: shares no view with ccd_cam01"), r.outcome
 
 
+@pytest.mark.slow  # a calibration of Pose2Sim's real set: about 10 s
 def test_pose2sim_summary_and_html_show_the_intrinsics_only_cameras(pose2sim):
     trifuse, report, _opencv, _reference = pose2sim
     result = trifuse.result

@@ -257,6 +257,7 @@ def test_analyze_prints_tof_pixels_rounded(
 # -- simulate calibration end to end ------------------------------------------------------
 
 
+@pytest.mark.slow  # renders a simulated capture: about 6 s
 def test_simulate_calibration_writes_a_capture(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

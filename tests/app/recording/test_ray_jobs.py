@@ -26,6 +26,8 @@ from trifuse.app.recording import jobs
 from trifuse.app.recording.jobs import RayRunner, plan_fuse_job, run_fuse_job
 from trifuse.fusion.compose import DisplaySettings
 
+pytestmark = pytest.mark.slow  # a local Ray cluster: about 10 s to start, 25 s in all
+
 CHUNK = ["--chunk-s", "1"]  # 3 pieces per 3 s recording
 
 

@@ -563,6 +563,7 @@ def test_routes_are_enumerated_and_every_body_route_has_a_valid_body(console) ->
 
 @FUZZ
 @given(data=st.data())
+@pytest.mark.slow  # hundreds of fuzzed requests through the whole app: about 10 s
 def test_random_json_bodies(console, data) -> None:
     route = data.draw(st.sampled_from(callable_routes(console)), label="route")
     value = data.draw(json_values(console.field_names), label="body")
@@ -572,6 +573,7 @@ def test_random_json_bodies(console, data) -> None:
 
 @FUZZ
 @given(data=st.data())
+@pytest.mark.slow  # hundreds of fuzzed requests through the whole app: about 8 s
 def test_mutated_valid_bodies(console, data) -> None:
     body_routes = [r for r in console.routes if r.has_body]
     route = data.draw(st.sampled_from(body_routes), label="route")
@@ -584,6 +586,7 @@ def test_mutated_valid_bodies(console, data) -> None:
 
 @FUZZ
 @given(data=st.data())
+@pytest.mark.slow  # hundreds of fuzzed requests through the whole app: about 8 s
 def test_non_json_bodies_and_content_types(console, data) -> None:
     route = data.draw(st.sampled_from(callable_routes(console)), label="route")
     body = data.draw(
@@ -604,6 +607,7 @@ def test_non_json_bodies_and_content_types(console, data) -> None:
 
 @FUZZ
 @given(data=st.data())
+@pytest.mark.slow  # hundreds of fuzzed requests through the whole app: about 10 s
 def test_random_path_parameters(console, data) -> None:
     routes = [r for r in callable_routes(console) if r.path_params]
     route = data.draw(st.sampled_from(routes), label="route")
@@ -621,6 +625,7 @@ def test_random_path_parameters(console, data) -> None:
 
 @FUZZ
 @given(data=st.data())
+@pytest.mark.slow  # hundreds of fuzzed requests through the whole app: about 10 s
 def test_random_methods_and_query_strings(console, data) -> None:
     route = data.draw(st.sampled_from(callable_routes(console)), label="route")
     method = data.draw(st.sampled_from([route.method, *METHODS]), label="method")

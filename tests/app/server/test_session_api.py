@@ -52,6 +52,7 @@ def test_captures_take_list_delete(api) -> None:
     assert client.get("/api/captures").json()["views"] == []
 
 
+@pytest.mark.slow  # a calibration of simulated views through the API: about 6 s
 def test_calibrate_save_and_use_a_version(api) -> None:
     client, session, state, frames = api
     r = client.post("/api/calibrate")

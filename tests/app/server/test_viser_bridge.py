@@ -57,6 +57,7 @@ def test_console_page_and_websocket_relay(guarded) -> None:
         assert len(first) > 0
 
 
+@pytest.mark.slow  # starts a console: about 6 s
 def test_viser_port_refuses_everyone_but_the_relay(guarded) -> None:
     server, secret = guarded
     port = server.get_port()

@@ -55,6 +55,7 @@ def _detect(gray: np.ndarray) -> np.ndarray | None:
     return cv2.cornerSubPix(gray, c.reshape(-1, 1, 2), (half, half), (-1, -1), crit).reshape(-1, 2)
 
 
+@pytest.mark.slow  # renders and searches calibration views: about 8 s
 def test_color_corners_match_ground_truth_projection() -> None:
     """OpenCV finds the board corners within 0.1 px RMS of the exact projection."""
     renderer = Renderer(RIG)

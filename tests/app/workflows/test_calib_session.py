@@ -128,6 +128,7 @@ def test_refuses_what_cannot_be_done(tmp_path, views) -> None:
         CalibrationSession(tmp_path, rig, Board(cols=7, rows=5, square_size_m=0.03))
 
 
+@pytest.mark.slow  # a calibration of twelve simulated views: about 12 s
 def test_calibrate_save_and_reopen(tmp_path, views) -> None:
     """A session calibrates its views, saves numbered rig versions, and a new session on
     the same directory (a restarted console) finds every view and version."""
