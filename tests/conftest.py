@@ -55,10 +55,9 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
 
 def pytest_collection_finish(session: pytest.Session) -> None:
     """A run with slow tests (the consoles and browser sessions) warms the simulator's disk
-    cache in the background from the start (tests/browser_support.py: under xdist, the
-    first worker does, for all); then, outside xdist, a background process renders the
-    simulated captures and views the run's tests will ask for
-    (tests/prerender_support.py)."""
+    cache in the background from the start (tests/browser_support.py); then a background
+    process renders the simulated captures and views the run's tests will ask for
+    (tests/prerender_support.py). Under xdist, the first worker does both, for all."""
     from tests import prerender_support
     from tests.browser_support import cache_warmups, start_cache_warmup
 
@@ -98,14 +97,21 @@ def browser():
     sync_api = pytest.importorskip("playwright.sync_api")
     with sync_api.sync_playwright() as p:
         b = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
-        new_page = b.new_page
+        new_page, new_context = b.new_page, b.new_context
 
-        def patient_page(**kwargs):  # waits without a timeout of their own take WAIT_MS
+        # waits without a timeout of their own take WAIT_MS (Playwright's 30 s is short for
+        # a console beside another worker's)
+        def patient_page(**kwargs):
             page = new_page(**kwargs)
             page.set_default_timeout(WAIT_MS)
             return page
 
-        b.new_page = patient_page
+        def patient_context(**kwargs):
+            context = new_context(**kwargs)
+            context.set_default_timeout(WAIT_MS)
+            return context
+
+        b.new_page, b.new_context = patient_page, patient_context
         yield b
         b.close()
 

@@ -1,24 +1,22 @@
-"""Simulated captures and views rendered ahead, in a background process, while other tests
-run.
+"""Simulated captures and views rendered once a run, ahead, in a background process, while
+other tests run.
 
 Several slow tests start from what the simulator renders: a capture of ``trifuse simulate
 calibration`` (and often its ``trifuse calibrate``), or test_thermal_conditions.py's
-thermal views; 10-60 s each, on the test's own core while the machine's second core is
-mostly idle. When a run collects such tests, conftest.py calls :func:`start`: a background
-thread runs their jobs one after the other (in the order the tests will ask for them,
-after the simulator cache's warm-up, each in a subprocess at a lower priority, ``nice``)
-into a folder of the session's temporary ones, by the very commands the tests ran
-themselves. The test's fixture takes the result with :func:`prerendered`, waiting for it
-if need be (the job then runs at a normal priority). Nothing a test checks changes: the
+thermal views; 10-60 s each. Each is a job, run once a run into a folder every process of
+the run sees (:class:`_Store`: pytest-xdist's workers share it), by the very commands the
+tests ran themselves: the process that claims a job first runs it (an exclusive create of
+``KEY.claim``, holding the pid that runs it), and it ends with ``KEY.done``, or
+``KEY.failed`` holding the error. When a run collects such tests, conftest.py calls
+:func:`start` (in the first worker, or the only process): a background thread claims and
+runs their jobs one after the other, in the order the tests will ask for them, after the
+simulator cache's warm-up, each in a subprocess at a lower priority (``nice``), so that
+they take what the tests leave of the CPU. A test's fixture takes the result with
+:func:`prerendered`: it waits for a job claimed elsewhere (giving it the test's priority),
+and runs one nobody has claimed in its own process. Nothing a test checks changes: the
 same commands with the same seeds write the same files (compared byte for byte: the
 simulated capture's first 10 views against test_crash_safety.py's former rendering, the
-thermal views of a condition against rendering them in the test). A job the background
-was not given (a test the collection hook did not see) runs in the test's own process.
-
-With pytest-xdist's workers (the README's test command) both cores already run tests: there
-is no background, and the workers of one run share each job (:class:`_Shared`): the first
-worker whose test asks for it runs it, in its own process, while another that asks waits for
-it to finish.
+thermal views of a condition against rendering them in the test).
 
 Add a job: a function ``f(out: Path) -> None`` writing into ``out`` in :data:`JOBS`, its
 prerequisites in :data:`NEEDS`, and the tests that want it in :func:`jobs_of`.
@@ -32,6 +30,7 @@ import pickle
 import subprocess
 import sys
 import threading
+import time
 import traceback
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -217,91 +216,115 @@ def xdist_worker() -> str | None:
 # -- the background run ----------------------------------------------------------------------
 
 
-class _Jobs:
-    """Jobs run into folders under ``base``, each once."""
+class _Store:
+    """The jobs' folders under ``base``, each job run once by the process that claims it
+    (see the module doc)."""
 
     def __init__(self, base: Path) -> None:
         self.base = base
-        self.finished: set[str] = set()
+        base.mkdir(parents=True, exist_ok=True)
 
     def out(self, key: str) -> Path:
         return self.base / key
 
-    def run_here(self, key: str) -> Path:
-        """Run ``key`` (after its prerequisites) in this process, unless done already."""
-        if key not in self.finished:
-            for dep in NEEDS.get(key, ()):
-                self.run_here(dep)
-            job(key)(self.out(key))
-            self.finished.add(key)
+    def _mark(self, key: str, kind: str) -> Path:
+        return self.base / f"{key}.{kind}"
+
+    def claim(self, key: str) -> bool:
+        """Whether this process got ``key`` to run (no other process had claimed it)."""
+        try:
+            os.close(os.open(self._mark(key, "claim"), os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+        except FileExistsError:
+            return False
+        return True
+
+    def running(self, key: str, pid: int) -> None:
+        """Say which process runs the claimed ``key`` (a waiter gives it its priority)."""
+        self._mark(key, "claim").write_text(str(pid))
+
+    def finish(self, key: str, error: str | None = None) -> None:
+        if error is None:
+            self._mark(key, "done").touch()
+        else:
+            self._mark(key, "failed").write_text(error)
+
+    def ended(self, key: str) -> bool:
+        return self._mark(key, "done").exists() or self._mark(key, "failed").exists()
+
+    def wait(self, key: str) -> Path:
+        """The folder of ``key``, claimed by some process, once it has ended."""
+        if not self.ended(key):
+            self._hurry(key)
+        wait_until(lambda: self.ended(key), f"the render of {key}", TIMEOUT_S, poll_s=0.2)
+        failed = self._mark(key, "failed")
+        if failed.exists():
+            pytest.fail(f"the render of {key} failed:\n{failed.read_text()}")
         return self.out(key)
 
-
-class _Shared(_Jobs):
-    """Jobs run into folders under ``base``, a folder every xdist worker of the run sees:
-    each job once in the run, by the worker that claims it first (an exclusive create of
-    ``KEY.claim``); it leaves ``KEY.done``, or ``KEY.failed`` with the error, and the other
-    workers wait for one of them."""
+    def _hurry(self, key: str) -> None:
+        """Give the process running ``key`` this one's priority, where the system lets a
+        process lower a niceness (root; else it stays ``nice``)."""
+        with contextlib.suppress(OSError, ValueError):
+            pid = int(self._mark(key, "claim").read_text())
+            os.setpriority(os.PRIO_PROCESS, pid, os.getpriority(os.PRIO_PROCESS, 0))
 
     def run_here(self, key: str) -> Path:
-        if key in self.finished:
-            return self.out(key)
+        """The folder of ``key`` (after its prerequisites): run in this process if nobody
+        has claimed it, else waited for."""
         for dep in NEEDS.get(key, ()):
             self.run_here(dep)
-        done, failed = self.base / f"{key}.done", self.base / f"{key}.failed"
+        if not self.claim(key):
+            return self.wait(key)
+        self.running(key, os.getpid())
         try:
-            os.close(os.open(self.base / f"{key}.claim", os.O_CREAT | os.O_EXCL))
-        except FileExistsError:  # another worker runs it
-            wait_until(
-                lambda: done.exists() or failed.exists(),
-                f"another worker's render of {key}",
-                TIMEOUT_S,
-                poll_s=0.5,
-            )
-            if failed.exists():
-                pytest.fail(f"another worker's render of {key} failed:\n{failed.read_text()}")
-        else:
-            try:
-                job(key)(self.out(key))
-            except BaseException:
-                failed.write_text(traceback.format_exc()[-4000:])
-                raise
-            done.touch()
-        self.finished.add(key)
+            job(key)(self.out(key))
+        except BaseException:
+            self.finish(key, traceback.format_exc()[-4000:])
+            raise
+        self.finish(key)
         return self.out(key)
 
 
-class _Background(_Jobs):
-    """Runs the queued jobs one after the other, each in a ``nice`` subprocess."""
+class _Background:
+    """Claims and runs the queued jobs one after the other, each in a ``nice`` subprocess;
+    a job another process has claimed is left to it."""
 
-    def __init__(self, base: Path, queue: list[str], after: list[subprocess.Popen]) -> None:
-        super().__init__(base)
-        self.queue, self.after = queue, after
-        self.done = {k: threading.Event() for k in queue}
-        self.failed: dict[str, str] = {}
+    def __init__(self, store: _Store, queue: list[str], after: list[subprocess.Popen]) -> None:
+        self.store, self.queue, self.after = store, queue, after
         self.proc: subprocess.Popen | None = None
+        self.key = ""
         self.stopping = False
         self.lock = threading.Lock()
-        self.wanted = threading.Event()  # a test waits: no more waiting, normal priority
         self.thread = threading.Thread(target=self._run, name="prerender", daemon=True)
         self.thread.start()
 
+    def _idle_until(self, ready: Callable[[], bool]) -> bool:
+        """Wait until ``ready()`` or :meth:`stop`; whether it is ready."""
+        while not self.stopping:
+            if ready():
+                return True
+            time.sleep(0.5)
+        return False
+
     def _run(self) -> None:
-        # the simulator cache's warm-up first (the consoles wait for it), unless a test
-        # waits for a job already
-        while any(p.poll() is None for p in self.after) and not self.stopping:
-            if self.wanted.wait(0.5):
-                break
+        # the simulator cache's warm-up first (the consoles wait for it)
+        if not self._idle_until(lambda: all(p.poll() is not None for p in self.after)):
+            return
         for key in self.queue:
+            deps = NEEDS.get(key, ())  # queued before it, perhaps claimed elsewhere
+            if not self._idle_until(lambda deps=deps: all(map(self.store.ended, deps))):
+                return
             code = (
-                f"import os, sys; os.nice({0 if self.wanted.is_set() else NICE}); "
-                f"sys.path.insert(0, {str(ROOT)!r}); "
+                f"import os, sys; os.nice({NICE}); sys.path.insert(0, {str(ROOT)!r}); "
                 "from pathlib import Path; from tests.prerender_support import job; "
-                f"job({key!r})(Path({str(self.out(key))!r}))"
+                f"job({key!r})(Path({str(self.store.out(key))!r}))"
             )
             with self.lock:  # no job starts once stop() has begun
                 if self.stopping:
-                    break
+                    return
+                if not self.store.claim(key):
+                    continue
+                self.key = key
                 self.proc = subprocess.Popen(
                     [sys.executable, "-c", code],
                     cwd=ROOT,
@@ -309,86 +332,63 @@ class _Background(_Jobs):
                     stderr=subprocess.PIPE,
                     text=True,
                 )
+                self.store.running(key, self.proc.pid)
             _, err = self.proc.communicate()
-            if self.proc.returncode == 0:
-                self.finished.add(key)
-            else:
-                self.failed[key] = err[-4000:] or f"exit status {self.proc.returncode}"
-            self.done[key].set()
-        for event in self.done.values():  # stopped: nothing more will come
-            event.set()
+            status = self.proc.returncode
+            self.store.finish(key, None if status == 0 else err[-4000:] or f"exit status {status}")
 
-    def wait(self, key: str) -> Path | None:
-        """The folder of ``key`` once the background has made it; None if it is not
-        queued or the run was stopped before it."""
-        if key not in self.done:
-            return None
-        if not self.done[key].is_set():  # a test waits for it: a normal priority meanwhile
-            self.wanted.set()
-            self._renice()
-        finished = self.done[key].wait(TIMEOUT_S)
-        self.wanted.clear()
-        if not finished:
-            pytest.fail(f"the background render of {key} did not finish in {TIMEOUT_S:.0f} s")
-        if key in self.failed:
-            pytest.fail(f"the background render of {key} failed:\n{self.failed[key]}")
-        return self.out(key) if key in self.finished else None
-
-    def _renice(self) -> None:
-        """Give the job under way this process's priority, where the system lets a process
-        lower a niceness (root; else it stays ``nice``)."""
-        proc = self.proc
-        if proc is not None and proc.poll() is None:
-            with contextlib.suppress(OSError):
-                os.setpriority(os.PRIO_PROCESS, proc.pid, os.getpriority(os.PRIO_PROCESS, 0))
-
-    def stop(self) -> None:
+    def stop(self, kill: bool) -> None:
+        """No more jobs; the one under way killed (``kill``) or let finish (other workers
+        may wait for it)."""
         with self.lock:
             self.stopping = True
-            if self.proc is not None and self.proc.poll() is None:
-                self.proc.kill()
-        self.thread.join(60)
+            proc = self.proc
+        if kill and proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        self.thread.join(60 if kill else TIMEOUT_S)
+        if proc is not None and not self.store.ended(self.key):
+            self.store.finish(self.key, "the run ended before the background render did")
 
 
+_store: _Store | None = None
 _background: _Background | None = None
-_here: _Jobs | None = None  # jobs this process ran itself
+
+
+def _run_store(tmp_path_factory: pytest.TempPathFactory) -> _Store:
+    """The run's store: in its temporary folder (under xdist, beside the workers' own)."""
+    global _store
+    if _store is None:
+        base = tmp_path_factory.getbasetemp()
+        _store = _Store((base if xdist_worker() is None else base.parent) / "prerender")
+    return _store
 
 
 def start(session: pytest.Session, after: Iterable[subprocess.Popen] = ()) -> None:
-    """Start making the captures the session's tests will ask for, in their order, once
-    the processes ``after`` have ended, in a folder of the session's temporary ones."""
+    """Start making the jobs the session's tests will ask for, in their order, once the
+    processes ``after`` have ended (in the only process of the run, or its first worker)."""
     global _background
-    if session.config.option.collectonly or xdist_worker() is not None:
+    if session.config.option.collectonly or xdist_worker() not in (None, "gw0"):
         return
     queue: list[str] = []
     for item in session.items:
         for key in jobs_of(item):
             queue += [k for k in (*NEEDS.get(key, ()), key) if k not in queue]
     if queue and _background is None:
-        base = session.config._tmp_path_factory.mktemp("prerender")  # tmp_path_factory's
-        _background = _Background(base, queue, list(after))
+        store = _run_store(session.config._tmp_path_factory)  # tmp_path_factory's
+        _background = _Background(store, queue, list(after))
 
 
 def stop() -> None:
-    """End the background run (killing the job under way)."""
+    """End the background run: the job under way killed, or under xdist let finish (a
+    worker still running may wait for it)."""
     global _background
     if _background is not None:
-        _background.stop()
+        _background.stop(kill=xdist_worker() is None)
         _background = None
 
 
 def prerendered(key: str, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The folder job ``key`` wrote: the background's, waiting for it if need be, or
-    (not queued there) one of ``tmp_path_factory``'s, where this process runs it now (under
-    xdist, the run's folder shared by the workers: :class:`_Shared`)."""
-    global _here
-    if _background is not None and (out := _background.wait(key)) is not None:
-        return out
-    if _here is None:
-        if xdist_worker() is None:
-            _here = _Jobs(tmp_path_factory.mktemp("prerender"))
-        else:  # the workers' temporary folders are beside each other
-            shared = tmp_path_factory.getbasetemp().parent / "prerender"
-            shared.mkdir(exist_ok=True)
-            _here = _Shared(shared)
-    return _here.run_here(key)
+    """The folder job ``key`` wrote, run here if no process of the run has claimed it,
+    else waited for."""
+    return _run_store(tmp_path_factory).run_here(key)

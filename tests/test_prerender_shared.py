@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from tests import prerender_support
-from tests.prerender_support import _Shared
+from tests.prerender_support import _Background, _Store
+from tests.support import wait_until
 
 
 def _two_workers(base: Path, key: str) -> list[Path | BaseException]:
@@ -20,7 +21,7 @@ def _two_workers(base: Path, key: str) -> list[Path | BaseException]:
 
     def worker() -> None:
         try:
-            results.append(_Shared(base).run_here(key))
+            results.append(_Store(base).run_here(key))
         except BaseException as e:  # pytest.fail's exception is a BaseException
             results.append(e)
 
@@ -46,7 +47,7 @@ def test_a_job_runs_once_for_both_workers(tmp_path: Path, monkeypatch) -> None:
     assert runs == [tmp_path / "fake"]
     assert results == [tmp_path / "fake"] * 2
     assert (tmp_path / "fake" / "made").read_text() == "once"
-    assert _Shared(tmp_path).run_here("fake") == tmp_path / "fake"  # a later test: no rerun
+    assert _Store(tmp_path).run_here("fake") == tmp_path / "fake"  # a later test: no rerun
     assert len(runs) == 1
 
 
@@ -62,3 +63,20 @@ def test_a_failed_job_fails_both_workers_with_its_error(tmp_path: Path, monkeypa
     assert errors == sorted([pytest.fail.Exception.__name__, "RuntimeError"])
     failed = next(r for r in results if isinstance(r, pytest.fail.Exception))
     assert "the simulator broke" in str(failed)
+    with pytest.raises(pytest.fail.Exception, match="the simulator broke"):
+        _Store(tmp_path).run_here("broken")  # a later test: the same failure, no rerun
+
+
+def test_the_background_leaves_a_claimed_job_and_runs_the_rest(tmp_path: Path) -> None:
+    """The background (in a subprocess, ``nice``) skips a job another process claimed,
+    and a test's wait for one it runs gets its folder."""
+    store = _Store(tmp_path)
+    assert store.claim("calibration-frame-sets")  # another worker has it
+    background = _Background(store, ["calibration-frame-sets", "fake-never"], after=[])
+    try:
+        wait_until(lambda: store.ended("fake-never"), "the background's job", 120)
+    finally:
+        background.stop(kill=True)
+    assert not store.ended("calibration-frame-sets")  # left to its claimer
+    with pytest.raises(pytest.fail.Exception, match="fake-never"):  # no such job there
+        store.wait("fake-never")

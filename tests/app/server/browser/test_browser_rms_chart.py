@@ -13,7 +13,7 @@ import pytest
 
 from tests.browser_support import needs_chromium
 from tests.panel_support import panel_on
-from tests.support import WAIT_S
+from tests.support import WAIT_S, wait_until
 from trifuse.app.sources.frames import FrameSet
 from trifuse.app.workflows.report_format import sensor_colour
 
@@ -43,6 +43,8 @@ def test_rms_chart_draws_every_calibrated_sensors_points(
         page.goto(f"http://127.0.0.1:{server.get_port()}/")
         page.wait_for_function("() => document.body.innerText.includes('Run calibration')")
         page.get_by_role("button", name="Run calibration", exact=True).click()
+        # the click reaches the server through Viser's socket: the job starts a moment later
+        wait_until(lambda: session.job.state != "idle", "the calibration started by the click")
         job = session.wait(WAIT_S * 4)
         assert job.state == "done", job.error
         panel.tick()
