@@ -252,21 +252,26 @@ class _Store:
         return self._mark(key, "done").exists() or self._mark(key, "failed").exists()
 
     def wait(self, key: str) -> Path:
-        """The folder of ``key``, claimed by some process, once it has ended."""
-        if not self.ended(key):
-            self._hurry(key)
-        wait_until(lambda: self.ended(key), f"the render of {key}", TIMEOUT_S, poll_s=0.2)
+        """The folder of ``key``, claimed by some process, once it has ended (its runner
+        hurried meanwhile: it may name itself after the claim)."""
+        wait_until(
+            lambda: self.ended(key) or self._hurry(key),
+            f"the render of {key}",
+            TIMEOUT_S,
+            poll_s=0.2,
+        )
         failed = self._mark(key, "failed")
         if failed.exists():
             pytest.fail(f"the render of {key} failed:\n{failed.read_text()}")
         return self.out(key)
 
-    def _hurry(self, key: str) -> None:
+    def _hurry(self, key: str) -> bool:
         """Give the process running ``key`` this one's priority, where the system lets a
-        process lower a niceness (root; else it stays ``nice``)."""
+        process lower a niceness (root; else it stays ``nice``). False: a wait's poll."""
         with contextlib.suppress(OSError, ValueError):
             pid = int(self._mark(key, "claim").read_text())
             os.setpriority(os.PRIO_PROCESS, pid, os.getpriority(os.PRIO_PROCESS, 0))
+        return False
 
     def run_here(self, key: str) -> Path:
         """The folder of ``key`` (after its prerequisites): run in this process if nobody
