@@ -75,6 +75,18 @@ _FOLD_SCAN = np.concatenate(
 )
 
 
+def _one_plus_cubic(r2: np.ndarray, a: float, b: float, c: float) -> np.ndarray:
+    """``1 + r2 (a + r2 (b + r2 c))`` (a new array), in place after the first product: the
+    operations and their order of the distortion model's expression, so the same bits."""
+    out = r2 * c
+    out += b
+    out *= r2
+    out += a
+    out *= r2
+    out += 1.0
+    return out
+
+
 @dataclass(frozen=True)
 class Intrinsics:
     """Focal lengths and principal point in pixels, distortion in OpenCV's order.
@@ -145,20 +157,9 @@ class Intrinsics:
         squared normalised radii ``r2`` (a new array). The division is left out when k4-k6
         are zero (a division by exactly 1)."""
         k1, k2, _p1, _p2, k3, k4, k5, k6 = self._coeffs
-        rad = r2 * k3
-        rad += k2
-        rad *= r2
-        rad += k1
-        rad *= r2
-        rad += 1.0
+        rad = _one_plus_cubic(r2, k1, k2, k3)
         if k4 or k5 or k6:
-            den = r2 * k6
-            den += k5
-            den *= r2
-            den += k4
-            den *= r2
-            den += 1.0
-            rad /= den
+            rad /= _one_plus_cubic(r2, k4, k5, k6)
         return rad
 
     def _distorted(
