@@ -29,13 +29,28 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 
+LONGEST_FILES = (
+    "app/server/browser/test_browser_calibration.py",
+    "app/sources/test_thermal_conditions.py",
+    "app/sources/test_sim_targets.py",
+    "app/server/browser/test_browser_map.py",
+    "calib/test_calibration_matrix.py",
+    "app/storage/test_crash_safety.py",
+)
+"""The test files that take longest under pytest-xdist, longest first (paths under tests/):
+about 280, 280, 110, 95, 90 and 85 s in the run of 2026-11-29 19:10 (BENCHMARKS.md, "The
+test suite's time"). Given out first, each to the next free worker, so that none of them
+starts late and ends the run alone. Only the order depends on it."""
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Tests that need the 30-view simulated capture (fixtures ``simulated`` and
     ``simulated_capture``, about 40 s once per run) are slow ones too. Under pytest-xdist
-    the test files with slow tests run first (in their order), the others after them: the
-    workers take a file at a time, and the short ones then fill the end of the run instead
-    of one worker finishing a browser session alone. (Alone, a run keeps the files' order:
-    the quick tests run while the background renders what the slow ones need.)"""
+    the :data:`LONGEST_FILES` run first, then the other test files with slow tests (in
+    their order), then the rest: the workers take a file at a time, and the short ones then
+    fill the end of the run instead of one worker finishing a browser session alone.
+    (Alone, a run keeps the files' order: the quick tests run while the background renders
+    what the slow ones need.)"""
     from tests.prerender_support import xdist_worker
 
     for item in items:
@@ -44,7 +59,12 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     if xdist_worker() is None:
         return
     slow_files = {item.path for item in items if item.get_closest_marker("slow")}
-    items.sort(key=lambda item: item.path not in slow_files)  # stable: order kept within
+    rank = {ROOT / "tests" / f: k for k, f in enumerate(LONGEST_FILES)}
+
+    def order(item: pytest.Item) -> tuple[int, bool]:
+        return rank.get(item.path, len(rank)), item.path not in slow_files
+
+    items.sort(key=order)  # stable: the order is kept within a file
 
 
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
