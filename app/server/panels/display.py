@@ -318,9 +318,11 @@ class Panels(Periodic):
                 )
                 for name, r in pipeline.radiometry.items()
             }
+            self._balancer_auto = ctx.balancer is not None and ctx.balancer.auto
+            """The balancer's ``auto`` as this panel last saw or set it."""
             self.auto_balance = gui.add_checkbox(
                 "Auto-balance",
-                ctx.balancer is not None and ctx.balancer.auto,
+                self._balancer_auto,
                 hint="Estimate the left-right offset from points both imagers see, "
                 "filtered over time, and apply it",
             )
@@ -405,6 +407,7 @@ class Panels(Periodic):
             ref = self.balance_ref.value
             balancer.reference = None if ref == SPLIT else ref
             balancer.set_auto(bool(self.auto_balance.value))
+            self._balancer_auto = balancer.auto
 
     def _follow_auto_span(self) -> None:
         """While the span is automatic, Level and Span show it (so that switching to
@@ -485,7 +488,11 @@ class Panels(Periodic):
         self._follow_auto_span()
         balancer = self.ctx.balancer
         if balancer is not None:
-            if self.auto_balance.value != balancer.auto:  # set through the REST API
+            # set elsewhere (the REST API, Reset balance): shown. Compared with what this
+            # panel saw last, not with the checkbox, which holds an operator's click before
+            # its callback has applied it (writing it back would undo the click)
+            if balancer.auto != self._balancer_auto:
+                self._balancer_auto = balancer.auto
                 self.auto_balance.value = balancer.auto
             status = balancer.status
             self.difference.content = status.difference_text()
