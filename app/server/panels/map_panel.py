@@ -53,6 +53,8 @@ class MapPanel(Periodic):
         self._drawn: tuple | None = None
         self._next_draw = 0.0
         self.shown_points = self.shown_level = self.above = 0
+        self.above_c: float | None = None
+        """The threshold (°C) ``above`` was counted at, None: not counted (no highlight)."""
         self.span_k: tuple[float, float] | None = None
         gui, scene = ctx.server.gui, ctx.server.scene
         with gui.add_folder("Thermal map", expand_by_default=False):
@@ -87,7 +89,8 @@ class MapPanel(Periodic):
             "/map/path",
             points=np.zeros((1, 2, 3), np.float32),
             colors=PATH_RGB,
-            line_width=3.0,
+            thickness=3.0,
+            thickness_units="screen",
             visible=False,
         )
         self.build.on_update(lambda _e: self._act(self._on_build))
@@ -168,7 +171,8 @@ class MapPanel(Periodic):
 
     def draw(self, mode: str = "full") -> None:
         """Send the map's points and path (the scene nodes) as they are now."""
-        threshold = self.threshold_c.value + C_TO_K if self.highlight.value else None
+        threshold_c = self.threshold_c.value if self.highlight.value else None
+        threshold = None if threshold_c is None else threshold_c + C_TO_K
         display = self.ctx.pipeline.settings  # the map's colours follow the Fusion panel's
         with self.worker.lock:
             cloud = map_cloud(
@@ -192,6 +196,7 @@ class MapPanel(Periodic):
             self.path.visible = bool(len(segments)) and self.show_path.value
             self.shown_points, self.shown_level = len(cloud.points), cloud.level
             self.span_k, self.above = cloud.span_k, cloud.above
+            self.above_c = threshold_c
 
     def _status_text(self, s: dict) -> str:
         if not s["enabled"] and s["occupied"] == 0:
@@ -209,7 +214,9 @@ class MapPanel(Periodic):
             f"{s['memory_mb']} MB; pose: {md_text(s['pose_source'] or '–')}",
         ]
         if self.highlight.value:
-            lines.append(f"{self.above:,} points at or above {self.threshold_c.value:.0f} °C")
+            t = self.threshold_c.value
+            counted = f"{self.above:,}" if self.above_c == t else "Counting the"
+            lines.append(f"{counted} points at or above {t:.0f} °C")
         if s["last_error"]:
             lines.append(f"**Last error:** {md_text(s['last_error'])}")
         return "\n\n".join(lines)

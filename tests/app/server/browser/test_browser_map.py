@@ -63,15 +63,12 @@ def test_the_map_appears_grows_highlights_pauses_saves_and_resets(browser, tmp_p
         assert ((b - g > 40) & (r - g > 20)).mean() > 0.02
 
         page.get_by_text("Highlight hot spots", exact=True).click()
+        # counted at the next redraw ("Counting the points ..." until then); the pipe (85 C),
+        # the kettle (68 C) and the radiator (60 C) are in the map once the head has looked
+        # at them, which on a loaded machine may take a few more TOF frames
         page.wait_for_function(
-            "() => /[\\d,]+ points at or above 50 °C/.test(document.body.innerText)"
+            "() => /[1-9][\\d,]* points at or above 50 °C/.test(document.body.innerText)"
         )
-        above = int(
-            re.search(r"([\d,]+) points at or above 50", page.inner_text("body"))
-            .group(1)
-            .replace(",", "")
-        )
-        assert above > 0  # the pipe (85 C), the kettle (68 C), the radiator (60 C)
         page.wait_for_timeout(1500)
         page.screenshot(path=str(SHOTS / "map-hot.png"))
 
