@@ -31,9 +31,11 @@ def test_range_panel_runs_saves_and_uses_the_correction(simulated, browser, tmp_
         page.get_by_role("button", name="Run range calibration").click()
         # the session first searches the 30 views it found on disk, then fits (~1 min)
         page.wait_for_function(
-            "() => document.body.innerText.includes('held-out views (')", timeout=600000
+            "() => /held-out views \\(|Range calibration failed/.test(document.body.innerText)",
+            timeout=600000,
         )
         text = page.evaluate("() => document.body.innerText")
+        assert "Range calibration failed" not in text, (text, console.get("/api/range"))
         row = next(line for line in text.splitlines() if line.startswith("1-3"))
         before, after, ratio = (
             float(x) for x in re.search(r"([\d.]+)\s+([\d.]+)\s+([\d.]+)x", row).groups()
