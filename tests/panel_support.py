@@ -1,5 +1,6 @@
-"""The Calibration panel on a real Viser server over a fresh session of the simulated head,
-for the panel's tests (in-process and in a browser)."""
+"""The panels on a real Viser server, for their tests: the Calibration panel over a fresh
+session of the simulated head (in-process and in a browser), and the Fusion/Thermal/Feeds
+panels (:class:`~app.server.panels.display.Panels`) over a stand-in pipeline."""
 
 from __future__ import annotations
 
@@ -13,7 +14,9 @@ import viser
 
 from tests.scene_support import pipeline_for
 from trifuse.app.server.panels.calibration import CalibrationPanel
-from trifuse.app.server.runtime.context import ConsoleContext
+from trifuse.app.server.panels.display import Panels
+from trifuse.app.server.runtime.context import ConsoleBandwidth, ConsoleContext
+from trifuse.app.server.runtime.video_presets import StreamSettings
 from trifuse.app.sources.frames import FrameSet
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD
@@ -49,3 +52,26 @@ def panel_on(
     finally:
         session.close()
         server.stop()
+
+
+def display_panels(
+    server: viser.ViserServer,
+    pipeline: object,
+    board_watch: object,
+    balancer: object = None,
+    board: object = None,
+) -> Panels:
+    """:class:`Panels` on ``server`` over a stand-in ``pipeline`` and ``board_watch`` (and
+    thermal ``balancer``, ``board``), with no rig saving and no next-view outline."""
+    ctx = SimpleNamespace(
+        server=server,
+        pipeline=pipeline,
+        board=board,
+        board_watch=board_watch,
+        balancer=balancer,
+        save_rig=None,
+        stream_settings=StreamSettings(),
+        next_outline={},
+        bandwidth=ConsoleBandwidth(),
+    )
+    return Panels(ctx)  # type: ignore[arg-type]

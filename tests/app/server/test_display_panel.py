@@ -8,10 +8,9 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from tests.panel_support import display_panels
 from trifuse.app.server.panels.display import Panels
-from trifuse.app.server.runtime.context import ConsoleBandwidth
 from trifuse.app.server.runtime.thermal_balance import BalanceStatus
-from trifuse.app.server.runtime.video_presets import StreamSettings
 from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.calib.radiometry import Radiometry
@@ -38,17 +37,7 @@ def _panels(server, balancer: _Balancer) -> Panels:
         fusion=SimpleNamespace(span_k=None),
         set_manual_offset=lambda name, k: None,
     )
-    ctx = SimpleNamespace(
-        server=server,
-        pipeline=pipeline,
-        board_watch=SimpleNamespace(latest=None, enabled=False),
-        balancer=balancer,
-        save_rig=None,
-        stream_settings=StreamSettings(),
-        next_outline={},
-        bandwidth=ConsoleBandwidth(),
-    )
-    return Panels(ctx)
+    return display_panels(server, pipeline, SimpleNamespace(latest=None, enabled=False), balancer)
 
 
 def test_a_click_on_auto_balance_survives_a_refresh_before_its_callback(server) -> None:

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import viser
 
+from tests.panel_support import display_panels
 from tests.support import wait_until
 from trifuse.app.server.panels import display as panels_mod
 from trifuse.app.server.panels.display import (
@@ -24,8 +25,6 @@ from trifuse.app.server.panels.display import (
 )
 from trifuse.app.server.panels.precision import PrecisionPanel, plot_data, short_names
 from trifuse.app.server.runtime.board_sighting import BoardSighting
-from trifuse.app.server.runtime.context import ConsoleBandwidth
-from trifuse.app.server.runtime.video_presets import StreamSettings
 from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.workflows.report_format import limit_distance_cell, pixel_cell
@@ -258,18 +257,7 @@ def _panels(server: viser.ViserServer, sighting: BoardSighting | None) -> Panels
         radiometry={"thermal_left": Radiometry(), "thermal_right": Radiometry()},
         latest_set=None,
     )
-    ctx = SimpleNamespace(
-        server=server,
-        pipeline=pipeline,
-        board=BOARD,
-        board_watch=_Watch(sighting),
-        balancer=None,
-        save_rig=None,
-        stream_settings=StreamSettings(),
-        next_outline={},
-        bandwidth=ConsoleBandwidth(),
-    )
-    return Panels(ctx)
+    return display_panels(server, pipeline, _Watch(sighting), board=BOARD)
 
 
 def test_feeds_draw_the_sightings_own_frames_while_it_is_recent(server) -> None:
