@@ -33,6 +33,41 @@ WAIT_MS = 300_000
 busy with other work runs the console several times slower; the awaited event ends the wait
 as soon as it comes. Also every page's default timeout (conftest.py's ``browser``)."""
 
+FRAME_INTERVAL_MS = 250
+"""The test browser's pages draw at most every this many ms (:data:`FEWER_FRAMES_JS`)."""
+FEWER_FRAMES_JS = """(() => {
+  const intervalMs = INTERVAL_MS;
+  const native = window.requestAnimationFrame.bind(window);
+  let queue = new Map(), seq = 0, scheduled = false, last = -Infinity;
+  const flush = (ts) => {
+    scheduled = false;
+    last = ts;
+    const due = queue;
+    queue = new Map();
+    for (const cb of due.values()) {
+      try { cb(ts); } catch (e) { setTimeout(() => { throw e; }); }
+    }
+  };
+  window.requestAnimationFrame = (cb) => {
+    const id = ++seq;
+    queue.set(id, cb);
+    if (!scheduled) {
+      scheduled = true;
+      const wait = last + intervalMs - performance.now();
+      if (wait <= 0) native(flush); else setTimeout(() => native(flush), wait);
+    }
+    return id;
+  };
+  window.cancelAnimationFrame = (id) => { queue.delete(id); };
+})();""".replace("INTERVAL_MS", str(FRAME_INTERVAL_MS))
+"""Run in every page of the test browser before its own scripts: ``requestAnimationFrame``
+callbacks come together at most every :data:`FRAME_INTERVAL_MS`. Viser's 3D scene draws
+continuously for 250 ms after each scene update, and the console updates it several times
+a second, so in software WebGL (``--disable-gpu``) a page took a whole core drawing 12
+frames a second (50 at most), beside the tests' consoles and workers (BENCHMARKS.md, "The
+test suite's time"). At 4 frames a second it takes half a core; a test waiting on a
+picture waits a frame longer at most. Benchmarks (``trifuse bench``) do not use it."""
+
 needs_chromium = pytest.mark.skipif(
     not os.path.exists(CHROMIUM), reason=f"browser tests need Debian's chromium at {CHROMIUM}"
 )

@@ -111,8 +111,9 @@ def console(tmp_path_factory: pytest.TempPathFactory):
 def browser():
     """Debian's chromium, headless, driven by Playwright; one per module, because the
     Playwright sync API keeps an event loop running in the main thread while it lives
-    (``asyncio.run`` in later tests would fail)."""
-    from tests.browser_support import CHROMIUM, FLAGS, WAIT_MS
+    (``asyncio.run`` in later tests would fail). Its pages draw at most 4 frames a second
+    (tests/browser_support.py's ``FEWER_FRAMES_JS``)."""
+    from tests.browser_support import CHROMIUM, FEWER_FRAMES_JS, FLAGS, WAIT_MS
 
     sync_api = pytest.importorskip("playwright.sync_api")
     with sync_api.sync_playwright() as p:
@@ -120,15 +121,17 @@ def browser():
         new_page, new_context = b.new_page, b.new_context
 
         # waits without a timeout of their own take WAIT_MS (Playwright's 30 s is short for
-        # a console beside another worker's)
+        # a console beside another worker's); pages draw fewer frames (FEWER_FRAMES_JS)
         def patient_page(**kwargs):
             page = new_page(**kwargs)
             page.set_default_timeout(WAIT_MS)
+            page.add_init_script(FEWER_FRAMES_JS)
             return page
 
         def patient_context(**kwargs):
             context = new_context(**kwargs)
             context.set_default_timeout(WAIT_MS)
+            context.add_init_script(FEWER_FRAMES_JS)
             return context
 
         b.new_page, b.new_context = patient_page, patient_context

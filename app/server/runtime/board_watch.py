@@ -48,8 +48,16 @@ up to 3.8 s before; now no later than the cloud (median), 0.4 s at worst: BENCHM
   look at the most trusted sensor that found the board. A machine whose passes take
   seconds (the board moved on between two passes) thus still finds the board still
   while it is, and auto-capture takes it.
-- While the last pass found the board nowhere, complete passes are ``idle_period_s``
-  apart and the pose loop rests (a failed search costs the most).
+- **Little search without a board.** While the last complete pass found the board
+  nowhere, the pose loop rests and complete passes are ``idle_full_period_s`` apart: a
+  failed search costs the most (in the inspection room, about 2.6 s of CPU for the five
+  sensors of the simulated head: each thermal imager 0.9 s, the TOF 0.3 s, each colour
+  camera 0.2 s at half resolution; every 3 s that was most of a core). In between, every
+  ``idle_period_s``, a glance at the colour cameras at half resolution (shared with the
+  next pass, :class:`LookCache`): a board brought into their view starts a complete pass
+  at once. A board only the thermal imagers or the TOF see (a dark room) is found by the
+  next complete pass. A rig without colour cameras gets complete passes every
+  ``idle_period_s``, as nothing is cheaper to glance at.
 - **Only while someone looks.** Given a ``demand`` (:mod:`app.server.runtime.demand`), both
   loops search only while it is wanted: in the console, while a Viser client is connected
   (the Calibration panel, the feeds' corners, the 3D board) or auto-capture is on. A
@@ -149,10 +157,12 @@ class BoardWatch(Periodic):
         board: the checkerboard to look for.
         rate_hz: at most this many passes (of each loop) start per second.
         on_sighting: called (in the watch's thread) with every complete sighting.
-        idle_period_s: while the last pass found no board anywhere, complete passes are
-            this far apart instead and the pose loop rests (a search that fails costs the
-            most: about 1.2 s of CPU for a 1280 x 960 colour image against 0.1 s when the
-            board is there).
+        idle_period_s: while the last complete pass found no board anywhere, the colour
+            cameras are glanced at (half resolution) this often; a glance that finds the
+            board starts a complete pass (module docstring).
+        idle_full_period_s: while the last complete pass found no board anywhere,
+            complete passes are this far apart (``idle_period_s`` for a rig without
+            colour cameras).
         duty: a pass that took ``t`` seconds is followed by a pause of
             ``t * (1 / duty - 1)`` seconds, at most :data:`MAX_PAUSE_S` (each loop's share
             of its thread's time).
@@ -182,6 +192,7 @@ class BoardWatch(Periodic):
         rate_hz: float = 4.0,
         on_sighting: Callable[[BoardSighting], None] | None = None,
         idle_period_s: float = 3.0,
+        idle_full_period_s: float = 15.0,
         duty: float = 0.5,
         poll_s: float = 0.05,
         detect: Detector = detect_board_configured,
@@ -195,6 +206,9 @@ class BoardWatch(Periodic):
             )
         self.min_period_s = 1.0 / rate_hz
         self.idle_period_s = idle_period_s
+        self.idle_full_period_s = idle_full_period_s
+        self._glance_names = [n for n in rig.names if rig[n].modality == "color"]
+        self._last_glance = -math.inf
         self.duty = duty
         self.detect = detect
         self.latest_frames, self.rig, self.board = latest, rig, board
@@ -255,14 +269,31 @@ class BoardWatch(Periodic):
         pause = min(MAX_PAUSE_S, (done - started) * (1 / self.duty - 1))
         return max(started + self.min_period_s, done + pause)
 
+    def idle(self) -> bool:
+        """Whether the last complete pass found the board nowhere."""
+        return self.latest is not None and not self.latest.found
+
     def due(self, now: float) -> bool:
         """Whether a complete pass may start at ``now`` (monotonic seconds): the rate
         limit, the pause after the previous pass and, without a board lately, the idle
-        period."""
+        period of complete passes (a glance may start one sooner: :meth:`tick`)."""
         if now < self._next_start:
             return False
-        idle = self.latest is not None and not self.latest.found
-        return not (idle and now - self._last_pass < self.idle_period_s)
+        period = self.idle_full_period_s if self._glance_names else self.idle_period_s
+        return not (self.idle() and now - self._last_pass < period)
+
+    def glance(self, fs: FrameSet, now: float) -> bool:
+        """While idle, at most every ``idle_period_s``: whether a colour camera of ``fs``
+        shows the board at half resolution (:func:`first_look`, kept in the shared
+        :class:`LookCache` for the pass it starts)."""
+        if not self._glance_names or now - self._last_glance < self.idle_period_s:
+            return False
+        self._last_glance = now
+        for name in self._glance_names:
+            frame = fs.frames.get(name)
+            if frame is not None and safe_look(self._looks, name, frame.image, "color")[0].found:
+                return True
+        return False
 
     # -- the pose loop -------------------------------------------------------------------
 
@@ -357,8 +388,10 @@ class BoardWatch(Periodic):
                 return
             started = time.monotonic()
             if not self.due(started):
-                return
-            self._last_pass = started
+                if not (started >= self._next_start and self.idle() and self.glance(fs, started)):
+                    return
+                started = time.monotonic()  # the board is back in view: a pass now
+            self._last_pass = self._last_glance = started  # a pass glances too
             self._searched = fs
             allowed = {n for n in self.rig.names if started >= self._full_due.get(n, -math.inf)}
             previous = self.latest

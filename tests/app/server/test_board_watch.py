@@ -366,38 +366,97 @@ def test_a_pass_is_followed_by_a_pause_as_long_as_itself(
         watch.stop()
 
 
+def blank_frames(rig) -> FrameSet:
+    """A frame set of uniform images, one per sensor of ``rig`` (no board anywhere)."""
+    frames = {}
+    for n, s in rig.sensors.items():
+        w, h = s.image_size
+        shape = (h, w, 3) if s.modality == "color" else (h, w)
+        dtype = np.uint8 if s.modality == "color" else np.float32
+        frames[n] = Frame(n, 0, np.full(shape, 100, dtype))
+    return FrameSet(0, frames)
+
+
 def test_without_a_board_the_watch_searches_less_often() -> None:
     rig = default_rig()
-
-    def blank() -> FrameSet:
-        frames = {}
-        for n, s in rig.sensors.items():
-            w, h = s.image_size
-            shape = (h, w, 3) if s.modality == "color" else (h, w)
-            dtype = np.uint8 if s.modality == "color" else np.float32
-            frames[n] = Frame(n, 0, np.full(shape, 100, dtype))
-        return FrameSet(0, frames)
-
-    latest = {"fs": blank()}
+    latest = {"fs": blank_frames(rig)}
     seen = []
     watch = BoardWatch(
         lambda: latest["fs"],
         rig,
         CALIBRATION_BOARD,
         on_sighting=seen.append,
-        idle_period_s=60,
+        idle_full_period_s=60,
         rate_hz=1000.0,
         duty=1.0,
     )
     watch.tick()
     assert len(seen) == 1 and not seen[0].found
-    latest["fs"] = blank()  # new frames, but no board lately: wait for the idle period
+    latest["fs"] = blank_frames(rig)  # new frames, no board lately: the idle period
     watch.tick()
     assert len(seen) == 1
-    watch.idle_period_s = 0.0
+    watch.idle_full_period_s = 0.0
     watch.tick()
     assert len(seen) == 2
     watch.stop()
+
+
+def test_without_a_board_only_the_colour_cameras_are_glanced_at_until_it_is_back(
+    calibration_frame_sets, monkeypatch
+) -> None:
+    """Idle (the last complete pass found no board), the watch glances at the colour
+    cameras every ``idle_period_s`` and searches nothing else until the complete passes'
+    idle period; a glance that finds the board starts a complete pass at once."""
+    clock = FakeClock(1000.0)
+    monkeypatch.setattr(board_watch, "time", SimpleNamespace(monotonic=clock))
+    searched: list[str] = []
+    lock = threading.Lock()
+
+    def counted(image: np.ndarray, board, modality: str) -> Detection:
+        with lock:  # the sensors are searched in a pool of threads
+            searched.append(modality)
+        return detect_board(image, board, modality)
+
+    rig = default_rig()
+    latest = {"fs": blank_frames(rig)}
+    seen = []
+    watch = BoardWatch(
+        lambda: latest["fs"],
+        rig,
+        CALIBRATION_BOARD,
+        on_sighting=seen.append,
+        idle_period_s=3.0,
+        idle_full_period_s=15.0,
+        rate_hz=1000.0,
+        duty=1.0,
+        detect=counted,
+    )
+    try:
+        watch.tick()  # a complete pass: no board anywhere
+        assert len(seen) == 1 and not seen[0].found and watch.idle()
+        assert {"color", "thermal", "tof"} <= set(searched)
+        searched.clear()
+        latest["fs"] = blank_frames(rig)
+        clock.advance(1.0)
+        watch.tick()  # neither a glance (3 s) nor a complete pass (15 s) is due
+        assert searched == [] and len(seen) == 1
+        clock.advance(2.0)
+        watch.tick()  # a glance at the colour cameras, which show nothing
+        assert searched and set(searched) == {"color"} and len(seen) == 1
+        searched.clear()
+        latest["fs"] = calibration_frame_sets[0]  # the board is back in view
+        clock.advance(1.0)
+        watch.tick()  # the next glance is not due yet
+        assert searched == [] and len(seen) == 1
+        clock.advance(2.0)
+        watch.tick()  # the glance finds it: a complete pass at once, sharing its looks
+        assert len(seen) == 2 and seen[1].found and seen[1].found == rig.names
+        # two searches a camera (half resolution, then the crop around the board: first_look),
+        # none again by the complete pass
+        assert searched.count("color") == 4, searched
+        assert {"thermal", "tof"} <= set(searched) and not watch.idle()
+    finally:
+        watch.stop()
 
 
 def test_bad_settings_are_refused() -> None:
