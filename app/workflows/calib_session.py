@@ -552,11 +552,14 @@ class CalibrationSession:
                     f"from {ZHANG_MIN_VIEWS} views that show it the board, with a verdict on "
                     "how well; about 20 for a good calibration)"
                 )
-            self.job = job = CalibrationJob("running", "starting", 0.0, names, started=time.time())
-        self._job_thread = threading.Thread(
-            target=self._calibrate, args=(job, options), name="calibration", daemon=True
-        )
-        self._job_thread.start()
+            job = CalibrationJob("running", "starting", 0.0, names, started=time.time())
+            thread = threading.Thread(
+                target=self._calibrate, args=(job, options), name="calibration", daemon=True
+            )
+            thread.start()
+            # shown running only once :meth:`wait` can join its thread (another thread may
+            # wait as soon as it sees the job running)
+            self._job_thread, self.job = thread, job
         self._changed()
         return job
 

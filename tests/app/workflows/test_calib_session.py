@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import json
 import re
+import threading
+import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from tests.support import wait_searched
+from tests.support import WAIT_S, poll_until, wait_searched
 from trifuse.app.sources.frames import FrameSet
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, calibration_poses
@@ -209,3 +212,41 @@ def test_the_board_yaml_keys_reach_the_sessions_search(tmp_path, views) -> None:
     # A session's board is its own: reopening with other keys is refused, saying so.
     with pytest.raises(SessionError, match="thermal_black_is_hot: false"):
         CalibrationSession(tmp_path / "keyed", rig, CALIBRATION_BOARD)
+
+
+def test_a_calibration_seen_running_can_be_waited_for_at_once(tmp_path, views, monkeypatch) -> None:
+    """Another thread that sees the job running may wait for it at once: the job shows as
+    running only once its thread has started (the start is slowed down here; before, the
+    wait failed with "cannot join thread before it is started")."""
+    from trifuse.app.workflows import calib_session
+
+    class SlowStart(threading.Thread):
+        def start(self) -> None:
+            time.sleep(0.3)
+            super().start()
+
+    slow = SimpleNamespace(**{k: getattr(threading, k) for k in dir(threading) if k[0] != "_"})
+    slow.Thread = SlowStart
+    monkeypatch.setattr(calib_session, "threading", slow)
+    monkeypatch.setattr(
+        CalibrationSession, "_calibrate", lambda self, job, options: setattr(job, "state", "done")
+    )
+    session = CalibrationSession(tmp_path, default_rig(), CALIBRATION_BOARD)
+    for fs in views[:3]:
+        session.take(fs)
+    seen: dict[str, object] = {}
+
+    def waiter() -> None:
+        poll_until(lambda: session.job.state != "idle", WAIT_S, poll_s=0.001)
+        try:
+            seen["job"] = session.wait(WAIT_S)
+        except RuntimeError as exc:
+            seen["error"] = exc
+
+    other = threading.Thread(target=waiter)
+    other.start()
+    session.start_calibration()
+    other.join(WAIT_S)
+    session.close()
+    assert "error" not in seen, seen["error"]
+    assert seen["job"].state == "done"
