@@ -73,6 +73,19 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     return max(1, min(os.cpu_count() or 1, 4))
 
 
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Under pytest-xdist, OpenCV runs each call on one thread: the workers keep the cores
+    busy already, and OpenCV's own threads only add their overhead (the thermal detections
+    of test_thermal_conditions.py: 20.0 s of CPU on two threads, 16.8 s on one). Tests that
+    compare OpenCV's thread counts set their own."""
+    from tests.prerender_support import xdist_worker
+
+    if xdist_worker() is not None:
+        import cv2
+
+        cv2.setNumThreads(1)
+
+
 def pytest_collection_finish(session: pytest.Session) -> None:
     """A run with slow tests (the consoles and browser sessions) warms the simulator's disk
     cache in the background from the start (tests/browser_support.py); then a background
