@@ -40,7 +40,7 @@ from trifuse.app.cli import main
 from trifuse.app.storage.rigfile import load_rig
 from trifuse.calib.rig_compare import compare_rigs
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.slow  # three rendered captures, five calibrations: 2-3 minutes
 
 
 def calibrate(capture: Path, out: Path, *extra: str) -> dict:

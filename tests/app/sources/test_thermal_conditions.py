@@ -407,7 +407,7 @@ def test_detection_under_condition(name: str) -> None:
     _check_condition(name, poses, (SEED,))
 
 
-@pytest.mark.slow
+@pytest.mark.slow  # 32 images, each searched by both detectors: 15-60 s a condition
 @pytest.mark.parametrize("name", list(BENCH_CONDITIONS))
 def test_detection_under_condition_more_seeds(name: str, tmp_path_factory) -> None:
     """The same on 8 poses of seeds 12 and 13 (32 images per condition), rendered ahead in

@@ -565,7 +565,7 @@ def _copy_first_views(capture: Path, folder: Path) -> None:
 ROUNDS = 6
 
 
-@pytest.mark.slow
+@pytest.mark.slow  # a console killed and restarted twice, captures and a recording: about 60 s
 def test_console_killed_during_captures_saves_and_recording(simulated_capture, tmp_path) -> None:
     workdir = tmp_path / "work"
     _copy_first_views(simulated_capture, workdir / "captures")  # for a quick calibration
@@ -699,7 +699,7 @@ def _record_until(out: Path, instants: int) -> tuple[subprocess.Popen, Path, str
     return proc, temp, said
 
 
-@pytest.mark.slow
+@pytest.mark.slow  # two `trifuse record` processes of the simulated head: about 45 s
 def test_record_finishes_on_sigterm_and_leaves_a_readable_file_on_sigkill(tmp_path) -> None:
     out = tmp_path / "term.mcap"
     proc, temp, _ = _record_until(out, 60)

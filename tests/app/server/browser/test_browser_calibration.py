@@ -26,6 +26,8 @@ from trifuse.app.storage.capture import load_capture
 from trifuse.app.storage.rigfile import load_rig
 from trifuse.calib.transforms import pose_error
 
+# a console, a browser, auto-capture of the scenario's poses, a kill and a calibration:
+# 90-140 s
 pytestmark = [needs_chromium, pytest.mark.slow]
 
 # Of the scenario's 20 poses. 12 simulated views (seeds 1-3) already calibrate within the

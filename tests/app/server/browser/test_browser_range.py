@@ -16,6 +16,7 @@ import pytest
 from tests.browser_support import TEST_BOARD_POSES, console_running, needs_chromium
 from tests.support import poll_until
 
+# a console, a browser and a range calibration of 30 rendered views: 60-90 s
 pytestmark = [needs_chromium, pytest.mark.slow]
 
 
