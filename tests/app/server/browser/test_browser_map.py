@@ -1,8 +1,8 @@
 """The thermal 3D map in the console, in a real browser (Debian's chromium driven by
 Playwright): the "Thermal map" folder's Build map starts it, the map appears in the scene
 and grows, the hot-spot highlight counts what lies above 50 C, Pause holds it, Save writes
-the map file and the PLY, Reset empties it. Screenshots go to /tmp/shots (map-above.png,
-map-hot.png; docs/screenshots/ holds copies a person looked at)."""
+the map file and the PLY, Reset empties it. Screenshots go to /tmp/shots (map-none.png,
+map-above.png, map-hot.png; docs/screenshots/ holds copies a person looked at)."""
 
 from __future__ import annotations
 
@@ -57,11 +57,20 @@ def test_the_map_appears_grows_highlights_pauses_saves_and_resets(browser, tmp_p
     workdir = tmp_path / "work"
     with console_running(["--workdir", str(workdir)]) as console:
         page = open_scene(browser, console.signin("/console/"))
+        # The thermal feeds' pictures in the scene are iron-coloured too: hidden, the only
+        # iron colours in the view are the map's. Before the map: the room's cloud alone.
+        page.get_by_label("Live images").uncheck()
+        page.get_by_role("button", name="View from above").click()
+        shot_when(
+            page,
+            SHOTS / "map-none.png",
+            lambda p: drawn_fraction(p) > 0.15 and iron_fraction(p) < 0.005,
+            "the TOF cloud without the live images",
+        )
         page.get_by_text("Thermal map", exact=True).click()
-        page.get_by_text("Build map", exact=True).click()
+        page.get_by_label("Build map").check()  # clicked, and seen ticked
         _, first = wait_status(page, lambda s, n: s == "building" and n > 1000, "a map")
         wait_status(page, lambda s, n: n > first * 1.05, "the map to grow")
-        page.get_by_role("button", name="View from above").click()
         # purple-to-yellow iron colours of the room, not only the grey of the TOF cloud (the
         # map's points may reach the browser a few frames after the cloud's)
         pixels = shot_when(
