@@ -407,11 +407,11 @@ def test_detection_under_condition(name: str) -> None:
     _check_condition(name, poses, (SEED,))
 
 
-@pytest.mark.slow  # 32 images, each searched by both detectors: 15-60 s a condition
+@pytest.mark.slow  # 16 images, each searched by both detectors: 7-30 s a condition
 @pytest.mark.parametrize("name", list(BENCH_CONDITIONS))
 def test_detection_under_condition_more_seeds(name: str, tmp_path_factory) -> None:
-    """The same on 8 poses of seeds 12 and 13 (32 images per condition), rendered ahead in
-    the background (tests/prerender_support.py's jobs ``thermal-NAME``)."""
+    """The same on 8 poses of seed 12 (16 images per condition), rendered ahead in the
+    background (tests/prerender_support.py's jobs ``thermal-NAME``)."""
     poses, seeds = THERMAL_MORE_SEEDS
     out = prerendered(f"thermal-{name}", tmp_path_factory)
     views = {s: pickle.loads((out / f"seed-{s}.pkl").read_bytes()) for s in seeds}
