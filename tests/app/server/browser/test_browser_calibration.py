@@ -46,6 +46,8 @@ def _views_shown(page) -> int:
 
 
 def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path) -> None:
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout  # the fixture has it
+
     workdir = tmp_path / "work"
     args = ["--scenario", "calibration", "--board-poses", str(TEST_BOARD_POSES)]
     args += ["--workdir", str(workdir)]
@@ -61,12 +63,20 @@ def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path)
         assert _views_on_disk(workdir) == ["0001"]
 
         page.get_by_label("Auto-capture").check()
-        page.wait_for_function(
-            f"() => {{ const m = document.body.innerText.match(/(\\d+) views/);"
-            f" return m && +m[1] >= {MIN_VIEWS}; }}",
-            timeout=900000,  # on a loaded machine the board search lags behind
-            polling=2000,
-        )
+        try:
+            page.wait_for_function(
+                f"() => {{ const m = document.body.innerText.match(/(\\d+) views/);"
+                f" return m && +m[1] >= {MIN_VIEWS}; }}",
+                timeout=900000,  # on a loaded machine the board search lags behind
+                polling=2000,
+            )
+        except PlaywrightTimeout:  # why the last pose was not taken, for the next look
+            text = page.evaluate("() => document.body.innerText")
+            lines = [ln for ln in text.splitlines() if re.search(r"Not taken|uto-captur", ln)]
+            pytest.fail(
+                f"auto-capture: {len(_views_on_disk(workdir))} views on disk after 900 s, "
+                f"not {MIN_VIEWS} (the panel counts {_views_shown(page)}); it says: {lines}"
+            )
         page.get_by_label("Auto-capture").uncheck()
         shown = _views_shown(page)
         assert len(_views_on_disk(workdir)) >= shown >= MIN_VIEWS
