@@ -187,6 +187,29 @@ def wait_on_page(
     )
 
 
+def choose(page, label: str, option: str, timeout_s: float = WAIT_S) -> None:
+    """Pick ``option`` in the Viser dropdown labelled ``label`` (a Mantine Select). On a
+    loaded machine the click that opens its list can come to nothing (a busy run waited
+    300 s for an option that never showed): the label is clicked again until the option
+    shows, within ``timeout_s``."""
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+    item = page.get_by_role("option", name=option, exact=True)
+
+    def listed() -> bool:
+        if item.is_visible():
+            return True
+        page.get_by_label(label).click()
+        try:
+            item.wait_for(state="visible", timeout=5000)
+        except PlaywrightTimeout:
+            return False
+        return True
+
+    wait_on_page(page, listed, f"the option {option!r} in {label!r}", timeout_s, poll_s=0.1)
+    item.click()
+
+
 # -- the 3D scene's page --------------------------------------------------------------------
 
 VIEWPORT = {"width": 800, "height": 600}

@@ -27,7 +27,7 @@ from fastapi import FastAPI
 from fastapi.testclient import TestClient
 from viser import _messages
 
-from tests.browser_support import drawn_fraction, needs_chromium, shot_when, wait_on_page
+from tests.browser_support import choose, drawn_fraction, needs_chromium, shot_when, wait_on_page
 from tests.scene_support import pipeline_for, scene_context
 from tests.support import FakeClock
 from trifuse.app.devtools.console_bandwidth import (
@@ -482,8 +482,7 @@ def test_browser_receives_less_per_update_in_low_mode(console, browser) -> None:
         assert full_points > 15000 and max(widths) == 320, (full_points, widths)  # TOF: 176
 
         # the operator picks low in the 3D scene folder: console-wide
-        page.page.get_by_label("Bandwidth").click()
-        page.page.get_by_role("option", name="low", exact=True).click()
+        choose(page.page, "Bandwidth", "low")
         wait_for(
             page,
             lambda: get_console_bandwidth(console.url, console.token) == "low",

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from tests.browser_support import (
+    choose,
     console_running,
     drawn_fraction,
     needs_chromium,
@@ -141,8 +142,7 @@ def test_a_map_of_a_million_voxels_loads_and_the_scene_stays_interactive(browser
     with console_running(["--workdir", str(workdir)]) as console:
         page = open_scene(browser, console.signin("/console/"))
         page.get_by_text("Thermal map", exact=True).click()
-        page.get_by_label("Saved maps").click()
-        page.get_by_role("option", name="hall", exact=True).click()
+        choose(page, "Saved maps", "hall")
         page.get_by_role("button", name="Load map", exact=True).click()
         page.wait_for_function(
             "() => /shown as [\\d,]+ cells of \\d+ voxels/.test(document.body.innerText)",

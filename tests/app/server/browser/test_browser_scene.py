@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from tests.browser_support import (
+    choose,
     console_running,
     drawn_fraction,
     needs_chromium,
@@ -37,12 +38,6 @@ VIEW_BUTTONS = {
     "View from side": "side",
     "Overview": "overview",
 }
-
-
-def choose(page, label: str, option: str) -> None:
-    """Pick ``option`` in the Viser dropdown labelled ``label`` (a Mantine Select)."""
-    page.get_by_label(label).click()
-    page.get_by_role("option", name=option, exact=True).click()
 
 
 # -- the view buttons move this browser's camera (an in-process scene, no simulator) -----
