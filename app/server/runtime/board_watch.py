@@ -268,10 +268,6 @@ class BoardWatch(Periodic):
         pause = min(MAX_PAUSE_S, (done - started) * (1 / self.duty - 1))
         return max(started + self.min_period_s, done + pause)
 
-    def _glance_names(self) -> list[str]:
-        """The colour cameras of the rig in use (the console may change ``rig``)."""
-        return [n for n in self.rig.names if self.rig[n].modality == "color"]
-
     def idle(self) -> bool:
         """Whether the last complete pass found the board nowhere."""
         return self.latest is not None and not self.latest.found
@@ -282,14 +278,14 @@ class BoardWatch(Periodic):
         period of complete passes (a glance may start one sooner: :meth:`tick`)."""
         if now < self._next_start:
             return False
-        period = self.idle_full_period_s if self._glance_names() else self.idle_period_s
+        period = self.idle_full_period_s if self.rig.by_modality("color") else self.idle_period_s
         return not (self.idle() and now - self._last_pass < period)
 
     def glance(self, fs: FrameSet, now: float) -> bool:
         """While idle, at most every ``idle_period_s``: whether a colour camera of ``fs``
         shows the board at half resolution (:func:`first_look`, kept in the shared
         :class:`LookCache` for the pass it starts)."""
-        names = self._glance_names()
+        names = self.rig.by_modality("color")  # the rig in use: the console may change it
         if not names or now - self._last_glance < self.idle_period_s:
             return False
         self._last_glance = now
