@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.browser_support import needs_chromium
+from tests.browser_support import needs_chromium, wait_on_page
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.workflows.report_format import limit_distance_cell
 from trifuse.fusion.precision import analyze_precision
@@ -28,23 +28,35 @@ def test_precision_panel_shows_table_1_and_its_curves(console, browser) -> None:
     row = [limit_distance_cell(r.x_m, 10.0) for r in ref.distance_error[key].values()]
     lines = [" ".join(t.split()) for t in text.splitlines()]
     assert any(line.startswith("41 mm") and " ".join(row) in line for line in lines), row
-    # two uPlot charts (|dx| and |dy|) with their canvases, drawn at a usable size
-    page.wait_for_function("() => document.querySelectorAll('.uplot canvas').length >= 2")
-    size = page.evaluate(
-        "() => { const c = document.querySelector('.uplot canvas');"
-        " const r = c.getBoundingClientRect(); return [r.width, r.height]; }"
+    # two uPlot charts (|dx| and |dy|) with their canvases, drawn at a usable size. A chart
+    # is made 0 px wide and takes its container's width once the browser has measured it
+    # (Viser's useElementSize): CI caught one at [0, 260], so the test waits for the width.
+    sizes_js = (
+        "() => [...document.querySelectorAll('.uplot canvas')].map(c =>"
+        " { const r = c.getBoundingClientRect(); return [r.width, r.height]; })"
     )
-    assert size[0] > 150 and size[1] > 100, size
+    last: list = []
+
+    def laid_out() -> bool:
+        last[:] = page.evaluate(sizes_js)
+        return len(last) >= 2 and all(w > 150 and h > 100 for w, h in last)
+
+    wait_on_page(page, laid_out, lambda: f"two charts of usable size (canvases: {last})", 60.0)
     text = page.evaluate("() => document.body.innerText")
     assert "threshold 0.5 px" in text and "col L 41 mm" in text  # the legend
     # the curves are drawn: pixels of the colour cameras' orange (col R) on the canvas
-    orange = page.evaluate(
-        """() => { const c = document.querySelector('.uplot canvas');
+    orange_js = """() => { const c = document.querySelector('.uplot canvas');
         const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
         let n = 0;
         for (let i = 0; i < d.length; i += 4)
           if (d[i] > 200 && d[i + 1] > 90 && d[i + 1] < 160 && d[i + 2] < 60 && d[i + 3] > 200) n++;
         return n; }"""
-    )
-    assert orange > 50, orange
+    # drawn once its new width is committed (uPlot redraws on the next animation frame)
+    counted: list[int] = [0]
+
+    def drawn() -> bool:
+        counted[0] = page.evaluate(orange_js)
+        return counted[0] > 50
+
+    wait_on_page(page, drawn, lambda: f"the orange curve drawn ({counted[0]} px)", 30.0)
     page.close()
