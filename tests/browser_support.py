@@ -13,6 +13,8 @@ import contextlib
 import os
 import subprocess
 import sys
+import time
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TypeVar
@@ -208,6 +210,37 @@ def choose(page, label: str, option: str, timeout_s: float = WAIT_S) -> None:
 
     wait_on_page(page, listed, f"the option {option!r} in {label!r}", timeout_s, poll_s=0.1)
     item.click()
+
+
+def click_until(
+    page,
+    target,
+    done: Callable[[], bool],
+    what: str,
+    retry_s: float = 30.0,
+    timeout_s: float = WAIT_S,
+) -> None:
+    """Click the Playwright locator ``target`` (a Viser button) and wait until ``done()``
+    (the console's side of the click, read from its API) holds, within ``timeout_s``. A
+    click with no effect after ``retry_s`` is repeated, with a warning in the run's
+    summary: busy run 12 (BENCHMARKS.md, session 22) saw two buttons' clicks come to
+    nothing for 5 and 10 minutes. Only for actions that may be repeated."""
+    target.click()
+    clicks = 1
+
+    def effect() -> bool:
+        nonlocal clicks
+        if done():
+            return True
+        if clicks * retry_s <= time.monotonic() - start:
+            said = f"{what}: no effect {retry_s:g} s after click {clicks}; clicking again"
+            warnings.warn(said, stacklevel=1)
+            target.click()
+            clicks += 1
+        return False
+
+    start = time.monotonic()
+    wait_on_page(page, effect, lambda: f"{what} ({clicks} clicks)", timeout_s, poll_s=0.2)
 
 
 # -- the 3D scene's page --------------------------------------------------------------------

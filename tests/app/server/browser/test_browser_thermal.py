@@ -9,7 +9,7 @@ import re
 import pytest
 import yaml
 
-from tests.browser_support import needs_chromium
+from tests.browser_support import click_until, needs_chromium, wait_on_page
 
 pytestmark = [needs_chromium, pytest.mark.slow]
 
@@ -21,15 +21,26 @@ def _difference(page) -> float:
     return float(DIFFERENCE.search(text).group(1))
 
 
+def _shown(page) -> list[str]:
+    return [ln for ln in page.inner_text("body").splitlines() if "Left - right" in ln]
+
+
 def test_auto_balance_brings_the_imagers_together(console, browser) -> None:
     page = browser.new_page(viewport={"width": 800, "height": 1200})
     page.goto(console.signin("/console/"))
     page.wait_for_function("() => document.body.innerText.includes('shared points')")
     # balanced by default: switched off and reset, the imagers' own difference shows
     assert page.get_by_label("Auto-balance").is_checked()
-    page.get_by_role("button", name="Reset balance").click()
-    page.wait_for_function(
-        "() => /Left - right: \\*?\\*?[+-]1\\.\\d\\d K/.test(document.body.innerText)"
+    click_until(
+        page,
+        page.get_by_role("button", name="Reset balance"),
+        lambda: console.get("/api/thermal")["balance"]["auto"] is False,
+        "Reset balance",
+    )
+    wait_on_page(
+        page,
+        lambda: re.search(r"Left - right: \*?\*?[+-]1\.\d\d K", page.inner_text("body")),
+        lambda: f"the imagers' own difference: {_shown(page)}, {console.get('/api/thermal')}",
     )
     assert not page.get_by_label("Auto-balance").is_checked()
     assert console.get("/api/thermal")["balance"]["auto"] is False
