@@ -223,8 +223,9 @@ def click_until(
     """Click the Playwright locator ``target`` (a Viser button) and wait until ``done()``
     (the console's side of the click, read from its API) holds, within ``timeout_s``. A
     click with no effect after ``retry_s`` is repeated, with a warning in the run's
-    summary: busy run 12 (BENCHMARKS.md, session 22) saw two buttons' clicks come to
-    nothing for 5 and 10 minutes. Only for actions that may be repeated."""
+    summary: in busy run 12 (BENCHMARKS.md, session 22) two buttons' actions had not
+    started after 5 and 10 minutes (lost clicks or stalled consoles, not known). Only for
+    actions that may be repeated."""
     target.click()
     clicks = 1
 
