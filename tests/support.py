@@ -27,6 +27,7 @@ import contextlib
 import dataclasses
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -499,3 +500,13 @@ def measure_in_child(setup: str, call: str, error: str, timeout_s: float = 120.0
     if child.returncode != 0:
         pytest.fail(f"the child failed:\n{child.stderr}")
     return json.loads(child.stdout)
+
+
+def copy_first_views(capture: Path, folder: Path, n: int, files: tuple[str, ...] = ()) -> None:
+    """Into a new ``folder``: the first ``n`` view folders of the capture directory
+    ``capture`` (``0001`` ...) and its ``files`` (e.g. ``board.yaml``, ``rig.yaml``)."""
+    folder.mkdir(parents=True)
+    for name in files:
+        shutil.copy(capture / name, folder / name)
+    for i in range(1, n + 1):
+        shutil.copytree(capture / f"{i:04d}", folder / f"{i:04d}")

@@ -23,7 +23,6 @@ import json
 import os
 import random
 import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -40,7 +39,7 @@ import pytest
 from mcap.reader import make_reader
 
 from tests.browser_support import TEST_BOARD_POSES, wait_for_cache_warmup
-from tests.support import ROOT, wait_for_exit, wait_until
+from tests.support import ROOT, copy_first_views, wait_for_exit, wait_until
 from trifuse.app.devtools.console_process import ConsoleProcess
 from trifuse.app.recording import ReplaySource
 from trifuse.app.recording.recorder import Recorder
@@ -553,22 +552,14 @@ FIRST_VIEWS = 10
 """Views the console starts with: enough for every sensor's intrinsics (the calibration
 needs the board in 8 views a sensor)."""
 
-
-def _copy_first_views(capture: Path, folder: Path) -> None:
-    """The first :data:`FIRST_VIEWS` view folders of ``capture`` (``trifuse simulate
-    calibration --seed 1``'s: the same files as rendering that many views) into ``folder``."""
-    folder.mkdir(parents=True)
-    for i in range(1, FIRST_VIEWS + 1):
-        shutil.copytree(capture / f"{i:04d}", folder / f"{i:04d}")
-
-
 ROUNDS = 6
 
 
 @pytest.mark.slow  # a console killed and restarted twice, captures and a recording: about 60 s
 def test_console_killed_during_captures_saves_and_recording(simulated_capture, tmp_path) -> None:
     workdir = tmp_path / "work"
-    _copy_first_views(simulated_capture, workdir / "captures")  # for a quick calibration
+    # the same files as rendering that many views of `trifuse simulate calibration --seed 1`
+    copy_first_views(simulated_capture, workdir / "captures", FIRST_VIEWS)  # a quick calibration
     servers: list[Server] = []
     try:
         _kill_and_restart(workdir, tmp_path / "console.log", servers)

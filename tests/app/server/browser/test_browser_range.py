@@ -10,8 +10,6 @@ the held-out views; the rig with the correction is saved as a version and put to
 from __future__ import annotations
 
 import re
-import shutil
-from pathlib import Path
 
 import pytest
 
@@ -22,7 +20,7 @@ from tests.browser_support import (
     needs_chromium,
     wait_on_page,
 )
-from tests.support import poll_until
+from tests.support import copy_first_views, poll_until
 
 # a console, a browser and a range calibration of 20 rendered views: about 50 s
 pytestmark = [needs_chromium, pytest.mark.slow]
@@ -33,18 +31,9 @@ of them for the board in all five sensors when it starts. On them regions 1-3 go
 to 8.1 mm RMS on the held-out views, 3.2x (all 30 views: 32.7 to 7.5 mm, 4.4x)."""
 
 
-def _copy_views(capture: Path, folder: Path) -> None:
-    """The capture's board and starting rig and its first :data:`VIEWS` view folders."""
-    folder.mkdir(parents=True)
-    for name in ("board.yaml", "rig.yaml"):
-        shutil.copy(capture / name, folder / name)
-    for i in range(1, VIEWS + 1):
-        shutil.copytree(capture / f"{i:04d}", folder / f"{i:04d}")
-
-
 def test_range_panel_runs_saves_and_uses_the_correction(simulated, browser, tmp_path) -> None:
     workdir = tmp_path / "work"
-    _copy_views(simulated["capture"], workdir / "captures")
+    copy_first_views(simulated["capture"], workdir / "captures", VIEWS, ("board.yaml", "rig.yaml"))
     args = ["--scenario", "calibration", "--board-poses", str(TEST_BOARD_POSES)]
     with console_running([*args, "--workdir", str(workdir)]) as console:
         page = browser.new_page(viewport={"width": 900, "height": 1400})
