@@ -22,7 +22,6 @@ import hashlib
 import json
 import os
 import random
-import re
 import signal
 import subprocess
 import sys
@@ -665,10 +664,10 @@ def _kill_and_restart(workdir: Path, log: Path, servers: list[Server]) -> None:
         assert sum(1 for _ in src.frames()) > 0 and src.damage is None
 
 
-def _record_until(out: Path, instants: int) -> tuple[subprocess.Popen, Path, str]:
-    """``trifuse record --source sim`` into ``out`` until it says it has written at least
-    ``instants`` instants (its progress lines in a pipe come every few seconds); returns
-    the process, the file it writes into and what it printed."""
+def _record_until(out: Path, size_bytes: int = 1_600_000) -> tuple[subprocess.Popen, Path]:
+    """``trifuse record --source sim`` into ``out`` until the file it writes into holds
+    ``size_bytes`` (a recording's chunks are 1 MiB: one is complete on disk then); returns
+    the process and that file."""
     main = "import sys; from trifuse.app.cli import main; sys.exit(main(sys.argv[1:]))"
     argv = ["record", "--source", "sim", "--out", str(out), "--duration", "60"]
     proc = subprocess.Popen(
@@ -679,21 +678,25 @@ def _record_until(out: Path, instants: int) -> tuple[subprocess.Popen, Path, str
         text=True,
     )
     said, temp = "", None
-    for line in proc.stdout:
+    for line in proc.stdout:  # its first lines: what it records, then where
         said += line
         if line.startswith("Writing into "):
             temp = Path(line.split()[2].rstrip(";"))
-        done = re.match(r"\[(\d+)/", line)
-        if done and int(done.group(1)) >= instants:
             break
     assert temp is not None and temp.name.startswith(f".{out.name}."), said
-    return proc, temp, said
+    wait_until(
+        lambda: temp.stat().st_size >= size_bytes,
+        lambda: (temp.stat().st_size, proc.poll()),
+        300,
+        poll_s=0.2,
+    )
+    return proc, temp
 
 
-@pytest.mark.slow  # two `trifuse record` processes of the simulated head: about 45 s
+@pytest.mark.slow  # two `trifuse record` processes of the simulated head: about 25 s
 def test_record_finishes_on_sigterm_and_leaves_a_readable_file_on_sigkill(tmp_path) -> None:
     out = tmp_path / "term.mcap"
-    proc, temp, _ = _record_until(out, 60)
+    proc, temp = _record_until(out)
     proc.send_signal(signal.SIGTERM)  # like Ctrl-C: the file is finished and named
     rest = proc.communicate(timeout=120)[0]
     assert "interrupted; what was recorded so far is in" in rest
@@ -702,7 +705,7 @@ def test_record_finishes_on_sigterm_and_leaves_a_readable_file_on_sigkill(tmp_pa
         assert len(list(src.frames())) > 0 and src.damage is None
 
     out = tmp_path / "kill.mcap"
-    proc, temp, _ = _record_until(out, 60)
+    proc, temp = _record_until(out)
     proc.kill()
     proc.wait(30)
     assert not out.exists()
