@@ -35,7 +35,7 @@ WAIT_MS = 300_000
 busy with other work runs the console several times slower; the awaited event ends the wait
 as soon as it comes. Also every page's default timeout (conftest.py's ``browser``)."""
 
-FRAME_INTERVAL_MS = 500
+FRAME_INTERVAL_MS = 250
 """The test browser's pages draw at most every this many ms (:data:`FEWER_FRAMES_JS`)."""
 FEWER_FRAMES_JS = """(() => {
   const intervalMs = INTERVAL_MS;
@@ -67,10 +67,10 @@ callbacks come together at most every :data:`FRAME_INTERVAL_MS`. Viser's 3D scen
 continuously for 250 ms after each scene update, and the console updates it several times
 a second, so in software WebGL (``--disable-gpu``) a page took a whole core drawing 12
 frames a second (50 at most), beside the tests' consoles and workers (BENCHMARKS.md, "The
-test suite's time"). At 4 frames a second it took 0.58 of a core, at 2 frames 0.39 (1 frame:
-0.28); a test waiting on a picture waits a frame longer at most. The viewer (``/``) draws
-each picture as it arrives, not in these callbacks. Benchmarks (``trifuse bench``) do not
-use it."""
+test suite's time"). At 4 frames a second it takes 0.58 of a core; a test waiting on a
+picture waits a frame longer at most. (2 frames a second took 0.39 of a core, but not less of
+the whole suite's CPU: not kept.) The viewer (``/``) draws each picture as it arrives, not in
+these callbacks. Benchmarks (``trifuse bench``) do not use it."""
 
 needs_chromium = pytest.mark.skipif(
     not os.path.exists(CHROMIUM), reason=f"browser tests need Debian's chromium at {CHROMIUM}"

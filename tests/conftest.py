@@ -124,7 +124,7 @@ def console(tmp_path_factory: pytest.TempPathFactory):
 def browser():
     """Debian's chromium, headless, driven by Playwright; one per module, because the
     Playwright sync API keeps an event loop running in the main thread while it lives
-    (``asyncio.run`` in later tests would fail). Its pages draw at most 2 frames a second
+    (``asyncio.run`` in later tests would fail). Its pages draw at most 4 frames a second
     (tests/browser_support.py's ``FEWER_FRAMES_JS``)."""
     from tests.browser_support import CHROMIUM, FEWER_FRAMES_JS, FLAGS, WAIT_MS
 
