@@ -44,7 +44,7 @@ from trifuse.app.storage.rigfile import load_rig
 from trifuse.calib.transforms import pose_error
 
 # a console, a browser, auto-capture of the scenario's poses with a pause for the next-view
-# guidance, a calibration, a kill and a restart: 100-160 s
+# guidance, a calibration, a kill and a restart: 75 s alone, 130-175 s beside other work
 pytestmark = [needs_chromium, pytest.mark.slow]
 
 # Of the scenario's 20 poses. 12 simulated views (seeds 1-3) already calibrate within the
