@@ -140,15 +140,19 @@ def scenario_of(args: Sequence[str]) -> str:
 
 
 def start_console(
-    args: Sequence[str], port: int | None = None, env: dict[str, str] | None = None
+    args: Sequence[str],
+    port: int | None = None,
+    env: dict[str, str] | None = None,
+    log_path: Path | None = None,
 ) -> tuple[subprocess.Popen, ConsoleProcess]:
     """Start ``trifuse serve ARGS`` on a free loopback port (with its own random token
     unless ``env`` gives one; the calibration scenario once its poses are rendered);
     returns the process and the console (its URL as printed: ``https`` under TLS) once it
-    answers. Its output is the text pipe ``proc.stdout``."""
+    answers. Its output goes to ``log_path`` (appended; a file never stalls it) or else to
+    the text pipe ``proc.stdout``."""
     if scenario_of(args) == "calibration":  # the inspection room's live mode needs none
         wait_for_cache_warmup("calibration")
-    console = ConsoleProcess(args, env=env, port=port, timeout_s=WAIT_MS / 1e3)
+    console = ConsoleProcess(args, env=env, port=port, log_path=log_path, timeout_s=WAIT_MS / 1e3)
     return console.proc, console
 
 

@@ -305,7 +305,7 @@ def test_real_stereo_pair_the_suggestion_is_seen_by_both_cameras(tmp_path: Path)
     assert T[2, 3] > 0 and nxt.distance_m > 0
 
 
-# -- the console's pieces (the browser test: test_browser_calibration.py) ----------------------
+# -- the console's pieces (the browser test: test_browser_calibration.py) -------------------
 
 
 def test_the_console_line_image_and_verdicts() -> None:

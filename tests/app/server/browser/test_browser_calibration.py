@@ -34,7 +34,6 @@ from tests.browser_support import (
     needs_chromium,
     run_calibration,
     start_console,
-    wait_for_cache_warmup,
 )
 from tests.support import FOCAL, POSE, poll_until
 from trifuse.app.devtools.console_process import ConsoleProcess
@@ -54,7 +53,7 @@ MIN_VIEWS = 16
 GUIDED_VIEWS = 4
 """Views of the board each sensor has when the next-view guidance is checked (the fewest a
 sensor is calibrated from)."""
-SENSORS = ("ccd_left", "ccd_right", "thermal_left", "thermal_right", "tof")
+SENSORS = tuple(default_rig().names)
 CYAN_PIXELS_JS = r"""(name) => {
     const label = (i) => {  // the nearest ancestor's text: the image's label
         for (let p = i.parentElement; p; p = p.parentElement)
@@ -139,10 +138,8 @@ def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path)
     workdir = tmp_path / "work"
     args = ["--scenario", "calibration", "--board-poses", str(TEST_BOARD_POSES)]
     args += ["--workdir", str(workdir)]
-    wait_for_cache_warmup("calibration")
     log = tmp_path / "console.log"  # not a pipe: the console's log lines never stall it
-    console = ConsoleProcess(args, log_path=log, timeout_s=WAIT_MS / 1e3)
-    proc = console.proc
+    proc, console = start_console(args, log_path=log)
     try:
         page = browser.new_page(viewport={"width": 900, "height": 1200})
         page.goto(console.signin("/console/"))
