@@ -38,6 +38,7 @@ def calibrate(repeat: int) -> dict[str, float]:
     from trifuse.app.storage.capture_writer import write_board, write_view
     from trifuse.app.workflows.calibration_run import detect_capture, sensor_specs
     from trifuse.calib.opencv_baseline import calibrate_multiview_opencv
+    from trifuse.calib.polarity import detect_board_configured
     from trifuse.calib.rig_calibration import calibrate_rig
     from trifuse.calib.transforms import pose_error
 
@@ -50,7 +51,7 @@ def calibrate(repeat: int) -> dict[str, float]:
         capture = load_capture(out)
         specs = sensor_specs(capture)
         t = time.perf_counter()
-        detections = detect_capture(capture)
+        detections = detect_capture(capture, detect=detect_board_configured)  # no cache
         detect_s = time.perf_counter() - t
 
     obs = detections.observations

@@ -265,6 +265,18 @@ def write_capture(rs: RealSet, root: Path | None, dest: Path) -> list[str]:
 # -- timing the detectors where each pipeline calls them ------------------------------------
 
 
+def timed(fn: Callable[..., Any], calls: list[tuple[float, Any]]) -> Callable[..., Any]:
+    """``fn`` that appends (wall time ms, what it returned) to ``calls`` at each call."""
+
+    def call(*args: Any, **kwargs: Any) -> Any:
+        t0 = time.perf_counter()
+        value = fn(*args, **kwargs)
+        calls.append(((time.perf_counter() - t0) * 1e3, value))
+        return value
+
+    return call
+
+
 @contextmanager
 def timed_calls(module: ModuleType, *names: str) -> Iterator[list[tuple[float, Any]]]:
     """Within the block, calls of ``module.<name>`` (as the module's own code looks them up)
@@ -272,19 +284,9 @@ def timed_calls(module: ModuleType, *names: str) -> Iterator[list[tuple[float, A
     calls ended."""
     calls: list[tuple[float, Any]] = []
     saved = {n: getattr(module, n) for n in names if hasattr(module, n)}  # renamed: untimed
-
-    def wrap(fn: Callable[..., Any]) -> Callable[..., Any]:
-        def timed(*args: Any, **kwargs: Any) -> Any:
-            t0 = time.perf_counter()
-            value = fn(*args, **kwargs)
-            calls.append(((time.perf_counter() - t0) * 1e3, value))
-            return value
-
-        return timed
-
     try:
         for n, fn in saved.items():
-            setattr(module, n, wrap(fn))
+            setattr(module, n, timed(fn, calls))
         yield calls
     finally:
         for n, fn in saved.items():
@@ -368,12 +370,12 @@ def run_trifuse(capture_dir: Path, names: list[str]) -> TrifuseRun:
     """``trifuse calibrate``'s code on ``capture_dir``: load, detect (sensor by sensor, to time
     each), calibrate with the default options. ``names``: the sensors, capture names."""
     from trifuse.app.storage.capture import load_capture
-    from trifuse.app.workflows import calibration_run
     from trifuse.app.workflows.calibration_run import (
         DetectionRun,
         calibrate_capture,
         detect_capture,
     )
+    from trifuse.calib.polarity import detect_board_configured
     from trifuse.calib.rig_calibration import CalibrationOptions
 
     out = TrifuseRun()
@@ -381,9 +383,9 @@ def run_trifuse(capture_dir: Path, names: list[str]) -> TrifuseRun:
     try:
         capture = load_capture(capture_dir)
         detections = DetectionRun({}, {}, {})
-        for name in names:
-            with timed_calls(calibration_run, "detect_board_configured") as calls:
-                run = detect_capture(capture, [name])
+        for name in names:  # every image searched (no cached detection: it is timed)
+            calls: list[tuple[float, Any]] = []
+            run = detect_capture(capture, [name], detect=timed(detect_board_configured, calls))
             out.ms[name] = _median([ms for ms, _ in calls])
             out.found[name] = sorted(v for v, per in run.observations.items() if name in per)
             out.rejected[name] = {v: per[name] for v, per in run.rejected.items() if name in per}

@@ -60,6 +60,7 @@ from trifuse.app.storage.capture import (
     load_view,
 )
 from trifuse.app.storage.capture_writer import write_board, write_rig, write_view
+from trifuse.app.storage.detection_cache import detect_cached
 from trifuse.app.storage.numbered import first_free, next_number, suffixed_names
 from trifuse.app.storage.rigfile import load_rig
 from trifuse.app.workflows.calibration_run import DetectionRun, calibrate_capture
@@ -75,7 +76,6 @@ from trifuse.calib.coverage import NOVELTY_THRESHOLD, Coverage, coverage, pose_n
 from trifuse.calib.detect import Detection
 from trifuse.calib.errors import CalibrationError
 from trifuse.calib.palette_inverse import PaletteFit
-from trifuse.calib.polarity import detect_board_configured
 from trifuse.calib.rig import Rig, rig_to_yaml
 from trifuse.calib.rig_calibration import CalibrationOptions
 from trifuse.calib.rig_result import CalibrationResult
@@ -376,7 +376,7 @@ class CalibrationSession:
                 s = self.rig[sensor]
                 try:
                     image = view.frame(sensor).image
-                    det = detect_board_configured(image, self.board, s.modality)
+                    det = detect_cached(image, self.board, s.modality)
                 except (CaptureError, ValueError) as exc:
                     det = Detection(None, f"cannot search this image: {exc}", None)
                 found[sensor] = det

@@ -23,6 +23,7 @@ import numpy as np
 
 from trifuse.app.storage.atomic import atomic_write_text
 from trifuse.app.storage.capture import Capture, CaptureError, UnreadableImageError
+from trifuse.app.storage.detection_cache import detect_cached
 from trifuse.app.workflows.report_format import (
     POLARITY_HEAD,
     coverage_sentence,
@@ -31,10 +32,10 @@ from trifuse.app.workflows.report_format import (
     text_table,
     verdict_lines,
 )
+from trifuse.calib.board import Board
 from trifuse.calib.coverage import coverage
 from trifuse.calib.detect import Detection
 from trifuse.calib.errors import CalibrationError
-from trifuse.calib.polarity import detect_board_configured
 from trifuse.calib.rig_calibration import CalibrationOptions, SensorSpec, calibrate_rig
 from trifuse.calib.rig_result import CalibrationResult
 from trifuse.calib.verdict import ZHANG_MIN_VIEWS
@@ -93,8 +94,13 @@ def detect_capture(
     sensors: list[str] | None = None,
     workers: int = 2,
     progress: Progress | None = None,
+    detect: Callable[[np.ndarray, Board, str], Detection] = detect_cached,
 ) -> DetectionRun:
     """Detect the board in every image (threads: OpenCV releases the GIL).
+
+    ``detect`` searches one image (default: an image searched before, by a console's
+    session or an earlier run, is not searched again: :mod:`app.storage.detection_cache`;
+    the benchmarks pass :func:`calib.polarity.detect_board_configured` itself).
 
     Thermal and TOF images are searched with the board's polarity overrides when
     ``board.yaml`` sets them (:func:`calib.polarity.detect_board_configured`), else as the
@@ -122,7 +128,7 @@ def detect_capture(
         return (
             view.name,
             sensor,
-            detect_board_configured(frame.image, capture.board, capture.modalities[sensor]),
+            detect(frame.image, capture.board, capture.modalities[sensor]),
         )
 
     run = DetectionRun({}, {}, {})

@@ -91,10 +91,10 @@ from trifuse.app.server.runtime.board_sighting import (
 from trifuse.app.server.runtime.demand import Demand
 from trifuse.app.server.runtime.periodic import Periodic
 from trifuse.app.sources.frames import FrameSet
+from trifuse.app.storage.detection_cache import detect_remembered
 from trifuse.calib.board import Board
 from trifuse.calib.board_pose import board_pose_single
 from trifuse.calib.detect import Detection
-from trifuse.calib.polarity import detect_board_configured
 from trifuse.calib.rig import Rig
 
 FULL_SEARCH_PERIOD_S = 10.0
@@ -167,7 +167,9 @@ class BoardWatch(Periodic):
             ``t * (1 / duty - 1)`` seconds, at most :data:`MAX_PAUSE_S` (each loop's share
             of its thread's time).
         poll_s: how often the loops look for a new frame set.
-        detect: the detector (tests pass a stand-in).
+        detect: the detector (default: :func:`calib.polarity.detect_board_configured`
+            with its results kept in memory, :mod:`app.storage.detection_cache`; tests pass
+            a stand-in).
         demand: search only while it is wanted (None: always).
 
     Attributes:
@@ -195,7 +197,7 @@ class BoardWatch(Periodic):
         idle_full_period_s: float = 15.0,
         duty: float = 0.5,
         poll_s: float = 0.05,
-        detect: Detector = detect_board_configured,
+        detect: Detector = detect_remembered,
         demand: Demand | None = None,
     ) -> None:
         super().__init__("board-watch", poll_s, demand)

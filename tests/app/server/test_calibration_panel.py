@@ -73,7 +73,7 @@ def test_auto_capture_says_live_why_a_pose_is_not_taken_and_holds_the_simulated_
     updates the line under the checkbox with the reason it is not taken (moving and by how
     much in frame time, which sensors see the board) and, once it is taken, the board may
     move on (its pose is released)."""
-    monkeypatch.setattr(calib_session, "detect_board_configured", stand_in_detector)
+    monkeypatch.setattr(calib_session, "detect_cached", stand_in_detector)
     hold = CaptureHold(hold_s=2.0, n_poses=4, max_hold_s=30.0)
     source = SimpleNamespace(scenario=SimpleNamespace(capture_hold=hold))
     with panel_on(tmp_path, source, FrameSet(0, {})) as (panel, session, _):

@@ -250,3 +250,45 @@ def test_a_calibration_seen_running_can_be_waited_for_at_once(tmp_path, views, m
     session.close()
     assert "error" not in seen, seen["error"]
     assert seen["job"].state == "done"
+
+
+def test_a_restarted_session_and_a_calibration_do_not_search_again(
+    tmp_path, views, monkeypatch
+) -> None:
+    """The session's searches are kept by image content (app.storage.detection_cache): a
+    console restarted on the session, and ``trifuse calibrate`` on its capture, take the
+    corners found before, the same to the bit, without searching an image again."""
+    from trifuse.app.storage import detection_cache
+    from trifuse.app.workflows.calibration_run import detect_capture
+
+    monkeypatch.setenv(detection_cache.CACHE_ENV, str(tmp_path / "cache"))
+    searched: list[str] = []
+    real = detection_cache.detect_board_configured
+
+    def counted(image, board, modality):
+        searched.append(modality)
+        return real(image, board, modality)
+
+    monkeypatch.setattr(detection_cache, "detect_board_configured", counted)
+    rig = default_rig()
+    session = CalibrationSession(tmp_path / "work", rig, CALIBRATION_BOARD)
+    for fs in views[:2]:
+        session.take(fs)
+    wait_searched(session)
+    before = {v.name: v.detections for v in session.views()}
+    session.close()
+    assert len(searched) == 2 * len(rig.names)
+    detection_cache._caches.clear()  # a new process: nothing in memory
+
+    reopened = CalibrationSession(tmp_path / "work", rig, CALIBRATION_BOARD)
+    wait_searched(reopened)
+    run = detect_capture(load_capture(tmp_path / "work" / "captures"))
+    assert len(searched) == 2 * len(rig.names)
+    for view in reopened.views():
+        for sensor, det in view.detections.items():
+            old = before[view.name][sensor]
+            assert (det.reason, det.method) == (old.reason, old.method)
+            assert det.corners is None or np.array_equal(det.corners, old.corners)
+            if det.found:
+                assert np.array_equal(run.observations[view.name][sensor], det.corners)
+    reopened.close()
