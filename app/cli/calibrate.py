@@ -106,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
     say how long it all took (the summary's time is the calibration's alone)."""
     t_start = time.perf_counter()
     from trifuse.app.storage.capture import load_capture
+    from trifuse.app.storage.detection_cache import shared_cache
     from trifuse.app.storage.rigfile import save_rig
     from trifuse.app.workflows.calibration_run import (
         calibrate_capture,
@@ -131,7 +132,10 @@ def run(args: argparse.Namespace) -> int:
         min_views=args.min_views,
     )
     sensors = args.sensors.split(",") if args.sensors else None
+    cache = shared_cache()
+    lookups, hits = cache.lookups, cache.hits
     result, report = calibrate_capture(capture, options, sensors, stage_progress())
+    lookups, hits = cache.lookups - lookups, cache.hits - hits
     t_calibrated = time.perf_counter()
     out("")
     out(format_summary(result, report))
@@ -164,20 +168,31 @@ def run(args: argparse.Namespace) -> int:
             t_loaded - t_start,
             t_calibrated - t_loaded - result.seconds,
             result.seconds,
+            (hits, lookups),
         )
     )
     return EXIT_OK
 
 
-def time_text(total_s: float, reading_s: float, detecting_s: float, calibrating_s: float) -> str:
+def time_text(
+    total_s: float,
+    reading_s: float,
+    detecting_s: float,
+    calibrating_s: float,
+    cached: tuple[int, int] = (0, 0),
+) -> str:
     """``Took 14.2 s in all: starting and reading the capture 0.4 s, detecting the board
     10.6 s, calibrating 2.9 s, the rest 0.3 s`` (starting: the imports; the rest: comparing,
-    writing)."""
+    writing). ``cached``: (images whose corners came from the detection cache, images);
+    when any did, the detection says so: ``detecting the board 0.1 s (12 of 14 images
+    searched before)``."""
     rest_s = max(0.0, total_s - reading_s - detecting_s - calibrating_s)
+    hits, images = cached
+    before = f" ({hits} of {images} images searched before)" if hits else ""
     return (
         f"Took {total_s:.1f} s in all: starting and reading the capture {reading_s:.1f} s, "
-        f"detecting the board {detecting_s:.1f} s, calibrating {calibrating_s:.1f} s, the rest "
-        f"{rest_s:.1f} s"
+        f"detecting the board {detecting_s:.1f} s{before}, calibrating {calibrating_s:.1f} s, "
+        f"the rest {rest_s:.1f} s"
     )
 
 

@@ -139,6 +139,10 @@ class DetectionCache:
         self._lock = threading.Lock()
         self._written = 0
         self._ready = False
+        self.lookups = 0
+        """Searches asked for (:meth:`detect` calls with an image)."""
+        self.hits = 0
+        """Of :attr:`lookups`, those answered from memory or disk without a search."""
 
     def detect(
         self, image: np.ndarray, board: Board, modality: str, keep: bool = True
@@ -155,16 +159,20 @@ class DetectionCache:
             return detect_board_configured(image, board, modality)
         key = detection_key(image, board, modality)
         with self._lock:
+            self.lookups += 1
             det = self._memory.get(key)
             if det is not None:
+                self.hits += 1
                 self._memory.move_to_end(key)
                 return det
         det = self._read(key)
+        hit = det is not None
         if det is None:
             det = detect_board_configured(image, board, modality)
             if keep:
                 self._write(key, det)
         with self._lock:
+            self.hits += hit
             self._memory[key] = det
             while len(self._memory) > self._capacity:
                 self._memory.popitem(last=False)

@@ -169,8 +169,9 @@ def test_coverage_sentence_names_the_empty_and_thin_regions() -> None:
 
 
 def test_summary_gives_coverage_in_a_line_and_rejected_images_by_view(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch
 ) -> None:
+    monkeypatch.setenv("TRIFUSE_DETECTION_CACHE", str(tmp_path / "cache"))  # searched here
     cap = _real_capture(tmp_path)
     cv2.imwrite(str(cap / "left05" / "ccd_left.jpg"), np.full((480, 640), 128, np.uint8))
     report_path = tmp_path / "report.json"
@@ -202,6 +203,12 @@ def test_summary_gives_coverage_in_a_line_and_rejected_images_by_view(
     total, reading, detecting, calibrating, rest = map(float, took.groups())
     assert calibrating == float(calibrated.group(1)) and detecting > 0
     assert total == pytest.approx(reading + detecting + calibrating + rest, abs=0.25)
+    # again: every image's corners from the detection cache, and the line says so
+    again = ["calibrate", str(cap), "--out", str(tmp_path / "r2.yaml")]
+    assert main(again) == 0
+    last = capsys.readouterr().out.splitlines()[-1]
+    images = len(list(cap.glob("*/ccd_left.jpg")))  # the 13 photographs
+    assert f"({images} of {images} images searched before)" in last, last
 
 
 def test_time_text() -> None:
@@ -210,6 +217,9 @@ def test_time_text() -> None:
         "10.6 s, calibrating 2.9 s, the rest 0.3 s"
     )
     assert time_text(1.0, 0.5, 0.3, 0.3).endswith("the rest 0.0 s")  # rounding, never < 0
+    assert "detecting the board 0.1 s (3 of 4 images searched before), calib" in time_text(
+        1.0, 0.5, 0.1, 0.3, (3, 4)
+    )
 
 
 # -- malformed input: one clear line, exit 2, no traceback ----------------------------------
