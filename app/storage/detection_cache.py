@@ -119,6 +119,11 @@ def _from_json(text: str) -> Detection:
     return Detection(corners, reason, method)
 
 
+def _copied(det: Detection) -> Detection:
+    corners = None if det.corners is None else det.corners.copy()
+    return Detection(corners, det.reason, det.method)
+
+
 class DetectionCache:
     """:func:`calib.polarity.detect_board_configured`, with each result kept by the hash of
     its inputs (:func:`detection_key`) in memory and, if ``folder`` is given, on disk.
@@ -164,7 +169,7 @@ class DetectionCache:
             if det is not None:
                 self.hits += 1
                 self._memory.move_to_end(key)
-                return det
+                return _copied(det)
         det = self._read(key)
         hit = det is not None
         if det is None:
@@ -173,7 +178,7 @@ class DetectionCache:
                 self._write(key, det)
         with self._lock:
             self.hits += hit
-            self._memory[key] = det
+            self._memory[key] = _copied(det)  # the caller may change its corners
             while len(self._memory) > self._capacity:
                 self._memory.popitem(last=False)
         return det

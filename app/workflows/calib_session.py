@@ -20,7 +20,9 @@ acknowledged and is not listed, but is kept (it may hold images) and named in
 :attr:`CalibrationSession.interrupted` and a log line; a rig version is its ``.yaml`` (written
 after its report), so a report without it is ignored and its number is not reused. The board is
 searched in each view's images *as written* (decoded from disk), so a calibration from
-the console and ``trifuse calibrate <workdir>/captures`` see the same corners.
+the console and ``trifuse calibrate <workdir>/captures`` see the same corners; each image is
+searched once (:mod:`app.storage.detection_cache`), so a restarted session has its views'
+corners at once.
 
 Auto-capture follows ROS ``camera_calibration``: a sighting of the board is taken when the
 board is steady (:class:`~app.server.runtime.board_sighting.BoardSighting`) and, for at least

@@ -52,6 +52,8 @@ def test_a_second_search_of_the_same_pixels_is_not_made(tmp_path, searches, phot
     assert first.found and len(searches) == 1
     again = cache.detect(photo.copy(), BOARD, "color")  # another array, the same pixels
     assert _same(first, again) and len(searches) == 1
+    again.corners += 5.0  # a caller changing its corners changes no one else's
+    assert _same(first, cache.detect(photo, BOARD, "color"))
     blank = np.full_like(photo, 128)
     missed = cache.detect(blank, BOARD, "color")
     assert not missed.found and len(searches) == 2
