@@ -29,7 +29,10 @@ import contextlib
 import fcntl
 import logging
 import os
+import signal
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
 from typing import Protocol
@@ -77,6 +80,26 @@ MAX_CHUNK_BYTES`). A rig whose sensors' frames are larger is refused."""
 
 _MAX_STAMP_NS = 2**63 - 1
 log = logging.getLogger(__name__)
+
+_DEFERRED = {signal.SIGINT, signal.SIGTERM}
+
+
+@contextlib.contextmanager
+def signals_deferred() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back (on the main thread) while the MCAP writer runs; they
+    are delivered when the block ends. Their Python handlers raise KeyboardInterrupt at the
+    next instruction, which may be in the file's ``write`` that the writer (Rust) calls:
+    the writer then fails for good ("attempted another write after a write method failed")
+    and the recording could not be finished (a SIGTERM during a chunk's write in a test of
+    ``trifuse record``)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signal handlers run on the main thread only
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, _DEFERRED)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 class FrameObserver(Protocol):
@@ -289,13 +312,14 @@ class RecordingWriter:
                 frame, s, stamp, self.jpeg_quality, self.thermal_encoding
             )
         ]
-        if self._next_calibration_ns is None or stamp >= self._next_calibration_ns:
-            self._write_calibration(stamp)
-        for channel, msg in messages:
-            channel.log(msg, log_time=stamp)  # type: ignore[attr-defined]
-        self._last_stamp[sensor] = stamp
-        if time.monotonic() >= self._next_seal:
-            self.seal()
+        with signals_deferred():
+            if self._next_calibration_ns is None or stamp >= self._next_calibration_ns:
+                self._write_calibration(stamp)
+            for channel, msg in messages:
+                channel.log(msg, log_time=stamp)  # type: ignore[attr-defined]
+            self._last_stamp[sensor] = stamp
+            if time.monotonic() >= self._next_seal:
+                self.seal()
         self.frames_written += 1
         self.first_ns = stamp if self.first_ns is None else min(self.first_ns, stamp)
         self.last_ns = stamp if self.last_ns is None else max(self.last_ns, stamp)
@@ -327,11 +351,12 @@ class RecordingWriter:
         T = np.asarray(T_world_rig, dtype=np.float64)
         if stamp == self._last_pose_ns:
             return False
-        self._tf.log(transform_message(T, WORLD_FRAME, RIG_FRAME, stamp), log_time=stamp)
-        self._last_pose_ns = stamp
-        self.poses_written += 1
-        if time.monotonic() >= self._next_seal:
-            self.seal()
+        with signals_deferred():
+            self._tf.log(transform_message(T, WORLD_FRAME, RIG_FRAME, stamp), log_time=stamp)
+            self._last_pose_ns = stamp
+            self.poses_written += 1
+            if time.monotonic() >= self._next_seal:
+                self.seal()
         return True
 
     def _notify(self, what: str, *args: object) -> None:
@@ -379,9 +404,10 @@ class RecordingWriter:
         if self.fused_video is None:
             raise RuntimeError(f"{self.path}: no fused-video track (call add_fused_video)")
         stamp = _stamp(stamp_ns, "fused video")
-        written = self.fused_video.write(data, bool(key), stamp)
-        if written and time.monotonic() >= self._next_seal:
-            self.seal()
+        with signals_deferred():
+            written = self.fused_video.write(data, bool(key), stamp)
+            if written and time.monotonic() >= self._next_seal:
+                self.seal()
         return written
 
     @property
@@ -416,9 +442,10 @@ class RecordingWriter:
         self._notify("closing")  # may still write (the fused video's last pictures)
         self._closed = True
         try:
-            self._mcap.close()
-            self._close_channels()
-            self._file.finish()  # summary and footer over the seal, fsynced
+            with signals_deferred():
+                self._mcap.close()
+                self._close_channels()
+                self._file.finish()  # summary and footer over the seal, fsynced
             try:
                 os.link(self.temp_path, self.path)
             except FileExistsError:
