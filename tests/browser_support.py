@@ -26,6 +26,7 @@ import pytest
 from tests.support import ROOT, WAIT_S, wait_until
 from trifuse.app.devtools.browser_console import CHROMIUM, CHROMIUM_FLAGS
 from trifuse.app.devtools.console_process import ConsoleProcess, stop_process
+from trifuse.app.sources.sim.pose_cache import default_cache_dir
 
 V = TypeVar("V")
 
@@ -92,8 +93,7 @@ def start_cache_warmup() -> None:
     background process per scenario, while the first tests run (conftest.py starts them
     when the run has console tests). Consoles then load their pictures instead of rendering
     beside the tests (and beside each other)."""
-    cache = os.environ.get("TRIFUSE_SIM_CACHE", "")
-    if _warmups or cache.lower() in ("off", "0", "no", "false"):
+    if _warmups or default_cache_dir() is None:  # TRIFUSE_SIM_CACHE=off: no disk cache
         return
     for name, kwargs in WARM_SCENARIOS.items():
         code = (

@@ -45,6 +45,7 @@ import cv2
 import numpy as np
 
 import trifuse.calib
+from trifuse.app.storage.user_cache import user_cache_dir
 from trifuse.calib.board import Board
 from trifuse.calib.detect import Detection
 from trifuse.calib.polarity import detect_board_configured
@@ -68,11 +69,7 @@ log = logging.getLogger(__name__)
 def default_cache_dir() -> Path | None:
     """``$TRIFUSE_DETECTION_CACHE`` if set (None if it is ``off``), else
     ``$XDG_CACHE_HOME/trifuse/detections`` or ``~/.cache/trifuse/detections``."""
-    env = os.environ.get(CACHE_ENV)
-    if env:
-        return None if env.lower() in ("off", "0", "no", "false") else Path(env)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "trifuse" / "detections"
+    return user_cache_dir(CACHE_ENV, "detections")
 
 
 @lru_cache(maxsize=1)

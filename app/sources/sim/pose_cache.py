@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 
 from trifuse.app.sources.frames import Frame
+from trifuse.app.storage.user_cache import user_cache_dir
 from trifuse.calib.rig import Rig
 
 CACHE_ENV = "TRIFUSE_SIM_CACHE"
@@ -108,11 +109,7 @@ def sample_poses(scenario: Any, samples: int, render_hz: float) -> PoseSamples:
 def default_cache_dir() -> Path | None:
     """Where rendered poses are kept across runs: ``$TRIFUSE_SIM_CACHE`` if set (None if
     it is ``off``), else ``$XDG_CACHE_HOME/trifuse/sim`` or ``~/.cache/trifuse/sim``."""
-    env = os.environ.get(CACHE_ENV)
-    if env:
-        return None if env.lower() in ("off", "0", "no", "false") else Path(env)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "trifuse" / "sim"
+    return user_cache_dir(CACHE_ENV, "sim")
 
 
 @lru_cache(maxsize=1)

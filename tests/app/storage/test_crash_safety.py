@@ -288,6 +288,17 @@ except KeyboardInterrupt:
 """
 
 
+def _run_child(code: str, path: Path) -> subprocess.CompletedProcess:
+    """Run ``code`` in a child Python with ``path`` as its argument; its output as text."""
+    return subprocess.run(
+        [sys.executable, "-c", code, str(path)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
 def test_a_sigterm_during_the_writers_call_waits_for_it(tmp_path) -> None:
     """SIGTERM (Ctrl-C alike) coming while the MCAP writer writes a chunk to the file is
     held back until the write returns: the KeyboardInterrupt comes after it, and the
@@ -295,13 +306,7 @@ def test_a_sigterm_during_the_writers_call_waits_for_it(tmp_path) -> None:
     file's ``write``, and the writer refused to finish: "attempted another write after a
     write method failed"; seen once in a fresh-clone run of the record SIGTERM test.)"""
     path = tmp_path / "term.mcap"
-    done = subprocess.run(
-        [sys.executable, "-c", _SIGTERM_CHILD, str(path)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    done = _run_child(_SIGTERM_CHILD, path)
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["interrupted", "after", "3"]  # in the 4th frame's write
     with ReplaySource(path, realtime=False) as src:  # which went in whole before it
@@ -311,13 +316,7 @@ def test_a_sigterm_during_the_writers_call_waits_for_it(tmp_path) -> None:
 def _record_and_die(path: Path) -> int:
     """A child process writes thermal frames to ``path`` and is SIGKILLed mid-recording;
     returns how many frames it had sealed (written to disk as a complete MCAP)."""
-    done = subprocess.run(
-        [sys.executable, "-c", _RECORD_CHILD, str(path)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    done = _run_child(_RECORD_CHILD, path)
     assert done.returncode == -signal.SIGKILL, done.stderr
     return int(done.stdout.split()[0])
 
