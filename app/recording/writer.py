@@ -86,20 +86,34 @@ _DEFERRED = {signal.SIGINT, signal.SIGTERM}
 
 @contextlib.contextmanager
 def signals_deferred() -> Iterator[None]:
-    """Hold SIGINT and SIGTERM back (on the main thread) while the MCAP writer runs; they
-    are delivered when the block ends. Their Python handlers raise KeyboardInterrupt at the
-    next instruction, which may be in the file's ``write`` that the writer (Rust) calls:
-    the writer then fails for good ("attempted another write after a write method failed")
-    and the recording could not be finished (a SIGTERM during a chunk's write in a test of
-    ``trifuse record``)."""
+    """Hold SIGINT and SIGTERM's Python handlers back while the MCAP writer runs: a signal
+    that comes meanwhile is raised again when the block ends. The handlers raise
+    KeyboardInterrupt at the main thread's next instruction, which may be in the file's
+    ``write`` that the writer (Rust) calls: the writer then fails for good ("attempted
+    another write after a write method failed") and the recording could not be finished
+    (a SIGTERM during a chunk's write in a test of ``trifuse record``). Blocking the
+    signals on the main thread is not enough: the kernel gives them to another thread,
+    whose C handler still has the main thread run the Python one. Signals left to the
+    system (``SIG_DFL``, ``SIG_IGN``) are not touched."""
     if threading.current_thread() is not threading.main_thread():
-        yield  # signal handlers run on the main thread only
+        yield  # signal handlers are set, and run, on the main thread only
         return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, _DEFERRED)
+    held: list[int] = []
+
+    def hold(signum: int, _frame: object) -> None:
+        held.append(signum)
+
+    previous = {s: signal.getsignal(s) for s in _DEFERRED}
+    previous = {s: h for s, h in previous.items() if callable(h)}
+    for s in previous:
+        signal.signal(s, hold)
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        for s in dict.fromkeys(held):
+            signal.raise_signal(s)
 
 
 class FrameObserver(Protocol):

@@ -256,7 +256,7 @@ os.kill(os.getpid(), signal.SIGKILL)
 
 
 _SIGTERM_CHILD = """
-import os, signal, sys
+import os, signal, sys, threading, time
 import numpy as np
 from trifuse.app.cli.record import _sigterm_as_interrupt
 from trifuse.app.recording import sealed_file
@@ -264,6 +264,9 @@ from trifuse.app.recording.writer import RecordingWriter
 from trifuse.app.sources.frames import Frame
 from trifuse.app.sources.sim.head import default_rig
 signal.signal(signal.SIGTERM, _sigterm_as_interrupt)  # as `trifuse record` does
+# Another thread, as `trifuse record` has (the simulator's, OpenCV's): the kernel may give it
+# a signal the main thread blocks, and Python then runs the handler on the main thread.
+threading.Thread(target=time.sleep, args=(600,), daemon=True).start()
 rig = default_rig()
 w, h = rig["thermal_left"].image_size
 rng = np.random.default_rng(5)
