@@ -26,8 +26,7 @@ from trifuse.calib.transforms import make_T, rotation_from_rvec, transform_point
 
 RIG = default_rig()
 BOARD = CALIBRATION_BOARD
-N_VIEWS = 8
-SEED = 0
+SEED = 1  # the shared frame sets' (conftest.py's calibration_frame_sets)
 REAL_DIR = OPENCV_LEFT_9X6
 
 # RMS bounds (px) of the detected corners against the exact projection, in order.
@@ -87,23 +86,23 @@ def _rms(a: np.ndarray, b: np.ndarray) -> float:
 
 
 @pytest.fixture(scope="module")
-def cases() -> list[Case]:
-    """Every sensor of N_VIEWS simulated calibration views, detected once."""
+def cases(calibration_frame_sets) -> list[Case]:
+    """Every sensor of the run's shared simulated calibration views (conftest.py: twelve
+    views of seed 1), detected once."""
     out = []
-    poses = calibration_poses(N_VIEWS, SEED, RIG)
-    for i, view in enumerate(calibration_views(N_VIEWS, SEED, RIG)):
-        np.testing.assert_array_equal(view.T_rig_board, poses[i])
+    poses = calibration_poses(len(calibration_frame_sets), SEED, RIG)
+    for i, frames in enumerate(calibration_frame_sets):
         for sensor in RIG.names:
             modality = RIG[sensor].modality
-            image = view.frames[sensor].image
-            inside, tilt, distance = _visibility(sensor, view.T_rig_board)
+            image = frames.frames[sensor].image
+            inside, tilt, distance = _visibility(sensor, poses[i])
             out.append(
                 Case(
                     i,
                     sensor,
                     modality,
                     image,
-                    _truth(sensor, view.T_rig_board),
+                    _truth(sensor, poses[i]),
                     inside and tilt <= 45.0,
                     distance,
                     detect_board(image, BOARD, modality),
@@ -150,7 +149,7 @@ def test_color_and_thermal_of_one_eye_correspond(cases: list[Case]) -> None:
     projection in order, and the board poses solved from each agree in the rig frame (a
     half-turn mislabel would put the origin ~0.5 m away and turn the board by 180 deg)."""
     pairs = 0
-    for view in range(N_VIEWS):
+    for view in sorted({c.view for c in cases}):
         by = {c.sensor: c for c in cases if c.view == view}
         a, b = by["ccd_left"], by["thermal_left"]
         if not (a.detection.found and b.detection.found):
@@ -293,12 +292,26 @@ def test_real_opencv_samples() -> None:
 # -- rejections and input checks -----------------------------------------------------------
 
 
-def test_board_cut_by_the_border_is_rejected(cases: list[Case]) -> None:
+@pytest.fixture(scope="module")
+def sliver_view() -> Case:
+    """ccd_left in view 0 of eight of seed 0: OpenCV's detectors find its board even with
+    the outer squares cut to slivers (on the shared views of seed 1 they never do)."""
+    view = next(iter(calibration_views(8, 0, RIG)))  # renders that view only
+    image = view.frames["ccd_left"].image
+    truth = _truth("ccd_left", view.T_rig_board)
+    return Case(
+        0, "ccd_left", "color", image, truth, True, 0.0, detect_board(image, BOARD, "color")
+    )
+
+
+def test_board_cut_by_the_border_is_rejected(sliver_view: Case) -> None:
     """Outer squares cut to slivers (0.02 of a spacing left of the outer corners) are
     refused; cut at 0.15 of a spacing (real boards are found there by OpenCV: Pose2Sim's at
     0.07-0.12) the board is found and its corners are as accurate as the view's own
-    (measured: RMS 0.035 px, worst corner 0.16 px, against 0.027 px uncut)."""
-    c = _case(cases, "ccd_left")
+    (measured: RMS 0.035 px, worst corner 0.16 px, against 0.027 px uncut). Not on every
+    view: on seed 1's views 0 and 5 the corners 8 px from the cut came 0.49 and 0.27 px
+    off (RMS 0.15 and 0.045 px; docs/FINDINGS.md)."""
+    c = sliver_view
     corners = c.detection.corners
     k = int(np.argmin(corners[:, 0]))
     grid = corners.reshape(BOARD.rows, BOARD.cols, 2)

@@ -402,9 +402,12 @@ def _check_condition(
 @pytest.mark.parametrize("name", list(BENCH_CONDITIONS))
 def test_detection_under_condition(name: str) -> None:
     """Two poses of seed 11, both imagers: ours finds at least the baseline's boards, never a
-    cut one, corners within :func:`corner_tolerance_px` of the truth in canonical order."""
-    poses = 4 if name in ("partial-view", "combined") else 2  # half their views are cut
-    _check_condition(name, poses, (SEED,))
+    cut one, corners within :func:`corner_tolerance_px` of the truth in canonical order.
+    Partial views and the combined conditions take seed 23: of seed 11's two poses three
+    images are cut (a cut board costs the detector 1-1.5 s of searching in vain), of seed
+    23's one is cut and three are whole; the slow test has eight poses of more seeds."""
+    seed = 23 if name in ("partial-view", "combined") else SEED
+    _check_condition(name, 2, (seed,))
 
 
 @pytest.mark.slow  # 16 images, each searched by both detectors: 7-30 s a condition
