@@ -11,14 +11,24 @@ from depth edges (where a pixel mixes two surfaces and no single answer is right
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
 
-from trifuse.calib.camera import pixel_grid
+from trifuse.calib.camera import Intrinsics, pixel_grid
 from trifuse.calib.rig import Rig
 
 BANDS_M: tuple[tuple[float, float], ...] = ((0.5, 1.0), (1.0, 2.0), (2.0, 4.0), (4.0, 8.0))
+
+
+@lru_cache(maxsize=4)
+def _pixel_xy(intrinsics: Intrinsics, width: int, height: int) -> np.ndarray:
+    """(H, W, 2) undistorted normalised coordinates of every pixel centre (read-only;
+    kept: a colour camera's take about 1 s, and a comparison asks for them per frame)."""
+    xy = intrinsics.normalized(pixel_grid(width, height))
+    xy.flags.writeable = False
+    return xy
 
 
 @dataclass
@@ -46,7 +56,9 @@ def exact_mapping(
     """The true mapping from ground-truth ranges (radial, metres, NaN = nothing seen)."""
     tgt, src = rig[target], rig[source]
     w, h = tgt.image_size
-    rays = tgt.intrinsics.unproject(pixel_grid(w, h))
+    xy = _pixel_xy(tgt.intrinsics, w, h)
+    rays = np.concatenate([xy, np.ones((h, w, 1))], axis=-1)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)  # unit rays, as unproject gives
     P = rays * target_range_m[..., None]
     T = rig.T(source, target)
     Q = P @ T[:3, :3].T + T[:3, 3]
@@ -135,7 +147,7 @@ def fixed_depth_mapping(rig: Rig, target: str, source: str, depth_m: float) -> n
     distortion handled exactly, which favours the baseline). (H, W, 2) source pixels."""
     tgt, src = rig[target], rig[source]
     w, h = tgt.image_size
-    xy = tgt.intrinsics.normalized(pixel_grid(w, h))
+    xy = _pixel_xy(tgt.intrinsics, w, h)
     P = np.concatenate([xy * depth_m, np.full((h, w, 1), depth_m)], axis=-1)
     T = rig.T(source, target)
     return src.intrinsics.project(P @ T[:3, :3].T + T[:3, 3])

@@ -9,6 +9,7 @@ normal install does not have)."""
 from __future__ import annotations
 
 import ast
+from functools import cache
 from pathlib import Path
 
 import pytest
@@ -18,11 +19,22 @@ from tests.support import ROOT
 FORBIDDEN = {"calib": ("fusion", "app"), "fusion": ("app",)}
 
 
+def nodes(path: Path) -> tuple[ast.AST, ...]:
+    """Every node of ``path``'s syntax tree (each text parsed once a run: the checks
+    below read every source file several times)."""
+    return _nodes(path.read_text(), str(path))
+
+
+@cache
+def _nodes(text: str, name: str) -> tuple[ast.AST, ...]:
+    return tuple(ast.walk(ast.parse(text, name)))
+
+
 def imported_modules(path: Path) -> set[str]:
     """Every module of the project's packages that ``path`` imports, anywhere in it
     (``from a.b import c`` counts ``a.b`` and, when it is a module, ``a.b.c``)."""
     found = set()
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    for node in nodes(path):
         if isinstance(node, ast.Import):
             found |= {a.name for a in node.names}
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
@@ -88,7 +100,7 @@ def imported_packages(path: Path) -> set[tuple[str, int]]:
     """The project package (``app``, ``fusion``, ``calib``) or other top-level package of
     every import in ``path`` (module level or not), with its line."""
     found = set()
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    for node in nodes(path):
         if isinstance(node, ast.Import):
             found |= {(_package(a.name), node.lineno) for a in node.names}
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
@@ -99,7 +111,7 @@ def imported_packages(path: Path) -> set[tuple[str, int]]:
 def bare_imports(path: Path) -> list[int]:
     """Lines of ``path`` importing ``app``, ``calib`` or ``fusion`` without ``trifuse.``."""
     lines = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    for node in nodes(path):
         names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
         if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             names = [node.module]
@@ -183,7 +195,7 @@ def app_imports(path: Path) -> set[tuple[str, int]]:
     """The part of app (see :func:`app_part`) of every import of app in ``path``, module level
     or not, with its line (``from trifuse.app import x`` counts ``x``)."""
     found = set()
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    for node in nodes(path):
         names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
         if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             names = [node.module]
@@ -260,7 +272,7 @@ def shared_test_imports(path: Path) -> list[str]:
     """``"<file>:<line> imports <module>"`` for every import in ``path`` of a test module
     (``tests.test_*``) or of ``conftest``: helpers shared by tests live in support modules."""
     wrong = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    for node in nodes(path):
         names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
         if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
@@ -274,9 +286,7 @@ def shared_test_imports(path: Path) -> list[str]:
 def own_place_paths(path: Path) -> list[int]:
     """Lines of ``path`` that use ``__file__`` (a path built from the file's own place)."""
     return [
-        node.lineno
-        for node in ast.walk(ast.parse(path.read_text(), str(path)))
-        if isinstance(node, ast.Name) and node.id == "__file__"
+        node.lineno for node in nodes(path) if isinstance(node, ast.Name) and node.id == "__file__"
     ]
 
 

@@ -20,6 +20,8 @@ ray and the index of the solid it hits.
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import TYPE_CHECKING
@@ -126,6 +128,8 @@ class _RayGrid:
             np.minimum(np.minimum(rmin[:-2], rmin[1:-1]), rmin[2:]),
             np.maximum(np.maximum(rmax[:-2], rmax[1:-1]), rmax[2:]),
         )
+        for a in (self.xy, self.dirs, *self.col_x, *self.row_y):
+            a.flags.writeable = False  # shared by every renderer of this camera
 
     def sub_dirs(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Unit directions (N, 3) at fractional pixel positions (bilinear in xy)."""
@@ -146,6 +150,29 @@ class _RayGrid:
         d[:, 2] = 1.0
         d /= np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
         return d
+
+
+GRIDS_KEPT = 8
+"""Ray grids kept for the process (a colour camera's takes about 1 s to build and 25 MB):
+renderers of cameras with the same intrinsics, image size, margin and quality share one."""
+_grids: OrderedDict[tuple, _RayGrid] = OrderedDict()
+_grids_lock = threading.Lock()
+
+
+def _ray_grid(sensor: Sensor, margin: int, coarse: bool) -> _RayGrid:
+    """The (shared, read-only) ray grid of ``sensor`` with ``margin``, built once."""
+    key = (sensor.intrinsics, tuple(sensor.image_size), margin, coarse)
+    with _grids_lock:
+        grid = _grids.get(key)
+        if grid is not None:
+            _grids.move_to_end(key)
+            return grid
+    grid = _RayGrid(sensor, margin, coarse)
+    with _grids_lock:
+        _grids[key] = grid
+        while len(_grids) > GRIDS_KEPT:
+            _grids.popitem(last=False)
+    return grid
 
 
 COARSE_STEP_PX = 8
@@ -269,7 +296,7 @@ class Renderer:
     def _grid(self, name: str, margin: int = 0) -> _RayGrid:
         key = (name, margin)
         if key not in self._grids:
-            self._grids[key] = _RayGrid(self.rig[name], margin, coarse=self.live)
+            self._grids[key] = _ray_grid(self.rig[name], margin, self.live)
         return self._grids[key]
 
     # -- tracing ------------------------------------------------------------------------
