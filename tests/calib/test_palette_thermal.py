@@ -120,10 +120,10 @@ def test_corners_on_palette_images_equal_the_grey_ones(name: str) -> None:
         if name == "vendor":
             reference = (255.0 / arc[-1]) * arc[render(grey, None)]
         reference = np.where(text, scalar, reference).astype(np.float32)
-        return (
-            detect_board_configured(reference, BOARD, "thermal"),
-            detect_board_configured(scalar, BOARD, "thermal"),
-        )
+        got = detect_board_configured(scalar, BOARD, "thermal")
+        if np.array_equal(reference, scalar):  # a known palette's read-back (measured: all)
+            return got, got  # the same pixels: the same search
+        return detect_board_configured(reference, BOARD, "thermal"), got
 
     views = list(_greys().items())[::2]  # six views: detection is the slow part
     with ThreadPoolExecutor(max_workers=2) as pool:  # two views at a time

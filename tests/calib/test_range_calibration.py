@@ -7,6 +7,7 @@ from __future__ import annotations
 import copy
 import json
 import shutil
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -119,7 +120,9 @@ def test_too_few_pixels_is_refused_with_the_reason() -> None:
         fit_range_correction(s, TOF_SIZE)
 
 
+@cache
 def _model() -> RangeCorrection:
+    """A correction fitted to 12 synthetic views (once a run: the tests only read it)."""
     rig, views = _synthetic_views(12, seed=6, model=RangeErrorModel())
     return fit_range_correction(_samples(rig, views), TOF_SIZE)
 
