@@ -103,8 +103,7 @@ def signals_deferred() -> Iterator[None]:
     def hold(signum: int, _frame: object) -> None:
         held.append(signum)
 
-    previous = {s: signal.getsignal(s) for s in _DEFERRED}
-    previous = {s: h for s, h in previous.items() if callable(h)}
+    previous = {s: h for s in _DEFERRED if callable(h := signal.getsignal(s))}
     for s in previous:
         signal.signal(s, hold)
     try:

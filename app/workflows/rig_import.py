@@ -12,8 +12,10 @@ The child is forked from multiprocessing's ``forkserver``: a fresh interpreter (
 forked from a threaded server) started at the first isolated call, which has imported the
 rig formats (numpy, OpenCV, PyYAML) once. A child then starts in about 20 ms, where a
 ``spawn`` child (a new interpreter importing numpy and OpenCV each time) took 0.2 s idle
-and 0.35 s busy; the fork server costs one idle process of about 60 MB while the console
-runs, and it does not import the caller's ``__main__``.
+and 0.35 s busy; the fork server costs an idle process of about 50 MB (and
+multiprocessing's resource tracker, 13 MB) from the first import on. Like a ``spawn``
+child, each child runs the parent's ``__main__`` (as ``__mp_main__``): a script that
+imports rigs must guard its top level with ``if __name__ == "__main__":``.
 """
 
 from __future__ import annotations

@@ -410,7 +410,7 @@ def test_detection_under_condition(name: str) -> None:
     _check_condition(name, 2, (seed,))
 
 
-@pytest.mark.slow  # 16 images, each searched by both detectors: 7-30 s a condition
+@pytest.mark.slow  # 16 images, both detectors: 7-30 s a condition, 40-65 s where boards are cut
 @pytest.mark.parametrize("name", list(BENCH_CONDITIONS))
 def test_detection_under_condition_more_seeds(name: str, tmp_path_factory) -> None:
     """The same on 8 poses of seed 12 (16 images per condition), rendered ahead in the
