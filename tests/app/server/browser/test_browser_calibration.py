@@ -103,11 +103,17 @@ def _check_next_view_guidance(page, tmp_path: Path) -> None:
     """Once the views are searched: the next view in words with the sigma it is for, the
     outline in the live image of the camera the words refer to and in that sensor's Feeds
     image; screenshots of the panel, the image and the ghost board in the 3D scene."""
-    page.wait_for_function(
-        "() => /expected after this view|no more views needed/.test(document.body.innerText)",
-        timeout=600000,
-        polling=1000,
-    )
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout  # the fixture has it
+
+    try:
+        page.wait_for_function(
+            "() => /expected after this view|no more views needed/.test(document.body.innerText)",
+            timeout=600000,
+            polling=1000,
+        )
+    except PlaywrightTimeout:  # what the panel says instead (e.g. "no single view helps")
+        said = re.search(r"Next view: .*", page.evaluate("() => document.body.innerText"))
+        pytest.fail(f"no next-view suggestion in 600 s; the panel says: {said and said[0]}")
     text = page.evaluate("() => document.body.innerText")
     line = re.search(r"Next view: (.+)", text).group(1)
     assert re.search(r"(move closer|move back|this distance|at) \(?\d", line), line
