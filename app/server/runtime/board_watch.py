@@ -349,7 +349,11 @@ class BoardWatch(Periodic):
         at least :data:`~app.server.runtime.board_sighting.STILL_MIN_SPAN_S` later. A
         board that sensor no longer finds (at full resolution) has moved. Returns ``s``
         itself when the newest frames tell nothing more, else ``s`` with the new
-        :class:`Motion` and ``steady``."""
+        :class:`Motion` and ``steady``. The very same images tell nothing while another
+        sensor's image is new and not looked at: the searched set may straddle a jump
+        of the board (a simulated pose change: the colour cameras' new pose with the
+        slower sensors' frames of the pose before), which a second look at those same
+        images would take for a still board."""
         newest = self.latest_frames()
         if newest is None or newest is s.frames:
             return s
@@ -357,12 +361,13 @@ class BoardWatch(Periodic):
         names = trusted(rig, [n for n in s.found if n in newest.frames and n in rig])
         now: dict[str, Detection] = {}
         lost: Motion | None = None
-        looked = False
+        looked = changed = told = False  # told: a new image was compared (or lost the board)
         for name in names:
             old, new = s.frames.frames[name], newest.frames[name]
             if new.image is old.image:
                 now[name] = s.detections[name]
                 continue
+            changed = True
             span_s = abs(new.stamp_ns - old.stamp_ns) / 1e9
             if looked or span_s < STILL_MIN_SPAN_S:
                 continue
@@ -370,11 +375,13 @@ class BoardWatch(Periodic):
             det, coarse = safe_look(self._looks, name, new.image, rig[name].modality)
             if not det.found:
                 if not coarse:  # (half resolution only: too small to tell)
-                    lost = Motion(math.inf, span_s, name)
+                    lost, told = Motion(math.inf, span_s, name), True
                 continue
             if rig[name].modality != "color" and self.board.pattern != "charuco":
                 det = _nearer_ordering(det, s.detections[name].corners)
-            now[name] = det
+            now[name], told = det, True
+        if changed and not told:  # only the unchanged images to compare: they tell nothing
+            return s
         motion = compare_looks(s.frames, s.detections, newest, now)
         if lost is not None and (motion is None or motion.still):
             motion = lost

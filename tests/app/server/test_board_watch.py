@@ -552,6 +552,55 @@ def test_a_slow_watch_finds_a_held_board_still_by_a_second_look(calibration_fram
         watch.stop()
 
 
+def test_a_set_straddling_a_jump_of_the_board_is_not_still_by_its_same_images(
+    calibration_frame_sets,
+) -> None:
+    """The simulated board jumps from pose b to pose a. The set searched holds the colour
+    cameras' first frames of pose a and the thermal imagers' and TOF's last of pose b
+    (slower sensors, taken just before the jump; a busy run captured such a set and its
+    calibration found the sensors disagreeing). The newest frames, 50 ms later: the colour
+    cameras' very same images (the held pose), the others' first of pose a, too soon to be
+    looked at. The unchanged colour images alone do not make the board still."""
+    rig = default_rig()
+    pose_a, pose_b = calibration_frame_sets[0], calibration_frame_sets[1]
+    colour = {n for n in rig.names if rig[n].modality == "color"}
+    before = restamped_frames(pose_b, 2.98)
+    searched = FrameSet(
+        round(3e9),
+        {
+            n: Frame(n, round(3e9), f.image, f.distance_m) if n in colour else before.frames[n]
+            for n, f in pose_a.frames.items()
+        },
+    )
+    after = restamped_frames(pose_a, 3.05, copy=True)
+    newest = FrameSet(
+        after.stamp_ns,
+        {
+            n: Frame(n, after.stamp_ns, searched.frames[n].image, None) if n in colour else f
+            for n, f in after.frames.items()
+        },
+    )
+    latest = {"fs": restamped_frames(pose_b, 0)}
+    seen: list = []
+    watch = BoardWatch(
+        lambda: latest["fs"], rig, CALIBRATION_BOARD, on_sighting=seen.append, rate_hz=1000.0
+    )
+    watch.duty = 1.0
+    try:
+        watch.tick()  # the board held at pose b
+        latest["fs"] = searched
+        watch.pose_listeners[:] = [lambda _p: latest.update(fs=newest)]  # during the pass
+        watch.tick()
+        s = seen[-1]
+        assert (
+            s.frames is searched
+            and newest.frames["ccd_left"].image is pose_a.frames["ccd_left"].image
+        )
+        assert not s.steady, s.motion and s.motion.describe()
+    finally:
+        watch.stop()
+
+
 def restamped_frames(fs: FrameSet, stamp_s: float, copy: bool = False) -> FrameSet:
     """``fs``'s pictures as frames stamped ``stamp_s`` (their images the very arrays, or
     copies with ``copy``: another camera frame of the same scene)."""
