@@ -218,6 +218,16 @@ def choose(page, label: str, option: str, timeout_s: float = WAIT_S) -> None:
     item.click()
 
 
+def tick_box(page, box, what: str) -> None:
+    """Tick the Viser checkbox locator ``box`` and wait until it shows ticked
+    (:func:`click_until`). Playwright's ``check()`` wants the box ticked right after its
+    click: in busy run 26 (BENCHMARKS.md, session 25) the click on "Build map", just after
+    its folder opened (the folder's panel intercepting the first tries), did not change
+    the box's state at once and ``check()`` failed."""
+    if not box.is_checked():
+        click_until(page, box, box.is_checked, what)
+
+
 def click_until(
     page,
     target,

@@ -34,6 +34,7 @@ from tests.browser_support import (
     needs_chromium,
     run_calibration,
     start_console,
+    tick_box,
 )
 from tests.support import FOCAL, POSE, poll_until
 from trifuse.app.devtools.console_process import ConsoleProcess
@@ -168,7 +169,7 @@ def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path)
         # on, the scenario's board waits at each pose until it is taken, so every view is of
         # one pose (never of a frame set that straddles a pose change) whatever the
         # machine's speed. Then, with auto-capture off, where to hold the board next.
-        page.get_by_label("Auto-capture").check()
+        tick_box(page, page.get_by_label("Auto-capture"), "Auto-capture")
         assert poll_until(
             lambda: _fewest_views(console) >= GUIDED_VIEWS, WAIT_MS / 1e3, poll_s=0.5
         ), (console.get("/api/captures"), log.read_text()[-3000:])
@@ -176,7 +177,7 @@ def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path)
         _check_next_view_guidance(page, tmp_path)
 
         # Auto-capture on to MIN_VIEWS views (the poses not taken yet come round again).
-        page.get_by_label("Auto-capture").check()
+        tick_box(page, page.get_by_label("Auto-capture"), "Auto-capture")
         try:
             page.wait_for_function(
                 f"() => {{ const m = document.body.innerText.match(/(\\d+) views/);"

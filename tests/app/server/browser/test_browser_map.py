@@ -19,6 +19,7 @@ from tests.browser_support import (
     needs_chromium,
     open_scene,
     shot_when,
+    tick_box,
     wait_on_page,
 )
 
@@ -69,7 +70,7 @@ def test_the_map_appears_grows_highlights_pauses_saves_and_resets(browser, tmp_p
             "the TOF cloud without the live images",
         )
         page.get_by_text("Thermal map", exact=True).click()
-        page.get_by_label("Build map").check()  # clicked, and seen ticked
+        tick_box(page, page.get_by_label("Build map"), "Build map")
         _, first = wait_status(page, lambda s, n: s == "building" and n > 1000, "a map")
         wait_status(page, lambda s, n: n > first * 1.05, "the map to grow")
         # purple-to-yellow iron colours of the room, not only the grey of the TOF cloud (the

@@ -9,7 +9,7 @@ import re
 import pytest
 import yaml
 
-from tests.browser_support import click_until, needs_chromium, wait_on_page
+from tests.browser_support import click_until, needs_chromium, tick_box, wait_on_page
 
 pytestmark = [needs_chromium, pytest.mark.slow]
 
@@ -46,7 +46,7 @@ def test_auto_balance_brings_the_imagers_together(console, browser) -> None:
     assert console.get("/api/thermal")["balance"]["auto"] is False
     # the simulated imagers are +0.75 K and -0.75 K off (test_browser.py says why +-0.03)
     assert abs(_difference(page) - 1.50) <= 0.03
-    page.get_by_label("Auto-balance").check()
+    tick_box(page, page.get_by_label("Auto-balance"), "Auto-balance")
     # the filter (3 s time constant, 2 estimates a second) converges within ~10 s
     page.wait_for_function(
         "() => /Left - right: \\*?\\*?[+-]0\\.[01]\\d K/.test(document.body.innerText)",
