@@ -518,11 +518,7 @@ def test_a_slow_watch_finds_a_held_board_still_by_a_second_look(calibration_fram
     rig = default_rig()
     pose_a, pose_b = calibration_frame_sets[0], calibration_frame_sets[1]
     latest = {"fs": restamped_frames(pose_b, 0)}
-    seen: list = []
-    watch = BoardWatch(
-        lambda: latest["fs"], rig, CALIBRATION_BOARD, on_sighting=seen.append, rate_hz=1000.0
-    )
-    watch.duty = 1.0
+    watch, seen = busy_watch(rig, latest)
     try:
         watch.tick()  # the board at pose b
         searched = restamped_frames(pose_a, 3.0)  # 3 s later: pose a
@@ -581,11 +577,7 @@ def test_a_set_straddling_a_jump_of_the_board_is_not_still_by_its_same_images(
         },
     )
     latest = {"fs": restamped_frames(pose_b, 0)}
-    seen: list = []
-    watch = BoardWatch(
-        lambda: latest["fs"], rig, CALIBRATION_BOARD, on_sighting=seen.append, rate_hz=1000.0
-    )
-    watch.duty = 1.0
+    watch, seen = busy_watch(rig, latest)
     try:
         watch.tick()  # the board held at pose b
         latest["fs"] = searched
@@ -599,6 +591,17 @@ def test_a_set_straddling_a_jump_of_the_board_is_not_still_by_its_same_images(
         assert not s.steady, s.motion and s.motion.describe()
     finally:
         watch.stop()
+
+
+def busy_watch(rig, latest: dict) -> tuple[BoardWatch, list]:
+    """A watch of ``latest["fs"]`` that searches on every tick (no pause between passes),
+    and the list its sightings go to."""
+    seen: list = []
+    watch = BoardWatch(
+        lambda: latest["fs"], rig, CALIBRATION_BOARD, on_sighting=seen.append, rate_hz=1000.0
+    )
+    watch.duty = 1.0
+    return watch, seen
 
 
 def restamped_frames(fs: FrameSet, stamp_s: float, copy: bool = False) -> FrameSet:
