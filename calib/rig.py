@@ -21,9 +21,15 @@ import yaml
 from trifuse.calib.camera import COEFFICIENT_NAMES, DISTORTION_LENGTHS, Intrinsics, physical_problem
 from trifuse.calib.errors import RigError
 from trifuse.calib.numbers import check_finite, is_int
+from trifuse.calib.parameter_covariance import (
+    DISTORTION_PARAMETERS,
+    POSE_PARAMETERS,
+    ParameterCovariance,
+    split_name,
+)
 from trifuse.calib.radiometry import Radiometry
 from trifuse.calib.range_correction import RangeCorrection
-from trifuse.calib.transforms import invert, rigidity_problem
+from trifuse.calib.transforms import invert, rigidity_problem, rotation_from_rvec
 from trifuse.calib.yaml_text import YamlError, parse_yaml
 
 Modality = Literal["color", "thermal", "tof"]
@@ -127,6 +133,8 @@ class Rig:
     sensors: dict[str, Sensor]
     reference: str
     eyes: dict[str, Eye] = field(default_factory=dict)
+    covariance: ParameterCovariance | None = None
+    """The joint covariance of the sensors' parameters (calib.parameter_covariance), or None."""
 
     def __post_init__(self) -> None:
         if self.reference not in self.sensors:
@@ -144,6 +152,15 @@ class Rig:
                         f"eyes.{eye_name}.{role}: sensor {sid!r} has modality "
                         f"{self.sensors[sid].modality!r}, expected {wanted!r}"
                     )
+        for n in self.covariance.names if self.covariance is not None else ():
+            sensor, param = split_name(n)
+            if sensor not in self.sensors:
+                raise RigError(f"covariance: parameter {n!r} of unknown sensor {sensor!r}")
+            if sensor == self.reference and param in POSE_PARAMETERS:
+                raise RigError(
+                    f"covariance: parameter {n!r}: the reference sensor's pose defines the "
+                    "rig frame and has no uncertainty"
+                )
 
     def __getitem__(self, name: str) -> Sensor:
         try:
@@ -175,8 +192,23 @@ class Rig:
         eye's modalities); the other sensors are shared with this rig, not copied. KeyError
         when the rig has no sensor of that name.
         """
-        _ = self[sensor.name]  # KeyError naming the rig's sensors
-        return replace(self, sensors={**self.sensors, sensor.name: sensor})
+        old = self[sensor.name]  # KeyError naming the rig's sensors
+        moved = old.intrinsics != sensor.intrinsics or not np.array_equal(
+            old.T_rig_sensor, sensor.T_rig_sensor
+        )
+        covariance = None if moved else self.covariance  # it described the old geometry
+        return replace(self, sensors={**self.sensors, sensor.name: sensor}, covariance=covariance)
+
+    def perturbed(self, covariance: ParameterCovariance, delta: np.ndarray) -> Rig:
+        """A copy with the parameters of ``covariance`` moved by ``delta`` (p,), in its
+        names' order and units (calib.parameter_covariance): a rotation about the sensor's
+        own axes on the right of its pose, a shift of its position in the rig frame, added
+        intrinsics (distortion lengthened to 5 or 8 coefficients if needed). The copy's
+        moved sensors have no ``uncertainty`` and the copy no covariance."""
+        sensors = dict(self.sensors)
+        for name, moves in covariance.moves(delta).items():
+            sensors[name] = _moved_sensor(self[name], moves)
+        return replace(self, sensors=sensors, covariance=None)
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Rig):
@@ -186,7 +218,31 @@ class Rig:
             and self.eyes == other.eyes
             and list(self.sensors) == list(other.sensors)
             and all(self.sensors[k] == other.sensors[k] for k in self.sensors)
+            and self.covariance == other.covariance
         )
+
+
+def _moved_sensor(sensor: Sensor, moves: Mapping[str, float]) -> Sensor:
+    """A copy of ``sensor`` with its parameters moved (:meth:`Rig.perturbed`)."""
+    T = sensor.T_rig_sensor.copy()
+    T[:3, :3] = T[:3, :3] @ rotation_from_rvec([moves.get(k, 0.0) for k in ("rx", "ry", "rz")])
+    T[:3, 3] += [moves.get(k, 0.0) for k in ("tx", "ty", "tz")]
+    i = sensor.intrinsics
+    coeffs = [k for k in DISTORTION_PARAMETERS if k in moves]
+    needed = max([DISTORTION_PARAMETERS.index(k) + 1 for k in coeffs], default=0)
+    length = next(n for n in (len(i.distortion), 5, 8) if n >= needed)
+    dist = np.zeros(length)
+    dist[: len(i.distortion)] = i.distortion
+    for k in coeffs:
+        dist[DISTORTION_PARAMETERS.index(k)] += moves[k]
+    intr = Intrinsics(
+        i.fx + moves.get("fx", 0.0),
+        i.fy + moves.get("fy", 0.0),
+        i.cx + moves.get("cx", 0.0),
+        i.cy + moves.get("cy", 0.0),
+        tuple(dist),
+    )
+    return replace(sensor, intrinsics=intr, T_rig_sensor=T, uncertainty=None)
 
 
 # -- parsing ---------------------------------------------------------------------------
@@ -375,7 +431,7 @@ def _radiometry(name: str, modality: str, block: Mapping[str, Any] | None) -> Ra
 def rig_from_dict(data: Any) -> Rig:
     """Build a :class:`Rig` from the parsed rig file; raise RigError on any defect."""
     d = _mapping(data, "rig file")
-    _check_keys(d, ("format", "reference", "sensors"), ("eyes",), "rig file")
+    _check_keys(d, ("format", "reference", "sensors"), ("eyes", "covariance"), "rig file")
     if d["format"] != RIG_FORMAT:
         raise RigError(f"field 'format': expected {RIG_FORMAT!r}, got {d['format']!r}")
     sensors_raw = _mapping(d["sensors"], "field 'sensors'")
@@ -414,7 +470,13 @@ def rig_from_dict(data: Any) -> Rig:
         e = _mapping(eye_raw, f"field 'eyes.{eye_name}'")
         _check_keys(e, ("color", "thermal"), (), f"field 'eyes.{eye_name}'")
         eyes[str(eye_name)] = Eye(str(e["color"]), str(e["thermal"]))
-    return Rig(sensors=sensors, reference=str(reference), eyes=eyes)
+    covariance = None
+    if d.get("covariance") is not None:
+        try:
+            covariance = ParameterCovariance.from_dict(d["covariance"])
+        except ValueError as exc:
+            raise RigError(f"field 'covariance': {exc}") from None
+    return Rig(sensors=sensors, reference=str(reference), eyes=eyes, covariance=covariance)
 
 
 def _floats(a: np.ndarray) -> list[Any]:
@@ -440,12 +502,15 @@ def rig_to_dict(rig: Rig) -> dict[str, Any]:
         if s.radiometry is not None:
             entry["radiometry"] = s.radiometry.to_dict()
         sensors[name] = entry
-    return {
+    out = {
         "format": RIG_FORMAT,
         "reference": rig.reference,
         "eyes": {n: {"color": e.color, "thermal": e.thermal} for n, e in rig.eyes.items()},
         "sensors": sensors,
     }
+    if rig.covariance is not None:
+        out["covariance"] = rig.covariance.to_dict()
+    return out
 
 
 def rig_from_yaml(text: str) -> Rig:

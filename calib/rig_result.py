@@ -10,6 +10,7 @@ import numpy as np
 
 from trifuse.calib.board import Board
 from trifuse.calib.board_ordering import BoardOrdering
+from trifuse.calib.parameter_covariance import from_calibration
 from trifuse.calib.polarity import SensorPolarity
 from trifuse.calib.rig import Eye, Rig, Sensor
 from trifuse.calib.rig_uncertainty import RigCovariance
@@ -97,7 +98,8 @@ class CalibrationResult:
     are in ``verdict.intrinsics_only``."""
 
     def rig(self) -> Rig:
-        """The calibrated rig (sensors that were calibrated), with ``uncertainty`` blocks."""
+        """The calibrated rig (sensors that were calibrated), with ``uncertainty`` blocks and
+        the joint ``covariance`` of their parameters."""
         sensors = {}
         for name, s in self.sensors.items():
             unc = {k: v for k, v in s.sigma.items()}
@@ -106,7 +108,10 @@ class CalibrationResult:
                 name, s.modality, s.image_size, s.intrinsics, s.T_rig_sensor.copy(), uncertainty=unc
             )  # type: ignore[arg-type]
         eyes = {n: e for n, e in self.eyes.items() if e.color in sensors and e.thermal in sensors}
-        return Rig(sensors=sensors, reference=self.reference, eyes=eyes)
+        covariance = None
+        if self.covariance is not None:
+            covariance = from_calibration(self.covariance, self.sensors)
+        return Rig(sensors=sensors, reference=self.reference, eyes=eyes, covariance=covariance)
 
     def to_report(self) -> dict[str, Any]:
         """Plain data (lists, floats, strings) for ``report.json``."""

@@ -61,6 +61,12 @@ class MappingOptions:
     fill_iterations: int = 2
 
 
+def splat_radius(spacing: float) -> int:
+    """Cells around its own that a TOF point covers in a z-buffer whose cells are
+    ``spacing`` to a TOF pixel (the ratio of angular resolutions): enough to close the gaps."""
+    return max(0, int(np.ceil(spacing / 2.0 - 0.25)))
+
+
 class DepthView:
     """A z-buffer of TOF points in one sensor, at ``1/scale`` of its resolution."""
 
@@ -74,8 +80,7 @@ class DepthView:
         self.T_sensor_tof = rig.T(sensor, tof).astype(np.float32)
         tof_s = rig[tof]
         # Footprint of one TOF pixel in coarse cells: ratio of angular resolutions.
-        spacing = (self.sensor.intrinsics.fx / scale) / tof_s.intrinsics.fx
-        self.radius = max(0, int(np.ceil(spacing / 2.0 - 0.25)))
+        self.radius = splat_radius((self.sensor.intrinsics.fx / scale) / tof_s.intrinsics.fx)
         self.z = np.full(self.shape, np.inf, dtype=np.float32)
         r = self.radius
         self._padded = np.empty((self.shape[0] + 2 * r, self.shape[1] + 2 * r), np.float32)
@@ -292,6 +297,7 @@ class ViewMapping:
             missing.view(np.uint8), (w, h), dst=self.fallback.view(np.uint8), interpolation=near
         )
         self._coarse_z, self._coarse_visible, self._coarse_missing = z, visible, missing
+        self._coarse_x, self._coarse_y = cx, cy
 
     def coarse_depth(self) -> tuple[np.ndarray, np.ndarray]:
         """The coarse cells behind the mapping, (hc, wc) each: z float32 metres along the
@@ -299,6 +305,15 @@ class ViewMapping:
         at each update, never written afterwards. :attr:`depth_m` and :attr:`fallback` are
         them brought to full resolution (``cv2.INTER_NEAREST``)."""
         return self._coarse_z, self._coarse_missing
+
+    def coarse_cells(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The coarse cells' depth z (hc, wc) float32 metres along the target's axis, whether
+        it is the TOF's and the source sees its point (hc, wc) bool, and the source pixel
+        (hc, wc, 2) float32 of each cell's centre (-1e4 where not seen); cell (i, j) is
+        centred on target pixel ``(j s + (s - 1) / 2, i s + (s - 1) / 2)``, s the scale.
+        New arrays at each update, never written afterwards."""
+        ok = self._coarse_visible & ~self._coarse_missing
+        return self._coarse_z, ok, np.stack([self._coarse_x, self._coarse_y], axis=-1)
 
     @property
     def depth_m(self) -> np.ndarray:

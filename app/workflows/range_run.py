@@ -188,6 +188,10 @@ def calibrate_range(
                 "before": _round(_trusted(holdout).before_rms_mm),
                 "after": _round(_trusted(holdout).after_rms_mm),
             },
+            # the distance error left per accuracy region (fusion.registration's range error)
+            "holdout_region_rms_mm": {
+                str(e.region): _round(e.after_rms_mm) for e in holdout if e.region != 0
+            },
         },
     )
     if progress:

@@ -39,13 +39,16 @@ EXTRAS = (
 
 def extras_lost(rig: Rig, why: str) -> list[str]:
     """One ``lost`` line per sensor part of :data:`EXTRAS` the rig has: "<words> of
-    <sensor>: <why>"."""
-    return [
+    <sensor>: <why>", and one for the rig's joint covariance."""
+    lost = [
         f"{words} of {name}: {why}"
         for name, s in rig.sensors.items()
         for attr, words in EXTRAS
         if getattr(s, attr) is not None
     ]
+    if rig.covariance is not None:
+        lost.append(f"the joint covariance of the sensors' parameters: {why}")
+    return lost
 
 
 # -- import: from the cameras a file describes to a rig ---------------------------------

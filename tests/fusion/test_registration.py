@@ -1,0 +1,164 @@
+"""Registration uncertainty per pixel (fusion.registration) against the fusion itself: a
+Monte Carlo of the calibration and range errors re-fused, and the footprint share against
+the fusion's own error on slanted planes of exactly known depth."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from trifuse.calib.camera import pixel_grid
+from trifuse.calib.range_correction import RangeCorrection, offset_grid_shape
+from trifuse.calib.rig import Rig, Sensor
+from trifuse.calib.tof import region_map
+from trifuse.fusion.mapping import MappingOptions, TofGrid, ViewMapping
+from trifuse.fusion.registration import (
+    UNCORRECTED_RANGE_SIGMA_M,
+    RangeError,
+    major_sigma,
+    range_error,
+    registration_sigma,
+)
+
+SCALE = 8  # coarse cells of 8 x 8 colour pixels: 160 x 120 cells, cheap to re-fuse
+NO_RANGE = RangeError(dict.fromkeys((1, 2, 3, 4), 0.0), "none")
+
+
+def _plane(rig: Rig, tof: str, tilt_deg: float, distance_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """A TOF distance image (H, W) of a plane ``distance_m`` from the TOF, turned by
+    ``tilt_deg`` about the TOF's y axis, and its unit normal (TOF frame)."""
+    n = np.array([np.sin(np.radians(tilt_deg)), 0.1, np.cos(np.radians(tilt_deg))])
+    n /= np.linalg.norm(n)
+    return distance_m / (TofGrid(rig, tof).rays.astype(np.float64) @ n), n
+
+
+def _eye(rig: Rig, eye: str = "left") -> tuple[str, str, str]:
+    e = rig.eyes[eye]
+    return e.color, e.thermal, rig.by_modality("tof")[0]
+
+
+def test_propagated_sigma_matches_a_monte_carlo_of_the_fusion(simulated: dict) -> None:
+    """Draw the calibration within its covariance (the rig file's) and the TOF's distances
+    within their per-region error, re-fuse each draw, and compare the spread of where the
+    thermal values land (colour pixels) with the propagated sigma, cell by cell."""
+    rig = simulated["rig"]
+    color, thermal, tof = _eye(rig)
+    dist, _ = _plane(rig, tof, 20.0, 3.0)
+    s = rig[tof]
+    box = np.zeros(dist.shape, bool)  # a box 1.2 m nearer in the middle: depth edges
+    box[50:90, 70:110] = True
+    dist[box] -= 1.2
+    rerr = RangeError({1: 0.01, 2: 0.02, 3: 0.03, 4: 0.05}, "test")
+    opts = MappingOptions(scale=SCALE)
+    base = ViewMapping(rig, color, thermal, options=opts)
+    base.update(dist)
+    z, ok, F0 = base.coarse_cells()
+    pred = registration_sigma(rig, rig.covariance, color, thermal, tof, z, ok, SCALE, rerr)
+
+    sub = rig.covariance.restricted((color, thermal, tof))
+    rng = np.random.default_rng(7)
+    K = 200
+    deltas = sub.sample(rng, K)
+    regions = region_map(s.width, s.height)
+    sig_d = rerr.per_pixel(s.width, s.height)
+    moved = np.empty((K, *F0.shape))
+    seen = ok.copy()
+    for k in range(K):
+        m = ViewMapping(rig.perturbed(sub, deltas[k]), color, thermal, options=opts)
+        m.update(dist + rng.standard_normal(5)[regions] * sig_d)  # one error per region
+        _, ok_k, F_k = m.coarse_cells()
+        moved[k] = F_k - F0
+        seen &= ok_k
+    land = np.einsum("hwij,khwj->khwi", pred.thermal_to_color, moved)  # colour px
+    land -= land.mean(axis=0)
+    emp = major_sigma(np.einsum("khwi,khwj->hwij", land, land) / (K - 1))
+    predicted = major_sigma(pred.parts["calibration"] + pred.parts["range"])
+    cells = seen & np.isfinite(predicted)
+    assert cells.sum() > 0.6 * ok.size
+    ratio = emp[cells] / predicted[cells]
+    # 200 draws: a sigma is known to 1/sqrt(2 K) = 5 %; the draws are shared by every cell
+    # (their ratios err together), and the z-buffer's choice among TOF points shifts with
+    # each draw (+3 % measured), which the linear propagation of these two shares omits.
+    assert 0.88 < np.median(ratio) < 1.15, np.median(ratio)
+    lo, hi = np.percentile(ratio, [5, 95])
+    assert lo > 0.8 and hi < 1.3, (lo, hi)
+    # every part is there: the calibration's share is not negligible here
+    assert np.nanmedian(major_sigma(pred.parts["calibration"])) > 0.1 * np.nanmedian(predicted)
+
+    # the box's outline has no estimate (a depth edge), its inside and the wall have
+    row = pred.centres[:, 0, 1]
+    col = pred.centres[0, :, 0]
+    finite = np.isfinite(pred.sigma_px)
+    assert finite.mean() > 0.6
+    assert not finite[np.ix_(np.abs(row - 480) < 300, np.abs(col - 640) < 400)].all()
+
+
+@pytest.mark.parametrize("tilt_deg", [10.0, 50.0])
+@pytest.mark.parametrize("scale", [4, 8])
+def test_footprint_share_is_the_fusions_own_error_on_a_slanted_plane(
+    simulated: dict, tilt_deg: float, scale: int
+) -> None:
+    """With the true rig and exact distances the only error left is the depth the fusion
+    holds over each cell; its predicted RMS is the measured one (exact plane geometry)."""
+    rig = simulated["truth"]
+    color, thermal, tof = _eye(rig)
+    dist, n_tof = _plane(rig, tof, tilt_deg, 3.0)
+    m = ViewMapping(rig, color, thermal, options=MappingOptions(scale=scale))
+    m.update(dist)
+    z, ok, F = m.coarse_cells()
+    hc, wc = z.shape
+    q = pixel_grid(wc, hc) * scale + (scale - 1) / 2
+    rays = np.concatenate([rig[color].intrinsics.normalized(q), np.ones((hc, wc, 1))], -1)
+    T_tof_c, T_t_c = rig.T(tof, color), rig.T(thermal, color)
+    depth = (3.0 - n_tof @ T_tof_c[:3, 3]) / (rays @ (T_tof_c[:3, :3].T @ n_tof))
+    exact = rig[thermal].intrinsics.project(
+        (depth[..., None] * rays) @ T_t_c[:3, :3].T + T_t_c[:3, 3]
+    )
+    pred = registration_sigma(rig, None, color, thermal, tof, z, ok, scale, NO_RANGE)
+    err = np.einsum("hwij,hwj->hwi", pred.thermal_to_color, F - exact)
+    cells = np.isfinite(pred.sigma_px) & ok
+    actual = np.sqrt(np.mean(np.sum(err[cells] ** 2, axis=-1)))
+    share = np.sqrt(np.mean(np.trace(pred.parts["footprint"][cells], axis1=1, axis2=2)))
+    assert actual > 0.005  # there is an error to predict (0.008-0.05 px here)
+    assert 0.85 < share / actual < 1.15, (share, actual)
+    assert np.all(pred.parts["calibration"][cells] == 0)  # no covariance given
+    assert np.all(pred.parts["range"][cells] == 0)
+
+
+def test_range_error_comes_from_the_rigs_range_correction(simulated: dict) -> None:
+    rig = simulated["rig"]
+    tof = rig.by_modality("tof")[0]
+    assert rig[tof].range_correction is None
+    plain = range_error(rig, tof)
+    assert set(plain.sigma_m.values()) == {UNCORRECTED_RANGE_SIGMA_M}
+    assert "no range correction" in plain.source
+    w, h = rig[tof].image_size
+    fit = {"holdout_rms_mm": {"before": 40.0, "after": 9.0}}
+    overall = range_error(rig.with_sensor(_with_range(rig[tof], fit)), tof)
+    assert set(overall.sigma_m.values()) == {0.009}
+    regions = {"1": 5.0, "2": 6.0, "3": 8.0, "4": 20.0}
+    with_regions = {**fit, "holdout_region_rms_mm": regions}
+    per_region = range_error(rig.with_sensor(_with_range(rig[tof], with_regions)), tof)
+    assert per_region.sigma_m == {1: 0.005, 2: 0.006, 3: 0.008, 4: 0.02}
+    px = per_region.per_pixel(w, h)
+    assert px[h // 2, w // 2] == 0.005 and px[0, 0] == 0.02
+
+
+def _with_range(sensor: Sensor, fit: dict) -> Sensor:
+    """``sensor`` with a range correction that corrects nothing, fitted as ``fit`` says."""
+    w, h = sensor.image_size
+    rc = RangeCorrection((w, h), 0.9, 0.5, np.zeros(4), 8, np.zeros(offset_grid_shape(w, h, 8)))
+    return replace(sensor, range_correction=replace(rc, fit=fit))
+
+
+def test_cells_without_depth_have_no_estimate(simulated: dict) -> None:
+    rig = simulated["rig"]
+    color, thermal, tof = _eye(rig)
+    z = np.full((120, 160), np.nan, np.float32)
+    r = registration_sigma(
+        rig, rig.covariance, color, thermal, tof, z, np.zeros(z.shape, bool), SCALE, NO_RANGE
+    )
+    assert np.isnan(r.sigma_px).all()
+    assert r.summary() == {"median_px": None, "p95_px": None, "cells": 0}
