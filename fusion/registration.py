@@ -467,3 +467,72 @@ def _dF_dq(chain: _Chain) -> np.ndarray:
             cols.append(g.thermal.project(_to_thermal(g, z[:, None] * ray)))
         out[:, :, k] = (cols[0] - cols[1]) / 2.0
     return out
+
+
+@dataclass(frozen=True, eq=False)
+class SigmaCurve:
+    """Registration sigma of one eye against distance, for a wall facing its colour camera.
+
+    Attributes:
+        distance_m: (N,) the wall's depth along the colour camera's axis, metres.
+        median_px: part (``calibration``, ``range``, ``footprint``) and ``total`` -> (N,)
+            median over the pixels that see the wall in all three sensors, colour pixels
+            (NaN where none does).
+        p95_px: ``total`` -> (N,) its 95th percentile.
+    """
+
+    distance_m: np.ndarray
+    median_px: dict[str, np.ndarray]
+    p95_px: dict[str, np.ndarray]
+
+
+def sigma_vs_distance(
+    rig: Rig,
+    color: str,
+    thermal: str,
+    tof: str,
+    distance_m: np.ndarray,
+    range_err: RangeError | None = None,
+    cell_px: int = 32,
+) -> SigmaCurve:
+    """:func:`registration_sigma` of a flat wall facing the colour camera at each distance
+    (no footprint share: the depth does not change across a TOF pixel), over a grid of one
+    value per ``cell_px`` colour pixels, for the Precision panel's curves.
+
+    Args:
+        rig: the rig (its ``covariance`` is used when it has one).
+        color, thermal, tof: the eye's sensors and the TOF.
+        distance_m: (N,) depths, metres, > 0.
+        range_err: the TOF's distance error; default the rig's (:func:`range_error`).
+        cell_px: colour pixels between values.
+    """
+    d = np.asarray(distance_m, dtype=np.float64).reshape(-1)
+    if d.size == 0 or not np.all(np.isfinite(d) & (d > 0)):
+        raise ValueError("distance_m: expected finite distances > 0")
+    err = range_err or range_error(rig, tof)
+    cs = rig[color]
+    hc, wc = -(-cs.height // cell_px), -(-cs.width // cell_px)
+    centres = pixel_grid(wc, hc).astype(np.float64) * cell_px + (cell_px - 1) / 2.0
+    rays = np.concatenate([cs.intrinsics.normalized(centres), np.ones((hc, wc, 1))], axis=-1)
+    names = (*PARTS, "total")
+    median = {p: np.full(d.size, np.nan) for p in names}
+    p95 = {"total": np.full(d.size, np.nan)}
+    for i, depth in enumerate(d):
+        P = depth * rays
+        ok = np.ones((hc, wc), bool)
+        for other in (thermal, tof):
+            T = rig.T(other, color)
+            uv = rig[other].intrinsics.project(P @ T[:3, :3].T + T[:3, 3])
+            w, h = rig[other].image_size
+            with np.errstate(invalid="ignore"):
+                ok &= (uv[..., 0] >= -0.5) & (uv[..., 0] < w - 0.5)
+                ok &= (uv[..., 1] >= -0.5) & (uv[..., 1] < h - 0.5)
+        z = np.full((hc, wc), depth)
+        r = registration_sigma(rig, rig.covariance, color, thermal, tof, z, ok, cell_px, err)
+        for p in PARTS:
+            s = major_sigma(r.parts[p])
+            median[p][i] = np.nanmedian(s) if np.isfinite(s).any() else np.nan
+        s = r.sigma_px[np.isfinite(r.sigma_px)]
+        if s.size:
+            median["total"][i], p95["total"][i] = np.median(s), np.percentile(s, 95)
+    return SigmaCurve(d, median, p95)

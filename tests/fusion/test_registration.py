@@ -162,3 +162,25 @@ def test_cells_without_depth_have_no_estimate(simulated: dict) -> None:
     )
     assert np.isnan(r.sigma_px).all()
     assert r.summary() == {"median_px": None, "p95_px": None, "cells": 0}
+
+
+def test_range_share_against_distance_is_the_parallax_of_the_depth_error() -> None:
+    """A wall facing the colour camera: a TOF distance error dd moves the depth by about
+    dd cos(angle off the TOF's axis), and the thermal value by the parallax between the two
+    cameras, f B dd / z^2 (B their baseline across the view): the inverse-square law, with
+    the median over the picture of that cosine (near 1) as the factor."""
+    from trifuse.app.sources.sim.head import default_rig
+    from trifuse.fusion.registration import sigma_vs_distance
+
+    rig = default_rig()
+    d = np.array([1.0, 2.0, 3.0, 5.0, 10.0])
+    err = RangeError(dict.fromkeys((1, 2, 3, 4), 0.01), "test")
+    curve = sigma_vs_distance(rig, "ccd_left", "thermal_left", "tof", d, err, 64)
+    baseline = np.hypot(*rig.T("thermal_left", "ccd_left")[:2, 3])
+    factor = curve.median_px["range"] * d**2 / (rig["ccd_left"].intrinsics.fx * baseline * 0.01)
+    assert np.all((factor > 0.85) & (factor <= 1.0)), factor
+    assert np.ptp(factor) < 0.01 * factor.mean()  # 1 / z^2, at every distance
+    assert rig.covariance is None and np.all(curve.median_px["calibration"] == 0)
+    assert np.all(curve.median_px["footprint"] == 0)  # a flat wall: no depth change
+    assert np.allclose(curve.median_px["total"], curve.median_px["range"])
+    assert np.all(curve.p95_px["total"] >= curve.median_px["total"])

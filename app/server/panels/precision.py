@@ -6,9 +6,13 @@ point, edge of accuracy region 3), the radial distance below which a TOF distanc
 (before and after range calibration) or a TOF pixel error shifts each sensor's pixel by
 more than the threshold, and the shift curves |dx|, |dy| against distance (uPlot, log
 scale). The numbers are :func:`fusion.precision.analyze_precision`'s, the cells formatted
-as ``trifuse analyze`` prints them.
+as ``trifuse analyze`` prints them. Below the table, the registration sigma
+(:func:`fusion.registration.sigma_vs_distance`): how far a thermal value can land from the
+colour pixel that sees its point, 1-sigma in colour pixels, per eye at a few distances, from
+the rig's own calibration covariance and TOF range error (a wall facing the colour camera),
+and its curves (plot choice "registration σ": total, calibration and range shares).
 
-The analysis runs in the panel's own thread (about 0.1 s for the default head, longer for
+The analysis runs in the panel's own thread (about 0.5 s for the default head, longer for
 fine steps), again whenever ``pipeline.rig`` is replaced by another object or the
 operator changes an error or the threshold; meanwhile the panel says "computing...". An
 error (a rig without a TOF, a bad value) is shown in the panel; the console keeps running.
@@ -37,12 +41,19 @@ from trifuse.fusion.precision import (
     analyze_precision,
     tof_pixel_label,
 )
+from trifuse.fusion.registration import SigmaCurve, range_error, sigma_vs_distance
 
 AFTER_RANGE_CAL_M = 0.015
 """The method's TOF distance error after range calibration (Table 1: 15 mm)."""
 
-ERROR_KINDS = ("distance error", "TOF pixel error")
+REGISTRATION = "registration σ"
+ERROR_KINDS = ("distance error", "TOF pixel error", REGISTRATION)
 COORDS = ("x", "y")
+REGISTRATION_DISTANCES_M = np.arange(0.5, 10.01, 0.5)
+"""Where the registration curves are computed (a wall facing each colour camera), metres."""
+REGISTRATION_TABLE_M = (1.0, 2.0, 3.0, 5.0, 10.0)
+REGISTRATION_CELL_PX = 64
+"""One registration value per 64 x 64 colour pixels: 300 a picture, medians to 1 %."""
 PLOT_HEIGHT_PX = 260
 
 
@@ -56,12 +67,18 @@ class PrecisionResult:
             calibration (same TOF pixels, TOF pixel error and threshold; the TOF pixel error
             rows come from ``before``).
         labels: pixel key -> "principal point", "region 3 edge" or "".
+        registration: eye -> where its thermal values land, 1-sigma against distance
+            (:func:`fusion.registration.sigma_vs_distance`, the rig's own covariance and
+            range error); empty for a rig without eyes.
+        registration_note: what the registration curves are made of, in words.
     """
 
     rig: Rig
     before: PrecisionAnalysis
     after: PrecisionAnalysis
     labels: dict[str, str]
+    registration: dict[str, SigmaCurve]
+    registration_note: str
 
     @property
     def range_m(self) -> tuple[float, float]:
@@ -93,7 +110,26 @@ def compute(
         key: tof_pixel_label(rig, pixel, before.tof)
         for key, pixel in zip(before.distance_error, before.tof_pixels, strict=True)
     }
-    return PrecisionResult(rig, before, after, labels)
+    err = range_error(rig, before.tof)
+    curves = {
+        name: sigma_vs_distance(
+            rig,
+            e.color,
+            e.thermal,
+            before.tof,
+            REGISTRATION_DISTANCES_M,
+            err,
+            REGISTRATION_CELL_PX,
+        )
+        for name, e in rig.eyes.items()
+    }
+    covariance = (
+        "the calibration's covariance"
+        if rig.covariance is not None
+        else "no calibration covariance in the rig (range share only)"
+    )
+    note = f"{covariance}; TOF range error: {err.source}"
+    return PrecisionResult(rig, before, after, labels, curves, note)
 
 
 MODALITY_SHORT = {"color": "col", "thermal": "th", "tof": "tof"}
@@ -155,7 +191,27 @@ def table_markdown(result: PrecisionResult) -> str:
         f" mm), after it ({after.distance_error_m * 1000:g} mm), TOF pixel error along x "
         f"({before.tof_pixel_error_px:g} px)." + (f" Columns: {legend}." if legend else "")
     )
+    if result.registration:
+        out.append(registration_markdown(result))
     return "\n\n".join(out)
+
+
+def registration_markdown(result: PrecisionResult) -> str:
+    """Where thermal values land, 1-sigma in colour pixels (median over the picture), per
+    eye at a few distances: a wall facing the colour camera."""
+    cols = REGISTRATION_TABLE_M
+    lines = [
+        "| eye | " + " | ".join(f"{d:g}\u00a0m" for d in cols) + " |",
+        "|:--|" + "--:|" * len(cols),
+    ]
+    for eye, c in result.registration.items():
+        at = [float(np.interp(d, c.distance_m, c.median_px["total"])) for d in cols]
+        lines.append(f"| {md_text(eye)} | " + " | ".join(f"{v:.2f}" for v in at) + " |")
+    return (
+        "**Registration σ** [colour px]: where a thermal value lands, 1-sigma, median over "
+        "the picture, a wall facing the colour camera at that distance "
+        f"({md_text(result.registration_note)}).\n\n" + "\n".join(lines)
+    )
 
 
 def _colour(i: int, alpha: float = 1.0) -> str:
@@ -167,7 +223,8 @@ def plot_data(
     result: PrecisionResult, key: str, kind: str, coord: str
 ) -> tuple[tuple[np.ndarray, ...], tuple[viser.uplot.Series, ...], tuple[float, float]]:
     """uPlot data, series and y range for one plot: |d<coord>| against the radial distance
-    for every sensor (distance error: before solid, after dashed), and the threshold.
+    for every sensor (distance error: before solid, after dashed), and the threshold; for
+    :data:`REGISTRATION`, :func:`registration_plot_data` (one plot, ``coord`` unused).
     Colours and decreasing line widths per sensor as in ``trifuse analyze --plot``.
 
     Shifts are clipped to the bottom of the log axis (two decades below the threshold);
@@ -175,6 +232,8 @@ def plot_data(
     """
     if kind not in ERROR_KINDS:
         raise ValueError(f"kind: expected one of {ERROR_KINDS}, got {kind!r}")
+    if kind == REGISTRATION:
+        return registration_plot_data(result)
     before, after = result.before, result.after
     thr = before.threshold_px
     floor = 10.0 ** (int(np.floor(np.log10(thr))) - 2)
@@ -212,6 +271,36 @@ def plot_data(
     return tuple(np.asarray(a, np.float64) for a in data), tuple(series), y_range
 
 
+SHARE_DASH = {"total": None, "calibration": (6.0, 4.0), "range": (2.0, 3.0)}
+
+
+def registration_plot_data(
+    result: PrecisionResult,
+) -> tuple[tuple[np.ndarray, ...], tuple[viser.uplot.Series, ...], tuple[float, float]]:
+    """uPlot data, series and y range of the registration curves: per eye its total sigma
+    (solid), the calibration's share (dashed) and the range error's (dotted), colour pixels
+    against distance; clipped to the log axis's bottom, 0.001 px."""
+    floor = 1e-3
+    first = next(iter(result.registration.values()), None)
+    if first is None:
+        raise ValueError("registration: the rig has no eyes (a colour camera and a thermal imager)")
+    series = [viser.uplot.Series(label="distance [m]")]
+    ys = []
+    for i, (eye, c) in enumerate(result.registration.items()):
+        for share, dash in SHARE_DASH.items():
+            ys.append(np.clip(np.nan_to_num(c.median_px[share], nan=floor), floor, None))
+            s = viser.uplot.Series(
+                label=f"{eye} {share}", stroke=_colour(2 * i), width=2.0 - 0.5 * i
+            )
+            if dash:
+                s["dash"] = dash
+            series.append(s)
+    top = max(float(max(y.max() for y in ys)), 1.0)
+    y_range = (floor, 10.0 ** int(np.ceil(np.log10(top))))
+    data = (first.distance_m, *ys)
+    return tuple(np.asarray(a, np.float64) for a in data), tuple(series), y_range
+
+
 def plot_axes(
     y_range: tuple[float, float], coord: str, range_m: tuple[float, float]
 ) -> tuple[dict[str, viser.uplot.Scale], tuple[viser.uplot.Axis, ...]]:
@@ -228,10 +317,14 @@ def plot_axes(
     }
     axes = (
         viser.uplot.Axis(
-            label="radial distance [m]", splits=x_splits, values=tuple(f"{x:g}" for x in x_splits)
+            label="wall distance [m]" if coord == "σ" else "radial distance [m]",
+            splits=x_splits,
+            values=tuple(f"{x:g}" for x in x_splits),
         ),
         viser.uplot.Axis(
-            label=f"|d{coord}| [px]", splits=y_splits, values=tuple(f"{y:g}" for y in y_splits)
+            label="σ [colour px]" if coord == "σ" else f"|d{coord}| [px]",
+            splits=y_splits,
+            values=tuple(f"{y:g}" for y in y_splits),
         ),
     )
     return scales, axes
@@ -255,7 +348,8 @@ class PrecisionPanel(Periodic):
         with self.folder:
             gui.add_markdown(
                 "How far a TOF error moves a fused pixel, by radial distance "
-                "(the method's Table 1; `trifuse analyze`)."
+                "(the method's Table 1; `trifuse analyze`), and how far a thermal value "
+                "can land from its colour pixel (registration σ, the rig's own uncertainty)."
             )
             self.before_mm = gui.add_number(
                 "Distance error before (mm)", DEFAULT_DISTANCE_ERROR_M * 1000, min=0.0, step=1.0
@@ -364,14 +458,19 @@ class PrecisionPanel(Periodic):
             kind = self.kind_choice.value
             plots = []
             with self.folder:
-                for coord in COORDS:
+                for coord in ("σ",) if kind == REGISTRATION else COORDS:
                     data, series, y_range = plot_data(result, key, kind, coord)
                     scales, axes = plot_axes(y_range, coord, result.range_m)
+                    title = (
+                        "where thermal values land, 1-sigma"
+                        if kind == REGISTRATION
+                        else f"|d{coord}| from the {kind}"
+                    )
                     plots.append(
                         self.server.gui.add_uplot(
                             data,
                             series,
-                            title=f"|d{coord}| from the {kind}",
+                            title=title,
                             scales=scales,
                             axes=axes,
                             legend=viser.uplot.Legend(show=True, live=False),

@@ -128,6 +128,13 @@ def test_panel_shows_table_1_of_the_rig_and_recomputes_when_it_is_replaced(serve
         # the plot choice switches the curves to the TOF pixel error (4 curves + threshold)
         panel.kind_choice.value = "TOF pixel error"
         assert len(panel.plots) == 2 and len(panel.plots[0].data) == 1 + 4 + 1
+        # and to the registration sigma: one plot, per eye its total and two shares
+        panel.kind_choice.value = "registration σ"
+        assert len(panel.plots) == 1 and len(panel.plots[0].data) == 1 + 2 * 3
+        total = panel.plots[0].data[1]  # the left eye's, falling with distance (1 / z^2)
+        assert np.all(np.diff(total) < 0) and total[1] > 10 * total[-1]
+        assert "**Registration σ**" in panel.table.content
+        assert "no calibration covariance in the rig" in panel.table.content
     finally:
         panel.stop()
 
