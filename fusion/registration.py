@@ -35,6 +35,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from trifuse.calib.camera import Intrinsics, pixel_grid
 from trifuse.calib.parameter_covariance import (
@@ -45,7 +46,7 @@ from trifuse.calib.parameter_covariance import (
     split_name,
 )
 from trifuse.calib.rig import Rig
-from trifuse.calib.rig_problem import project_derivatives
+from trifuse.calib.rig_problem import BLAS_THREADS, project_derivatives
 from trifuse.calib.tof import region_map
 from trifuse.calib.transforms import invert, rotation_from_rvec
 from trifuse.fusion.mapping import splat_radius
@@ -285,36 +286,28 @@ def registration_sigma(
     )
     rays = rays[::stride, ::stride]
     h, w = z.shape
-    cov_out = np.full((h, w, 2, 2), np.nan)
-    parts_out = {p: np.full((h, w, 2, 2), np.nan) for p in PARTS}
-    A_out = np.full((h, w, 2, 2), np.nan)
-    good = np.flatnonzero(~bad.reshape(-1))
-    if good.size:
-        q = centres.reshape(-1, 2)[good]
-        X_c = (z.reshape(-1)[good])[:, None] * rays.reshape(-1, 3)[good]
-        n = normals.reshape(-1, 3)[good]
-        T_tof_c = rig.T(tof, color)
-        X_tof = X_c @ T_tof_c[:3, :3].T + T_tof_c[:3, 3]
-        uv = rig[tof].intrinsics.project(X_tof)
-        d = np.linalg.norm(X_tof, axis=1)
-        ok = np.all(np.isfinite(uv), axis=1)
-        good, q, X_c, n, uv, d = good[ok], q[ok], X_c[ok], n[ok], uv[ok], d[ok]
-        chain = _Chain(_Geometry.of(rig, color, thermal, tof), q, uv, d, n)
-        parts = {
-            "calibration": _calibration_part(chain, rig, covariance, (color, thermal, tof)),
-            "range": _range_part(chain, rig, tof, range_err),
-            "footprint": _footprint_part(
-                chain, gx.reshape(-1)[good], gy.reshape(-1)[good], spacing, radius
-            ),
-        }
-        A = np.linalg.inv(_dF_dq(chain))  # (N, 2, 2) colour px per thermal px
-        A_out.reshape(-1, 2, 2)[good] = A
-        total = np.zeros((len(good), 2, 2))
-        for name, c in parts.items():
-            c = A @ c @ A.transpose(0, 2, 1)
-            parts_out[name].reshape(-1, 2, 2)[good] = c
-            total += c
-        cov_out.reshape(-1, 2, 2)[good] = total
+    good = ~bad.reshape(-1)
+    X_c = z.reshape(-1)[good, None] * rays.reshape(-1, 3)[good]
+    parts, A = _point_covariances(
+        rig,
+        covariance,
+        (color, thermal, tof),
+        centres.reshape(-1, 2)[good],
+        X_c,
+        normals.reshape(-1, 3)[good],
+        gx.reshape(-1)[good],
+        gy.reshape(-1)[good],
+        (spacing, radius),
+        range_err,
+    )
+
+    def grid(a: np.ndarray) -> np.ndarray:
+        out = np.full((h * w, 2, 2), np.nan)
+        out[good] = a
+        return out.reshape(h, w, 2, 2)
+
+    parts_out = {name: grid(c) for name, c in parts.items()}
+    cov_out = sum(parts_out.values())
     return RegistrationSigma(
         color,
         thermal,
@@ -324,9 +317,63 @@ def registration_sigma(
         major_sigma(cov_out),
         cov_out,
         parts_out,
-        A_out,
+        grid(A),
         range_err.source,
     )
+
+
+def _point_covariances(
+    rig: Rig,
+    covariance: ParameterCovariance | None,
+    sensors: tuple[str, str, str],
+    q: np.ndarray,
+    X_c: np.ndarray,
+    n: np.ndarray,
+    gx: np.ndarray,
+    gy: np.ndarray,
+    footprint: tuple[float, int],
+    range_err: RangeError,
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Each share's covariance at N colour pixels, colour pixels squared, and ``A``.
+
+    Args:
+        rig, covariance: as :func:`registration_sigma`.
+        sensors: (colour, thermal, TOF).
+        q: (N, 2) colour pixels; X_c: (N, 3) their points, colour frame, metres; n: (N, 3)
+            the surface's unit normals there.
+        gx, gy: (N,) the depth's change per cell, metres; footprint: (TOF pixels' spacing
+            in cells, the splat radius in cells).
+        range_err: the TOF's distance error.
+
+    Returns:
+        share -> (N, 2, 2) and (N, 2, 2) ``A``; NaN where the point has no TOF pixel.
+
+    BLAS runs on one thread: the products are (N, 3) by (3, 3), which more threads do not
+    speed up, and beside a busy fusion spinning BLAS threads cost 10x and more.
+    """
+    with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+        color, thermal, tof = sensors
+        N = len(q)
+        parts = {p: np.full((N, 2, 2), np.nan) for p in PARTS}
+        A_out = np.full((N, 2, 2), np.nan)
+        T_tof_c = rig.T(tof, color)
+        X_tof = X_c @ T_tof_c[:3, :3].T + T_tof_c[:3, 3]
+        uv = rig[tof].intrinsics.project(X_tof)
+        ok = np.flatnonzero(np.all(np.isfinite(uv), axis=1))
+        if ok.size == 0:
+            return parts, A_out
+        d = np.linalg.norm(X_tof[ok], axis=1)
+        chain = _Chain(_Geometry.of(rig, color, thermal, tof), q[ok], uv[ok], d, n[ok])
+        found = {
+            "calibration": _calibration_part(chain, rig, covariance, sensors),
+            "range": _range_part(chain, rig, tof, range_err),
+            "footprint": _footprint_part(chain, gx[ok], gy[ok], *footprint),
+        }
+        A = np.linalg.inv(_dF_dq(chain))  # colour px per thermal px
+        A_out[ok] = A
+        for name, c in found.items():
+            parts[name][ok] = A @ c @ A.transpose(0, 2, 1)
+        return parts, A_out
 
 
 def _outer(D: np.ndarray) -> np.ndarray:
@@ -514,25 +561,41 @@ def sigma_vs_distance(
     hc, wc = -(-cs.height // cell_px), -(-cs.width // cell_px)
     centres = pixel_grid(wc, hc).astype(np.float64) * cell_px + (cell_px - 1) / 2.0
     rays = np.concatenate([cs.intrinsics.normalized(centres), np.ones((hc, wc, 1))], axis=-1)
-    names = (*PARTS, "total")
-    median = {p: np.full(d.size, np.nan) for p in names}
+    P = d[:, None, None] * rays.reshape(1, -1, 3)  # (distances, cells, 3)
+    ok = np.ones(P.shape[:2], bool)
+    for other in (thermal, tof):
+        T = rig.T(other, color)
+        uv = rig[other].intrinsics.project(P @ T[:3, :3].T + T[:3, 3])
+        w, h = rig[other].image_size
+        with np.errstate(invalid="ignore"):
+            ok &= (uv[..., 0] >= -0.5) & (uv[..., 0] < w - 0.5)
+            ok &= (uv[..., 1] >= -0.5) & (uv[..., 1] < h - 0.5)
+    q = np.broadcast_to(centres.reshape(1, -1, 2), (*P.shape[:2], 2))[ok]
+    zeros = np.zeros(len(q))
+    normal = np.broadcast_to([0.0, 0.0, 1.0], (len(q), 3))
+    parts, _ = _point_covariances(
+        rig,
+        rig.covariance,
+        (color, thermal, tof),
+        q,
+        P[ok],
+        normal,
+        zeros,
+        zeros,
+        (1.0, 0),
+        err,
+    )
+    which = np.nonzero(ok)[0]  # the distance of each point
+    median = {p: np.full(d.size, np.nan) for p in (*PARTS, "total")}
     p95 = {"total": np.full(d.size, np.nan)}
-    for i, depth in enumerate(d):
-        P = depth * rays
-        ok = np.ones((hc, wc), bool)
-        for other in (thermal, tof):
-            T = rig.T(other, color)
-            uv = rig[other].intrinsics.project(P @ T[:3, :3].T + T[:3, 3])
-            w, h = rig[other].image_size
-            with np.errstate(invalid="ignore"):
-                ok &= (uv[..., 0] >= -0.5) & (uv[..., 0] < w - 0.5)
-                ok &= (uv[..., 1] >= -0.5) & (uv[..., 1] < h - 0.5)
-        z = np.full((hc, wc), depth)
-        r = registration_sigma(rig, rig.covariance, color, thermal, tof, z, ok, cell_px, err)
-        for p in PARTS:
-            s = major_sigma(r.parts[p])
-            median[p][i] = np.nanmedian(s) if np.isfinite(s).any() else np.nan
-        s = r.sigma_px[np.isfinite(r.sigma_px)]
-        if s.size:
-            median["total"][i], p95["total"][i] = np.median(s), np.percentile(s, 95)
+    sig = {p: major_sigma(c) for p, c in parts.items()}
+    sig["total"] = major_sigma(sum(parts.values()))
+    for i in range(d.size):
+        for p, s_p in sig.items():
+            at = s_p[which == i]
+            at = at[np.isfinite(at)]
+            if at.size:
+                median[p][i] = np.median(at)
+                if p == "total":
+                    p95[p][i] = np.percentile(at, 95)
     return SigmaCurve(d, median, p95)

@@ -32,6 +32,7 @@ from trifuse.app.devtools import (
     bench_ray,
     bench_real_calib,
     bench_recording,
+    bench_registration,
     bench_sim,
     bench_stream,
 )
@@ -51,6 +52,7 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     bench_fusion.compose,
     bench_fusion.fuse,
     bench_fusion.fuse_accuracy,
+    bench_registration.registration,
     bench_agc.agc,
     bench_map.thermal_map,
     bench_recording.recording,
