@@ -34,6 +34,15 @@ Display modes (:data:`DISPLAY_MODES`, :class:`DisplaySettings`):
     picture-in-picture: inside a rectangle (centred by default, :func:`pip_box`) the
     palette image of the same pixels (the thermal picture is registered to the colour
     image, so the inset lines up with the scene around it), the colour image outside.
+``registration``
+    the registration uncertainty: each pixel's registration sigma (how far, 1-sigma, in
+    colour pixels, the thermal value drawn there may land from where it belongs:
+    :mod:`fusion.registration`) as a colour map over the colour image, blended like
+    ``blend`` (``opacity``), on a fixed scale of 0 to 2 colour pixels (clipped above:
+    :mod:`fusion.registration_overlay`). The sigma is estimated on the fusion's coarse
+    grid, off the picture's path (the console every 2 s: :attr:`fusion.stereo.StereoFusion.
+    registration`); pixels without an estimate (none yet, no TOF depth, a depth edge) show
+    the colour image. Only the console draws it (:data:`CONSOLE_ONLY_MODES`).
 
 Rules common to all modes:
 
@@ -41,7 +50,8 @@ Rules common to all modes:
   greyscale background of ``isotherm``: colour there says "no thermal reading").
 - "Painted" pixels are those that show thermal information: every pixel with a reading in
   ``blend`` (opacity > 0), ``edges`` and ``thermal``; the selected ones in ``threshold``
-  and ``isotherm``; the ones inside the rectangle in ``pip``; none in ``color``.
+  and ``isotherm``; the ones inside the rectangle in ``pip``; those with a sigma estimate
+  in ``registration`` (shown in the colour map, not the palette); none in ``color``.
 - Fallback marking (``mark_fallback``): painted fallback pixels are veiled, their colour
   moved :data:`FALLBACK_DESATURATION` of the way to its own grey (luma) and
   :data:`FALLBACK_FADE` of the way to mid-grey: muted, a little less contrast, hue and
@@ -79,6 +89,7 @@ from trifuse.fusion.palettes import PALETTE_NAMES, PaletteName, _check_rgb, chec
 
 __all__ = [
     "BACKGROUNDS",
+    "CONSOLE_ONLY_MODES",
     "DIRECTIONS",
     "DISPLAY_MODES",
     "DisplayMode",
@@ -89,10 +100,15 @@ __all__ = [
     "pip_box",
 ]
 
-DisplayMode = Literal["color", "blend", "edges", "thermal", "threshold", "isotherm", "pip"]
+DisplayMode = Literal[
+    "color", "blend", "edges", "thermal", "threshold", "isotherm", "pip", "registration"
+]
 """A display mode (the module's docstring describes each)."""
 #: The display modes, in the order of :data:`DisplayMode`.
 DISPLAY_MODES: tuple[DisplayMode, ...] = get_args(DisplayMode)
+#: Modes only the console draws: they show what its background work estimates
+#: (``registration``); ``trifuse fuse`` and ``record --video-mode`` do not offer them.
+CONSOLE_ONLY_MODES: tuple[DisplayMode, ...] = ("registration",)
 ThresholdDirection = Literal["above", "below", "inside"]
 """Which temperatures the ``threshold`` mode paints, relative to its interval."""
 DIRECTIONS: tuple[ThresholdDirection, ...] = get_args(ThresholdDirection)
@@ -182,7 +198,8 @@ class DisplaySettings:
     Attributes:
         mode: one of :data:`DISPLAY_MODES`.
         palette: one of ``fusion.palettes.PALETTE_NAMES``.
-        opacity: ``blend`` mode, 0 (colour only) .. 1 (thermal only).
+        opacity: ``blend`` mode, 0 (colour only) .. 1 (thermal only); ``registration``
+            mode likewise, the colour map for the palette.
         span_k: ``(low_k, high_k)`` for the palette, low < high; None = automatic
             (:func:`auto_span` with ``auto_low_pct``/``auto_high_pct`` over both eyes).
         auto_low_pct, auto_high_pct: percentiles of the automatic span, 0 <= low < high <= 100.

@@ -29,6 +29,7 @@ from trifuse.fusion.compose import (
 )
 from trifuse.fusion.compose import describe_array as _describe
 from trifuse.fusion.palettes import _colormap_into, check_span
+from trifuse.fusion.registration_overlay import SigmaOverlay
 from trifuse.fusion.span import resolve_span
 
 
@@ -166,6 +167,8 @@ class Composer:
         span: tuple[float, float] | None = None,
         out: np.ndarray | None = None,
         tone: ToneMap | None = None,
+        registration: SigmaOverlay | None = None,
+        registration_mask: np.ndarray | None = None,
     ) -> np.ndarray:
         """One eye's display picture.
 
@@ -184,6 +187,11 @@ class Composer:
                 (:class:`fusion.agc.ToneMap`, computed over both eyes so that they match);
                 it brings its own span (``span`` is then ignored). None: linear over
                 ``span``, whatever ``settings.agc`` says.
+            registration: the eye's registration sigma at its colour pixels, for the
+                ``registration`` mode (None: no estimate yet, the colour image).
+            registration_mask: (H, W) uint8, non-zero where the sigma is drawn
+                (:meth:`fusion.registration_overlay.SigmaOverlay.mask_into`: where the
+                depth still is the estimate's); None: wherever it has an estimate.
 
         Returns:
             ``out`` (or the internal buffer): (H, W, 3) uint8 RGB.
@@ -201,6 +209,10 @@ class Composer:
         if mode == "color" or (mode == "blend" and settings.opacity == 0.0):
             np.copyto(out, color)
             return out
+        if mode == "registration":
+            return self._registration(
+                color, thermal_k, settings.opacity, registration, registration_mask, out
+            )
         fb_box = (0, 0, 0, 0)
         if settings.mark_fallback and fallback is not None:
             x, y, bw, bh = cv2.boundingRect(fallback.view(np.uint8))
@@ -270,6 +282,34 @@ class Composer:
         cv2.copyTo(source, paint, dst=out)
         if mark:
             self._mark(out, fallback, paint, frame, fb_box)
+        return out
+
+    def _registration(
+        self,
+        color: np.ndarray,
+        thermal_k: np.ndarray,
+        opacity: float,
+        overlay: SigmaOverlay | None,
+        drawn: np.ndarray | None,
+        out: np.ndarray,
+    ) -> np.ndarray:
+        """The colour image with ``opacity * sigma colour + (1 - opacity) * colour`` where
+        ``drawn`` (default: the overlay's cells with an estimate) and the thermal image has
+        a reading."""
+        np.copyto(out, color)
+        if overlay is None or opacity == 0.0:
+            return out
+        drawn = overlay.mask if drawn is None else drawn
+        if overlay.rgb.shape != color.shape or drawn.shape != color.shape[:2]:
+            raise ValueError(
+                f"registration: expected an overlay and mask of {self.width}x{self.height} "
+                f"pixels, got {overlay.rgb.shape[1]}x{overlay.rgb.shape[0]} and "
+                f"{_describe(drawn)}"
+            )
+        cv2.addWeighted(overlay.rgb, opacity, color, 1.0 - opacity, 0.0, dst=self._pal)
+        valid = np.isfinite(thermal_k, out=self._valid).view(np.uint8)
+        cv2.bitwise_and(drawn, valid, dst=self._mask)
+        cv2.copyTo(self._pal, self._mask, dst=out)
         return out
 
     def _emboss(self, color: np.ndarray, strength: float, out: np.ndarray) -> None:

@@ -3,8 +3,9 @@
 
 The console sends it with each frame (:meth:`FrameMeta.as_json`, the JSON the viewer
 overlays: time stamp, display mode, colour scale, missing sensors, hot and cold spots,
-sensors' health); ``trifuse fuse`` writes its stamps into ``frames.csv``. For the viewer's
-colour scale it carries the palette and the span the picture was coloured with
+sensors' health; in the ``registration`` mode the legend of its colour map); ``trifuse
+fuse`` writes its stamps into ``frames.csv``. For the viewer's colour scale it carries the
+palette and the span the picture was coloured with
 (:class:`ColourScale`: ``palette``, ``palette_rgb``, ``span_k``, ``span_auto``, the AGC
 mode ``agc`` and ``palette_ticks_k``, the temperature at evenly spaced palette positions;
 null when the picture shows no palette colour). Pure: no I/O.
@@ -28,9 +29,12 @@ _SCALE_KEYS = ("palette", "palette_rgb", "span_k", "span_auto", "agc", "palette_
 
 def shows_palette(settings: DisplaySettings) -> bool:
     """Whether a picture made with ``settings`` shows palette colours (so the viewer shows
-    a colour scale): not in ``color`` mode, not in ``blend`` at opacity 0, not in
-    ``isotherm`` with a fixed highlight colour."""
-    if settings.mode == "color" or (settings.mode == "blend" and settings.opacity == 0.0):
+    a colour scale): not in ``color`` mode, not in ``registration`` (its colour map has a
+    scale of its own: :attr:`FrameMeta.registration`), not in ``blend`` at opacity 0, not
+    in ``isotherm`` with a fixed highlight colour."""
+    if settings.mode in ("color", "registration"):
+        return False
+    if settings.mode == "blend" and settings.opacity == 0.0:
         return False
     return not (settings.mode == "isotherm" and settings.isotherm_color is not None)
 
@@ -118,6 +122,9 @@ class FrameMeta:
         spots: the hot and cold spot of each eye (:meth:`fusion.spot.SpotFrame.extremes`),
             or None.
         health: sensor -> a line for each sensor that is not ok, or None (no report).
+        registration: in the ``registration`` mode, the legend of its colour map
+            (:func:`fusion.registration_overlay.registration_meta`: the scale in colour
+            pixels, the colour map, each eye's median and 95th percentile); else None.
     """
 
     stamp_ns: int
@@ -127,11 +134,12 @@ class FrameMeta:
     missing: tuple[str, ...]
     spots: Mapping[str, Any] | None = None
     health: Mapping[str, str] | None = None
+    registration: Mapping[str, Any] | None = None
 
     def as_json(self) -> dict[str, Any]:
         """The frame's JSON for the viewer: ``stamp_ns``, ``mode``, the colour scale's keys
-        (:func:`scale_meta`; null without one), ``missing``, and ``spots`` and ``health``
-        when there are."""
+        (:func:`scale_meta`; null without one), ``missing``, and ``spots``, ``health`` and
+        ``registration`` when there are."""
         if self.scale is None:
             scale: dict[str, Any] = {**dict.fromkeys(_SCALE_KEYS), "mark_fallback": None}
         else:
@@ -146,4 +154,6 @@ class FrameMeta:
             meta["spots"] = self.spots
         if self.health is not None:
             meta["health"] = dict(self.health)
+        if self.registration is not None:
+            meta["registration"] = dict(self.registration)
         return meta

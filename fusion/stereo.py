@@ -23,6 +23,7 @@ from trifuse.fusion.compose import DisplaySettings
 from trifuse.fusion.composer import Composer
 from trifuse.fusion.mapping import EyeFusion, MappingOptions, TofGrid
 from trifuse.fusion.palettes import PaletteName
+from trifuse.fusion.registration_overlay import SigmaOverlay
 from trifuse.fusion.span import SpanSmoother, resolve_span
 from trifuse.fusion.stereo_pair import anaglyph, stereo_halves
 
@@ -49,6 +50,10 @@ class StereoFusion:
         tone: the last frame's AGC mapping (``settings.agc`` over both eyes, smoothed over
             time by :attr:`tone_mapper`), shared by both eyes; its ``ticks_k`` label the
             viewer's colour scale.
+        registration: eye -> its registration sigma ready to draw (the ``registration``
+            display mode), or None before an estimate; set by :meth:`set_registration`.
+        registration_version: counts :meth:`set_registration`'s calls (a picture drawn
+            before a new estimate is not the same picture).
     """
 
     def __init__(
@@ -82,6 +87,13 @@ class StereoFusion:
         self._corrected = np.empty(tof.image_size[::-1], np.float32)
         self.distance_m: np.ndarray | None = None
         self._aside: tuple[dict[str, EyeFusion], np.ndarray] | None = None  # map_aside's
+        self.registration: dict[str, SigmaOverlay | None] = dict.fromkeys(eyes)
+        self.registration_version = 0
+        # per eye: where its overlay is drawn, for which (overlay, coarse depth) it was made
+        self._registration_mask = {e: np.zeros((h, w), np.uint8) for e in eyes}
+        self._registration_made: dict[str, tuple[SigmaOverlay, np.ndarray] | None] = dict.fromkeys(
+            eyes
+        )
         self.map_eyes: EyeMap = map
         """How the eyes' own steps run (:meth:`update_depth`'s mapping update,
         :meth:`compose`'s warp and composition): ``map``, one after the other; the console
@@ -111,6 +123,15 @@ class StereoFusion:
             distance_m, amplitude, self.fusion, self._corrected, self.map_eyes
         )
         self._reverse_fresh.clear()
+
+    def set_registration(self, eye: str, overlay: SigmaOverlay | None) -> None:
+        """The registration sigma of ``eye`` the ``registration`` mode draws from the next
+        picture on (None: none). May be called from any thread: an overlay is never
+        changed once made, and the pictures take it whole."""
+        if eye not in self.registration:
+            raise ValueError(f"eye: expected one of {list(self.eyes)}, got {eye!r}")
+        self.registration[eye] = overlay
+        self.registration_version += 1
 
     def map_aside(
         self, distance_m: np.ndarray, amplitude: np.ndarray | None = None
@@ -203,6 +224,7 @@ class StereoFusion:
 
         def compose(eye_half: tuple[str, np.ndarray]) -> None:
             e, half = eye_half
+            mask = self._registration_drawn(e) if settings.mode == "registration" else None
             self.composers[e].compose(
                 colors[e],
                 self.thermal_on_color[e],
@@ -211,10 +233,26 @@ class StereoFusion:
                 self.span_k,
                 out=half,
                 tone=self.tone,
+                registration=self.registration[e],
+                registration_mask=mask,
             )
 
         list(self.map_eyes(compose, zip(self.eyes, halves, strict=True)))
         return self.frame
+
+    def _registration_drawn(self, eye: str) -> np.ndarray | None:
+        """Where the eye's registration overlay is drawn with the depth in use (made again
+        when the overlay or the depth changed: :meth:`SigmaOverlay.mask_into
+        <fusion.registration_overlay.SigmaOverlay.mask_into>`), or None without one."""
+        overlay = self.registration[eye]
+        if overlay is None:
+            return None
+        z, _ = self.fusion[eye].forward.coarse_depth()
+        made = self._registration_made[eye]
+        if made is None or made[0] is not overlay or made[1] is not z:
+            overlay.mask_into(z, out=self._registration_mask[eye])
+            self._registration_made[eye] = (overlay, z)
+        return self._registration_mask[eye]
 
     @property
     def span_settled(self) -> bool:

@@ -44,6 +44,7 @@ from trifuse.calib.radiometry import Radiometry
 from trifuse.calib.rig import Rig
 from trifuse.fusion.compose import DisplaySettings
 from trifuse.fusion.frame_meta import ColourScale, FrameMeta
+from trifuse.fusion.registration_overlay import registration_meta
 from trifuse.fusion.stereo import EYE_ORDER, StereoFusion
 from trifuse.fusion.stereo_pair import side_by_side
 
@@ -149,6 +150,8 @@ class PictureInputs:
         depth_version: counts the mapping's updates (the depth behind the picture).
         tof_stamp_ns: the stamp of the TOF frame behind the mapping (None: none yet).
         missing: the set's missing sensors, sorted.
+        registration_version: the fusion's registration estimates behind the picture
+            (:attr:`fusion.stereo.StereoFusion.registration_version`).
     """
 
     stamp_ns: int
@@ -160,16 +163,19 @@ class PictureInputs:
     depth_version: int
     tof_stamp_ns: int | None
     missing: tuple[str, ...] = field(default=())
+    registration_version: int = 0
 
     def same_picture(self, other: PictureInputs | None) -> bool:
-        """Whether ``other`` makes the same picture: the same path, settings, radiometry
-        and depth, and the very same read-only images (a source that hands out one
-        read-only array for several frames). An automatic span still gliding is not
-        checked here (:attr:`fusion.stereo.StereoFusion.span_settled`)."""
+        """Whether ``other`` makes the same picture: the same path, settings, radiometry,
+        depth and registration estimates, and the very same read-only images (a source that
+        hands out one read-only array for several frames). An automatic span still gliding
+        is not checked here (:attr:`fusion.stereo.StereoFusion.span_settled`)."""
         if other is None:
             return False
         mine = (self.path, self.settings, self.radiometry, self.depth_version)
         if mine != (other.path, other.settings, other.radiometry, other.depth_version):
+            return False
+        if self.registration_version != other.registration_version:
             return False
         pairs = [(self.colors[e], other.colors[e]) for e in EYE_ORDER]
         pairs += [(self.thermals[e], other.thermals[e]) for e in EYE_ORDER]
@@ -421,6 +427,7 @@ class StereoStep:
             self.depth.version,
             self.depth.tof_stamp_ns,
             tuple(sorted(fs.missing)),
+            self.fusion.registration_version,
         )
 
     def render(self, inputs: PictureInputs) -> np.ndarray:
@@ -462,6 +469,16 @@ class StereoStep:
         scale = ColourScale.of(
             inputs.settings, self.fusion.span_k if mode != "color" else None, self.fusion.tone
         )
+        registration = None
+        if mode == "registration":  # the legend of the sigma's colour map
+            registration = registration_meta(self.fusion.registration, self.fusion.eyes)
         return FrameMeta(
-            inputs.stamp_ns, inputs.tof_stamp_ns, mode, scale, inputs.missing, spots, health
+            inputs.stamp_ns,
+            inputs.tof_stamp_ns,
+            mode,
+            scale,
+            inputs.missing,
+            spots,
+            health,
+            registration,
         )

@@ -1,7 +1,9 @@
 // The operator's stereo viewer: fused side-by-side frames, a colour scale under each eye (the
-// metadata's palette and span; beside the picture, never over it), an overlay of frame
-// rates, data rate, latency, display mode and the sensors that are not ok (the metadata's
-// `health`), full screen, and WebXR.
+// metadata's palette and span; beside the picture, never over it; in the `registration` mode
+// the registration σ's colour map, 0 … 2 colour pixels, with each eye's median and 95th
+// percentile), an overlay of frame rates, data rate, latency, display mode and the sensors
+// that are not ok (the metadata's `health`), the display mode (the "Mode" select: GET and
+// PUT /api/fusion; its choices from the API's schema, /openapi.json), full screen, and WebXR.
 //
 // Two streams, picked with the "Stream" select (stored in localStorage; `?stream=jpeg|auto|
 // 8|4|2|1` in the URL overrides it for the page; the console's default preset,
@@ -25,6 +27,7 @@ const overlay = document.getElementById("overlay");
 const pairBox = document.getElementById("pair");  // the picture and the scales' row under it
 const scaleEls = [...document.querySelectorAll(".scale")];
 const streamSelect = document.getElementById("stream");
+const modeSelect = document.getElementById("mode");
 const stats = {
   frames: 0,        // frames drawn since the page opened
   fps: 0,           // frames drawn per second over the window ("received")
@@ -47,6 +50,8 @@ const stats = {
   note: null,       // why the viewer shows JPEG although video was asked for
   decodeErrors: 0,  // video decoder errors (each answered by a key frame request)
   decodeMs: [],     // video: decode() to the decoded frame, ms, the newest 120 frames
+  metaMode: null,   // the display mode of the newest frame's metadata
+  modeError: null,  // why the Mode select's last change was refused
 };
 window.trifuseStats = stats;  // read by the browser tests and the benchmark
 
@@ -77,6 +82,7 @@ function frameDrawn(frameMeta) {
   stats.latencyMs.push(Date.now() - frameMeta.sent_ns / 1e6);
   if (stats.latencyMs.length > 120) stats.latencyMs.shift();
   showScale(scaleOf(frameMeta));
+  if (frameMeta.mode !== stats.metaMode) { stats.metaMode = frameMeta.mode; syncMode(); }
   const fresh = frameMeta.rates && (!stats.rates || stats.rates.at_ns !== frameMeta.rates.at_ns);
   stats.rates = frameMeta.rates || null;
   // the console's new figures at once, as the Source panel shows them; a new stream at once
@@ -269,6 +275,7 @@ function decimalsOf(step) {
 // temperature, so the ticks sit at evenly spaced palette positions labelled with the
 // temperature there (the metadata's `palette_ticks_k`).
 function scaleOf(m) {
+  if (m && m.registration) return registrationScaleOf(m.registration);
   if (!m || !m.palette || !m.span_k || !m.palette_rgb || m.palette_rgb.length !== 1536) return null;
   const low = m.span_k[0] - K0, high = m.span_k[1] - K0;
   if (!(high > low)) return null;
@@ -290,10 +297,37 @@ function scaleOf(m) {
       if (frac > 0.09 && frac < 0.91) ticks.push({ frac, label: (k * step).toFixed(d), end: "" });
     }
   }
+  const side = m.span_auto ? "auto" : "manual";
   return {
     key: `${m.palette}|${agc}|${ticks.map((t) => t.label).join(",")}|${m.span_auto}|${m.mark_fallback}`,
-    palette: m.palette, rgb: m.palette_rgb, lowC: low, highC: high, auto: !!m.span_auto, ticks,
-    agc, marking: !!m.mark_fallback,
+    kind: "temperature", palette: m.palette, rgb: m.palette_rgb, lowC: low, highC: high,
+    auto: !!m.span_auto, ticks, agc, marking: !!m.mark_fallback, unit: "°C", sides: [side, side],
+    label: `colour scale ${m.palette}, ${ticks[1].label} to ${ticks[0].label} °C`,
+  };
+}
+
+// The `registration` mode's scale (the metadata's `registration`): its colour map over the
+// fixed scale `scale_px` (colour pixels, clipped above), ticks every 0.5 px, and under each
+// eye its median and 95th percentile (`eyes`: null before the eye's first estimate).
+function registrationScaleOf(r) {
+  if (!r.colormap_rgb || r.colormap_rgb.length !== 1536 || !Array.isArray(r.scale_px)) return null;
+  const [low, high] = r.scale_px;
+  if (!(high > low)) return null;
+  const ticks = [
+    { frac: 1, label: `${high} px`, end: "high" },
+    { frac: 0, label: `${low}`, end: "low" },
+  ];
+  for (let v = low + 0.5; v < high - 1e-9; v += 0.5) ticks.push({ frac: (v - low) / (high - low), label: `${v}`, end: "" });
+  const eyes = r.eyes || {};
+  const figures = (e) => (e && typeof e.median_px === "number"
+    ? `median ${e.median_px.toFixed(2)} · p95 ${e.p95_px.toFixed(2)}` : (e ? "no estimate" : "computing…"));
+  const sides = [figures(eyes.left), figures(eyes.right)];
+  const covariance = ["left", "right"].every((k) => !eyes[k] || eyes[k].calibration_covariance);
+  return {
+    key: `registration|${low}|${high}|${sides.join("|")}|${covariance}`,
+    kind: "registration", palette: r.colormap || "sigma", rgb: r.colormap_rgb, ticks,
+    unit: "registration σ", sides, eyes, covariance, lowPx: low, highPx: high,
+    label: `registration σ, colour pixels ${low} … ${high}`,
   };
 }
 
@@ -366,11 +400,11 @@ function showScale(model) {
       ticks.className = "ticks";
       const unit = document.createElement("div");
       unit.className = "caption unit";
-      unit.textContent = "°C";
       const mode = document.createElement("div");
       mode.className = "caption mode";
       el.append(unit, ramp, ticks, mode);
     }
+    el.querySelector(".caption.unit").textContent = model.unit;
     const ticks = el.querySelector(".ticks");
     ticks.replaceChildren(...model.ticks.map((t) => {
       const s = document.createElement("span");
@@ -379,10 +413,11 @@ function showScale(model) {
       s.textContent = t.label;
       return s;
     }));
-    el.querySelector(".caption.mode").textContent = model.auto ? "auto" : "manual";
+    const i = scaleEls.indexOf(el);
+    el.querySelector(".caption.mode").textContent = model.sides[i];
     el.dataset.palette = model.palette;
-    el.setAttribute("aria-label",
-      `colour scale ${model.palette}, ${model.ticks[1].label} to ${model.ticks[0].label} °C`);
+    el.dataset.kind = model.kind;
+    el.setAttribute("aria-label", model.kind === "registration" ? `${model.label}; ${model.sides[i]}` : model.label);
     el.hidden = false;
   }
   pairBox.classList.remove("no-scale");
@@ -404,14 +439,14 @@ function drawScales(g, model, w, h, ramp) {
   const f = xrFont(w), font = (weight) => `${weight} ${f}px system-ui, sans-serif`;
   g.fillStyle = "#000";
   g.fillRect(0, h, w, xrStrip(w));
-  const mode = model.auto ? "auto" : "manual";
   g.font = font(600);
   const widths = model.ticks.map((t) => g.measureText(t.label).width);
-  const unitW = Math.max(3 * f, g.measureText("°C").width);
+  const unitW = Math.max(3 * f, g.measureText(model.unit).width);
   g.font = font(400);
-  const modeW = Math.max(3 * f, g.measureText(mode).width);
+  const modeW = Math.max(3 * f, ...model.sides.map((t) => g.measureText(t).width));
   const ends = [];
-  for (const left of [0, w / 2]) {
+  for (const [eye, left] of [0, w / 2].entries()) {
+    const mode = model.sides[eye];
     // the captions 0.4 f from the eye's edges and 0.6 f from the ramp (the page's padding and gap)
     const x0 = left + unitW + 1.0 * f, x1 = left + w / 2 - modeW - 1.0 * f, top = h + 0.4 * f;
     ends.push([x0, x1]);
@@ -424,7 +459,7 @@ function drawScales(g, model, w, h, ramp) {
     g.textBaseline = "middle";
     g.textAlign = "right";
     g.font = font(600);
-    g.fillText("°C", x0 - 0.6 * f, top + 0.45 * f);
+    g.fillText(model.unit, x0 - 0.6 * f, top + 0.45 * f);
     g.textAlign = "left";
     g.font = font(400);
     g.fillText(mode, x1 + 0.6 * f, top + 0.45 * f);
@@ -478,19 +513,83 @@ function showOverlay() {
   }
   const m = stats.meta || {};
   const sc = stats.scale;
-  const scale = sc ? `${sc.palette}, ${sc.auto ? "auto" : "manual"} span, ${sc.agc} AGC` : "no colour scale";
-  // the legend of the marking: what the muted and the uncoloured pixels mean
-  const legend = sc ? `\nplain colour: no thermal view${sc.marking ? "; muted colours: no TOF depth (registration approximate)" : ""}` : "";
-  const balance = sc && m.balance ? `\n${balanceLine(m.balance)}` : "";
+  let scale = "no colour scale", legend = "";
+  if (sc && sc.kind === "registration") {
+    scale = `${sc.label} (clipped above)`;
+    legend = `\n${registrationLines(sc)}`;
+  } else if (sc) {
+    scale = `${sc.palette}, ${sc.auto ? "auto" : "manual"} span, ${sc.agc} AGC`;
+    // the legend of the marking: what the muted and the uncoloured pixels mean
+    legend = `\nplain colour: no thermal view${sc.marking ? "; muted colours: no TOF depth (registration approximate)" : ""}`;
+  }
+  const balance = sc && sc.kind === "temperature" && m.balance ? `\n${balanceLine(m.balance)}` : "";
+  const modeNote = stats.modeError ? `\nmode not changed: ${stats.modeError}` : "";
   // sensors that are not ok (silent, no frame yet, failing), one line each, from the frame's metadata
   const health = Object.values(m.health || {}).map((line) => `\n⚠ ${line}`).join("");
   stats.mbps = receivedMbps(now);
   overlay.textContent =
     `${stats.codec || "–"} (${stats.mode}): received ${stats.fps.toFixed(1)} fps, ` +
     `${stats.mbps.toFixed(2)} Mbit/s, latency ${median(stats.latencyMs).toFixed(0)} ms\n` +
-    videoLine() + `console: ${ratesLine(now)}\nrates over the last ${windowS()} s; mode ${m.mode || "–"}, ${scale}` + legend + balance + health;
+    videoLine() + `console: ${ratesLine(now)}\nrates over the last ${windowS()} s; mode ${m.mode || "–"}, ${scale}` + legend + balance + health + modeNote;
 }
 setInterval(showOverlay, 500);
+
+// The overlay's lines in the `registration` mode: each eye's figures, what the plain colour
+// means, and whether the calibration's share is in.
+function registrationLines(sc) {
+  const eye = (k) => {
+    const e = sc.eyes[k];
+    if (!e) return `${k} not estimated yet`;
+    if (typeof e.median_px !== "number") return `${k} no cell with depth`;
+    return `${k} median ${e.median_px.toFixed(2)} px, p95 ${e.p95_px.toFixed(2)} px (${e.cells} cells)`;
+  };
+  const lines = [`registration σ: ${eye("left")}; ${eye("right")}`,
+    "plain colour: no estimate (no TOF depth, no thermal view, depth edge)"];
+  if (!sc.covariance) lines.push("no calibration covariance in the rig: only range and footprint shares");
+  return lines.join("\n");
+}
+
+// -- the display mode ------------------------------------------------------------------------
+
+// The modes the console's API takes (its schema's FusionSettings.mode), into the select.
+async function loadModes() {
+  try {
+    const r = await fetch("/openapi.json");
+    if (!r.ok) return;
+    const schema = await r.json();
+    const modes = schema.components.schemas.FusionSettings.properties.mode.enum;
+    modeSelect.replaceChildren(...modes.map((mode) => new Option(mode, mode)));
+    await syncMode();
+    modeSelect.disabled = false;
+  } catch (e) { /* an older console: no select */ }
+}
+
+// The select shows the console's mode (another viewer or the 3D console may change it).
+async function syncMode() {
+  if (!modeSelect.options.length || document.activeElement === modeSelect) return;
+  try {
+    const r = await fetch("/api/fusion");
+    if (r.ok) modeSelect.value = (await r.json()).mode;
+  } catch (e) { /* the next frame's mode tries again */ }
+}
+
+modeSelect.onchange = async () => {
+  const mode = modeSelect.value;
+  try {
+    const r = await fetch("/api/fusion");
+    if (!r.ok) throw new Error(`GET /api/fusion: ${r.status}`);
+    const put = await fetch("/api/fusion", {
+      method: "PUT", headers: { "Content-Type": "application/json" },
+      body: JSON.stringify({ ...(await r.json()), mode }),
+    });
+    if (!put.ok) throw new Error(`${put.status} ${await put.text()}`);
+    stats.modeError = null;
+  } catch (e) {
+    stats.modeError = String(e.message || e);
+    syncMode();
+  }
+  modeSelect.blur();
+};
 
 // The thermal balance between the two imagers the picture shows (the metadata's `balance`).
 function balanceLine(b) {
@@ -587,4 +686,5 @@ function program(gl) {
 }
 
 startStream();
+loadModes();
 setupVr();

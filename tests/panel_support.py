@@ -60,9 +60,11 @@ def display_panels(
     board_watch: object,
     balancer: object = None,
     board: object = None,
+    registration: object = None,
 ) -> Panels:
     """:class:`Panels` on ``server`` over a stand-in ``pipeline`` and ``board_watch`` (and
-    thermal ``balancer``, ``board``), with no rig saving and no next-view outline."""
+    thermal ``balancer``, ``board``, registration watch), with no rig saving and no
+    next-view outline."""
     ctx = SimpleNamespace(
         server=server,
         pipeline=pipeline,
@@ -73,5 +75,6 @@ def display_panels(
         stream_settings=StreamSettings(),
         next_outline={},
         bandwidth=ConsoleBandwidth(),
+        registration=registration,
     )
     return Panels(ctx)  # type: ignore[arg-type]

@@ -8,7 +8,8 @@ Each copy names its source; ``tests/app/cli/test_cli_startup.py`` checks that th
 from __future__ import annotations
 
 DISPLAY_MODES = ("color", "blend", "edges", "thermal", "threshold", "isotherm", "pip")
-"""``fusion.compose.DISPLAY_MODES``: ``fuse --mode``, ``record --video-mode``."""
+"""``fusion.compose.DISPLAY_MODES`` but its ``CONSOLE_ONLY_MODES``: ``fuse --mode``,
+``record --video-mode``."""
 SIM_SCENARIOS = ("inspection", "survey")
 """``app.recording.simrecord.SIM_SCENARIOS``: ``record --scenario``."""
 SCENARIOS = ("inspection", "calibration", "survey")

@@ -82,6 +82,8 @@ def run(args: argparse.Namespace) -> int:
     from trifuse.app.storage.atomic import make_dirs
     from trifuse.fusion.compose import DisplaySettings
 
+    if args.mode not in DISPLAY_MODES:  # the console's own modes show nothing offline
+        raise ValueError(f"--mode: expected one of {', '.join(DISPLAY_MODES)}, got {args.mode!r}")
     check_output_dir(Path(args.out))  # refusals first: the inputs need not exist for them
     inputs = recording_paths(args.recordings)
     dirs = output_dirs(args, inputs)

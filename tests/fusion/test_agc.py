@@ -659,6 +659,7 @@ def test_fusion_panel_sets_the_agc_the_plateau_and_the_max_gain(server) -> None:
         save_rig=None,
         stream_settings=StreamSettings(),
         bandwidth=ConsoleBandwidth(),
+        registration=None,
     )
     panels = Panels(ctx)
     assert panels.agc.value == "plateau" and panels.plateau.value == pytest.approx(0.5)

@@ -2,7 +2,9 @@
 
 Fusion and Thermal write the pipeline's display settings and per-imager offsets (taking
 effect on the next frame; Fusion also the video stream's default preset,
-:mod:`app.server.panels.stream`); Feeds shows each sensor's newest image (thermal colour-mapped,
+:mod:`app.server.panels.stream`, and shows each eye's registration sigma,
+:mod:`app.server.runtime.registration_watch`, whose colour map its ``registration`` mode
+draws); Feeds shows each sensor's newest image (thermal colour-mapped,
 TOF amplitude stretched) with the board watch's detected corners drawn on it (or, in a strip
 at the bottom, why the board was not found there) and, during a calibration session, the
 cyan outline of where to hold the board next (``ctx.next_outline``). The Thermal panel shows
@@ -300,6 +302,11 @@ class Panels(Periodic):
                 hint="Mute the colours where the TOF had no depth (registration approximate)",
             )
             self.stream = StreamPresetControl(gui, ctx.stream_settings)
+            self.registration = gui.add_markdown(
+                registration_text(ctx.registration.summary_text())
+                if ctx.registration is not None
+                else ""
+            )
         with gui.add_folder("Thermal"):
             self.palette = gui.add_dropdown("Palette", PALETTE_NAMES, initial_value=s.palette)
             self.auto = gui.add_checkbox(
@@ -486,6 +493,10 @@ class Panels(Periodic):
                 if self.feeds_error.content:
                     self.feeds_error.content = ""
         self._follow_auto_span()
+        if self.ctx.registration is not None:
+            text = registration_text(self.ctx.registration.summary_text())
+            if self.registration.content != text:
+                self.registration.content = text
         balancer = self.ctx.balancer
         if balancer is not None:
             # set elsewhere (the REST API, Reset balance): shown. Compared with what this
@@ -538,6 +549,15 @@ class Panels(Periodic):
 
 
 SPLIT = "both (split evenly)"
+
+
+def registration_text(summary: str) -> str:
+    """The Fusion folder's registration sigma (markdown) from
+    :meth:`RegistrationWatch.summary_text <app.server.runtime.registration_watch.
+    RegistrationWatch.summary_text>`: where a thermal value may land, 1-sigma, colour pixels
+    (the ``registration`` mode draws it over the colour image on a 0-2 px scale)."""
+    lines = [md_text(line) for line in summary.splitlines()]
+    return "  \n".join(["**Registration σ** (colour px; mode registration: 0–2 px)", *lines])
 
 
 def balance_text(status: BalanceStatus, auto: bool, pipeline: FusionPipeline) -> str:

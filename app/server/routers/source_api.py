@@ -1,9 +1,10 @@
 """REST routes of the source: status, replay controls, recording (OpenAPI at /docs).
 
-``GET /api/status`` reports the source, per-sensor rates, the fused stream and the
-recording; ``/api/source/*`` pause, resume, seek and set the speed of a replay (409 on
-another kind of source); ``/api/recording/*`` start and stop recording what the console
-receives (docs/FORMATS.md, "Console REST API"). Bad values get a 422 naming the field.
+``GET /api/status`` reports the source, per-sensor rates, the fused stream, the recording
+and each eye's registration sigma; ``/api/source/*`` pause, resume, seek and set the speed
+of a replay (409 on another kind of source); ``/api/recording/*`` start and stop recording
+what the console receives (docs/FORMATS.md, "Console REST API"). Bad values get a 422
+naming the field.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from trifuse.app.errors import ControlError
 from trifuse.app.recording.recorder import RecordingState
 from trifuse.app.server.middleware.limits import require_json
 from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.registration_watch import RegistrationWatch
 from trifuse.app.server.runtime.source_control import SourceControl, SourceState
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.server.settings_spec import REPLAY_RATE, SEEK_POSITION_S
@@ -149,6 +151,31 @@ def _stream(hub: FrameHub) -> StreamInfo:
     )
 
 
+class RegistrationEye(BaseModel):
+    """One eye's registration sigma: how far (1-sigma, semi-major axis) a thermal value
+    may land from the colour pixel that sees its point, over the fusion's coarse cells with
+    depth (app/server/runtime/registration_watch.py)."""
+
+    median_px: float | None = Field(description="median over the cells, colour pixels")
+    p95_px: float | None = Field(description="95th percentile over the cells, colour pixels")
+    cells: int = Field(description="coarse cells with an estimate")
+    range_source: str = Field(description="where the TOF range error came from")
+    calibration_covariance: bool = Field(
+        description="the calibration's share is in (the rig carries the covariance); false: "
+        "only the range and footprint shares"
+    )
+    age_s: float = Field(description="seconds since the estimate was made")
+
+
+class RegistrationInfo(BaseModel):
+    """The registration sigma of each eye, estimated in the background at most every 2 s
+    while the fusion is wanted (null: not estimated yet for the rig in use)."""
+
+    left: RegistrationEye | None = None
+    right: RegistrationEye | None = None
+    error: str | None = Field(None, description="why the newest estimate failed, or null")
+
+
 class Status(BaseModel):
     """The console at a glance. ``viewers``, ``frames_out``, ``fps``, ``missing`` and
     ``error`` are the keys the first status route had."""
@@ -178,6 +205,11 @@ class Status(BaseModel):
     stream: StreamInfo | None = Field(
         None, description="the stream's default video preset and its video viewers"
     )
+    registration: RegistrationInfo | None = Field(
+        None,
+        description="each eye's registration sigma (median, 95th percentile, colour pixels); "
+        "null without the background estimate",
+    )
 
 
 class SeekRequest(BaseModel):
@@ -204,9 +236,10 @@ def make_source_router(
     hub: FrameHub,
     pipeline: FusionPipeline | None = None,
     control: SourceControl | None = None,
+    registration: RegistrationWatch | None = None,
 ) -> APIRouter:
     """The routes; without ``control`` (and a pipeline) the status reports zeros and the
-    controls answer 409."""
+    controls answer 409; without ``registration`` its ``registration`` is null."""
     if control is None and pipeline is not None:
         control = SourceControl(pipeline, hub)
     router = APIRouter(prefix="/api", tags=["source"])
@@ -253,6 +286,9 @@ def make_source_router(
             recording=_recording(control.recording_state()),
             sensors={n: SensorInfo(**h.as_dict()) for n, h in control.sensor_health().items()},
             stream=_stream(hub),
+            registration=None
+            if registration is None
+            else RegistrationInfo(**registration.status()),
         )
 
     @router.post("/source/pause")

@@ -12,6 +12,7 @@ import viser
 from trifuse.app.server.runtime.board_watch import BoardWatch
 from trifuse.app.server.runtime.demand import ConsoleDemand
 from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.registration_watch import RegistrationWatch
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.server.runtime.thermal_balance import ThermalBalancer
 from trifuse.app.server.runtime.video_presets import StreamSettings
@@ -70,6 +71,8 @@ class ConsoleContext:
             search, the GUI's updates): the parts hold or touch it (demand.py).
         bandwidth: what ``/console/`` may send (``full`` or ``low``); the 3D scene and the
             Feeds read it each update.
+        registration: each eye's registration sigma estimated in the background (the
+            Fusion panel shows it), or None.
         next_outline: where the board should appear in the next view: sensor -> (4, 2)
             full-image pixels of its checkered area's corners
             (:class:`calib.next_pose.NextPose` ``outline_px``); empty when nothing is
@@ -91,6 +94,7 @@ class ConsoleContext:
     demand: ConsoleDemand = field(default_factory=ConsoleDemand)
     bandwidth: ConsoleBandwidth = field(default_factory=ConsoleBandwidth)
     next_outline: dict[str, np.ndarray] = field(default_factory=dict)
+    registration: RegistrationWatch | None = None
 
     @property
     def stream_settings(self) -> StreamSettings:

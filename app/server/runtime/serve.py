@@ -34,6 +34,7 @@ from trifuse.app.server.runtime.demand import ConsoleDemand, hold_while_connecte
 from trifuse.app.server.runtime.foxglove_live import FoxgloveLive
 from trifuse.app.server.runtime.map_worker import MapWorker
 from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.registration_watch import RegistrationWatch
 from trifuse.app.server.runtime.source_control import SourceControl
 from trifuse.app.server.runtime.source_tap import SourceTap
 from trifuse.app.server.runtime.stream import FrameHub
@@ -158,6 +159,9 @@ def serve(
     # automatic unless the rig brings a balance; measured while demand.fusion is wanted
     balancer = ThermalBalancer(pipeline, listeners=demand.balance, auto=None)
     pipeline.balance_note = balancer.describe  # the viewer's overlay says which balance
+    # each eye's registration sigma, every 2 s while the fusion is wanted (/api/status, the
+    # registration display mode, the Fusion panel)
+    registration = RegistrationWatch(pipeline)
     ctx = ConsoleContext(
         server=server,
         source=source,
@@ -171,6 +175,7 @@ def serve(
         save_rig=session.save_rig,
         demand=demand,
         bandwidth=ConsoleBandwidth(console_bandwidth),
+        registration=registration,
     )
     control = SourceControl(pipeline, hub, opened.description, workdir)
     live = None
@@ -198,13 +203,16 @@ def serve(
         *(panel.start() for panel in panels),
         watch.start(),
         balancer.start(),
+        registration.start(),
         PrecisionPanel(ctx).start(),
         mapper.start(),
     ]
     if live is not None:
         parts.append(live.start())
     parts.append(control)  # stopped first: a running recording is finished and kept
-    app = create_app(hub, server.get_port(), pipeline, control, balancer, auth, viser_secret)
+    app = create_app(
+        hub, server.get_port(), pipeline, control, balancer, auth, viser_secret, registration
+    )
     app.include_router(
         make_session_router(
             session,

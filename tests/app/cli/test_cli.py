@@ -86,6 +86,8 @@ def test_console_script_entry_point() -> None:
         (["simulate", "calibration", "--seed", "-3", "--out", "o"], "expected an integer >= 0"),
         (["bench", "--repeat", "-1"], "expected a positive integer"),
         (["bench", "--only", "nope"], "unknown benchmark 'nope'"),
+        # the console's own mode: the estimate it draws is made only in the console
+        (["fuse", "r.mcap", "--out", "o", "--mode", "registration"], "got 'registration'"),
     ],
 )
 def test_bad_arguments(argv: list[str], match: str, capsys: pytest.CaptureFixture[str]) -> None:

@@ -285,6 +285,7 @@ def panels(server: viser.ViserServer) -> tuple[Panels, SimpleNamespace, FakeCloc
         stream_settings=StreamSettings(),
         bandwidth=ConsoleBandwidth(),
         next_outline={},
+        registration=None,
     )
     clock = FakeClock(100.0)
     return Panels(ctx, feed_hz=2.0, clock=clock), pipeline, clock
