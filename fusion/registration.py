@@ -599,3 +599,96 @@ def sigma_vs_distance(
                 if p == "total":
                     p95[p][i] = np.percentile(at, 95)
     return SigmaCurve(d, median, p95)
+
+
+@dataclass(frozen=True, eq=False)
+class MappingDifference:
+    """How far two calibrations' fusions put the same thermal value apart, one eye, against
+    distance (a wall facing the colour camera, seen by the TOF).
+
+    Attributes:
+        distance_m: (N,) the wall's depth along the colour camera's axis, metres.
+        median_px, p95_px, max_px: (N,) over the colour pixels that see the wall in all
+            three sensors, colour pixels (NaN where none does).
+    """
+
+    distance_m: np.ndarray
+    median_px: np.ndarray
+    p95_px: np.ndarray
+    max_px: np.ndarray
+
+    def worst(self) -> tuple[float, float]:
+        """(largest median over the distances, the distance where it is), px and metres."""
+        i = int(np.nanargmax(self.median_px))
+        return float(self.median_px[i]), float(self.distance_m[i])
+
+
+def mapping_difference(
+    rig_a: Rig,
+    rig_b: Rig,
+    color: str,
+    thermal: str,
+    tof: str,
+    distance_m: np.ndarray,
+    cell_px: int = 32,
+) -> MappingDifference:
+    """The difference of two calibrations' fused mappings (cross-validation, mrcal's idea in
+    the operator's units).
+
+    The TOF measures a wall facing ``rig_a``'s colour camera; each rig fuses those very
+    measurements (its own TOF rays and pose, colour rays, thermal projection), and the two
+    thermal pixels found for the same colour pixel are compared, brought to colour pixels
+    through ``rig_a``'s local map (:func:`registration_sigma`'s ``A``). Exact, not
+    linearised.
+
+    Args:
+        rig_a, rig_b: two calibrations of the same head (same sensor names).
+        color, thermal, tof: the eye's sensors and the TOF.
+        distance_m: (N,) depths, metres, > 0.
+        cell_px: colour pixels between the compared pixels.
+    """
+    d = np.asarray(distance_m, dtype=np.float64).reshape(-1)
+    if d.size == 0 or not np.all(np.isfinite(d) & (d > 0)):
+        raise ValueError("distance_m: expected finite distances > 0")
+    cs = rig_a[color]
+    hc, wc = -(-cs.height // cell_px), -(-cs.width // cell_px)
+    centres = pixel_grid(wc, hc).astype(np.float64) * cell_px + (cell_px - 1) / 2.0
+    rays = np.concatenate([cs.intrinsics.normalized(centres), np.ones((hc, wc, 1))], axis=-1)
+    P = (d[:, None, None] * rays.reshape(1, -1, 3)).reshape(-1, 3)
+    which = np.repeat(np.arange(d.size), hc * wc)
+    q = np.tile(centres.reshape(-1, 2), (d.size, 1))
+    T_tof_c = rig_a.T(tof, color)
+    X_tof = P @ T_tof_c[:3, :3].T + T_tof_c[:3, 3]
+    uv = rig_a[tof].intrinsics.project(X_tof)
+    ok = np.ones(len(P), bool)
+    for other, pix in ((thermal, None), (tof, uv)):
+        if pix is None:
+            T = rig_a.T(other, color)
+            pix = rig_a[other].intrinsics.project(P @ T[:3, :3].T + T[:3, 3])
+        w, h = rig_a[other].image_size
+        with np.errstate(invalid="ignore"):
+            ok &= (pix[:, 0] >= -0.5) & (pix[:, 0] < w - 0.5)
+            ok &= (pix[:, 1] >= -0.5) & (pix[:, 1] < h - 0.5)
+    median, p95, top = (np.full(d.size, np.nan) for _ in range(3))
+    if ok.any():
+        with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+            n = np.broadcast_to([0.0, 0.0, 1.0], (int(ok.sum()), 3))
+            dist = np.linalg.norm(X_tof[ok], axis=1)
+            chain = _Chain(_Geometry.of(rig_a, color, thermal, tof), q[ok], uv[ok], dist, n)
+            b = _Geometry.of(rig_b, color, thermal, tof)
+            tof_dir = _rays(b.tof, chain.uv)
+            F_b = chain(
+                T_c_tof=b.T_c_tof,
+                T_t_c=b.T_t_c,
+                thermal=b.thermal,
+                tof_dir=tof_dir / np.linalg.norm(tof_dir, axis=1, keepdims=True),
+                color_ray=_rays(b.color, chain.q),
+            )
+            A = np.linalg.inv(_dF_dq(chain))
+            gap = np.linalg.norm(np.einsum("nij,nj->ni", A, F_b - chain()), axis=1)
+        at = which[ok]
+        for i in range(d.size):
+            g = gap[(at == i) & np.isfinite(gap)]
+            if g.size:
+                median[i], p95[i], top[i] = np.median(g), np.percentile(g, 95), g.max()
+    return MappingDifference(d, median, p95, top)

@@ -184,3 +184,30 @@ def test_range_share_against_distance_is_the_parallax_of_the_depth_error() -> No
     assert np.all(curve.median_px["footprint"] == 0)  # a flat wall: no depth change
     assert np.allclose(curve.median_px["total"], curve.median_px["range"])
     assert np.all(curve.p95_px["total"] >= curve.median_px["total"])
+
+
+def test_mapping_difference_of_a_turned_thermal_imager_is_its_angle_in_colour_pixels() -> None:
+    """0.3° of a thermal imager's rotation about its vertical axis moves every thermal
+    value by about f_colour * 0.3° (7 colour pixels, the issue's example; a little more off
+    the axis) at any distance; a rig against itself differs by nothing."""
+    from trifuse.app.sources.sim.head import default_rig
+    from trifuse.calib.parameter_covariance import ParameterCovariance
+    from trifuse.fusion.registration import mapping_difference
+
+    rig = default_rig()
+    turn = ParameterCovariance.from_matrix(["thermal_left.ry"], np.eye(1))
+    turned = rig.perturbed(turn, np.array([np.radians(0.3)]))
+    d = np.array([0.5, 1.0, 3.0, 10.0])
+    same = mapping_difference(rig, rig, "ccd_left", "thermal_left", "tof", d)
+    assert np.all(same.max_px == 0)
+    moved = mapping_difference(rig, turned, "ccd_left", "thermal_left", "tof", d, cell_px=32)
+    # a turn by t about y moves a pinhole's pixel at normalised (x, y) by f t (1 + x^2, x y)
+    c = rig["ccd_left"].intrinsics
+    xy = c.normalized(pixel_grid(40, 30).reshape(-1, 2) * 32 + 15.5)
+    x, y = xy[:, 0], xy[:, 1]
+    expected = c.fx * np.radians(0.3) * np.median(np.hypot(1 + x * x, x * y))  # 7.2 px
+    assert np.allclose(moved.median_px, expected, rtol=0.03), (moved.median_px, expected)
+    assert np.all(moved.p95_px >= moved.median_px) and np.all(moved.max_px >= moved.p95_px)
+    assert moved.worst()[0] == np.max(moved.median_px)
+    other_eye = mapping_difference(rig, turned, "ccd_right", "thermal_right", "tof", d)
+    assert np.all(other_eye.max_px == 0)
