@@ -3,7 +3,8 @@
 How far each eye's thermal values may land from where they belong (the registration sigma,
 colour pixels: :mod:`fusion.registration`) depends on the rig, its calibration covariance,
 the TOF's range error and the depth the TOF sees now. :class:`RegistrationWatch` estimates
-it every :data:`PERIOD_S` at most, while the fusion is wanted
+it every :data:`PERIOD_S` at most (and within :data:`CPU_SHARE` of a core), while the
+fusion is wanted
 (:mod:`app.server.runtime.demand`) and a depth mapping exists:
 
 1. in the fusion thread (a set listener of :class:`~app.server.runtime.pipeline.
@@ -50,6 +51,10 @@ from trifuse.fusion.stereo import EYE_ORDER, StereoFusion
 
 PERIOD_S = 2.0
 """Shortest time between two estimates, seconds."""
+CPU_SHARE = 0.05
+"""The share of one core the estimates may take: after an estimate that took ``t`` seconds
+(both eyes), the next one waits at least ``t / CPU_SHARE`` (a rig with a full covariance
+takes about 0.13-0.28 s an eye beside the busy fusion: one estimate every 5-11 s)."""
 MAX_CELLS = 3000
 """The most coarse cells with depth one eye's estimate evaluates (:func:`stride_for`)."""
 NO_COVARIANCE = "no calibration covariance in the rig: only range and footprint shares"
@@ -200,8 +205,17 @@ class RegistrationWatch:
     # -- the worker thread -------------------------------------------------------------------
 
     def _compute(self, job: _Job) -> None:
+        errors: list[str] = []
+        started = self.clock()
+        try:
+            self._estimate(job, errors)
+        finally:
+            spent = self.clock() - started
+            self._due_s = max(self._due_s, self.clock() + spent / CPU_SHARE)
+        self.error = "; ".join(errors) or None
+
+    def _estimate(self, job: _Job, errors: list[str]) -> None:
         rig = job.rig
-        errors = []
         range_err = range_error(rig, job.tof)
         for e, (z, ok, scale) in job.cells.items():
             if job.fusion is not self.pipeline.fusion:
@@ -225,7 +239,6 @@ class RegistrationWatch:
             with self._lock:
                 self._results[e] = EyeRegistration(sigma, overlay, stride, t1, t1 - t0, job.fusion)
             self.estimates += 1
-        self.error = "; ".join(errors) or None
 
     def _failed(self, exc: Exception) -> None:
         self.error = describe_error(exc)

@@ -12,6 +12,7 @@ import math
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 from fastapi.testclient import TestClient
 
 from tests.panel_support import display_panels
@@ -192,3 +193,18 @@ def test_the_fusion_folder_offers_the_mode_and_shows_the_estimate(server) -> Non
     panels.mode.value = "registration"
     panels.apply()
     assert pipeline.settings.mode == "registration"
+
+
+def test_an_estimate_holds_the_next_one_back_to_its_share_of_a_core() -> None:
+    """An estimate that took t seconds delays the next by t / CPU_SHARE (0.5 s -> 10 s),
+    also when it failed."""
+    ticks = iter([100.0, 100.5, 100.5, 200.0, 200.2, 200.2])
+    pipeline = SimpleNamespace(set_listeners=[], fusion=None)
+    watch = RegistrationWatch(pipeline, period_s=2.0, clock=lambda: next(ticks))  # type: ignore[arg-type]
+    job = watch_module._Job(fusion=None, rig=small_rig(), tof="tof", cells={})  # type: ignore[arg-type]
+    watch._compute(job)
+    assert watch._due_s == pytest.approx(100.5 + 0.5 / watch_module.CPU_SHARE)
+    broken = watch_module._Job(fusion=None, rig=None, tof="tof", cells={})  # type: ignore[arg-type]
+    with pytest.raises(TypeError):
+        watch._compute(broken)  # range_error of no rig (the worker reports it)
+    assert watch._due_s == pytest.approx(200.2 + 0.2 / watch_module.CPU_SHARE)
