@@ -39,6 +39,7 @@ def _eye(rig: Rig, eye: str = "left") -> tuple[str, str, str]:
     return e.color, e.thermal, rig.by_modality("tof")[0]
 
 
+@pytest.mark.slow  # 200 fusions: 15-30 s
 def test_propagated_sigma_matches_a_monte_carlo_of_the_fusion(simulated: dict) -> None:
     """Draw the calibration within its covariance (the rig file's) and the TOF's distances
     within their per-region error, re-fuse each draw, and compare the spread of where the
