@@ -306,6 +306,7 @@ def calibrate_rig(
     options: CalibrationOptions | None = None,
     progress: Progress | None = None,
     eyes: Mapping[str, Eye] | None = None,
+    judge: bool = True,
 ) -> CalibrationResult:
     """Calibrate every observed sensor's intrinsics and pose, and every board pose.
 
@@ -318,6 +319,9 @@ def calibrate_rig(
         options: see :class:`CalibrationOptions`.
         progress: called with (stage description, fraction done in [0, 1]).
         eyes: eye pairs to carry into the calibrated rig.
+        judge: give the verdicts (``verdict``; a third of the time on 15 views: the advice
+            tries candidate views); without, ``verdict`` is None (the cross-validation's
+            halves need only the rig and its covariance).
 
     Raises:
         CalibrationError: nothing usable (no detections, the reference has too few views ...).
@@ -327,7 +331,7 @@ def calibrate_rig(
     # they gain. Measured on 40 views: 0.42 s idle, 0.87 s beside two busy processes; with
     # OpenBLAS's default 2 threads 0.56 s and 1.5 s.
     with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
-        return _calibrate_rig(observations, board, specs, options, progress, eyes)
+        return _calibrate_rig(observations, board, specs, options, progress, eyes, judge)
 
 
 def _calibrate_rig(
@@ -337,6 +341,7 @@ def _calibrate_rig(
     options: CalibrationOptions | None,
     progress: Progress | None,
     eyes: Mapping[str, Eye] | None,
+    judge: bool = True,
 ) -> CalibrationResult:
     """:func:`calibrate_rig`'s work (same arguments), with BLAS limited by the caller."""
     opts = options or CalibrationOptions()
@@ -416,6 +421,7 @@ def _calibrate_rig(
                 replace(opts, reference=other),
                 progress,
                 eyes,
+                judge,
             )
             result.excluded_sensors = {**excluded, **result.excluded_sensors}
             result.notes.insert(
@@ -622,8 +628,13 @@ def _calibrate_rig(
     # 5. Verdicts from the covariance (calib.verdict).
     report("verdicts", 0.95)
     cov = rig_covariance(final, est, x, intr, weights)
-    verdict = replace(
-        judge_rig(cov, results, reference, dict(eyes or {}), board), intrinsics_only=alone_verdicts
+    verdict = (
+        replace(
+            judge_rig(cov, results, reference, dict(eyes or {}), board),
+            intrinsics_only=alone_verdicts,
+        )
+        if judge
+        else None
     )
     report("done", 1.0)
     return CalibrationResult(

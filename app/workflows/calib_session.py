@@ -542,7 +542,8 @@ class CalibrationSession:
     # -- calibration ----------------------------------------------------------------------
 
     def start_calibration(self, options: CalibrationOptions | None = None) -> CalibrationJob:
-        """Calibrate the current views in a background thread; returns the new job."""
+        """Calibrate the current views in a background thread, cross-validated (the report's
+        ``cross_validation``: :mod:`app.workflows.cross_validation`); returns the new job."""
         with self._lock:
             if self.job.state == "running":
                 raise SessionError("a calibration is running already; wait for it to end")
@@ -591,6 +592,7 @@ class CalibrationSession:
                 options,
                 progress=lambda what, f: progress(what, 0.2 + 0.8 * f),
                 detections=self.detection_run(job.views),
+                cross_validate=True,
             )
         except (CalibrationError, CaptureError, KeyError, ValueError) as exc:
             job.error, job.state = str(exc), "failed"

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import time
 from collections import Counter
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -21,9 +22,15 @@ from typing import Any
 
 import numpy as np
 
+from trifuse.app.errors import describe_error
 from trifuse.app.storage.atomic import atomic_write_text
 from trifuse.app.storage.capture import Capture, CaptureError, UnreadableImageError
 from trifuse.app.storage.detection_cache import detect_cached
+from trifuse.app.workflows.cross_validation import (
+    cross_validate,
+    cross_validation_lines,
+    skipped,
+)
 from trifuse.app.workflows.report_format import (
     POLARITY_HEAD,
     coverage_sentence,
@@ -153,9 +160,14 @@ def calibrate_capture(
     sensors: list[str] | None = None,
     progress: Progress | None = None,
     detections: DetectionRun | None = None,
+    cross_validate: bool = False,
 ) -> tuple[CalibrationResult, dict[str, Any]]:
     """Detect (unless ``detections`` of every view are given), calibrate and build the
-    report of a capture directory."""
+    report of a capture directory.
+
+    With ``cross_validate``, the report's ``cross_validation`` also holds the two halves of
+    the views calibrated alone and compared (:mod:`app.workflows.cross_validation`): never
+    an error of the calibration, whatever goes wrong there is its ``skipped`` reason."""
     specs = sensor_specs(capture)
     if sensors is not None:
         unknown = sorted(set(sensors) - set(specs))
@@ -186,13 +198,41 @@ def calibrate_capture(
             f"the board ({capture.board.describe()}) was not found in any image: {common}"
         )
     eyes = capture.rig.eyes if capture.rig is not None else {}
+    span = 0.3 if cross_validate else 0.4  # the cross-validation: the last tenth
     result = calibrate_rig(
-        detections.observations, capture.board, specs, options, progress=stage(0.6, 0.4), eyes=eyes
+        detections.observations, capture.board, specs, options, progress=stage(0.6, span), eyes=eyes
     )
     # false-colour thermal images: say, wherever notes are shown, that they are not kelvin
     result.notes += [p["note"] for p in capture.palette_report().values()]
     result.excluded_sensors = excluded_with_detection_reasons(result, detections)
-    return result, build_report(result, detections, capture)
+    report = build_report(result, detections, capture)
+    if cross_validate:
+        report["cross_validation"] = _finite(
+            cross_validated(result, detections, capture, specs, options, stage(0.9, 0.1))
+        )
+    return result, report
+
+
+def cross_validated(
+    result: CalibrationResult,
+    detections: DetectionRun,
+    capture: Capture,
+    specs: dict[str, SensorSpec],
+    options: CalibrationOptions | None,
+    progress: Progress | None,
+) -> dict[str, Any]:
+    """:func:`app.workflows.cross_validation.cross_validate` of the calibration, on its
+    detections; an exception it raises (a defect) becomes its ``skipped`` reason: the
+    calibration stands without it."""
+    t0 = time.perf_counter()
+    try:
+        return cross_validate(
+            result, detections.observations, capture.board, specs, options, progress
+        )
+    except Exception as exc:  # a defect: say so in the report, keep the calibration
+        cv = skipped(f"failed: {describe_error(exc)}")
+        cv["seconds"] = time.perf_counter() - t0
+        return cv
 
 
 def excluded_with_detection_reasons(
@@ -375,6 +415,8 @@ def format_summary(result: CalibrationResult, report: dict[str, Any]) -> str:
         )
     if result.verdict is not None:
         lines += ["", *verdict_lines(report["verdict"])]
+    if cv := cross_validation_lines(report.get("cross_validation")):
+        lines += ["", *cv]
     lines.append("")
     for name, entry in report["sensors"].items():
         c = entry["coverage"]

@@ -10,7 +10,9 @@ disk) the per-corner plots are left out and the page says so.
 The page: summary and verdict; per sensor its intrinsics and distortion ± 1-sigma, pose
 ± 1-sigma, RMS, the views used and left out with the reason, a per-view RMS bar chart, a
 per-corner residual scatter, a coverage heat map and the residual vectors over the image;
-the relative pose of every pair of sensors; the board polarity and any other decision the
+the relative pose of every pair of sensors; the cross-validation (two halves of the views
+calibrated alone: per eye how far apart their fusions put a thermal value against distance,
+and what their uncertainty predicts); the board polarity and any other decision the
 report holds; the outliers; every view and sensor; the comparison with a true rig (when
 the report has one); the command and the software versions.
 
@@ -22,7 +24,7 @@ report gains later (a verdict, advice, decisions) are shown as they come: ``verd
 key under "Decisions and other findings" or the sensor's "Other figures".
 
 The page is put together here, with its entry points; its parts are in
-:mod:`report_sections` (summary, decisions, outliers, views, truth, run),
+:mod:`report_sections` (summary, cross-validation, decisions, outliers, views, truth, run),
 :mod:`report_sensors` (a section per sensor, the pairs), :mod:`report_svg` (the plots) and
 :mod:`report_markup` (numbers, tables, verdicts).
 """
@@ -43,6 +45,7 @@ from trifuse.app.storage.atomic import atomic_write_text
 from trifuse.app.workflows.report_markup import esc, html_id
 from trifuse.app.workflows.report_sections import (
     comparison_section,
+    cross_validation_section,
     decisions_section,
     outliers_section,
     report_board_text,
@@ -142,6 +145,7 @@ def render_report_html(
     body += [sensor_section(report, n, i, corners) for i, n in enumerate(sensors)]
     for anchor, label, block in (
         ("pairs", "Relative poses", pairs_section(report)),
+        ("cross-validation", "Cross-validation", cross_validation_section(report)),
         ("decisions", "Decisions and other findings", decisions_section(report)),
         ("outliers", "Outliers", outliers_section(report)),
         ("views", "Every view", views_section(report)),

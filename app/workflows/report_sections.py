@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from trifuse.app.workflows.cross_validation import eye_line
 from trifuse.app.workflows.report_format import (
     INTRINSICS_HEAD,
     POLARITY_HEAD,
@@ -32,6 +33,7 @@ from trifuse.app.workflows.report_markup import (
     views_list,
 )
 from trifuse.app.workflows.report_sensors import sigma_of, sigma_vector
+from trifuse.app.workflows.report_svg import curves_svg
 from trifuse.calib.board import POLARITY_KEYS, board_from_dict
 
 KNOWN_KEYS = frozenset(
@@ -56,6 +58,7 @@ KNOWN_KEYS = frozenset(
         "advice",
         "min_views",
         "unreadable_images",
+        "cross_validation",
     }
 )
 """Top-level report keys with a section of their own; any other is shown generically."""
@@ -438,6 +441,90 @@ def _pass(failed: list[str]) -> str:
         if not failed
         else f"<span class='bad'>FAIL ({esc(', '.join(failed))})</span>"
     )
+
+
+CROSS_VALIDATION_TABLE_M = (0.5, 1.0, 2.0, 3.0, 5.0, 10.0)
+"""The distances of the cross-validation's table (the plot has them all), metres."""
+
+
+def cross_validation_section(report: Mapping[str, Any]) -> str:
+    """The cross-validation (``report["cross_validation"]``): how it was made, then per eye
+    its line, a plot of the halves' difference against distance beside what their sigmas
+    predict, and a table at :data:`CROSS_VALIDATION_TABLE_M`; why it was skipped; empty
+    without one."""
+    cv = report.get("cross_validation")
+    if not isinstance(cv, Mapping):
+        return ""
+    parts = ["<section id='cross-validation'><h2>Cross-validation</h2>"]
+    if cv.get("skipped"):
+        parts.append(f"<p>Not run: {esc(cv['skipped'])}.</p></section>")
+        return "".join(parts)
+    halves = {h: list(v) for h, v in (cv.get("views") or {}).items()}
+    which = "; ".join(
+        f"{esc(h)}: {len(v)} views ({esc(views_list(v, 6))})" for h, v in halves.items()
+    )
+    factor = cv.get("factor")
+    parts.append(
+        f"<p>The views were split into two halves, alternate views in capture order ({which}), "
+        "each calibrated alone with the options of the full calibration. Per eye, each half's "
+        f"rig fuses the same {esc(cv.get('tof') or 'TOF')} measurements of a wall facing the "
+        "colour camera at each distance; the figures are how far apart the two put the same "
+        "thermal value, colour pixels, over the pixels that see the wall (median, 95th "
+        "percentile, largest). The predicted difference is √(σ<sub>A</sub>² + σ<sub>B</sub>²), "
+        "each half's registration 1-sigma from its own covariance (median over the wall); the "
+        "halves are consistent when they differ by at most "
+        f"{esc(significant(factor))} × that at every distance. Solved in "
+        f"{fixed(cv.get('seconds'), 1)} s.</p>"
+    )
+    for name, e in (cv.get("eyes") or {}).items():
+        parts.append(f"<h3>{esc(name)} eye ({esc(e.get('color'))} – {esc(e.get('thermal'))})</h3>")
+        tone = "" if e.get("consistent") is None else ("good" if e["consistent"] else "bad")
+        box = f"box box-{tone}" if tone else "box"
+        parts.append(f"<div class='{box}'><p><b>{esc(eye_line(name, e))}</b></p></div>")
+        if e.get("skipped"):
+            continue
+        d = list(e.get("distance_m") or [])
+        plot = curves_svg(
+            d,
+            [
+                ("halves' difference, median", e.get("median_px") or [], "#3b6ea5", ""),
+                ("halves' difference, 95 %", e.get("p95_px") or [], "#9bb8d8", ""),
+                ("predicted difference", e.get("predicted_difference_px") or [], "#d62728", "5 3"),
+                ("full calibration 1-sigma", e.get("predicted_sigma_px") or [], "#888", "2 2"),
+            ],
+            "distance of the wall, m",
+            "colour px",
+        )
+        parts.append(
+            f"<figure>{plot}<figcaption>How far apart the halves' fusions put a thermal value "
+            "against the distance of a wall facing the colour camera, and what their "
+            "uncertainty predicts.</figcaption></figure>"
+        )
+        rows = []
+        for at in CROSS_VALIDATION_TABLE_M:
+            if at not in d:
+                continue
+            i = d.index(at)
+            rows.append(
+                [f"{at:g}"]
+                + [
+                    fixed((e.get(k) or [None] * len(d))[i], 3)
+                    for k in ("median_px", "p95_px", "max_px", "predicted_difference_px",
+                              "predicted_sigma_px")
+                ]
+            )  # fmt: skip
+        parts.append(
+            html_table(
+                ["m", "median px", "95 % px", "max px", "predicted px", "full σ px"],
+                rows,
+                numeric=(0, 1, 2, 3, 4, 5),
+                caption="The halves' difference and what their sigmas predict; full σ: the "
+                "full calibration's registration 1-sigma",
+                attrs=" class='small'",
+            )
+        )
+    parts.append("</section>")
+    return "".join(parts)
 
 
 def run_section(report: Mapping[str, Any], command: str | None, versions: Mapping[str, str]) -> str:

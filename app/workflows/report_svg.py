@@ -22,6 +22,10 @@ LONGEST_VECTOR = 24.0
 """Longest residual vector drawn (SVG px): an outlier's would cross the image."""
 
 
+LEGEND_WIDTH = 150.0
+"""Room for a line plot's legend (:func:`curves_svg`), SVG px from the plot's right edge."""
+
+
 def nice_ceil(x: float) -> float:
     """The smallest of 1, 2, 2.5, 5 times a power of ten that is >= ``x`` (> 0)."""
     if not math.isfinite(x) or x <= 0:
@@ -275,3 +279,69 @@ def vectors_svg(
         f"(drawn ×{significant(gain)})</text>",
     ]
     return _svg(width, round(height + 22, 1), body, "residual vectors over the image"), gain
+
+
+def curves_svg(
+    x: Sequence[float],
+    series: Sequence[tuple[str, Sequence[float | None], str, str]],
+    x_label: str,
+    y_label: str,
+) -> str:
+    """Lines against a common x (e.g. figures against distance), with a legend.
+
+    Args:
+        x: (N,) the abscissae, increasing (from 0 on the axis).
+        series: (label, (N,) values (None or NaN: a gap), colour, dash pattern or "") each.
+        x_label, y_label: the axes' titles.
+    """
+    left, right, top, bottom = 50.0, 10.0, 10.0, 40.0
+    width, height = 360.0, 220.0
+    pw, ph = width - left - right, height - top - bottom
+    xs = [float(v) for v in x]
+    values = [float(v) for _l, ys, _c, _d in series for v in ys if is_finite_number(v)]
+    x_hi = nice_ceil(max(xs, default=1.0))
+    y_hi = nice_ceil(max(values, default=1.0) * 1.08)
+    px = lambda v: left + pw * v / x_hi  # noqa: E731
+    py = lambda v: top + ph * (1 - min(v, y_hi) / y_hi)  # noqa: E731
+    body = [f'<rect x="{left}" y="{top}" width="{pw:g}" height="{ph:g}" fill="#fafafa"/>']
+    tv, d = ticks(y_hi, 4)
+    for t in tv:
+        body.append(
+            f'<line x1="{left}" x2="{left + pw:g}" y1="{py(t):.1f}" y2="{py(t):.1f}" '
+            'stroke="#ddd"/>'
+            f'<text x="{left - 4}" y="{py(t) + 3.5:.1f}" text-anchor="end">{t:.{d}f}</text>'
+        )
+    tx, dx = ticks(x_hi, 5)
+    for t in tx:
+        body.append(
+            f'<text x="{px(t):.1f}" y="{top + ph + 12:.1f}" text-anchor="middle">{t:.{dx}f}</text>'
+        )
+    for k, (label, ys, colour, dash) in enumerate(series):
+        runs, run = [], []
+        for xv, yv in zip(xs, ys, strict=False):  # a report read back may lack values
+            if is_finite_number(yv):
+                run.append(f"{px(xv):.1f} {py(float(yv)):.1f}")  # type: ignore[arg-type]
+            elif run:
+                runs.append(run)
+                run = []
+        runs += [run] if run else []
+        d_attr = "".join("M" + "L".join(r) for r in runs)
+        dashed = f' stroke-dasharray="{dash}"' if dash else ""
+        if d_attr:
+            body.append(
+                f'<path d="{d_attr}" stroke="{colour}" stroke-width="1.6" fill="none"{dashed}>'
+                f"<title>{esc(label)}</title></path>"
+            )
+        ly, lx = top + 10 + 12 * k, left + pw - LEGEND_WIDTH  # top right: the curves
+        body.append(  # against distance fall from the left
+            f'<line x1="{lx:g}" x2="{lx + 22:g}" y1="{ly:g}" y2="{ly:g}" '
+            f'stroke="{colour}" stroke-width="1.6"{dashed}/>'
+            f'<text x="{lx + 26:g}" y="{ly + 3.5:g}" font-size="9">{esc(label)}</text>'
+        )
+    body.append(
+        f'<text x="{left + pw / 2:g}" y="{height - 6:g}" text-anchor="middle">'
+        f"{esc(x_label)}</text>"
+        f'<text transform="translate(11 {top + ph / 2:g}) rotate(-90)" text-anchor="middle">'
+        f"{esc(y_label)}</text>"
+    )
+    return _svg(width, height, body, y_label)

@@ -10,7 +10,9 @@ source without importing it: a slow machine still gets every pose); coverage bar
 sensor; the views with
 the board found or not per sensor; delete a view; run the calibration with progress; then
 per-sensor RMS, the per-view error chart with "drop this view and calibrate again", the
-1-sigma table, the board polarity found per sensor (which squares read dark/cold or
+1-sigma table, the verdicts, the cross-validation (two halves of the views calibrated
+alone: per eye how far apart their fusions put a thermal value, against the prediction),
+the board polarity found per sensor (which squares read dark/cold or
 bright/hot, and how decisively) with any sensor left out and why (and, on the simulated
 head, the errors against the ground truth); Save as a new rig version and use a saved
 version.
@@ -19,6 +21,7 @@ version.
 from __future__ import annotations
 
 import html
+from typing import Any
 
 import numpy as np
 import viser.uplot as uplot
@@ -35,6 +38,7 @@ from trifuse.app.workflows.calib_session import (
     SessionError,
     ViewInfo,
 )
+from trifuse.app.workflows.cross_validation import cross_validation_lines
 from trifuse.app.workflows.report_format import (
     POLARITY_PANEL_HEAD,
     TRUTH_HEAD,
@@ -433,7 +437,7 @@ class CalibrationPanel(Periodic):
             self.results.content = ""
         elif self._shown_job is not job:
             self._shown_job = job
-            self.results.content = self._results_md(job.result)
+            self.results.content = self._results_md(job.result, job.report)
             self._chart(job.result)
         self.chart.visible = self.drop.visible = self.download.visible = done
         if job.state == "idle":
@@ -447,8 +451,9 @@ class CalibrationPanel(Periodic):
             saved = f", saved as **{md_text(job.saved_as)}**" if job.saved_as else ""
             self.stage.content = f"Calibrated {len(job.views)} views in {took:.0f} s{saved}."
 
-    def _results_md(self, result) -> str:
-        """Per-sensor RMS and 1-sigma; on the simulated head a second table of errors
+    def _results_md(self, result, report: dict[str, Any] | None = None) -> str:
+        """Per-sensor RMS and 1-sigma, the verdicts, the cross-validation's line per eye
+        (from ``report``, the job's report); on the simulated head a second table of errors
         against the ground truth."""
         truth = self.ctx.ground_truth_rig
         lines = [
@@ -472,6 +477,8 @@ class CalibrationPanel(Periodic):
             )
         if result.verdict is not None:
             lines += ["", *verdict_md(result.verdict.as_dict())]
+        if cv := cross_validation_lines((report or {}).get("cross_validation")):
+            lines += ["", *(f"- {md_text(line)}" for line in cv)]
         if result.polarity:
             pol = {n: p.as_dict() for n, p in result.polarity.items()}
             lines += [

@@ -18,6 +18,7 @@ from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.sources.sim.scenarios import CaptureHold
 from trifuse.app.workflows import calib_session
+from trifuse.app.workflows.cross_validation import cross_validation_lines
 from trifuse.calib.detect import Detection
 from trifuse.calib.rig_result import ViewError
 
@@ -146,7 +147,8 @@ def test_the_chart_after_a_calibration_run_from_the_panel(tmp_path, calibration_
     """Run calibration in the panel with thermal_right in two views only (too few: it is
     not calibrated): the chart is shown with one point per view and calibrated sensor, the
     RMS of the result, its y axis ranged by the panel, thermal_right marked as without
-    points."""
+    points; the results show the cross-validation's line per eye (the right eye's: why it
+    was skipped)."""
     with panel_on(tmp_path) as (panel, session, _):
         for k, fs in enumerate(calibration_frame_sets):
             frames = {n: f for n, f in fs.frames.items() if n != "thermal_right" or k < 2}
@@ -174,6 +176,14 @@ def test_the_chart_after_a_calibration_run_from_the_panel(tmp_path, calibration_
         labels = [s["label"] for s in panel.chart.series]
         assert labels == ["view", "tof", "ccd_left", "ccd_right", "thermal_left",
                           "thermal_right (none)"]  # fmt: skip
+        # the cross-validation's line per eye, as the terminal's summary has it
+        cv = job.report["cross_validation"]
+        assert cv["eyes"]["right"]["skipped"].startswith("thermal_right is not calibrated: ")
+        shown = plain(panel.results.content)
+        lines = cross_validation_lines(cv)
+        assert len(lines) == 2 and all(f"- {line}" in shown.splitlines() for line in lines)
+        assert re.match(r"cross-validation \(2 halves of 12 views\): left eye worst [\d.]+ px at ",
+                        lines[0])  # fmt: skip
 
 
 def test_buttons_with_nothing_to_act_on_are_disabled(tmp_path, calibration_frame_sets):

@@ -286,6 +286,10 @@ def panel_texts(server, nasty: str) -> list[tuple[str, bool]]:
     )
     fake_panel = SimpleNamespace(ctx=SimpleNamespace(ground_truth_rig=None))
     texts.append((CalibrationPanel._results_md(fake_panel, result), True))  # type: ignore[arg-type]
+    # the cross-validation's lines (an eye's name and why it was skipped)
+    cv = {"skipped": None, "views": {"A": [nasty]}, "eyes": {nasty: {"skipped": nasty}}}
+    report = {"cross_validation": cv}
+    texts.append((CalibrationPanel._results_md(fake_panel, result, report), True))  # type: ignore[arg-type]
     return texts
 
 
