@@ -227,7 +227,14 @@ def _moved_sensor(sensor: Sensor, moves: Mapping[str, float]) -> Sensor:
     T = sensor.T_rig_sensor.copy()
     T[:3, :3] = T[:3, :3] @ rotation_from_rvec([moves.get(k, 0.0) for k in ("rx", "ry", "rz")])
     T[:3, 3] += [moves.get(k, 0.0) for k in ("tx", "ty", "tz")]
-    i = sensor.intrinsics
+    intr = moved_intrinsics(sensor.intrinsics, moves)
+    return replace(sensor, intrinsics=intr, T_rig_sensor=T, uncertainty=None)
+
+
+def moved_intrinsics(intrinsics: Intrinsics, moves: Mapping[str, float]) -> Intrinsics:
+    """``intrinsics`` with ``fx fy cx cy k1 ... k6`` (names of ``moves``, others ignored)
+    moved by the given amounts; the distortion lengthened to 5 or 8 coefficients if needed."""
+    i = intrinsics
     coeffs = [k for k in DISTORTION_PARAMETERS if k in moves]
     needed = max([DISTORTION_PARAMETERS.index(k) + 1 for k in coeffs], default=0)
     length = next(n for n in (len(i.distortion), 5, 8) if n >= needed)
@@ -235,14 +242,13 @@ def _moved_sensor(sensor: Sensor, moves: Mapping[str, float]) -> Sensor:
     dist[: len(i.distortion)] = i.distortion
     for k in coeffs:
         dist[DISTORTION_PARAMETERS.index(k)] += moves[k]
-    intr = Intrinsics(
+    return Intrinsics(
         i.fx + moves.get("fx", 0.0),
         i.fy + moves.get("fy", 0.0),
         i.cx + moves.get("cx", 0.0),
         i.cy + moves.get("cy", 0.0),
         tuple(dist),
     )
-    return replace(sensor, intrinsics=intr, T_rig_sensor=T, uncertainty=None)
 
 
 # -- parsing ---------------------------------------------------------------------------

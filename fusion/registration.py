@@ -45,7 +45,7 @@ from trifuse.calib.parameter_covariance import (
     ParameterCovariance,
     split_name,
 )
-from trifuse.calib.rig import Rig
+from trifuse.calib.rig import Rig, moved_intrinsics
 from trifuse.calib.rig_problem import BLAS_THREADS, project_derivatives
 from trifuse.calib.tof import region_map
 from trifuse.calib.transforms import invert, rotation_from_rvec
@@ -417,10 +417,9 @@ def _calibration_part(
                 return chain(T_c_tof=invert(P[color]) @ P[tof], T_t_c=invert(P[thermal]) @ P[color])
 
         elif sensor == thermal:
-            i = ALL_INTRINSICS.index(param)
 
-            def at(e: float, i: int = i) -> np.ndarray:
-                return chain(thermal=_moved_intrinsics(g.thermal, i, e))
+            def at(e: float, param: str = param) -> np.ndarray:
+                return chain(thermal=moved_intrinsics(g.thermal, {param: e}))
 
         else:
             i = ALL_INTRINSICS.index(param)
@@ -435,19 +434,6 @@ def _calibration_part(
         J[:, :, j] = _central(at, float(sub.sigma[j]) * 1e-2)
     M = J @ (sub.factor * sub.sigma[:, None])  # (N, 2, p): Cov = M M^T
     return M @ M.transpose(0, 2, 1)
-
-
-def _moved_intrinsics(intr: Intrinsics, i: int, e: float) -> Intrinsics:
-    """``intr`` with parameter i of ``fx fy cx cy k1 ... k6`` moved by ``e``."""
-    k = [intr.fx, intr.fy, intr.cx, intr.cy]
-    n = len(intr.distortion)
-    dist = np.zeros(n if i < 4 + n else (5 if i < 9 else 8))
-    dist[:n] = intr.distortion
-    if i < 4:
-        k[i] += e
-    else:
-        dist[i - 4] += e
-    return Intrinsics(*k, tuple(dist))
 
 
 def _range_part(chain: _Chain, rig: Rig, tof: str, err: RangeError) -> np.ndarray:
