@@ -49,6 +49,7 @@ from trifuse.calib.rig import Rig, moved_intrinsics
 from trifuse.calib.rig_problem import BLAS_THREADS, project_derivatives
 from trifuse.calib.tof import region_map
 from trifuse.calib.transforms import invert, rotation_from_rvec
+from trifuse.fusion.geometry import in_image
 from trifuse.fusion.mapping import splat_radius
 
 UNCORRECTED_RANGE_SIGMA_M = 0.041  # the method's TOF distance error before range calibration
@@ -502,6 +503,34 @@ def _dF_dq(chain: _Chain) -> np.ndarray:
     return out
 
 
+def _wall(
+    rig: Rig, color: str, thermal: str, tof: str, distance_m: np.ndarray, cell_px: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points of a wall facing the colour camera at each distance, one per ``cell_px``
+    colour pixels, that the thermal imager and the TOF see.
+
+    Returns:
+        q (M, 2) colour pixels, P (M, 3) their points (colour frame, metres) and which
+        distance (M,) each is at.
+    """
+    d = np.asarray(distance_m, dtype=np.float64).reshape(-1)
+    if d.size == 0 or not np.all(np.isfinite(d) & (d > 0)):
+        raise ValueError("distance_m: expected finite distances > 0")
+    cs = rig[color]
+    hc, wc = -(-cs.height // cell_px), -(-cs.width // cell_px)
+    centres = (pixel_grid(wc, hc).astype(np.float64) * cell_px + (cell_px - 1) / 2.0).reshape(-1, 2)
+    rays = np.concatenate([cs.intrinsics.normalized(centres), np.ones((len(centres), 1))], 1)
+    P = (d[:, None, None] * rays[None]).reshape(-1, 3)
+    ok = np.ones(len(P), bool)
+    for other in (thermal, tof):
+        T = rig.T(other, color)
+        ok &= in_image(
+            rig[other].intrinsics.project(P @ T[:3, :3].T + T[:3, 3]), *rig[other].image_size
+        )
+    which = np.repeat(np.arange(d.size), len(centres))
+    return np.tile(centres, (d.size, 1))[ok], P[ok], which[ok]
+
+
 @dataclass(frozen=True, eq=False)
 class SigmaCurve:
     """Registration sigma of one eye against distance, for a wall facing its colour camera.
@@ -540,23 +569,8 @@ def sigma_vs_distance(
         cell_px: colour pixels between values.
     """
     d = np.asarray(distance_m, dtype=np.float64).reshape(-1)
-    if d.size == 0 or not np.all(np.isfinite(d) & (d > 0)):
-        raise ValueError("distance_m: expected finite distances > 0")
     err = range_err or range_error(rig, tof)
-    cs = rig[color]
-    hc, wc = -(-cs.height // cell_px), -(-cs.width // cell_px)
-    centres = pixel_grid(wc, hc).astype(np.float64) * cell_px + (cell_px - 1) / 2.0
-    rays = np.concatenate([cs.intrinsics.normalized(centres), np.ones((hc, wc, 1))], axis=-1)
-    P = d[:, None, None] * rays.reshape(1, -1, 3)  # (distances, cells, 3)
-    ok = np.ones(P.shape[:2], bool)
-    for other in (thermal, tof):
-        T = rig.T(other, color)
-        uv = rig[other].intrinsics.project(P @ T[:3, :3].T + T[:3, 3])
-        w, h = rig[other].image_size
-        with np.errstate(invalid="ignore"):
-            ok &= (uv[..., 0] >= -0.5) & (uv[..., 0] < w - 0.5)
-            ok &= (uv[..., 1] >= -0.5) & (uv[..., 1] < h - 0.5)
-    q = np.broadcast_to(centres.reshape(1, -1, 2), (*P.shape[:2], 2))[ok]
+    q, P, which = _wall(rig, color, thermal, tof, d, cell_px)
     zeros = np.zeros(len(q))
     normal = np.broadcast_to([0.0, 0.0, 1.0], (len(q), 3))
     parts, _ = _point_covariances(
@@ -564,14 +578,13 @@ def sigma_vs_distance(
         rig.covariance,
         (color, thermal, tof),
         q,
-        P[ok],
+        P,
         normal,
         zeros,
         zeros,
         (1.0, 0),
         err,
     )
-    which = np.nonzero(ok)[0]  # the distance of each point
     median = {p: np.full(d.size, np.nan) for p in (*PARTS, "total")}
     p95 = {"total": np.full(d.size, np.nan)}
     sig = {p: major_sigma(c) for p, c in parts.items()}
@@ -634,33 +647,21 @@ def mapping_difference(
         cell_px: colour pixels between the compared pixels.
     """
     d = np.asarray(distance_m, dtype=np.float64).reshape(-1)
-    if d.size == 0 or not np.all(np.isfinite(d) & (d > 0)):
-        raise ValueError("distance_m: expected finite distances > 0")
-    cs = rig_a[color]
-    hc, wc = -(-cs.height // cell_px), -(-cs.width // cell_px)
-    centres = pixel_grid(wc, hc).astype(np.float64) * cell_px + (cell_px - 1) / 2.0
-    rays = np.concatenate([cs.intrinsics.normalized(centres), np.ones((hc, wc, 1))], axis=-1)
-    P = (d[:, None, None] * rays.reshape(1, -1, 3)).reshape(-1, 3)
-    which = np.repeat(np.arange(d.size), hc * wc)
-    q = np.tile(centres.reshape(-1, 2), (d.size, 1))
+    q, P, at = _wall(rig_a, color, thermal, tof, d, cell_px)
     T_tof_c = rig_a.T(tof, color)
     X_tof = P @ T_tof_c[:3, :3].T + T_tof_c[:3, 3]
-    uv = rig_a[tof].intrinsics.project(X_tof)
-    ok = np.ones(len(P), bool)
-    for other, pix in ((thermal, None), (tof, uv)):
-        if pix is None:
-            T = rig_a.T(other, color)
-            pix = rig_a[other].intrinsics.project(P @ T[:3, :3].T + T[:3, 3])
-        w, h = rig_a[other].image_size
-        with np.errstate(invalid="ignore"):
-            ok &= (pix[:, 0] >= -0.5) & (pix[:, 0] < w - 0.5)
-            ok &= (pix[:, 1] >= -0.5) & (pix[:, 1] < h - 0.5)
     median, p95, top = (np.full(d.size, np.nan) for _ in range(3))
-    if ok.any():
+    if len(q):
         with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
-            n = np.broadcast_to([0.0, 0.0, 1.0], (int(ok.sum()), 3))
-            dist = np.linalg.norm(X_tof[ok], axis=1)
-            chain = _Chain(_Geometry.of(rig_a, color, thermal, tof), q[ok], uv[ok], dist, n)
+            n = np.broadcast_to([0.0, 0.0, 1.0], (len(q), 3))
+            dist = np.linalg.norm(X_tof, axis=1)
+            chain = _Chain(
+                _Geometry.of(rig_a, color, thermal, tof),
+                q,
+                rig_a[tof].intrinsics.project(X_tof),
+                dist,
+                n,
+            )
             b = _Geometry.of(rig_b, color, thermal, tof)
             tof_dir = _rays(b.tof, chain.uv)
             F_b = chain(
@@ -672,7 +673,6 @@ def mapping_difference(
             )
             A = np.linalg.inv(_dF_dq(chain))
             gap = np.linalg.norm(np.einsum("nij,nj->ni", A, F_b - chain()), axis=1)
-        at = which[ok]
         for i in range(d.size):
             g = gap[(at == i) & np.isfinite(gap)]
             if g.size:
