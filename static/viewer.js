@@ -81,12 +81,14 @@ function frameDrawn(frameMeta) {
   stats.meta = frameMeta;
   stats.latencyMs.push(Date.now() - frameMeta.sent_ns / 1e6);
   if (stats.latencyMs.length > 120) stats.latencyMs.shift();
+  const scaleBefore = stats.scale;
   showScale(scaleOf(frameMeta));
   if (frameMeta.mode !== stats.metaMode) { stats.metaMode = frameMeta.mode; syncMode(); }
   const fresh = frameMeta.rates && (!stats.rates || stats.rates.at_ns !== frameMeta.rates.at_ns);
   stats.rates = frameMeta.rates || null;
-  // the console's new figures at once, as the Source panel shows them; a new stream at once
-  if (fresh || stats.codec !== overlayCodec) showOverlay();
+  // the console's new figures at once, as the Source panel shows them; a new stream or a new
+  // scale (its legend lines) at once
+  if (fresh || stats.codec !== overlayCodec || stats.scale !== scaleBefore) showOverlay();
 }
 
 function bytesReceived(n) {

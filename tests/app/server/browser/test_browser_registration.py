@@ -100,13 +100,25 @@ def test_viewer_switches_to_the_registration_mode_and_draws_its_scale(console, b
         meta = page.evaluate("() => window.trifuseStats.meta")
         assert meta["mode"] == "registration" and meta["span_k"] is None
         # the picture: the colour map over the colour image, its darkest entries (near 0 px)
-        # blended in on most of the room; a dark violet cast the plain room does not have
-        png = page.locator("#view").screenshot()
+        # blended in on much of the room; a dark violet cast the plain room does not have.
+        # The simulated head pans: a cell whose depth moved by more than 5 % since its
+        # estimate is left out until the next one (every 2-11 s), so the cover shrinks
+        # between estimates; the largest cover over a few estimates is checked.
         SHOT.parent.mkdir(exist_ok=True)
-        page.screenshot(path=str(SHOT))
-        shot = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
-        violet = (shot[..., 2].astype(int) - shot[..., 1] > 25) & (shot[..., 0] > shot[..., 1])
-        assert violet.mean() > 0.2, violet.mean()
+        covers: list[float] = []
+
+        def violet_cover() -> bool:
+            png = page.locator("#view").screenshot()
+            shot = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
+            violet = (shot[..., 2].astype(int) - shot[..., 1] > 25) & (shot[..., 0] > shot[..., 1])
+            covers.append(float(violet.mean()))
+            if covers[-1] >= max(covers):
+                page.screenshot(path=str(SHOT))
+            return covers[-1] > 0.3
+
+        wait_until(
+            violet_cover, lambda: f"a violet cover over 30 % (covers: {covers})", 60.0, poll_s=0.5
+        )
         # the select follows a change made elsewhere
         status, _ = console.request("/api/fusion", "PUT", fusion)
         assert status == 200
