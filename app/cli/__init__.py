@@ -21,6 +21,7 @@ from trifuse.app.cli import (
     bench,
     calibrate,
     calibrate_range,
+    check,
     compare,
     fuse,
     record,
@@ -46,6 +47,7 @@ COMMANDS = (
     record,
     fuse,
     map_command,
+    check,
 )
 """The command modules, in the order of ``trifuse --help``."""
 
