@@ -67,11 +67,21 @@ MIN_MEASUREMENTS = 3
 """A pair counts once it has this many measurements in the window."""
 REFUSE_DEG = 2.0
 """A correction larger than this, degrees, is refused by :func:`refined_rig`: recalibrate."""
+MAX_SPREAD_S = 0.012
+"""An instant is measured only when its frames' stamps lie within this many seconds of each
+other (:func:`synchronous`): a head turning at 4 degrees a second turns 0.05 degrees in
+12 ms, which two sensors' frames taken that far apart would read as drift."""
 TOF_NOT_CHECKED = (
     "the TOF's own rotation is not checked: its 176x144 picture does not resolve it against "
     "the cameras' edges (it only supplies depth; a turned TOF moves the fusion far less than "
     "a turned camera)"
 )
+
+
+def synchronous(frames: Mapping[str, Any], max_spread_s: float = MAX_SPREAD_S) -> bool:
+    """Whether the frames (objects with ``stamp_ns``) were taken within ``max_spread_s``."""
+    stamps = [f.stamp_ns for f in frames.values()]
+    return len(stamps) < 2 or (max(stamps) - min(stamps)) / 1e9 <= max_spread_s
 
 
 def camera_pairs(rig: Rig) -> list[tuple[str, str]]:

@@ -18,10 +18,6 @@ if TYPE_CHECKING:
 
 EXIT_DRIFTED = 3
 """The exit code when a sensor is ``drifted``."""
-MAX_SPREAD_S = 0.012
-"""A frame set is measured only when its frames' stamps lie within this many seconds of
-each other: a head turning at 4 degrees a second turns 0.05 degrees in 12 ms, which two
-sensors' frames taken that far apart would read as drift."""
 
 
 def add_parser(commands: Commands) -> argparse.ArgumentParser:
@@ -101,7 +97,7 @@ def check_replay(src: Any, rig: Rig, every_s: float) -> tuple[DriftReport, dict[
     its last window, the time (seconds from its first frame set) each sensor was first found
     drifted, and the span measured, seconds."""
     from trifuse.app.sources.base import frame_sets
-    from trifuse.fusion.drift import DriftCheck
+    from trifuse.fusion.drift import DriftCheck, synchronous
 
     check = DriftCheck(rig)
     sensors = [n for n in rig.names if n in src.sensors]
@@ -117,8 +113,7 @@ def check_replay(src: Any, rig: Rig, every_s: float) -> tuple[DriftReport, dict[
             t0 = t_s
         if t_s - last_s < every_s:
             continue
-        stamps = [f.stamp_ns for f in fs.frames.values()]
-        if len(stamps) > 1 and (max(stamps) - min(stamps)) / 1e9 > MAX_SPREAD_S:
+        if not synchronous(fs.frames):
             continue
         last_s = t_s
         check.measure(t_s, fs.frames)
