@@ -15,7 +15,11 @@ import re
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, NoReturn, TypeVar
+from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
+
+if TYPE_CHECKING:
+    from trifuse.app.sources.sim.drift import SensorDrift
+    from trifuse.calib.rig import Rig
 
 PROG = "trifuse"
 EXIT_OK = 0
@@ -281,6 +285,23 @@ def tof_pixel(text: str) -> tuple[float, float]:
     if not (math.isfinite(u) and math.isfinite(v)):
         raise argparse.ArgumentTypeError(f"expected finite pixel coordinates, got {text!r}")
     return u, v
+
+
+def sim_drift_arg(text: str | None, rig: Rig, command: str, option: str) -> SensorDrift | None:
+    """The sensor drift of ``option`` (``SENSOR:RX,RY,RZ[@AT_S]``,
+    :func:`~app.sources.sim.drift.parse_drift`) for the simulated head's ``rig``, or None
+    without one; a UsageError of ``trifuse COMMAND`` with the parser's message for text it
+    refuses or a sensor the rig does not have."""
+    if text is None:
+        return None
+    from trifuse.app.sources.sim.drift import moved_rig, parse_drift
+
+    try:
+        drift = parse_drift(text)
+        moved_rig(rig, drift)  # the sensor is the rig's
+    except ValueError as exc:
+        raise UsageError(f"{PROG} {command}: {option}: {exc}") from None
+    return drift
 
 
 Commands = argparse._SubParsersAction

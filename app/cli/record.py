@@ -85,6 +85,15 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         "--seed", type=seed, default=0, metavar="N", help="simulator noise seed (default: 0)"
     )
     rec.add_argument(
+        "--drift",
+        metavar="SENSOR:RX,RY,RZ[@AT_S]",
+        help="sim: one sensor moves during the recording (calibration drift): from AT_S "
+        "seconds of scenario time on (default 0) it is rendered turned by the rotation "
+        "vector RX,RY,RZ in degrees about its own axes, applied on the right of its pose "
+        "(T_rig_sensor @ [[R, 0], [0, 1]]); the recording's rig stays the calibrated one, "
+        "its trifuse.simulation metadata says the drift, e.g. thermal_left:0,0.3,0@20",
+    )
+    rec.add_argument(
         "--exact",
         action="store_true",
         help="sim: render every instant at its own time in the accurate quality (edge "
@@ -146,6 +155,8 @@ def _record(args: argparse.Namespace) -> int:
         return record_sim(args, rec_out, rig)
     if args.scenario is not None:
         raise UsageError(f"{PROG} record: --scenario goes with --source sim")
+    if args.drift is not None:
+        raise UsageError(f"{PROG} record: --drift goes with --source sim")
     kind, _, arg = source.partition(":")
     if kind not in ("replay", "live") or not arg:
         raise UsageError(

@@ -1,7 +1,7 @@
 """``trifuse record --source sim``: the simulated head's inspection room or survey
-(``--scenario``) rendered into a recording, with the head's pose per instant, the
-estimated time first and the time left as it goes, from the rate measured
-(:mod:`app.cli.progress`)."""
+(``--scenario``, one sensor moving with ``--drift``) rendered into a recording, with the
+head's pose per instant, the estimated time first and the time left as it goes, from the
+rate measured (:mod:`app.cli.progress`)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from itertools import accumulate
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from trifuse.app.cli.args import EXIT_OK, PROG, UsageError
+from trifuse.app.cli.args import EXIT_OK, PROG, UsageError, sim_drift_arg
 from trifuse.app.cli.output import err, out
 from trifuse.app.cli.progress import ProgressLine, span
 from trifuse.app.cli.record_output import record_summary, say_where
@@ -45,7 +45,7 @@ def busy_note(cores: int | None = None, load: float | None = None) -> str:
 def record_sim(args: argparse.Namespace, rec_out: Path, rig: Rig | None) -> int:
     """Record ``--duration`` s (default :data:`DEFAULT_DURATION_S`) of the simulated head
     (``rig``, default the built-in head) in ``--scenario`` into ``rec_out``, live mode at
-    ``--pose-hz`` or ``--exact``."""
+    ``--pose-hz`` or ``--exact``, with ``--drift`` moving a sensor."""
     from trifuse.app.recording.simrecord import (
         POSE_HZ,
         SimProgress,
@@ -56,6 +56,7 @@ def record_sim(args: argparse.Namespace, rec_out: Path, rig: Rig | None) -> int:
     from trifuse.app.sources.sim.survey import SURVEY_S
 
     rig = rig or default_rig()
+    drift = sim_drift_arg(args.drift, rig, "record", "--drift")
     duration = DEFAULT_DURATION_S[args.scenario] if args.duration is None else args.duration
     pose_hz = POSE_HZ if args.pose_hz is None else args.pose_hz
     if not (math.isfinite(pose_hz) and pose_hz > 0):
@@ -64,7 +65,7 @@ def record_sim(args: argparse.Namespace, rec_out: Path, rig: Rig | None) -> int:
         )
     if args.exact and args.pose_hz is not None:
         raise UsageError(f"{PROG} record: --pose-hz goes with the live mode, not --exact")
-    plan = plan_simulation(rig, duration, exact=args.exact, pose_hz=pose_hz)
+    plan = plan_simulation(rig, duration, exact=args.exact, pose_hz=pose_hz, drift=drift)
     if args.exact:
         how = (
             f"every instant rendered at its own time in the accurate quality "
@@ -81,6 +82,11 @@ def record_sim(args: argparse.Namespace, rec_out: Path, rig: Rig | None) -> int:
         video_s = fused_video_cost_s(rig, plan.schedule)
         estimate_s += video_s
         how += f"; the fused video about {span(video_s)} of it"
+    if drift is not None:
+        how += (
+            f"; {drift.sensor} turned by ({', '.join(f'{x:g}' for x in drift.rotation_deg)}) "
+            f"deg about its own axes from {drift.at_s:g} s on"
+        )
     part = ""
     if args.scenario == "survey" and duration < SURVEY_S:
         part = f"; the survey lasts {SURVEY_S:g} s, --duration {SURVEY_S:g} records all of it"
@@ -120,6 +126,7 @@ def record_sim(args: argparse.Namespace, rec_out: Path, rig: Rig | None) -> int:
             plan=plan,
             opened=opened,
             scenario=args.scenario,
+            drift=drift,
         )
     except KeyboardInterrupt:
         shown.close()

@@ -19,6 +19,7 @@ from trifuse.app.cli.args import (
     bounded_seconds,
     listen_port,
     port_number,
+    sim_drift_arg,
 )
 from trifuse.app.cli.choices import SCENARIOS
 
@@ -82,6 +83,15 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         metavar="S",
         help="calibration scenario: seconds the board is held at each pose (default: "
         "%(default)s; auto-capture needs it still for two searches)",
+    )
+    srv.add_argument(
+        "--sim-drift",
+        metavar="SENSOR:RX,RY,RZ[@AT_S]",
+        help="simulated head (inspection or survey): one sensor moves during the run "
+        "(calibration drift): from AT_S seconds on (default 0; it stays moved while the "
+        "scene loops) it is rendered turned by the rotation vector RX,RY,RZ in degrees "
+        "about its own axes, applied on the right of its pose; the console's rig stays the "
+        "calibrated one, e.g. thermal_left:0,0.3,0@20",
     )
     srv.add_argument(
         "--workdir",
@@ -253,6 +263,15 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"{PROG} serve: --scenario is for the simulated head only")
     if args.scenario != "calibration" and (args.board_poses, args.hold) != (40, 3.0):
         raise UsageError(f"{PROG} serve: --board-poses and --hold are for --scenario calibration")
+    drift = None
+    if args.sim_drift is not None:
+        if chosen:
+            raise UsageError(f"{PROG} serve: --sim-drift is for the simulated head only")
+        if args.scenario == "calibration":
+            raise UsageError(f"{PROG} serve: --sim-drift goes with --scenario inspection or survey")
+        from trifuse.app.sources.sim.head import default_rig
+
+        drift = sim_drift_arg(args.sim_drift, default_rig(), "serve", "--sim-drift")
     board = load_board_arg(args.board)
     try:  # the port and the work directory first: refusals come before anything starts
         sock = bind_public_socket(args.host, args.port)
@@ -284,6 +303,7 @@ def run(args: argparse.Namespace) -> int:
                 board_poses=args.board_poses,
                 hold_s=args.hold,
                 board=board,
+                drift=drift,
             )
             serve(
                 opened,

@@ -16,6 +16,7 @@ from trifuse.app.sources.base import FrameSource
 from trifuse.calib.rig import Rig
 
 if TYPE_CHECKING:
+    from trifuse.app.sources.sim.drift import SensorDrift
     from trifuse.app.sources.simulated import SimulatedHeadSource
     from trifuse.calib.board import Board
 
@@ -38,7 +39,11 @@ class NeedsRig(ValueError):
 
 
 def simulated_source(
-    scenario: str, board_poses: int = 40, hold_s: float = 3.0, board: Board | None = None
+    scenario: str,
+    board_poses: int = 40,
+    hold_s: float = 3.0,
+    board: Board | None = None,
+    drift: SensorDrift | None = None,
 ) -> tuple[SimulatedHeadSource, str]:
     """The simulated head as the console shows it: ``(source, description)``.
 
@@ -50,9 +55,18 @@ def simulated_source(
             tilt, then a 3 m drive, looping every 36 s; live quality, head poses sampled
             at 2 Hz and shown as rendered: the head moves, so a picture cannot stand in
             for another by turning; ``truth_at(stamp).T_world_rig`` is the pose shown).
+        drift: one sensor moves during the run (:mod:`app.sources.sim.drift`; inspection
+            and survey only: ValueError for the calibration scenario); the source's
+            ``rig`` stays the rig as calibrated.
     """
     from trifuse.app.sources.simulated import SimulatedHeadSource
 
+    moving = ""
+    if drift is not None:
+        if scenario == "calibration":
+            raise ValueError("drift: for the inspection and survey scenarios, not calibration")
+        turn = ", ".join(f"{x:g}" for x in drift.rotation_deg)
+        moving = f"; {drift.sensor} turned by ({turn}) deg from {drift.at_s:g} s on"
     if scenario == "calibration":
         from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD, CalibrationScenario
 
@@ -69,15 +83,15 @@ def simulated_source(
     if scenario == "survey":
         from trifuse.app.sources.sim.survey import SurveyScenario
 
-        survey = SurveyScenario(live=True)
+        survey = SurveyScenario(live=True, drift=drift)
         src = SimulatedHeadSource(survey, realtime=True, start_ns=None, live=False)
         return src, (
             f"the simulated head (survey of the inspection room, {survey.pan_period_s:g} s, "
-            "looping)"
+            f"looping{moving})"
         )
     if scenario == "inspection":
-        return SimulatedHeadSource(realtime=True, start_ns=None), (
-            "the simulated head (inspection room)"
+        return SimulatedHeadSource(realtime=True, start_ns=None, drift=drift), (
+            f"the simulated head (inspection room{moving})"
         )
     raise ValueError(f"scenario: expected one of {', '.join(SCENARIOS)}, got {scenario!r}")
 
@@ -96,6 +110,7 @@ def open_source(
     hold_s: float = 3.0,
     board: Board | None = None,
     live_flag: str = "--live",
+    drift: SensorDrift | None = None,
 ) -> OpenedSource:
     """The source named by ``--replay FILE``, ``--live CONFIG`` or ``--push`` (the first
     given), else the simulated head's ``scenario``; with the rig to use (``rig`` if given,
@@ -110,8 +125,8 @@ def open_source(
         push: frames pushed by an on-robot driver at ``/ingest`` (rig default: the
             simulated head's).
         rig: the rig given on the command line, or None.
-        scenario, board_poses, hold_s, board: the simulated head's, see
-            :func:`simulated_source`.
+        scenario, board_poses, hold_s, board, drift: the simulated head's, see
+            :func:`simulated_source` (``drift`` with another source: ValueError).
         live_flag: how the command names ``live`` in the error when ``rig`` is missing.
 
     Raises:
@@ -119,6 +134,8 @@ def open_source(
             again); :class:`NeedsRig` for ``live`` without ``rig``; the sources' own errors
             (a missing or damaged file, a camera that does not open).
     """
+    if drift is not None and (replay or live or push):
+        raise ValueError("drift: for the simulated head only")
     if replay:
         from trifuse.app.recording.reader import ReplaySource
 
@@ -143,5 +160,5 @@ def open_source(
 
         rig = rig or default_rig()
         return OpenedSource(PushSource(rig), rig, "frames pushed to /ingest")
-    src, what = simulated_source(scenario, board_poses, hold_s, board)
+    src, what = simulated_source(scenario, board_poses, hold_s, board, drift)
     return OpenedSource(src, rig or src.rig, what, ground_truth_rig=src.rig)

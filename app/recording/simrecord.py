@@ -15,6 +15,14 @@ rendered depends on the mode:
 * ``exact``: every instant rendered at its own time in the accurate quality (edge
   supersampling, the accurate sensor model), about 130x slower than real time.
 
+A sensor drift (``drift``, :class:`~app.sources.sim.drift.SensorDrift`) moves one sensor
+from its ``at_s`` on: every frame from that instant on is rendered from the moved pose (in
+the live mode a render is reused only within one drift state: the instant that crosses
+``at_s`` renders its pose again with the sensor moved). The recording's rig (``rig.yaml``,
+the sensors' ``/tf``) stays the rig as calibrated; the metadata record
+``trifuse.simulation`` (:func:`simulation_metadata`) names the scenario and the drift and
+gives the moved sensor's true pose, so that a drift checker can check itself.
+
 Every instant also gets the head's pose, ``T_world_rig`` on ``/tf``
 (:meth:`~app.recording.writer.RecordingWriter.write_pose`): the pose the instant's frames
 show (:func:`shown_pose`). In the exact mode that is the scenario's pose at the instant; in
@@ -43,6 +51,7 @@ from trifuse.calib.rig import Rig
 
 if TYPE_CHECKING:
     from trifuse.app.sources.frames import Frame
+    from trifuse.app.sources.sim.drift import SensorDrift
     from trifuse.app.sources.sim.inspection import InspectionScenario
     from trifuse.app.sources.sim.live import CleanImage
 
@@ -103,16 +112,20 @@ def head_model_for(rig: Rig):  # -> HeadModel | None
     return replace(model, range_error=replace(model.range_error, width=w, height=h))
 
 
-def sim_scenario(name: str, rig: Rig, seed: int = 0, live: bool = True) -> InspectionScenario:
+def sim_scenario(
+    name: str, rig: Rig, seed: int = 0, live: bool = True, drift: SensorDrift | None = None
+) -> InspectionScenario:
     """The scenario ``name`` (one of :data:`SIM_SCENARIOS`) with ``rig``'s sensors
-    (:func:`head_model_for`), noise seeded by ``seed``, in the live quality or not."""
+    (:func:`head_model_for`), noise seeded by ``seed``, in the live quality or not, with
+    one sensor moving during the run (``drift``) or none. ValueError for an unknown name
+    or a drift of a sensor the rig does not have."""
     from trifuse.app.sources.sim.inspection import InspectionScenario
     from trifuse.app.sources.sim.survey import SurveyScenario
 
     kinds = {"inspection": InspectionScenario, "survey": SurveyScenario}
     if name not in kinds:
         raise ValueError(f"scenario: expected one of {', '.join(SIM_SCENARIOS)}, got {name!r}")
-    return kinds[name](rig=rig, model=head_model_for(rig), seed=seed, live=live)
+    return kinds[name](rig=rig, model=head_model_for(rig), seed=seed, live=live, drift=drift)
 
 
 def shown_pose(scenario: InspectionScenario, stamp_ns: int, pose_hz: float | None) -> np.ndarray:
@@ -141,6 +154,16 @@ def pose_index(stamp_ns: int, pose_hz: float) -> int:
     return round(stamp_ns * pose_hz / 1e9)
 
 
+def render_key(
+    stamp_ns: int, pose_hz: float, sensor: str, drift: SensorDrift | None = None
+) -> tuple[int, bool]:
+    """Which live render ``sensor``'s frame at ``stamp_ns`` reuses: the head pose
+    (:func:`pose_index`) and whether it is the drifted sensor with the drift active at the
+    frame's own time (a render is never reused across the drift's start)."""
+    moved = drift is not None and drift.sensor == sensor and drift.active(stamp_ns / 1e9)
+    return pose_index(stamp_ns, pose_hz), moved
+
+
 @dataclass(frozen=True)
 class SimRecordPlan:
     """What a simulated recording renders, and how long it should take.
@@ -152,6 +175,7 @@ class SimRecordPlan:
         renders: images rendered in all (every sensor's, every pose or instant).
         costs_s: estimated seconds of each instant on the reference machine (its renders,
             a sensor's first render with its ray grid, and its frames).
+        drift: the sensor that moves during the recording, or None.
     """
 
     schedule: list[tuple[int, list[str]]]
@@ -159,6 +183,7 @@ class SimRecordPlan:
     pose_hz: float | None
     renders: int
     costs_s: list[float]
+    drift: SensorDrift | None = None
 
     @property
     def frames(self) -> int:
@@ -167,10 +192,14 @@ class SimRecordPlan:
 
     @property
     def poses(self) -> int:
-        """Distinct head poses rendered (live) or instants (exact)."""
+        """Distinct head poses rendered (live; the drifted sensor's pose at the drift's start
+        counts again) or instants (exact)."""
         if self.pose_hz is None:
             return len(self.schedule)
-        return len({pose_index(stamp, self.pose_hz) for stamp, _ in self.schedule})
+        sensor = "" if self.drift is None else self.drift.sensor
+        return len(
+            {render_key(stamp, self.pose_hz, sensor, self.drift) for stamp, _ in self.schedule}
+        )
 
     @property
     def estimate_s(self) -> float:
@@ -179,7 +208,12 @@ class SimRecordPlan:
 
 
 def plan_simulation(
-    rig: Rig, duration_s: float, *, exact: bool = False, pose_hz: float = POSE_HZ
+    rig: Rig,
+    duration_s: float,
+    *,
+    exact: bool = False,
+    pose_hz: float = POSE_HZ,
+    drift: SensorDrift | None = None,
 ) -> SimRecordPlan:
     """The plan of :func:`record_simulation` with the same arguments."""
     if not exact and not (math.isfinite(pose_hz) and pose_hz > 0):
@@ -187,7 +221,7 @@ def plan_simulation(
     schedule = sim_schedule(rig, duration_s)
     mpx = {n: rig[n].image_size[0] * rig[n].image_size[1] / 1e6 for n in rig.names}
     modality = {n: rig[n].modality for n in rig.names}
-    rendered: dict[str, int] = {}
+    rendered: dict[str, object] = {}
     costs: list[float] = []
     renders = 0
     for stamp, sensors in schedule:
@@ -201,14 +235,15 @@ def plan_simulation(
                 renders += 1
                 rendered[name] = stamp
                 continue
-            k = pose_index(stamp, pose_hz)
+            k = render_key(stamp, pose_hz, name, drift)
             if rendered.get(name) != k:
                 cost += _LIVE_RENDER_S_PER_MPX[mod] * size
                 renders += 1
                 rendered[name] = k
             cost += _LIVE_FRAME_S_PER_MPX[mod] * size
         costs.append(cost)
-    return SimRecordPlan(schedule, exact, None if exact else float(pose_hz), renders, costs)
+    rate = None if exact else float(pose_hz)
+    return SimRecordPlan(schedule, exact, rate, renders, costs, drift)
 
 
 @dataclass(frozen=True)
@@ -252,6 +287,7 @@ def record_simulation(
     plan: SimRecordPlan | None = None,
     opened: Callable[[Recording], None] | None = None,
     scenario: str = "inspection",
+    drift: SensorDrift | None = None,
 ) -> Recording:
     """Render the ``scenario`` (:data:`SIM_SCENARIOS`) per :func:`plan_simulation` and
     record it at ``out``, with the head's pose per instant (:func:`shown_pose`).
@@ -259,26 +295,30 @@ def record_simulation(
     Live (default): each sensor's picture of the head pose nearest each instant
     (:func:`pose_index`) is rendered once, with a margin, and every frame is that picture
     turned to the instant's head orientation with fresh noise (seeded by ``seed`` and the
-    instant). ``exact``: every instant rendered accurately. ``plan``: the plan made
-    beforehand (made here otherwise). ``opened(writer)`` is called once the file is open
+    instant). ``exact``: every instant rendered accurately. ``drift``: one sensor moves
+    from ``drift.at_s`` on (module docstring). ``plan``: the plan made beforehand (made
+    here otherwise; with the same ``drift``). ``opened(writer)`` is called once the file is open
     (its ``temp_path`` is where the frames go until it is finished), ``progress(SimProgress)``
     after each instant. Returns the finished recording (its counters say what was written). A
     KeyboardInterrupt keeps what was recorded so far (the file is finished and named) and
     propagates.
     """
-    plan = plan or plan_simulation(rig, duration_s, exact=exact, pose_hz=pose_hz)
+    plan = plan or plan_simulation(rig, duration_s, exact=exact, pose_hz=pose_hz, drift=drift)
+    if plan.drift != drift:
+        raise ValueError(f"plan: made for the drift {plan.drift}, not {drift}")
     live = not plan.exact
-    sim = sim_scenario(scenario, rig, seed, live)
+    sim = sim_scenario(scenario, rig, seed, live, drift)
+    metadata = {SIMULATION_METADATA: simulation_metadata(scenario, seed, plan, rig)}
     margins: dict[str, int] = {}
     if live:
         assert plan.pose_hz is not None
         turn = sim.max_turn_rad(0.5 / plan.pose_hz)
         margins = {name: _margin_px(rig, name, turn) for name in rig.names}
-    cleans: dict[str, tuple[int, CleanImage]] = {}
+    cleans: dict[str, tuple[tuple[int, bool], CleanImage]] = {}
     total_cost = plan.estimate_s
     done_cost = 0.0
     t_start = time.perf_counter()
-    with Recording(rig, path=Path(out), jpeg_quality=jpeg_quality) as writer:
+    with Recording(rig, path=Path(out), jpeg_quality=jpeg_quality, metadata=metadata) as writer:
         if opened is not None:
             opened(writer)
         for i, ((stamp, sensors), cost) in enumerate(
@@ -315,21 +355,49 @@ def _live_frames(
     sensors: list[str],
     plan: SimRecordPlan,
     margins: dict[str, int],
-    cleans: dict[str, tuple[int, CleanImage]],
+    cleans: dict[str, tuple[tuple[int, bool], CleanImage]],
     seed: int,
 ) -> dict[str, Frame]:
     """The frames of one instant in the live mode (see :func:`record_simulation`);
-    ``cleans`` holds each sensor's latest picture (pose index, picture)."""
+    ``cleans`` holds each sensor's latest picture (:func:`render_key`, picture). A sensor
+    is rendered and turned in the drift state of the instant (its pose in
+    ``scenario.rig_at``), whatever the state at the rendered pose's time."""
     assert plan.pose_hz is not None and scenario.developer is not None
-    k = pose_index(stamp, plan.pose_hz)
-    T_world_rig = scenario.T_world_rig(stamp / 1e9)
+    t_s = stamp / 1e9
+    T_world_rig = scenario.T_world_rig(t_s)
+    rig_now = scenario.rig_at(t_s)
+    drifted = scenario.drift_active(t_s)
     rng = np.random.default_rng([seed, 3, stamp])
     frames = {}
     for name in sensors:
+        key = render_key(stamp, plan.pose_hz, name, plan.drift)
         have = cleans.get(name)
-        if have is None or have[0] != k:
-            clean = scenario.render_clean(k / plan.pose_hz, [name], margins)[name]
-            cleans[name] = have = (k, clean)
-        T_world_sensor = T_world_rig @ rig[name].T_rig_sensor
+        if have is None or have[0] != key:
+            k = key[0]
+            clean = scenario.render_clean(k / plan.pose_hz, [name], margins, drifted=drifted)
+            cleans[name] = have = (key, clean[name])
+        T_world_sensor = T_world_rig @ rig_now[name].T_rig_sensor
         frames[name] = scenario.developer.frame(have[1], stamp, rng, T_world_sensor)
     return frames
+
+
+SIMULATION_METADATA = "trifuse.simulation"
+"""Name of the metadata record of a simulated recording (:func:`simulation_metadata`)."""
+
+
+def simulation_metadata(scenario: str, seed: int, plan: SimRecordPlan, rig: Rig) -> dict[str, str]:
+    """The ``trifuse.simulation`` metadata of a simulated recording (docs/FORMATS.md):
+    ``scenario``, ``seed``, ``mode`` (``live`` or ``exact``), ``pose_hz`` (live); with a
+    drift also ``drift`` (its command-line spelling, :func:`~app.sources.sim.drift.parse_drift`
+    reads it) and ``drift_T_rig_sensor``: the moved sensor's true pose ``T_rig_sensor``
+    from the drift's start on, 16 comma-separated numbers in row order (metres)."""
+    meta = {"scenario": scenario, "seed": str(seed), "mode": "exact" if plan.exact else "live"}
+    if plan.pose_hz is not None:
+        meta["pose_hz"] = repr(plan.pose_hz)
+    if plan.drift is not None:
+        from trifuse.app.sources.sim.drift import moved_rig
+
+        T = moved_rig(rig, plan.drift)[plan.drift.sensor].T_rig_sensor
+        meta["drift"] = str(plan.drift)
+        meta["drift_T_rig_sensor"] = ",".join(repr(float(x)) for x in np.ravel(T))
+    return meta

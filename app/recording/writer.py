@@ -32,7 +32,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from types import TracebackType
 from typing import Protocol
@@ -163,6 +163,8 @@ class RecordingWriter:
         seal_period_s: at most this many seconds (wall clock) of frames are only in memory:
             then the chunk in progress is finished and the file sealed (see above).
         fused_video: open the ``/fused/video`` track at once (:meth:`add_fused_video`).
+        metadata: more metadata records, name -> key/value strings, written after
+            ``trifuse.recording`` (e.g. a simulated recording's ``trifuse.simulation``).
 
     Frames are checked against the rig (sensor known, image size, dtype); a frame whose
     sensor and ``stamp_ns`` equal the last one written for that sensor is skipped (a frame
@@ -184,6 +186,7 @@ class RecordingWriter:
         chunk_size: int = 1 << 20,
         seal_period_s: float = 1.0,
         fused_video: bool = False,
+        metadata: Mapping[str, Mapping[str, str]] | None = None,
     ) -> None:
         self.path = Path(path)
         if not isinstance(rig, Rig):
@@ -217,6 +220,13 @@ class RecordingWriter:
             raise RecordingError(
                 f"seal_period_s: expected a positive number, got {seal_period_s!r}"
             )
+        for name, record in (metadata or {}).items():
+            plain = all(isinstance(x, str) for kv in record.items() for x in kv)
+            if name == METADATA_NAME or not isinstance(name, str) or not plain:
+                raise RecordingError(
+                    f"metadata: expected records other than {METADATA_NAME!r} of string keys "
+                    f"and values, got {name!r}: {record!r}"
+                )
         if self.path.exists():
             raise FileExistsError(
                 f"{self.path}: exists; refusing to overwrite a recording (choose a new name)"
@@ -271,6 +281,8 @@ class RecordingWriter:
                     "thermal_encoding": thermal_encoding,
                 },
             )
+            for name, record in (metadata or {}).items():
+                self._mcap.write_metadata(name, dict(record))
             self._channels: dict[tuple[str, str], object] = {}
             for name, s in rig.sensors.items():
                 self._make_channels(name, s)

@@ -62,6 +62,18 @@ a source must guard its top level with ``if __name__ == "__main__":``.
 Disk cache: rendered poses are also kept on disk, one ``.npz`` file per pose, so a
 restarted console has every pose at once (:mod:`app.sources.sim.pose_cache`: where, how
 the files are named and shared; ``TRIFUSE_SIM_CACHE=off`` keeps none).
+
+Sensor drift: a scenario may move one sensor from a scenario time on (``drift``,
+:class:`~app.sources.sim.drift.SensorDrift`; ``drift=`` for the default scenario). The
+drift follows the stream's scenario time, not the loop: once it began it stays, while the
+head's motion loops. Each sample of the cache then has a pose in each drift state (a pose
+before the drift only where a time before it can show it), and the states never mix: they
+never share a rendering nor a disk file (the drift is part of the cache folder's key, a
+drifted pose's file is ``pose-...-drifted.npz``), the live mode turns a picture only from a
+rendered pose of the same state, and a frame whose state has no pose rendered yet waits
+for its own rather than show the other state. :attr:`SimulatedHeadSource.rig` stays the
+rig as calibrated; :meth:`SimulatedHeadSource.truth_at` says the rig a frame was rendered
+from. Without a drift nothing of this applies (the same poses, files and speed).
 """
 
 from __future__ import annotations
@@ -81,6 +93,7 @@ import numpy as np
 
 from trifuse.app.sources.base import FrameSource
 from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.sources.sim.drift import SensorDrift
 from trifuse.app.sources.sim.live import RotationWarp
 from trifuse.app.sources.sim.pose_cache import (
     cache_folder,
@@ -112,7 +125,11 @@ class Scenario(Protocol):
     ``pan_period_s`` (the default loop length) and ``scenario_time(stamp_ns, start_ns)``
     (the scenario time a frame stamped ``stamp_ns`` of a stream started at ``start_ns``
     shows, for a scenario that paces itself: the calibration board waiting for a capture;
-    default ``(stamp_ns - start_ns) / 1e9``).
+    default ``(stamp_ns - start_ns) / 1e9``) and ``drift`` (a
+    :class:`~app.sources.sim.drift.SensorDrift` or None: one sensor moved from scenario
+    time ``drift.at_s`` on; such a scenario's ``render`` takes ``drifted=`` (render with
+    the drift or without, whatever the time) and it has ``drifted_rig``, the rig with the
+    sensor moved; see "Sensor drift" in the module docstring).
     """
 
     rig: Rig
@@ -134,12 +151,15 @@ class SimTruth:
             None if the scenario does not say.
         sensors: sensor -> exact per-pixel truth (radial range along the pixel-centre ray,
             hit solid) of the image that was delivered.
+        rig: the rig the frames were rendered from: the scenario's, or its ``drifted_rig``
+            (a sensor moved) while its sensor drift is active.
     """
 
     stamp_ns: int
     pose_t_s: float
     T_world_rig: np.ndarray | None
     sensors: dict[str, SensorTruth]
+    rig: Rig | None = None
 
 
 @dataclass
@@ -176,6 +196,9 @@ class SimulatedHeadSource(FrameSource):
         keep_truth: keep each pose's per-pixel ground truth in the cache (about 16 MB more
             per pose for the default head); otherwise :meth:`truth_at` renders it again.
         seed: seed of the default scenario.
+        drift: a sensor of the default scenario that moves during the run
+            (``InspectionScenario(drift=drift)``; see "Sensor drift" in the module
+            docstring); a scenario of your own takes its drift itself.
         cache_dir: directory of the disk cache of rendered poses (see "Disk cache" in
             the module docstring); None: the default directory
             (:func:`~app.sources.sim.pose_cache.default_cache_dir`) for a scenario that
@@ -225,8 +248,11 @@ class SimulatedHeadSource(FrameSource):
         live: bool | None = None,
         clock: Callable[[], float] | None = None,
         sleep: Callable[[float], object] | None = None,
+        drift: SensorDrift | None = None,
     ) -> None:
         default_seed = seed if scenario is None else None
+        if drift is not None and scenario is not None:
+            raise ValueError("drift: for the default scenario; give it to your scenario instead")
         if live is None:
             live = scenario is None and not keep_truth and not wait_for_render
         if live and scenario is not None:
@@ -238,7 +264,7 @@ class SimulatedHeadSource(FrameSource):
         if scenario is None:
             from trifuse.app.sources.sim.inspection import InspectionScenario
 
-            scenario = InspectionScenario(seed=seed, live=live)
+            scenario = InspectionScenario(seed=seed, live=live, drift=drift)
         self.scenario = scenario
         self._scenario_clock: Callable[[int, int], float] | None = getattr(
             scenario, "scenario_time", None
@@ -282,11 +308,12 @@ class SimulatedHeadSource(FrameSource):
         # The cache: K samples of scenario time; samples with equal head poses share a pose.
         k = max(1, round(loop_s * render_hz))
         self.loop_s = k / render_hz
-        samples = sample_poses(scenario, k, render_hz)
-        self._sample_t = samples.sample_t
-        self._sample_pose = samples.sample_pose
-        self._pose_t = samples.pose_t  # representative scenario time of each pose
-        self._pose_T = samples.pose_T
+        self._samples = sample_poses(scenario, k, render_hz)
+        self._sample_t = self._samples.sample_t
+        self._pose_t = self._samples.pose_t  # representative scenario time of each pose
+        self._pose_T = self._samples.pose_T
+        self._pose_drifted = self._samples.pose_drifted
+        self._drift: SensorDrift | None = getattr(scenario, "drift", None)
 
         self._poses: dict[int, _Pose] = {}
         # Live mode: pictures of poses not rendered yet, turned from a rendered one:
@@ -301,7 +328,7 @@ class SimulatedHeadSource(FrameSource):
         self._wanted: int | None = None  # a pose a waiting consumer needs now
         self._now_s = 0.0  # scenario time of the latest delivered frame
         self._last_render_s = 1.0
-        self._stamp_sample: OrderedDict[int, int] = OrderedDict()
+        self._stamp_pose: OrderedDict[int, int] = OrderedDict()  # stamp -> the pose shown
         self._truth_cache: OrderedDict[int, dict[str, SensorTruth]] = OrderedDict()
         self._delivered = dict.fromkeys(self.sensors, 0)
         self._dropped = dict.fromkeys(self.sensors, 0)
@@ -317,6 +344,7 @@ class SimulatedHeadSource(FrameSource):
         elif render_process and keep_truth:
             raise ValueError("render_process: not with keep_truth (truth stays in-process)")
         self._process_args = (None if default_seed is not None else scenario, seed, self.live)
+        self._process_drift = drift if default_seed is not None else None
         self.render_process = bool(render_process)
         self._process: RenderProcess | None = None
         self._thread = threading.Thread(target=self._run, name="simulated-head-render", daemon=True)
@@ -396,9 +424,11 @@ class SimulatedHeadSource(FrameSource):
             if self.render_process and not self._all_on_disk():
                 # Start the render process now, at low priority: its start-up (a new
                 # interpreter, the ray grids) overlaps the first pose.
-                self._process = RenderProcess(*self._process_args, self.sensors, warm_up=True)
+                self._process = RenderProcess(
+                    *self._process_args, self.sensors, warm_up=True, drift=self._process_drift
+                )
             # The first pose in this process: no waiting for the render process to start.
-            self._obtain(self._sample_pose[0], workers=2, in_process=True)
+            self._obtain(self._pose_of(0, self._drifted_at(0.0)), workers=2, in_process=True)
             self.first_pose_s = time.perf_counter() - t0
             while not self._stop.is_set():
                 pose = self._next_pose()
@@ -429,17 +459,43 @@ class SimulatedHeadSource(FrameSource):
                 return self._wanted
             lead = self._last_render_s * self.speed if self.realtime else 0.0
             k = len(self._sample_t)
-            j = round(((self._now_s + lead) % self.loop_s) * self.render_hz)
+            ahead_s = self._now_s + lead
+            j = round((ahead_s % self.loop_s) * self.render_hz)
             for step in range(k):
-                pose = self._sample_pose[(j + step) % k]
+                drifted = self._drifted_at(ahead_s + step / self.render_hz)
+                pose = self._pose_of((j + step) % k, drifted)
                 if pose not in self._poses:
                     return pose
-            return None
+            # With a sensor drift: the poses of the state the next loop does not show
+            # (the stream before the drift, shown again by a new stream).
+            return next((p for p in range(len(self._pose_t)) if p not in self._poses), None)
+
+    # -- sensor drift ---------------------------------------------------------------------
+
+    def _drifted_at(self, t_s: float) -> bool:
+        """Whether the scenario's sensor drift is active at scenario time ``t_s`` (seconds,
+        of the stream: not wrapped into the loop)."""
+        return self._drift is not None and self._drift.active(t_s)
+
+    def _pose_of(self, sample: int, drifted: bool) -> int:
+        """The pose cache sample ``sample`` shows with the drift active or not."""
+        return self._samples.pose_of(sample, drifted)
+
+    def _rig_of(self, pose: int) -> Rig:
+        """The rig ``pose`` is rendered from: the scenario's ``drifted_rig`` for a drifted
+        pose, else :attr:`rig`."""
+        if self._pose_drifted[pose]:
+            return self.scenario.drifted_rig  # type: ignore[attr-defined]
+        return self.rig
+
+    def _drifted_arg(self, pose: int) -> bool | None:
+        """``drifted=`` for the scenario's ``render`` of ``pose`` (None: no drift)."""
+        return None if self._drift is None else self._pose_drifted[pose]
 
     def _pose_path(self, pose: int) -> Path | None:
         if self.cache_dir is None:
             return None
-        return pose_file(self.cache_dir, self._pose_t[pose])
+        return pose_file(self.cache_dir, self._pose_t[pose], self._pose_drifted[pose])
 
     def _obtain(self, pose: int, workers: int, in_process: bool = False) -> bool:
         """Put ``pose`` in the cache: from the disk cache if it is there (False), else
@@ -452,8 +508,11 @@ class SimulatedHeadSource(FrameSource):
                 self._store(pose, frames, None)
                 return False
         t_s = self._pose_t[pose]
+        drifted = self._drifted_arg(pose)
         if in_process or not self.render_process:
-            out = render_frames(self.scenario, self.rig, self.sensors, t_s, workers, self._stop)
+            out = render_frames(
+                self.scenario, self.rig, self.sensors, t_s, workers, self._stop, drifted
+            )
             if self._stop.is_set() or len(out) != len(self.sensors):
                 return True
             frames = {name: f for name, (f, _) in out.items()}
@@ -466,10 +525,14 @@ class SimulatedHeadSource(FrameSource):
             self._store(pose, frames, truth)
             return True
         if self._process is None:
-            self._process = RenderProcess(*self._process_args, self.sensors)
+            self._process = RenderProcess(
+                *self._process_args, self.sensors, drift=self._process_drift
+            )
         with self._cond:
             low = bool(self._poses)
-        rendered = self._process.render(pose, t_s, workers, path, low, self._stop, self.rig)
+        rendered = self._process.render(
+            pose, t_s, workers, path, low, self._stop, self.rig, drifted
+        )
         if rendered is None:  # closed
             return True
         self._store(pose, rendered, None)
@@ -515,50 +578,62 @@ class SimulatedHeadSource(FrameSource):
             return self._scenario_clock(stamp_ns, self.start_ns)
         return (stamp_ns - self.start_ns) / 1e9
 
-    def _sample_for(self, stamp_ns: int) -> int:
-        """The cache sample a time stamp shows; remembered so that every frame of that
-        stamp, and :meth:`truth_at`, agree. Call with the lock held."""
-        k = self._stamp_sample.get(stamp_ns)
-        if k is not None:
-            return k
+    def _pose_for(self, stamp_ns: int) -> int:
+        """The cache pose a time stamp shows; remembered so that every frame of that
+        stamp, and :meth:`truth_at`, agree. Call with the lock held.
+
+        The sample nearest the stamp's scenario time within the loop, in the drift state
+        of that (unwrapped) time. It is shown rendered; meanwhile (live mode) turned from
+        the nearest rendered pose of the same drift state, else the nearest rendered
+        sample's pose of that state. A frame never shows the other drift state's picture:
+        with no pose of its state rendered yet (or ``wait_for_render``) it waits for its own.
+        """
+        pose = self._stamp_pose.get(stamp_ns)
+        if pose is not None:
+            return pose
         n = len(self._sample_t)
-        j = round((self._scenario_t(stamp_ns) % self.loop_s) * self.render_hz) % n
-        if self.wait_for_render:
-            pose = self._sample_pose[j]
+        t_s = self._scenario_t(stamp_ns)
+        drifted = self._drifted_at(t_s)
+        j = round((t_s % self.loop_s) * self.render_hz) % n
+        pose = self._pose_of(j, drifted)
+        if self.wait_for_render or (self._drift is not None and not self._state_rendered(drifted)):
             while pose not in self._poses and not self._stop.is_set():
                 if self._error is not None:
                     raise RuntimeError(f"simulated head: rendering failed: {self._error!r}")
                 self._wanted = pose
                 self._cond.wait(0.1)
-            k = j
-        elif self.live and self._poses:
-            k = j  # shown rendered, or turned from the nearest rendered pose meanwhile
-        else:
-            k = j
+        elif not self.live:
             for step in range(n // 2 + 1):
-                if self._sample_pose[(j + step) % n] in self._poses:
-                    k = (j + step) % n
+                near = [self._pose_of((j + d) % n, drifted) for d in (step, -step)]
+                found = [p for p in near if p in self._poses and self._pose_drifted[p] == drifted]
+                if found:
+                    pose = found[0]
                     break
-                if self._sample_pose[(j - step) % n] in self._poses:
-                    k = (j - step) % n
-                    break
-        self._stamp_sample[stamp_ns] = k
-        if len(self._stamp_sample) > _STAMP_MEMORY:
-            self._stamp_sample.popitem(last=False)
-        return k
+        # live: shown rendered, or turned from the nearest rendered pose meanwhile
+        self._stamp_pose[stamp_ns] = pose
+        if len(self._stamp_pose) > _STAMP_MEMORY:
+            self._stamp_pose.popitem(last=False)
+        return pose
+
+    def _state_rendered(self, drifted: bool) -> bool:
+        """Whether some pose of that drift state is rendered. Call with the lock held."""
+        return any(self._pose_drifted[p] == drifted for p in self._poses)
 
     def _provisional_pose(self, pose: int) -> _Pose | None:
         """Live mode: the picture of an unrendered ``pose``, turned from the rendered pose
         whose head orientation is nearest (made again when a nearer one is rendered).
-        Call with the lock held."""
-        if not self._poses or self._pose_T[pose] is None:
+        Call with the lock held. Only a pose of the same drift state is turned (the drifted
+        sensor's picture must not come from the other state)."""
+        state = self._pose_drifted[pose]
+        same = [p for p in self._poses if self._pose_drifted[p] == state]
+        if not same or self._pose_T[pose] is None:
             return None
 
         def angle(p: int) -> float:
             R = self._pose_T[p][:3, :3].T @ self._pose_T[pose][:3, :3]  # type: ignore[index]
             return rotation_angle_deg(R)
 
-        src = min(self._poses, key=lambda p: (angle(p), p))
+        src = min(same, key=lambda p: (angle(p), p))
         made = self._provisional.get(pose)
         if made is not None and made[0] == src:
             return made[1]
@@ -573,12 +648,13 @@ class SimulatedHeadSource(FrameSource):
         repeat its border). Read-only arrays."""
         T_src, T_dst = self._pose_T[src], self._pose_T[dst]
         assert T_src is not None and T_dst is not None
+        rig = self._rig_of(dst)  # that of src too: poses of one drift state
         out = {}
         for name, f in frames.items():
             warp = self._warps.get(name)
             if warp is None:
                 warp = self._warps[name] = RotationWarp(self.rig[name])
-            R_rs = self.rig[name].T_rig_sensor[:3, :3]
+            R_rs = rig[name].T_rig_sensor[:3, :3]
             R_src_dst = (T_src[:3, :3] @ R_rs).T @ (T_dst[:3, :3] @ R_rs)
             m = warp.update(R_src_dst, 0)
             nearest = self.rig[name].modality == "tof"
@@ -597,10 +673,10 @@ class SimulatedHeadSource(FrameSource):
     def _frame(self, sensor: str, stamp_ns: int) -> Frame | None:
         with self._cond:
             self._now_s = self._scenario_t(stamp_ns)
-            k = self._sample_for(stamp_ns)
-            pose = self._poses.get(self._sample_pose[k])
+            pose_id = self._pose_for(stamp_ns)
+            pose = self._poses.get(pose_id)
             if pose is None and self.live and not self._stop.is_set():
-                pose = self._provisional_pose(self._sample_pose[k])
+                pose = self._provisional_pose(pose_id)
         if pose is None:  # closed while waiting
             return None
         f = pose.frames[sensor]
@@ -699,8 +775,7 @@ class SimulatedHeadSource(FrameSource):
         with self._cond:
             if not self._poses:
                 raise RuntimeError("truth_at: no pose rendered yet (wait_ready() first)")
-            k = self._sample_for(int(stamp_ns))
-            pose_id = self._sample_pose[k]
+            pose_id = self._pose_for(int(stamp_ns))
             pose = self._poses.get(pose_id)
             cached = self._truth_cache.get(pose_id, {})
         t_s = self._pose_t[pose_id]
@@ -710,7 +785,9 @@ class SimulatedHeadSource(FrameSource):
             todo = [s for s in names if s not in cached]
             truth = dict(cached)
             if todo:
-                _, rendered = self.scenario.render(t_s, todo)
+                drifted = self._drifted_arg(pose_id)
+                extra = {} if drifted is None else {"drifted": drifted}
+                _, rendered = self.scenario.render(t_s, todo, **extra)  # type: ignore[call-arg]
                 truth.update(rendered)
             with self._cond:
                 self._truth_cache[pose_id] = truth
@@ -719,7 +796,8 @@ class SimulatedHeadSource(FrameSource):
                     self._truth_cache.popitem(last=False)
             truth = {s: truth[s] for s in names}
         T = self._pose_T[pose_id]
-        return SimTruth(int(stamp_ns), t_s, None if T is None else T.copy(), truth)
+        rig = self._rig_of(pose_id)
+        return SimTruth(int(stamp_ns), t_s, None if T is None else T.copy(), truth, rig)
 
     # -- lifetime -----------------------------------------------------------------------
 

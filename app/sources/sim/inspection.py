@@ -2,7 +2,8 @@
 
 :func:`inspection_scene`: a room with warm and cold objects 0.5-8 m away (two people, a hot
 pipe, a kettle, warm electronics, a cold window, a wet patch on the wall);
-:class:`InspectionScenario`: the head panning slowly in it so parallax matters. The
+:class:`InspectionScenario`: the head panning slowly in it so parallax matters, optionally
+with one sensor moving during the run (``drift``: :mod:`app.sources.sim.drift`). The
 calibration scenario is in :mod:`app.sources.sim.scenarios`.
 """
 
@@ -13,6 +14,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from trifuse.app.sources.frames import Frame, FrameSet
+from trifuse.app.sources.sim.drift import SensorDrift, moved_rig
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.sources.sim.live import CleanImage, LiveDeveloper
 from trifuse.app.sources.sim.render import HeadModel, Renderer, SensorTruth
@@ -155,6 +157,13 @@ class InspectionScenario:
     ``live``: render in the live (demo) quality (no edge supersampling, see
     :class:`~app.sources.sim.render.Renderer`) and give frames the fast noise of
     :class:`~app.sources.sim.live.LiveDeveloper`; the default is the accurate quality.
+
+    ``drift``: one sensor moves during the run (:class:`~app.sources.sim.drift.SensorDrift`:
+    from scenario time ``drift.at_s`` on it is rendered from :attr:`drifted_rig`, the rig with
+    that sensor's pose moved; every other sensor, and the truth of the others, as without
+    it). :attr:`rig` stays the rig as calibrated (the one a console would use);
+    :meth:`rig_at` is the rig the sensors are rendered from at a time. ValueError if the
+    drift names a sensor the rig does not have.
     """
 
     def __init__(
@@ -166,6 +175,7 @@ class InspectionScenario:
         pan_period_s: float = 30.0,
         *,
         live: bool = False,
+        drift: SensorDrift | None = None,
     ) -> None:
         self.rig = rig or default_rig()
         self.renderer = Renderer(self.rig, model, live=live)
@@ -175,6 +185,35 @@ class InspectionScenario:
         self.seed = seed
         self.pan_deg = pan_deg
         self.pan_period_s = pan_period_s
+        self.drift = drift
+        """The sensor that moves during the run, or None."""
+        self.drifted_rig: Rig | None = None if drift is None else moved_rig(self.rig, drift)
+        """The rig with :attr:`drift`'s sensor moved (None without a drift)."""
+        self._drifted_renderer: Renderer | None = None
+        if self.drifted_rig is not None:  # the same physics; ray grids shared (same intrinsics)
+            self._drifted_renderer = Renderer(self.drifted_rig, self.renderer.model, live=live)
+
+    def drift_active(self, t_s: float) -> bool:
+        """Whether :attr:`drift`'s sensor is moved at scenario time ``t_s`` (seconds)."""
+        return self.drift is not None and self.drift.active(t_s)
+
+    def rig_at(self, t_s: float) -> Rig:
+        """The rig the sensors are rendered from at scenario time ``t_s`` (seconds):
+        :attr:`drifted_rig` while the drift is active, else :attr:`rig`."""
+        return self._rig(t_s, None)
+
+    def _drifted(self, t_s: float, drifted: bool | None) -> bool:
+        if drifted is None:
+            return self.drift_active(t_s)
+        if drifted and self.drift is None:
+            raise ValueError("drifted=True: this scenario has no sensor drift")
+        return drifted
+
+    def _rig(self, t_s: float, drifted: bool | None) -> Rig:
+        if self._drifted(t_s, drifted):
+            assert self.drifted_rig is not None
+            return self.drifted_rig
+        return self.rig
 
     def T_world_rig(self, t_s: float) -> np.ndarray:
         """(4, 4) pose of the head at time ``t_s`` (seconds)."""
@@ -187,16 +226,26 @@ class InspectionScenario:
         return float(min(rate * abs(dt_s), 2 * np.radians(self.pan_deg)))
 
     def render(
-        self, t_s: float, sensors: list[str] | None = None
+        self, t_s: float, sensors: list[str] | None = None, *, drifted: bool | None = None
     ) -> tuple[FrameSet, dict[str, SensorTruth]]:
-        """Frames and exact ground truth at time ``t_s``; noise is seeded by (seed, t)."""
+        """Frames and exact ground truth at time ``t_s``; noise is seeded by (seed, t).
+
+        ``drifted``: render with the drift's sensor moved (True) or as calibrated (False)
+        whatever ``t_s`` (the simulated head's cache renders a looping head's poses in both
+        states); default: as at ``t_s`` (:meth:`drift_active`). With the drift, the frames
+        equal those of this scenario built with ``rig=drifted_rig`` and no drift.
+        """
         rng = np.random.default_rng([self.seed, round(t_s * 1e6) % 2**63])
         stamp_ns = round(t_s * 1e9)
         if self.developer is None:
-            return self.renderer.render(self.scene, self.T_world_rig(t_s), stamp_ns, rng, sensors)
+            renderer = self.renderer
+            if self._drifted(t_s, drifted):
+                assert self._drifted_renderer is not None
+                renderer = self._drifted_renderer
+            return renderer.render(self.scene, self.T_world_rig(t_s), stamp_ns, rng, sensors)
         frames: dict[str, Frame] = {}
         truths: dict[str, SensorTruth] = {}
-        for name, clean in self.render_clean(t_s, sensors).items():
+        for name, clean in self.render_clean(t_s, sensors, drifted=drifted).items():
             frames[name] = self.developer.frame(clean, stamp_ns, rng)
             truths[name] = clean.truth
         return FrameSet(stamp_ns, frames), truths
@@ -206,17 +255,22 @@ class InspectionScenario:
         t_s: float,
         sensors: list[str] | None = None,
         margins: Mapping[str, int] | None = None,
+        *,
+        drifted: bool | None = None,
     ) -> dict[str, CleanImage]:
         """Live quality only: each sensor's noise-free picture at time ``t_s``, with
         ``margins[sensor]`` pixels more on every side (default 0), for
-        :meth:`LiveDeveloper.frame <app.sources.sim.live.LiveDeveloper.frame>`."""
+        :meth:`LiveDeveloper.frame <app.sources.sim.live.LiveDeveloper.frame>`; each
+        sensor at its pose in :meth:`rig_at` ``(t_s)``, or with ``drifted`` as in
+        :meth:`render`."""
         if self.developer is None:
             raise ValueError("render_clean: needs the live quality (InspectionScenario(live=True))")
         T_world_rig = self.T_world_rig(t_s)
+        rig = self._rig(t_s, drifted)
         out = {}
         for name in sensors or self.rig.names:
             margin = (margins or {}).get(name, 0)
-            T_world_sensor = T_world_rig @ self.rig[name].T_rig_sensor
+            T_world_sensor = T_world_rig @ rig[name].T_rig_sensor
             values, truth = self.renderer.render_raw(self.scene, name, T_world_sensor, margin)
             out[name] = self.developer.clean(name, values, truth, T_world_sensor, margin)
         return out

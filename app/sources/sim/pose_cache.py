@@ -3,7 +3,9 @@ rendered poses kept on disk across runs.
 
 Poses: the scenario time is sampled at ``render_hz`` over ``loop_s``
 (:func:`sample_poses`); samples that give the same head pose (or the same ``scene_key``)
-share one rendering.
+share one rendering. A scenario with a sensor drift (``drift``:
+:class:`~app.sources.sim.drift.SensorDrift`) has each sample in two states, before the
+drift and after it, which never share a rendering.
 
 Disk cache: rendered poses are also kept on disk, one ``.npz`` file per pose (about 8.4
 MB uncompressed for the default head), so a restarted console has every pose at once
@@ -63,44 +65,82 @@ class PoseSamples:
 
     Attributes:
         sample_t: scenario time of each sample, seconds (``i / render_hz``).
-        sample_pose: the pose each sample shows (an index into ``pose_t``).
+        sample_pose: the pose each sample shows (an index into ``pose_t``); with a drift,
+            before it.
         pose_t: the representative scenario time of each pose (its first sample), seconds.
         pose_T: (4, 4) the head pose of each pose (world frame of the scenario), or None
             where the scenario has no ``T_world_rig``.
+        pose_drifted: whether each pose is rendered with the scenario's sensor drift
+            (``render(t, sensors, drifted=...)``); all False without one.
+        drifted_sample_pose: the pose each sample shows once the drift is active; None for
+            a scenario without a drift.
     """
 
     sample_t: list[float]
     sample_pose: list[int]
     pose_t: list[float]
     pose_T: list[np.ndarray | None]
+    pose_drifted: list[bool]
+    drifted_sample_pose: list[int] | None = None
+
+    def pose_of(self, sample: int, drifted: bool) -> int:
+        """The pose sample ``sample`` shows with the drift active (``drifted``) or not."""
+        if drifted and self.drifted_sample_pose is not None:
+            return self.drifted_sample_pose[sample]
+        return self.sample_pose[sample]
 
 
 def sample_poses(scenario: Any, samples: int, render_hz: float) -> PoseSamples:
     """``samples`` samples of scenario time, ``1 / render_hz`` seconds apart; samples with
     equal ``scene_key(t)`` (if the scenario has one) or equal head pose
-    ``T_world_rig(t)`` (to 1e-9) share a pose; without either every sample is its own."""
+    ``T_world_rig(t)`` (to 1e-9) share a pose; without either every sample is its own.
+
+    A scenario with a sensor drift (a ``drift`` not None: from ``drift.at_s`` of the
+    stream's scenario time on, which keeps counting while the samples loop) has a second
+    pose per sample, the drifted one; a sample gets a pose before the drift only if a
+    time before ``at_s`` can show it (every sample if ``at_s`` is beyond the loop), else
+    its ``sample_pose`` is the drifted one too. Poses of the two states never share.
+    """
     sample_t = [i / render_hz for i in range(samples)]
-    sample_pose: list[int] = []
     pose_t: list[float] = []
     pose_T: list[np.ndarray | None] = []
+    pose_drifted: list[bool] = []
     pose_fn = getattr(scenario, "T_world_rig", None)
     key_fn = getattr(scenario, "scene_key", None)
+    drift = getattr(scenario, "drift", None)
     seen: dict[Any, int] = {}
-    for t in sample_t:
+
+    def pose(t: float, drifted: bool) -> int:
         T = None if pose_fn is None else np.asarray(pose_fn(t), dtype=np.float64)
         if key_fn is not None:
             key = key_fn(t)
         else:
             key = None if T is None else tuple(np.round(T, 9).ravel().tolist())
+        if key is not None and drift is not None:
+            key = (drifted, key)
         match = seen.get(key) if key is not None else None
         if match is None:
             match = len(pose_t)
             pose_t.append(t)
             pose_T.append(T)
+            pose_drifted.append(drifted)
             if key is not None:
                 seen[key] = match
-        sample_pose.append(match)
-    return PoseSamples(sample_t, sample_pose, pose_t, pose_T)
+        return match
+
+    if drift is None:
+        sample_pose = [pose(t, False) for t in sample_t]
+        return PoseSamples(sample_t, sample_pose, pose_t, pose_T, pose_drifted)
+    loop_s = samples / render_hz
+    # A stream time s < at_s shows sample round(s * render_hz): up to half a sample past it.
+    before = [
+        drift.at_s > 0 and (drift.at_s >= loop_s or t <= drift.at_s + 0.5 / render_hz)
+        for t in sample_t
+    ]
+    undrifted = [pose(t, False) if b else -1 for t, b in zip(sample_t, before, strict=True)]
+    drifted = [pose(t, True) for t in sample_t]
+    sample_pose = [u if u >= 0 else d for u, d in zip(undrifted, drifted, strict=True)]
+    return PoseSamples(sample_t, sample_pose, pose_t, pose_T, pose_drifted, drifted)
 
 
 # -- the disk cache -------------------------------------------------------------------------
@@ -125,10 +165,14 @@ def code_fingerprint() -> str:
 
 
 def scenario_key(scenario: Any, default_seed: int | None) -> str | None:
-    """What identifies a scenario's pictures: the default scenario by its seed and quality,
-    another by its ``cache_key()``; None if it has none (no disk cache then)."""
+    """What identifies a scenario's pictures: the default scenario by its seed, quality and
+    sensor drift, another by its ``cache_key()``; None if it has none (no disk cache then)."""
     if default_seed is not None:
-        return f"InspectionScenario(seed={default_seed}, live={getattr(scenario, 'live', False)})"
+        live = getattr(scenario, "live", False)
+        drift = getattr(scenario, "drift", None)
+        if drift is None:
+            return f"InspectionScenario(seed={default_seed}, live={live})"
+        return f"InspectionScenario(seed={default_seed}, live={live}, drift={drift!r})"
     key_fn = getattr(scenario, "cache_key", None)
     if key_fn is None:
         return None
@@ -242,6 +286,7 @@ def cache_folder(
     return folder
 
 
-def pose_file(folder: Path, t_s: float) -> Path:
-    """The file of the pose at scenario time ``t_s`` (seconds) in a scenario's folder."""
-    return folder / f"pose-{round(t_s * 1e6)}us.npz"
+def pose_file(folder: Path, t_s: float, drifted: bool = False) -> Path:
+    """The file of the pose at scenario time ``t_s`` (seconds) in a scenario's folder;
+    ``drifted``: the pose rendered with the scenario's sensor drift."""
+    return folder / f"pose-{round(t_s * 1e6)}us{'-drifted' if drifted else ''}.npz"

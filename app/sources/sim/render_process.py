@@ -21,13 +21,16 @@ import os
 import threading
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from trifuse.app.errors import describe_error
 from trifuse.app.sources.frames import Frame
 from trifuse.app.sources.sim.pose_cache import load_pose, save_pose
 from trifuse.app.sources.sim.render import SensorTruth
 from trifuse.calib.rig import Rig
+
+if TYPE_CHECKING:
+    from trifuse.app.sources.sim.drift import SensorDrift
 
 RENDER_NICE = 10
 """Niceness the render process takes once the stream is running (the first pose is
@@ -43,9 +46,14 @@ def render_frames(
     t_s: float,
     workers: int,
     stop: threading.Event | None = None,
+    drifted: bool | None = None,
 ) -> dict[str, tuple[Frame, SensorTruth]]:
     """Every sensor's frame and truth at scenario time ``t_s``, in ``workers`` threads
-    (the sensors split by cost); fewer entries if ``stop`` was set meanwhile."""
+    (the sensors split by cost); fewer entries if ``stop`` was set meanwhile. ``drifted``:
+    with a scenario that has a sensor drift, render with it (True) or without (False)
+    whatever ``t_s`` (``scenario.render(..., drifted=)``); None: as the scenario renders
+    ``t_s``."""
+    extra = {} if drifted is None else {"drifted": drifted}
     groups: list[list[str]] = [[] for _ in range(max(1, min(workers, len(sensors))))]
     load = [0.0] * len(groups)
     for s in sorted(sensors, key=lambda s: -_RENDER_COST[rig[s].modality]):
@@ -58,7 +66,7 @@ def render_frames(
         for name in names:
             if stop is not None and stop.is_set():
                 return
-            frames, truth = scenario.render(t_s, [name])
+            frames, truth = scenario.render(t_s, [name], **extra)
             out[name] = (frames[name], truth[name])
 
     if len(groups) == 1:
@@ -91,11 +99,18 @@ def _lower_priority() -> None:
 
 
 def _render_worker(
-    conn: Any, scenario: Any, seed: int, live: bool, sensors: list[str], warm_up: bool
+    conn: Any,
+    scenario: Any,
+    seed: int,
+    live: bool,
+    sensors: list[str],
+    warm_up: bool,
+    drift: SensorDrift | None = None,
 ) -> None:
     """The render process: renders the poses asked for, until the pipe closes.
 
-    A request is ``(pose, t_s, workers, path, low_priority)``. The pose is written to
+    A request is ``(pose, t_s, workers, path, low_priority, drifted)`` (``drifted``: as
+    :func:`render_frames`). The pose is written to
     ``path`` (answer ``("saved", pose)``) or, without a path or if writing fails, sent
     back (``("frames", pose, {sensor: (image, distance)})``); an error is answered
     ``("error", pose, message)``. With ``warm_up`` the process lowers its priority at once
@@ -104,7 +119,7 @@ def _render_worker(
     if scenario is None:
         from trifuse.app.sources.sim.inspection import InspectionScenario
 
-        scenario = InspectionScenario(seed=seed, live=live)
+        scenario = InspectionScenario(seed=seed, live=live, drift=drift)
     rig = scenario.rig
     niced = False
     if warm_up:
@@ -120,12 +135,12 @@ def _render_worker(
             return
         if request is None:
             return
-        pose, t_s, workers, path, low_priority = request
+        pose, t_s, workers, path, low_priority, drifted = request
         if low_priority and not niced:
             niced = True
             _lower_priority()
         try:
-            out = render_frames(scenario, rig, sensors, t_s, workers)
+            out = render_frames(scenario, rig, sensors, t_s, workers, drifted=drifted)
             frames = {name: f for name, (f, _) in out.items()}
             if path is not None:
                 try:
@@ -149,8 +164,9 @@ class RenderProcess:
 
     Args:
         scenario: the scenario to render (pickled to the process), or None for the
-            default ``InspectionScenario(seed=seed, live=live)`` (made in the process).
-        seed, live: the default scenario's.
+            default ``InspectionScenario(seed=seed, live=live, drift=drift)`` (made in the
+            process).
+        seed, live, drift: the default scenario's.
         sensors: the sensors to render, in order.
         warm_up: lower the priority at once and build the renderer's ray grids before
             the first request (else the priority drops with the first ``low_priority``
@@ -158,13 +174,19 @@ class RenderProcess:
     """
 
     def __init__(
-        self, scenario: Any, seed: int, live: bool, sensors: list[str], warm_up: bool = False
+        self,
+        scenario: Any,
+        seed: int,
+        live: bool,
+        sensors: list[str],
+        warm_up: bool = False,
+        drift: SensorDrift | None = None,
     ) -> None:
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(
             target=_render_worker,
-            args=(child, scenario, seed, live, sensors, warm_up),
+            args=(child, scenario, seed, live, sensors, warm_up, drift),
             name="trifuse-sim-render",
             daemon=True,
         )
@@ -181,12 +203,15 @@ class RenderProcess:
         low_priority: bool,
         stop: threading.Event,
         rig: Rig,
+        drifted: bool | None = None,
     ) -> dict[str, Frame] | None:
         """The frames (stamp 0) of the pose at scenario time ``t_s`` (seconds), rendered in
         ``workers`` threads of the process and written to ``path`` of the disk cache if
         given; None once ``stop`` is set. ``rig``: the scenario's, to check the file read
-        back. Raises RuntimeError if rendering failed or the process ended."""
-        self._conn.send((pose, t_s, workers, None if path is None else str(path), low_priority))
+        back; ``drifted``: as :func:`render_frames`. Raises RuntimeError if rendering failed
+        or the process ended."""
+        where = None if path is None else str(path)
+        self._conn.send((pose, t_s, workers, where, low_priority, drifted))
         while not stop.is_set():
             if self._conn.poll(0.1):
                 return self._frames(self._conn.recv(), path, rig)

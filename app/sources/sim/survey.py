@@ -80,9 +80,11 @@ class SurveyScenario(InspectionScenario):
 
     def cache_key(self) -> str:
         """What identifies this scenario's pictures (the simulated head's disk cache:
-        ``trifuse serve --scenario survey`` renders each pose once per machine)."""
+        ``trifuse serve --scenario survey`` renders each pose once per machine), the sensor
+        drift included."""
         rig = hashlib.sha256(rig_to_yaml(self.rig).encode()).hexdigest()[:16]
-        return f"seed={self.seed} live={self.live} rig={rig} {self.renderer.model!r}"
+        key = f"seed={self.seed} live={self.live} rig={rig} {self.renderer.model!r}"
+        return key if self.drift is None else f"{key} drift={self.drift!r}"
 
     def max_turn_rad(self, dt_s: float) -> float:
         """The largest angle (radians) the head turns in ``dt_s`` seconds: the fastest
