@@ -20,6 +20,10 @@
 // "received" counts the frames this browser drew; "stream" (frames the console published)
 // and "new pictures" (of these, the ones fused anew rather than repeated) are the console's
 // own figures, carried by each frame's metadata: the Source panel shows the same numbers.
+//
+// The calibration's health (GET /api/status `drift`, fetched every 2 s: whether each camera
+// still sits where the rig says, app/server/runtime/drift_watch.py): one overlay line, and
+// while a camera has turned against the rig an alert banner over the top of the picture.
 "use strict";
 const canvas = document.getElementById("view");
 const ctx = canvas.getContext("2d");
@@ -28,6 +32,7 @@ const pairBox = document.getElementById("pair");  // the picture and the scales'
 const scaleEls = [...document.querySelectorAll(".scale")];
 const streamSelect = document.getElementById("stream");
 const modeSelect = document.getElementById("mode");
+const alertBox = document.getElementById("alert");
 const stats = {
   frames: 0,        // frames drawn since the page opened
   fps: 0,           // frames drawn per second over the window ("received")
@@ -52,6 +57,7 @@ const stats = {
   decodeMs: [],     // video: decode() to the decoded frame, ms, the newest 120 frames
   metaMode: null,   // the display mode of the newest frame's metadata
   modeError: null,  // why the Mode select's last change was refused
+  drift: null,      // the status's `drift` block (the calibration's health), null: none yet
 };
 window.trifuseStats = stats;  // read by the browser tests and the benchmark
 
@@ -528,13 +534,30 @@ function showOverlay() {
   const modeNote = stats.modeError ? `\nmode not changed: ${stats.modeError}` : "";
   // sensors that are not ok (silent, no frame yet, failing), one line each, from the frame's metadata
   const health = Object.values(m.health || {}).map((line) => `\n⚠ ${line}`).join("");
+  const calibration = stats.drift ? `\ncalibration health: ${stats.drift.summary}` : "";
   stats.mbps = receivedMbps(now);
   overlay.textContent =
     `${stats.codec || "–"} (${stats.mode}): received ${stats.fps.toFixed(1)} fps, ` +
     `${stats.mbps.toFixed(2)} Mbit/s, latency ${median(stats.latencyMs).toFixed(0)} ms\n` +
-    videoLine() + `console: ${ratesLine(now)}\nrates over the last ${windowS()} s; mode ${m.mode || "–"}, ${scale}` + legend + balance + health + modeNote;
+    videoLine() + `console: ${ratesLine(now)}\nrates over the last ${windowS()} s; mode ${m.mode || "–"}, ${scale}` + legend + balance + health + calibration + modeNote;
 }
 setInterval(showOverlay, 500);
+
+// The calibration's health from the console's status: the overlay's line and the alert
+// banner (one line per drifted camera; hidden when none).
+async function pollDrift() {
+  try {
+    const r = await fetch("/api/status");
+    if (!r.ok) return;
+    stats.drift = (await r.json()).drift || null;
+  } catch (e) { return; /* the next poll tries again */ }
+  const lines = (stats.drift && stats.drift.alerts) || [];
+  alertBox.textContent = lines.join("\n");
+  alertBox.hidden = !lines.length;
+  showOverlay();
+}
+setInterval(pollDrift, 2000);
+pollDrift();
 
 // The overlay's lines in the `registration` mode: each eye's figures, what the plain colour
 // means, and whether the calibration's share is in.

@@ -26,6 +26,7 @@ from trifuse.app.server.routers.stream_routes import (
     make_video_router,
 )
 from trifuse.app.server.routers.viser_bridge import make_viser_router
+from trifuse.app.server.runtime.drift_watch import DriftWatch
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.registration_watch import RegistrationWatch
 from trifuse.app.server.runtime.source_control import SourceControl
@@ -62,13 +63,15 @@ def create_app(
     auth: AuthConfig | None = None,
     viser_secret: str | None = None,
     registration: RegistrationWatch | None = None,
+    drift: DriftWatch | None = None,
 ) -> FastAPI:
     """The app: ``/`` viewer, ``/stream`` + ``/stream.mjpg``, ``/console/`` (Viser),
     ``/api/status`` and the source and recording controls (``source_control``; default:
     one over ``pipeline`` without recording), ``/docs`` (OpenAPI). With ``auth`` every
     request and WebSocket, also of routers added later, is authenticated (middleware/auth.py);
     ``trifuse serve`` always passes one, and ``viser_secret`` (viser_bridge.start_guarded_viser)
-    and ``registration`` (the status's registration sigma, registration_watch.py)."""
+    and ``registration`` (the status's registration sigma, registration_watch.py); with
+    ``drift`` the status's calibration health (drift_watch.py)."""
     app = FastAPI(
         title="trifuse",
         summary="Calibration and fused stereo telepresence",
@@ -91,6 +94,6 @@ def create_app(
         app.include_router(make_api_router(pipeline, balancer))
         app.include_router(make_spot_router(pipeline))  # /api/spot, /api/area (spot_api.py)
     # /api/status, /api/source/*, /api/recording/* (source_api.py)
-    app.include_router(make_source_router(hub, pipeline, source_control, registration))
+    app.include_router(make_source_router(hub, pipeline, source_control, registration, drift))
     app.include_router(make_pages_router())  # / (the viewer), /favicon.ico (pages.py)
     return app

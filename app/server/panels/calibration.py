@@ -1,5 +1,9 @@
 """The console's Calibration panel (Viser GUI) over a :class:`CalibrationSession`.
 
+At its top, the calibration's health: whether each camera still sits where the rig in use
+says, checked on the live pictures without a board, with an alert and Refine rig while one
+has turned (:mod:`app.server.panels.drift_health`).
+
 Capture (the newest frames, written at once) and auto-capture (steady, novel board
 sightings, as ROS ``camera_calibration`` does), with the reason a pose is not taken shown
 live under the checkbox (moving and how much in frame time, captured already and how near,
@@ -27,6 +31,7 @@ import numpy as np
 import viser.uplot as uplot
 
 from trifuse.app.server.markdown_text import md_cells, md_text
+from trifuse.app.server.panels.drift_health import DriftHealth
 from trifuse.app.server.panels.next_pose_overlay import NextPoseOverlay, verdict_md
 from trifuse.app.server.runtime.board_sighting import BoardSighting
 from trifuse.app.server.runtime.context import ConsoleContext
@@ -159,6 +164,7 @@ class CalibrationPanel(Periodic):
         self.sensors = list(ctx.pipeline.rig.names)
         gui = ctx.server.gui
         with gui.add_folder("Calibration"):
+            self.health = DriftHealth(ctx, session)  # drift: line, alert, Refine rig
             self.seen = gui.add_markdown("Board: not searched yet")
             self.capture = gui.add_button("Capture", hint="Write the newest frames as a view")
             self.auto = gui.add_checkbox(
@@ -377,6 +383,7 @@ class CalibrationPanel(Periodic):
         self.seen.content = f"Board ({state}): seen by {md_text(', '.join(found))}"
 
     def tick(self) -> None:
+        self.health.tick()
         self.next_pose.tick()
         if self.auto.value and self._auto_hold is not None:
             latest = self.ctx.board_watch.latest

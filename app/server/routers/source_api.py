@@ -1,10 +1,10 @@
 """REST routes of the source: status, replay controls, recording (OpenAPI at /docs).
 
-``GET /api/status`` reports the source, per-sensor rates, the fused stream, the recording
-and each eye's registration sigma; ``/api/source/*`` pause, resume, seek and set the speed
-of a replay (409 on another kind of source); ``/api/recording/*`` start and stop recording
-what the console receives (docs/FORMATS.md, "Console REST API"). Bad values get a 422
-naming the field.
+``GET /api/status`` reports the source, per-sensor rates, the fused stream, the recording,
+each eye's registration sigma and the calibration's health (the drift check);
+``/api/source/*`` pause, resume, seek and set the speed of a replay (409 on another kind of
+source); ``/api/recording/*`` start and stop recording what the console receives
+(docs/FORMATS.md, "Console REST API"). Bad values get a 422 naming the field.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from trifuse.app.errors import ControlError
 from trifuse.app.recording.recorder import RecordingState
 from trifuse.app.server.middleware.limits import require_json
+from trifuse.app.server.runtime.drift_watch import DriftWatch
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.registration_watch import RegistrationWatch
 from trifuse.app.server.runtime.source_control import SourceControl, SourceState
@@ -176,6 +177,70 @@ class RegistrationInfo(BaseModel):
     error: str | None = Field(None, description="why the newest estimate failed, or null")
 
 
+class DriftSensor(BaseModel):
+    """One sensor's drift verdict over the last 60 s (fusion/drift.py): its rotation against
+    the rig, about its own axes, degrees (the correction a refine applies)."""
+
+    verdict: Literal["ok", "drifted", "undecided"] = Field(
+        description="ok: turned less than 0.15°, known to 0.05°; drifted: more than 0.15° by "
+        "4 σ; undecided: not known well enough yet, or not checked (the TOF), with the reason"
+    )
+    rotation_deg: list[float] | None = Field(
+        None, description="[x, y, z] rotation vector about the sensor's own axes, degrees"
+    )
+    sigma_deg: list[float] | None = Field(None, description="its 1-sigma per axis, degrees")
+    angle_deg: float | None = Field(None, description="the rotation's angle, degrees")
+    sigma_max_deg: float | None = Field(None, description="the largest of sigma_deg, degrees")
+    reason: str = Field(description="why, in a sentence")
+    pairs: list[str] = Field(
+        default_factory=list, description="the sensors it was compared with in the window"
+    )
+
+
+class DriftRefine(BaseModel):
+    """The newest refine (POST /api/drift/refine or the Calibration panel's Refine rig)."""
+
+    saved_as: str = Field(description="the rig version it saved and put in use")
+    sensors: dict[str, float] = Field(description="sensor -> the angle corrected, degrees")
+    age_s: float = Field(description="seconds since the refine")
+
+
+class DriftInfo(BaseModel):
+    """The calibration's health: whether each camera still sits where the rig in use says,
+    checked on the live frame sets without a board, at most every 2 s and within 10 % of a
+    core while the fusion is wanted (app/server/runtime/drift_watch.py)."""
+
+    sensors: dict[str, DriftSensor] = Field(
+        default_factory=dict,
+        description="each sensor's verdict (empty before the first measure of the rig in use)",
+    )
+    instants: int = Field(0, description="frame sets measured in the window (60 s)")
+    age_s: float | None = Field(None, description="seconds since the newest measure")
+    drifted: list[str] = Field(default_factory=list, description="the sensors drifted")
+    summary: str = Field(
+        "", description="the health line, e.g. 'thermal_left DRIFTED 0.31° (σ 0.01°); others ok'"
+    )
+    alerts: list[str] = Field(
+        default_factory=list,
+        description="one line per drifted camera, e.g. '⚠ thermal_left has turned 0.31° "
+        "against the rig: refine or recalibrate'",
+    )
+    error: str | None = Field(None, description="why the newest measure failed, or null")
+    waiting: str | None = Field(
+        None, description="why the last frame set looked at was not measured, or null"
+    )
+    problems: list[str] = Field(
+        default_factory=list, description="the check's newest problems (no depth, no structure)"
+    )
+    measures: int = Field(0, description="measures made since the start")
+    cpu_share: float | None = Field(
+        None,
+        description="the share of one core the measures took over the last minute (null "
+        "before two measures)",
+    )
+    last_refine: DriftRefine | None = None
+
+
 class Status(BaseModel):
     """The console at a glance. ``viewers``, ``frames_out``, ``fps``, ``missing`` and
     ``error`` are the keys the first status route had."""
@@ -210,6 +275,11 @@ class Status(BaseModel):
         description="each eye's registration sigma (median, 95th percentile, colour pixels); "
         "null without the background estimate",
     )
+    drift: DriftInfo | None = Field(
+        None,
+        description="the calibration's health: each camera's drift verdict against the rig "
+        "in use; null without the background check",
+    )
 
 
 class SeekRequest(BaseModel):
@@ -237,9 +307,11 @@ def make_source_router(
     pipeline: FusionPipeline | None = None,
     control: SourceControl | None = None,
     registration: RegistrationWatch | None = None,
+    drift: DriftWatch | None = None,
 ) -> APIRouter:
     """The routes; without ``control`` (and a pipeline) the status reports zeros and the
-    controls answer 409; without ``registration`` its ``registration`` is null."""
+    controls answer 409; without ``registration`` (``drift``) its ``registration``
+    (``drift``) is null."""
     if control is None and pipeline is not None:
         control = SourceControl(pipeline, hub)
     router = APIRouter(prefix="/api", tags=["source"])
@@ -289,6 +361,7 @@ def make_source_router(
             registration=None
             if registration is None
             else RegistrationInfo(**registration.status()),
+            drift=None if drift is None else DriftInfo(**drift.status()),
         )
 
     @router.post("/source/pause")

@@ -11,6 +11,7 @@ import viser
 
 from trifuse.app.server.runtime.board_watch import BoardWatch
 from trifuse.app.server.runtime.demand import ConsoleDemand
+from trifuse.app.server.runtime.drift_watch import DriftWatch
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.registration_watch import RegistrationWatch
 from trifuse.app.server.runtime.stream import FrameHub
@@ -73,6 +74,8 @@ class ConsoleContext:
             Feeds read it each update.
         registration: each eye's registration sigma estimated in the background (the
             Fusion panel shows it), or None.
+        drift: the calibration's drift check on the live frames (the Calibration panel's
+            health line, alert and Refine rig), or None.
         next_outline: where the board should appear in the next view: sensor -> (4, 2)
             full-image pixels of its checkered area's corners
             (:class:`calib.next_pose.NextPose` ``outline_px``); empty when nothing is
@@ -95,6 +98,7 @@ class ConsoleContext:
     bandwidth: ConsoleBandwidth = field(default_factory=ConsoleBandwidth)
     next_outline: dict[str, np.ndarray] = field(default_factory=dict)
     registration: RegistrationWatch | None = None
+    drift: DriftWatch | None = None
 
     @property
     def stream_settings(self) -> StreamSettings:

@@ -25,12 +25,14 @@ from trifuse.app.server.panels.rig_files import RigFilesPanel
 from trifuse.app.server.panels.scene3d import Scene3D
 from trifuse.app.server.panels.source import SourcePanel
 from trifuse.app.server.routers.console_api import make_console_settings_router
+from trifuse.app.server.routers.drift_api import make_drift_router
 from trifuse.app.server.routers.map_api import make_map_router
 from trifuse.app.server.routers.session_api import make_session_router
 from trifuse.app.server.routers.viser_bridge import start_guarded_viser
 from trifuse.app.server.runtime.board_watch import BoardWatch
 from trifuse.app.server.runtime.context import ConsoleBandwidth, ConsoleContext
 from trifuse.app.server.runtime.demand import ConsoleDemand, hold_while_connected
+from trifuse.app.server.runtime.drift_watch import DriftWatch
 from trifuse.app.server.runtime.foxglove_live import FoxgloveLive
 from trifuse.app.server.runtime.map_worker import MapWorker
 from trifuse.app.server.runtime.pipeline import FusionPipeline
@@ -162,6 +164,10 @@ def serve(
     # each eye's registration sigma, every 2 s while the fusion is wanted (/api/status, the
     # registration display mode, the Fusion panel)
     registration = RegistrationWatch(pipeline)
+    # the calibration's health: each camera's drift against the rig in use, measured at
+    # most every 2 s within 10 % of a core while the fusion is wanted (/api/status, the
+    # Calibration panel's line, alert and Refine rig, the viewer's overlay)
+    drift = DriftWatch(pipeline)
     ctx = ConsoleContext(
         server=server,
         source=source,
@@ -176,6 +182,7 @@ def serve(
         demand=demand,
         bandwidth=ConsoleBandwidth(console_bandwidth),
         registration=registration,
+        drift=drift,
     )
     control = SourceControl(pipeline, hub, opened.description, workdir)
     live = None
@@ -204,6 +211,7 @@ def serve(
         watch.start(),
         balancer.start(),
         registration.start(),
+        drift.start(),
         PrecisionPanel(ctx).start(),
         mapper.start(),
     ]
@@ -211,7 +219,15 @@ def serve(
         parts.append(live.start())
     parts.append(control)  # stopped first: a running recording is finished and kept
     app = create_app(
-        hub, server.get_port(), pipeline, control, balancer, auth, viser_secret, registration
+        hub,
+        server.get_port(),
+        pipeline,
+        control,
+        balancer,
+        auth,
+        viser_secret,
+        registration,
+        drift,
     )
     app.include_router(
         make_session_router(
@@ -222,6 +238,7 @@ def serve(
             pipeline.rig_with_radiometry,
         )
     )
+    app.include_router(make_drift_router(drift, session.save_rig, ctx.use_rig))  # drift_api.py
     app.include_router(make_console_settings_router(ctx.bandwidth))  # /api/console/settings
     app.include_router(make_map_router(mapper))  # /api/map (map_api.py)
     ws_max = None

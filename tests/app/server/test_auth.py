@@ -29,7 +29,9 @@ from trifuse.app.cli import main
 from trifuse.app.devtools.console_process import free_port, stop_process
 from trifuse.app.server.app_factory import create_app
 from trifuse.app.server.middleware.auth import AuthConfig, SignInThrottle, check_token, is_loopback
+from trifuse.app.server.routers.drift_api import make_drift_router
 from trifuse.app.server.routers.session_api import make_session_router
+from trifuse.app.server.runtime.drift_watch import DriftWatch
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.sources.push.router import make_push_router
@@ -53,6 +55,7 @@ def console_app(tmp_path: Path, token: str | None = TOKEN, **auth_kw) -> FastAPI
     app = create_app(FrameHub(), free_port(), pipeline, auth=auth)
     session = CalibrationSession(tmp_path / "work", rig, CALIBRATION_BOARD)
     app.include_router(make_session_router(session, lambda: None, lambda _rig: None))
+    app.include_router(make_drift_router(DriftWatch(pipeline), session.save_rig, lambda _rig: None))
     app.include_router(make_push_router(PushSource(rig)))
     return app
 

@@ -38,7 +38,9 @@ from trifuse.app.server.middleware.limits import (
     add_body_limit,
     require_json,
 )
+from trifuse.app.server.routers.drift_api import make_drift_router
 from trifuse.app.server.routers.session_api import make_session_router
+from trifuse.app.server.runtime.drift_watch import DriftWatch
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.source_control import SourceControl
 from trifuse.app.server.runtime.source_tap import SourceTap
@@ -161,7 +163,9 @@ class Console:
         self.session.take(self.frameset)
         self.session.save_rig(rig, {})
         self._fuse_once(newest)
-        app = create_app(self.hub, None, self.pipeline, self.control, self.balancer)
+        drift = DriftWatch(self.pipeline)  # not started: nothing checked, refine answers 409
+        app = create_app(self.hub, None, self.pipeline, self.control, self.balancer, drift=drift)
+        app.include_router(make_drift_router(drift, self.session.save_rig, self.pipeline.set_rig))
         app.include_router(
             make_session_router(
                 self.session,
