@@ -22,9 +22,9 @@ notices it on ordinary scenes:
    reason (no TOF depth, a camera missing, too little structure yet, a sensor compared with
    only one other so that which of the two moved cannot be told).
 
-The TOF itself is not checked: its 176 x 144 picture against the cameras' edges scatters by
-0.3-1 degrees from frame to frame on the simulator, with biases of the same size, where a
-check needs 0.05 degrees (docs/FINDINGS.md); its verdict is ``undecided`` with that reason.
+The TOF itself is not checked: the simulated head's 176 x 144 picture against the
+cameras' edges scatters by 0.3-1 degrees from frame to frame, with biases of the same size,
+where a check needs 0.05 degrees (docs/FINDINGS.md); its verdict is ``undecided`` with that reason.
 A turned TOF moves the fusion far less than a turned camera: the TOF only supplies depth,
 and a rotation of the depth changes the parallax correction, not where a camera looks.
 
@@ -72,9 +72,9 @@ MAX_SPREAD_S = 0.012
 other (:func:`synchronous`): a head turning at 4 degrees a second turns 0.05 degrees in
 12 ms, which two sensors' frames taken that far apart would read as drift."""
 TOF_NOT_CHECKED = (
-    "the TOF's own rotation is not checked: its 176x144 picture does not resolve it against "
-    "the cameras' edges (it only supplies depth; a turned TOF moves the fusion far less than "
-    "a turned camera)"
+    "the TOF's own rotation is not checked: its picture does not resolve it against the "
+    "cameras' edges (it only supplies depth; a turned TOF moves the fusion far less than a "
+    "turned camera)"
 )
 
 

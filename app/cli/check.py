@@ -14,7 +14,7 @@ from trifuse.app.cli.output import err, out
 
 if TYPE_CHECKING:
     from trifuse.calib.rig import Rig
-    from trifuse.fusion.drift import DriftReport
+    from trifuse.fusion.drift import DriftReport, SensorCheck
 
 EXIT_DRIFTED = 3
 """The exit code when a sensor is ``drifted``."""
@@ -31,7 +31,8 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
             "two thermal imagers through the TOF depth: the rotation that best aligns their "
             "edges. Each sensor's verdict over the recording's last 60 s: ok, drifted (turned "
             "by more than 0.15 degrees, by 4 standard deviations) or undecided (with the "
-            "reason). Exit 0 when every camera is ok, 3 when one is drifted, 1 on an error. "
+            "reason). Exit 3 when a sensor is drifted, 0 when none is (ok or undecided), 1 on an "
+            "error. "
             "--refine writes the rig with the drifted sensors turned back (never by more "
             "than 2 degrees: that needs a recalibration)."
         ),
@@ -134,15 +135,19 @@ def json_result(report: DriftReport, first: dict[str, float], span_s: float) -> 
     return d
 
 
-def _deg3(v: tuple[float, float, float] | None) -> str:
-    return "–" if v is None else "[" + ", ".join(f"{x:+.3f}" for x in v) + "]"
+def _rotation_text(s: SensorCheck) -> str:
+    if s.rotation_deg is None or s.sigma_deg is None:
+        return "not estimated"
+    rot = ", ".join(f"{x:+.3f}" for x in s.rotation_deg)
+    sig = ", ".join(f"{x:.3f}" for x in s.sigma_deg)
+    return f"[{rot}]° ± [{sig}]°"
 
 
 def report_lines(
     recording: str, report: DriftReport, first: dict[str, float], span_s: float
 ) -> list[str]:
     """The human-readable result: a header, a line per sensor (verdict, rotation and sigma
-    in degrees about the sensor's x, y, z, the reason), the problems met."""
+    in degrees about the sensor's own x, y, z axes, the reason), the last problems met."""
     from trifuse.fusion.drift import WINDOW_S
 
     lines = [
@@ -154,7 +159,7 @@ def report_lines(
         since = f" (first at {first[name]:.0f} s)" if name in first else ""
         lines.append(
             f"  {name:<{width}}  {s.verdict.upper() if s.verdict == 'drifted' else s.verdict:<9}"
-            f"  rotation {_deg3(s.rotation_deg)}°  σ {_deg3(s.sigma_deg)}°  {s.reason}{since}"
+            f"  {_rotation_text(s)}  {s.reason}{since}"
         )
     for p in report.problems[-3:]:
         lines.append(f"  note: {p}")
