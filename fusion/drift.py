@@ -28,6 +28,12 @@ where a check needs 0.05 degrees (docs/FINDINGS.md); its verdict is ``undecided`
 A turned TOF moves the fusion far less than a turned camera: the TOF only supplies depth,
 and a rotation of the depth changes the parallax correction, not where a camera looks.
 
+Only rotations are estimated. A sensor shifted by 2 mm moves its picture by 0.8 thermal
+pixels at 1 m and 0.2 at 4 m (fx 400), a turn of 0.1 degrees by 0.7 pixels at any depth: on
+scenes 1-10 m away a small shift looks like a smaller turn and cannot be told apart from it
+with the TOF's depth errors (tens of millimetres), so a bump's shift is absorbed into the
+rotation that best restores the agreement over the depths seen.
+
 :func:`refined_rig` applies the drifted sensors' corrections (the next rig version); a
 correction larger than :data:`REFUSE_DEG` is refused: that needs a recalibration.
 
