@@ -6,7 +6,8 @@ on the live frame sets by :class:`DriftWatch`, at most every :data:`PERIOD_S` an
 :data:`CPU_SHARE` of a core, while the fusion is wanted (:mod:`app.server.runtime.demand`):
 
 1. in the fusion thread (a set listener of :class:`~app.server.runtime.pipeline.
-   FusionPipeline`), a frame set is taken when a check is due and the set is usable: a
+   FusionPipeline`), a frame set is taken when a check is due (and none is under way: a
+   measure may take longer than the period) and the set is usable: a
    frame of every camera (colour and thermal) and the TOF with its depth, their stamps
    within 12 ms of each other (:func:`fusion.drift.synchronous`: frames taken apart while
    the head turns would read as drift), not the set measured last (a paused replay). Its
@@ -308,8 +309,8 @@ class DriftWatch:
         if not p.wanted:
             return
         now = self.clock()
-        if now < self._due_s:
-            return
+        if now < self._due_s or self._worker.busy:
+            return  # a measure under way sets the next due time when it ends
         rig = p.rig
         why = unusable(rig, fs)
         if why is None and fs.stamp_ns == self._last_stamp_ns:

@@ -138,6 +138,12 @@ def test_a_measure_is_due_at_most_every_period_and_within_its_share_of_a_core(fa
     assert watch.measured_share() == pytest.approx(0.5 / 5.5)
     share = watch.status()["cpu_share"]
     assert share == pytest.approx(0.5 / 5.5, abs=1e-4) and share < CPU_SHARE
+    # none while a measure is under way (it may take longer than the period)
+    CLOCK.now = 300.0
+    watch._worker.busy = True
+    watch._on_set(frame_set(rig, T0_NS + 9 * 10**9, 5))
+    assert len(jobs) == 2
+    watch._worker.busy = False
     # the same frame set again (a paused replay) is not measured twice
     CLOCK.now = 200.0
     watch._on_set(fs)
