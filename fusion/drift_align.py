@@ -167,11 +167,17 @@ def patch_centres(width: int, height: int, patch: int) -> np.ndarray:
 
 
 def _patch_sums(x: np.ndarray, ny: int, nx: int, p: int) -> np.ndarray:
-    return x.reshape(ny, p, nx, p).sum(axis=(1, 3))
+    """(ny, nx) sums of the p x p patches of a (ny p, nx p) float32 image (an area
+    resize: a patch's mean, times its pixels)."""
+    return cv2.resize(x, (nx, ny), interpolation=cv2.INTER_AREA) * float(p * p)
 
 
 def _per_pixel(x: np.ndarray, p: int) -> np.ndarray:
-    return np.repeat(np.repeat(x, p, axis=0), p, axis=1)
+    """(ny, nx) patch values repeated over their p x p pixels, float32."""
+    ny, nx = x.shape[:2]
+    return cv2.resize(
+        np.ascontiguousarray(x, dtype=np.float32), (nx * p, ny * p), interpolation=cv2.INTER_NEAREST
+    )
 
 
 def align_patches(
@@ -238,8 +244,9 @@ def align_patches(
             Bn = Bc / _per_pixel(sb, patch)
             gxb = cv2.Sobel(B, cv2.CV_32F, 1, 0, ksize=3, scale=0.125) * mf
             gyb = cv2.Sobel(B, cv2.CV_32F, 0, 1, ksize=3, scale=0.125) * mf
-            gxb /= _per_pixel(sb, patch)
-            gyb /= _per_pixel(sb, patch)
+            inv = _per_pixel(np.where(sb > 1e-6, 1.0 / sb, 0.0).astype(np.float32), patch)
+            gxb *= inv  # a patch without contrast gets no gradient (and no update)
+            gyb *= inv
             e = An - Bn
             hxx = _patch_sums(gxb * gxb, ny, nx, patch)
             hxy = _patch_sums(gxb * gyb, ny, nx, patch)
