@@ -69,8 +69,14 @@ SIGNIFICANCE = 4.0
 UNDECIDED_SIGMA_DEG = 0.05
 """A sensor whose rotation is known worse than this (1-sigma, any axis, degrees) is
 undecided unless clearly drifted: not enough structure seen yet."""
-MIN_MEASUREMENTS = 3
-"""A pair counts once it has this many measurements in the window."""
+MIN_MEASUREMENTS = 4
+"""A pair counts once it has this many measurements in the window (with three, a scatter
+is barely known: a refined rig 0.11 degrees off was seen once, where four gave 0.02)."""
+PAIR_FLOOR_DEG = 0.02
+"""The part of a pair's error that averaging does not remove (1-sigma per axis, degrees):
+the check's systematic error on the simulator, about 0.02 degrees (docs/FINDINGS.md),
+added to every pair's combined covariance. A sensor compared with two others is then known
+to 0.014 degrees at best, and ``drifted`` needs at least 0.21 degrees."""
 REFUSE_DEG = 2.0
 """A correction larger than this, degrees, is refused by :func:`refined_rig`: recalibrate."""
 MAX_SPREAD_S = 0.012
@@ -124,7 +130,8 @@ class PairEstimate:
 def combine(measurements: list[PairRotation], huber_k: float = 2.0) -> PairEstimate | None:
     """A pair's measurements combined: the information-weighted mean with Huber weights on
     each measurement's Mahalanobis distance from it; covariance the larger (in trace) of the
-    formal one and the weighted scatter divided by the count. None when empty."""
+    formal one and the weighted scatter divided by the count, plus :data:`PAIR_FLOOR_DEG`'s.
+    None when empty."""
     if not measurements:
         return None
     th = np.stack([m.theta for m in measurements])
@@ -145,6 +152,7 @@ def combine(measurements: list[PairRotation], huber_k: float = 2.0) -> PairEstim
         cov = scatter if np.trace(scatter) > np.trace(formal) else formal
     else:
         cov = formal
+    cov = cov + np.eye(3) * math.radians(PAIR_FLOOR_DEG) ** 2
     m0 = measurements[0]
     return PairEstimate(m0.work, m0.other, mean, cov, n)
 
@@ -240,32 +248,36 @@ def solve_sensors(
     estimates: list[PairEstimate],
 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """Each compared sensor's rotation (3,) radians, rig frame, and its covariance (3, 3):
-    least squares over the pairs (``theta = delta_work - delta_other``), the geometric
-    median of the sensors' rotations taken out (module docstring, step 3). A sensor's
-    covariance is that of its own pairs with the partners held: ``(sum C_p^-1)^-1``."""
-    names = sorted({p.work for p in estimates} | {p.other for p in estimates})
-    if not names:
-        return {}, {}
-    idx = {n: i for i, n in enumerate(names)}
-    k = len(names)
-    N = np.zeros((3 * k, 3 * k))
-    rhs = np.zeros(3 * k)
-    own = {n: np.zeros((3, 3)) for n in names}
-    for p in estimates:
-        W = np.linalg.inv(p.cov)
-        i, j = 3 * idx[p.work], 3 * idx[p.other]
-        for a, sa in ((i, 1.0), (j, -1.0)):
-            rhs[a : a + 3] += sa * (W @ p.theta)
-            for b, sb in ((i, 1.0), (j, -1.0)):
-                N[a : a + 3, b : b + 3] += sa * sb * W
-        own[p.work] += W
-        own[p.other] += W
-    scale = np.trace(N) / (3 * k)
-    A = np.kron(np.ones((k, k)), np.eye(3)) * 1e-6 * scale  # sum of rotations = 0
-    delta = np.linalg.solve(N + A, rhs).reshape(k, 3)
-    delta -= _geometric_median(delta)
-    rot = {n: delta[idx[n]] for n in names}
-    cov = {n: np.linalg.pinv(own[n]) for n in names}
+    least squares over the pairs (``theta = delta_work - delta_other``), in each connected
+    group of sensors (:func:`groups`) the geometric median of its sensors' rotations taken
+    out (module docstring, step 3). A sensor's covariance is that of its own pairs with the
+    partners held: ``(sum C_p^-1)^-1``."""
+    rot: dict[str, np.ndarray] = {}
+    cov: dict[str, np.ndarray] = {}
+    for names in groups(estimates):
+        idx = {n: i for i, n in enumerate(names)}
+        k = len(names)
+        N = np.zeros((3 * k, 3 * k))
+        rhs = np.zeros(3 * k)
+        own = {n: np.zeros((3, 3)) for n in names}
+        for p in estimates:
+            if p.work not in idx:
+                continue
+            W = np.linalg.inv(p.cov)
+            i, j = 3 * idx[p.work], 3 * idx[p.other]
+            for a, sa in ((i, 1.0), (j, -1.0)):
+                rhs[a : a + 3] += sa * (W @ p.theta)
+                for b, sb in ((i, 1.0), (j, -1.0)):
+                    N[a : a + 3, b : b + 3] += sa * sb * W
+            own[p.work] += W
+            own[p.other] += W
+        scale = np.trace(N) / (3 * k)
+        A = np.kron(np.ones((k, k)), np.eye(3)) * 1e-6 * scale  # the group's sum = 0
+        delta = np.linalg.solve(N + A, rhs).reshape(k, 3)
+        delta -= _geometric_median(delta)
+        for n in names:
+            rot[n] = delta[idx[n]]
+            cov[n] = np.linalg.pinv(own[n])
     return rot, cov
 
 
@@ -298,8 +310,8 @@ def verdict(
     return "undecided", f"{text}: above {DRIFT_DEG}° but not by {SIGNIFICANCE:g} σ yet"
 
 
-def _components(estimates: list[PairEstimate]) -> dict[str, int]:
-    """The size of each sensor's connected group in the graph of measured pairs."""
+def groups(estimates: list[PairEstimate]) -> list[list[str]]:
+    """The connected groups of sensors in the graph of measured pairs, each sorted."""
     parent: dict[str, str] = {}
 
     def root(x: str) -> str:
@@ -309,10 +321,10 @@ def _components(estimates: list[PairEstimate]) -> dict[str, int]:
 
     for p in estimates:
         parent[root(p.work)] = root(p.other)
-    sizes: dict[str, int] = {}
-    for n in list(parent):
-        sizes[root(n)] = sizes.get(root(n), 0) + 1
-    return {n: sizes[root(n)] for n in parent}
+    out: dict[str, list[str]] = {}
+    for n in sorted(parent):
+        out.setdefault(root(n), []).append(n)
+    return list(out.values())
 
 
 class DriftCheck:
@@ -410,7 +422,7 @@ class DriftCheck:
             if len(ms) >= MIN_MEASUREMENTS and (e := combine(ms)) is not None
         ]
         rot, cov = solve_sensors(estimates)
-        comp = _components(estimates)
+        comp = {n: len(g) for g in groups(estimates) for n in g}
         partners: dict[str, set[str]] = {}
         for p in estimates:
             partners.setdefault(p.work, set()).add(p.other)
