@@ -85,6 +85,8 @@ class _Job:
     rig: Rig
     tof: str
     cells: dict[str, tuple[np.ndarray, np.ndarray, int]]
+    version: int = 0
+    """The depth's version (``step.depth.version``)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -153,6 +155,7 @@ class RegistrationWatch:
         self._results: dict[str, EyeRegistration] = {}
         self._due_s = -float("inf")
         self._taken: tuple[StereoFusion, int] | None = None  # the depth last estimated
+        self._pending: _Job | None = None  # the newest depth met while an estimate ran
         self._worker: LatestWorker[_Job] = LatestWorker(
             self._compute, name="registration-sigma", on_error=self._failed
         )
@@ -179,7 +182,9 @@ class RegistrationWatch:
 
     def _on_set(self, _fs: FrameSet) -> None:
         """A frame set arrived (fusion thread): take the eyes' coarse cells when an estimate
-        is due and the depth changed since the last one."""
+        is due and the depth changed since the last one; while an estimate runs, keep the
+        newest depth for when it ends (:meth:`_compute`), so that an estimate longer than
+        the period never queues the next one past :data:`CPU_SHARE`."""
         p = self.pipeline
         if not p.wanted:
             return
@@ -193,14 +198,19 @@ class RegistrationWatch:
         taken = self._taken
         if taken is not None and taken[0] is fusion and taken[1] == step.depth.version:
             return  # the same depth: the estimates still hold
-        self._due_s = now + self.period_s
-        self._taken = (fusion, step.depth.version)
         cells = {}
         for e in fusion.eyes:
             mapping = fusion.fusion[e].forward
             z, ok, _ = mapping.coarse_cells()  # new arrays at each update: safe to hand on
             cells[e] = (z, ok, mapping.options.scale)
-        self._worker.submit(_Job(fusion, step.rig, fusion.tof, cells))
+        job = _Job(fusion, step.rig, fusion.tof, cells, step.depth.version)
+        with self._lock:
+            self._taken = (fusion, step.depth.version)
+            if self._worker.busy:
+                self._pending = job
+                return
+            self._due_s = now + self.period_s
+        self._worker.submit(job)
 
     # -- the worker thread -------------------------------------------------------------------
 
@@ -211,8 +221,20 @@ class RegistrationWatch:
             self._estimate(job, errors)
         finally:
             spent = self.clock() - started
-            self._due_s = max(self._due_s, self.clock() + spent / CPU_SHARE)
+            now = self.clock()
+            with self._lock:
+                self._due_s = max(self._due_s, now + spent / CPU_SHARE)
+                pending, self._pending = self._pending, None
+                if pending is not None and pending.fusion is not self.pipeline.fusion:
+                    pending = None  # made for a rig no longer in use
+                elif pending is not None and now < self._due_s:
+                    self._taken = None  # not due yet: taken again by the next set when due
+                    pending = None
+                elif pending is not None:
+                    self._due_s = now + self.period_s
         self.error = "; ".join(errors) or None
+        if pending is not None:
+            self._worker.submit(pending)
 
     def _estimate(self, job: _Job, errors: list[str]) -> None:
         rig = job.rig
