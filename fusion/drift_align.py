@@ -12,8 +12,8 @@ The building block of the drift check (:mod:`fusion.drift`). For a pair of senso
    first when it is finer, so that it is not aliased), so that both pictures show the same
    3D point at the same pixel if the rig is right;
 3. both are turned into edge strength (gradient magnitude after a Gaussian blur), which
-   thermal, colour, TOF amplitude and TOF depth share at object boundaries even where their
-   intensities have nothing in common;
+   thermal and colour pictures share at object boundaries even where their intensities have
+   nothing in common;
 4. the picture is cut into square patches; in each, the shift ``t`` (work pixels) that makes
    the other's edges ``B(u + t)`` best match the work sensor's ``A(u)``, both normalised to
    zero mean and unit variance over the patch (Lucas-Kanade, coarse to fine over blurs of
@@ -343,7 +343,7 @@ class PairProbe:
         for s in (sw, so):
             if s is not rig[s.name]:
                 wr = wr.with_sensor(s)
-        self.sensor, self.other_sensor = sw, so
+        self.sensor = sw
         scale = max(1, round(sw.intrinsics.fx / rig[self.tof].intrinsics.fx))
         self.mapping = ViewMapping(wr, work, other, options=MappingOptions(scale=scale), grid=grid)
         self.blur = 0.5 * so.intrinsics.fx / sw.intrinsics.fx
@@ -352,16 +352,11 @@ class PairProbe:
         self.jacobian = rotation_jacobian(sw, patch_centres(*sw.image_size, self.patch))
 
     def measure(
-        self,
-        work_image_: np.ndarray,
-        other_image: np.ndarray,
-        points_tof: np.ndarray,
-        distance_m: np.ndarray | None = None,
+        self, work_image_: np.ndarray, other_image: np.ndarray, points_tof: np.ndarray
     ) -> PairRotation | str:
         """One measurement from the pair's work-resolution images (:func:`work_image`) and
-        the TOF points (N, 3) TOF frame, metres, of the same instant (``distance_m``: the TOF
-        distance image, needed when the work sensor is the TOF: its depth edges join its
-        amplitude edges). Returns the rotation, or why there is none (a sentence)."""
+        the TOF points (N, 3) TOF frame, metres, of the same instant. Returns the rotation,
+        or why there is none (a sentence)."""
         m = self.mapping
         m.update_points(points_tof)
         b_src = other_image
@@ -369,10 +364,7 @@ class PairProbe:
             b_src = cv2.GaussianBlur(b_src, (0, 0), self.blur)
         b = m.warp(b_src)
         valid = np.isfinite(b) & ~m.fallback & np.isfinite(work_image_)
-        a = work_image_
-        if self.sensor.modality == "tof" and distance_m is not None:
-            a = _tof_edges_image(work_image_, distance_m)
-        shifts = align_patches(a, np.nan_to_num(b), valid, self.patch)
+        shifts = align_patches(work_image_, np.nan_to_num(b), valid, self.patch)
         if shifts is None:
             return f"{self.work} against {self.other}: no patch with structure seen by both"
         fit = fit_rotation(shifts, self.jacobian[shifts.index])
@@ -383,12 +375,3 @@ class PairProbe:
         return PairRotation(
             self.work, self.other, R @ theta, R @ cov @ R.T, len(shifts.shifts), scale
         )
-
-
-def _tof_edges_image(log_amplitude: np.ndarray, distance_m: np.ndarray) -> np.ndarray:
-    """The TOF's picture for alignment: its log amplitude plus its log distance scaled to a
-    comparable contrast, so that both reflectance and depth edges show."""
-    d = np.log(np.clip(np.nan_to_num(distance_m, nan=10.0), 0.1, 20.0)).astype(np.float32)
-    sa = float(np.std(log_amplitude)) + 1e-6
-    sd = float(np.std(d)) + 1e-6
-    return log_amplitude / sa + d / sd
