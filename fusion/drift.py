@@ -332,7 +332,7 @@ class DriftCheck:
     :data:`WINDOW_S` seconds (module docstring).
 
     :meth:`measure` per instant (a frame set with every camera's image and the TOF's
-    distance; about 0.1-0.2 s of one core for the simulated head's four pairs); :meth:`report`
+    distance; about 0.3 s of one core for the simulated head's four pairs); :meth:`report`
     whenever a verdict is wanted. Not thread-safe: one thread measures and reports.
     """
 
@@ -346,17 +346,18 @@ class DriftCheck:
             self.tof = None
         self.pairs = camera_pairs(rig)
         self._probes: list[PairProbe] | None = None
+        self._grid: TofGrid | None = None
         self._history: deque[tuple[float, list[PairRotation]]] = deque()
         self._problems: deque[str] = deque(maxlen=8)
         self._edge_rel = MappingOptions().edge_rel
 
-    def _ensure_probes(self) -> list[PairProbe]:
-        if self._probes is None:
+    def _ensure_probes(self) -> tuple[list[PairProbe], TofGrid]:
+        """The pairs' probes and the TOF's rays, made at the first measure."""
+        if self._probes is None or self._grid is None:
             assert self.tof is not None
-            grid = TofGrid(self.rig, self.tof)
-            self._probes = [PairProbe(self.rig, a, b, grid) for a, b in self.pairs]
-            self._grid = grid
-        return self._probes
+            self._grid = TofGrid(self.rig, self.tof)
+            self._probes = [PairProbe(self.rig, a, b, self._grid) for a, b in self.pairs]
+        return self._probes, self._grid
 
     def measure(self, t_s: float, frames: Mapping[str, Any]) -> list[PairRotation]:
         """Measure every pair on one instant's frames (``frames[name]``: an object with
@@ -370,8 +371,8 @@ class DriftCheck:
         if tof is None or getattr(tof, "distance_m", None) is None:
             self._problem(f"no TOF depth ({self.tof}) at this instant")
             return []
-        probes = self._ensure_probes()
-        points = self._grid.points(tof.distance_m, self._edge_rel)
+        probes, grid = self._ensure_probes()
+        points = grid.points(tof.distance_m, self._edge_rel)
         if len(points) < 100:
             self._problem(f"the TOF ({self.tof}) sees almost nothing ({len(points)} points)")
             return []
@@ -435,15 +436,14 @@ class DriftCheck:
                 sensors[name] = SensorCheck("undecided", None, None, TOF_NOT_CHECKED)
                 continue
             if name not in rot:
-                why = problems[-1] if problems else "no measurement yet"
-                if not self._history:
+                if not any(name in pair for pair in self.pairs):
+                    why = "not compared: no pair of this rig includes it"
+                elif not self._history:
                     why = problems[-1] if problems else "nothing measured yet"
-                elif any(name in pair for pair in self.pairs):
+                else:
                     why = f"fewer than {MIN_MEASUREMENTS} measurements with structure yet"
                     if problems:
                         why += f" (last problem: {problems[-1]})"
-                else:
-                    why = "not compared: no pair of this rig includes it"
                 sensors[name] = SensorCheck("undecided", None, None, why)
                 continue
             R = s.T_rig_sensor[:3, :3]
