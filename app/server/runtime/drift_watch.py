@@ -41,8 +41,8 @@ from typing import Any
 import numpy as np
 
 from trifuse.app.errors import describe_error
-from trifuse.app.latest_worker import LatestWorker
 from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.set_watch import SetWatch
 from trifuse.app.sources.frames import Frame, FrameSet
 from trifuse.app.workflows.calib_session import RigVersion
 from trifuse.calib.rig import Rig
@@ -233,7 +233,7 @@ def sensor_status(s: SensorCheck) -> dict[str, Any]:
     } | {"pairs": d["pairs"]}
 
 
-class DriftWatch:
+class DriftWatch(SetWatch[_Job]):
     """Checks the live head for calibration drift in the background (see the module doc).
 
     Args:
@@ -262,10 +262,8 @@ class DriftWatch:
     ) -> None:
         if not 0 < cpu_share <= 1:
             raise ValueError(f"cpu_share: expected a share of a core in (0, 1], got {cpu_share}")
-        self.pipeline = pipeline
+        super().__init__(pipeline, "drift-check", self._compute)
         self.period_s, self.cpu_share, self.clock = period_s, cpu_share, clock
-        self.error: str | None = None
-        self.error_count = 0
         self.measures = 0
         self.waiting: str | None = None
         self.last_refine: dict[str, Any] | None = None
@@ -278,27 +276,7 @@ class DriftWatch:
         self._spent: deque[tuple[float, float]] = deque()  # (start, seconds) of the measures
         self._check: DriftCheck | None = None  # the worker thread's
         self._check_generation = -1
-        self._worker: LatestWorker[_Job] = LatestWorker(
-            self._compute, name="drift-check", on_error=self._failed
-        )
-        pipeline.set_listeners.append(self._on_set)
-
-    def start(self) -> DriftWatch:
-        self._worker.start()
-        return self
-
-    def stop(self, timeout_s: float = 2.0) -> None:
-        """No more measures; waits up to ``timeout_s`` for one under way."""
-        try:
-            self.pipeline.set_listeners.remove(self._on_set)
-        except ValueError:
-            pass
-        self._worker.stop(timeout_s)
-
-    @property
-    def busy(self) -> bool:
-        """A measure is waiting or under way."""
-        return self._worker.busy
+        self._listen()
 
     # -- the fusion thread -------------------------------------------------------------------
 
@@ -354,10 +332,6 @@ class DriftWatch:
         with self._lock:
             if job.generation == self._generation:
                 self._state = DriftState(report, job.rig, ended, spent)
-
-    def _failed(self, exc: Exception) -> None:
-        self.error = describe_error(exc)
-        self.error_count += 1
 
     # -- any thread --------------------------------------------------------------------------
 

@@ -40,8 +40,8 @@ from typing import Any
 import numpy as np
 
 from trifuse.app.errors import describe_error
-from trifuse.app.latest_worker import LatestWorker
 from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.set_watch import SetWatch
 from trifuse.app.sources.frames import FrameSet
 from trifuse.calib.parameter_covariance import ParameterCovariance
 from trifuse.calib.rig import Rig
@@ -123,7 +123,7 @@ class EyeRegistration:
         }
 
 
-class RegistrationWatch:
+class RegistrationWatch(SetWatch[_Job]):
     """Estimates each eye's registration sigma in the background (see the module doc).
 
     Args:
@@ -146,37 +146,15 @@ class RegistrationWatch:
         max_cells: int = MAX_CELLS,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        self.pipeline = pipeline
+        super().__init__(pipeline, "registration-sigma", self._compute)
         self.period_s, self.max_cells, self.clock = period_s, max_cells, clock
-        self.error: str | None = None
-        self.error_count = 0
         self.estimates = 0
         self._lock = threading.Lock()
         self._results: dict[str, EyeRegistration] = {}
         self._due_s = -float("inf")
         self._taken: tuple[StereoFusion, int] | None = None  # the depth last estimated
         self._pending: _Job | None = None  # the newest depth met while an estimate ran
-        self._worker: LatestWorker[_Job] = LatestWorker(
-            self._compute, name="registration-sigma", on_error=self._failed
-        )
-        pipeline.set_listeners.append(self._on_set)
-
-    def start(self) -> RegistrationWatch:
-        self._worker.start()
-        return self
-
-    def stop(self, timeout_s: float = 2.0) -> None:
-        """No more estimates; waits up to ``timeout_s`` for one under way."""
-        try:
-            self.pipeline.set_listeners.remove(self._on_set)
-        except ValueError:
-            pass
-        self._worker.stop(timeout_s)
-
-    @property
-    def busy(self) -> bool:
-        """An estimate is waiting or under way."""
-        return self._worker.busy
+        self._listen()
 
     # -- the fusion thread -------------------------------------------------------------------
 
@@ -261,10 +239,6 @@ class RegistrationWatch:
             with self._lock:
                 self._results[e] = EyeRegistration(sigma, overlay, stride, t1, t1 - t0, job.fusion)
             self.estimates += 1
-
-    def _failed(self, exc: Exception) -> None:
-        self.error = describe_error(exc)
-        self.error_count += 1
 
     # -- any thread --------------------------------------------------------------------------
 
