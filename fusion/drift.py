@@ -11,8 +11,10 @@ notices it on ordinary scenes:
    is measured (:mod:`fusion.drift_align`): ``delta_a - delta_b`` (rig frame), where
    ``delta_s`` is the small rotation by which sensor ``s`` is really turned against the rig
    (its own frame: ``T_rig_s(true) = T_rig_s @ [[R(delta_s), 0], [0, 1]]``, ``R`` Rodrigues);
-2. over the last :data:`WINDOW_S` seconds, each pair's measurements are combined (a robust
-   mean; its uncertainty the larger of the measurements' own and their scatter);
+2. over the last :data:`WINDOW_S` seconds, each pair's measurements are combined
+   (:func:`combine`: a robust random-effects mean, so that instants that really differ, as
+   the views of a real rig that is not rigid do, widen the uncertainty instead of bending
+   the mean);
 3. the sensors' rotations are solved from the pairs (least squares), in the gauge where
    they are smallest together (the geometric median of the sensors' rotations is taken
    out: the sensors that did not move agree and define "unmoved");
@@ -79,6 +81,9 @@ added to every pair's combined covariance. A sensor compared with two others is 
 to 0.014 degrees at best, and ``drifted`` needs at least 0.21 degrees."""
 REFUSE_DEG = 2.0
 """A correction larger than this, degrees, is refused by :func:`refined_rig`: recalibrate."""
+OUTLIER_D = 4.0
+"""A measurement farther than this (Mahalanobis, 3 degrees of freedom: 99.9 % of normal
+ones are nearer) from a pair's mean is left out of the spread :func:`combine` estimates."""
 MAX_SPREAD_S = 0.012
 """An instant is measured only when its frames' stamps lie within this many seconds of each
 other (:func:`synchronous`): a head turning at 4 degrees a second turns 0.05 degrees in
@@ -127,32 +132,47 @@ class PairEstimate:
     count: int
 
 
+def _psd(a: np.ndarray) -> np.ndarray:
+    """The symmetric (3, 3) matrix ``a`` with its negative eigenvalues set to 0."""
+    vals, vecs = np.linalg.eigh(0.5 * (a + a.T))
+    return (vecs * np.maximum(vals, 0.0)) @ vecs.T
+
+
 def combine(measurements: list[PairRotation], huber_k: float = 2.0) -> PairEstimate | None:
-    """A pair's measurements combined: the information-weighted mean with Huber weights on
-    each measurement's Mahalanobis distance from it; covariance the larger (in trace) of the
-    formal one and the weighted scatter divided by the count, plus :data:`PAIR_FLOOR_DEG`'s.
+    """A pair's measurements combined as a random-effects mean: each measurement's covariance
+    is its own plus ``Q``, the spread of the instants' true values that the measurements'
+    own covariances do not explain (the scene, the sensors' sync, a rig that is not rigid),
+    estimated from the scatter of the measurements nearer than :data:`OUTLIER_D` (three or
+    more; started from the per-axis median absolute deviation); Huber weights on each
+    measurement's Mahalanobis distance. The mean's covariance is the weighted information's
+    inverse plus :data:`PAIR_FLOOR_DEG`'s. When the scatter is explained (``Q`` = 0) this is
+    the information-weighted mean; when it dominates, close to the plain mean with the
+    scatter over the count as covariance (weighting by the formal information alone, whose
+    correlations are then wrong, moved a real pair's roll by 0.5 degrees: docs/FINDINGS.md).
     None when empty."""
     if not measurements:
         return None
     th = np.stack([m.theta for m in measurements])
-    info = np.stack([np.linalg.inv(m.cov) for m in measurements])
-    w = np.ones(len(th))
+    C = np.stack([m.cov for m in measurements])
+    n = len(th)
+    w = np.ones(n)
     mean = np.median(th, axis=0)
-    for _ in range(8):
+    # a robust start for Q (the per-axis median absolute deviation), so that a spread the
+    # own covariances do not explain is not first taken for outliers
+    mad = 1.4826 * np.median(np.abs(th - mean), axis=0) if n >= 3 else np.zeros(3)
+    Q = _psd(np.diag(mad**2) - C.mean(axis=0) * np.eye(3))
+    for _ in range(12):
+        info = np.linalg.inv(C + Q)
         N = np.einsum("n,nij->ij", w, info)
         mean = np.linalg.solve(N, np.einsum("n,nij,nj->i", w, info, th))
         r = th - mean
         d = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", r, info, r), 0.0))
         w = np.minimum(1.0, huber_k * math.sqrt(3.0) / np.maximum(d, 1e-12))
-    formal = np.linalg.inv(N)
-    n = len(th)
-    if n >= 3:
-        wr = r * np.sqrt(w)[:, None]
-        scatter = wr.T @ wr / max(1.0, float(w.sum()) - 1.0) / n
-        cov = scatter if np.trace(scatter) > np.trace(formal) else formal
-    else:
-        cov = formal
-    cov = cov + np.eye(3) * math.radians(PAIR_FLOOR_DEG) ** 2
+        keep = d < OUTLIER_D  # Q from the measurements that are not outliers
+        if n >= 3 and keep.sum() >= 3:
+            scatter = r[keep].T @ r[keep] / (keep.sum() - 1.0)
+            Q = _psd(scatter - C[keep].mean(axis=0))
+    cov = np.linalg.inv(N) + np.eye(3) * math.radians(PAIR_FLOOR_DEG) ** 2
     m0 = measurements[0]
     return PairEstimate(m0.work, m0.other, mean, cov, n)
 

@@ -51,6 +51,11 @@ class MappingOptions:
         edge_rel: neighbouring coarse depths differing by more than this fraction form a
             depth edge (nearest-neighbour upsampling there).
         fill_iterations: 3x3 passes that fill z-buffer holes from valid neighbours.
+        smooth_middle: on smooth surfaces (neighbouring depths within ``edge_rel``) a
+            z-buffer cell takes the middle of its neighbourhood's depths, not the nearest
+            (:meth:`DepthView.render`): no bias towards the camera on slanted surfaces. Off
+            for the fusion, whose registration sigma models the nearest
+            (:mod:`fusion.registration`); on for the drift check (:mod:`fusion.drift_align`).
     """
 
     scale: int = 4
@@ -59,6 +64,7 @@ class MappingOptions:
     occlusion_abs_m: float = 0.05
     edge_rel: float = 0.05
     fill_iterations: int = 2
+    smooth_middle: bool = False
 
 
 def splat_radius(spacing: float) -> int:
@@ -70,9 +76,12 @@ def splat_radius(spacing: float) -> int:
 class DepthView:
     """A z-buffer of TOF points in one sensor, at ``1/scale`` of its resolution."""
 
-    def __init__(self, rig: Rig, sensor: str, tof: str, scale: int) -> None:
+    def __init__(
+        self, rig: Rig, sensor: str, tof: str, scale: int, smooth_rel: float | None = None
+    ) -> None:
         if scale < 1:
             raise ValueError(f"scale: expected an integer >= 1, got {scale}")
+        self.smooth_rel = smooth_rel
         self.sensor: Sensor = rig[sensor]
         self.scale = scale
         w, h = self.sensor.image_size
@@ -84,6 +93,9 @@ class DepthView:
         self.z = np.full(self.shape, np.inf, dtype=np.float32)
         r = self.radius
         self._padded = np.empty((self.shape[0] + 2 * r, self.shape[1] + 2 * r), np.float32)
+        if smooth_rel is not None:
+            self._near = np.empty_like(self._padded)
+            self._far = np.empty_like(self._padded)
         self._footprint = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
 
     def render(self, points_tof: np.ndarray) -> np.ndarray:
@@ -93,6 +105,12 @@ class DepthView:
         depth covering it. Done as the nearest depth per cell (on a grid padded by
         ``radius``, so points just outside still cover the border) followed by a minimum
         over each cell's ``(2 radius + 1)^2`` neighbours (``cv2.erode``): the same minimum.
+        With ``smooth_rel`` (None: off), where those neighbours are all filled and lie within
+        ``smooth_rel`` of one another (a smooth surface, no depth edge), the cell takes the
+        middle of their range instead: on a slanted surface the minimum is nearer than the
+        surface by the slope times the radius (a board at 45 degrees 0.6 m away read 0.7 %
+        near, and a stereo pair 120 mm apart saw a 0.1 degree turn that was not there); the
+        middle of a plane's range is the plane itself.
         """
         R, t = self.T_sensor_tof[:3, :3], self.T_sensor_tof[:3, 3]
         P = points_tof @ R.T + t
@@ -112,8 +130,19 @@ class DepthView:
         pad.fill(np.inf)
         ok = (cu >= -r) & (cu < wc + r) & (cv >= -r) & (cv < hc + r)
         np.minimum.at(pad.ravel(), (cv[ok] + r) * (wc + 2 * r) + (cu[ok] + r), z[ok])
-        if r:
+        if r and self.smooth_rel is None:
             cv2.erode(pad, self._footprint, dst=pad)
+        elif r:
+            near, far = self._near, self._far
+            cv2.erode(pad, self._footprint, dst=near)
+            np.copyto(far, pad)
+            far[far == np.inf] = np.float32(1e9)  # an empty neighbour: not smooth
+            cv2.dilate(far, self._footprint, dst=far)
+            smooth = far - near <= self.smooth_rel * near
+            np.add(near, far, out=far)
+            far *= np.float32(0.5)
+            np.copyto(near, far, where=smooth)
+            pad = near
         np.copyto(self.z, pad[r : r + hc, r : r + wc])
         return self.z
 
@@ -183,10 +212,11 @@ class ViewMapping:
         self.tof = grid.tof
         self.target, self.source = rig[target], rig[source]
         s = self.options.scale
-        self.target_depth = DepthView(rig, target, self.tof, s)
+        smooth = self.options.edge_rel if self.options.smooth_middle else None
+        self.target_depth = DepthView(rig, target, self.tof, s, smooth)
         # The source's z-buffer decides occlusion; its cells as fine as a target cell.
         src_scale = max(1, round(s * self.source.intrinsics.fx / self.target.intrinsics.fx))
-        self.source_depth = DepthView(rig, source, self.tof, src_scale)
+        self.source_depth = DepthView(rig, source, self.tof, src_scale, smooth)
         w, h = self.target.image_size
         hc, wc = self.target_depth.shape
         # Rays of the coarse cells' centre pixels, rotated into the source frame.

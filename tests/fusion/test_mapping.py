@@ -15,7 +15,7 @@ from trifuse.calib.camera import Intrinsics
 from trifuse.calib.rig import Rig, Sensor
 from trifuse.calib.transforms import make_T
 from trifuse.fusion.accuracy import band_errors, depth_edges, exact_mapping, fixed_depth_mapping
-from trifuse.fusion.mapping import DepthView, EyeFusion, ViewMapping, mixed_pixels
+from trifuse.fusion.mapping import DepthView, EyeFusion, TofGrid, ViewMapping, mixed_pixels
 
 RIG = default_rig()
 NO_RANGE_ERROR = RangeErrorModel(
@@ -159,6 +159,39 @@ def test_z_buffer_keeps_the_nearest_point_over_each_footprint(scale: int) -> Non
     border = np.isfinite(want[0]).sum() + np.isfinite(want[:, 0]).sum()
     assert border > 0 and np.isfinite(want).mean() > 0.3  # the border and many cells covered
     np.testing.assert_array_equal(got, want)
+
+
+def test_smooth_middle_removes_the_nearest_depths_bias_on_a_slanted_plane() -> None:
+    """A plane turned 45 degrees about the vertical, 2 m ahead, seen by the TOF itself (its
+    own pixels, scale 1, radius 1): the nearest depth over each 3 x 3 footprint is nearer
+    than the plane by about one cell's change of depth; the middle of the footprint's depths
+    (``smooth_rel``) is the plane within a tenth of that. Where the footprint meets a step
+    of 1 m, both keep the nearest (the foreground wins)."""
+    tof = RIG[RIG.by_modality("tof")[0]]
+    rig = Rig({"tof": tof}, "tof")
+    w, h = tof.image_size
+    rays = TofGrid(rig).rays.astype(np.float64)
+    normal = np.array([np.sin(np.radians(45)), 0.0, np.cos(np.radians(45))])
+    d = 2.0 * np.cos(np.radians(45))  # n . X = d: through (0, 0, 2)
+    t = d / (rays @ normal)
+    step = np.zeros((h, w), bool)
+    step[:, : w // 3] = True  # a wall 1 m nearer on the left third
+    t[step] = (1.0 / rays[..., 2])[step]
+    points = (rays * t[..., None]).reshape(-1, 3).astype(np.float32)
+    plane_z = t * rays[..., 2]
+    nearest = DepthView(rig, "tof", "tof", 1).render(points).copy()
+    middle = DepthView(rig, "tof", "tof", 1, smooth_rel=0.05).render(points).copy()
+    inner = np.zeros((h, w), bool)
+    inner[2:-2, w // 3 + 2 : -2] = True  # on the plane, away from the step and the border
+    gx = np.abs(np.gradient(plane_z, axis=1))
+    bias_nearest = np.median((nearest - plane_z)[inner] / gx[inner])
+    bias_middle = np.median((middle - plane_z)[inner] / gx[inner])
+    assert -1.2 < bias_nearest < -0.8  # one cell's change of depth
+    assert abs(bias_middle) < 0.1
+    edge = np.zeros((h, w), bool)
+    edge[:, w // 3 - 1 : w // 3 + 1] = True  # footprints that meet both surfaces
+    np.testing.assert_array_equal(middle[edge], nearest[edge])
+    assert np.all(middle[edge] < 1.05 * plane_z[:, : w // 3].max())
 
 
 def test_mixed_pixels_are_only_those_between_two_surfaces() -> None:
