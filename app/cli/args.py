@@ -224,6 +224,11 @@ def bounded_seconds(low: float, high: float) -> Callable[[str], float]:
     )
 
 
+def share_of_a_core(text: str) -> float:
+    """An argparse type: a share of one core in ``[0.01, 1]``."""
+    return checked(float, lambda v: 0.01 <= v <= 1.0, "a share of one core from 0.01 to 1")(text)
+
+
 def add_every_argument(parser: argparse.ArgumentParser, what: str) -> None:
     """``--every N`` (default 1: all): ``what`` says what every N-th is, e.g. "use every
     N-th frame set"."""

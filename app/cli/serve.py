@@ -19,6 +19,7 @@ from trifuse.app.cli.args import (
     bounded_seconds,
     listen_port,
     port_number,
+    share_of_a_core,
     sim_drift_arg,
 )
 from trifuse.app.cli.choices import SCENARIOS
@@ -154,6 +155,14 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         action="store_true",
         help="build the thermal 3D map from the start (the 3D console's Thermal map folder "
         "and /api/map turn it on and off; maps are saved in WORKDIR/maps)",
+    )
+    srv.add_argument(
+        "--drift-share",
+        type=share_of_a_core,
+        metavar="F",
+        help="the share of one core the calibration health check (each camera's drift "
+        "against the rig, measured on the live scene) may take (default: 0.1); "
+        "more finds a drifted sensor sooner: four measures a camera pair are needed",
     )
     srv.add_argument(
         "--foxglove-port",
@@ -316,6 +325,7 @@ def run(args: argparse.Namespace) -> int:
                 args.console_bandwidth,
                 build_map=args.map,
                 foxglove_port=args.foxglove_port,
+                drift_share=args.drift_share,
             )
     finally:
         sock.close()

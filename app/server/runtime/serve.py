@@ -32,6 +32,7 @@ from trifuse.app.server.routers.viser_bridge import start_guarded_viser
 from trifuse.app.server.runtime.board_watch import BoardWatch
 from trifuse.app.server.runtime.context import ConsoleBandwidth, ConsoleContext
 from trifuse.app.server.runtime.demand import ConsoleDemand, hold_while_connected
+from trifuse.app.server.runtime.drift_watch import CPU_SHARE as DRIFT_CPU_SHARE
 from trifuse.app.server.runtime.drift_watch import DriftWatch
 from trifuse.app.server.runtime.foxglove_live import FoxgloveLive
 from trifuse.app.server.runtime.map_worker import MapWorker
@@ -132,6 +133,7 @@ def serve(
     console_bandwidth: str = "full",
     build_map: bool = False,
     foxglove_port: int | None = None,
+    drift_share: float | None = None,
 ) -> None:
     """Run the console until interrupted; the calibration session lives in ``workdir``.
     ``auth`` (auth.py) guards every route and WebSocket; its port is the one served, on
@@ -140,7 +142,8 @@ def serve(
     build the thermal 3D map from the start (map_worker.py; else the operator turns it
     on). ``foxglove_port``: also publish the live frames, transforms, calibrations, fused
     video, TOF cloud and health on foxglove-sdk's WebSocket server at 127.0.0.1:PORT
-    (foxglove_live.py; OSError in one line if the port is taken)."""
+    (foxglove_live.py; OSError in one line if the port is taken). ``drift_share``: the
+    share of one core the drift check may take (drift_watch.py; None: its default)."""
     port = auth.port
     source, rig = opened.source, opened.rig
     try:  # first: a work directory of another board or rig is refused before anything runs
@@ -165,9 +168,9 @@ def serve(
     # registration display mode, the Fusion panel)
     registration = RegistrationWatch(pipeline)
     # the calibration's health: each camera's drift against the rig in use, measured at
-    # most every 2 s within 10 % of a core while the fusion is wanted (/api/status, the
-    # Calibration panel's line, alert and Refine rig, the viewer's overlay)
-    drift = DriftWatch(pipeline)
+    # most every 2 s within drift_share of a core (10 %) while the fusion is wanted
+    # (/api/status, the Calibration panel's line, alert and Refine rig, the viewer's overlay)
+    drift = DriftWatch(pipeline, cpu_share=drift_share or DRIFT_CPU_SHARE)
     ctx = ConsoleContext(
         server=server,
         source=source,

@@ -9,7 +9,7 @@ import pytest
 
 from tests.support import run_cli
 from trifuse.app.cli import build_parser
-from trifuse.app.cli.args import listen_port, port_number
+from trifuse.app.cli.args import listen_port, port_number, share_of_a_core
 
 SUGGESTIONS = [
     (
@@ -107,3 +107,13 @@ def test_port_types() -> None:
             parse(text)
     with pytest.raises(argparse.ArgumentTypeError, match=r"expected a port number .* got 'abc'"):
         listen_port("abc")
+
+
+def test_share_of_a_core() -> None:
+    assert [share_of_a_core(t) for t in ("0.01", "0.5", "1")] == [0.01, 0.5, 1.0]
+    for text in ("0", "1.5", "nan", "x"):
+        with pytest.raises(argparse.ArgumentTypeError, match=r"one core from 0\.01 to 1"):
+            share_of_a_core(text)
+    args = build_parser().parse_args(["serve", "--drift-share", "0.5"])
+    assert args.drift_share == 0.5
+    assert build_parser().parse_args(["serve"]).drift_share is None  # the watch's 0.1
