@@ -259,7 +259,7 @@ def test_viewer_colour_scale_shows_the_palette_and_span_in_each_eye(console, bro
         page.wait_for_function(
             f"() => {_end_label('right', 'high')}.textContent === '40.0'"
             f" && {_end_label('left', 'low')}.textContent === '20.0'"
-            " && window.trifuseStats.scale.agc === 'linear'",
+            " && window.trifuseStats.scale?.agc === 'linear'",
         )
         s = page.evaluate(_SCALES)
         _check_scales_beside_the_picture(s, "1280x720, manual")

@@ -127,7 +127,7 @@ def test_viewer_switches_to_the_registration_mode_and_draws_its_scale(console, b
             lambda: page.evaluate("() => document.getElementById('mode').value") == fusion["mode"],
             "the select back at the console's mode",
         )
-        page.wait_for_function("() => window.trifuseStats.scale.kind === 'temperature'")
+        page.wait_for_function("() => window.trifuseStats.scale?.kind === 'temperature'")
     finally:
         console.request("/api/fusion", "PUT", fusion)
         page.close()

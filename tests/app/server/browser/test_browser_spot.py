@@ -70,14 +70,27 @@ def _inner_centre(mask: np.ndarray, erode: int = 15) -> tuple[int, int]:
     return int(xs[k]), int(ys[k])
 
 
+def _settled_areas(console: Any) -> list[dict]:
+    """Both eyes' ``/api/area`` once the paused pipeline has published its last picture:
+    the same stamp twice, 0.5 s apart (a busy console fuses the sets in flight after the
+    pause for a while)."""
+    areas = [console.get(f"/api/area?eye={e}") for e in ("left", "right")]
+    for _ in range(40):
+        time.sleep(0.5)
+        again = [console.get(f"/api/area?eye={e}") for e in ("left", "right")]
+        if [a["stamp_ns"] for a in again] == [a["stamp_ns"] for a in areas]:
+            return again
+        areas = again
+    pytest.fail(f"the paused console kept publishing pictures ({areas[0]['stamp_ns']})")
+
+
 def _hold_a_whole_picture(console: Any, page: Any) -> None:
     """Pause the replay on a picture fused from every sensor, shown by the page (the first
     frame set after a looping replay jumps back to its start lacks some sensors: not the
     picture to hold)."""
     for _ in range(30):
         console.post("/api/source/pause")
-        time.sleep(0.5)  # the last frame set fused and published
-        areas = [console.get(f"/api/area?eye={e}") for e in ("left", "right")]
+        areas = _settled_areas(console)
         whole = all(a["thermal_pixels"] > 0.5 * a["pixels"] for a in areas)
         if whole and not console.status()["missing"]:
             page.wait_for_function(
