@@ -208,6 +208,8 @@ def object_temperature(
     apparent_k: npt.ArrayLike,
     distance_m: npt.ArrayLike | None,
     params: ObjectParameters,
+    emissivity: npt.ArrayLike | None = None,
+    reflected_k: npt.ArrayLike | None = None,
     band: BandRadiance | None = None,
 ) -> np.ndarray:
     """The surfaces' temperatures (kelvin, the shape of ``apparent_k``) from the imager's
@@ -218,6 +220,8 @@ def object_temperature(
         distance_m: each pixel's distance, metres, broadcastable to ``apparent_k`` (the
             TOF's); None, NaN or <= 0 take ``params.default_distance_m``.
         params: emissivity, reflected and air temperature, humidity.
+        emissivity, reflected_k: per pixel (broadcastable to ``apparent_k``; regions of
+            other surfaces, :func:`fusion.regions.surface_maps`) instead of ``params``'.
         band: the band's radiance tables (default :func:`band_tables`).
 
     Returns:
@@ -227,9 +231,9 @@ def object_temperature(
     """
     b = band or band_tables()
     tau = transmission(_distances(distance_m, params), params.air_k, params.humidity_pct)
-    eps = params.emissivity
+    eps = params.emissivity if emissivity is None else np.asarray(emissivity, np.float64)
     w_app = b.radiance(apparent_k)
-    w_refl = float(b.radiance(params.reflected_k))
+    w_refl = b.radiance(params.reflected_k if reflected_k is None else reflected_k)
     w_air = float(b.radiance(params.air_k))
     w_obj = (w_app - tau * (1.0 - eps) * w_refl - (1.0 - tau) * w_air) / (tau * eps)
     return b.temperature(np.where(w_obj > 0, w_obj, np.nan))

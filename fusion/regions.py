@@ -1,0 +1,163 @@
+"""Measurement regions on an eye's picture (issue 35, items 1 and 3): spots, boxes and
+polygons, each optionally a surface of its own (emissivity, reflected temperature), and what
+a thermographer reads in them: maximum, minimum, mean and where the extremes are.
+
+Coordinates are the eye's colour-camera pixels (``x`` column, ``y`` row, pixel centres at
+integers, as :mod:`fusion.spot`). A box covers the pixels whose centres lie within it
+(both ends included); a polygon the pixels ``cv2.fillPoly`` fills (its outline included).
+
+Pure: regions and arrays in, numbers out.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+
+__all__ = ["Region", "RegionReading", "read_region", "surface_maps"]
+
+Shape = Literal["spot", "box", "polygon"]
+
+
+@dataclass(frozen=True)
+class Region:
+    """One measurement region.
+
+    Attributes:
+        name: how it is called (unique among the regions of a session).
+        eye: ``left`` or ``right``: whose colour pixels ``points`` are.
+        shape: ``spot`` (one point), ``box`` (two corners) or ``polygon`` (3 or more).
+        points: (x, y) pixels, as ``shape`` says.
+        emissivity, reflected_k: the region's surface, if not the global one's
+            (:class:`fusion.thermography.ObjectParameters` ranges).
+    """
+
+    name: str
+    eye: Literal["left", "right"]
+    shape: Shape
+    points: tuple[tuple[float, float], ...]
+    emissivity: float | None = None
+    reflected_k: float | None = None
+
+    def __post_init__(self) -> None:
+        if not self.name or not isinstance(self.name, str):
+            raise ValueError("name: expected a non-empty text")
+        if self.eye not in ("left", "right"):
+            raise ValueError(f"eye: expected left or right, got {self.eye!r}")
+        need = {"spot": (1, 1), "box": (2, 2), "polygon": (3, 1000)}.get(self.shape)
+        if need is None:
+            raise ValueError(f"shape: expected spot, box or polygon, got {self.shape!r}")
+        if not need[0] <= len(self.points) <= need[1]:
+            count = "1 point" if self.shape == "spot" else f"{need[0]} points"
+            raise ValueError(f"{self.name}: a {self.shape} takes {count}, got {len(self.points)}")
+        for p in self.points:
+            if len(p) != 2 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in p):
+                raise ValueError(
+                    f"{self.name}: expected points (x, y) of finite numbers, got {p!r}"
+                )
+        if self.emissivity is not None and not 0.01 <= self.emissivity <= 1.0:
+            raise ValueError(
+                f"{self.name}: emissivity: expected 0.01 to 1, got {self.emissivity:g}"
+            )
+        if self.reflected_k is not None and not 150.0 <= self.reflected_k <= 1200.0:
+            raise ValueError(
+                f"{self.name}: reflected_k: expected 150 to 1200, got {self.reflected_k:g}"
+            )
+
+    def mask(self, width: int, height: int) -> np.ndarray:
+        """(height, width) bool: the pixels the region covers. ValueError when it covers
+        none of the image (outside it)."""
+        m = np.zeros((height, width), np.uint8)
+        pts = np.asarray(self.points, dtype=np.float64)
+        if self.shape == "spot":
+            x, y = np.round(pts[0]).astype(int)
+            if 0 <= x < width and 0 <= y < height:
+                m[y, x] = 1
+        elif self.shape == "box":
+            (x0, x1), (y0, y1) = np.sort(pts[:, 0]), np.sort(pts[:, 1])
+            c0, c1 = max(0, math.ceil(x0)), min(width - 1, math.floor(x1))
+            r0, r1 = max(0, math.ceil(y0)), min(height - 1, math.floor(y1))
+            if c0 <= c1 and r0 <= r1:
+                m[r0 : r1 + 1, c0 : c1 + 1] = 1
+        else:
+            cv2.fillPoly(m, [np.round(pts).astype(np.int32)], 1)
+        if not m.any():
+            raise ValueError(f"{self.name}: outside the {width}x{height} image")
+        return m.astype(bool)
+
+
+@dataclass(frozen=True)
+class RegionReading:
+    """What a region reads on one picture (kelvin; positions as (x, y) pixels).
+
+    ``None`` values when the region has no pixel with a temperature (``pixels`` 0).
+    """
+
+    name: str
+    pixels: int
+    max_k: float | None
+    min_k: float | None
+    mean_k: float | None
+    max_at: tuple[int, int] | None
+    min_at: tuple[int, int] | None
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "name": self.name,
+            "pixels": self.pixels,
+            "max_k": self.max_k,
+            "min_k": self.min_k,
+            "mean_k": self.mean_k,
+            "max_at": self.max_at,
+            "min_at": self.min_at,
+        }
+
+
+def read_region(region: Region, temperature_k: np.ndarray) -> RegionReading:
+    """The region's maximum, minimum, mean and where the extremes are, over its pixels that
+    have a temperature (finite) in ``temperature_k`` (H, W) kelvin, the eye's picture."""
+    h, w = temperature_k.shape
+    mask = region.mask(w, h) & np.isfinite(temperature_k)
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        return RegionReading(region.name, 0, None, None, None, None, None)
+    values = temperature_k[ys, xs].astype(np.float64)
+    i_max, i_min = int(np.argmax(values)), int(np.argmin(values))
+    return RegionReading(
+        region.name,
+        len(values),
+        float(values[i_max]),
+        float(values[i_min]),
+        float(values.mean()),
+        (int(xs[i_max]), int(ys[i_max])),
+        (int(xs[i_min]), int(ys[i_min])),
+    )
+
+
+def surface_maps(
+    regions: Sequence[Region],
+    eye: str,
+    width: int,
+    height: int,
+    emissivity: float,
+    reflected_k: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel of ``eye``'s (height, width) picture: the emissivity and reflected
+    temperature (float64) of the surface there: the global values, and each of ``eye``'s
+    regions that has its own in the pixels it covers (a later region over an earlier one)."""
+    eps = np.full((height, width), emissivity, np.float64)
+    refl = np.full((height, width), reflected_k, np.float64)
+    for r in regions:
+        if r.eye != eye or (r.emissivity is None and r.reflected_k is None):
+            continue
+        m = r.mask(width, height)
+        if r.emissivity is not None:
+            eps[m] = r.emissivity
+        if r.reflected_k is not None:
+            refl[m] = r.reflected_k
+    return eps, refl
