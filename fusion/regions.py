@@ -19,7 +19,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-__all__ = ["Region", "RegionReading", "read_region", "surface_maps"]
+__all__ = ["Region", "RegionReading", "line_profile", "read_region", "surface_maps"]
 
 Shape = Literal["spot", "box", "polygon"]
 
@@ -161,3 +161,28 @@ def surface_maps(
         if r.reflected_k is not None:
             refl[m] = r.reflected_k
     return eps, refl
+
+
+def line_profile(
+    temperature_k: np.ndarray, start: tuple[float, float], end: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Temperatures along the segment ``start``-``end`` ((x, y) pixels) of an eye's (H, W)
+    picture, one sample a pixel (both ends included, bilinear between pixels; NaN where a
+    pixel around has none or outside the picture). Returns (distance along the segment,
+    pixels; temperature, kelvin), each (n,)."""
+    (x0, y0), (x1, y1) = start, end
+    length = math.hypot(x1 - x0, y1 - y0)
+    n = max(2, math.ceil(length) + 1)
+    s = np.linspace(0.0, 1.0, n)
+    xs, ys = x0 + (x1 - x0) * s, y0 + (y1 - y0) * s
+    h, w = temperature_k.shape
+    values = cv2.remap(
+        np.asarray(temperature_k, np.float32),
+        xs.astype(np.float32)[None, :],
+        ys.astype(np.float32)[None, :],
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )[0].astype(np.float64)
+    outside = (xs < 0) | (xs > w - 1) | (ys < 0) | (ys > h - 1)
+    values[outside] = np.nan
+    return s * length, values

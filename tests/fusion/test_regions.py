@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from trifuse.fusion.regions import Region, read_region, surface_maps
+from trifuse.fusion.regions import Region, line_profile, read_region, surface_maps
 from trifuse.fusion.thermography import ObjectParameters, apparent_temperature, object_temperature
 
 
@@ -88,3 +88,16 @@ def test_a_region_outside_the_image_is_refused() -> None:
         Region("r", "left", "box", ((20, 20), (30, 30))).mask(10, 8)
     with pytest.raises(ValueError, match="outside"):
         Region("r", "left", "spot", ((-1, 3),)).mask(10, 8)
+
+
+def test_a_line_profile_samples_every_pixel_along_the_segment() -> None:
+    """A ramp of 1 K a column: the profile along a row reads it back, one sample a pixel,
+    half-pixel positions interpolated; NaN beyond the picture."""
+    t = np.tile(300.0 + np.arange(20, dtype=np.float64), (10, 1))
+    d, v = line_profile(t, (2.0, 4.0), (12.0, 4.0))
+    assert len(d) == 11 and d[0] == 0.0 and d[-1] == pytest.approx(10.0)
+    np.testing.assert_allclose(v, 302.0 + np.arange(11), atol=1e-3)
+    _, half = line_profile(t, (2.5, 4.0), (3.5, 4.0))
+    np.testing.assert_allclose(half, [302.5, 303.5], atol=1e-3)
+    _, out = line_profile(t, (18.0, 4.0), (25.0, 4.0))
+    assert np.isfinite(out[:2]).all() and np.isnan(out[-1])
