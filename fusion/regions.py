@@ -19,6 +19,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
+from trifuse.fusion.thermography import EMISSIVITY_RANGE, REFLECTED_RANGE_K
+
 __all__ = ["Region", "RegionReading", "line_profile", "read_region", "surface_maps"]
 
 Shape = Literal["spot", "box", "polygon"]
@@ -60,14 +62,14 @@ class Region:
                 raise ValueError(
                     f"{self.name}: expected points (x, y) of finite numbers, got {p!r}"
                 )
-        if self.emissivity is not None and not 0.01 <= self.emissivity <= 1.0:
-            raise ValueError(
-                f"{self.name}: emissivity: expected 0.01 to 1, got {self.emissivity:g}"
-            )
-        if self.reflected_k is not None and not 150.0 <= self.reflected_k <= 1200.0:
-            raise ValueError(
-                f"{self.name}: reflected_k: expected 150 to 1200, got {self.reflected_k:g}"
-            )
+        for name, (low, high) in (
+            ("emissivity", EMISSIVITY_RANGE),
+            ("reflected_k", REFLECTED_RANGE_K),
+        ):
+            value = getattr(self, name)
+            if value is not None and not low <= value <= high:
+                expected = f"expected {low:g} to {high:g}, got {value:g}"
+                raise ValueError(f"{self.name}: {name}: {expected}")
 
     def mask(self, width: int, height: int) -> np.ndarray:
         """(height, width) bool: the pixels the region covers. ValueError when it covers

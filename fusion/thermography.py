@@ -142,6 +142,12 @@ MATERIALS: dict[str, float] = {
 a surface's own value, measured or from its maker, is better)."""
 
 
+EMISSIVITY_RANGE = (0.01, 1.0)
+"""Emissivities accepted (a surface below 0.01 reflects all but nothing of itself)."""
+REFLECTED_RANGE_K = (150.0, 1200.0)
+"""Reflected apparent temperatures accepted, kelvin (the band tables' range)."""
+
+
 @dataclass(frozen=True)
 class ObjectParameters:
     """What the measurement equation needs besides the apparent temperature.
@@ -162,8 +168,8 @@ class ObjectParameters:
 
     def __post_init__(self) -> None:
         for name, low, high in (
-            ("emissivity", 0.01, 1.0),
-            ("reflected_k", 150.0, 1200.0),
+            ("emissivity", *EMISSIVITY_RANGE),
+            ("reflected_k", *REFLECTED_RANGE_K),
             ("air_k", 200.0, 350.0),
             ("humidity_pct", 0.0, 100.0),
             ("default_distance_m", 0.0, 10_000.0),
