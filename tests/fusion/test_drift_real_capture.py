@@ -136,6 +136,7 @@ def real(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactor
     return {
         "pair": pair,
         "rig": rig,
+        "grid": TofGrid(rig),  # the stand-in TOF's rays (a turned camera keeps them)
         "views": views,
         "corners": detections.observations,
         "images": images,
@@ -154,7 +155,7 @@ def board_plane_points(real: dict, T_rig_board: np.ndarray) -> np.ndarray:
     """The stand-in TOF's points (N, 3), TOF frame, metres: its rays met with the board's
     plane, kept on the board's squares (one square around the inner corners, less a tenth)."""
     rig, pair = real["rig"], real["pair"]
-    rays = TofGrid(rig).rays.reshape(-1, 3).astype(np.float64)
+    rays = real["grid"].rays.reshape(-1, 3).astype(np.float64)
     T = invert(rig["tof"].T_rig_sensor) @ T_rig_board
     normal, origin = T[:3, 2], T[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -170,7 +171,7 @@ def board_plane_points(real: dict, T_rig_board: np.ndarray) -> np.ndarray:
 def measure(real: dict, rig: Rig, views: list[str]) -> dict[str, PairRotation]:
     """The drift check's work-against-other measurement per view (rig frame, radians)."""
     pair = real["pair"]
-    probe = PairProbe(rig, pair.work, pair.other, TofGrid(rig))
+    probe = PairProbe(rig, pair.work, pair.other, real["grid"])
     out = {}
     for v in views:
         a, b = real["images"][v]
