@@ -21,7 +21,14 @@ import numpy as np
 
 from trifuse.fusion.thermography import EMISSIVITY_RANGE, REFLECTED_RANGE_K
 
-__all__ = ["Region", "RegionReading", "line_profile", "read_region", "surface_maps"]
+__all__ = [
+    "Region",
+    "RegionReading",
+    "line_profile",
+    "read_region",
+    "reading_of",
+    "surface_maps",
+]
 
 Shape = Literal["spot", "box", "polygon"]
 
@@ -120,18 +127,16 @@ class RegionReading:
         }
 
 
-def read_region(region: Region, temperature_k: np.ndarray) -> RegionReading:
-    """The region's maximum, minimum, mean and where the extremes are, over its pixels that
-    have a temperature (finite) in ``temperature_k`` (H, W) kelvin, the eye's picture."""
-    h, w = temperature_k.shape
-    mask = region.mask(w, h) & np.isfinite(temperature_k)
-    ys, xs = np.nonzero(mask)
-    if len(xs) == 0:
-        return RegionReading(region.name, 0, None, None, None, None, None)
-    values = temperature_k[ys, xs].astype(np.float64)
+def reading_of(name: str, xs: np.ndarray, ys: np.ndarray, values: np.ndarray) -> RegionReading:
+    """The reading of pixels (``xs``, ``ys``) (N,) with temperatures ``values`` (N,) kelvin,
+    over those that have one (finite)."""
+    ok = np.isfinite(values)
+    if not ok.any():
+        return RegionReading(name, 0, None, None, None, None, None)
+    xs, ys, values = xs[ok], ys[ok], np.asarray(values[ok], np.float64)
     i_max, i_min = int(np.argmax(values)), int(np.argmin(values))
     return RegionReading(
-        region.name,
+        name,
         len(values),
         float(values[i_max]),
         float(values[i_min]),
@@ -139,6 +144,14 @@ def read_region(region: Region, temperature_k: np.ndarray) -> RegionReading:
         (int(xs[i_max]), int(ys[i_max])),
         (int(xs[i_min]), int(ys[i_min])),
     )
+
+
+def read_region(region: Region, temperature_k: np.ndarray) -> RegionReading:
+    """The region's maximum, minimum, mean and where the extremes are, over its pixels that
+    have a temperature (finite) in ``temperature_k`` (H, W) kelvin, the eye's picture."""
+    h, w = temperature_k.shape
+    ys, xs = np.nonzero(region.mask(w, h))
+    return reading_of(region.name, xs, ys, temperature_k[ys, xs])
 
 
 def surface_maps(

@@ -195,6 +195,19 @@ class _Geometry:
             for src in self.eyes
         }
         self.size = fusion.size
+        self._ray_length: dict[str, np.ndarray] = {}
+
+    def ray_length(self, eye: str) -> np.ndarray:
+        """(H, W) float32: ``|(x_n, y_n, 1)|`` of every colour pixel of ``eye`` (distance
+        along its ray per metre of z), made on first use."""
+        if eye not in self._ray_length:
+            w, h = self.size
+            xy = np.stack(np.meshgrid(np.arange(w), np.arange(h)), axis=-1).reshape(-1, 2)
+            n = self.intrinsics[eye].normalized(xy)
+            length = np.sqrt(1.0 + (n * n).sum(axis=1)).reshape(h, w).astype(np.float32)
+            length.flags.writeable = False
+            self._ray_length[eye] = length
+        return self._ray_length[eye]
 
     def rays(self, eye: str, xy: np.ndarray) -> np.ndarray:
         """(N, 3) rays ``(x_n, y_n, 1)`` (camera frame, z = 1) of colour pixels (N, 2)."""
@@ -307,6 +320,19 @@ class SpotFrame:
                 )
             )
         return out
+
+    def samples(self, eye: str, xs: np.ndarray, ys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """At integer colour pixels (``xs``, ``ys``) (N,) of ``eye`` (inside the picture):
+        the apparent temperature (N,) kelvin (NaN: no thermal view) and the distance (N,)
+        metres from the eye's colour camera along each pixel's ray, NaN where the depth is
+        the mapping's fallback or there is none yet (float64 each)."""
+        st = self._check_eye(eye)
+        kelvin = st.kelvin[ys, xs].astype(np.float64)
+        if st.z_m is None or st.fallback is None:
+            return kelvin, np.full(len(kelvin), np.nan)
+        rows, cols = nearest_cells(xs, ys, self.size, st.z_m.shape)
+        z = np.where(st.fallback[rows, cols], np.nan, st.z_m[rows, cols]).astype(np.float64)
+        return kelvin, z * self._geo.ray_length(eye)[ys, xs]
 
     def spot(self, eye: str, x: int, y: int) -> SpotReading:
         """The reading at colour pixel (``x``, ``y``) of ``eye``; SpotError outside the

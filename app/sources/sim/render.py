@@ -351,7 +351,9 @@ class Renderer:
     ) -> tuple[np.ndarray, np.ndarray]:
         """Per-sample values (N, C) and edge keys (N,) for flat arrays of samples.
 
-        Channels: colour linear RGB (3); thermal radiance proxy T^4 (1);
+        Channels: colour linear RGB (3); thermal: the fourth power of the apparent
+        temperature an ideal imager reads (1; :meth:`Scene.surface_apparent_k`: a proxy of
+        radiance that the supersampling averages, exact away from edges);
         TOF amplitude-weighted distance and amplitude (2). float64, float32 when live.
         """
         dtype = np.float32 if self.live else np.float64
@@ -371,8 +373,13 @@ class Renderer:
         t_s = t[order].astype(dtype, copy=False)
         out_s = np.zeros((n, channels), dtype=dtype)
         keys_s = np.zeros(n, dtype=np.int32)
-        if modality == "thermal":
-            out_s[: starts[1], 0] = scene.ambient_k**4 * 0.9  # a miss sees the cold room
+        if modality == "thermal":  # a miss sees the surroundings (a cold room, a sky)
+            miss = (
+                scene.ambient_k**4 * 0.9
+                if scene.atmosphere is None
+                else scene.miss_apparent_k() ** 4
+            )
+            out_s[: starts[1], 0] = miss
         for k, solid in enumerate(scene.solids):
             a, b = int(starts[k + 1]), int(starts[k + 2])
             if a == b:
@@ -390,9 +397,11 @@ class Renderer:
                 lambert = np.clip(normals @ light, 0.0, None)
                 out_s[a:b] = mat.albedo(st) * (0.35 + 0.75 * lambert)[:, None]
             elif modality == "thermal":
-                eps = mat.emissivity_at(st)
-                temp = mat.temperature(st)
-                out_s[a:b, 0] = eps * temp**4 + (1.0 - eps) * scene.ambient_k**4
+                eps, temp = mat.emissivity_at(st), mat.temperature(st)
+                if scene.atmosphere is None:  # the proxy itself (Scene.surface_apparent_k)
+                    out_s[a:b, 0] = eps * temp**4 + (1.0 - eps) * scene.ambient_k**4
+                else:
+                    out_s[a:b, 0] = scene.surface_apparent_k(eps, temp, dist) ** 4
             else:
                 amp = (
                     self.model.tof_amplitude_scale

@@ -486,18 +486,79 @@ class Sphere(Solid):
         return c + self.radius * v
 
 
+@dataclass(frozen=True)
+class Atmosphere:
+    """A scene's thermal surroundings as a thermographer models them (issue 35): what the
+    surfaces reflect and the air between them and the imager, in 7-14 um band radiance
+    (:mod:`fusion.thermography`).
+
+    Attributes:
+        reflected_k: the apparent temperature of what every surface mirrors (and of what a
+            ray that hits nothing sees: a sky, a far room), kelvin.
+        air_k: the air's temperature, kelvin.
+        humidity_pct: the air's relative humidity, percent.
+    """
+
+    reflected_k: float = 293.15
+    air_k: float = 293.15
+    humidity_pct: float = 50.0
+
+    def apparent_k(
+        self, emissivity: np.ndarray, temperature_k: np.ndarray, distance_m: np.ndarray
+    ) -> np.ndarray:
+        """What an ideal imager reads (kelvin, (N,)) of surfaces of ``emissivity`` and
+        ``temperature_k`` at ``distance_m`` along the ray (each (N,)): the measurement
+        equation forward, ``tau (eps W(T) + (1 - eps) W(T_refl)) + (1 - tau) W(T_air)``."""
+        from trifuse.fusion.thermography import band_tables, transmission
+
+        band = band_tables()
+        tau = transmission(distance_m, self.air_k, self.humidity_pct)
+        eps = np.asarray(emissivity, np.float64)
+        w_refl = float(band.radiance(self.reflected_k))
+        w_air = float(band.radiance(self.air_k))
+        w = tau * (eps * band.radiance(temperature_k) + (1.0 - eps) * w_refl)
+        return band.temperature(w + (1.0 - tau) * w_air)
+
+
 @dataclass
 class Scene:
-    """Solids plus the surroundings that reflective surfaces mirror (thermal)."""
+    """Solids plus the surroundings that reflective surfaces mirror (thermal).
+
+    Thermal radiometry: with no ``atmosphere`` (the simulated head's scenes), a proxy of
+    radiance, ``T^4``: a surface reads ``(eps T^4 + (1 - eps) ambient_k^4)^(1/4)`` at any
+    distance, and a ray that hits nothing ``(0.9 ambient_k^4)^(1/4)`` (a cold room). With an
+    :class:`Atmosphere`, the measurement equation in band radiance through the air over each
+    ray's own length (:meth:`Atmosphere.apparent_k`); ``ambient_k`` is then unused by the
+    thermal images.
+    """
 
     solids: list[Solid]
     ambient_k: float = 293.15
     light_dir_world: tuple[float, float, float] = (0.3, 1.0, 0.4)  # towards +y = down
+    atmosphere: Atmosphere | None = None
 
     def __post_init__(self) -> None:
         names = [s.name for s in self.solids]
         if len(set(names)) != len(names):
             raise ValueError(f"scene: solid names must be unique, got {names}")
+
+    def surface_apparent_k(
+        self, emissivity: np.ndarray, temperature_k: np.ndarray, distance_m: np.ndarray
+    ) -> np.ndarray:
+        """What an ideal thermal imager reads (kelvin, (N,)) of surface samples of
+        ``emissivity`` and ``temperature_k`` hit ``distance_m`` along their rays (each
+        (N,)), by the scene's radiometry (class docstring)."""
+        if self.atmosphere is not None:
+            return self.atmosphere.apparent_k(emissivity, temperature_k, distance_m)
+        eps = np.asarray(emissivity, np.float64)
+        t = np.asarray(temperature_k, np.float64)
+        return (eps * t**4 + (1.0 - eps) * self.ambient_k**4) ** 0.25
+
+    def miss_apparent_k(self) -> float:
+        """What an ideal thermal imager reads (kelvin) along a ray that hits nothing."""
+        if self.atmosphere is not None:
+            return self.atmosphere.reflected_k
+        return (0.9 * self.ambient_k**4) ** 0.25
 
     def nearest_surface(
         self, points: np.ndarray, chunk: int = 200_000
@@ -523,10 +584,18 @@ class Scene:
                 d[better], i[better], q[better] = dk[better], k, c[better]
         return dist, index, nearest
 
-    def apparent_temperature_k(self, index: np.ndarray, surface_points: np.ndarray) -> np.ndarray:
+    def apparent_temperature_k(
+        self,
+        index: np.ndarray,
+        surface_points: np.ndarray,
+        distance_m: np.ndarray | None = None,
+    ) -> np.ndarray:
         """What an ideal thermal imager reads (kelvin, (N,)) at ``surface_points`` (N, 3)
-        of the solids ``index`` (N,): ``(eps T^4 + (1 - eps) T_amb^4)^(1/4)``, the
-        renderer's radiometry without noise, blur or the imager's offset."""
+        of the solids ``index`` (N,) seen from ``distance_m`` (N,) metres away (needed only
+        with an :attr:`atmosphere`): the renderer's radiometry (:meth:`surface_apparent_k`)
+        without noise, blur or the imager's offset."""
+        if self.atmosphere is not None and distance_m is None:
+            raise ValueError("apparent_temperature_k: a scene with an atmosphere needs distance_m")
         out = np.full(len(index), np.nan)
         for k in np.unique(index):
             if k < 0:
@@ -536,5 +605,6 @@ class Scene:
             _, st = solid.surface(surface_points[sel])
             eps = solid.material.emissivity_at(st)
             t = solid.material.temperature(st)
-            out[sel] = (eps * t**4 + (1.0 - eps) * self.ambient_k**4) ** 0.25
+            d = np.zeros(int(sel.sum())) if distance_m is None else np.asarray(distance_m)[sel]
+            out[sel] = self.surface_apparent_k(eps, t, d)
         return out
