@@ -291,6 +291,21 @@ def drawn_fraction(view: np.ndarray) -> float:
     return float((np.abs(view.astype(int) - 255).sum(axis=2) > 60).mean())
 
 
+def element_shot(locator, attempts: int = 5, **kwargs) -> bytes:
+    """``locator.screenshot(**kwargs)``, taken again (the locator found anew) when the
+    element was replaced while Playwright waited for it to be stable: a Viser panel re-made
+    its component (a chart sent again), and the old element left the DOM."""
+    from playwright.sync_api import Error as PlaywrightError
+
+    for k in range(attempts):
+        try:
+            return locator.screenshot(**kwargs)
+        except PlaywrightError as exc:
+            if "not attached to the DOM" not in str(exc) or k == attempts - 1:
+                raise
+    raise AssertionError("unreachable")
+
+
 def shot_when(
     page, path: Path, ok: Callable[[np.ndarray], bool], what: str, timeout_s: float = 180.0
 ) -> np.ndarray:

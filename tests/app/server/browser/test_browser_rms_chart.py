@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tests.browser_support import click_until, needs_chromium
+from tests.browser_support import click_until, element_shot, needs_chromium
 from tests.panel_support import panel_on
 from tests.support import WAIT_S
 from trifuse.app.sources.frames import FrameSet
@@ -65,8 +65,8 @@ def test_rms_chart_draws_every_calibrated_sensors_points(
         assert lo == 0 and math.isfinite(hi) and hi > 0, chart["y"]  # was NaN: nothing drawn
         box = page.locator(".uplot-container").filter(has_text="RMS error per view")
         box.scroll_into_view_if_needed()
-        box.screenshot(path=str(tmp_path / "rms-chart.png"))
-        png = box.locator("canvas").first.screenshot()  # the plot alone, not the legend
+        element_shot(box, path=str(tmp_path / "rms-chart.png"))
+        png = element_shot(box.locator("canvas").first)  # the plot alone, not the legend
         bgr = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
         rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
         for i, name in enumerate(panel.sensors[:4]):  # the calibrated ones' lines are drawn
