@@ -16,6 +16,7 @@ from trifuse.app.server.middleware.auth import AuthConfig, AuthMiddleware
 from trifuse.app.server.middleware.limits import add_body_limit
 from trifuse.app.server.routers.api import make_api_router
 from trifuse.app.server.routers.docs_pages import add_docs_pages
+from trifuse.app.server.routers.measure_api import make_measure_router
 from trifuse.app.server.routers.pages import STATIC, make_pages_router
 from trifuse.app.server.routers.source_api import make_source_router
 from trifuse.app.server.routers.spot_api import make_spot_router
@@ -93,6 +94,7 @@ def create_app(
     if pipeline is not None:
         app.include_router(make_api_router(pipeline, balancer))
         app.include_router(make_spot_router(pipeline))  # /api/spot, /api/area (spot_api.py)
+        app.include_router(make_measure_router(pipeline))  # /api/regions, ... (measure_api.py)
     # /api/status, /api/source/*, /api/recording/* (source_api.py)
     app.include_router(make_source_router(hub, pipeline, source_control, registration, drift))
     app.include_router(make_pages_router())  # / (the viewer), /favicon.ico (pages.py)

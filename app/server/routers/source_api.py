@@ -241,6 +241,23 @@ class DriftInfo(BaseModel):
     last_refine: DriftRefine | None = None
 
 
+class AlarmEventInfo(BaseModel):
+    seq: int = Field(description="the event's number (GET /api/alarms?after=N: the newer)")
+    time_s: float = Field(description="frame time of the picture it was read on, seconds")
+    region: str
+    kind: str = Field(description="above, below or rise")
+    threshold: float
+    state: str = Field(description="raised or cleared")
+    value: float = Field(description="the value that raised or cleared it (kelvin, K/s)")
+
+
+class MeasurementsInfo(BaseModel):
+    regions: int = Field(description="measurement regions")
+    active_alarms: list[str] = Field(description="the alarms raised and not cleared")
+    events: list[AlarmEventInfo] = Field(description="the newest alarm events, oldest first")
+    readings_stamp_ns: int | None = Field(description="stamp of the picture last read")
+
+
 class Status(BaseModel):
     """The console at a glance. ``viewers``, ``frames_out``, ``fps``, ``missing`` and
     ``error`` are the keys the first status route had."""
@@ -279,6 +296,9 @@ class Status(BaseModel):
         None,
         description="the calibration's health: each camera's drift verdict against the rig "
         "in use; null without the background check",
+    )
+    measurements: MeasurementsInfo | None = Field(
+        None, description="measurement regions and alarms (/api/regions, /api/alarms)"
     )
 
 
@@ -362,6 +382,7 @@ def make_source_router(
             if registration is None
             else RegistrationInfo(**registration.status()),
             drift=None if drift is None else DriftInfo(**drift.status()),
+            measurements=MeasurementsInfo(**control.pipeline.measurements.status()),
         )
 
     @router.post("/source/pause")

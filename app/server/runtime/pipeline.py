@@ -70,6 +70,7 @@ import cv2
 
 from trifuse.app.errors import describe_error
 from trifuse.app.server.runtime.demand import Demand
+from trifuse.app.server.runtime.measurements import Measurements
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.sources.base import FrameSetAssembler, FrameSource
 from trifuse.app.sources.frames import FrameSet
@@ -130,6 +131,8 @@ class FusionPipeline:
         :meth:`ThermalBalancer.describe <app.server.runtime.thermal_balance.ThermalBalancer.
         describe>`); set by the console. Called in the fusion thread: it must be quick."""
         self._pending_rig: Rig | None = None
+        self.measurements = Measurements()
+        """Object parameters, regions and alarms, read on the pictures (issue 35)."""
         self._eye_worker = ThreadPoolExecutor(1, thread_name_prefix="fusion-eye")
         self._depth_worker = ThreadPoolExecutor(1, thread_name_prefix="fusion-depth")
         self._init_rig(rig, {})
@@ -295,6 +298,7 @@ class FusionPipeline:
         rgb = step.render(inputs)
         if inputs.path != "raw":  # the spot meter's copy of this picture's temperatures and depths
             self.spots = self.spot_meter.capture(fs.stamp_ns)
+            self.measurements.update(self.spots)  # the regions and alarms (throttled)
         bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)  # a new buffer: the last one went out
         bgr.flags.writeable = False
         self.hub.publish(None, self._meta(inputs), bgr=bgr)

@@ -221,6 +221,12 @@ class Console:
             return {"holdout_every": 4}
         if key == ("PUT", "/api/stream/settings"):
             return {"preset": "4"}
+        if key == ("PUT", "/api/object-parameters"):
+            return {"emissivity": 0.9, "reflected_k": 280.0, "air_k": 290.0, "humidity_pct": 70.0}
+        if key == ("PUT", "/api/regions"):
+            return [{"name": "a", "eye": "left", "shape": "box", "points": [[10, 10], [90, 60]]}]
+        if key == ("PUT", "/api/alarms"):  # valid once region "a" is there
+            return [{"region": "a", "kind": "above", "threshold": 320.0}]
         raise KeyError(f"{route} takes a body: add a valid one to Console.valid_body")
 
     def snapshot(self) -> dict:
@@ -237,6 +243,11 @@ class Console:
             "views": [v.name for v in self.session.views()],
             "versions": [v.name for v in self.session.versions()],
             "files": tree(self.root),
+            "measurements": (
+                repr(p.measurements.params),
+                p.measurements.regions,
+                p.measurements.rules,
+            ),
         }
 
     def check_files(self, what: str) -> None:
