@@ -3,12 +3,15 @@ and what the regions read on the fused pictures.
 
 One :class:`Measurements` per console, kept across rig changes (regions are colour pixels
 of an eye: a rig of another picture size reports the regions outside it). The fusion thread
-calls :meth:`Measurements.update` after each picture's spot-meter capture; the regions are
-read at most every :attr:`Measurements.interval_s` of frame time (10 a second by default:
-alarms and tables need no more, and a region costs about a millisecond per 10,000 pixels),
-and never when there is no region. The REST routes (``app/server/routers/measure_api.py``)
-change the settings from the server's threads: everything is behind one lock, readings are
-immutable once made.
+hands it each picture's spot-meter capture (:meth:`Measurements.submit`: never waits); a
+thread of its own (``measurements``) reads the regions on the newest one
+(:meth:`Measurements.update`), never when there is no region, and at most every
+:attr:`Measurements.interval_s` of frame time (10 a second by default: alarms and tables need
+no more) or less often when the regions are large: a reading costs about 0.2 us of CPU a
+pixel on a slow host (a whole eye, 1.2 million pixels, 250 ms), and the readings take at
+most :data:`MAX_SHARE` of a core, but come at least every :data:`MAX_WAIT_S`. The REST
+routes (``app/server/routers/measure_api.py``) change the settings from the server's
+threads: everything is behind one lock, readings are immutable once made.
 
 Alarm events (raised, cleared) are numbered and the last :data:`KEEP_EVENTS` kept:
 ``/api/status`` shows the active alarms and the newest events.
@@ -18,16 +21,23 @@ from __future__ import annotations
 
 import itertools
 import threading
+import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from trifuse.app.latest_worker import LatestWorker
 from trifuse.fusion.alarms import AlarmEvent, AlarmRule, AlarmTracker
 from trifuse.fusion.measure import Measurement, measure_regions
 from trifuse.fusion.regions import Region
 from trifuse.fusion.spot import SpotFrame
 from trifuse.fusion.thermography import ObjectParameters
 
+MAX_SHARE = 0.2
+"""The largest share of a core the readings take: after a reading that cost c seconds of CPU
+the next one waits at least c / MAX_SHARE of frame time."""
+MAX_WAIT_S = 2.0
+"""The longest frame time between two readings, seconds (alarms must still come)."""
 KEEP_EVENTS = 200
 """Alarm events kept (the newest)."""
 STATUS_EVENTS = 20
@@ -56,6 +66,10 @@ class Measurements:
 
     def __init__(self, interval_s: float = 0.1) -> None:
         self.interval_s = interval_s
+        self.wait_s = interval_s
+        """Frame time between two readings now: :attr:`interval_s`, or longer after a
+        costly reading (:data:`MAX_SHARE`)."""
+        self._worker: LatestWorker[SpotFrame] | None = None
         self._lock = threading.Lock()
         self._params = ObjectParameters()
         self._regions: tuple[Region, ...] = ()
@@ -115,7 +129,26 @@ class Measurements:
                 raise ValueError("alarms: the same rule is given twice")
             self._tracker = AlarmTracker(list(rules))
 
-    # -- readings (the fusion thread) ------------------------------------------------------
+    # -- readings -------------------------------------------------------------------------
+
+    def submit(self, frame: SpotFrame) -> None:
+        """Hand over a picture's capture (the fusion thread; never waits): read in the
+        ``measurements`` thread when it is due."""
+        if not self._regions and self._readings is None:
+            return
+        if self._worker is None:
+            self._worker = LatestWorker(self.update, name="measurements").start()
+        self._worker.submit(frame)
+
+    @property
+    def idle(self) -> bool:
+        """No picture waits to be read and no reading is under way."""
+        return self._worker is None or not self._worker.busy
+
+    def close(self) -> None:
+        """Stop the ``measurements`` thread (a reading under way finishes)."""
+        if self._worker is not None:
+            self._worker.stop()
 
     def update(self, frame: SpotFrame) -> None:
         """Read the regions on ``frame`` (throttled, see the module docstring) and track the
@@ -126,10 +159,13 @@ class Measurements:
             if not regions:
                 self._readings = None
                 return
-            if self._last_s is not None and 0 <= t - self._last_s < self.interval_s:
+            if self._last_s is not None and 0 <= t - self._last_s < self.wait_s:
                 return
             self._last_s = t
+        cpu0 = time.thread_time()
         readings = _read(frame, regions, params)
+        cost_s = time.thread_time() - cpu0  # the first reading's includes making tables
+        self.wait_s = min(MAX_WAIT_S, max(self.interval_s, cost_s / MAX_SHARE))
         with self._lock:
             if tracker is not self._tracker or regions is not self._regions:
                 return  # changed meanwhile: the next picture reads with the new ones

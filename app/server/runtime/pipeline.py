@@ -210,6 +210,7 @@ class FusionPipeline:
         self._thread.join(timeout_s)
         self._eye_worker.shutdown(wait=False)
         self._depth_worker.shutdown(wait=False, cancel_futures=True)
+        self.measurements.close()
 
     def join(self, timeout_s: float | None = None) -> bool:
         """Wait (at most ``timeout_s``) for the fusion thread to end by itself (its source ran
@@ -298,7 +299,7 @@ class FusionPipeline:
         rgb = step.render(inputs)
         if inputs.path != "raw":  # the spot meter's copy of this picture's temperatures and depths
             self.spots = self.spot_meter.capture(fs.stamp_ns)
-            self.measurements.update(self.spots)  # the regions and alarms (throttled)
+            self.measurements.submit(self.spots)  # the regions and alarms, aside
         bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)  # a new buffer: the last one went out
         bgr.flags.writeable = False
         self.hub.publish(None, self._meta(inputs), bgr=bgr)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from tests.support import WAIT_S, ListSource
+from tests.support import WAIT_S, ListSource, wait_until
 from trifuse.app.server.app_factory import create_app
 from trifuse.app.server.runtime.measurements import Measurements
 from trifuse.app.server.runtime.pipeline import FusionPipeline
@@ -97,6 +97,12 @@ def console(scene) -> Iterator[tuple[TestClient, FusionPipeline]]:
     with hub.watching():
         pipeline.start()
         assert pipeline.join(WAIT_S), "the pipeline did not fuse the three sets"
+    # the regions are read aside: wait until the reading thread has nothing left to do
+    m = pipeline.measurements
+    wait_until(
+        lambda: m.readings is not None and m.idle,
+        "the regions read",
+    )
     yield client, pipeline
     pipeline.stop()
 
@@ -106,7 +112,7 @@ def test_readings_are_the_panels_true_temperatures(console) -> None:
     r = client.get("/api/measurements")
     assert r.status_code == 200, r.text
     body = r.json()
-    assert body["stamp_ns"] == pipeline.spots.stamp_ns and body["errors"] == {}
+    assert body["stamp_ns"] == pipeline.measurements.readings.stamp_ns and body["errors"] == {}
     assert body["params"]["humidity_pct"] == HUMIDITY_PCT
     for name, reading in body["regions"].items():
         assert reading["object"]["mean_k"] == pytest.approx(TRUE_K[name], abs=TOLERANCE_K)
