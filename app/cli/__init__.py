@@ -24,6 +24,7 @@ from trifuse.app.cli import (
     check,
     compare,
     fuse,
+    measure,
     record,
     rig,
     serve,
@@ -46,6 +47,7 @@ COMMANDS = (
     analyze,
     record,
     fuse,
+    measure,
     map_command,
     check,
 )

@@ -1,0 +1,168 @@
+"""``trifuse measure`` (app/cli/measure.py, app/recording/measure.py) on a recording of the
+simulated measurement scene (app/sources/sim/measurement_scene.py; imagers without offset)
+in which the 150 C hot plate turns 10 K hotter halfway: the table's readings are the
+panels' true temperatures within issue 35's 0.5 K (tests/fusion/test_measure.py says why
+that holds), its alarm is raised when the plate passes 428 K, and the emissivity chosen
+after the recording changes the readings. Bad plans and outputs: one line, nothing
+written."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from tests.support import run_cli, write_recording
+from trifuse.app.sources.frames import Frame
+from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.sources.sim.measurement_scene import (
+    AIR_K,
+    HUMIDITY_PCT,
+    PANELS,
+    SKY_K,
+    measurement_scene,
+)
+from trifuse.app.sources.sim.render import HeadModel, Renderer
+from trifuse.app.sources.sim.scene import Material
+
+TOLERANCE_K = 0.5
+STEP_NS = 100_000_000  # frame sets 0.1 s apart
+HOTTER_K = 10.0
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> tuple[Path, dict[str, list[list[float]]]]:
+    """Four frame sets: the scene as it is twice, then with the hot plate 10 K hotter twice;
+    and a box well inside each panel (left eye's pixels)."""
+    rig = default_rig()
+    renderer = Renderer(rig, HeadModel(thermal_offset_k={}), live=True)
+    scene = measurement_scene()
+    hotter = measurement_scene()
+    plate = next(s for s in hotter.solids if s.name == "hot")
+    plate.material = dataclasses.replace(
+        plate.material, temperature_k=plate.material.temperature_k + HOTTER_K
+    )
+    assert isinstance(plate.material, Material)
+    frames: list[Frame] = []
+    boxes: dict[str, list[list[float]]] = {}
+    for k, s in enumerate((scene, scene, hotter, hotter)):
+        fs, truth = renderer.render(s, np.eye(4), k * STEP_NS, np.random.default_rng(k))
+        frames += [fs.frames[n] for n in rig.names]
+        if not boxes:
+            names = [x.name for x in s.solids]
+            for p in PANELS[:4]:
+                m = (truth["ccd_left"].solid == names.index(p.name)).astype(np.uint8)
+                ys, xs = np.nonzero(cv2.erode(m, np.ones((51, 51), np.uint8)))
+                boxes[p.name] = [[int(xs.min()), int(ys.min())], [int(xs.max()), int(ys.max())]]
+    path = write_recording(tmp_path_factory.mktemp("rec") / "scene.mcap", rig, frames)
+    return path, boxes
+
+
+def _plan(boxes, emissivity: dict[str, float] | None = None) -> str:
+    eps = emissivity or {p.name: p.emissivity for p in PANELS}
+    lines = [
+        "parameters:",
+        f"  reflected_k: {SKY_K}",
+        f"  air_k: {AIR_K}",
+        f"  humidity_pct: {HUMIDITY_PCT}",
+        "regions:",
+    ]
+    for name, ((x0, y0), (x1, y1)) in boxes.items():
+        lines.append(
+            f"  - {{name: {name}, shape: box, points: [[{x0}, {y0}], [{x1}, {y1}]], "
+            f"emissivity: {eps[name]}}}"
+        )
+    lines += ["alarms:", "  - {region: hot, kind: above, threshold: 428.0}"]
+    return "\n".join(lines) + "\n"
+
+
+def _table(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_table_reads_the_true_temperatures_and_the_alarm(recording, tmp_path, capsys) -> None:
+    rec, boxes = recording
+    plan = tmp_path / "plan.yaml"
+    plan.write_text(_plan(boxes))
+    table = tmp_path / "table.csv"
+    code, out, _ = run_cli(["measure", str(rec), "--regions", str(plan), "--out", str(table)],
+                           capsys)  # fmt: skip
+    assert code == 0, out
+    rows = _table(table)
+    sets = sorted({int(r["stamp_ns"]) for r in rows})
+    # the first set has no depth yet (its TOF frame closes it): the others are read
+    assert len(sets) >= 3 and len(rows) == 4 * len(sets)
+    assert f"Wrote {len(rows)} rows" in out
+    for r in rows:
+        true_k = {p.name: p.temperature_k for p in PANELS}[r["region"]]
+        if r["region"] == "hot" and int(r["stamp_ns"]) >= 2 * STEP_NS:
+            true_k += HOTTER_K
+        assert float(r["mean_k"]) == pytest.approx(true_k, abs=TOLERANCE_K), r
+        assert float(r["apparent_mean_k"]) < true_k - 1.0
+        assert int(r["pixels"]) > 2000 and r["default_distance_px"] == "0"
+    hot = [r for r in rows if r["region"] == "hot"]
+    raised = [r for r in hot if r["events"]]
+    assert [r["events"] for r in raised] == ["raised above 428"]
+    assert int(raised[0]["stamp_ns"]) == 2 * STEP_NS  # the first hotter set
+    assert all(r["active_alarms"] == ("hot above 428" if int(r["stamp_ns"]) >= 2 * STEP_NS
+                                      else "") for r in hot)  # fmt: skip
+
+
+def test_another_emissivity_afterwards_changes_the_reading(recording, tmp_path, capsys) -> None:
+    """The recording keeps the imagers' apparent temperatures: read with emissivity 1
+    instead of 0.5, the 'half' panel reads far colder (the same apparent temperature)."""
+    rec, boxes = recording
+    eps = {p.name: p.emissivity for p in PANELS} | {"half": 1.0}
+    plan = tmp_path / "plan.yaml"
+    plan.write_text(_plan(boxes, eps))
+    table = tmp_path / "table.csv"
+    run_cli(["measure", str(rec), "--regions", str(plan), "--out", str(table)], capsys)
+    half = [r for r in _table(table) if r["region"] == "half"]
+    assert all(float(r["mean_k"]) < 373.15 - 30 for r in half)
+
+
+@pytest.mark.parametrize(
+    ("plan", "says"),
+    [
+        ("regions: []\n", "regions: expected a list of at least one region"),
+        ("parameters: {emissivity: 2}\nregions: [{name: a, shape: spot, points: [[1, 1]]}]\n",
+         "parameters: emissivity: expected 0.01 to 1, got 2"),
+        ("parameters: {humidity_pct: 101}\nregions: [{name: a, shape: spot, points: [[1, 1]]}]\n",
+         "humidity_pct: expected 0 to 100, got 101"),
+        ("regions: [{name: a, shape: box, points: [[5000, 1], [5100, 9]]}]\n",
+         "a: outside the 1280x960 image"),
+        ("regions: [{name: a, shape: spot, points: [[1, 1]]}]\n"
+         "alarms: [{region: b, kind: above, threshold: 300}]\n", "no region named 'b'"),
+        ("regions: [{name: a, shape: spot, points: [[1, 1]], colour: red}]\n",
+         "regions[0]: got an unexpected keyword argument 'colour'"),
+        ("regions: [: :\n", "not YAML"),
+    ],
+)  # fmt: skip
+def test_a_bad_plan_is_one_line_and_writes_nothing(recording, tmp_path, capsys, plan, says) -> None:
+    rec, _ = recording
+    path = tmp_path / "plan.yaml"
+    path.write_text(plan)
+    table = tmp_path / "table.csv"
+    code, _, err = run_cli(
+        ["measure", str(rec), "--regions", str(path), "--out", str(table)], capsys
+    )
+    assert code != 0 and says in err and len(err.strip().splitlines()) == 1, err
+    assert not table.exists()
+
+
+def test_an_existing_table_is_not_overwritten(recording, tmp_path, capsys) -> None:
+    rec, boxes = recording
+    plan = tmp_path / "plan.yaml"
+    plan.write_text(_plan(boxes))
+    table = tmp_path / "table.csv"
+    table.write_text("mine\n")
+    code, _, err = run_cli(
+        ["measure", str(rec), "--regions", str(plan), "--out", str(table)], capsys
+    )
+    assert code != 0 and "refusing to overwrite" in err
+    assert table.read_text() == "mine\n"
