@@ -68,6 +68,12 @@ SCHEMA_OF_KIND = {
     "calibration": "foxglove.CameraCalibration",
 }
 
+MEASUREMENTS_TOPIC = "/trifuse/measurements"
+"""The console's measurement notes (issue 35) as ``foxglove.Log`` (Foxglove's Log panel and
+timeline): ``name`` ``trifuse.alarm`` (level WARNING raised, INFO cleared) or
+``trifuse.measurement_settings`` (INFO: the object parameters, regions and alarm rules in
+force, at the recording's start and at each change); ``message`` a JSON object."""
+
 FUSED_VIDEO_TOPIC = "/fused/video"
 """The fused stereo picture (left | right eye) as H.264."""
 FUSED_VIDEO_KIND = "fused_video"

@@ -43,6 +43,7 @@ from trifuse.app.recording.errors import RecordingError
 from trifuse.app.recording.recording import Recording, VideoTap
 from trifuse.app.recording.recovery import recover_interrupted
 from trifuse.app.recording.video_track import VideoSettings, VideoUnit, video_metadata
+from trifuse.app.recording.writer import Note
 from trifuse.app.sources.frames import Frame
 from trifuse.calib.rig import Rig
 
@@ -171,6 +172,8 @@ class _Session(Recording):
             try:
                 if isinstance(item, VideoUnit):
                     self.write_video(item.data, item.key, item.stamp_ns)
+                elif isinstance(item, Note):
+                    self.write_note(item)
                 else:
                     self._write(item)
             except Exception as exc:  # disk full, I/O error: keep what was written
@@ -269,6 +272,14 @@ class Recorder:
 
     def offer(self, frame: Frame) -> None:
         """Queue a frame for the recording, if one runs; drop it if the queue is full."""
+        self._put(frame)
+
+    def note(self, note: Note) -> None:
+        """Queue a measurement note for the recording, if one runs (dropped, counted, if
+        the queue is full)."""
+        self._put(note)
+
+    def _put(self, item: Frame | Note) -> None:
         session = self._session
         if session is None:
             return
@@ -276,7 +287,7 @@ class Recorder:
             if self._session is not session or not session.accepting:
                 return
             try:
-                session.queue.put_nowait(frame)
+                session.queue.put_nowait(item)
             except queue.Full:
                 session.dropped += 1
 

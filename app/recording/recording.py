@@ -27,7 +27,7 @@ from typing import Protocol
 import numpy as np
 
 from trifuse.app.recording.video_track import FusedVideoTrack
-from trifuse.app.recording.writer import FrameObserver, RecordingWriter
+from trifuse.app.recording.writer import FrameObserver, Note, RecordingWriter
 from trifuse.app.sources.frames import Frame
 from trifuse.app.storage.numbered import suffixed_names
 from trifuse.calib.rig import Rig
@@ -139,6 +139,11 @@ class Recording:
         """Write the head's pose ``T_world_rig`` (4, 4) at ``stamp_ns``
         (:meth:`~trifuse.app.recording.writer.RecordingWriter.write_pose`)."""
         return self._writer().write_pose(stamp_ns, T_world_rig)
+
+    def write_note(self, note: Note) -> None:
+        """Write a measurement note to the current file
+        (:meth:`~trifuse.app.recording.writer.RecordingWriter.write_note`)."""
+        self._writer().write_note(note)
 
     def write_video(self, data: bytes, key: bool, stamp_ns: int) -> bool:
         """Write an access unit (H.264 Annex B; ``key``: an IDR) taken at ``stamp_ns`` to the

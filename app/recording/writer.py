@@ -27,23 +27,27 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import json
 import logging
 import os
 import signal
 import threading
 import time
 from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Protocol
 
 import foxglove
 import numpy as np
-from foxglove.channels import FrameTransformChannel
+from foxglove.channels import FrameTransformChannel, LogChannel
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions
+from foxglove.messages import Log, LogLevel, Timestamp
 
 from trifuse.app.recording.errors import RecordingError
 from trifuse.app.recording.layout import (
+    MEASUREMENTS_TOPIC,
     METADATA_NAME,
     RECORDING_FORMAT,
     RIG_ATTACHMENT,
@@ -67,6 +71,19 @@ from trifuse.app.storage.atomic import fsync_dir, make_dirs, umask
 from trifuse.calib.numbers import is_int, is_integral
 from trifuse.calib.rig import Rig, Sensor, rig_to_yaml
 from trifuse.calib.transforms import rigidity_problem
+
+
+@dataclass(frozen=True)
+class Note:
+    """A measurement note for a recording: ``name`` (``trifuse.alarm``,
+    ``trifuse.measurement_settings``), ``level`` (``info``, ``warning``), ``body`` (JSON-able)
+    at ``stamp_ns`` (the picture's frame time)."""
+
+    stamp_ns: int
+    name: str
+    level: str
+    body: dict
+
 
 COMPRESSIONS = {"zstd": MCAPCompression.Zstd, "lz4": MCAPCompression.Lz4, "none": None}
 MAX_CHUNK_SIZE = 16 * 2**20
@@ -287,6 +304,8 @@ class RecordingWriter:
             for name, s in rig.sensors.items():
                 self._make_channels(name, s)
             self._tf = FrameTransformChannel(TF_TOPIC, context=self._ctx)
+            self._notes: LogChannel | None = None  # made with the first note
+            self.notes_written = 0
             if fused_video:
                 self.add_fused_video()
             self.seal()  # from the start the file on disk is an (empty) recording
@@ -383,6 +402,31 @@ class RecordingWriter:
             if time.monotonic() >= self._next_seal:
                 self.seal()
         return True
+
+    def write_note(self, note: Note) -> None:
+        """Write a measurement note (an alarm event, the measurement settings) on
+        :data:`~app.recording.layout.MEASUREMENTS_TOPIC` at its stamp (docs/FORMATS.md
+        "Measurement notes"). RuntimeError after :meth:`close`."""
+        if self._closed:
+            raise RuntimeError(f"{self.path}: the recording is closed")
+        stamp = _stamp(note.stamp_ns, "a measurement note")
+        if self._notes is None:
+            self._notes = LogChannel(MEASUREMENTS_TOPIC, context=self._ctx)
+        sec, nsec = divmod(stamp, 1_000_000_000)
+        level = LogLevel.Warning if note.level == "warning" else LogLevel.Info
+        msg = Log(
+            timestamp=Timestamp(sec=sec, nsec=nsec),
+            level=level,
+            message=json.dumps(note.body, sort_keys=True),
+            name=note.name,
+            file="",
+            line=0,
+        )
+        with signals_deferred():
+            self._notes.log(msg, log_time=stamp)
+            self.notes_written += 1
+            if time.monotonic() >= self._next_seal:
+                self.seal()
 
     def _notify(self, what: str, *args: object) -> None:
         """Call ``what`` of every observer; one that raises is logged and dropped."""

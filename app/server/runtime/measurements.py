@@ -19,14 +19,16 @@ Alarm events (raised, cleared) are numbered and the last :data:`KEEP_EVENTS` kep
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import threading
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from trifuse.app.latest_worker import LatestWorker
+from trifuse.app.recording.writer import Note
 from trifuse.fusion.alarms import AlarmEvent, AlarmRule, AlarmTracker
 from trifuse.fusion.measure import Measurement, measure_regions
 from trifuse.fusion.regions import Region
@@ -38,6 +40,8 @@ MAX_SHARE = 0.2
 the next one waits at least c / MAX_SHARE of frame time."""
 MAX_WAIT_S = 2.0
 """The longest frame time between two readings, seconds (alarms must still come)."""
+ALARM_NOTE = "trifuse.alarm"
+SETTINGS_NOTE = "trifuse.measurement_settings"
 KEEP_EVENTS = 200
 """Alarm events kept (the newest)."""
 STATUS_EVENTS = 20
@@ -70,6 +74,10 @@ class Measurements:
         """Frame time between two readings now: :attr:`interval_s`, or longer after a
         costly reading (:data:`MAX_SHARE`)."""
         self._worker: LatestWorker[SpotFrame] | None = None
+        self.on_note: Callable[[Note], None] | None = None
+        """Given each alarm event and each change of the settings (the console's recorder:
+        kept in a recording running then, docs/FORMATS.md "Measurement notes")."""
+        self._stamp_ns = 0  # the newest picture handed over: a note's time
         self._lock = threading.Lock()
         self._params = ObjectParameters()
         self._regions: tuple[Region, ...] = ()
@@ -89,6 +97,7 @@ class Measurements:
         with self._lock:
             self._params = params
             self._last_s = None  # read again at the next picture
+        self.note_settings()
 
     @property
     def regions(self) -> tuple[Region, ...]:
@@ -111,6 +120,7 @@ class Measurements:
                 )
             self._regions = tuple(regions)
             self._last_s = None
+        self.note_settings()
 
     @property
     def rules(self) -> tuple[AlarmRule, ...]:
@@ -128,12 +138,28 @@ class Measurements:
             if len(set(keys)) != len(keys):
                 raise ValueError("alarms: the same rule is given twice")
             self._tracker = AlarmTracker(list(rules))
+        self.note_settings()
+
+    def settings(self) -> dict[str, object]:
+        """The object parameters, regions and alarm rules in force (JSON-able)."""
+        with self._lock:
+            return {
+                "parameters": dataclasses.asdict(self._params),
+                "regions": [dataclasses.asdict(r) for r in self._regions],
+                "alarms": [dataclasses.asdict(a) for a in self._tracker.rules],
+            }
+
+    def note_settings(self) -> None:
+        """Give :attr:`on_note` the settings in force (at the newest picture's time)."""
+        if self.on_note is not None:
+            self.on_note(Note(self._stamp_ns, SETTINGS_NOTE, "info", self.settings()))
 
     # -- readings -------------------------------------------------------------------------
 
     def submit(self, frame: SpotFrame) -> None:
         """Hand over a picture's capture (the fusion thread; never waits): read in the
         ``measurements`` thread when it is due."""
+        self._stamp_ns = frame.stamp_ns
         if not self._regions and self._readings is None:
             return
         if self._worker is None:
@@ -172,6 +198,10 @@ class Measurements:
             events = tracker.update(t, {n: m.object for n, m in readings.regions.items()})
             self._readings = readings
             self._events.extend((next(self._seq), e) for e in events)
+        if self.on_note is not None:
+            for e in events:
+                level = "warning" if e.state == "raised" else "info"
+                self.on_note(Note(frame.stamp_ns, ALARM_NOTE, level, e.as_dict()))
 
     def read_now(self, frame: SpotFrame) -> Readings | None:
         """The regions read on ``frame`` now (no alarm tracked, nothing kept): for a client

@@ -103,6 +103,7 @@ class SourceControl:
         if workdir is not None and self.tap is not None:
             self.recorder = self.tap.recorder or Recorder(Path(workdir) / RECORDINGS)
             self.tap.recorder = self.recorder
+            self.pipeline.measurements.on_note = self.recorder.note  # alarms, settings
             self.recorder.head_pose = head_pose_of(self.tap.inner)
         self.fused_video = False
         """Recordings started from now on also keep the fused video (the Source panel's
@@ -248,7 +249,9 @@ class SourceControl:
         video = None
         if self.fused_video if fused_video is None else fused_video:
             video = FusedVideoSource(self.hub, self.pipeline.demand, self.video_settings)
-        return self.recorder.start(self._rig(), video)
+        state = self.recorder.start(self._rig(), video)
+        self.pipeline.measurements.note_settings()  # what the readings are corrected with
+        return state
 
     def stop_recording(self) -> RecordingState:
         if self.recorder is None:

@@ -212,3 +212,32 @@ def test_recording_from_the_console_reads_back(console, recording) -> None:
         second["files"]
     )
     assert console.status()["recording"]["files"] == second["files"]
+
+
+def test_a_recording_keeps_the_measurement_settings_and_the_alarm_events(console) -> None:
+    """Issue 35: while the console records, the settings in force (at the start and at each
+    change) and every alarm event go into the recording as ``foxglove.Log`` notes on
+    /trifuse/measurements, at the pictures' times."""
+    from trifuse.app.recording.notes import read_notes
+
+    console.wait(lambda s: s["frames_out"] > 3)
+    w, h = console.pipeline.fusion.size
+    region = {"name": "all", "shape": "box", "points": [[0, 0], [w - 1, h - 1]]}
+    assert console.client.put("/api/regions", json=[region]).status_code == 200
+    assert console.client.post("/api/recording/start").status_code == 200
+    alarm = [{"region": "all", "kind": "above", "threshold": 100.0}]  # any reading: raised
+    assert console.client.put("/api/alarms", json=alarm).status_code == 200
+    console.wait(lambda s: s["measurements"]["active_alarms"] == ["all above 100"])
+    console.wait(lambda s: s["recording"]["frames_written"] > 30)
+    files = console.client.post("/api/recording/stop").json()["files"]
+    notes = [n for f in files for n in read_notes(f)]
+    settings = [n for n in notes if n.name == "trifuse.measurement_settings"]
+    alarms = [n for n in notes if n.name == "trifuse.alarm"]
+    assert [len(n.body["alarms"]) for n in settings] == [0, 1]  # at the start; the alarm set
+    assert settings[0].body["regions"][0]["name"] == "all"
+    assert [(n.level, n.body["state"], n.body["region"]) for n in alarms] == [
+        ("warning", "raised", "all")
+    ]
+    assert alarms[0].body["value"] > 100.0
+    stamps = [n.stamp_ns for n in notes]
+    assert stamps == sorted(stamps) and stamps[0] > 0  # on the recording's timeline
