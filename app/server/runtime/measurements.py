@@ -78,6 +78,7 @@ class Measurements:
         """Given each alarm event and each change of the settings (the console's recorder:
         kept in a recording running then, docs/FORMATS.md "Measurement notes")."""
         self._stamp_ns = 0  # the newest picture handed over: a note's time
+        self._frame: SpotFrame | None = None  # read again after a change (a paused replay)
         self._lock = threading.Lock()
         self._params = ObjectParameters()
         self._regions: tuple[Region, ...] = ()
@@ -97,7 +98,7 @@ class Measurements:
         with self._lock:
             self._params = params
             self._last_s = None  # read again at the next picture
-        self.note_settings()
+        self._changed()
 
     @property
     def regions(self) -> tuple[Region, ...]:
@@ -120,7 +121,7 @@ class Measurements:
                 )
             self._regions = tuple(regions)
             self._last_s = None
-        self.note_settings()
+        self._changed()
 
     @property
     def rules(self) -> tuple[AlarmRule, ...]:
@@ -138,7 +139,15 @@ class Measurements:
             if len(set(keys)) != len(keys):
                 raise ValueError("alarms: the same rule is given twice")
             self._tracker = AlarmTracker(list(rules))
+            self._last_s = None
+        self._changed()
+
+    def _changed(self) -> None:
+        """After a change of the settings: note them, and read the newest picture again (a
+        paused replay makes no new one; its alarms must still be judged)."""
         self.note_settings()
+        if self._frame is not None:
+            self.submit(self._frame)
 
     def settings(self) -> dict[str, object]:
         """The object parameters, regions and alarm rules in force (JSON-able)."""
@@ -159,7 +168,7 @@ class Measurements:
     def submit(self, frame: SpotFrame) -> None:
         """Hand over a picture's capture (the fusion thread; never waits): read in the
         ``measurements`` thread when it is due."""
-        self._stamp_ns = frame.stamp_ns
+        self._stamp_ns, self._frame = frame.stamp_ns, frame
         if not self._regions and self._readings is None:
             return
         if self._worker is None:

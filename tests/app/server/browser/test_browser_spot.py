@@ -339,3 +339,81 @@ def test_xr_gaze_and_controller_rays_map_to_pixels(console, browser) -> None:
     )
     assert drawn > 500  # crosshairs and labels in both eyes
     page.close()
+
+
+MEASURE_SHOT = Path("/tmp/shots/viewer-regions.png")
+
+
+def test_a_box_kept_as_a_region_is_outlined_read_and_alarms(console, browser, room) -> None:
+    """Issue 35 in the viewer: a box dragged over the second person's head, kept with
+    "Box → region", becomes the console's region "box 1", outlined on the left eye with its
+    corrected maximum (emissivity 0.98 of skin: a little above the imager's 34 C); an alarm
+    above 300 K set over REST turns it red and shows the banner; Clear regions keeps the
+    region the alarm watches."""
+    console.post("/api/source/resume")  # frames again (another test may have paused them)
+    page = browser.new_page(viewport={"width": 1400, "height": 700})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(console.signin("/"))
+    page.wait_for_function("() => window.trifuseStats.frames > 3 && window.trifuseMeasure")
+    _hold_a_whole_picture(console, page)
+    truth, names = room["truth"], room["names"]
+    x, y = _inner_centre(truth["ccd_left"].solid == names.index("person2_head"))
+    console.request("/api/object-parameters", "PUT", {"material": "human skin"})
+    x0, y0 = _client_xy(page, "left", x - 20, y - 20)
+    x1, y1 = _client_xy(page, "left", x + 20, y + 20)
+    page.mouse.move(x0, y0)
+    page.mouse.down()
+    page.mouse.move(x1, y1, steps=6)
+    page.mouse.up()
+    page.wait_for_function("() => window.trifuseSpot.state.box !== null")
+    page.get_by_role("button", name="Box → region").click()
+    page.wait_for_function(
+        "() => window.trifuseMeasure.state.readings"
+        " && window.trifuseMeasure.state.readings.regions['box 1']"
+    )
+    [region] = console.get("/api/regions")
+    assert (region["name"], region["eye"], region["shape"]) == ("box 1", "left", "box")
+    (rx0, ry0), (rx1, ry1) = region["points"]  # the pointer lands within a pixel
+    assert max(abs(rx0 - x + 20), abs(ry0 - y + 20), abs(rx1 - x - 20), abs(ry1 - y - 20)) <= 1
+    reading = page.evaluate("() => window.trifuseMeasure.state.readings.regions['box 1']")
+    apparent, corrected = reading["apparent"]["max_k"], reading["object"]["max_k"]
+    assert 33.0 < apparent - 273.15 < 35.5  # the imager's (+0.75 K offset), as /api/spot
+    assert 0.05 < corrected - apparent < 1.0  # e 0.98 in a 20 C room: a little warmer
+    # the outline in cyan on the overlay, around the box's corner
+    cx, cy = _client_xy(page, "left", x - 20, y)
+    px = page.evaluate(
+        "([x, y]) => { const c = document.getElementById('measure-overlay');"
+        " const r = c.getBoundingClientRect(); const s = c.width / r.width;"
+        " const d = c.getContext('2d').getImageData(Math.round((x - r.left) * s) - 3,"
+        " Math.round((y - r.top) * s) - 3, 7, 7).data; let best = 0;"
+        " for (let i = 0; i < d.length; i += 4) if (d[i + 2] > 200 && d[i] < 120) best = d[i + 3];"
+        " return best; }",
+        [cx, cy],
+    )
+    assert px > 0, "no cyan outline at the box's left edge"
+
+    status, _ = console.request(
+        "/api/alarms", "PUT", [{"region": "box 1", "kind": "above", "threshold": 300.0}]
+    )
+    assert status == 200
+    page.wait_for_function(
+        "() => document.getElementById('alarm-banner').textContent.includes('box 1 above 300')"
+    )
+    assert page.locator("#alarm-banner").is_visible()
+    MEASURE_SHOT.parent.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(MEASURE_SHOT))
+    spot = {"name": "spot", "eye": "right", "shape": "spot", "points": [[600, 400]]}
+    console.request("/api/regions", "PUT", [region, spot])
+    page.wait_for_function("() => window.trifuseMeasure.state.regions.length === 2")
+    page.get_by_role("button", name="Clear regions").click()  # the alarm's region stays
+    page.wait_for_function("() => window.trifuseMeasure.state.regions.length === 1")
+    assert [r["name"] for r in console.get("/api/regions")] == ["box 1"]
+    console.request("/api/alarms", "PUT", [])
+    page.get_by_role("button", name="Clear regions").click()
+    page.wait_for_function("() => window.trifuseMeasure.state.regions.length === 0")
+    assert console.get("/api/regions") == []
+    console.request("/api/object-parameters", "PUT", {})
+    console.post("/api/source/resume")
+    assert errors == []
+    page.close()

@@ -1,0 +1,166 @@
+// The viewer's measurement regions and alarms (issue 35): each region of GET /api/regions
+// outlined on its eye's picture with its name and corrected maximum (GET /api/measurements,
+// object temperatures: emissivity, reflection and the air by each pixel's TOF distance), in
+// red while one of its alarms is raised; a banner over the picture names the raised alarms
+// (GET /api/alarms). "Box → region" keeps the spot meter's box (viewer-spot.js) as a region
+// of the console (PUT /api/regions), named "box N"; "Clear regions" removes the regions no
+// alarm watches. Readings come twice a second while there are regions.
+//
+// window.trifuseMeasure: the state (regions, readings, active alarms, drawn) for the tests.
+"use strict";
+(() => {
+  const frameBox = document.getElementById("frame");
+  const bar = document.getElementById("bar");
+  const K0 = 273.15;
+  const POLL_MS = 500;
+
+  const state = { regions: [], readings: null, active: [], events: [], drawn: 0, error: null };
+
+  const layer = document.createElement("canvas");
+  layer.id = "measure-overlay";
+  Object.assign(layer.style, {
+    position: "absolute", left: "0", top: "0", width: "100%", height: "100%",
+    pointerEvents: "none",
+  });
+  frameBox.appendChild(layer);
+  const g = layer.getContext("2d");
+
+  const banner = document.createElement("div");
+  banner.id = "alarm-banner";
+  banner.setAttribute("role", "alert");
+  Object.assign(banner.style, {
+    position: "absolute", left: "50%", top: "8px", transform: "translateX(-50%)",
+    padding: "4px 12px", borderRadius: "4px", background: "rgba(200,0,0,.85)",
+    color: "#fff", fontWeight: "600", display: "none", pointerEvents: "none",
+  });
+  frameBox.appendChild(banner);
+
+  function button(id, text, title) {
+    const b = document.createElement("button");
+    b.id = id; b.textContent = text; b.title = title;
+    bar.insertBefore(b, bar.firstChild);
+    return b;
+  }
+  const keepButton = button("measure-keep", "Box → region",
+    "keep the spot meter's box as a measurement region (read with the object parameters)");
+  const clearButton = button("measure-clear", "Clear regions",
+    "remove the measurement regions (those an alarm watches stay)");
+
+  async function call(method, path, body) {
+    const r = await fetch(path, {
+      method, headers: body === undefined ? {} : { "content-type": "application/json" },
+      body: body === undefined ? undefined : JSON.stringify(body),
+    });
+    const answer = await r.json().catch(() => ({}));
+    if (!r.ok) {
+      const d = answer.detail;
+      throw new Error(typeof d === "string" ? d : (d && d[0] && d[0].msg) || `HTTP ${r.status}`);
+    }
+    return answer;
+  }
+
+  keepButton.onclick = async () => {
+    const spot = window.trifuseSpot && window.trifuseSpot.state;
+    const box = spot && spot.box;
+    if (!box) { state.error = "draw a box first (drag over the picture)"; return; }
+    const names = new Set(state.regions.map((r) => r.name));
+    let n = 1;
+    while (names.has(`box ${n}`)) n += 1;
+    const region = { name: `box ${n}`, eye: box.eye, shape: "box",
+      points: [[box.x0, box.y0], [box.x1, box.y1]] };
+    try {
+      state.regions = await call("PUT", "/api/regions", [...state.regions, region]);
+      state.error = null;
+      window.trifuseSpot.clear();
+      poll();
+    } catch (e) { state.error = String(e.message || e); }
+  };
+  clearButton.onclick = async () => {
+    const watched = new Set(((await call("GET", "/api/alarms").catch(() => ({}))).rules || [])
+      .map((a) => a.region));
+    try {
+      state.regions = await call("PUT", "/api/regions",
+        state.regions.filter((r) => watched.has(r.name)));
+      state.readings = null;
+      state.error = null;
+      redraw();
+    } catch (e) { state.error = String(e.message || e); }
+  };
+
+  let inFlight = false;
+  async function poll() {
+    if (inFlight) return;
+    inFlight = true;
+    try {
+      state.regions = await call("GET", "/api/regions");
+      const alarms = await call("GET", "/api/alarms");
+      state.active = alarms.active;
+      state.events = alarms.events.slice(-5);
+      state.readings = state.regions.length ? await call("GET", "/api/measurements") : null;
+    } catch (e) {
+      state.error = String(e.message || e);
+    } finally {
+      inFlight = false;
+    }
+    redraw();
+  }
+  setInterval(poll, POLL_MS);
+  poll();
+
+  const size = () => {
+    const s = window.trifuseSpot && window.trifuseSpot.state;
+    return s ? [s.colorW, s.colorH] : [1280, 960];
+  };
+
+  function redraw() {
+    const rect = layer.getBoundingClientRect();
+    const w = Math.round(rect.width * devicePixelRatio), h = Math.round(rect.height * devicePixelRatio);
+    if (layer.width !== w || layer.height !== h) { layer.width = w; layer.height = h; }
+    g.clearRect(0, 0, layer.width, layer.height);
+    const [cw, ch] = size();
+    const half = layer.width / 2;
+    const toCanvas = (eye, x, y) => [(eye === "right" ? half : 0) + (x + 0.5) * half / cw,
+      (y + 0.5) * layer.height / ch];
+    const font = Math.max(11, Math.round(layer.height / 55));
+    const readings = (state.readings && state.readings.regions) || {};
+    const raised = new Set(state.active.map((k) => k.split(" ").slice(0, -2).join(" ")));
+    for (const r of state.regions) {
+      const alarm = raised.has(r.name);
+      g.strokeStyle = alarm ? "#ff2020" : "#40e0ff";
+      g.lineWidth = Math.max(2, font / 6);
+      g.beginPath();
+      const pts = r.shape === "box"
+        ? [[r.points[0][0], r.points[0][1]], [r.points[1][0], r.points[0][1]],
+          [r.points[1][0], r.points[1][1]], [r.points[0][0], r.points[1][1]]]
+        : r.points;
+      const cpts = pts.map(([x, y]) => toCanvas(r.eye, x, y));
+      if (r.shape === "spot") {
+        const [x, y] = cpts[0];
+        g.arc(x, y, font * 0.6, 0, 2 * Math.PI);
+      } else {
+        cpts.forEach(([x, y], i) => (i ? g.lineTo(x, y) : g.moveTo(x, y)));
+        g.closePath();
+      }
+      g.stroke();
+      const m = readings[r.name];
+      const o = m && m.object;
+      const text = `${r.name}: ` + (o && o.max_k !== null
+        ? `max ${(o.max_k - K0).toFixed(1)} °C, mean ${(o.mean_k - K0).toFixed(1)} °C`
+        : (state.readings && state.readings.errors[r.name]) || "no temperature");
+      const x0 = Math.min(...cpts.map((p) => p[0])), y0 = Math.min(...cpts.map((p) => p[1]));
+      g.font = `600 ${font}px system-ui, sans-serif`;
+      const tw = g.measureText(text).width + 0.6 * font;
+      const ty = Math.max(0, y0 - 1.5 * font);
+      g.fillStyle = "rgba(0,0,0,.6)";
+      g.fillRect(x0, ty, tw, 1.4 * font);
+      g.fillStyle = alarm ? "#ff6060" : "#ffffff";
+      g.fillText(text, x0 + 0.3 * font, ty + 1.05 * font);
+    }
+    const text = state.active.length ? `⚠ ALARM: ${state.active.join(", ")}` : "";
+    banner.textContent = text;
+    banner.style.display = text ? "block" : "none";
+    state.drawn += 1;
+  }
+
+  window.trifuseMeasure = { state, poll, redraw };
+})();
