@@ -4,7 +4,8 @@
 // red while one of its alarms is raised; a banner over the picture names the raised alarms
 // (GET /api/alarms). "Box → region" keeps the spot meter's box (viewer-spot.js) as a region
 // of the console (PUT /api/regions), named "box N"; "Clear regions" removes the regions no
-// alarm watches. Readings come twice a second while there are regions.
+// alarm watches; "Snapshot" downloads GET /api/snapshot (a ZIP). Readings come twice a
+// second while there are regions.
 //
 // window.trifuseMeasure: the state (regions, readings, active alarms, drawn) for the tests.
 "use strict";
@@ -45,6 +46,17 @@
     "keep the spot meter's box as a measurement region (read with the object parameters)");
   const clearButton = button("measure-clear", "Clear regions",
     "remove the measurement regions (those an alarm watches stay)");
+  const snapButton = button("measure-snapshot", "Snapshot",
+    "download the picture: the fused pair, each eye's temperatures (16-bit PNG, " +
+    "centi-kelvin), the parameters and the regions' readings (ZIP)");
+  snapButton.onclick = () => {
+    const a = document.createElement("a");
+    a.href = "/api/snapshot";
+    a.download = "";
+    document.body.appendChild(a);
+    a.click();
+    a.remove();
+  };
 
   async function call(method, path, body) {
     const r = await fetch(path, {

@@ -11,6 +11,7 @@ their readings, the difference between two, and alarms.
   one region's value minus another's.
 - ``GET``/``PUT /api/alarms``: rules above, below or on a rate of rise, the active ones and
   the events (``after``: only the newer).
+- ``GET /api/snapshot``: the last picture's files in a ZIP (app/server/runtime/snapshot.py).
 
 Bad input (emissivity outside 0.01-1, humidity outside 0-100 %, a region outside the
 picture, a name given twice, an alarm on no region) gets a 422 with one line saying what
@@ -24,12 +25,13 @@ import dataclasses
 import math
 from typing import Literal
 
-from fastapi import APIRouter, Depends, HTTPException
+from fastapi import APIRouter, Depends, HTTPException, Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from trifuse.app.server.middleware.limits import require_json
 from trifuse.app.server.runtime.measurements import Readings
 from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.snapshot import snapshot_zip
 from trifuse.fusion.alarms import AlarmRule
 from trifuse.fusion.regions import Region
 from trifuse.fusion.thermography import EMISSIVITY_RANGE, MATERIALS, ObjectParameters
@@ -237,6 +239,36 @@ def make_measure_router(pipeline: FusionPipeline) -> APIRouter:
             values.append(value)
         return {"a": a, "b": b, "stat": stat, "delta_k": values[0] - values[1],
                 "stamp_ns": r.stamp_ns}  # fmt: skip
+
+    @router.get("/snapshot", response_class=Response)
+    def get_snapshot() -> Response:
+        """A ZIP of the last picture: the fused pair (PNG), each eye's apparent and object
+        temperatures (16-bit PNG, centi-kelvin, 0 = none), the parameters (JSON) and the
+        regions' readings (CSV); 503 before the first fused picture."""
+        pipeline.touch_demand()
+        frame = pipeline.spots
+        if frame is None:
+            raise HTTPException(
+                503, "no fused picture yet (the console fuses while someone watches; ask again)"
+            )
+        latest = pipeline.hub.latest
+        readings = m.read_now(frame)
+        data = snapshot_zip(
+            frame,
+            None if latest is None else latest.bgr,
+            None if latest is None else latest.jpeg,
+            {} if latest is None else latest.meta,
+            m.params,
+            m.regions,
+            m.settings(),
+            {} if readings is None else readings.regions,
+        )
+        name = f"trifuse-snapshot-{frame.stamp_ns}.zip"
+        return Response(
+            data,
+            media_type="application/zip",
+            headers={"Content-Disposition": f'attachment; filename="{name}"'},
+        )
 
     @router.get("/alarms")
     def get_alarms(after: int = 0) -> dict:

@@ -226,3 +226,39 @@ def test_alarms_rise_clear_with_hysteresis_and_throttle(console, scene) -> None:
     assert m.readings is not first
     assert [e["state"] for e in m.events()] == ["raised", "cleared"]
     assert m.status()["active_alarms"] == []
+
+
+def test_snapshot_holds_the_pair_and_each_eyes_temperatures(console, scene) -> None:
+    """GET /api/snapshot: the fused pair, each eye's apparent and object temperatures as
+    16-bit centi-kelvin PNGs (the object map reads the panels' truth inside their regions,
+    with their emissivities), the parameters and the regions' table."""
+    import io
+    import json
+    import zipfile
+
+    client, pipeline = console
+    r = client.get("/api/snapshot")
+    assert r.status_code == 200 and r.headers["content-type"] == "application/zip"
+    z = zipfile.ZipFile(io.BytesIO(r.content))
+    names = set(z.namelist())
+    assert names == {"fused.png", "apparent_left.png", "apparent_right.png", "object_left.png",
+                     "object_right.png", "parameters.json", "regions.csv"}  # fmt: skip
+    w, h = pipeline.fusion.size
+    fused = cv2.imdecode(np.frombuffer(z.read("fused.png"), np.uint8), cv2.IMREAD_COLOR)
+    assert fused.shape == (h, 2 * w, 3)
+    maps = {}
+    for n in ("apparent_left", "object_left"):
+        png = cv2.imdecode(np.frombuffer(z.read(f"{n}.png"), np.uint8), cv2.IMREAD_UNCHANGED)
+        assert png.dtype == np.uint16 and png.shape == (h, w)
+        maps[n] = png.astype(np.float64) / 100.0
+    _, boxes = scene
+    for name, ((x0, y0), (x1, y1)) in boxes.items():
+        patch = maps["object_left"][int(y0) : int(y1) + 1, int(x0) : int(x1) + 1]
+        assert patch.mean() == pytest.approx(TRUE_K[name], abs=TOLERANCE_K), name
+        apparent = maps["apparent_left"][int(y0) : int(y1) + 1, int(x0) : int(x1) + 1]
+        assert apparent.mean() < TRUE_K[name] - 1.0
+    info = json.loads(z.read("parameters.json"))
+    assert info["stamp_ns"] == pipeline.spots.stamp_ns
+    assert info["parameters"]["humidity_pct"] == HUMIDITY_PCT and len(info["regions"]) == 4
+    table = z.read("regions.csv").decode().splitlines()
+    assert table[0].startswith("stamp_ns,region,pixels,max_k") and len(table) == 5

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import re
 import time
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -403,6 +404,11 @@ def test_a_box_kept_as_a_region_is_outlined_read_and_alarms(console, browser, ro
     assert page.locator("#alarm-banner").is_visible()
     MEASURE_SHOT.parent.mkdir(parents=True, exist_ok=True)
     page.screenshot(path=str(MEASURE_SHOT))
+    with page.expect_download() as download:  # the snapshot's ZIP
+        page.get_by_role("button", name="Snapshot").click()
+    assert re.fullmatch(r"trifuse-snapshot-\d+\.zip", download.value.suggested_filename)
+    with zipfile.ZipFile(download.value.path()) as z:
+        assert "object_left.png" in z.namelist() and "regions.csv" in z.namelist()
     spot = {"name": "spot", "eye": "right", "shape": "spot", "points": [[600, 400]]}
     console.request("/api/regions", "PUT", [region, spot])
     page.wait_for_function("() => window.trifuseMeasure.state.regions.length === 2")
