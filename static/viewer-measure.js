@@ -4,8 +4,9 @@
 // red while one of its alarms is raised; a banner over the picture names the raised alarms
 // (GET /api/alarms). "Box → region" keeps the spot meter's box (viewer-spot.js) as a region
 // of the console (PUT /api/regions), named "box N"; "Clear regions" removes the regions no
-// alarm watches; "Snapshot" downloads GET /api/snapshot (a ZIP). Readings come twice a
-// second while there are regions.
+// alarm watches; "Snapshot" downloads GET /api/snapshot (a ZIP); "Lock span" fixes the
+// palette's span at the one shown (POST /api/thermal/span-lock; "Unlock span": automatic
+// again). Readings come twice a second while there are regions.
 //
 // window.trifuseMeasure: the state (regions, readings, active alarms, drawn) for the tests.
 "use strict";
@@ -49,6 +50,23 @@
   const snapButton = button("measure-snapshot", "Snapshot",
     "download the picture: the fused pair, each eye's temperatures (16-bit PNG, " +
     "centi-kelvin), the parameters and the regions' readings (ZIP)");
+  const lockButton = button("measure-span-lock", "Lock span",
+    "fix the palette's span at the one shown now (colours keep their temperatures); " +
+    "again: automatic span");
+  lockButton.onclick = async () => {
+    const m = window.trifuseStats && window.trifuseStats.meta;
+    try {
+      if (m && m.span_auto === false) await call("PUT", "/api/thermal", { span_k: null });
+      else await call("POST", "/api/thermal/span-lock");
+      state.error = null;
+    } catch (e) { state.error = String(e.message || e); }
+  };
+  setInterval(() => {  // the button says what a click does
+    const m = window.trifuseStats && window.trifuseStats.meta;
+    const locked = !!(m && m.span_auto === false);
+    const text = locked ? "Unlock span" : "Lock span";
+    if (lockButton.textContent !== text) lockButton.textContent = text;
+  }, POLL_MS);
   snapButton.onclick = () => {
     const a = document.createElement("a");
     a.href = "/api/snapshot";

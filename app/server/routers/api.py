@@ -225,6 +225,23 @@ def make_api_router(pipeline: FusionPipeline, balancer: ThermalBalancer | None =
                 balancer.set_auto(body.auto_balance)
         return thermal()
 
+    @router.post("/thermal/span-lock")
+    def lock_span() -> Thermal:
+        """Span lock (issue 35): fix the palette's span at the one the last picture shows
+        (the automatic span, as it is now), so that colours keep their temperatures; PUT
+        ``/api/thermal`` with ``span_k`` null unlocks it. 409 before a picture with a colour
+        scale."""
+        latest = pipeline.hub.latest
+        span = None if latest is None else latest.meta.get("span_k")
+        if not span:
+            raise HTTPException(409, "no picture with a colour scale yet: nothing to lock")
+        low, high = (round(float(v), 2) for v in span)
+        try:
+            pipeline.settings = dataclasses.replace(pipeline.settings, span_k=(low, high))
+        except ValueError as exc:
+            raise HTTPException(409, str(exc)) from None
+        return thermal()
+
     @router.post("/thermal/balance")
     def balance_now() -> Thermal:
         """Apply the filtered balance estimate once (409 with the reason when there is

@@ -60,7 +60,9 @@ Without a ``demand`` every frame set is fused.
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
+import time
 from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -79,6 +81,10 @@ from trifuse.calib.rig import Rig
 from trifuse.fusion.compose import DisplaySettings
 from trifuse.fusion.spot import SpotFrame, SpotMeter
 from trifuse.fusion.stereo_step import CONSOLE, PictureInputs, Skip, StereoStep
+
+HELD_S = 0.3
+"""No frame set for this long (seconds): the source holds still (a paused replay), and a
+change of the display settings fuses the newest set again."""
 
 
 @dataclass
@@ -115,7 +121,8 @@ class FusionPipeline:
     ) -> None:
         self.source, self.hub = source, hub
         self.demand = demand
-        self.settings = settings or DisplaySettings()
+        self._settings = settings or DisplaySettings()
+        self._noted_at = -math.inf  # monotonic time of the newest frame set noted
         self.tolerance_s = tolerance_s
         self.status = PipelineStatus()
         self.latest_set: FrameSet | None = None
@@ -252,16 +259,33 @@ class FusionPipeline:
                 self._resting, self._made_of, self.spots = True, None, None
                 self.hub.forget()
 
+    @property
+    def settings(self) -> DisplaySettings:
+        """The display settings the next picture is composed with."""
+        return self._settings
+
+    @settings.setter
+    def settings(self, value: DisplaySettings) -> None:
+        """New display settings; while the source holds still (a paused replay: no frame
+        set for :data:`HELD_S`) the newest set is fused again with them, so the picture
+        shows the change (a new span, a mode) rather than the old settings."""
+        self._settings = value
+        if time.monotonic() - self._noted_at > HELD_S and self._thread.is_alive():
+            threading.Thread(
+                target=self._fuse_newest, args=(True,), name="fusion-refresh", daemon=True
+            ).start()
+
     def _catch_up(self) -> None:
         """The demand turned wanted: fuse the newest frame set now, in a thread of its own
         (the fusion thread may be waiting for the source: a paused replay)."""
         if self._thread.is_alive() and not self._stop.is_set():
             threading.Thread(target=self._fuse_newest, name="fusion-catch-up", daemon=True).start()
 
-    def _fuse_newest(self) -> None:
+    def _fuse_newest(self, again: bool = False) -> None:
+        """Fuse the newest frame set unless it is the last one fused (``again``: also then)."""
         with self._fuse_lock:
             fs = self.latest_set
-            if fs is not None and fs is not self._fused_set and self.wanted:
+            if fs is not None and (again or fs is not self._fused_set) and self.wanted:
                 try:
                     self._publish(fs)
                 except Exception as exc:  # shown in the status, like the fusion thread's
@@ -270,7 +294,7 @@ class FusionPipeline:
     def _note(self, fs: FrameSet) -> None:
         """What every frame set updates, fused or not: the newest set, the status, and the
         step's note (the newest TOF frame, when each eye's colour camera was last seen)."""
-        self.latest_set = fs
+        self.latest_set, self._noted_at = fs, time.monotonic()
         for listener in list(self.set_listeners):
             try:
                 listener(fs)

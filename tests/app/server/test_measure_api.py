@@ -262,3 +262,26 @@ def test_snapshot_holds_the_pair_and_each_eyes_temperatures(console, scene) -> N
     assert info["parameters"]["humidity_pct"] == HUMIDITY_PCT and len(info["regions"]) == 4
     table = z.read("regions.csv").decode().splitlines()
     assert table[0].startswith("stamp_ns,region,pixels,max_k") and len(table) == 5
+
+
+def test_span_lock_fixes_the_span_the_picture_shows(console) -> None:
+    """POST /api/thermal/span-lock: the automatic span of the last picture becomes the
+    manual one (to 0.01 K); PUT /api/thermal with span_k null unlocks it."""
+    client, pipeline = console
+    shown = pipeline.hub.latest.meta["span_k"]
+    assert pipeline.hub.latest.meta["span_auto"] is True
+    try:
+        r = client.post("/api/thermal/span-lock")
+        assert r.status_code == 200, r.text
+        assert r.json()["span_k"] == pytest.approx(shown, abs=0.005)
+        assert pipeline.settings.span_k == pytest.approx(shown, abs=0.005)
+    finally:
+        assert client.put("/api/thermal", json={"span_k": None}).status_code == 200
+    assert pipeline.settings.span_k is None
+
+
+def test_span_lock_before_a_picture_is_a_409() -> None:
+    hub = FrameHub()
+    pipeline = FusionPipeline(ListSource.of_sets([]), default_rig(), hub)
+    r = TestClient(create_app(hub, None, pipeline)).post("/api/thermal/span-lock")
+    assert r.status_code == 409 and "nothing to lock" in r.json()["detail"]

@@ -350,7 +350,7 @@ def test_a_box_kept_as_a_region_is_outlined_read_and_alarms(console, browser, ro
     "Box → region", becomes the console's region "box 1", outlined on the left eye with its
     corrected maximum (emissivity 0.98 of skin: a little above the imager's 34 C); an alarm
     above 300 K set over REST turns it red and shows the banner; Clear regions keeps the
-    region the alarm watches."""
+    region the alarm watches; Snapshot downloads the ZIP; Lock span fixes the span shown."""
     console.post("/api/source/resume")  # frames again (another test may have paused them)
     page = browser.new_page(viewport={"width": 1400, "height": 700})
     errors: list[str] = []
@@ -409,6 +409,11 @@ def test_a_box_kept_as_a_region_is_outlined_read_and_alarms(console, browser, ro
     assert re.fullmatch(r"trifuse-snapshot-\d+\.zip", download.value.suggested_filename)
     with zipfile.ZipFile(download.value.path()) as z:
         assert "object_left.png" in z.namelist() and "regions.csv" in z.namelist()
+    # span lock: the span shown becomes the operator's; the button then unlocks it
+    page.get_by_role("button", name="Lock span").click()
+    page.wait_for_function("() => window.trifuseStats.meta.span_auto === false")
+    page.get_by_role("button", name="Unlock span").click()
+    page.wait_for_function("() => window.trifuseStats.meta.span_auto === true")
     spot = {"name": "spot", "eye": "right", "shape": "spot", "points": [[600, 400]]}
     console.request("/api/regions", "PUT", [region, spot])
     page.wait_for_function("() => window.trifuseMeasure.state.regions.length === 2")
