@@ -321,6 +321,11 @@ class SpotFrame:
             )
         return out
 
+    def kelvin(self, eye: str) -> np.ndarray:
+        """``eye``'s apparent temperatures (H, W) float32 kelvin (NaN: no thermal view),
+        read-only."""
+        return self._check_eye(eye).kelvin
+
     def samples(self, eye: str, xs: np.ndarray, ys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """At integer colour pixels (``xs``, ``ys``) (N,) of ``eye`` (inside the picture):
         the apparent temperature (N,) kelvin (NaN: no thermal view) and the distance (N,)

@@ -11,6 +11,7 @@ their readings, the difference between two, and alarms.
   one region's value minus another's.
 - ``GET``/``PUT /api/alarms``: rules above, below or on a rate of rise, the active ones and
   the events (``after``: only the newer).
+- ``GET /api/profile``: temperatures along a line (a profile plot's data).
 - ``GET /api/snapshot``: the last picture's files in a ZIP (app/server/runtime/snapshot.py).
 
 Bad input (emissivity outside 0.01-1, humidity outside 0-100 %, a region outside the
@@ -25,6 +26,7 @@ import dataclasses
 import math
 from typing import Literal
 
+import numpy as np
 from fastapi import APIRouter, Depends, HTTPException, Response
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -33,8 +35,13 @@ from trifuse.app.server.runtime.measurements import Readings
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.snapshot import snapshot_zip
 from trifuse.fusion.alarms import AlarmRule
-from trifuse.fusion.regions import Region
-from trifuse.fusion.thermography import EMISSIVITY_RANGE, MATERIALS, ObjectParameters
+from trifuse.fusion.regions import Region, line_profile
+from trifuse.fusion.thermography import (
+    EMISSIVITY_RANGE,
+    MATERIALS,
+    ObjectParameters,
+    object_temperature,
+)
 
 _Point = tuple[float, float]
 
@@ -239,6 +246,44 @@ def make_measure_router(pipeline: FusionPipeline) -> APIRouter:
             values.append(value)
         return {"a": a, "b": b, "stat": stat, "delta_k": values[0] - values[1],
                 "stamp_ns": r.stamp_ns}  # fmt: skip
+
+    @router.get("/profile")
+    def get_profile(
+        x0: float | None = None,
+        y0: float | None = None,
+        x1: float | None = None,
+        y1: float | None = None,
+        eye: Literal["left", "right"] = "left",
+    ) -> dict:
+        """The temperatures along the segment (``x0``, ``y0``)-(``x1``, ``y1``) (colour pixels
+        of ``eye``; by default the picture's middle row) of the last picture, one sample a
+        pixel: ``distance_px`` along it, ``apparent_k`` (bilinear) and ``object_k``
+        (corrected with the global parameters and the TOF's distance at the nearest pixel;
+        null where there is none)."""
+        pipeline.touch_demand()
+        frame = pipeline.spots
+        if frame is None:
+            raise HTTPException(503, "no fused picture yet (ask again in a moment)")
+        w, h = frame.size
+        x0 = 0.0 if x0 is None else x0
+        x1 = float(w - 1) if x1 is None else x1
+        y0 = float((h - 1) // 2) if y0 is None else y0
+        y1 = y0 if y1 is None else y1
+        for name, v, n in (("x0", x0, w), ("x1", x1, w), ("y0", y0, h), ("y1", y1, h)):
+            if not (math.isfinite(v) and 0 <= v <= n - 1):
+                raise HTTPException(422, f"{name}: expected a pixel 0..{n - 1}, got {v:g}")
+        along, apparent = line_profile(frame.kelvin(eye), (x0, y0), (x1, y1))
+        t = np.linspace(0.0, 1.0, len(along))
+        xs = np.rint(x0 + (x1 - x0) * t).astype(np.int64)
+        ys = np.rint(y0 + (y1 - y0) * t).astype(np.int64)
+        _, distance = frame.samples(eye, xs, ys)
+        corrected = object_temperature(apparent, distance, m.params)
+
+        def listed(a: np.ndarray) -> list[float | None]:
+            return [round(float(v), 3) if np.isfinite(v) else None for v in a]
+
+        return {"eye": eye, "distance_px": listed(along), "apparent_k": listed(apparent),
+                "object_k": listed(corrected), "stamp_ns": frame.stamp_ns}  # fmt: skip
 
     @router.get("/snapshot", response_class=Response)
     def get_snapshot() -> Response:

@@ -285,3 +285,23 @@ def test_span_lock_before_a_picture_is_a_409() -> None:
     pipeline = FusionPipeline(ListSource.of_sets([]), default_rig(), hub)
     r = TestClient(create_app(hub, None, pipeline)).post("/api/thermal/span-lock")
     assert r.status_code == 409 and "nothing to lock" in r.json()["detail"]
+
+
+def test_profile_across_the_hot_plate(console, scene) -> None:
+    """GET /api/profile: a line across the hot plate's box reads the plate's true
+    temperature in the middle (corrected), the imager's lower one apparent; a point
+    outside the picture is a 422."""
+    client, _ = console
+    _, boxes = scene
+    (x0, y0), (x1, y1) = boxes["hot"]
+    y = (y0 + y1) / 2
+    r = client.get("/api/profile", params={"x0": x0, "y0": y, "x1": x1, "y1": y})
+    assert r.status_code == 200, r.text
+    p = r.json()
+    n = len(p["distance_px"])
+    assert n == int(np.ceil(x1 - x0)) + 1 and p["distance_px"][-1] == pytest.approx(x1 - x0)
+    middle = np.array(p["object_k"][n // 4 : 3 * n // 4], float)
+    assert np.abs(middle - TRUE_K["hot"]).mean() < TOLERANCE_K
+    assert max(p["apparent_k"][n // 4 : 3 * n // 4]) < TRUE_K["hot"] - 1.0
+    bad = client.get("/api/profile", params={"x0": -5, "y0": y, "x1": x1, "y1": y})
+    assert bad.status_code == 422 and bad.json()["detail"].startswith("x0: expected a pixel")
