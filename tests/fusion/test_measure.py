@@ -14,19 +14,16 @@ from __future__ import annotations
 
 import dataclasses
 
-import cv2
 import numpy as np
 import pytest
 
+from tests.measure_support import TARGETS, panel_boxes, render
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.sources.sim.measurement_scene import (
     AIR_K,
     HUMIDITY_PCT,
-    PANELS,
     SKY_K,
-    measurement_scene,
 )
-from trifuse.app.sources.sim.render import HeadModel, Renderer
 from trifuse.fusion.compose import DisplaySettings
 from trifuse.fusion.measure import Measurement, measure_regions
 from trifuse.fusion.regions import Region
@@ -38,7 +35,6 @@ TOLERANCE_K = 0.5
 PARAMS = ObjectParameters(
     emissivity=0.95, reflected_k=SKY_K, air_k=AIR_K, humidity_pct=HUMIDITY_PCT
 )
-TARGETS = [p for p in PANELS if p.name != "backdrop"]
 
 
 @dataclasses.dataclass
@@ -48,30 +44,17 @@ class Picture:
     truth_range_m: np.ndarray
 
 
-def _box(solid: np.ndarray, index: int) -> tuple[tuple[float, float], tuple[float, float]]:
-    """A box well inside solid ``index`` of a truth label image: its mask eroded by 25 px."""
-    m = cv2.erode((solid == index).astype(np.uint8), np.ones((51, 51), np.uint8))
-    ys, xs = np.nonzero(m)
-    return (float(xs.min()), float(ys.min())), (float(xs.max()), float(ys.max()))
-
-
 @pytest.fixture(scope="module")
 def picture() -> Picture:
     rig = default_rig()
-    scene = measurement_scene()
-    renderer = Renderer(rig, HeadModel(thermal_offset_k={}), live=True)
-    frames, truth = renderer.render(scene, np.eye(4), 0, np.random.default_rng(0))
+    frames, truth = render()
     fusion = StereoFusion(rig)
     fusion.update_depth(frames["tof"].distance_m, frames["tof"].image)
     colors = {e: frames[rig.eyes[e].color].image for e in fusion.eyes}
     thermals = {e: frames[rig.eyes[e].thermal].image for e in fusion.eyes}
     fusion.compose(colors, thermals, DisplaySettings())
-    solid = truth["ccd_left"].solid
-    names = [s.name for s in scene.solids]
-    regions = [
-        Region(p.name, "left", "box", _box(solid, names.index(p.name)), emissivity=p.emissivity)
-        for p in TARGETS
-    ]
+    boxes = panel_boxes(truth)
+    regions = [Region(p.name, "left", "box", boxes[p.name], p.emissivity) for p in TARGETS]
     return Picture(SpotMeter(fusion).capture(0), regions, truth["ccd_left"].range_m)
 
 

@@ -12,10 +12,9 @@ import csv
 import dataclasses
 from pathlib import Path
 
-import cv2
-import numpy as np
 import pytest
 
+from tests.measure_support import panel_boxes, render
 from tests.support import run_cli, write_recording
 from trifuse.app.sources.frames import Frame
 from trifuse.app.sources.sim.head import default_rig
@@ -26,8 +25,6 @@ from trifuse.app.sources.sim.measurement_scene import (
     SKY_K,
     measurement_scene,
 )
-from trifuse.app.sources.sim.render import HeadModel, Renderer
-from trifuse.app.sources.sim.scene import Material
 
 TOLERANCE_K = 0.5
 STEP_NS = 100_000_000  # frame sets 0.1 s apart
@@ -39,25 +36,17 @@ def recording(tmp_path_factory) -> tuple[Path, dict[str, list[list[float]]]]:
     """Four frame sets: the scene as it is twice, then with the hot plate 10 K hotter twice;
     and a box well inside each panel (left eye's pixels)."""
     rig = default_rig()
-    renderer = Renderer(rig, HeadModel(thermal_offset_k={}), live=True)
-    scene = measurement_scene()
     hotter = measurement_scene()
     plate = next(s for s in hotter.solids if s.name == "hot")
     plate.material = dataclasses.replace(
         plate.material, temperature_k=plate.material.temperature_k + HOTTER_K
     )
-    assert isinstance(plate.material, Material)
     frames: list[Frame] = []
     boxes: dict[str, list[list[float]]] = {}
-    for k, s in enumerate((scene, scene, hotter, hotter)):
-        fs, truth = renderer.render(s, np.eye(4), k * STEP_NS, np.random.default_rng(k))
+    for k, s in enumerate((None, None, hotter, hotter)):
+        fs, truth = render(s, k * STEP_NS, seed=k)
         frames += [fs.frames[n] for n in rig.names]
-        if not boxes:
-            names = [x.name for x in s.solids]
-            for p in PANELS[:4]:
-                m = (truth["ccd_left"].solid == names.index(p.name)).astype(np.uint8)
-                ys, xs = np.nonzero(cv2.erode(m, np.ones((51, 51), np.uint8)))
-                boxes[p.name] = [[int(xs.min()), int(ys.min())], [int(xs.max()), int(ys.max())]]
+        boxes = boxes or {n: [list(a), list(b)] for n, (a, b) in panel_boxes(truth).items()}
     path = write_recording(tmp_path_factory.mktemp("rec") / "scene.mcap", rig, frames)
     return path, boxes
 

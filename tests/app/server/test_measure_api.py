@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from tests.measure_support import panel_boxes, render
 from tests.support import WAIT_S, ListSource, wait_until
 from trifuse.app.server.app_factory import create_app
 from trifuse.app.server.runtime.measurements import Measurements
@@ -26,9 +27,7 @@ from trifuse.app.sources.sim.measurement_scene import (
     HUMIDITY_PCT,
     PANELS,
     SKY_K,
-    measurement_scene,
 )
-from trifuse.app.sources.sim.render import HeadModel, Renderer
 from trifuse.fusion.alarms import AlarmRule
 from trifuse.fusion.regions import Region
 from trifuse.fusion.spot import SpotFrame
@@ -52,19 +51,10 @@ def _later(fs: FrameSet, dt_ns: int) -> FrameSet:
 
 
 @pytest.fixture(scope="module")
-def scene() -> tuple[FrameSet, dict[str, list[tuple[float, float]]]]:
+def scene() -> tuple[FrameSet, dict]:
     """One frame set of the scene and a box well inside each panel (left eye's pixels)."""
-    rig = default_rig()
-    renderer = Renderer(rig, HeadModel(thermal_offset_k={}), live=True)
-    s = measurement_scene()
-    frames, truth = renderer.render(s, np.eye(4), 0, np.random.default_rng(0))
-    names = [x.name for x in s.solids]
-    boxes = {}
-    for p in PANELS[:4]:
-        m = (truth["ccd_left"].solid == names.index(p.name)).astype(np.uint8)
-        ys, xs = np.nonzero(cv2.erode(m, np.ones((51, 51), np.uint8)))
-        boxes[p.name] = [(float(xs.min()), float(ys.min())), (float(xs.max()), float(ys.max()))]
-    return frames, boxes
+    frames, truth = render()
+    return frames, panel_boxes(truth)
 
 
 def _regions(boxes) -> list[dict]:
