@@ -19,6 +19,7 @@ from trifuse.app.server.middleware.connections import GuardedH11Protocol, quiet_
 from trifuse.app.server.panels.calibration import CalibrationPanel
 from trifuse.app.server.panels.display import Panels
 from trifuse.app.server.panels.map_panel import MapPanel
+from trifuse.app.server.panels.measurements import MeasurementsPanel
 from trifuse.app.server.panels.precision import PrecisionPanel
 from trifuse.app.server.panels.range import RangePanel
 from trifuse.app.server.panels.rig_files import RigFilesPanel
@@ -204,6 +205,7 @@ def serve(
         Scene3D(ctx),
         RangePanel(ctx, session),
         MapPanel(ctx, mapper),
+        MeasurementsPanel(ctx),
         Panels(ctx),
     ]
     RigFilesPanel(ctx)  # the rig in robotics formats: export and import (no periodic work)

@@ -1,0 +1,117 @@
+"""The console's Measurements panel (issue 35): the object parameters a thermographer sets
+(a material or an emissivity, the reflected temperature, the air's temperature and humidity,
+the distance where the TOF has none), each region's corrected reading, and the raised alarms
+in an alert box. The same state as ``/api/object-parameters``, ``/api/measurements`` and
+``/api/alarms`` (:class:`app.server.runtime.measurements.Measurements`); regions and alarm
+rules are drawn in the viewer or set over REST.
+"""
+
+from __future__ import annotations
+
+from trifuse.app.server.markdown_text import md_text
+from trifuse.app.server.panels.drift_health import alert_html
+from trifuse.app.server.runtime.context import ConsoleContext
+from trifuse.app.server.runtime.measurements import Measurements, Readings
+from trifuse.app.server.runtime.periodic import Periodic
+from trifuse.fusion.thermography import MATERIALS, ObjectParameters
+
+K0 = 273.15
+OWN = "(emissivity below)"
+"""The material choice that leaves the emissivity as typed."""
+
+
+def readings_md(readings: Readings | None, regions: int) -> str:
+    """The regions' corrected readings as a markdown table (°C)."""
+    if not regions:
+        return "No measurement region: drag a box in the viewer and keep it (Box → region)."
+    if readings is None:
+        return "Reading the regions…"
+    lines = ["| region | max | min | mean | no TOF px |", "|:--|--:|--:|--:|--:|"]
+    for name, m in readings.regions.items():
+        o = m.object
+        if o.max_k is None or o.min_k is None or o.mean_k is None:
+            lines.append(f"| {md_text(name)} | – | – | – | {m.default_distance_px} |")
+            continue
+        values = " | ".join(f"{v - K0:.1f} °C" for v in (o.max_k, o.min_k, o.mean_k))
+        lines.append(f"| {md_text(name)} | {values} | {m.default_distance_px} |")
+    for name, why in readings.errors.items():
+        lines.append(f"| {md_text(name)} | {md_text(why)} | | | |")
+    return "\n".join(lines)
+
+
+class MeasurementsPanel(Periodic):
+    """Builds the Measurements folder; :meth:`tick` shows the readings and alarms."""
+
+    def __init__(self, ctx: ConsoleContext, rate_hz: float = 2.0) -> None:
+        super().__init__("measurements-panel", 1.0 / rate_hz)
+        self.m: Measurements = ctx.pipeline.measurements
+        p = self.m.params
+        gui = ctx.server.gui
+        with gui.add_folder("Measurements", expand_by_default=False):
+            self.alert = gui.add_html("", visible=False)
+            self.material = gui.add_dropdown("Material", (OWN, *MATERIALS), initial_value=OWN)
+            self.emissivity = gui.add_number("Emissivity", p.emissivity, 0.01, 1.0, 0.01)
+            self.reflected = gui.add_number("Reflected (°C)", round(p.reflected_k - K0, 2),
+                                            step=0.1)  # fmt: skip
+            self.air = gui.add_number("Air (°C)", round(p.air_k - K0, 2), step=0.1)
+            self.humidity = gui.add_number("Humidity (%)", p.humidity_pct, 0.0, 100.0, 1.0)
+            self.distance = gui.add_number("No-TOF distance (m)", p.default_distance_m, 0.0,
+                                           10_000.0, 0.1)  # fmt: skip
+            self.message = gui.add_markdown("")
+            self.table = gui.add_markdown(readings_md(None, 0))
+        for handle in (self.emissivity, self.reflected, self.air, self.humidity, self.distance):
+            handle.on_update(lambda _e: self.apply())
+        self.material.on_update(lambda _e: self.choose())
+        self._syncing = False  # tick() writes the fields: not an operator's change
+
+    def choose(self) -> None:
+        """A material sets the emissivity field (and the parameters)."""
+        if self.material.value in MATERIALS:
+            self.emissivity.value = MATERIALS[self.material.value]
+        self.apply()
+
+    def apply(self) -> None:
+        """The fields as the object parameters; one line under them when refused."""
+        if self._syncing:
+            return
+        try:
+            params = ObjectParameters(
+                emissivity=float(self.emissivity.value),
+                reflected_k=float(self.reflected.value) + K0,
+                air_k=float(self.air.value) + K0,
+                humidity_pct=float(self.humidity.value),
+                default_distance_m=float(self.distance.value),
+            )
+        except (TypeError, ValueError) as exc:
+            self.message.content = f"**Not applied:** {md_text(exc)}"
+            return
+        if params != self.m.params:
+            self.m.set_params(params)
+        self.message.content = ""
+
+    def tick(self) -> None:
+        """The readings' table and the alert box of the raised alarms; fields that another
+        client (REST) changed follow."""
+        text = readings_md(self.m.readings, len(self.m.regions))
+        if self.table.content != text:
+            self.table.content = text
+        active = self.m.status()["active_alarms"]
+        box = alert_html([f"⚠ ALARM: {key}" for key in active])  # type: ignore[union-attr]
+        if self.alert.content != box:
+            self.alert.content = box
+        self.alert.visible = bool(box)
+        p = self.m.params
+        fields = (
+            (self.emissivity, p.emissivity),
+            (self.reflected, round(p.reflected_k - K0, 2)),
+            (self.air, round(p.air_k - K0, 2)),
+            (self.humidity, p.humidity_pct),
+            (self.distance, p.default_distance_m),
+        )
+        self._syncing = True
+        try:
+            for handle, value in fields:
+                if abs(float(handle.value) - value) > 1e-9:
+                    handle.value = value
+        finally:
+            self._syncing = False
