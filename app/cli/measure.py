@@ -12,7 +12,7 @@ from trifuse.app.cli.output import out
 
 
 def add_parser(commands: Commands) -> argparse.ArgumentParser:
-    """``measure RECORDING --regions PLAN.yaml --out TABLE.csv [--rig] [--every]``."""
+    """``measure RECORDING [--regions PLAN.yaml] --out TABLE.csv [--rig] [--every]``."""
     measure = commands.add_parser(
         "measure",
         help="read measurement regions over a recording into a CSV table",
@@ -29,7 +29,10 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
     )
     measure.add_argument("recording", metavar="RECORDING", help="a recording (.mcap)")
     measure.add_argument(
-        "--regions", required=True, metavar="PLAN.yaml", help="parameters, regions, alarms"
+        "--regions",
+        metavar="PLAN.yaml",
+        help="parameters, regions, alarms (default: those the console used while it recorded, "
+        "from the recording's last measurement settings note)",
     )
     measure.add_argument(
         "--out", required=True, metavar="TABLE.csv", help="the table to write (a new file)"
@@ -50,15 +53,18 @@ def run(args: argparse.Namespace) -> int:
     table = Path(args.out)
     if table.exists():
         raise UsageError(f"--out {table}: exists; refusing to overwrite it (choose a new name)")
-    try:
-        plan_text = Path(args.regions).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UsageError(f"--regions {args.regions}: cannot read it ({exc})") from None
-    try:
-        plan = plan_from_yaml(plan_text)
-    except ValueError as exc:
-        raise UsageError(f"--regions {args.regions}: {exc}") from None
     [recording] = recording_paths([args.recording])
+    if args.regions is None:
+        plan = _recorded_plan(recording)
+    else:
+        try:
+            plan_text = Path(args.regions).read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise UsageError(f"--regions {args.regions}: cannot read it ({exc})") from None
+        try:
+            plan = plan_from_yaml(plan_text)
+        except ValueError as exc:
+            raise UsageError(f"--regions {args.regions}: {exc}") from None
     given = load_rig_arg(args.rig, "--rig") if args.rig else None
     with ReplaySource(recording, realtime=False) as source:
         rig = given or source.rig
@@ -72,3 +78,22 @@ def run(args: argparse.Namespace) -> int:
     sets = len(rows) // len(plan.regions)
     out(f"Wrote {len(rows)} rows ({sets} frame sets x {len(plan.regions)} regions) to {table}")
     return EXIT_OK
+
+
+def _recorded_plan(recording: Path):
+    """The plan of the recording's last measurement settings note (what the console read
+    with when it stopped recording); UsageError without one."""
+    from trifuse.app.recording.layout import SETTINGS_NOTE
+    from trifuse.app.recording.measure import plan_from_mapping
+    from trifuse.app.recording.notes import read_notes
+
+    notes = [n for n in read_notes(recording) if n.name == SETTINGS_NOTE]
+    if not notes:
+        raise UsageError(
+            f"{recording}: holds no measurement settings (a console recording with regions "
+            "has them); give --regions PLAN.yaml"
+        )
+    try:
+        return plan_from_mapping(notes[-1].body)
+    except ValueError as exc:
+        raise UsageError(f"{recording}: its measurement settings: {exc}") from None

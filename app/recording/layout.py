@@ -73,6 +73,10 @@ MEASUREMENTS_TOPIC = "/trifuse/measurements"
 timeline): ``name`` ``trifuse.alarm`` (level WARNING raised, INFO cleared) or
 ``trifuse.measurement_settings`` (INFO: the object parameters, regions and alarm rules in
 force, at the recording's start and at each change); ``message`` a JSON object."""
+ALARM_NOTE = "trifuse.alarm"
+"""The ``name`` of an alarm event's note."""
+SETTINGS_NOTE = "trifuse.measurement_settings"
+"""The ``name`` of the measurement settings' note."""
 
 FUSED_VIDEO_TOPIC = "/fused/video"
 """The fused stereo picture (left | right eye) as H.264."""

@@ -100,6 +100,12 @@ def plan_from_yaml(text: str) -> MeasurePlan:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ValueError(f"not YAML: {' '.join(str(exc).split())}") from None
+    return plan_from_mapping(data)
+
+
+def plan_from_mapping(data: object) -> MeasurePlan:
+    """The plan of a plan file's content (or of a recording's measurement settings note,
+    which has the same keys); ValueError in one line."""
     data = _mapping(data, "the plan")
     unknown = sorted(set(data) - {"parameters", "regions", "alarms"})
     if unknown:

@@ -28,6 +28,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from trifuse.app.latest_worker import LatestWorker
+from trifuse.app.recording.layout import ALARM_NOTE, SETTINGS_NOTE
 from trifuse.app.recording.writer import Note
 from trifuse.fusion.alarms import AlarmEvent, AlarmRule, AlarmTracker
 from trifuse.fusion.measure import Measurement, measure_regions
@@ -40,8 +41,6 @@ MAX_SHARE = 0.2
 the next one waits at least c / MAX_SHARE of frame time."""
 MAX_WAIT_S = 2.0
 """The longest frame time between two readings, seconds (alarms must still come)."""
-ALARM_NOTE = "trifuse.alarm"
-SETTINGS_NOTE = "trifuse.measurement_settings"
 KEEP_EVENTS = 200
 """Alarm events kept (the newest)."""
 STATUS_EVENTS = 20

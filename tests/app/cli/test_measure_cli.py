@@ -155,3 +155,39 @@ def test_an_existing_table_is_not_overwritten(recording, tmp_path, capsys) -> No
     )
     assert code != 0 and "refusing to overwrite" in err
     assert table.read_text() == "mine\n"
+
+
+def test_without_a_plan_the_recordings_own_settings_are_used(tmp_path, capsys) -> None:
+    """A recording with the console's measurement settings note: `trifuse measure` without
+    --regions reads the regions and parameters the console used; a recording without one
+    is refused in one line."""
+    from trifuse.app.recording import RecordingWriter
+    from trifuse.app.recording.layout import SETTINGS_NOTE
+    from trifuse.app.recording.writer import Note
+
+    rig = default_rig()
+    fs, truth = render()
+    (x0, y0), (x1, y1) = panel_boxes(truth)["steel"]
+    settings = {
+        "parameters": {"emissivity": 0.8, "reflected_k": SKY_K, "air_k": AIR_K,
+                       "humidity_pct": HUMIDITY_PCT, "default_distance_m": 3.0},
+        "regions": [{"name": "steel", "eye": "left", "shape": "box",
+                     "points": [[x0, y0], [x1, y1]], "emissivity": None, "reflected_k": None}],
+        "alarms": [],
+    }  # fmt: skip
+    rec = tmp_path / "noted.mcap"
+    with RecordingWriter(rec, rig) as w:
+        for k in range(3):
+            for n in rig.names:
+                f = fs.frames[n]
+                w.write(Frame(n, k * STEP_NS, f.image, f.distance_m))
+        w.write_note(Note(0, SETTINGS_NOTE, "info", settings))
+    table = tmp_path / "t.csv"
+    code, _, err = run_cli(["measure", str(rec), "--out", str(table)], capsys)
+    assert code == 0, err
+    rows = _table(table)
+    assert rows and {r["region"] for r in rows} == {"steel"}
+    assert all(float(r["mean_k"]) == pytest.approx(333.15, abs=TOLERANCE_K) for r in rows)
+    plain = write_recording(tmp_path / "plain.mcap", rig, [fs.frames[n] for n in rig.names])
+    code, _, err = run_cli(["measure", str(plain), "--out", str(tmp_path / "u.csv")], capsys)
+    assert code != 0 and "holds no measurement settings" in err
