@@ -6,7 +6,9 @@
 // of the console (PUT /api/regions), named "box N"; "Clear regions" removes the regions no
 // alarm watches; "Snapshot" downloads GET /api/snapshot (a ZIP); "Lock span" fixes the
 // palette's span at the one shown (POST /api/thermal/span-lock; "Unlock span": automatic
-// again). Readings come twice a second while there are regions.
+// again); "Line", then a drag over one eye: the corrected temperatures along the line
+// (GET /api/profile) plotted at the picture's bottom right. Readings come twice a second
+// while there are regions.
 //
 // window.trifuseMeasure: the state (regions, readings, active alarms, drawn) for the tests.
 "use strict";
@@ -16,7 +18,8 @@
   const K0 = 273.15;
   const POLL_MS = 500;
 
-  const state = { regions: [], readings: null, active: [], events: [], drawn: 0, error: null };
+  const state = { regions: [], readings: null, active: [], events: [], drawn: 0, error: null,
+    lineMode: false, line: null, profile: null };
 
   const layer = document.createElement("canvas");
   layer.id = "measure-overlay";
@@ -117,6 +120,89 @@
     } catch (e) { state.error = String(e.message || e); }
   };
 
+  // -- a line profile: "Line", then drag over one eye; GET /api/profile, a plot under it ----
+
+  const lineButton = button("measure-line", "Line",
+    "draw a line over the picture for the temperatures along it (a profile plot)");
+  const plot = document.createElement("canvas");
+  plot.id = "profile-plot";
+  plot.width = 420; plot.height = 150;
+  Object.assign(plot.style, {
+    position: "absolute", right: "8px", bottom: "8px", width: "420px", height: "150px",
+    background: "rgba(0,0,0,.7)", borderRadius: "4px", display: "none", pointerEvents: "none",
+  });
+  frameBox.appendChild(plot);
+  lineButton.onclick = () => {
+    state.lineMode = !state.lineMode;
+    lineButton.setAttribute("aria-pressed", String(state.lineMode));
+    layer.style.pointerEvents = state.lineMode ? "auto" : "none";
+    layer.style.cursor = state.lineMode ? "crosshair" : "";
+    if (!state.lineMode) { state.line = null; state.profile = null; plot.style.display = "none"; }
+    redraw();
+  };
+  const toPixel = (ev, eye) => {
+    const r = layer.getBoundingClientRect();
+    const u = (ev.clientX - r.left) / r.width, v = (ev.clientY - r.top) / r.height;
+    const e = eye || (u < 0.5 ? "left" : "right");
+    const [cw, ch] = size();
+    const within = Math.min(1, Math.max(0, (e === "left" ? u : u - 0.5) * 2));
+    return { eye: e, x: Math.min(cw - 1, Math.floor(within * cw)),
+      y: Math.min(ch - 1, Math.max(0, Math.floor(v * ch))) };
+  };
+  layer.addEventListener("pointerdown", (ev) => {
+    if (!state.lineMode) return;
+    const p = toPixel(ev);
+    state.line = { eye: p.eye, x0: p.x, y0: p.y, x1: p.x, y1: p.y, dragging: true };
+    layer.setPointerCapture(ev.pointerId);
+    ev.preventDefault();
+  });
+  layer.addEventListener("pointermove", (ev) => {
+    const l = state.line;
+    if (!l || !l.dragging) return;
+    const p = toPixel(ev, l.eye);
+    l.x1 = p.x; l.y1 = p.y;
+    redraw();
+  });
+  layer.addEventListener("pointerup", async () => {
+    const l = state.line;
+    if (!l || !l.dragging) return;
+    l.dragging = false;
+    try {
+      const q = new URLSearchParams({ eye: l.eye, x0: l.x0, y0: l.y0, x1: l.x1, y1: l.y1 });
+      state.profile = await call("GET", `/api/profile?${q}`);
+      state.error = null;
+    } catch (e) { state.error = String(e.message || e); }
+    drawPlot();
+    redraw();
+  });
+
+  // The profile's object temperatures (°C) against the distance along the line (px).
+  function drawPlot() {
+    const p = state.profile;
+    const pg = plot.getContext("2d");
+    pg.clearRect(0, 0, plot.width, plot.height);
+    const ys = p ? p.object_k.filter((v) => v !== null) : [];
+    if (!ys.length) { plot.style.display = p ? "block" : "none"; return; }
+    plot.style.display = "block";
+    const lo = Math.min(...ys), hi = Math.max(...ys), span = Math.max(hi - lo, 0.1);
+    const x0 = 44, x1 = plot.width - 8, y0 = 8, y1 = plot.height - 22;
+    const n = p.object_k.length;
+    pg.strokeStyle = "#ffb000"; pg.lineWidth = 2; pg.beginPath();
+    let pen = false;
+    p.object_k.forEach((v, i) => {
+      if (v === null) { pen = false; return; }
+      const x = x0 + (x1 - x0) * i / Math.max(1, n - 1), y = y1 - (y1 - y0) * (v - lo) / span;
+      if (pen) pg.lineTo(x, y); else pg.moveTo(x, y);
+      pen = true;
+    });
+    pg.stroke();
+    pg.fillStyle = "#fff"; pg.font = "12px system-ui, sans-serif";
+    pg.fillText(`${(hi - K0).toFixed(1)} °C`, 2, y0 + 10);
+    pg.fillText(`${(lo - K0).toFixed(1)} °C`, 2, y1);
+    pg.fillText(`0 px`, x0, plot.height - 6);
+    pg.fillText(`${p.distance_px[n - 1].toFixed(0)} px along the line`, x1 - 130, plot.height - 6);
+  }
+
   let inFlight = false;
   async function poll() {
     if (inFlight) return;
@@ -185,6 +271,13 @@
       g.fillRect(x0, ty, tw, 1.4 * font);
       g.fillStyle = alarm ? "#ff6060" : "#ffffff";
       g.fillText(text, x0 + 0.3 * font, ty + 1.05 * font);
+    }
+    const l = state.line;
+    if (l) {
+      const [ax, ay] = toCanvas(l.eye, l.x0, l.y0), [bx, by] = toCanvas(l.eye, l.x1, l.y1);
+      g.strokeStyle = "#ffb000";
+      g.lineWidth = Math.max(2, font / 6);
+      g.beginPath(); g.moveTo(ax, ay); g.lineTo(bx, by); g.stroke();
     }
     const text = state.active.length ? `⚠ ALARM: ${state.active.join(", ")}` : "";
     banner.textContent = text;

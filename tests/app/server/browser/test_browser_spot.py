@@ -409,6 +409,23 @@ def test_a_box_kept_as_a_region_is_outlined_read_and_alarms(console, browser, ro
     assert re.fullmatch(r"trifuse-snapshot-\d+\.zip", download.value.suggested_filename)
     with zipfile.ZipFile(download.value.path()) as z:
         assert "object_left.png" in z.namelist() and "regions.csv" in z.namelist()
+    # a line across the head: its profile plotted, the head's temperature in its middle
+    page.get_by_role("button", name="Line").click()
+    a, b = _client_xy(page, "left", x - 60, y), _client_xy(page, "left", x + 60, y)
+    page.mouse.move(*a)
+    page.mouse.down()
+    page.mouse.move(*b, steps=6)
+    page.mouse.up()
+    page.wait_for_function("() => window.trifuseMeasure.state.profile !== null")
+    profile = page.evaluate("() => window.trifuseMeasure.state.profile")
+    n = len(profile["object_k"])
+    assert 118 <= n <= 122 and profile["eye"] == "left"
+    middle = [v for v in profile["object_k"][n // 2 - 5 : n // 2 + 5] if v is not None]
+    assert middle and all(33.0 < v - 273.15 < 36.5 for v in middle), middle
+    assert page.locator("#profile-plot").is_visible()
+    page.screenshot(path=str(MEASURE_SHOT.with_name("viewer-profile.png")))
+    page.get_by_role("button", name="Line").click()  # line mode off: the spot meter again
+    assert not page.locator("#profile-plot").is_visible()
     # span lock: the span shown becomes the operator's; the button then unlocks it
     page.get_by_role("button", name="Lock span").click()
     page.wait_for_function("() => window.trifuseStats.meta.span_auto === false")
