@@ -2,8 +2,8 @@
 (a material or an emissivity, the reflected temperature, the air's temperature and humidity,
 the distance where the TOF has none), each region's corrected reading, and the raised alarms
 in an alert box. The same state as ``/api/object-parameters``, ``/api/measurements`` and
-``/api/alarms`` (:class:`app.server.runtime.measurements.Measurements`); regions and alarm
-rules are drawn in the viewer or set over REST.
+``/api/alarms`` (:class:`app.server.runtime.measurements.Measurements`), and alarms on the
+regions (above, below: °C; rise: K/s); the regions come from the viewer or REST.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from trifuse.app.server.panels.drift_health import alert_html
 from trifuse.app.server.runtime.context import ConsoleContext
 from trifuse.app.server.runtime.measurements import Measurements, Readings
 from trifuse.app.server.runtime.periodic import Periodic
+from trifuse.fusion.alarms import AlarmRule
 from trifuse.fusion.thermography import MATERIALS, ObjectParameters
 
 K0 = 273.15
@@ -59,10 +60,34 @@ class MeasurementsPanel(Periodic):
                                            10_000.0, 0.1)  # fmt: skip
             self.message = gui.add_markdown("")
             self.table = gui.add_markdown(readings_md(None, 0))
+            self.alarm_region = gui.add_dropdown("Alarm on", ("(no region)",))
+            self.alarm_kind = gui.add_dropdown("When", ("above", "below", "rise"))
+            self.alarm_value = gui.add_number("Threshold (°C; rise K/s)", 60.0, step=0.1)
+            self.add_alarm = gui.add_button("Add alarm")
+            self.clear_alarms = gui.add_button("Clear alarms")
+            self.alarms = gui.add_markdown("")
         for handle in (self.emissivity, self.reflected, self.air, self.humidity, self.distance):
             handle.on_update(lambda _e: self.apply())
         self.material.on_update(lambda _e: self.choose())
         self._syncing = False  # tick() writes the fields: not an operator's change
+        self.add_alarm.on_click(lambda _e: self.press_add())
+        self.clear_alarms.on_click(lambda _e: self.press_clear())
+
+    def press_add(self) -> None:
+        """Add the alarm the fields describe to the rules in force."""
+        kind = self.alarm_kind.value
+        value = float(self.alarm_value.value)
+        threshold = value if kind == "rise" else value + K0
+        try:
+            rule = AlarmRule(self.alarm_region.value, kind, threshold)  # type: ignore[arg-type]
+            self.m.set_rules([*self.m.rules, rule])
+        except ValueError as exc:
+            self.message.content = f"**Alarm not added:** {md_text(exc)}"
+            return
+        self.message.content = ""
+
+    def press_clear(self) -> None:
+        self.m.set_rules([])
 
     def choose(self) -> None:
         """A material sets the emissivity field (and the parameters)."""
@@ -95,6 +120,13 @@ class MeasurementsPanel(Periodic):
         text = readings_md(self.m.readings, len(self.m.regions))
         if self.table.content != text:
             self.table.content = text
+        names = tuple(r.name for r in self.m.regions) or ("(no region)",)
+        if tuple(self.alarm_region.options) != names:
+            self.alarm_region.options = names
+        rules = self.m.rules
+        listed = "\n".join(f"- {md_text(r.key)}" for r in rules) or "No alarm."
+        if self.alarms.content != listed:
+            self.alarms.content = listed
         active = self.m.status()["active_alarms"]
         box = alert_html([f"⚠ ALARM: {key}" for key in active])  # type: ignore[union-attr]
         if self.alert.content != box:

@@ -13,7 +13,6 @@ from tests.measure_support import panel_boxes, render
 from trifuse.app.server.panels.measurements import MeasurementsPanel
 from trifuse.app.server.runtime.measurements import Measurements
 from trifuse.app.sources.sim.head import default_rig
-from trifuse.fusion.alarms import AlarmRule
 from trifuse.fusion.compose import DisplaySettings
 from trifuse.fusion.regions import Region
 from trifuse.fusion.spot import SpotMeter
@@ -60,8 +59,21 @@ def test_readings_and_a_raised_alarm_are_shown(panel) -> None:
     fusion.compose(colors, thermals, DisplaySettings())
     m = panel.m
     m.set_regions([Region("hot", "left", "box", panel_boxes(truth)["hot"], 0.95)], fusion.size)
-    m.set_rules([AlarmRule("hot", "above", 400.0)])
+    panel.press_add()  # before the region is offered: refused, one line
+    assert "Alarm not added" in panel.message.content and m.rules == ()
+    panel.tick()  # the region is offered
+    panel.alarm_region.value, panel.alarm_kind.value = "hot", "above"
+    panel.alarm_value.value = 400.0 - 273.15
+    panel.press_add()
+    [rule] = m.rules
+    assert (rule.region, rule.kind, rule.threshold) == ("hot", "above", pytest.approx(400.0))
     m.update(SpotMeter(fusion).capture(0))
     panel.tick()
+    assert "hot above 400" in panel.alarms.content
     assert "| hot |" in panel.table.content and "°C" in panel.table.content
     assert panel.alert.visible and "ALARM: hot above 400" in panel.alert.content
+
+    panel.press_clear()
+    m.update(SpotMeter(fusion).capture(10**9))
+    panel.tick()
+    assert m.rules == () and not panel.alert.visible and panel.alarms.content == "No alarm."
