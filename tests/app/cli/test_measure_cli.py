@@ -33,8 +33,9 @@ HOTTER_K = 10.0
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory) -> tuple[Path, dict[str, list[list[float]]]]:
-    """Four frame sets: the scene as it is twice, then with the hot plate 10 K hotter twice;
-    and a box well inside each panel (left eye's pixels)."""
+    """Four frame sets 0.1 s apart: the scene as it is twice, then with the hot plate 10 K
+    hotter twice (each pair one render, its frames given two stamps); and a box well inside
+    each panel (left eye's pixels)."""
     rig = default_rig()
     hotter = measurement_scene()
     plate = next(s for s in hotter.solids if s.name == "hot")
@@ -43,9 +44,11 @@ def recording(tmp_path_factory) -> tuple[Path, dict[str, list[list[float]]]]:
     )
     frames: list[Frame] = []
     boxes: dict[str, list[list[float]]] = {}
-    for k, s in enumerate((None, None, hotter, hotter)):
-        fs, truth = render(s, k * STEP_NS, seed=k)
-        frames += [fs.frames[n] for n in rig.names]
+    for k, s in enumerate((None, hotter)):
+        fs, truth = render(s, seed=k)
+        for stamp in (2 * k * STEP_NS, (2 * k + 1) * STEP_NS):
+            frames += [Frame(n, stamp, fs.frames[n].image, fs.frames[n].distance_m)
+                       for n in rig.names]  # fmt: skip
         boxes = boxes or {n: [list(a), list(b)] for n, (a, b) in panel_boxes(truth).items()}
     path = write_recording(tmp_path_factory.mktemp("rec") / "scene.mcap", rig, frames)
     return path, boxes
