@@ -8,6 +8,8 @@ regions (above, below: °C; rise: K/s); the regions come from the viewer or REST
 
 from __future__ import annotations
 
+import dataclasses
+
 from trifuse.app.server.markdown_text import md_text
 from trifuse.app.server.panels.drift_health import alert_html
 from trifuse.app.server.runtime.context import ConsoleContext
@@ -46,6 +48,7 @@ class MeasurementsPanel(Periodic):
     def __init__(self, ctx: ConsoleContext, rate_hz: float = 2.0) -> None:
         super().__init__("measurements-panel", 1.0 / rate_hz)
         self.m: Measurements = ctx.pipeline.measurements
+        self.pipeline = ctx.pipeline  # its fusion's size: an eye's picture (after a new rig too)
         p = self.m.params
         gui = ctx.server.gui
         with gui.add_folder("Measurements", expand_by_default=False):
@@ -60,6 +63,9 @@ class MeasurementsPanel(Periodic):
                                            10_000.0, 0.1)  # fmt: skip
             self.message = gui.add_markdown("")
             self.table = gui.add_markdown(readings_md(None, 0))
+            self.region = gui.add_dropdown("Region", ("(no region)",))
+            self.region_emissivity = gui.add_number("Its emissivity", 0.95, 0.01, 1.0, 0.01)
+            self.set_region = gui.add_button("Set the region's emissivity")
             self.alarm_region = gui.add_dropdown("Alarm on", ("(no region)",))
             self.alarm_kind = gui.add_dropdown("When", ("above", "below", "rise"))
             self.alarm_value = gui.add_number("Threshold (°C; rise K/s)", 60.0, step=0.1)
@@ -70,8 +76,22 @@ class MeasurementsPanel(Periodic):
             handle.on_update(lambda _e: self.apply())
         self.material.on_update(lambda _e: self.choose())
         self._syncing = False  # tick() writes the fields: not an operator's change
+        self.set_region.on_click(lambda _e: self.press_set_region())
         self.add_alarm.on_click(lambda _e: self.press_add())
         self.clear_alarms.on_click(lambda _e: self.press_clear())
+
+    def press_set_region(self) -> None:
+        """The chosen region gets the emissivity typed (its own surface)."""
+        name, eps = self.region.value, float(self.region_emissivity.value)
+        regions = list(self.m.regions)
+        try:
+            k = [r.name for r in regions].index(name)
+            regions[k] = dataclasses.replace(regions[k], emissivity=eps)
+            self.m.set_regions(regions, self.pipeline.fusion.size)
+        except ValueError as exc:  # no such region (any more), an emissivity out of range
+            self.message.content = f"**Not set:** {md_text(exc)}"
+            return
+        self.message.content = ""
 
     def press_add(self) -> None:
         """Add the alarm the fields describe to the rules in force."""
@@ -121,8 +141,9 @@ class MeasurementsPanel(Periodic):
         if self.table.content != text:
             self.table.content = text
         names = tuple(r.name for r in self.m.regions) or ("(no region)",)
-        if tuple(self.alarm_region.options) != names:
-            self.alarm_region.options = names
+        for choice in (self.alarm_region, self.region):
+            if tuple(choice.options) != names:
+                choice.options = names
         rules = self.m.rules
         listed = "\n".join(f"- {md_text(r.key)}" for r in rules) or "No alarm."
         if self.alarms.content != listed:

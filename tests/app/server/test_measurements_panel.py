@@ -22,7 +22,9 @@ from trifuse.fusion.thermography import ObjectParameters
 
 @pytest.fixture()
 def panel(server) -> MeasurementsPanel:
-    ctx = SimpleNamespace(server=server, pipeline=SimpleNamespace(measurements=Measurements()))
+    fusion = SimpleNamespace(size=(1280, 960))
+    pipeline = SimpleNamespace(measurements=Measurements(), fusion=fusion)
+    ctx = SimpleNamespace(server=server, pipeline=pipeline)
     return MeasurementsPanel(ctx)  # type: ignore[arg-type]
 
 
@@ -77,3 +79,15 @@ def test_readings_and_a_raised_alarm_are_shown(panel) -> None:
     m.update(SpotMeter(fusion).capture(10**9))
     panel.tick()
     assert m.rules == () and not panel.alert.visible and panel.alarms.content == "No alarm."
+
+
+def test_a_regions_emissivity_is_set_from_the_panel(panel) -> None:
+    m = panel.m
+    m.set_regions([Region("pipe", "left", "box", ((10.0, 10.0), (90.0, 60.0)))], (1280, 960))
+    panel.tick()
+    panel.region.value, panel.region_emissivity.value = "pipe", 0.8
+    panel.press_set_region()
+    assert m.regions[0].emissivity == 0.8 and panel.message.content == ""
+    m.set_regions([], (1280, 960))  # gone meanwhile (REST): refused, one line
+    panel.press_set_region()
+    assert "Not set" in panel.message.content and m.regions == ()
