@@ -7,8 +7,9 @@
 // alarm watches; "Snapshot" downloads GET /api/snapshot (a ZIP); "Lock span" fixes the
 // palette's span at the one shown (POST /api/thermal/span-lock; "Unlock span": automatic
 // again); "Line", then a drag over one eye: the corrected temperatures along the line
-// (GET /api/profile) plotted at the picture's bottom right. Readings come twice a second
-// while there are regions.
+// (GET /api/profile) plotted at the picture's bottom right; with two regions or more, the
+// first two's difference of means (GET /api/measurements/delta) at the bottom left.
+// Readings come twice a second while there are regions.
 //
 // window.trifuseMeasure: the state (regions, readings, active alarms, drawn) for the tests.
 "use strict";
@@ -19,7 +20,7 @@
   const POLL_MS = 500;
 
   const state = { regions: [], readings: null, active: [], events: [], drawn: 0, error: null,
-    lineMode: false, line: null, profile: null };
+    lineMode: false, line: null, profile: null, delta: null };
 
   const layer = document.createElement("canvas");
   layer.id = "measure-overlay";
@@ -213,6 +214,8 @@
       state.active = alarms.active;
       state.events = alarms.events.slice(-5);
       state.readings = state.regions.length ? await call("GET", "/api/measurements") : null;
+      state.delta = state.regions.length > 1
+        ? await call("GET", "/api/measurements/delta").catch(() => null) : null;
     } catch (e) {
       state.error = String(e.message || e);
     } finally {
@@ -278,6 +281,17 @@
       g.strokeStyle = "#ffb000";
       g.lineWidth = Math.max(2, font / 6);
       g.beginPath(); g.moveTo(ax, ay); g.lineTo(bx, by); g.stroke();
+    }
+    const d = state.delta;
+    if (d) {  // the first two regions' means, at the left eye's bottom left
+      const sign = d.delta_k >= 0 ? "+" : "−";
+      const dt = `Δ ${d.a} − ${d.b}: ${sign}${Math.abs(d.delta_k).toFixed(1)} K (mean)`;
+      g.font = `600 ${font}px system-ui, sans-serif`;
+      const tw = g.measureText(dt).width + 0.6 * font;
+      g.fillStyle = "rgba(0,0,0,.6)";
+      g.fillRect(0.5 * font, layer.height - 2.2 * font, tw, 1.4 * font);
+      g.fillStyle = "#ffffff";
+      g.fillText(dt, 0.8 * font, layer.height - 1.15 * font);
     }
     const text = state.active.length ? `⚠ ALARM: ${state.active.join(", ")}` : "";
     banner.textContent = text;

@@ -434,6 +434,12 @@ def test_a_box_kept_as_a_region_is_outlined_read_and_alarms(console, browser, ro
     spot = {"name": "spot", "eye": "right", "shape": "spot", "points": [[600, 400]]}
     console.request("/api/regions", "PUT", [region, spot])
     page.wait_for_function("() => window.trifuseMeasure.state.regions.length === 2")
+    page.wait_for_function("() => window.trifuseMeasure.state.delta !== null")
+    delta = page.evaluate("() => window.trifuseMeasure.state.delta")
+    means = console.get("/api/measurements")["regions"]
+    want = means["box 1"]["object"]["mean_k"] - means["spot"]["object"]["mean_k"]
+    assert (delta["a"], delta["b"]) == ("box 1", "spot")
+    assert abs(delta["delta_k"] - want) < 1e-6  # the same paused picture
     page.get_by_role("button", name="Clear regions").click()  # the alarm's region stays
     page.wait_for_function("() => window.trifuseMeasure.state.regions.length === 1")
     assert [r["name"] for r in console.get("/api/regions")] == ["box 1"]
