@@ -250,12 +250,14 @@ def apparent_temperature(
     distance_m: npt.ArrayLike | None,
     params: ObjectParameters,
     band: BandRadiance | None = None,
+    emissivity: npt.ArrayLike | None = None,
 ) -> np.ndarray:
     """The forward model: what an imager reads (kelvin) looking at surfaces of
-    ``object_k`` through the air (the inverse of :func:`object_temperature`)."""
+    ``object_k`` through the air (the inverse of :func:`object_temperature`); ``emissivity``
+    per surface (broadcastable to ``object_k``) instead of ``params``'."""
     b = band or band_tables()
     tau = transmission(_distances(distance_m, params), params.air_k, params.humidity_pct)
-    eps = params.emissivity
+    eps = params.emissivity if emissivity is None else np.asarray(emissivity, np.float64)
     w = (
         tau * eps * b.radiance(object_k)
         + tau * (1.0 - eps) * float(b.radiance(params.reflected_k))

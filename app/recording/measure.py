@@ -41,17 +41,13 @@ from trifuse.app.sources.base import frame_sets
 from trifuse.calib.rig import Rig
 from trifuse.fusion.alarms import AlarmRule, AlarmTracker
 from trifuse.fusion.compose import DisplaySettings
-from trifuse.fusion.measure import measure_regions
+from trifuse.fusion.measure import Measurement, measure_regions
 from trifuse.fusion.regions import Region
 from trifuse.fusion.spot import SpotMeter
-from trifuse.fusion.stereo import EYE_ORDER
 from trifuse.fusion.stereo_step import OFFLINE, Skip, StereoStep
 from trifuse.fusion.thermography import ObjectParameters
 
-COLUMNS = (
-    "stamp_ns",
-    "time_s",
-    "region",
+READING_COLUMNS = (
     "pixels",
     "max_k",
     "min_k",
@@ -62,9 +58,9 @@ COLUMNS = (
     "min_y",
     "apparent_mean_k",
     "default_distance_px",
-    "events",
-    "active_alarms",
 )
+"""One region's reading in a table (:func:`reading_fields`)."""
+COLUMNS = ("stamp_ns", "time_s", "region", *READING_COLUMNS, "events", "active_alarms")
 
 
 @dataclass(frozen=True)
@@ -143,6 +139,24 @@ def _number(value: float | None) -> str:
     return "" if value is None or not math.isfinite(value) else f"{value:.3f}"
 
 
+def reading_fields(m: Measurement) -> dict[str, str]:
+    """One region's reading as text fields (:data:`READING_COLUMNS`; the snapshot's table
+    has them too)."""
+    o = m.object
+    return {
+        "pixels": str(o.pixels),
+        "max_k": _number(o.max_k),
+        "min_k": _number(o.min_k),
+        "mean_k": _number(o.mean_k),
+        "max_x": "" if o.max_at is None else str(o.max_at[0]),
+        "max_y": "" if o.max_at is None else str(o.max_at[1]),
+        "min_x": "" if o.min_at is None else str(o.min_at[0]),
+        "min_y": "" if o.min_at is None else str(o.min_at[1]),
+        "apparent_mean_k": _number(m.apparent.mean_k),
+        "default_distance_px": str(m.default_distance_px),
+    }
+
+
 def measure_recording(
     source: MessageReplay, rig: Rig, plan: MeasurePlan, every: int = 1
 ) -> Iterator[dict[str, str]]:
@@ -158,13 +172,10 @@ def measure_recording(
         region.mask(*size)  # ValueError naming it
     meter = SpotMeter(step.fusion)
     tracker = AlarmTracker(list(plan.rules))
-    eyes = step.eyes
-    ref = eyes[EYE_ORDER[0]].color
-    others = [s for e in eyes.values() for s in (e.color, e.thermal) if s != ref]
     source.realtime = False
     source.expect(rig)
     first_ns: int | None = None
-    for i, fs in enumerate(frame_sets(source, [ref, *others, step.tof], reference=ref)):
+    for i, fs in enumerate(frame_sets(source, step.sensors)):  # the left colour opens sets
         step.note(fs)
         step.update_depth()
         if i % every:
@@ -179,8 +190,6 @@ def measure_recording(
         t = (fs.stamp_ns - first_ns) * 1e-9
         events = tracker.update(t, {n: m.object for n, m in read.items()})
         for region in plan.regions:
-            m = read[region.name]
-            o = m.object
             said = [f"{e.state} {e.rule.kind} {e.rule.threshold:g}" for e in events
                     if e.rule.region == region.name]  # fmt: skip
             active = [r.key for r in plan.rules
@@ -189,16 +198,7 @@ def measure_recording(
                 "stamp_ns": str(fs.stamp_ns),
                 "time_s": f"{t:.6f}",
                 "region": region.name,
-                "pixels": str(o.pixels),
-                "max_k": _number(o.max_k),
-                "min_k": _number(o.min_k),
-                "mean_k": _number(o.mean_k),
-                "max_x": "" if o.max_at is None else str(o.max_at[0]),
-                "max_y": "" if o.max_at is None else str(o.max_at[1]),
-                "min_x": "" if o.min_at is None else str(o.min_at[0]),
-                "min_y": "" if o.min_at is None else str(o.min_at[1]),
-                "apparent_mean_k": _number(m.apparent.mean_k),
-                "default_distance_px": str(m.default_distance_px),
+                **reading_fields(read[region.name]),
                 "events": "; ".join(said),
                 "active_alarms": "; ".join(active),
             }

@@ -26,6 +26,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from trifuse.app.recording.measure import READING_COLUMNS, reading_fields
 from trifuse.fusion.measure import Measurement
 from trifuse.fusion.regions import Region, surface_maps
 from trifuse.fusion.spot import SpotFrame
@@ -58,17 +59,16 @@ def object_map(
     return apparent.reshape(h, w), corrected.reshape(h, w)
 
 
+TABLE_COLUMNS = ("stamp_ns", "region", *READING_COLUMNS)
+"""``regions.csv``'s columns: ``trifuse measure``'s without time and alarms."""
+
+
 def _table(stamp_ns: int, readings: Mapping[str, Measurement]) -> str:
     buf = io.StringIO()
-    out = csv.writer(buf, lineterminator="\n")
-    out.writerow(["stamp_ns", "region", "pixels", "max_k", "min_k", "mean_k", "max_x",
-                  "max_y", "min_x", "min_y", "apparent_mean_k", "default_distance_px"])  # fmt: skip
+    out = csv.DictWriter(buf, TABLE_COLUMNS, lineterminator="\n")
+    out.writeheader()
     for name, m in readings.items():
-        o = m.object
-        num = ["" if v is None else f"{v:.3f}" for v in (o.max_k, o.min_k, o.mean_k)]
-        at = [*(o.max_at or ("", "")), *(o.min_at or ("", ""))]
-        apparent = "" if m.apparent.mean_k is None else f"{m.apparent.mean_k:.3f}"
-        out.writerow([stamp_ns, name, o.pixels, *num, *at, apparent, m.default_distance_px])
+        out.writerow({"stamp_ns": stamp_ns, "region": name, **reading_fields(m)})
     return buf.getvalue()
 
 

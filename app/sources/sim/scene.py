@@ -507,17 +507,14 @@ class Atmosphere:
         self, emissivity: np.ndarray, temperature_k: np.ndarray, distance_m: np.ndarray
     ) -> np.ndarray:
         """What an ideal imager reads (kelvin, (N,)) of surfaces of ``emissivity`` and
-        ``temperature_k`` at ``distance_m`` along the ray (each (N,)): the measurement
-        equation forward, ``tau (eps W(T) + (1 - eps) W(T_refl)) + (1 - tau) W(T_air)``."""
-        from trifuse.fusion.thermography import band_tables, transmission
+        ``temperature_k`` at ``distance_m`` (> 0) along the ray (each (N,)): the measurement
+        equation forward (:func:`fusion.thermography.apparent_temperature`)."""
+        from trifuse.fusion.thermography import ObjectParameters, apparent_temperature
 
-        band = band_tables()
-        tau = transmission(distance_m, self.air_k, self.humidity_pct)
-        eps = np.asarray(emissivity, np.float64)
-        w_refl = float(band.radiance(self.reflected_k))
-        w_air = float(band.radiance(self.air_k))
-        w = tau * (eps * band.radiance(temperature_k) + (1.0 - eps) * w_refl)
-        return band.temperature(w + (1.0 - tau) * w_air)
+        air = ObjectParameters(
+            reflected_k=self.reflected_k, air_k=self.air_k, humidity_pct=self.humidity_pct
+        )
+        return apparent_temperature(temperature_k, distance_m, air, emissivity=emissivity)
 
 
 @dataclass
