@@ -54,17 +54,25 @@ class MeasurementsPanel(Periodic):
         with gui.add_folder("Measurements", expand_by_default=False):
             self.alert = gui.add_html("", visible=False)
             self.material = gui.add_dropdown("Material", (OWN, *MATERIALS), initial_value=OWN)
-            self.emissivity = gui.add_number("Emissivity", p.emissivity, 0.01, 1.0, 0.01)
-            self.reflected = gui.add_number("Reflected (°C)", round(p.reflected_k - K0, 2),
-                                            step=0.1)  # fmt: skip
+            self.emissivity = gui.add_number(
+                "Emissivity", p.emissivity, min=0.01, max=1.0, step=0.01
+            )
+            self.reflected = gui.add_number(
+                "Reflected (°C)", round(p.reflected_k - K0, 2), step=0.1
+            )
             self.air = gui.add_number("Air (°C)", round(p.air_k - K0, 2), step=0.1)
-            self.humidity = gui.add_number("Humidity (%)", p.humidity_pct, 0.0, 100.0, 1.0)
-            self.distance = gui.add_number("No-TOF distance (m)", p.default_distance_m, 0.0,
-                                           10_000.0, 0.1)  # fmt: skip
+            self.humidity = gui.add_number(
+                "Humidity (%)", p.humidity_pct, min=0.0, max=100.0, step=1.0
+            )
+            self.distance = gui.add_number(
+                "No-TOF distance (m)", p.default_distance_m, min=0.0, max=10_000.0, step=0.1
+            )
             self.message = gui.add_markdown("")
             self.table = gui.add_markdown(readings_md(None, 0))
             self.region = gui.add_dropdown("Region", ("(no region)",))
-            self.region_emissivity = gui.add_number("Its emissivity", 0.95, 0.01, 1.0, 0.01)
+            self.region_emissivity = gui.add_number(
+                "Its emissivity", 0.95, min=0.01, max=1.0, step=0.01
+            )
             self.set_region = gui.add_button("Set the region's emissivity")
             self.alarm_region = gui.add_dropdown("Alarm on", ("(no region)",))
             self.alarm_kind = gui.add_dropdown("When", ("above", "below", "rise"))

@@ -340,6 +340,19 @@ def test_refine_saves_the_next_version_puts_it_in_use_and_checks_again(fake, tmp
         session.close()
 
 
+class IdleGatedSource(ListSource):
+    """The frames, each only once :attr:`watch` has measured what it was handed (the
+    pipeline notes sets in the thread that reads the source): every usable set is measured
+    however slow the machine, as on a live head whose watch keeps up."""
+
+    watch: DriftWatch | None = None
+
+    def frames(self):
+        for frame in super().frames():
+            wait_until(lambda: self.watch is not None and not self.watch.busy, "an idle watch")
+            yield frame
+
+
 def test_on_a_real_pipeline_the_fusion_thread_hands_sets_to_the_real_check() -> None:
     """Synthetic frames (smooth patterns: little structure, so no verdict) fused by a real
     pipeline: the watch measures synchronous sets with the real DriftCheck; the report
@@ -347,8 +360,9 @@ def test_on_a_real_pipeline_the_fusion_thread_hands_sets_to_the_real_check() -> 
     colour pair and the thermal pair a measure but neither eye: fusion.drift's
     solve_sensors then raises LinAlgError, which the watch reports as its error.)"""
     rig = small_rig()
-    pipeline = FusionPipeline(ListSource(synth_frames(rig, 1.0, seed=1)), rig, FrameHub())
-    watch = DriftWatch(pipeline, period_s=0.0, clock=FakeClock(10.0)).start()
+    source = IdleGatedSource(synth_frames(rig, 1.0, seed=1))
+    pipeline = FusionPipeline(source, rig, FrameHub())
+    watch = source.watch = DriftWatch(pipeline, period_s=0.0, clock=FakeClock(10.0)).start()
     try:
         pipeline.start()
         assert pipeline.join(120.0) and pipeline.status.error is None
