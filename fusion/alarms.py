@@ -105,6 +105,27 @@ class AlarmTracker:
                 events.append(AlarmEvent(time_s, rule, "cleared", value))
         return events
 
+    def with_rules(
+        self, rules: list[AlarmRule], renamed: Mapping[str, str] | None = None
+    ) -> AlarmTracker:
+        """A tracker of ``rules`` that carries this one's states over: an alarm raised
+        here and still among the rules stays raised (no second event), a region's history
+        of maxima is kept; ``renamed``: old region name -> new (the states follow)."""
+        renamed = renamed or {}
+
+        def key(k: str, region: str) -> str:
+            return renamed[region] + k[len(region) :] if region in renamed else k
+
+        kept = {a.key for a in rules}
+        regions = {a.region for a in rules}
+        active = {key(a.key, a.region) for a in self.rules if a.key in self.active}
+        history = {renamed.get(r, r): h for r, h in self._history.items()}
+        return AlarmTracker(
+            list(rules),
+            active & kept,
+            {r: h for r, h in history.items() if r in regions},
+        )
+
     def _value(self, rule: AlarmRule, time_s: float, reading: RegionReading | None) -> float | None:
         if reading is None or reading.max_k is None or reading.min_k is None:
             return None

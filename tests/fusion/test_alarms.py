@@ -57,6 +57,33 @@ def test_a_region_without_a_reading_changes_nothing() -> None:
     assert tracker.update(2.0, {}) == [] and tracker.active == {"r above 300"}
 
 
+def test_new_rules_keep_the_raised_alarms_that_stay_and_follow_a_rename() -> None:
+    """A rule added beside a raised one: the raised one raises no second event; a renamed
+    region's raised alarm and its rise history follow it; a removed rule's state goes."""
+    hot, rise = AlarmRule("pipe", "above", 350.0), AlarmRule("pipe", "rise", 0.5, window_s=5.0)
+    tracker = AlarmTracker([hot, rise])
+    for t, v in enumerate([351.0, 351.2]):  # raised; 0.2 K/s: the rise is not
+        tracker.update(float(t), {"pipe": reading("pipe", v)})
+    assert tracker.active == {"pipe above 350"}
+    cold = AlarmRule("tank", "below", 275.0)
+    tracker = tracker.with_rules([hot, rise, cold])
+    assert tracker.update(2.0, {"pipe": reading("pipe", 351.4)}) == []
+    renamed = [
+        AlarmRule("main pipe", "above", 350.0),
+        AlarmRule("main pipe", "rise", 0.5, window_s=5.0),
+    ]
+    tracker = tracker.with_rules(renamed, {"pipe": "main pipe"})
+    assert tracker.active == {"main pipe above 350"}
+    [event] = tracker.update(3.0, {"main pipe": reading("main pipe", 353.0)})  # 0.67 K/s
+    assert (event.rule.kind, event.state) == ("rise", "raised")  # over the kept history
+    tracker = tracker.with_rules([renamed[1]])
+    assert tracker.active == {"main pipe rise 0.5"}
+    tracker = tracker.with_rules(renamed)  # the above alarm added again: it starts anew
+    assert [
+        e.rule.kind for e in tracker.update(4.0, {"main pipe": reading("main pipe", 354.0)})
+    ] == ["above"]
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [

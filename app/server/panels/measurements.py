@@ -26,7 +26,9 @@ OWN = "(emissivity below)"
 def readings_md(readings: Readings | None, regions: int) -> str:
     """The regions' corrected readings as a markdown table (°C)."""
     if not regions:
-        return "No measurement region: drag a box in the viewer and keep it (Box → region)."
+        return (
+            "No measurement region: draw one in the viewer (Measure: Spot, Polygon, Box → region)."
+        )
     if readings is None:
         return "Reading the regions…"
     lines = ["| region | max | min | mean | no TOF px |", "|:--|--:|--:|--:|--:|"]

@@ -5,7 +5,9 @@ their readings, the difference between two, and alarms.
   :data:`fusion.thermography.MATERIALS`), reflected apparent temperature, the air's
   temperature and humidity, the distance used where the TOF has none.
 - ``GET``/``PUT /api/regions``: the regions (spot, box, polygon on either eye, each with its
-  own emissivity and reflected temperature if given); ``DELETE /api/regions/{name}``.
+  own emissivity and reflected temperature if given); ``PATCH /api/regions/{name}``
+  (rename, move, another surface; the alarms follow a new name); ``DELETE
+  /api/regions/{name}``. ``GET /api/materials``: the short table of emissivities.
 - ``GET /api/measurements``: what each region reads on the newest picture read (max, min,
   mean and where the extremes are; apparent and corrected), ``GET /api/measurements/delta``:
   one region's value minus another's.
@@ -78,6 +80,22 @@ class RegionModel(BaseModel):
     reflected_k: float | None = Field(None, ge=150.0, le=1200.0)
 
 
+class RegionEdit(BaseModel):
+    """What to change of a region: the fields given (``null`` for ``emissivity`` or
+    ``reflected_k``: the global parameter's again)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str | None = Field(None, min_length=1, max_length=64)
+    eye: Literal["left", "right"] | None = None
+    points: list[_Point] | None = Field(None, min_length=1, max_length=1000)
+    emissivity: float | None = Field(None, ge=EMISSIVITY_RANGE[0], le=EMISSIVITY_RANGE[1])
+    material: str | None = Field(
+        None, description="a material of the short table: its emissivity for `emissivity`"
+    )
+    reflected_k: float | None = Field(None, ge=150.0, le=1200.0)
+
+
 class AlarmModel(BaseModel):
     """An alarm on a region: its maximum above, its minimum below, or the rate of rise of
     its maximum (kelvin a second over ``window_s``) above ``threshold``."""
@@ -116,6 +134,13 @@ def _unprocessable(exc: Exception) -> HTTPException:
     return HTTPException(422, str(exc))
 
 
+def _material(name: str) -> float:
+    """The emissivity of material ``name`` of the short table; 422 if there is none."""
+    if name not in MATERIALS:
+        raise HTTPException(422, f"material: expected one of {', '.join(MATERIALS)}, got {name!r}")
+    return MATERIALS[name]
+
+
 def make_measure_router(pipeline: FusionPipeline) -> APIRouter:
     """The routes of the module's docstring over ``pipeline.measurements``."""
     router = APIRouter(prefix="/api", tags=["measurements"])
@@ -129,19 +154,18 @@ def make_measure_router(pipeline: FusionPipeline) -> APIRouter:
     @router.put("/object-parameters", dependencies=[Depends(require_json)])
     def put_params(body: ObjectParametersModel) -> ObjectParametersModel:
         """Set the object parameters (every field; a ``material`` sets the emissivity)."""
-        emissivity = body.emissivity
-        if body.material is not None:
-            if body.material not in MATERIALS:
-                raise HTTPException(
-                    422, f"material: expected one of {', '.join(MATERIALS)}, got {body.material!r}"
-                )
-            emissivity = MATERIALS[body.material]
+        emissivity = body.emissivity if body.material is None else _material(body.material)
         values = body.model_dump(exclude={"material"}) | {"emissivity": emissivity}
         try:
             m.set_params(ObjectParameters(**values))
         except ValueError as exc:
             raise _unprocessable(exc) from None
         return _params_model(m.params)
+
+    @router.get("/materials")
+    def get_materials() -> dict[str, float]:
+        """The short table of materials: name -> emissivity (long-wave band)."""
+        return dict(MATERIALS)
 
     @router.get("/regions")
     def get_regions() -> list[RegionModel]:
@@ -167,6 +191,33 @@ def make_measure_router(pipeline: FusionPipeline) -> APIRouter:
         except ValueError as exc:
             raise _unprocessable(exc) from None
         pipeline.touch_demand()  # someone measures: keep fusing
+        return [_region_model(r) for r in m.regions]
+
+    @router.patch("/regions/{name}", dependencies=[Depends(require_json)])
+    def patch_region(name: str, body: RegionEdit) -> list[RegionModel]:
+        """Change one region: its name (the alarms watching it follow), eye, points, or
+        surface (``emissivity`` or a ``material``; ``reflected_k``; null: the global one's
+        again). 404 if there is no region of that name."""
+        old = next((r for r in m.regions if r.name == name), None)
+        if old is None:
+            raise HTTPException(404, f"no region named {name!r}")
+        given = body.model_fields_set
+        if "material" in given and "emissivity" in given:
+            raise HTTPException(422, "give an emissivity or a material, not both")
+        changes = {k: getattr(body, k) for k in given - {"material", "points"}}
+        if body.material is not None:
+            changes["emissivity"] = _material(body.material)
+        if body.points is not None:
+            changes["points"] = tuple((float(x), float(y)) for x, y in body.points)
+        if changes.get("name", "") is None or changes.get("eye", "") is None:
+            raise HTTPException(422, "name and eye: expected a value, got null")
+        try:
+            m.edit_region(name, dataclasses.replace(old, **changes), pipeline.fusion.size)
+        except ValueError as exc:
+            raise _unprocessable(exc) from None
+        except KeyError:
+            raise HTTPException(404, f"no region named {name!r}") from None
+        pipeline.touch_demand()
         return [_region_model(r) for r in m.regions]
 
     @router.delete("/regions/{name}")
@@ -326,7 +377,7 @@ def make_measure_router(pipeline: FusionPipeline) -> APIRouter:
 
     @router.put("/alarms", dependencies=[Depends(require_json)])
     def put_alarms(body: list[AlarmModel]) -> dict:
-        """Replace the alarm rules (their states start anew)."""
+        """Replace the alarm rules (a raised alarm still among them stays raised)."""
         try:
             m.set_rules([AlarmRule(**a.model_dump()) for a in body])
         except ValueError as exc:

@@ -122,12 +122,35 @@ class Measurements:
             self._last_s = None
         self._changed()
 
+    def edit_region(self, name: str, region: Region, size: tuple[int, int]) -> None:
+        """Put ``region`` in the place of the region called ``name`` (its name may be new:
+        the alarms watching it follow it, raised ones staying raised). KeyError when there
+        is none of that name; ValueError (nothing changed) for a name another region has or
+        a region outside the (width, height) picture."""
+        region.mask(*size)
+        with self._lock:
+            names = [r.name for r in self._regions]
+            if name not in names:
+                raise KeyError(name)
+            if region.name != name and region.name in names:
+                raise ValueError(f"name: another region is called {region.name!r}")
+            self._regions = tuple(region if r.name == name else r for r in self._regions)
+            if region.name != name:
+                rules = [
+                    dataclasses.replace(a, region=region.name) if a.region == name else a
+                    for a in self._tracker.rules
+                ]
+                self._tracker = self._tracker.with_rules(rules, {name: region.name})
+            self._last_s = None
+        self._changed()
+
     @property
     def rules(self) -> tuple[AlarmRule, ...]:
         return tuple(self._tracker.rules)
 
     def set_rules(self, rules: Sequence[AlarmRule]) -> None:
-        """Replace the alarm rules (their states start anew). ValueError (nothing changed)
+        """Replace the alarm rules (an alarm raised and still among them stays raised: no
+        second event; the others start anew). ValueError (nothing changed)
         for a rule on a region that does not exist, or a rule given twice."""
         with self._lock:
             names = {r.name for r in self._regions}
@@ -137,7 +160,7 @@ class Measurements:
             keys = [a.key for a in rules]
             if len(set(keys)) != len(keys):
                 raise ValueError("alarms: the same rule is given twice")
-            self._tracker = AlarmTracker(list(rules))
+            self._tracker = self._tracker.with_rules(list(rules))
             self._last_s = None
         self._changed()
 

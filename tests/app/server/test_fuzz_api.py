@@ -225,6 +225,8 @@ class Console:
             return {"emissivity": 0.9, "reflected_k": 280.0, "air_k": 290.0, "humidity_pct": 70.0}
         if key == ("PUT", "/api/regions"):
             return [{"name": "a", "eye": "left", "shape": "box", "points": [[10, 10], [90, 60]]}]
+        if key == ("PATCH", "/api/regions/{name}"):  # valid on region "a"
+            return {"name": "b", "emissivity": 0.8, "reflected_k": 260.0}
         if key == ("PUT", "/api/alarms"):  # valid once region "a" is there
             return [{"region": "a", "kind": "above", "threshold": 320.0}]
         raise KeyError(f"{route} takes a body: add a valid one to Console.valid_body")

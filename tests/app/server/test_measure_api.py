@@ -188,6 +188,54 @@ def test_material_sets_the_emissivity(console) -> None:
         client.put("/api/object-parameters", json=PARAMS)
 
 
+def test_a_region_renamed_keeps_its_alarm_and_takes_another_surface(console) -> None:
+    """PATCH /api/regions/{name}: a new name (the alarm watching it follows, still raised: no
+    second event), a material for the region's emissivity, then null: the global
+    emissivity again (the steel panel's reading falls back to 0.95's: too low). Bad edits:
+    422 or 404 with one line, nothing changed."""
+    client, pipeline = console
+    m = pipeline.measurements
+    before = client.get("/api/regions").json()
+    rules = client.get("/api/alarms").json()["rules"]
+    assert client.get("/api/materials").json()["oxidised steel"] == 0.8
+    try:
+        events = client.get("/api/alarms").json()["events"]
+        r = client.patch("/api/regions/hot", json={"name": "hot plate"})
+        assert r.status_code == 200, r.text
+        assert [x["name"] for x in r.json()] == ["paint", "steel", "half", "hot plate"]
+        alarms = client.get("/api/alarms").json()
+        assert [a["region"] for a in alarms["rules"]] == ["hot plate", "paint"]
+        wait_until(lambda: m.idle and m.status()["active_alarms"] == ["hot plate above 400"],
+                   lambda: f"the renamed region's alarm raised: {m.status()}")  # fmt: skip
+        assert client.get("/api/alarms").json()["events"] == events  # still raised: no event
+        r = client.patch("/api/regions/steel", json={"emissivity": None})
+        assert r.status_code == 200 and r.json()[1]["emissivity"] is None
+        steel = lambda: m.readings.regions["steel"].object.mean_k - TRUE_K["steel"]  # noqa: E731
+        wait_until(lambda: m.idle and steel() < -2, "steel read with the global emissivity 0.95")
+        r = client.patch("/api/regions/steel", json={"material": "oxidised steel"})
+        assert r.status_code == 200 and r.json()[1]["emissivity"] == 0.8
+        wait_until(lambda: m.idle and abs(steel()) < TOLERANCE_K, "steel read with 0.8 again")
+        now = client.get("/api/regions").json()
+        for edit, status, says in [
+            ({"name": "paint"}, 422, "name: another region is called 'paint'"),
+            ({"material": "glass", "emissivity": 0.5}, 422, "not both"),
+            ({"material": "cheese"}, 422, "material: expected one of"),
+            ({"points": [[5000, 10], [5100, 20]]}, 422, "outside the 1280x960 image"),
+            ({"emissivity": 1.5}, 422, "emissivity"),
+            ({"name": None}, 422, "expected a value"),
+            ({"colour": "red"}, 422, "colour"),
+        ]:
+            r = client.patch("/api/regions/steel", json=edit)
+            assert r.status_code == status and says in str(r.json()["detail"]), (edit, r.text)
+        r = client.patch("/api/regions/nowhere", json={"name": "x"})
+        assert r.status_code == 404 and r.json()["detail"] == "no region named 'nowhere'"
+        assert client.get("/api/regions").json() == now
+    finally:
+        client.patch("/api/regions/hot plate", json={"name": "hot"})
+        assert client.get("/api/regions").json() == before
+        assert client.get("/api/alarms").json()["rules"] == rules
+
+
 def _frame_at(frame: SpotFrame, t_s: float) -> SpotFrame:
     out = SpotFrame.__new__(SpotFrame)
     out.__dict__.update(frame.__dict__, stamp_ns=round(t_s * 1e9))

@@ -347,10 +347,14 @@ MEASURE_SHOT = Path("/tmp/shots/viewer-regions.png")
 
 def test_a_box_kept_as_a_region_is_outlined_read_and_alarms(console, browser, room) -> None:
     """Issue 35 in the viewer: a box dragged over the second person's head, kept with
-    "Box → region", becomes the console's region "box 1", outlined on the left eye with its
-    corrected maximum (emissivity 0.98 of skin: a little above the imager's 34 C); an alarm
-    above 300 K set over REST turns it red and shows the banner; Clear regions keeps the
-    region the alarm watches; Snapshot downloads the ZIP; Lock span fixes the span shown."""
+    "Box → region" from the Measure panel, becomes the console's region "box 1", outlined on
+    the left eye with its corrected maximum (emissivity 0.98 of skin: a little above the
+    imager's 34 C); an alarm above 300 K set over REST turns it red and shows the banner;
+    Snapshot downloads the ZIP; Line plots a profile; Lock span fixes the span shown. Then
+    the panel's own tools and forms: a polygon and a spot drawn on the head, a region renamed
+    (its alarm follows), a material and a reflected temperature for one, the difference of
+    two chosen, an alarm added and removed, a watched region refused removal; Clear regions
+    keeps the regions alarms watch."""
     console.post("/api/source/resume")  # frames again (another test may have paused them)
     page = browser.new_page(viewport={"width": 1400, "height": 700})
     errors: list[str] = []
@@ -368,6 +372,11 @@ def test_a_box_kept_as_a_region_is_outlined_read_and_alarms(console, browser, ro
     page.mouse.move(x1, y1, steps=6)
     page.mouse.up()
     page.wait_for_function("() => window.trifuseSpot.state.box !== null")
+    page.get_by_role("button", name="Measure").click()
+    assert page.locator("#measure-panel").is_visible()
+    page.wait_for_function(
+        "() => document.getElementById('measure-material').value === 'human skin'"
+    )
     page.get_by_role("button", name="Box → region").click()
     page.wait_for_function(
         "() => window.trifuseMeasure.state.readings"
@@ -399,7 +408,8 @@ def test_a_box_kept_as_a_region_is_outlined_read_and_alarms(console, browser, ro
     )
     assert status == 200
     page.wait_for_function(
-        "() => document.getElementById('alarm-banner').textContent.includes('box 1 above 300')"
+        "() => document.getElementById('alarm-banner').textContent"
+        ".includes('box 1 max above 26.9 °C')"
     )
     assert page.locator("#alarm-banner").is_visible()
     MEASURE_SHOT.parent.mkdir(parents=True, exist_ok=True)
@@ -431,18 +441,10 @@ def test_a_box_kept_as_a_region_is_outlined_read_and_alarms(console, browser, ro
     page.wait_for_function("() => window.trifuseStats.meta.span_auto === false")
     page.get_by_role("button", name="Unlock span").click()
     page.wait_for_function("() => window.trifuseStats.meta.span_auto === true")
-    spot = {"name": "spot", "eye": "right", "shape": "spot", "points": [[600, 400]]}
-    console.request("/api/regions", "PUT", [region, spot])
-    page.wait_for_function("() => window.trifuseMeasure.state.regions.length === 2")
-    page.wait_for_function("() => window.trifuseMeasure.state.delta !== null")
-    delta = page.evaluate("() => window.trifuseMeasure.state.delta")
-    means = console.get("/api/measurements")["regions"]
-    want = means["box 1"]["object"]["mean_k"] - means["spot"]["object"]["mean_k"]
-    assert (delta["a"], delta["b"]) == ("box 1", "spot")
-    assert abs(delta["delta_k"] - want) < 1e-6  # the same paused picture
+    _panel_tools_and_forms(console, page, x, y)
     page.get_by_role("button", name="Clear regions").click()  # the alarm's region stays
     page.wait_for_function("() => window.trifuseMeasure.state.regions.length === 1")
-    assert [r["name"] for r in console.get("/api/regions")] == ["box 1"]
+    assert [r["name"] for r in console.get("/api/regions")] == ["head box"]
     console.request("/api/alarms", "PUT", [])
     page.get_by_role("button", name="Clear regions").click()
     page.wait_for_function("() => window.trifuseMeasure.state.regions.length === 0")
@@ -451,3 +453,93 @@ def test_a_box_kept_as_a_region_is_outlined_read_and_alarms(console, browser, ro
     console.post("/api/source/resume")
     assert errors == []
     page.close()
+
+
+def _panel_tools_and_forms(console: Any, page: Any, x: int, y: int) -> None:
+    """The Measure panel on the held picture, the second person's head at left pixel (x, y)
+    and "box 1" (an alarm above 300 K on it) kept: a polygon (four clicks and a double
+    click) and a spot (a click) drawn on the head read its temperature; "box 1" renamed in
+    its row takes its alarm along; a material and a reflected temperature set in a row are
+    the region's; the difference of two chosen regions is the console's; an alarm added
+    from the form, a watched region's × refused with the console's line, the alarm's ×."""
+    measure = "window.trifuseMeasure.state"
+    page.get_by_role("button", name="Polygon").click()
+    corners = [(x - 25, y), (x, y - 25), (x + 25, y), (x, y + 25)]
+    for cx, cy in corners[:-1]:
+        page.mouse.click(*_client_xy(page, "left", cx, cy))
+    page.mouse.dblclick(*_client_xy(page, "left", *corners[-1]))
+    page.wait_for_function(f"() => {measure}.regions.some((r) => r.name === 'polygon 1')")
+    page.get_by_role(
+        "button", name="Spot", exact=True
+    ).click()  # the polygon tool off, the spot's on
+    page.mouse.click(*_client_xy(page, "left", x, y))
+    page.wait_for_function(f"() => {measure}.regions.some((r) => r.name === 'spot 1')")
+    page.get_by_role("button", name="Spot", exact=True).click()  # no tool: the spot meter's again
+    regions = {r["name"]: r for r in console.get("/api/regions")}
+    polygon, spot = regions["polygon 1"], regions["spot 1"]
+    assert polygon["shape"] == "polygon" and polygon["eye"] == "left"
+    assert len(polygon["points"]) == 4  # the double click's twin corner dropped
+    assert all(abs(px - cx) <= 1 and abs(py - cy) <= 1
+               for (px, py), (cx, cy) in zip(polygon["points"], corners, strict=True))  # fmt: skip
+    assert (
+        spot["shape"] == "spot"
+        and max(abs(spot["points"][0][0] - x), abs(spot["points"][0][1] - y)) <= 1
+    )
+    page.wait_for_function(
+        f"() => ['polygon 1', 'spot 1'].every((n) => {measure}.readings"
+        f" && {measure}.readings.regions[n])"
+    )
+    read = page.evaluate(f"() => {measure}.readings.regions")
+    for name in ("polygon 1", "spot 1"):
+        assert 33.5 < read[name]["object"]["mean_k"] - 273.15 < 36.5, (name, read[name])
+    # rename the watched box in its row: the alarm follows it
+    row = page.locator("#measure-regions tr[data-region='box 1']")
+    row.get_by_label("region name").fill("head box")
+    row.get_by_label("region name").press("Enter")
+    page.wait_for_function(
+        "() => document.getElementById('alarm-banner').textContent.includes('head box max above')"
+    )
+    assert [a["region"] for a in console.get("/api/alarms")["rules"]] == ["head box"]
+    # the spot's surface: a material, then a reflected temperature of its own
+    row = page.locator("#measure-regions tr[data-region='spot 1']")
+    row.get_by_label("spot 1 surface").select_option("oxidised steel")
+    page.wait_for_function(
+        "() => window.trifuseMeasure.state.regions.some((r) => r.emissivity === 0.8)"
+    )
+    row = page.locator("#measure-regions tr[data-region='spot 1']")
+    row.get_by_label("spot 1 reflected °C").fill("-20")
+    row.get_by_label("spot 1 reflected °C").press("Enter")
+    page.wait_for_function(
+        "() => window.trifuseMeasure.state.regions.some((r) => r.reflected_k !== null)"
+    )
+    spot = next(r for r in console.get("/api/regions") if r["name"] == "spot 1")
+    assert spot["emissivity"] == 0.8 and abs(spot["reflected_k"] - 253.15) < 1e-6
+    # the difference of the spot and the polygon, their maxima
+    page.locator("#measure-delta-a").select_option("spot 1")
+    page.locator("#measure-delta-b").select_option("polygon 1")
+    page.locator("#measure-delta-stat").select_option("max")
+    page.wait_for_function(
+        f"() => {measure}.delta && {measure}.delta.a === 'spot 1' && {measure}.delta.stat === 'max'"
+    )
+    want = console.get("/api/measurements/delta?a=spot%201&b=polygon%201&stat=max")["delta_k"]
+    shown = page.locator("#measure-delta").text_content()
+    assert shown == f"{'+' if want >= 0 else '−'}{abs(want):.2f} K", (shown, want)
+    # an alarm from the form: the spot's minimum below 0 °C; its removal is refused meanwhile
+    page.locator("#measure-alarm-region").select_option("spot 1")
+    page.locator("#measure-alarm-kind").select_option("below")
+    page.locator("#measure-alarm-threshold").fill("0")
+    page.get_by_role("button", name="Add alarm").click()
+    page.wait_for_function(f"() => {measure}.rules.length === 2")
+    rules = console.get("/api/alarms")["rules"]
+    assert (rules[1]["region"], rules[1]["kind"]) == ("spot 1", "below")
+    assert abs(rules[1]["threshold"] - 273.15) < 1e-9
+    page.get_by_role("button", name="remove spot 1").click()
+    page.wait_for_function(
+        "() => document.getElementById('measure-hint').textContent.includes('alarms watch spot 1')"
+    )
+    assert "spot 1" in [r["name"] for r in console.get("/api/regions")]
+    page.screenshot(path=str(MEASURE_SHOT.with_name("viewer-measure-panel.png")))
+    page.get_by_role("button", name="remove alarm spot 1 min below 0.0 °C").click()
+    page.wait_for_function(f"() => {measure}.rules.length === 1")
+    page.get_by_role("button", name="remove spot 1").click()
+    page.wait_for_function(f"() => !{measure}.regions.some((r) => r.name === 'spot 1')")
