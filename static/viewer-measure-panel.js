@@ -4,7 +4,8 @@
 //   TOF has none (PUT /api/object-parameters on each change);
 // - Regions: one row per region: its name (PATCH /api/regions/{name}: the alarms watching it
 //   follow), its surface (the global one, a material, or its own emissivity) and reflected
-//   temperature (empty: the global one), its corrected max, min and mean, and × (DELETE);
+//   temperature (empty: the global one), its corrected max, min and mean (a * when some of
+//   its pixels had no TOF distance: the default one was used), and × (DELETE);
 // - Difference: two regions and a statistic for the overlay's Δ (GET
 //   /api/measurements/delta);
 // - Alarms: the rules (× removes one; a raised one in red) and a form adding one: a region,
@@ -166,9 +167,12 @@
     for (const cells of rows.values()) {
       const name = cells.name;
       const o = read[name] && read[name].object;
+      const guessed = read[name] ? read[name].default_distance_px : 0;
       cells.max.textContent = c(o && o.max_k);
       cells.min.textContent = c(o && o.min_k);
-      cells.mean.textContent = c(o && o.mean_k);
+      cells.mean.textContent = c(o && o.mean_k) + (guessed ? "*" : "");
+      cells.mean.title = guessed ? `${guessed} of ${o.pixels} pixels without a TOF distance: ` +
+        "the air corrected over the default distance" : "";
       cells.tr.classList.toggle("alarm", raised.has(name));
       const error = state.readings && state.readings.errors[name];
       cells.tr.title = error || "";
@@ -201,7 +205,7 @@
     const names = state.regions.map((r) => r.name), pair = state.deltaPair;
     fill(a, names, pair ? pair.a : names[0]);
     fill(b, names, pair ? pair.b : names[1]);
-    diff.classList.toggle("none", names.length < 2);
+    diff.hidden = names.length < 2;
     const d = state.delta;
     deltaOut.textContent = d ? `${d.delta_k >= 0 ? "+" : "−"}${Math.abs(d.delta_k).toFixed(2)} K`
       : "—";

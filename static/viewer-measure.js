@@ -9,7 +9,8 @@
 // alarm watches. The panel's forms (object parameters, each region's name and surface, the
 // difference, alarms) are viewer-measure-panel.js's.
 //
-// Each region is outlined on its eye with its name and corrected maximum and mean (GET
+// Each region is outlined on its eye with its name and corrected maximum and mean, and its
+// hottest and coldest pixels marked (red +, blue −) (GET
 // /api/measurements: object temperatures, emissivity, reflection and the air by each
 // pixel's TOF distance), red while one of its alarms is raised; a banner over the picture
 // names the raised alarms (GET /api/alarms); the difference of two regions (the first two,
@@ -369,6 +370,21 @@
     g.fillText(text, x + 0.3 * font, y + 1.05 * font);
   }
 
+  // A region's hottest (a plus) or coldest (a minus) pixel: a small ring with the sign.
+  function marker([x, y], font, colour, hot) {
+    const r = font * 0.45;
+    g.save();
+    g.lineWidth = Math.max(1.5, font / 8);
+    g.strokeStyle = "#000";
+    g.fillStyle = colour;
+    g.beginPath(); g.arc(x, y, r, 0, 2 * Math.PI); g.fill(); g.stroke();
+    g.strokeStyle = "#fff";
+    g.beginPath(); g.moveTo(x - r * 0.6, y); g.lineTo(x + r * 0.6, y);
+    if (hot) { g.moveTo(x, y - r * 0.6); g.lineTo(x, y + r * 0.6); }
+    g.stroke();
+    g.restore();
+  }
+
   function redraw() {
     const rect = layer.getBoundingClientRect();
     const w = Math.round(rect.width * devicePixelRatio), h = Math.round(rect.height * devicePixelRatio);
@@ -401,6 +417,10 @@
       g.stroke();
       const m = readings[r.name];
       const o = m && m.object;
+      if (o && o.max_at && r.shape !== "spot") {  // where the maximum (+) and minimum (−) are
+        marker(toCanvas(r.eye, ...o.max_at), font, "#ff4040", true);
+        marker(toCanvas(r.eye, ...o.min_at), font, "#40a0ff", false);
+      }
       const text = `${r.name}: ` + (o && o.max_k !== null
         ? (r.shape === "spot" ? `${(o.mean_k - K0).toFixed(1)} °C`
           : `max ${(o.max_k - K0).toFixed(1)} °C, mean ${(o.mean_k - K0).toFixed(1)} °C`)

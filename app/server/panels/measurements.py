@@ -75,7 +75,10 @@ class MeasurementsPanel(Periodic):
             self.region_emissivity = gui.add_number(
                 "Its emissivity", 0.95, min=0.01, max=1.0, step=0.01
             )
-            self.set_region = gui.add_button("Set the region's emissivity")
+            self.region_reflected = gui.add_number("Its reflected (°C)", 20.0, step=0.1)
+            self.set_region = gui.add_button("Set the region's surface")
+            self.region_name = gui.add_text("Rename it to", "")
+            self.rename = gui.add_button("Rename the region")
             self.alarm_region = gui.add_dropdown("Alarm on", ("(no region)",))
             self.alarm_kind = gui.add_dropdown("When", ("above", "below", "rise"))
             self.alarm_value = gui.add_number("Threshold (°C; rise K/s)", 60.0, step=0.1)
@@ -87,21 +90,52 @@ class MeasurementsPanel(Periodic):
         self.material.on_update(lambda _e: self.choose())
         self._syncing = False  # tick() writes the fields: not an operator's change
         self.set_region.on_click(lambda _e: self.press_set_region())
+        self.rename.on_click(lambda _e: self.press_rename())
+        self.region.on_update(lambda _e: self.show_region())
         self.add_alarm.on_click(lambda _e: self.press_add())
         self.clear_alarms.on_click(lambda _e: self.press_clear())
 
-    def press_set_region(self) -> None:
-        """The chosen region gets the emissivity typed (its own surface)."""
-        name, eps = self.region.value, float(self.region_emissivity.value)
-        regions = list(self.m.regions)
+    def _edit_region(self, what: str, **changes: object) -> None:
+        """The chosen region with ``changes`` (Measurements.edit_region: alarms follow a
+        new name); one line under the fields when refused."""
+        name = self.region.value
+        region = next((r for r in self.m.regions if r.name == name), None)
         try:
-            k = [r.name for r in regions].index(name)
-            regions[k] = dataclasses.replace(regions[k], emissivity=eps)
-            self.m.set_regions(regions, self.pipeline.fusion.size)
-        except ValueError as exc:  # no such region (any more), an emissivity out of range
-            self.message.content = f"**Not set:** {md_text(exc)}"
+            if region is None:
+                raise ValueError(f"no region named {name!r}")
+            new = dataclasses.replace(region, **changes)  # type: ignore[arg-type]
+            self.m.edit_region(name, new, self.pipeline.fusion.size)
+        except (KeyError, ValueError) as exc:  # gone meanwhile, a value out of range
+            self.message.content = f"**{what}:** {md_text(exc)}"
             return
         self.message.content = ""
+
+    def press_set_region(self) -> None:
+        """The chosen region gets the emissivity and reflected temperature typed (its own
+        surface)."""
+        self._edit_region(
+            "Not set",
+            emissivity=float(self.region_emissivity.value),
+            reflected_k=float(self.region_reflected.value) + K0,
+        )
+
+    def press_rename(self) -> None:
+        """The chosen region gets the name typed."""
+        self._edit_region("Not renamed", name=self.region_name.value.strip())
+        if not self.message.content:
+            self.region.value = self.region_name.value.strip()
+
+    def show_region(self) -> None:
+        """The chosen region's surface (the global one's where it has none) in its fields."""
+        region = next((r for r in self.m.regions if r.name == self.region.value), None)
+        if region is None:
+            return
+        p = self.m.params
+        eps = p.emissivity if region.emissivity is None else region.emissivity
+        reflected = p.reflected_k if region.reflected_k is None else region.reflected_k
+        self.region_emissivity.value = eps
+        self.region_reflected.value = round(reflected - K0, 2)
+        self.region_name.value = region.name
 
     def press_add(self) -> None:
         """Add the alarm the fields describe to the rules in force."""

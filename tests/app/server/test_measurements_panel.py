@@ -13,6 +13,7 @@ from tests.measure_support import panel_boxes, render
 from trifuse.app.server.panels.measurements import MeasurementsPanel
 from trifuse.app.server.runtime.measurements import Measurements
 from trifuse.app.sources.sim.head import default_rig
+from trifuse.fusion.alarms import AlarmRule
 from trifuse.fusion.compose import DisplaySettings
 from trifuse.fusion.regions import Region
 from trifuse.fusion.spot import SpotMeter
@@ -85,9 +86,23 @@ def test_a_regions_emissivity_is_set_from_the_panel(panel) -> None:
     m = panel.m
     m.set_regions([Region("pipe", "left", "box", ((10.0, 10.0), (90.0, 60.0)))], (1280, 960))
     panel.tick()
-    panel.region.value, panel.region_emissivity.value = "pipe", 0.8
+    panel.region.value = "pipe"
+    assert panel.region_name.value == "pipe" and panel.region_emissivity.value == 1.0
+    panel.region_emissivity.value, panel.region_reflected.value = 0.8, -20.0
     panel.press_set_region()
     assert m.regions[0].emissivity == 0.8 and panel.message.content == ""
+    assert m.regions[0].reflected_k == pytest.approx(253.15)
+    m.set_rules([AlarmRule("pipe", "above", 350.0)])
+    panel.region_name.value = "main pipe"
+    panel.press_rename()  # the alarm follows
+    assert [r.name for r in m.regions] == ["main pipe"] and m.rules[0].region == "main pipe"
+    panel.tick()
+    assert panel.region.value == "main pipe" and panel.message.content == ""
+    panel.region_emissivity.value = 0.001  # as a script could send: refused, one line
+    panel.press_set_region()
+    assert "emissivity: expected 0.01 to 1" in panel.message.content
+    assert m.regions[0].emissivity == 0.8
+    m.set_rules([])
     m.set_regions([], (1280, 960))  # gone meanwhile (REST): refused, one line
     panel.press_set_region()
     assert "Not set" in panel.message.content and m.regions == ()

@@ -402,6 +402,19 @@ def test_a_box_kept_as_a_region_is_outlined_read_and_alarms(console, browser, ro
         [cx, cy],
     )
     assert px > 0, "no cyan outline at the box's left edge"
+    # the hottest pixel marked in red (a ring with a plus), where the reading says it is
+    hx, hy = _client_xy(page, "left", *reading["object"]["max_at"])
+    red = page.evaluate(
+        "([x, y]) => { const c = document.getElementById('measure-overlay');"
+        " const r = c.getBoundingClientRect(); const s = c.width / r.width;"
+        " const d = c.getContext('2d').getImageData(Math.round((x - r.left) * s) - 4,"
+        " Math.round((y - r.top) * s) - 4, 9, 9).data; let n = 0;"
+        " for (let i = 0; i < d.length; i += 4)"
+        " if (d[i] > 200 && d[i + 1] < 100 && d[i + 3] > 200) n++;"
+        " return n; }",
+        [hx, hy],
+    )
+    assert red > 5, "no red marker at the box's hottest pixel"
 
     status, _ = console.request(
         "/api/alarms", "PUT", [{"region": "box 1", "kind": "above", "threshold": 300.0}]
