@@ -15,7 +15,11 @@ from trifuse.app.cli.files import (
     load_rig_arg,
     recording_paths,
 )
+from trifuse.app.cli.measure import load_plan, write_table
 from trifuse.app.cli.output import err, frame_progress, out
+
+TABLE_NAME = "measurements.csv"
+"""The table ``--measure`` writes beside the pictures."""
 
 
 def add_parser(commands: Commands) -> argparse.ArgumentParser:
@@ -53,6 +57,16 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         "(default: %(default)s)",
     )
     add_every_argument(fuse, "compose every N-th colour frame set")
+    fuse.add_argument(
+        "--measure",
+        nargs="?",
+        const="",
+        metavar="PLAN.yaml",
+        help="also read measurement regions on the same frame sets into DIR/measurements.csv "
+        "(as `trifuse measure`): those of PLAN.yaml, or without one those the console used "
+        "while it recorded (the recording's measurement settings). The recordings keep what "
+        "the imagers measured: emissivity and regions may be chosen afterwards",
+    )
     add_cluster_arguments(fuse)
     return fuse
 
@@ -89,6 +103,8 @@ def run(args: argparse.Namespace) -> int:
     dirs = output_dirs(args, inputs)
     settings = DisplaySettings(mode=args.mode)
     given = load_rig_arg(args.rig, "--rig") if args.rig else None
+    wanted = args.measure is not None  # "": the recordings' own plans
+    plans = [load_plan(p, args.measure or None, "--measure") for p in inputs if wanted]
     planned = plan_fuse_job(
         list(zip(inputs, dirs, strict=True)), given, settings, args.every, args.chunk_s
     )
@@ -131,4 +147,6 @@ def run(args: argparse.Namespace) -> int:
             f"{plan.recording}: no frame set could be fused"
             + (f" ({skipped})" if skipped else " (the recording holds no complete frame set)")
         )
+    for plan, measured in zip(planned, plans, strict=False):  # here, after the pictures
+        write_table(plan.recording, measured, given, args.every, plan.out_dir / TABLE_NAME)
     return EXIT_OK

@@ -46,38 +46,51 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Write the table; say how many frame sets and rows."""
-    from trifuse.app.recording.measure import measure_recording, plan_from_yaml, table_text
-    from trifuse.app.recording.reader import ReplaySource
-    from trifuse.app.storage.atomic import atomic_write_text
-
     table = Path(args.out)
     if table.exists():
         raise UsageError(f"--out {table}: exists; refusing to overwrite it (choose a new name)")
     [recording] = recording_paths([args.recording])
-    if args.regions is None:
-        plan = _recorded_plan(recording)
-    else:
-        try:
-            plan_text = Path(args.regions).read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as exc:
-            raise UsageError(f"--regions {args.regions}: cannot read it ({exc})") from None
-        try:
-            plan = plan_from_yaml(plan_text)
-        except ValueError as exc:
-            raise UsageError(f"--regions {args.regions}: {exc}") from None
+    plan = load_plan(recording, args.regions, "--regions")
     given = load_rig_arg(args.rig, "--rig") if args.rig else None
+    write_table(recording, plan, given, args.every, table)
+    return EXIT_OK
+
+
+def load_plan(recording: Path, path: str | None, option: str):
+    """The plan of file ``path`` (given as ``option``), or without one the recording's
+    own (:func:`_recorded_plan`); UsageError in one line for a plan that cannot be used."""
+    from trifuse.app.recording.measure import plan_from_yaml
+
+    if path is None:
+        return _recorded_plan(recording)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UsageError(f"{option} {path}: cannot read it ({exc})") from None
+    try:
+        return plan_from_yaml(text)
+    except ValueError as exc:
+        raise UsageError(f"{option} {path}: {exc}") from None
+
+
+def write_table(recording: Path, plan, rig, every: int, table: Path) -> None:
+    """Read ``plan`` over ``recording`` (with ``rig``, else the recording's) into the new
+    file ``table``, and say so; ValueError when no frame set makes a picture."""
+    from trifuse.app.recording.measure import measure_recording, table_text
+    from trifuse.app.recording.reader import ReplaySource
+    from trifuse.app.storage.atomic import atomic_write_text
+
     with ReplaySource(recording, realtime=False) as source:
-        rig = given or source.rig
+        rig = rig or source.rig
         if rig is None:
             raise ValueError(f"{recording}: the recording holds no rig; give one with --rig")
-        rows = list(measure_recording(source, rig, plan, args.every))
+        rows = list(measure_recording(source, rig, plan, every))
     if not rows:
         raise ValueError(f"{recording}: no frame set could be fused (both eyes' colour and "
                          "thermal frames after the first TOF frame)")  # fmt: skip
     atomic_write_text(table, table_text(iter(rows)), overwrite=False)
     sets = len(rows) // len(plan.regions)
     out(f"Wrote {len(rows)} rows ({sets} frame sets x {len(plan.regions)} regions) to {table}")
-    return EXIT_OK
 
 
 def _recorded_plan(recording: Path):

@@ -194,3 +194,26 @@ def test_without_a_plan_the_recordings_own_settings_are_used(tmp_path, capsys) -
     plain = write_recording(tmp_path / "plain.mcap", rig, [fs.frames[n] for n in rig.names])
     code, _, err = run_cli(["measure", str(plain), "--out", str(tmp_path / "u.csv")], capsys)
     assert code != 0 and "holds no measurement settings" in err
+
+
+def test_fuse_measures_the_same_frame_sets_beside_its_pictures(recording, tmp_path, capsys) -> None:
+    """`trifuse fuse --measure PLAN.yaml`: the pictures and DIR/measurements.csv, the very
+    table `trifuse measure` writes with that plan; `--measure` alone on a recording without
+    the console's settings is refused in one line before anything is written."""
+    rec, boxes = recording
+    plan = tmp_path / "plan.yaml"
+    plan.write_text(_plan(boxes))
+    table = tmp_path / "table.csv"
+    assert run_cli(["measure", str(rec), "--regions", str(plan), "--out", str(table)],
+                   capsys)[0] == 0  # fmt: skip
+    out_dir = tmp_path / "fused"
+    code, out, err = run_cli(
+        ["fuse", str(rec), "--out", str(out_dir), "--measure", str(plan)], capsys
+    )
+    assert code == 0, err
+    assert sorted(out_dir.glob("*.jpg")) and "measurements.csv" in out
+    assert (out_dir / "measurements.csv").read_text() == table.read_text()
+    bare = tmp_path / "bare"
+    code, _, err = run_cli(["fuse", str(rec), "--out", str(bare), "--measure"], capsys)
+    assert code != 0 and "holds no measurement settings" in err
+    assert len(err.strip().splitlines()) == 1 and not bare.exists()
