@@ -68,6 +68,7 @@
   bar.insertBefore(toggle, bar.firstChild);
   toggle.onclick = () => {
     state.open = panel.hidden;
+    panel.style.top = `${Math.round(bar.getBoundingClientRect().bottom) + 6}px`;  // under the bar
     panel.hidden = !state.open;
     toggle.setAttribute("aria-expanded", String(state.open));
     if (!state.open) setTool(null);
