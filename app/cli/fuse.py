@@ -67,6 +67,13 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         "while it recorded (the recording's measurement settings). The recordings keep what "
         "the imagers measured: emissivity and regions may be chosen afterwards",
     )
+    fuse.add_argument(
+        "--rerun",
+        metavar="OUT.rrd",
+        help="also log the recording to a rerun file (a new one): the rig's cameras at their "
+        "poses, each sensor's images, the TOF's points coloured by temperature and the fused "
+        "pair, on the same frame sets (one recording; needs the [rerun] extra)",
+    )
     add_cluster_arguments(fuse)
     return fuse
 
@@ -93,6 +100,7 @@ def run(args: argparse.Namespace) -> int:
     from trifuse.app.recording.fuse import VIDEO_NAME
     from trifuse.app.recording.jobs import plan_fuse_job, run_fuse_job
     from trifuse.app.recording.player import skips_text
+    from trifuse.app.rerun_log import require_rerun
     from trifuse.app.storage.atomic import make_dirs
     from trifuse.fusion.compose import DisplaySettings
 
@@ -103,6 +111,13 @@ def run(args: argparse.Namespace) -> int:
     dirs = output_dirs(args, inputs)
     settings = DisplaySettings(mode=args.mode)
     given = load_rig_arg(args.rig, "--rig") if args.rig else None
+    rerun_out = None if args.rerun is None else Path(args.rerun)
+    if rerun_out is not None:
+        if len(inputs) != 1:
+            raise UsageError(f"--rerun: takes one recording, got {len(inputs)}")
+        if rerun_out.exists():
+            raise UsageError(f"--rerun {rerun_out}: exists; refusing to overwrite it")
+        require_rerun()  # the extra's line before any work
     wanted = args.measure is not None  # "": the recordings' own plans
     plans = [load_plan(p, args.measure or None, "--measure") for p in inputs if wanted]
     planned = plan_fuse_job(
@@ -149,4 +164,20 @@ def run(args: argparse.Namespace) -> int:
         )
     for plan, measured in zip(planned, plans, strict=False):  # here, after the pictures
         write_table(plan.recording, measured, given, args.every, plan.out_dir / TABLE_NAME)
+    if rerun_out is not None:
+        write_rerun(inputs[0], given, args.every, settings, rerun_out)
     return EXIT_OK
+
+
+def write_rerun(recording: Path, rig, every: int, settings, out_path: Path) -> None:
+    """Log ``recording`` to the new rerun file ``out_path`` and say so."""
+    from trifuse.app.recording.reader import ReplaySource
+    from trifuse.app.recording.rerun_export import export_rerun
+
+    with ReplaySource(recording, realtime=False) as source:
+        rig = rig or source.rig
+        if rig is None:
+            raise ValueError(f"{recording}: the recording holds no rig; give one with --rig")
+        sets = export_rerun(source, rig, out_path, every, settings)
+    size = out_path.stat().st_size / 1e6
+    out(f"Rerun: {out_path} ({sets} frame sets, {size:.1f} MB; open it with `rerun {out_path}`)")
