@@ -176,6 +176,17 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         "--host says; from another machine use an SSH tunnel (ssh -L N:127.0.0.1:N robot). "
         "Any local user or web page can read it (docs/SECURITY.md)",
     )
+    srv.add_argument(
+        "--rerun",
+        nargs="?",
+        const="",
+        metavar="ADDRESS",
+        help="also log the rig's cameras at their poses, the live images, the TOF's points "
+        "coloured by temperature and the fused pair to a rerun viewer (the console connects "
+        "to it; default: one on this machine, rerun+http://127.0.0.1:9876/proxy; from "
+        "another machine its address, or ssh -R 9876:127.0.0.1:9876 robot). Only while the "
+        "viewer answers; at most 5 frame sets a second. Needs the [rerun] extra",
+    )
     srv.add_argument("--certfile", metavar="PEM", help="TLS certificate (chain): serve HTTPS/WSS")
     srv.add_argument("--keyfile", metavar="PEM", help="the certificate's private key")
     return srv
@@ -295,6 +306,15 @@ def run(args: argparse.Namespace) -> int:
                 check_foxglove_port(args.foxglove_port)
             except OSError as e:
                 raise UsageError(f"{PROG} serve: {e}") from None
+        if args.rerun is not None:
+            from trifuse.app.rerun_log import require_rerun
+            from trifuse.app.server.runtime.rerun_live import viewer_endpoint
+
+            try:
+                require_rerun()
+                viewer_endpoint(args.rerun or "rerun+http://127.0.0.1:9876/proxy")
+            except (RuntimeError, ValueError) as e:
+                raise UsageError(f"{PROG} serve: {e}") from None
         workdir = Path(args.workdir)
         try:
             lock = lock_workdir(workdir)
@@ -326,6 +346,7 @@ def run(args: argparse.Namespace) -> int:
                 build_map=args.map,
                 foxglove_port=args.foxglove_port,
                 drift_share=args.drift_share,
+                rerun=args.rerun,
             )
     finally:
         sock.close()

@@ -135,6 +135,7 @@ def serve(
     build_map: bool = False,
     foxglove_port: int | None = None,
     drift_share: float | None = None,
+    rerun: str | None = None,
 ) -> None:
     """Run the console until interrupted; the calibration session lives in ``workdir``.
     ``auth`` (auth.py) guards every route and WebSocket; its port is the one served, on
@@ -144,7 +145,9 @@ def serve(
     on). ``foxglove_port``: also publish the live frames, transforms, calibrations, fused
     video, TOF cloud and health on foxglove-sdk's WebSocket server at 127.0.0.1:PORT
     (foxglove_live.py; OSError in one line if the port is taken). ``drift_share``: the
-    share of one core the drift check may take (drift_watch.py; None: its default)."""
+    share of one core the drift check may take (drift_watch.py; None: its default).
+    ``rerun``: also log the live frames to the rerun viewer at that address ("": the one on
+    this machine; rerun_live.py; None: not)."""
     port = auth.port
     source, rig = opened.source, opened.rig
     try:  # first: a work directory of another board or rig is refused before anything runs
@@ -198,6 +201,16 @@ def serve(
             session.close()
             server.stop()
             raise
+    if rerun is not None:
+        from trifuse.app.server.runtime.rerun_live import RerunLive
+
+        try:
+            live_rerun = RerunLive(pipeline, hub, rerun or None)
+        except BaseException:
+            pipeline.stop()
+            session.close()
+            server.stop()
+            raise
     mapper = MapWorker(pipeline, head_pose_of(source), workdir / "maps", enabled=build_map)
     panels = [
         SourcePanel(ctx, control),  # first: the Source panel tops the GUI
@@ -222,6 +235,8 @@ def serve(
     ]
     if live is not None:
         parts.append(live.start())
+    if rerun is not None:
+        parts.append(live_rerun.start())
     parts.append(control)  # stopped first: a running recording is finished and kept
     app = create_app(
         hub,
@@ -269,6 +284,12 @@ def serve(
         print(
             f"Foxglove live on {live.url} (Foxglove: Open connection, Foxglove WebSocket; "
             f"127.0.0.1 only, not guarded by the token: docs/SECURITY.md{away})",
+            flush=True,
+        )
+    if rerun is not None:
+        print(
+            f"rerun: logging to the viewer at {live_rerun.address} while it answers "
+            "(start one with `rerun`)",
             flush=True,
         )
     config = uvicorn.Config(
