@@ -17,6 +17,9 @@ forward: rerun's ``RDF``):
   rig's range correction, flying pixels left out) coloured by the temperature the left
   eye's thermal imager sees there (grey where it sees none).
 - ``fused``: the side-by-side stereo picture (JPEG).
+- ``map`` (the console's thermal map, while it builds one): ``Points3D`` in the world frame
+  as the 3D console shows it, ``map/path`` the head's path, and ``rig`` then placed at the
+  head's pose (a ``Transform3D``): the root is the world.
 
 Time: the timeline ``sensor_time``, each frame's own stamp (nanoseconds as the stamps are).
 
@@ -38,6 +41,7 @@ import numpy as np
 from trifuse.app.sources.frames import Frame
 from trifuse.calib.radiometry import Radiometry
 from trifuse.calib.rig import Rig
+from trifuse.fusion.map_view import MapCloud
 from trifuse.fusion.mapping import MappingOptions, TofGrid
 from trifuse.fusion.palettes import PaletteName, palette_colors
 from trifuse.fusion.span import auto_span
@@ -175,6 +179,19 @@ class RerunHead:
             return points, np.full(points.shape, 128, np.uint8)
         t = sample_image(self.rig, self.thermal, self.tof, points, kelvin, np.nan)
         return points, palette_colors(t, span, self.palette)
+
+    def log_map(self, stamp_ns: int, cloud: MapCloud, T_world_rig: np.ndarray,
+                path: np.ndarray) -> None:  # fmt: skip
+        """The thermal map (world frame): its points as shown (``cloud``), the head's path
+        ((P, 3) positions, metres), and the rig placed at ``T_world_rig`` (the root then is
+        the world)."""
+        rr, log = self.rr, self.stream.log
+        self._time(stamp_ns)
+        T = np.asarray(T_world_rig, dtype=np.float64)
+        log("rig", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+        log("map", rr.Points3D(cloud.points, colors=cloud.colors, radii=cloud.cell_m / 2))
+        if len(path) > 1:
+            log("map/path", rr.LineStrips3D([np.asarray(path, dtype=np.float32)]))
 
     def log_fused(self, stamp_ns: int, picture: np.ndarray | bytes) -> None:
         """The fused side-by-side picture: (H, 2W, 3) uint8 RGB, or its JPEG bytes."""

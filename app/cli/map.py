@@ -80,6 +80,13 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         action="store_true",
         help="replace the PLY and the map file if they exist (never a recording)",
     )
+    cmd.add_argument(
+        "--rerun",
+        metavar="OUT.rrd",
+        help="also write the map to a rerun file (a new one): its points coloured by "
+        "temperature, the head's path and the rig's cameras at its last pose (needs the "
+        "[rerun] extra)",
+    )
     add_cluster_arguments(cmd)
     return cmd
 
@@ -128,6 +135,12 @@ def run(args: argparse.Namespace) -> int:
     from trifuse.fusion.voxel_map import MapSettings
 
     ply, map_file = output_paths(args)  # refusals first: inputs need not exist for them
+    if args.rerun is not None:
+        from trifuse.app.rerun_log import require_rerun
+
+        if Path(args.rerun).exists():
+            raise UsageError(f"--rerun {args.rerun}: exists; refusing to overwrite it")
+        require_rerun()
     inputs = recording_paths(args.recordings)
     check_not_inputs((ply, map_file), inputs)
     settings = MapSettings(voxel_m=args.voxel)
@@ -193,6 +206,11 @@ def run(args: argparse.Namespace) -> int:
         f"occupied: {extent_text(m['centre'][occupied])}"
     )
     out(f"Wrote {ply} ({occupied.sum()} points) and the map file {map_file}")
+    if args.rerun is not None:
+        from trifuse.app.recording.rerun_export import export_map_rerun
+
+        points = export_map_rerun(rig, m, args.rerun)
+        out(f"Rerun: {args.rerun} ({points} points, the head's path; `rerun {args.rerun}`)")
     for note in result.notes:
         err(f"{PROG}: note: {note}")
     if not occupied.any():

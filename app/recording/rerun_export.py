@@ -1,7 +1,10 @@
-"""A recording in rerun (``trifuse fuse --rerun OUT.rrd``; issue 36, item 2): every ``every``-th
-frame set that makes a picture (the :data:`fusion.stereo_step.OFFLINE` policy, as ``trifuse
-fuse``) logged with :class:`app.rerun_log.RerunHead`: its sensors' images, the TOF's cloud
-coloured by temperature and the fused pair, under the rig's poses and pinholes.
+"""Recordings and maps in rerun files (issue 36, item 2).
+
+``trifuse fuse --rerun OUT.rrd``: every ``every``-th frame set that makes a picture (the
+:data:`fusion.stereo_step.OFFLINE` policy, as ``trifuse fuse``) logged with
+:class:`app.rerun_log.RerunHead`: its sensors' images, the TOF's cloud coloured by
+temperature and the fused pair, under the rig's poses and pinholes. ``trifuse map --rerun
+OUT.rrd``: the thermal map built, the head's path and the rig at its last pose.
 
 The file is written beside its name (a temporary ``.NAME.XXXX.tmp`` that a crash leaves for
 :func:`app.storage.atomic.remove_temporaries`) and linked to it once complete: never
@@ -10,9 +13,14 @@ overwritten, never half there.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from trifuse.app.recording.player import MessageReplay
 from trifuse.app.rerun_log import RerunHead, require_rerun
@@ -20,7 +28,42 @@ from trifuse.app.sources.base import frame_sets
 from trifuse.app.storage.atomic import fsync_dir, make_dirs
 from trifuse.calib.rig import Rig
 from trifuse.fusion.compose import DisplaySettings
+from trifuse.fusion.geometry import tof_sensor_name
+from trifuse.fusion.map_view import map_cloud
 from trifuse.fusion.stereo_step import OFFLINE, Skip, StereoStep
+from trifuse.fusion.voxel_map import VoxelMap
+
+MAP_POINTS = 1_000_000
+"""The most points of a map logged (its level of detail, as the 3D console's)."""
+
+
+@contextlib.contextmanager
+def new_rerun_file(path: str | Path) -> Iterator[Any]:
+    """A rerun recording stream saving to the new file ``path``: written aside (a
+    ``.NAME.XXXX.tmp``) and linked to ``path`` when the block ends without an error;
+    FileExistsError when ``path`` exists (before and after), nothing left on a failure."""
+    path = Path(path)
+    if path.exists():
+        raise FileExistsError(f"{path}: exists; refusing to overwrite it")
+    rr = require_rerun()
+    make_dirs(path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        stream = rr.RecordingStream("trifuse", recording_id=path.stem)
+        stream.save(tmp)
+        yield stream
+        stream.flush()
+        stream.disconnect()  # the file is complete once its sink is closed
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            raise FileExistsError(f"{path}: exists; refusing to overwrite it") from None
+        fsync_dir(path.parent)
+    finally:
+        Path(tmp).unlink(missing_ok=True)
 
 
 def export_rerun(
@@ -36,16 +79,7 @@ def export_rerun(
     or on any failure."""
     if every < 1:
         raise ValueError(f"every: expected a positive integer, got {every}")
-    path = Path(path)
-    if path.exists():
-        raise FileExistsError(f"{path}: exists; refusing to overwrite it")
-    rr = require_rerun()
-    make_dirs(path.parent)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        stream = rr.RecordingStream("trifuse", recording_id=path.stem)
-        stream.save(tmp)
+    with new_rerun_file(path) as stream:
         head = RerunHead(stream, rig, (settings or DisplaySettings()).palette)
         step = StereoStep(rig, settings, OFFLINE)
         source.realtime = False
@@ -63,20 +97,26 @@ def export_rerun(
             head.log_frames(fs.frames, step.radiometry)
             head.log_fused(fs.stamp_ns, picture)
             logged += 1
-        stream.flush()
-        stream.disconnect()  # the file is complete once its sink is closed
         if not logged:
             raise ValueError(
                 "no frame set could be fused (both eyes' colour and thermal frames after the "
                 "first TOF frame)"
             )
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        try:
-            os.link(tmp, path)
-        except FileExistsError:
-            raise FileExistsError(f"{path}: exists; refusing to overwrite it") from None
-        fsync_dir(path.parent)
-    finally:
-        Path(tmp).unlink(missing_ok=True)
     return logged
+
+
+def export_map_rerun(rig: Rig, voxel_map: VoxelMap, path: str | Path) -> int:
+    """The thermal map (``trifuse map --rerun``) in the new rerun file ``path``: the rig's
+    cameras placed at the head's last pose, the map's points (at most :data:`MAP_POINTS`,
+    coloured by temperature as the console shows them) and the head's path, at the last
+    frame's time; returns the points logged."""
+    if not voxel_map.path:
+        raise ValueError("the map holds no frame")
+    stamp_s, T_world_tof = voxel_map.path[-1]
+    cloud = map_cloud(voxel_map, max_points=MAP_POINTS)
+    positions = np.array([T[:3, 3] for _, T in voxel_map.path])
+    tof = tof_sensor_name(rig)
+    T_world_rig = T_world_tof @ np.linalg.inv(rig[tof].T_rig_sensor)
+    with new_rerun_file(path) as stream:
+        RerunHead(stream, rig).log_map(round(stamp_s * 1e9), cloud, T_world_rig, positions)
+    return len(cloud.points)

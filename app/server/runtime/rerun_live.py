@@ -1,6 +1,7 @@
 """The console's live frames in rerun (``trifuse serve --rerun [ADDRESS]``; issue 36, item 2):
 the rig's cameras at their poses, each sensor's images, the TOF's points coloured by
-temperature and the fused pair (:class:`app.rerun_log.RerunHead`), on a rerun viewer.
+temperature, the fused pair and, while the console builds one, the thermal map with the
+head's path (:class:`app.rerun_log.RerunHead`), on a rerun viewer.
 
 The console connects to the viewer, as rerun's SDKs do (the viewer listens; by default
 :data:`DEFAULT_ADDRESS`, a viewer on this machine; from another one, the viewer's address,
@@ -22,12 +23,16 @@ import time
 import uuid
 from urllib.parse import urlsplit
 
+import numpy as np
+
 from trifuse.app.errors import describe_error
 from trifuse.app.latest_worker import LatestWorker
 from trifuse.app.rerun_log import RerunHead, require_rerun
+from trifuse.app.server.runtime.map_worker import MapWorker
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.sources.frames import FrameSet
+from trifuse.fusion.map_view import map_cloud
 
 DEFAULT_ADDRESS = "rerun+http://127.0.0.1:9876/proxy"
 """A rerun viewer on this machine (``rerun`` listens there by default)."""
@@ -35,6 +40,10 @@ RATE_HZ = 5.0
 """Frame sets logged a second, at most."""
 PROBE_S = 2.0
 """How often the viewer's port is tried, seconds."""
+MAP_S = 5.0
+"""How often the thermal map is logged while it grows, seconds."""
+MAP_POINTS = 100_000
+"""The most points of the map logged (its level of detail, as the 3D console's)."""
 
 
 def viewer_endpoint(address: str) -> tuple[str, int]:
@@ -61,6 +70,7 @@ class RerunLive:
         hub: its stream (the newest fused picture).
         address: the viewer's address (default :data:`DEFAULT_ADDRESS`).
         rate_hz: frame sets logged a second, at most.
+        mapper: the console's thermal map (logged every :data:`MAP_S` while it grows).
 
     Attributes:
         connected: whether the viewer answered the last probe; ``connections``: how many
@@ -74,11 +84,13 @@ class RerunLive:
         hub: FrameHub,
         address: str | None = None,
         rate_hz: float = RATE_HZ,
+        mapper: MapWorker | None = None,
     ) -> None:
         self.rr = require_rerun()
         self.address = address or DEFAULT_ADDRESS
         self.host, self.port = viewer_endpoint(self.address)
-        self.pipeline, self.hub, self.rate_hz = pipeline, hub, rate_hz
+        self.pipeline, self.hub, self.rate_hz, self.mapper = pipeline, hub, rate_hz, mapper
+        self._map_s, self._map_frames = 0.0, 0
         self.stream = self.rr.RecordingStream("trifuse", recording_id=str(uuid.uuid4()))
         self.head: RerunHead | None = None
         self.connected = False
@@ -152,5 +164,22 @@ class RerunLive:
             stamp = int(latest.meta.get("stamp_ns", fs.stamp_ns))
             picture = latest.jpeg if latest.jpeg is not None else latest.bgr[..., ::-1]
             self.head.log_fused(stamp, picture)
+        self._log_map(fs.stamp_ns, now)
         self.logged += 1
         self.error = None
+
+    def _log_map(self, stamp_ns: int, now: float) -> None:
+        """The thermal map, the head's path and pose, when the map grew and one is due."""
+        m = self.mapper
+        if m is None or now < self._map_s or m.frames == self._map_frames:
+            return
+        self._map_s = now + MAP_S
+        with m.lock:
+            if m.T_world_rig is None or not m.map.path:
+                return
+            self._map_frames = m.frames
+            cloud = map_cloud(m.map, max_points=MAP_POINTS)
+            path = np.array([T[:3, 3] for _, T in m.map.path])
+            T_world_rig = m.T_world_rig.copy()
+        assert self.head is not None
+        self.head.log_map(stamp_ns, cloud, T_world_rig, path)

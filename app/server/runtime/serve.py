@@ -201,17 +201,17 @@ def serve(
             session.close()
             server.stop()
             raise
+    mapper = MapWorker(pipeline, head_pose_of(source), workdir / "maps", enabled=build_map)
     if rerun is not None:
         from trifuse.app.server.runtime.rerun_live import RerunLive
 
         try:
-            live_rerun = RerunLive(pipeline, hub, rerun or None)
+            live_rerun = RerunLive(pipeline, hub, rerun or None, mapper=mapper)
         except BaseException:
             pipeline.stop()
             session.close()
             server.stop()
             raise
-    mapper = MapWorker(pipeline, head_pose_of(source), workdir / "maps", enabled=build_map)
     panels = [
         SourcePanel(ctx, control),  # first: the Source panel tops the GUI
         CalibrationPanel(ctx, session),  # holds demand.board while auto-capture is on

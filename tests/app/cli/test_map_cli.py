@@ -260,3 +260,52 @@ def test_a_damaged_recording_is_mapped_as_fuse_and_record_read_it(
     code, out, err = run(["record", "--source", f"replay:{bad}", "--out", str(again)], capsys)
     assert code == 0, err
     assert f"trifuse: warning: {named}; the frames before it were recorded" in err
+
+
+def test_the_map_in_a_rerun_file_is_the_maps_voxels_path_and_pose(
+    survey: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--rerun OUT.rrd``: read back with rerun's reader, the map's points are the PLY's
+    voxel centres, the path is the recorded poses' positions and the rig sits at the last
+    recorded pose; an existing file is refused in one line before anything is mapped."""
+    pytest.importorskip("rerun", reason="the [rerun] extra (in the test extra)")
+    from rerun.chunk import RrdReader
+
+    ply_path, rrd = tmp_path / "room.ply", tmp_path / "room.rrd"
+    argv = ["map", str(survey), "--out", str(ply_path), "--voxel", str(VOXEL), "--rerun", str(rrd)]
+    code, out, err = run(argv, capsys)
+    assert code == 0, err
+    assert f"Rerun: {rrd}" in out
+    rows: dict[str, dict] = {}
+    for chunk in RrdReader(rrd).stream():
+        for row in (
+            chunk.to_record_batch()
+            .drop_columns(
+                [
+                    n
+                    for n in chunk.to_record_batch().schema.names
+                    if n in ("log_time", "sensor_time")
+                ]
+            )
+            .to_pylist()
+        ):
+            rows.setdefault(chunk.entity_path, {}).update(row)
+    v = PlyData.read(str(ply_path))["vertex"].data
+    ply = np.stack([v["x"], v["y"], v["z"]], axis=1)
+    got = np.asarray(rows["/map"]["Points3D:positions"], np.float32)
+    order = np.lexsort(got.T), np.lexsort(ply.T)
+    np.testing.assert_array_equal(got[order[0]], ply[order[1]])
+    poses = read_poses(survey)
+    assert poses is not None
+    with ReplaySource(survey, realtime=False) as src:
+        stamps = [f.stamp_ns for f in src.frames() if f.sensor == "tof"]
+    want = np.array([poses.at(s)[:3, 3] for s in stamps])
+    [strip] = rows["/map/path"]["LineStrips3D:strips"]
+    np.testing.assert_allclose(np.asarray(strip), want, atol=1e-5)
+    last = poses.at(stamps[-1])  # world -> rig (the rig frame is the TOF's)
+    np.testing.assert_allclose(rows["/rig"]["Transform3D:translation"][0], last[:3, 3], atol=1e-5)
+    assert rows["/rig/tof"]["Transform3D:translation"] == [[0.0, 0.0, 0.0]]
+    again = ["map", str(survey), "--out", str(tmp_path / "b.ply"), "--rerun", str(rrd)]
+    code, _, err = run(again, capsys)  # the rerun file exists now
+    assert code == 2 and f"--rerun {rrd}: exists; refusing to overwrite it" in err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "b.ply").exists()

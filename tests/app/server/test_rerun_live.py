@@ -2,8 +2,9 @@
 small rig's synthetic frames, with a real rerun process as the viewer (``rerun --save``: it
 receives what an SDK sends and writes it to a file): nothing is logged (nor kept) while no
 viewer answers; once one listens the console connects and logs the rig (each sensor's pose
-and pinhole), the images, the TOF's cloud and the fused pair; a viewer started again gets a
-new connection and the rig again. A wrong address: one line."""
+and pinhole), the images, the TOF's cloud, the fused pair and the thermal map being built
+(the head's path, the rig at its pose); a viewer started again gets a new connection and
+the rig again. A wrong address: one line."""
 
 from __future__ import annotations
 
@@ -22,11 +23,13 @@ import pytest
 
 from tests.support import ListSource, small_rig, synth_frame, wait_until
 from trifuse.app.server.runtime import rerun_live
+from trifuse.app.server.runtime.map_worker import MapWorker
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.rerun_live import RerunLive, viewer_endpoint
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.sources.frames import Frame
 from trifuse.calib.rig import Rig
+from trifuse.calib.transforms import make_T
 
 pytest.importorskip("rerun", reason="the [rerun] extra (in the test extra)")
 from rerun.chunk import RrdReader
@@ -99,12 +102,20 @@ def test_logs_only_to_a_viewer_that_answers_and_again_when_it_comes_back(
     tmp_path, monkeypatch
 ) -> None:
     monkeypatch.setattr(rerun_live, "PROBE_S", 0.2)
+    monkeypatch.setattr(rerun_live, "MAP_S", 0.2)
     rig = small_rig()
     source = PacedSource(rig)
     hub = FrameHub()
     pipeline = FusionPipeline(source, rig, hub)
     port = _free_port()
-    live = RerunLive(pipeline, hub, f"rerun+http://127.0.0.1:{port}/proxy", rate_hz=20.0)
+
+    def walking(stamp_ns: int) -> np.ndarray:  # the head's pose: 0.1 m/s along x
+        return make_T(np.eye(3), (0.1 * (stamp_ns * 1e-9 - 1.0), 0.0, 0.0))
+
+    mapper = MapWorker(pipeline, walking, tmp_path / "maps", enabled=True).start()
+    live = RerunLive(
+        pipeline, hub, f"rerun+http://127.0.0.1:{port}/proxy", rate_hz=20.0, mapper=mapper
+    )
     viewers: list[subprocess.Popen] = []
     try:
         with hub.watching():
@@ -128,6 +139,7 @@ def test_logs_only_to_a_viewer_that_answers_and_again_when_it_comes_back(
             assert live.connections == 2
     finally:
         live.stop()
+        mapper.stop()
         source.done.set()
         pipeline.stop()
         for proc in viewers:
@@ -141,6 +153,10 @@ def test_logs_only_to_a_viewer_that_answers_and_again_when_it_comes_back(
             assert image in entities[f"/rig/{name}/image"], (path, name)
         assert "Points3D:positions" in entities["/rig/tof/cloud"]
         assert "EncodedImage:blob" in entities["/fused"]
+        # the thermal map in the world, the head's path, the rig at its pose
+        assert "Points3D:positions" in entities["/map"] and "Points3D:colors" in entities["/map"]
+        assert "LineStrips3D:strips" in entities["/map/path"]
+        assert "Transform3D:translation" in entities["/rig"]
 
 
 @pytest.mark.parametrize(
