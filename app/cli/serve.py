@@ -57,6 +57,26 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         "(docs/FORMATS.md 'Push ingest protocol')",
     )
     srv.add_argument(
+        "--ros2",
+        metavar="TOPICS.yaml",
+        help="a robot's live ROS 2 image topics over DDS, mapped onto sensors by a topic map "
+        "(docs/FORMATS.md 'ROS 2 bags and topic maps', 'ROS 2 live'; needs --rig and the "
+        "[ros2] extra; no ROS installation)",
+    )
+    srv.add_argument(
+        "--ros2-domain",
+        type=int,
+        default=None,
+        metavar="N",
+        help="the DDS domain (default: ROS_DOMAIN_ID, else 0)",
+    )
+    srv.add_argument(
+        "--ros2-reliable",
+        action="store_true",
+        help="read the topics with reliable QoS (default: best effort, which also matches "
+        "reliable publishers)",
+    )
+    srv.add_argument(
         "--rig",
         metavar="RIG.yaml",
         help="the calibrated rig (default: the recording's or the simulated head's)",
@@ -276,9 +296,11 @@ def run(args: argparse.Namespace) -> int:
 
     auth = serve_auth(args)
     tls = serve_tls(args)
-    chosen = [x for x in (args.replay, args.live, args.push or None) if x]
+    chosen = [x for x in (args.replay, args.live, args.push or None, args.ros2) if x]
     if len(chosen) > 1:
-        raise UsageError(f"{PROG} serve: choose one of --replay, --live, --push")
+        raise UsageError(f"{PROG} serve: choose one of --replay, --live, --push, --ros2")
+    if args.ros2 is None and (args.ros2_domain is not None or args.ros2_reliable):
+        raise UsageError(f"{PROG} serve: --ros2-domain and --ros2-reliable are for --ros2")
     if args.scenario != "inspection" and chosen:
         raise UsageError(f"{PROG} serve: --scenario is for the simulated head only")
     if args.scenario != "calibration" and (args.board_poses, args.hold) != (40, 3.0):
@@ -333,6 +355,9 @@ def run(args: argparse.Namespace) -> int:
                 hold_s=args.hold,
                 board=board,
                 drift=drift,
+                ros2=args.ros2,
+                ros2_domain=args.ros2_domain,
+                ros2_reliable=args.ros2_reliable,
             )
             serve(
                 opened,

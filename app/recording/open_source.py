@@ -8,6 +8,7 @@ so a source refuses the same way whichever command opens it. It lives beside the
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -111,6 +112,9 @@ def open_source(
     board: Board | None = None,
     live_flag: str = "--live",
     drift: SensorDrift | None = None,
+    ros2: str | Path | None = None,
+    ros2_domain: int | None = None,
+    ros2_reliable: bool = False,
 ) -> OpenedSource:
     """The source named by ``--replay FILE``, ``--live CONFIG`` or ``--push`` (the first
     given), else the simulated head's ``scenario``; with the rig to use (``rig`` if given,
@@ -128,13 +132,16 @@ def open_source(
         scenario, board_poses, hold_s, board, drift: the simulated head's, see
             :func:`simulated_source` (``drift`` with another source: ValueError).
         live_flag: how the command names ``live`` in the error when ``rig`` is missing.
+        ros2: a topic map: the robot's live ROS 2 topics over DDS (app/sources/ros2_live.py;
+            needs ``rig``), in domain ``ros2_domain`` (None: ``ROS_DOMAIN_ID``, else 0),
+            reliable QoS with ``ros2_reliable``.
 
     Raises:
         ValueError: the recording holds no rig and none is given (the replay is closed
             again); :class:`NeedsRig` for ``live`` without ``rig``; the sources' own errors
             (a missing or damaged file, a camera that does not open).
     """
-    if drift is not None and (replay or live or push):
+    if drift is not None and (replay or live or push or ros2):
         raise ValueError("drift: for the simulated head only")
     if replay:
         from trifuse.app.recording.reader import ReplaySource
@@ -154,6 +161,16 @@ def open_source(
                 f"{live_flag} needs --rig RIG.yaml (cameras do not know their calibration)"
             )
         return OpenedSource(CameraSource(Path(live), rig=rig), rig, f"live cameras of {live}")
+    if ros2:
+        from trifuse.app.recording.topicmap import load_topic_map
+        from trifuse.app.sources.ros2_live import Ros2LiveSource
+
+        if rig is None:
+            raise NeedsRig("--ros2 needs --rig RIG.yaml (topics do not carry the calibration)")
+        tmap = load_topic_map(ros2)
+        domain = ros2_domain if ros2_domain is not None else int(os.environ.get("ROS_DOMAIN_ID", 0))
+        src = Ros2LiveSource(tmap, rig, domain_id=domain, reliable=ros2_reliable)
+        return OpenedSource(src, rig, f"ROS 2 topics of {ros2} (DDS domain {domain})")
     if push:
         from trifuse.app.sources.push.source import PushSource
         from trifuse.app.sources.sim.head import default_rig

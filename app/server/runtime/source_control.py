@@ -165,7 +165,8 @@ class SourceControl:
             return {}
         src = self.source
         rejections: dict[str, Rejections] = {}
-        if self.kind in ("push", "replay"):  # a replay's skipped messages count as rejected
+        # a replay's skipped messages count as rejected; live ROS 2 topics' refused messages
+        if self.kind in ("push", "replay") or getattr(src, "counts_rejections", False):
             rejections = push_rejections(cast(RejectionStats, src).stats())
         devices = device_states(src) if self.kind == "live" else {}
         return self.tap.health.report(

@@ -1,0 +1,121 @@
+"""Live ROS 2 topics (app/sources/ros2_live.py) from a publisher process that speaks the
+DDS wire as ROS 2 camera drivers do (tests/ros2_publisher.py: topics ``rt/...``, ROS 2's
+type names, CDR, best effort), the small rig's sensors at the head's rates: every sensor's
+frames arrive with their header stamps and the topic map's units (kelvin from
+centi-kelvin, metres from millimetres with 0 as no reading, the right camera's JPEG
+decoded), the TOF's distance and amplitude paired by stamp; the left camera's images of
+the wrong size are refused and worded for its topic while the others go on; a real
+pipeline fuses pictures from the source. A topic map naming a sensor the rig lacks: a
+line per topic, the others read."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+from collections import defaultdict
+
+import numpy as np
+import pytest
+
+from tests.ros2_publisher import TOPIC_MAP, WRONG_SIZE_EVERY
+from tests.support import RATES_HZ, small_rig, wait_until
+from trifuse.app.recording.topicmap import topic_map_from_yaml
+from trifuse.app.server.runtime.pipeline import FusionPipeline
+from trifuse.app.server.runtime.stream import FrameHub
+
+pytest.importorskip("cyclonedds", reason="the [ros2] extra (in the test extra)")
+from trifuse.app.sources.ros2_live import Ros2LiveSource
+
+SECONDS = 6.0
+DOMAIN = 42  # apart from any other DDS traffic of the machine
+
+
+def test_frames_arrive_with_their_stamps_and_units_and_are_fused() -> None:
+    rig = small_rig()
+    source = Ros2LiveSource(topic_map_from_yaml(TOPIC_MAP), rig, domain_id=DOMAIN)
+    seen: dict[str, dict] = defaultdict(dict)  # sensor -> stamp -> frame (a set may
+    hub = FrameHub()  # hold a frame the previous one held: the TOF's, at half the rate)
+    pipeline = FusionPipeline(source, rig, hub)
+    pipeline.set_listeners.append(
+        lambda fs: [seen[n].setdefault(f.stamp_ns, f) for n, f in fs.frames.items()]  # type: ignore[func-returns-value]
+    )
+    publisher = subprocess.Popen(
+        [sys.executable, "-m", "tests.ros2_publisher", str(SECONDS), "--small",
+         "--domain", str(DOMAIN)],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        with hub.watching():
+            pipeline.start()
+            out, _ = publisher.communicate(timeout=SECONDS + 60)
+            wait_until(lambda: pipeline.status.pictures_out > 10, "pictures fused")
+    finally:
+        source.close()
+        pipeline.stop()
+    got = {n: [frames[t] for t in sorted(frames)] for n, frames in seen.items()}
+    sent = dict(item.split("=") for item in out.split())
+    assert set(sent) == set(rig.names)
+    for name in rig.names:
+        frames = got[name]
+        modality = rig[name].modality
+        # best effort on a busy machine may drop some; the newest-frame slots drop more
+        # when the console is slower than the sensors: most of them arrive
+        assert len(frames) > 0.3 * int(sent[name]), (name, len(frames), sent[name])
+        rate = RATES_HZ[modality]
+        stamps = np.array([f.stamp_ns for f in frames])
+        assert (np.diff(stamps) > 0).all()
+        k = np.rint((stamps - stamps[0]) * rate / 1e9)  # the stamps are the publisher's
+        np.testing.assert_allclose((stamps - stamps[0]) * rate / 1e9, k, atol=1e-3)
+        first = frames[-1]
+        if modality == "color":
+            assert first.image.shape == (96, 128, 3) and first.image.dtype == np.uint8
+        elif modality == "thermal":
+            assert np.allclose(first.image[1:, :], 293.15) and first.image.dtype == np.float32
+        else:
+            d = first.distance_m
+            assert np.allclose(d[2:, :], 2.5) and np.isnan(d[1, :]).all()
+            assert np.allclose(first.image, 1000.0)
+    # the k in the first pixel: the thermal frame of stamp k/27 s carries 29315 + k cK
+    t = got["thermal_left"][-1]
+    k = round((t.stamp_ns - got["thermal_left"][0].stamp_ns) * 27 / 1e9)
+    k0 = round(float(got["thermal_left"][0].image[0, 0]) * 100) - 29_315
+    assert round(float(t.image[0, 0]) * 100) - 29_315 == k0 + k
+    stats = source.topic_stats["/ccd_left/image_raw"]
+    assert stats.refused >= int(sent["ccd_left"]) // WRONG_SIZE_EVERY - 1 > 0
+    assert "64x48" in source.problems["/ccd_left/image_raw"] and "128x96" in source.problems[
+        "/ccd_left/image_raw"]  # fmt: skip
+    assert set(source.problems) == {"/ccd_left/image_raw"}
+    [(sensor, r)] = source.stats()["rejected_by_sensor"].items()  # the console's health
+    assert sensor == "ccd_left" and "64x48" in r["last_error"] and r["last_rejected_s"] > 0
+
+
+def test_a_sensor_the_rig_lacks_is_a_line_per_topic_and_the_others_are_read() -> None:
+    text = TOPIC_MAP.replace("  tof:\n", "  tof_front:\n")
+    source = Ros2LiveSource(topic_map_from_yaml(text), small_rig(), domain_id=DOMAIN)
+    try:
+        assert source.sensors == ["ccd_left", "ccd_right", "thermal_left", "thermal_right"]
+        assert [n.split(":")[0] for n in source.notes] == [
+            "topic /tof/distance", "topic /tof/amplitude"]  # fmt: skip
+        assert "sensor 'tof_front' is not a tof sensor of the rig" in source.notes[0]
+    finally:
+        source.close()
+    only = "format: trifuse-topic-map/1\nsensors:\n  lwir:\n    thermal: /lwir\n"
+    with pytest.raises(ValueError, match="no sensor of the rig in it"):
+        Ros2LiveSource(topic_map_from_yaml(only), small_rig(), domain_id=DOMAIN)
+
+
+def test_closing_ends_the_frames() -> None:
+    source = Ros2LiveSource(topic_map_from_yaml(TOPIC_MAP), small_rig(), domain_id=DOMAIN)
+    done = threading.Event()
+
+    def consume() -> None:
+        for _ in source.frames():
+            pass
+        done.set()
+
+    threading.Thread(target=consume, daemon=True).start()
+    time.sleep(0.3)
+    source.close()
+    assert done.wait(5.0)
