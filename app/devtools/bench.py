@@ -34,6 +34,7 @@ from trifuse.app.devtools import (
     bench_real_calib,
     bench_recording,
     bench_registration,
+    bench_ros2,
     bench_sim,
     bench_stream,
 )
@@ -68,6 +69,7 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     bench_idle.idle,
     bench_live.live,
     bench_link.link,
+    bench_ros2.ros2,
 )
 
 REGISTRY: dict[str, Benchmark] = {}

@@ -1,5 +1,5 @@
 """Live ROS 2 topics (app/sources/ros2_live.py) from a publisher process that speaks the
-DDS wire as ROS 2 camera drivers do (tests/ros2_publisher.py: topics ``rt/...``, ROS 2's
+DDS wire as ROS 2 camera drivers do (app/devtools/ros2_publisher.py: topics ``rt/...``, ROS 2's
 type names, CDR, best effort), the small rig's sensors at the head's rates: every sensor's
 frames arrive with their header stamps and the topic map's units (kelvin from
 centi-kelvin, metres from millimetres with 0 as no reading, the right camera's JPEG
@@ -19,21 +19,23 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
-from tests.ros2_publisher import TOPIC_MAP, WRONG_SIZE_EVERY
 from tests.support import RATES_HZ, small_rig, wait_until
 from trifuse.app.recording.topicmap import topic_map_from_yaml
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.stream import FrameHub
+from trifuse.app.storage.rigfile import save_rig
 
 pytest.importorskip("cyclonedds", reason="the [ros2] extra (in the test extra)")
+from trifuse.app.devtools.ros2_publisher import TOPIC_MAP, WRONG_SIZE_EVERY
 from trifuse.app.sources.ros2_live import Ros2LiveSource
 
 SECONDS = 6.0
 DOMAIN = 42  # apart from any other DDS traffic of the machine
 
 
-def test_frames_arrive_with_their_stamps_and_units_and_are_fused() -> None:
+def test_frames_arrive_with_their_stamps_and_units_and_are_fused(tmp_path) -> None:
     rig = small_rig()
+    rig_file = save_rig(tmp_path / "rig.yaml", rig)
     source = Ros2LiveSource(topic_map_from_yaml(TOPIC_MAP), rig, domain_id=DOMAIN)
     seen: dict[str, dict] = defaultdict(dict)  # sensor -> stamp -> frame (a set may
     hub = FrameHub()  # hold a frame the previous one held: the TOF's, at half the rate)
@@ -42,8 +44,8 @@ def test_frames_arrive_with_their_stamps_and_units_and_are_fused() -> None:
         lambda fs: [seen[n].setdefault(f.stamp_ns, f) for n, f in fs.frames.items()]  # type: ignore[func-returns-value]
     )
     publisher = subprocess.Popen(
-        [sys.executable, "-m", "tests.ros2_publisher", str(SECONDS), "--small",
-         "--domain", str(DOMAIN)],
+        [sys.executable, "-m", "trifuse.app.devtools.ros2_publisher", str(SECONDS),
+         "--rig", str(rig_file), "--domain", str(DOMAIN)],
         stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:

@@ -1,9 +1,11 @@
-"""A stand-in for a robot's ROS 2 camera drivers (tests and ``trifuse bench``): publishes a
-rig's synthetic images over DDS as ROS 2 nodes do (topics ``rt/...``, types
+"""A stand-in for a robot's ROS 2 camera drivers (tests and ``trifuse bench --only ros2``):
+publishes a rig's synthetic images over DDS as ROS 2 nodes do (topics ``rt/...``, types
 ``sensor_msgs::msg::dds_::Image_`` / ``CompressedImage_``, CDR, best effort), each sensor
-at its own rate, with header stamps.
+at its own rate (:data:`RATES_HZ`, the real head's), with header stamps. Needs the
+``[ros2]`` extra.
 
-    python -m tests.ros2_publisher SECONDS [--small] [--domain N]
+    python -m trifuse.app.devtools.ros2_publisher SECONDS [--rig RIG.yaml] [--domain N]
+                                                  [--scene] [--bad-left]
 
 Topics (:data:`TOPIC_MAP`'s): colour ``/<sensor>/image_raw`` (rgb8; the right one as
 ``/<sensor>/image_raw/compressed``, JPEG), thermal ``/<sensor>/image_raw`` (16UC1,
@@ -23,10 +25,14 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 
-from tests.support import RATES_HZ, small_rig
 from trifuse.app.sources.ros2_cdr import COMPRESSED, IMAGE, encode
 from trifuse.app.sources.ros2_live import datatype_of, dds_topic
 from trifuse.app.sources.sim.head import default_rig
+from trifuse.app.storage.rigfile import load_rig
+from trifuse.calib.rig import Rig
+
+RATES_HZ = {"color": 30, "thermal": 27, "tof": 15}
+"""Frame rates per modality (the real head's)."""
 
 TOPIC_MAP = """format: trifuse-topic-map/1
 sensors:
@@ -45,10 +51,35 @@ sensors:
 WRONG_SIZE_EVERY = 30
 
 
+def scene_images(rig: Rig) -> dict[str, dict[str, np.ndarray]]:
+    """Sensor -> the images of the simulated inspection room as ``rig`` sees it (one
+    render, live quality), in the units the topics carry: ``rgb`` uint8; ``ck`` uint16
+    centi-kelvin; ``mm`` uint16 millimetres (0: none) and ``amplitude`` uint16."""
+    from trifuse.app.sources.sim.inspection import InspectionScenario
+
+    fs, _ = InspectionScenario(seed=0, live=True, rig=rig).render(18.0)
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for name, f in fs.frames.items():
+        if rig[name].modality == "color":
+            out[name] = {"rgb": np.ascontiguousarray(f.image)}
+        elif rig[name].modality == "thermal":
+            out[name] = {"ck": np.rint(np.nan_to_num(f.image, nan=0.0) * 100).astype(np.uint16)}
+        else:
+            d = np.nan_to_num(f.distance_m, nan=0.0)
+            amplitude = np.asarray(f.image).clip(0, 65535).astype(np.uint16)
+            out[name] = {"mm": np.rint(d * 1000).clip(0, 65535).astype(np.uint16),
+                         "amplitude": amplitude}  # fmt: skip
+    return out
+
+
 def _message(sensor: str, modality: str, size: tuple[int, int], k: int, stamp_ns: int,
-             topic: str) -> list[tuple[str, bytes]]:  # fmt: skip
-    """(topic, CDR) of the ``k``-th image of ``sensor``."""
+             topic: str, base: dict[str, np.ndarray] | None = None
+             ) -> list[tuple[str, bytes]]:  # fmt: skip
+    """(topic, CDR) of the ``k``-th image of ``sensor``: uniform images, or ``base``'s
+    (:func:`scene_images`) when given and of ``size``."""
     w, h = size
+    if base is not None and next(iter(base.values())).shape[:2] != (h, w):
+        base = None
     stamp = SimpleNamespace(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
     header = SimpleNamespace(stamp=stamp, frame_id=sensor)
 
@@ -59,7 +90,7 @@ def _message(sensor: str, modality: str, size: tuple[int, int], k: int, stamp_ns
         return encode(IMAGE, msg)
 
     if modality == "color":
-        rgb = np.full((h, w, 3), 90, np.uint8)
+        rgb = base["rgb"].copy() if base else np.full((h, w, 3), 90, np.uint8)
         rgb[0, 0, 0] = k % 256
         if datatype_of(topic) == COMPRESSED:
             ok, jpeg = cv2.imencode(".jpg", rgb[..., ::-1])
@@ -68,13 +99,15 @@ def _message(sensor: str, modality: str, size: tuple[int, int], k: int, stamp_ns
             return [(topic, encode(COMPRESSED, msg))]
         return [(topic, raw("rgb8", rgb))]
     if modality == "thermal":
-        ck = np.full((h, w), 29_315, np.uint16)
+        ck = base["ck"].copy() if base else np.full((h, w), 29_315, np.uint16)
         ck[0, 0] = 29_315 + k
         return [(topic, raw("16UC1", ck))]
-    mm = np.full((h, w), 2_500, np.uint16)
+    if base:
+        mm, amplitude = base["mm"].copy(), base["amplitude"]
+    else:
+        mm, amplitude = np.full((h, w), 2_500, np.uint16), np.full((h, w), 1_000, np.uint16)
+        mm[1, :] = 0  # no reading
     mm[0, 0] = 1_000 + k
-    mm[1, :] = 0  # no reading
-    amplitude = np.full((h, w), 1_000, np.uint16)
     return [("/tof/distance", raw("16UC1", mm)), ("/tof/amplitude", raw("mono16", amplitude))]
 
 
@@ -89,11 +122,15 @@ def main(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser()
     p.add_argument("seconds", type=float)
-    p.add_argument("--small", action="store_true", help="the small rig (a tenth of the sizes)")
+    p.add_argument("--rig", metavar="RIG.yaml", help="the rig (default: the simulated head's)")
     p.add_argument("--domain", type=int, default=0)
     p.add_argument("--bad-left", action="store_true", help="every left colour image too small")
+    p.add_argument(
+        "--scene", action="store_true", help="the simulated room's images (default: uniform)"
+    )
     args = p.parse_args(argv)
-    rig = small_rig() if args.small else default_rig()
+    rig = load_rig(args.rig) if args.rig else default_rig()
+    bases = scene_images(rig) if args.scene else {}
     topics = {
         "ccd_left": "/ccd_left/image_raw",
         "ccd_right": "/ccd_right/image_raw/compressed",
@@ -124,7 +161,8 @@ def main(argv: list[str] | None = None) -> int:
             wrong = k % WRONG_SIZE_EVERY == WRONG_SIZE_EVERY - 1 or args.bad_left
             if name == "ccd_left" and wrong:
                 size = (size[0] // 2, size[1] // 2)
-            for out_topic, data in _message(name, s.modality, size, k, stamp, topic):
+            messages = _message(name, s.modality, size, k, stamp, topic, bases.get(name))
+            for out_topic, data in messages:
                 ddspy_write(writers[out_topic]._ref, data)
             count[name] += 1
             due[name] = (k + 1) / rate
