@@ -1,6 +1,8 @@
 """ROS 2 image messages as the DDS wire carries them (OMG CDR, little endian, XCDR1: the
 encapsulation ``00 01 00 00`` every ROS 2 middleware on DDS uses), without ROS or an IDL
-compiler (issue 36): ``sensor_msgs/msg/Image`` and ``sensor_msgs/msg/CompressedImage``.
+compiler (issue 36): ``sensor_msgs/msg/Image`` and ``sensor_msgs/msg/CompressedImage`` read
+and written; ``sensor_msgs/msg/CameraInfo`` and ``tf2_msgs/msg/TFMessage`` written (what
+the console publishes back).
 
 :func:`decode` gives an object with the message's fields (``header.stamp.sec`` /
 ``.nanosec``, ``header.frame_id``; ``height``, ``width``, ``encoding``, ``is_bigendian``,
@@ -20,9 +22,13 @@ from typing import Any
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 TYPE_NAMES = {
     IMAGE: "sensor_msgs::msg::dds_::Image_",
     COMPRESSED: "sensor_msgs::msg::dds_::CompressedImage_",
+    CAMERA_INFO: "sensor_msgs::msg::dds_::CameraInfo_",
+    TF_MESSAGE: "tf2_msgs::msg::dds_::TFMessage_",
 }
 """ROS 2 message type -> its DDS type name."""
 CDR_LE = b"\x00\x01\x00\x00"
@@ -105,14 +111,50 @@ class _Writer:
     def string(self, text: str) -> None:
         self.octets(text.encode("utf-8") + b"\x00")
 
+    def header(self, header: Any) -> None:
+        self._put("i", 4, int(header.stamp.sec))
+        self._put("I", 4, int(header.stamp.nanosec))
+        self.string(header.frame_id)
+
+    def doubles(self, values: Any) -> None:
+        for v in values:
+            self._put("d", 8, float(v))
+
 
 def encode(datatype: str, msg: Any) -> bytes:
-    """One ``datatype`` message (an object with its fields, as :func:`decode` gives)
-    serialised as the DDS wire carries it."""
+    """One ``datatype`` message (an object with its fields, as :func:`decode` gives; for
+    :data:`CAMERA_INFO` and :data:`TF_MESSAGE` the ROS 2 fields: ``d`` a sequence, ``k``,
+    ``r``, ``p`` 9, 9 and 12 numbers, ``roi`` with ``x_offset``, ``y_offset``, ``height``,
+    ``width``, ``do_rectify``; ``transforms`` of ``header``, ``child_frame_id`` and
+    ``transform.translation`` x/y/z, ``transform.rotation`` x/y/z/w) serialised as the DDS
+    wire carries it."""
     w = _Writer()
-    w._put("i", 4, int(msg.header.stamp.sec))
-    w._put("I", 4, int(msg.header.stamp.nanosec))
-    w.string(msg.header.frame_id)
+    if datatype == TF_MESSAGE:
+        w._put("I", 4, len(msg.transforms))
+        for t in msg.transforms:
+            w.header(t.header)
+            w.string(t.child_frame_id)
+            tr, rot = t.transform.translation, t.transform.rotation
+            w.doubles((tr.x, tr.y, tr.z, rot.x, rot.y, rot.z, rot.w))
+        return b"".join(w.parts)
+    w.header(msg.header)
+    if datatype == CAMERA_INFO:
+        w._put("I", 4, int(msg.height))
+        w._put("I", 4, int(msg.width))
+        w.string(msg.distortion_model)
+        w._put("I", 4, len(msg.d))
+        w.doubles(msg.d)
+        for fixed, n in ((msg.k, 9), (msg.r, 9), (msg.p, 12)):
+            if len(fixed) != n:
+                raise ValueError(f"CDR: CameraInfo: expected {n} numbers, got {len(fixed)}")
+            w.doubles(fixed)
+        w._put("I", 4, int(msg.binning_x))
+        w._put("I", 4, int(msg.binning_y))
+        roi = msg.roi
+        for v in (roi.x_offset, roi.y_offset, roi.height, roi.width):
+            w._put("I", 4, int(v))
+        w._put("B", 1, int(bool(roi.do_rectify)))
+        return b"".join(w.parts)
     if datatype == IMAGE:
         w._put("I", 4, int(msg.height))
         w._put("I", 4, int(msg.width))
