@@ -149,7 +149,7 @@ class Ros2LiveSource(FrameSource):
             usable,
             topic_map.stamp,
         )
-        self.topic_map, self.rig = topic_map, rig
+        self.topic_map, self.rig, self.domain_id = topic_map, rig, domain_id
         self.sensors = topic_map.sensors
         self.max_message_bytes = max_message_bytes
         self.topic_stats = {

@@ -237,6 +237,12 @@ def serve(
         parts.append(live.start())
     if rerun is not None:
         parts.append(live_rerun.start())
+    from trifuse.app.sources.ros2_live import Ros2LiveSource
+
+    if isinstance(source, Ros2LiveSource):  # the calibration and the fused pair back to ROS 2
+        from trifuse.app.server.runtime.ros2_out import Ros2Out
+
+        parts.append(Ros2Out(pipeline, hub, source.domain_id).start())
     parts.append(control)  # stopped first: a running recording is finished and kept
     app = create_app(
         hub,
