@@ -36,15 +36,15 @@ from typing import Any
 
 import yaml
 
+from trifuse.app.recording.offline_sets import pictured_sets
 from trifuse.app.recording.player import MessageReplay
-from trifuse.app.sources.base import frame_sets
 from trifuse.calib.rig import Rig
 from trifuse.fusion.alarms import AlarmRule, AlarmTracker
 from trifuse.fusion.compose import DisplaySettings
 from trifuse.fusion.measure import Measurement, measure_regions
 from trifuse.fusion.regions import Region
 from trifuse.fusion.spot import SpotMeter
-from trifuse.fusion.stereo_step import OFFLINE, Skip, StereoStep
+from trifuse.fusion.stereo_step import OFFLINE, StereoStep
 from trifuse.fusion.thermography import ObjectParameters
 
 READING_COLUMNS = (
@@ -163,27 +163,15 @@ def measure_recording(
     """One table row (:data:`COLUMNS` -> text) per region of every ``every``-th frame set
     of ``source`` that makes a picture (:data:`fusion.stereo_step.OFFLINE`: both eyes'
     colour and thermal frames after the first depth), in order. ValueError for a region
-    outside the rig's pictures (before any set is read)."""
-    if every < 1:
-        raise ValueError(f"every: expected a positive integer, got {every}")
+    outside the rig's pictures (before any set is read), or ``every`` below 1."""
     step = StereoStep(rig, DisplaySettings(mode="thermal", agc="linear"), OFFLINE)
     size = step.fusion.size
     for region in plan.regions:
         region.mask(*size)  # ValueError naming it
     meter = SpotMeter(step.fusion)
     tracker = AlarmTracker(list(plan.rules))
-    source.realtime = False
-    source.expect(rig)
     first_ns: int | None = None
-    for i, fs in enumerate(frame_sets(source, step.sensors)):  # the left colour opens sets
-        step.note(fs)
-        step.update_depth()
-        if i % every:
-            continue
-        inputs = step.inputs(fs)
-        if isinstance(inputs, Skip):
-            continue
-        step.render(inputs)
+    for fs, _ in pictured_sets(source, step, every):
         frame = meter.capture(fs.stamp_ns)
         read = measure_regions(frame, plan.regions, plan.params)
         first_ns = fs.stamp_ns if first_ns is None else first_ns

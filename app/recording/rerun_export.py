@@ -22,15 +22,15 @@ from typing import Any
 
 import numpy as np
 
+from trifuse.app.recording.offline_sets import pictured_sets
 from trifuse.app.recording.player import MessageReplay
 from trifuse.app.rerun_log import RerunHead, require_rerun
-from trifuse.app.sources.base import frame_sets
-from trifuse.app.storage.atomic import fsync_dir, make_dirs
+from trifuse.app.storage.atomic import link_new, make_dirs
 from trifuse.calib.rig import Rig
 from trifuse.fusion.compose import DisplaySettings
 from trifuse.fusion.geometry import tof_sensor_name
 from trifuse.fusion.map_view import map_cloud
-from trifuse.fusion.stereo_step import OFFLINE, Skip, StereoStep
+from trifuse.fusion.stereo_step import OFFLINE, StereoStep
 from trifuse.fusion.voxel_map import VoxelMap
 
 MAP_POINTS = 1_000_000
@@ -57,11 +57,7 @@ def new_rerun_file(path: str | Path) -> Iterator[Any]:
         stream.disconnect()  # the file is complete once its sink is closed
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
-        try:
-            os.link(tmp, path)
-        except FileExistsError:
-            raise FileExistsError(f"{path}: exists; refusing to overwrite it") from None
-        fsync_dir(path.parent)
+        link_new(tmp, path)
     finally:
         Path(tmp).unlink(missing_ok=True)
 
@@ -77,23 +73,11 @@ def export_rerun(
     ``path``; returns how many were logged. FileExistsError when ``path`` exists (before
     anything is read); nothing is left at ``path`` when no set makes a picture (ValueError)
     or on any failure."""
-    if every < 1:
-        raise ValueError(f"every: expected a positive integer, got {every}")
     with new_rerun_file(path) as stream:
         head = RerunHead(stream, rig, (settings or DisplaySettings()).palette)
         step = StereoStep(rig, settings, OFFLINE)
-        source.realtime = False
-        source.expect(rig)
         logged = 0
-        for i, fs in enumerate(frame_sets(source, step.sensors)):
-            step.note(fs)
-            step.update_depth()
-            if i % every:
-                continue
-            inputs = step.inputs(fs)
-            if isinstance(inputs, Skip):
-                continue
-            picture = step.render(inputs)
+        for fs, picture in pictured_sets(source, step, every):
             head.log_frames(fs.frames, step.radiometry)
             head.log_fused(fs.stamp_ns, picture)
             logged += 1

@@ -96,15 +96,23 @@ def atomic_write_bytes(path: str | Path, data: bytes, overwrite: bool = True) ->
             os.fsync(f.fileno())
         if overwrite:
             os.replace(tmp, path)
+            fsync_dir(path.parent)
         else:
-            try:
-                os.link(tmp, path)
-            except FileExistsError:
-                raise FileExistsError(f"{path}: exists; refusing to overwrite it") from None
-        fsync_dir(path.parent)
+            link_new(tmp, path)
     finally:
         Path(tmp).unlink(missing_ok=True)
     return path
+
+
+def link_new(tmp: str | Path, path: Path) -> None:
+    """Give the complete file ``tmp`` (synced) the new name ``path`` in its directory, a hard
+    link, so no file created meanwhile by someone else is replaced: FileExistsError when
+    ``path`` exists. ``tmp`` stays (the caller removes it)."""
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise FileExistsError(f"{path}: exists; refusing to overwrite it") from None
+    fsync_dir(path.parent)
 
 
 def atomic_write_text(path: str | Path, text: str, overwrite: bool = True) -> Path:
