@@ -510,3 +510,15 @@ def copy_first_views(capture: Path, folder: Path, n: int, files: tuple[str, ...]
         shutil.copy(capture / name, folder / name)
     for i in range(1, n + 1):
         shutil.copytree(capture / f"{i:04d}", folder / f"{i:04d}")
+
+
+LOOPBACK_DDS = (
+    '<CycloneDDS><Domain><General><Interfaces><NetworkInterface name="lo"/></Interfaces>'
+    "<AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto"
+    "</ParticipantIndex><MaxAutoParticipantIndex>50</MaxAutoParticipantIndex><Peers>"
+    '<Peer address="127.0.0.1"/></Peers></Discovery><Internal>'
+    '<SocketReceiveBufferSize min="default" max="64MB"/></Internal></Domain></CycloneDDS>'
+)
+"""A Cyclone DDS configuration (``CYCLONEDDS_URI``) for the ROS 2 tests: loopback only,
+unicast discovery (no multicast, which a machine's network may not have), the large socket
+buffers of app/sources/ros2_live.py."""

@@ -15,7 +15,7 @@ from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 
 from tests.app.sources.test_ros2_cdr import TF_MSGDEF
-from tests.support import ListSource, small_rig, synth_frames, wait_until
+from tests.support import LOOPBACK_DDS, ListSource, small_rig, synth_frames, wait_until
 from trifuse.app.recording.ros2 import MSGDEFS
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.stream import FrameHub
@@ -31,6 +31,12 @@ from trifuse.app.server.runtime.ros2_out import (
 )
 
 DOMAIN = 43
+
+
+@pytest.fixture(autouse=True)
+def loopback_dds(monkeypatch: pytest.MonkeyPatch) -> None:
+    """DDS on loopback with unicast discovery (the publisher process inherits it)."""
+    monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK_DDS)
 
 
 def _reader(participant, topic: str, datatype: str, latched: bool):

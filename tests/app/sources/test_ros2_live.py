@@ -19,7 +19,7 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
-from tests.support import RATES_HZ, small_rig, wait_until
+from tests.support import LOOPBACK_DDS, RATES_HZ, small_rig, wait_until
 from trifuse.app.recording.topicmap import topic_map_from_yaml
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.stream import FrameHub
@@ -31,6 +31,12 @@ from trifuse.app.sources.ros2_live import Ros2LiveSource
 
 SECONDS = 6.0
 DOMAIN = 42  # apart from any other DDS traffic of the machine
+
+
+@pytest.fixture(autouse=True)
+def loopback_dds(monkeypatch: pytest.MonkeyPatch) -> None:
+    """DDS on loopback with unicast discovery (the publisher process inherits it)."""
+    monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK_DDS)
 
 
 def test_frames_arrive_with_their_stamps_and_units_and_are_fused(tmp_path) -> None:
