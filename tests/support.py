@@ -521,4 +521,4 @@ LOOPBACK_DDS = (
 )
 """A Cyclone DDS configuration (``CYCLONEDDS_URI``) for the ROS 2 tests: loopback only,
 unicast discovery (no multicast, which a machine's network may not have), the large socket
-buffers of app/sources/ros2_live.py."""
+buffers of app/recording/ros2_live.py."""

@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
     from trifuse.app.recording.fuse import VIDEO_NAME
     from trifuse.app.recording.jobs import plan_fuse_job, run_fuse_job
     from trifuse.app.recording.player import skips_text
-    from trifuse.app.rerun_log import require_rerun
+    from trifuse.app.recording.rerun_log import require_rerun
     from trifuse.app.storage.atomic import make_dirs
     from trifuse.fusion.compose import DisplaySettings
 

@@ -136,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
 
     ply, map_file = output_paths(args)  # refusals first: inputs need not exist for them
     if args.rerun is not None:
-        from trifuse.app.rerun_log import require_rerun
+        from trifuse.app.recording.rerun_log import require_rerun
 
         if Path(args.rerun).exists():
             raise UsageError(f"--rerun {args.rerun}: exists; refusing to overwrite it")

@@ -329,7 +329,7 @@ def run(args: argparse.Namespace) -> int:
             except OSError as e:
                 raise UsageError(f"{PROG} serve: {e}") from None
         if args.rerun is not None:
-            from trifuse.app.rerun_log import require_rerun
+            from trifuse.app.recording.rerun_log import require_rerun
             from trifuse.app.server.runtime.rerun_live import viewer_endpoint
 
             try:

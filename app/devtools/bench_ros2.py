@@ -80,7 +80,7 @@ def ros2(repeat: int) -> dict[str, float]:
     sensors' rates the console received (``/api/status``) at the end; medians. ``load_1min``:
     the machine's load average before the first window."""
     check_repeat(repeat)
-    from trifuse.app.sources.ros2_live import require_cyclonedds
+    from trifuse.app.recording.ros2_live import require_cyclonedds
     from trifuse.app.sources.sim.head import default_rig
     from trifuse.app.storage.rigfile import save_rig
 

@@ -25,8 +25,8 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 
+from trifuse.app.recording.ros2_live import datatype_of, dds_topic
 from trifuse.app.sources.ros2_cdr import COMPRESSED, IMAGE, encode
-from trifuse.app.sources.ros2_live import datatype_of, dds_topic
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.storage.rigfile import load_rig
 from trifuse.calib.rig import Rig

@@ -132,7 +132,7 @@ def open_source(
         scenario, board_poses, hold_s, board, drift: the simulated head's, see
             :func:`simulated_source` (``drift`` with another source: ValueError).
         live_flag: how the command names ``live`` in the error when ``rig`` is missing.
-        ros2: a topic map: the robot's live ROS 2 topics over DDS (app/sources/ros2_live.py;
+        ros2: a topic map: the robot's live ROS 2 topics over DDS (app/recording/ros2_live.py;
             needs ``rig``), in domain ``ros2_domain`` (None: ``ROS_DOMAIN_ID``, else 0),
             reliable QoS with ``ros2_reliable``.
 
@@ -162,8 +162,8 @@ def open_source(
             )
         return OpenedSource(CameraSource(Path(live), rig=rig), rig, f"live cameras of {live}")
     if ros2:
+        from trifuse.app.recording.ros2_live import Ros2LiveSource
         from trifuse.app.recording.topicmap import load_topic_map
-        from trifuse.app.sources.ros2_live import Ros2LiveSource
 
         if rig is None:
             raise NeedsRig("--ros2 needs --rig RIG.yaml (topics do not carry the calibration)")

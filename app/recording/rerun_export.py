@@ -2,7 +2,7 @@
 
 ``trifuse fuse --rerun OUT.rrd``: every ``every``-th frame set that makes a picture (the
 :data:`fusion.stereo_step.OFFLINE` policy, as ``trifuse fuse``) logged with
-:class:`app.rerun_log.RerunHead`: its sensors' images, the TOF's cloud coloured by
+:class:`app.recording.rerun_log.RerunHead`: its sensors' images, the TOF's cloud coloured by
 temperature and the fused pair, under the rig's poses and pinholes. ``trifuse map --rerun
 OUT.rrd``: the thermal map built, the head's path and the rig at its last pose.
 
@@ -24,7 +24,7 @@ import numpy as np
 
 from trifuse.app.recording.offline_sets import pictured_sets
 from trifuse.app.recording.player import MessageReplay
-from trifuse.app.rerun_log import RerunHead, require_rerun
+from trifuse.app.recording.rerun_log import RerunHead, require_rerun
 from trifuse.app.storage.atomic import link_new, make_dirs
 from trifuse.calib.rig import Rig
 from trifuse.fusion.compose import DisplaySettings

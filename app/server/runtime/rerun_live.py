@@ -1,7 +1,7 @@
 """The console's live frames in rerun (``trifuse serve --rerun [ADDRESS]``; issue 36, item 2):
 the rig's cameras at their poses, each sensor's images, the TOF's points coloured by
 temperature, the fused pair and, while the console builds one, the thermal map with the
-head's path (:class:`app.rerun_log.RerunHead`), on a rerun viewer.
+head's path (:class:`app.recording.rerun_log.RerunHead`), on a rerun viewer.
 
 The console connects to the viewer, as rerun's SDKs do (the viewer listens; by default
 :data:`DEFAULT_ADDRESS`, a viewer on this machine; from another one, the viewer's address,
@@ -27,7 +27,7 @@ import numpy as np
 
 from trifuse.app.errors import describe_error
 from trifuse.app.latest_worker import LatestWorker
-from trifuse.app.rerun_log import RerunHead, require_rerun
+from trifuse.app.recording.rerun_log import RerunHead, require_rerun
 from trifuse.app.server.runtime.map_worker import MapWorker
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.stream import FrameHub

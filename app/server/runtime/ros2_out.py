@@ -28,10 +28,10 @@ import cv2
 
 from trifuse.app.errors import describe_error
 from trifuse.app.recording.layout import RIG_FRAME
+from trifuse.app.recording.ros2_live import dds_topic, require_cyclonedds
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.sources.ros2_cdr import CAMERA_INFO, COMPRESSED, TF_MESSAGE, encode
-from trifuse.app.sources.ros2_live import dds_topic, require_cyclonedds
 from trifuse.calib.rig import Rig, Sensor
 from trifuse.calib.transforms import quaternion_from_rotation
 

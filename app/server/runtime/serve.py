@@ -237,7 +237,7 @@ def serve(
         parts.append(live.start())
     if rerun is not None:
         parts.append(live_rerun.start())
-    from trifuse.app.sources.ros2_live import Ros2LiveSource
+    from trifuse.app.recording.ros2_live import Ros2LiveSource
 
     if isinstance(source, Ros2LiveSource):  # the calibration and the fused pair back to ROS 2
         from trifuse.app.server.runtime.ros2_out import Ros2Out

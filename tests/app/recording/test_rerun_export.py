@@ -1,4 +1,4 @@
-"""``trifuse fuse --rerun OUT.rrd`` (app/recording/rerun_export.py, app/rerun_log.py) on a
+"""``trifuse fuse --rerun OUT.rrd`` (app/recording/rerun_export.py, app/recording/rerun_log.py) on a
 recording of the simulated measurement scene (tests/measure_support.py: four panels of known
 temperature at 2-9 m, imagers without offset), read back from the file with rerun's own
 reader: every sensor's pose and pinhole are the rig's; the fused pictures are those `trifuse

@@ -44,7 +44,7 @@ def _reader(participant, topic: str, datatype: str, latched: bool):
     from cyclonedds.sub import DataReader
     from cyclonedds.topic import Topic
 
-    from trifuse.app.sources.ros2_live import dds_topic
+    from trifuse.app.recording.ros2_live import dds_topic
     from trifuse.app.sources.ros2_types import IDL_TYPES
 
     qos = (Qos(Policy.Reliability.Reliable(1_000_000_000), Policy.History.KeepLast(1),

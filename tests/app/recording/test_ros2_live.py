@@ -1,4 +1,4 @@
-"""Live ROS 2 topics (app/sources/ros2_live.py) from a publisher process that speaks the
+"""Live ROS 2 topics (app/recording/ros2_live.py) from a publisher process that speaks the
 DDS wire as ROS 2 camera drivers do (app/devtools/ros2_publisher.py: topics ``rt/...``, ROS 2's
 type names, CDR, best effort), the small rig's sensors at the head's rates: every sensor's
 frames arrive with their header stamps and the topic map's units (kelvin from
@@ -27,7 +27,7 @@ from trifuse.app.storage.rigfile import save_rig
 
 pytest.importorskip("cyclonedds", reason="the [ros2] extra (in the test extra)")
 from trifuse.app.devtools.ros2_publisher import TOPIC_MAP, WRONG_SIZE_EVERY
-from trifuse.app.sources.ros2_live import Ros2LiveSource
+from trifuse.app.recording.ros2_live import Ros2LiveSource
 
 SECONDS = 6.0
 DOMAIN = 42  # apart from any other DDS traffic of the machine
