@@ -5,7 +5,7 @@ at its own rate (:data:`RATES_HZ`, the real head's), with header stamps. Needs t
 ``[ros2]`` extra.
 
     python -m trifuse.app.devtools.ros2_publisher SECONDS [--rig RIG.yaml] [--domain N]
-                                                  [--scene] [--bad-left]
+                                                  [--scene] [--bad-left] [--late S:MS]
 
 Topics (:data:`TOPIC_MAP`'s): colour ``/<sensor>/image_raw`` (rgb8; the right one as
 ``/<sensor>/image_raw/compressed``, JPEG), thermal ``/<sensor>/image_raw`` (16UC1,
@@ -128,9 +128,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--scene", action="store_true", help="the simulated room's images (default: uniform)"
     )
+    p.add_argument(
+        "--late",
+        metavar="SENSOR:MS",
+        help="stamp one sensor's images this many milliseconds before they are taken (a "
+        "driver stamping late)",
+    )
     args = p.parse_args(argv)
     rig = load_rig(args.rig) if args.rig else default_rig()
     bases = scene_images(rig) if args.scene else {}
+    late_ns: dict[str, int] = {}
+    if args.late:
+        sensor, ms = args.late.split(":")
+        late_ns[sensor] = round(float(ms) * 1e6)
     topics = {
         "ccd_left": "/ccd_left/image_raw",
         "ccd_right": "/ccd_right/image_raw/compressed",
@@ -156,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
             s = rig[name]
             rate = RATES_HZ[s.modality]
             k = count[name]
-            stamp = t0_ns + round(k * 1e9 / rate)
+            stamp = t0_ns + round(k * 1e9 / rate) - late_ns.get(name, 0)
             size = s.image_size
             wrong = k % WRONG_SIZE_EVERY == WRONG_SIZE_EVERY - 1 or args.bad_left
             if name == "ccd_left" and wrong:

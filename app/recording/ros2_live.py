@@ -10,7 +10,8 @@ samples are taken as serialised bytes from the binding's C layer and decoded by
 :mod:`app.sources.ros2_cdr` (the binding's own decoder takes 107 ms a colour frame:
 docs/FINDINGS.md), then converted as a bag's (:func:`app.recording.ros2.convert_image`:
 the same encodings, scales and invalid values). Frames carry the messages' header stamps;
-a TOF's distance and amplitude pair by stamp.
+a TOF's distance and amplitude pair by stamp; a sensor whose stamps run behind the others'
+by more than a frame is worded in :attr:`Ros2LiveSource.notes` (the Source panel).
 
 One newest-frame slot per sensor (:class:`app.sources.slots.NewestFrameSlots`): a slow
 console gets the newest frames, never a backlog. A message that cannot be used (an
@@ -26,8 +27,10 @@ fragments): unless ``CYCLONEDDS_URI`` is set, the participant asks for
 from __future__ import annotations
 
 import os
+import statistics
 import threading
 import time
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from types import ModuleType
@@ -48,6 +51,8 @@ SOCKET_BUFFER = "64MB"
 """The socket receive buffer the participant asks for (unless ``CYCLONEDDS_URI`` is set)."""
 DEFAULT_MAX_MESSAGE_BYTES = 64 << 20
 """Larger messages are refused (counted per topic)."""
+LAG_KEEP = 30
+"""Messages per sensor whose delays (arrival - header stamp) judge whether it runs behind."""
 PAIR_KEEP = 8
 """TOF halves (distance or amplitude) kept waiting for their other half, per sensor."""
 IMAGE_KINDS = ("color", "thermal", "tof_distance", "tof_amplitude")
@@ -130,20 +135,19 @@ class Ros2LiveSource(FrameSource):
 
         from trifuse.app.sources.ros2_types import IDL_TYPES
 
-        self.notes: list[str] = []
-        """Topics not read, one line each (a sensor the rig lacks): the Source panel's."""
+        self._not_read: list[str] = []  # topics of sensors the rig lacks, worded
         usable = dict(topic_map.modalities)
         if rig is not None:
             for sensor, modality in topic_map.modalities.items():
                 if sensor not in rig.sensors or rig[sensor].modality != modality:
                     del usable[sensor]
                     for topic in topic_map.for_sensor(sensor).values():
-                        self.notes.append(
+                        self._not_read.append(
                             f"topic {topic.topic}: sensor {sensor!r} is not a {modality} sensor "
                             f"of the rig (sensors: {', '.join(rig.names)}); not read"
                         )
         if not usable:
-            raise ValueError(f"topic map: no sensor of the rig in it ({'; '.join(self.notes)})")
+            raise ValueError(f"topic map: no sensor of the rig in it ({'; '.join(self._not_read)})")
         topic_map = TopicMap(
             {t: s for t, s in topic_map.topics.items() if s.sensor in usable},
             usable,
@@ -160,6 +164,9 @@ class Ros2LiveSource(FrameSource):
             s: {k for k in topic_map.for_sensor(s) if k.startswith("tof_")} for s in self.sensors
         }
         self._halves: dict[str, dict[int, dict[str, np.ndarray]]] = {}
+        self._lags: dict[str, deque[float]] = {}
+        self._last_stamp: dict[str, int] = {}
+        self._period_s: dict[str, float] = {}
         if "CYCLONEDDS_URI" not in os.environ:
             os.environ["CYCLONEDDS_URI"] = (
                 "<CycloneDDS><Domain><Internal>"
@@ -220,6 +227,7 @@ class Ros2LiveSource(FrameSource):
             stats.refused_s = time.monotonic()
             return
         stats.received += 1
+        self._lag(spec.sensor, stamp)
         stats.refused_since_used = 0
         if spec.kind in ("color", "thermal"):
             self.slots.put(Frame(spec.sensor, stamp, image))
@@ -265,6 +273,42 @@ class Ros2LiveSource(FrameSource):
         topics = {t: {"received": st.received, "refused": st.refused}
                   for t, st in self.topic_stats.items()}  # fmt: skip
         return {"rejected_by_sensor": out, "topics": topics}
+
+    def _lag(self, sensor: str, stamp_ns: int) -> None:
+        """Note how far ``sensor``'s header stamps lie behind the time they arrive (its
+        last :data:`LAG_KEEP` messages), and the period between its stamps."""
+        lags = self._lags.setdefault(sensor, deque(maxlen=LAG_KEEP))
+        lags.append((time.time_ns() - stamp_ns) * 1e-9)
+        last = self._last_stamp.get(sensor)
+        if last is not None and stamp_ns > last:
+            self._period_s[sensor] = (stamp_ns - last) * 1e-9
+        self._last_stamp[sensor] = stamp_ns
+
+    def stamp_warnings(self) -> dict[str, str]:
+        """Sensor -> a line when its stamps run behind the other sensors' by more than one
+        of its frames (the median of its last messages' delays against the median of the
+        others'): a driver stamping late, or a clock of its own."""
+        delays = {s: statistics.median(d) for s, d in list(self._lags.items()) if len(d) > 2}
+        out = {}
+        for sensor, delay in delays.items():
+            others = [d for s, d in delays.items() if s != sensor]
+            period = self._period_s.get(sensor)
+            if not others or period is None:
+                continue
+            behind = delay - statistics.median(others)
+            if behind > period:
+                out[sensor] = (
+                    f"{sensor}: its header stamps run {behind * 1e3:.0f} ms behind the other "
+                    f"sensors' (more than a frame, {period * 1e3:.0f} ms): frame sets pair "
+                    "images of different instants"
+                )
+        return out
+
+    @property
+    def notes(self) -> list[str]:
+        """The Source panel's lines: topics not read (a sensor the rig lacks), sensors whose
+        stamps run behind the others'."""
+        return [*self._not_read, *self.stamp_warnings().values()]
 
     @property
     def problems(self) -> dict[str, str]:

@@ -3,7 +3,8 @@ DDS wire as ROS 2 camera drivers do (app/devtools/ros2_publisher.py: topics ``rt
 type names, CDR, best effort), the small rig's sensors at the head's rates: every sensor's
 frames arrive with their header stamps and the topic map's units (kelvin from
 centi-kelvin, metres from millimetres with 0 as no reading, the right camera's JPEG
-decoded), the TOF's distance and amplitude paired by stamp; the left camera's images of
+decoded), the TOF's distance and amplitude paired by stamp; a thermal imager stamped
+150 ms early is named as running behind; the left camera's images of
 the wrong size are refused and worded for its topic while the others go on; a real
 pipeline fuses pictures from the source. A topic map naming a sensor the rig lacks: a
 line per topic, the others read."""
@@ -95,8 +96,32 @@ def test_frames_arrive_with_their_stamps_and_units_and_are_fused(tmp_path) -> No
     assert "64x48" in source.problems["/ccd_left/image_raw"] and "128x96" in source.problems[
         "/ccd_left/image_raw"]  # fmt: skip
     assert set(source.problems) == {"/ccd_left/image_raw"}
+    assert source.stamp_warnings() == {}
     [(sensor, r)] = source.stats()["rejected_by_sensor"].items()  # the console's health
     assert sensor == "ccd_left" and "64x48" in r["last_error"] and r["last_rejected_s"] > 0
+
+
+def test_a_sensor_stamped_late_is_named(tmp_path) -> None:
+    """thermal_left's header stamps 150 ms before its images are sent: behind the others
+    by more than its 37 ms frame (the frame sets then lack it: it is never within 50 ms of
+    a colour frame), said once in the Source panel's notes; the others are not named."""
+    rig = small_rig()
+    source = Ros2LiveSource(topic_map_from_yaml(TOPIC_MAP), rig, domain_id=DOMAIN)
+    publisher = subprocess.Popen(
+        [sys.executable, "-m", "trifuse.app.devtools.ros2_publisher", "4",
+         "--rig", str(save_rig(tmp_path / "rig.yaml", rig)), "--domain", str(DOMAIN),
+         "--late", "thermal_left:150"],
+        stdout=subprocess.DEVNULL,
+    )  # fmt: skip
+    threading.Thread(target=lambda: [None for _ in source.frames()], daemon=True).start()
+    try:
+        publisher.wait(timeout=60)
+        [(late, line)] = source.stamp_warnings().items()
+    finally:
+        source.close()
+    assert late == "thermal_left" and line in source.notes
+    behind_ms = float(line.split("run ")[1].split(" ms")[0])
+    assert 100 < behind_ms < 200, line
 
 
 def test_a_sensor_the_rig_lacks_is_a_line_per_topic_and_the_others_are_read() -> None:
