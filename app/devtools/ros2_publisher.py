@@ -6,6 +6,7 @@ at its own rate (:data:`RATES_HZ`, the real head's), with header stamps. Needs t
 
     python -m trifuse.app.devtools.ros2_publisher SECONDS [--rig RIG.yaml] [--domain N]
                                                   [--scene] [--bad-left] [--late S:MS]
+                                                  [--tf WORLD:RIG]
 
 Topics (:data:`TOPIC_MAP`'s): colour ``/<sensor>/image_raw`` (rgb8; the right one as
 ``/<sensor>/image_raw/compressed``, JPEG), thermal ``/<sensor>/image_raw`` (16UC1,
@@ -26,7 +27,7 @@ import cv2
 import numpy as np
 
 from trifuse.app.recording.ros2_live import datatype_of, dds_topic
-from trifuse.app.sources.ros2_cdr import COMPRESSED, IMAGE, encode
+from trifuse.app.sources.ros2_cdr import COMPRESSED, IMAGE, TF_MESSAGE, encode
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.storage.rigfile import load_rig
 from trifuse.calib.rig import Rig
@@ -49,6 +50,31 @@ sensors:
     tof_amplitude: /tof/amplitude
 """
 WRONG_SIZE_EVERY = 30
+
+
+TF_HZ = 50.0
+"""``--tf``: the rate of the head's pose on ``/tf``."""
+BASE_T_RIG = np.array(
+    [[0.0, -1.0, 0.0, 0.2], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.5], [0.0, 0.0, 0.0, 1.0]]
+)
+"""``--tf``: the rig's pose on the robot's base (90 degrees about z, 0.2 m ahead, 0.5 m up)."""
+
+
+def _tf(edges: list[tuple[str, str, np.ndarray]], stamp_ns: int) -> bytes:
+    """A TFMessage (CDR) of ``(parent, child, T_parent_child)`` edges."""
+    from trifuse.calib.transforms import quaternion_from_rotation
+
+    stamp = SimpleNamespace(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
+    transforms = []
+    for parent, child, T in edges:
+        x, y, z, w = quaternion_from_rotation(T[:3, :3])
+        transforms.append(SimpleNamespace(
+            header=SimpleNamespace(stamp=stamp, frame_id=parent), child_frame_id=child,
+            transform=SimpleNamespace(
+                translation=SimpleNamespace(x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+                rotation=SimpleNamespace(x=x, y=y, z=z, w=w)),
+        ))  # fmt: skip
+    return encode(TF_MESSAGE, SimpleNamespace(transforms=transforms))
 
 
 def scene_images(rig: Rig) -> dict[str, dict[str, np.ndarray]]:
@@ -134,6 +160,12 @@ def main(argv: list[str] | None = None) -> int:
         help="stamp one sensor's images this many milliseconds before they are taken (a "
         "driver stamping late)",
     )
+    p.add_argument(
+        "--tf",
+        metavar="WORLD:RIG",
+        help="also the head's pose on tf2: /tf WORLD -> base_link, moving 0.1 m/s along x "
+        f"at {TF_HZ:g} Hz; /tf_static base_link -> RIG (:data:`BASE_T_RIG`)",
+    )
     args = p.parse_args(argv)
     rig = load_rig(args.rig) if args.rig else default_rig()
     bases = scene_images(rig) if args.scene else {}
@@ -154,12 +186,27 @@ def main(argv: list[str] | None = None) -> int:
     for topic in [*topics.values(), "/tof/amplitude"]:
         t = Topic(dp, dds_topic(topic), IDL_TYPES[datatype_of(topic)])
         writers[topic] = DataWriter(dp, t, qos=qos)
+    tf_frames = args.tf.split(":") if args.tf else None
+    if tf_frames:
+        latched = Qos(Policy.Reliability.Reliable(1_000_000_000), Policy.History.KeepLast(1),
+                      Policy.Durability.TransientLocal)  # fmt: skip
+        tf_type = IDL_TYPES[TF_MESSAGE]
+        tf_writer = DataWriter(dp, Topic(dp, dds_topic("/tf"), tf_type), qos=qos)
+        static = DataWriter(dp, Topic(dp, dds_topic("/tf_static"), tf_type), qos=latched)
+        ddspy_write(static._ref, _tf([("base_link", tf_frames[1], BASE_T_RIG)], time.time_ns()))
     time.sleep(1.0)  # discovery
     start = time.monotonic()
     t0_ns = time.time_ns()
+    tf_k = 0
     due = {name: 0.0 for name in topics}
     count = dict.fromkeys(topics, 0)
     while (now := time.monotonic() - start) < args.seconds:
+        while tf_frames and tf_k / TF_HZ <= now:
+            T = np.eye(4)
+            T[0, 3] = 0.1 * tf_k / TF_HZ
+            stamp = t0_ns + round(tf_k * 1e9 / TF_HZ)
+            ddspy_write(tf_writer._ref, _tf([(tf_frames[0], "base_link", T)], stamp))
+            tf_k += 1
         for name, topic in topics.items():
             if now < due[name]:
                 continue

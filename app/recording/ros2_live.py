@@ -11,7 +11,10 @@ samples are taken as serialised bytes from the binding's C layer and decoded by
 docs/FINDINGS.md), then converted as a bag's (:func:`app.recording.ros2.convert_image`:
 the same encodings, scales and invalid values). Frames carry the messages' header stamps;
 a TOF's distance and amplitude pair by stamp; a sensor whose stamps run behind the others'
-by more than a frame is worded in :attr:`Ros2LiveSource.notes` (the Source panel).
+by more than a frame is worded in :attr:`Ros2LiveSource.notes` (the Source panel). With a
+``pose`` section the map names the tf2 frames of the world and the rig: ``/tf`` and
+``/tf_static`` give the head's pose (:meth:`Ros2LiveSource.head_pose`), which the console's
+thermal map uses rather than estimating it.
 
 One newest-frame slot per sensor (:class:`app.sources.slots.NewestFrameSlots`): a slow
 console gets the newest frames, never a backlog. A message that cannot be used (an
@@ -40,12 +43,14 @@ import numpy as np
 
 from trifuse.app.errors import describe_error
 from trifuse.app.recording.ros2 import convert_image
+from trifuse.app.recording.tf_buffer import TfBuffer
 from trifuse.app.recording.topicmap import TopicMap, TopicSpec
 from trifuse.app.sources.base import FrameSource
 from trifuse.app.sources.frames import Frame
-from trifuse.app.sources.ros2_cdr import COMPRESSED, IMAGE, decode
+from trifuse.app.sources.ros2_cdr import COMPRESSED, IMAGE, TF_MESSAGE, decode
 from trifuse.app.sources.slots import NewestFrameSlots
 from trifuse.calib.rig import Rig
+from trifuse.calib.transforms import make_T, rotation_from_quaternion
 
 SOCKET_BUFFER = "64MB"
 """The socket receive buffer the participant asks for (unless ``CYCLONEDDS_URI`` is set)."""
@@ -152,6 +157,7 @@ class Ros2LiveSource(FrameSource):
             {t: s for t, s in topic_map.topics.items() if s.sensor in usable},
             usable,
             topic_map.stamp,
+            topic_map.pose,
         )
         self.topic_map, self.rig, self.domain_id = topic_map, rig, domain_id
         self.sensors = topic_map.sensors
@@ -164,6 +170,7 @@ class Ros2LiveSource(FrameSource):
             s: {k for k in topic_map.for_sensor(s) if k.startswith("tof_")} for s in self.sensors
         }
         self._halves: dict[str, dict[int, dict[str, np.ndarray]]] = {}
+        self.tf_refused, self.tf_problem = 0, None
         self._lags: dict[str, deque[float]] = {}
         self._last_stamp: dict[str, int] = {}
         self._period_s: dict[str, float] = {}
@@ -188,6 +195,22 @@ class Ros2LiveSource(FrameSource):
             unread = SampleState.NotRead | ViewState.Any | InstanceState.Any
             self._waitset.attach(ReadCondition(reader, unread))
             self._readers.append((reader, spec, datatype))
+        self.tf = TfBuffer()
+        self._tf_readers: list[tuple[Any, bool]] = []
+        pose = topic_map.pose
+        if pose is not None:  # the head's pose from tf2: the thermal map uses it
+            keep = Policy.History.KeepLast(100)
+            latched = Qos(Policy.Reliability.Reliable(1_000_000_000), keep,
+                          Policy.Durability.TransientLocal)  # fmt: skip
+            streams = ((pose.topic, False, Qos(Policy.Reliability.BestEffort, keep)),
+                       (pose.static_topic, True, latched))  # fmt: skip
+            for topic, static, q in streams:
+                t = Topic(self._dp, dds_topic(topic), IDL_TYPES[TF_MESSAGE])
+                reader = DataReader(self._dp, t, qos=q)
+                self._waitset.attach(ReadCondition(reader, SampleState.NotRead | ViewState.Any
+                                                   | InstanceState.Any))  # fmt: skip
+                self._tf_readers.append((reader, static))
+            self.head_pose = self._head_pose  # a PosedSource now (app.sources.capabilities)
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._run, name="ros2-live", daemon=True)
         self._thread.start()
@@ -208,6 +231,32 @@ class Ros2LiveSource(FrameSource):
                 for data, info in taken:
                     if info.valid_data:
                         self._handle(spec, datatype, data)
+            for reader, static in self._tf_readers:
+                taken = ddspy_take(reader._ref, every, 100)
+                for data, info in [] if isinstance(taken, int) else taken:
+                    if info.valid_data:
+                        self._transforms(data, static)
+
+    def _transforms(self, data: bytes, static: bool) -> None:
+        """A TFMessage into :attr:`tf` (a malformed one counted in ``tf_refused``)."""
+        try:
+            msg = decode(TF_MESSAGE, data)
+        except ValueError as exc:
+            self.tf_refused += 1
+            self.tf_problem = describe_error(exc)
+            return
+        for t in msg.transforms:
+            st = t.header.stamp
+            tr, q = t.transform.translation, t.transform.rotation
+            T = make_T(rotation_from_quaternion([q.x, q.y, q.z, q.w]), (tr.x, tr.y, tr.z))
+            stamp = int(st.sec) * 1_000_000_000 + int(st.nanosec)
+            self.tf.add(t.header.frame_id, t.child_frame_id, stamp, T, static)
+
+    def _head_pose(self, stamp_ns: int) -> np.ndarray | None:
+        """(4, 4) ``T_world_rig`` at ``stamp_ns`` from tf2 (None: not known then)."""
+        pose = self.topic_map.pose
+        assert pose is not None
+        return self.tf.lookup(pose.world, pose.rig, stamp_ns)
 
     def _handle(self, spec: TopicSpec, datatype: str, data: bytes) -> None:
         stats = self.topic_stats[spec.topic]

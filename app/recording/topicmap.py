@@ -13,6 +13,7 @@ A topic map is a small YAML file (format ``trifuse-topic-map/1``, docs/FORMATS.m
       tof:
         tof_distance: {topic: /tof/distance, scale: 0.001, invalid: 0}
         tof_amplitude: /tof/amplitude
+    pose: {world: odom, rig: tof_link}   # optional, live topics: the head's pose from tf2
 
 Raw values become kelvin (thermal) or metres (TOF distance) as ``value * scale + offset``;
 a stored value equal to ``invalid`` (one number or a list) becomes NaN. A sensor's kinds
@@ -65,6 +66,17 @@ class TopicSpec:
 
 
 @dataclass(frozen=True)
+class PoseSpec:
+    """Where the head's pose comes from (live ROS 2 topics): the ``tf2`` frames of the
+    world and of the rig (the TOF's frame), and the transform topics."""
+
+    world: str
+    rig: str
+    topic: str = "/tf"
+    static_topic: str = "/tf_static"
+
+
+@dataclass(frozen=True)
 class TopicMap:
     """A parsed topic map.
 
@@ -78,6 +90,8 @@ class TopicMap:
     topics: dict[str, TopicSpec]
     modalities: dict[str, str]
     stamp: str = "header"
+    pose: PoseSpec | None = None
+    """The head's pose from tf2 (live topics only; a bag's replay ignores it)."""
 
     @property
     def sensors(self) -> list[str]:
@@ -96,9 +110,11 @@ def topic_map_from_dict(data: Any, where: str = "topic map") -> TopicMap:
     """Build a TopicMap from parsed YAML; TopicMapError names the field."""
     if not isinstance(data, Mapping):
         raise TopicMapError(f"{where}: expected a mapping, got {type(data).__name__}")
-    unknown = sorted(set(data) - {"format", "stamp", "sensors"}, key=str)
+    unknown = sorted(set(data) - {"format", "stamp", "sensors", "pose"}, key=str)
     if unknown:
-        raise TopicMapError(f"{where}: unknown key(s) {unknown} (allowed: format, stamp, sensors)")
+        raise TopicMapError(
+            f"{where}: unknown key(s) {unknown} (allowed: format, stamp, sensors, pose)"
+        )
     if data.get("format") != TOPIC_MAP_FORMAT:
         raise TopicMapError(
             f"{where}: field 'format': expected {TOPIC_MAP_FORMAT!r}, got {data.get('format')!r}"
@@ -151,7 +167,32 @@ def topic_map_from_dict(data: Any, where: str = "topic map") -> TopicMap:
             inv_list = inv if isinstance(inv, list) else [inv]
             invalid = tuple(_number(v, f"{wk}.invalid") for v in inv_list)
             topics[topic] = TopicSpec(topic, sensor, str(kind), scale, offset, invalid)
-    return TopicMap(topics, modalities, stamp)
+    return TopicMap(topics, modalities, stamp, _pose(data.get("pose"), f"{where}: pose"))
+
+
+def _pose(entry: Any, where: str) -> PoseSpec | None:
+    """The ``pose`` section: ``world`` and ``rig`` frames, optional ``topic`` and
+    ``static_topic``."""
+    if entry is None:
+        return None
+    if not isinstance(entry, Mapping):
+        raise TopicMapError(f"{where}: expected a mapping with world and rig, got {entry!r}")
+    extra = sorted(set(map(str, entry)) - {"world", "rig", "topic", "static_topic"})
+    if extra:
+        raise TopicMapError(f"{where}: unknown key(s) {extra} (allowed: world, rig, topic, "
+                            "static_topic)")  # fmt: skip
+    values = {}
+    for key in ("world", "rig", "topic", "static_topic"):
+        value = entry.get(key)
+        if value is None and key in ("world", "rig"):
+            raise TopicMapError(f"{where}.{key}: expected a tf2 frame name, got nothing")
+        if value is not None:
+            if not isinstance(value, str) or not value:
+                raise TopicMapError(f"{where}.{key}: expected a name, got {value!r}")
+            values[key] = value
+    if values["world"] == values["rig"]:
+        raise TopicMapError(f"{where}: world and rig are the same frame {values['rig']!r}")
+    return PoseSpec(**values)
 
 
 def topic_map_from_yaml(text: str, where: str = "topic map") -> TopicMap:

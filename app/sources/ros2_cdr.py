@@ -1,7 +1,7 @@
 """ROS 2 image messages as the DDS wire carries them (OMG CDR, little endian, XCDR1: the
 encapsulation ``00 01 00 00`` every ROS 2 middleware on DDS uses), without ROS or an IDL
-compiler (issue 36): ``sensor_msgs/msg/Image`` and ``sensor_msgs/msg/CompressedImage`` read
-and written; ``sensor_msgs/msg/CameraInfo`` and ``tf2_msgs/msg/TFMessage`` written (what
+compiler (issue 36): ``sensor_msgs/msg/Image``, ``sensor_msgs/msg/CompressedImage`` and
+``tf2_msgs/msg/TFMessage`` read and written; ``sensor_msgs/msg/CameraInfo`` written (what
 the console publishes back).
 
 :func:`decode` gives an object with the message's fields (``header.stamp.sec`` /
@@ -67,6 +67,9 @@ class _Reader:
         self.pos += n
         return out
 
+    def f64(self) -> float:
+        return self._take("d", 8)
+
     def string(self) -> str:
         raw = self.octets()
         if len(raw) == 0 or raw[-1] != 0:
@@ -81,8 +84,17 @@ def decode(datatype: str, payload: bytes | memoryview) -> SimpleNamespace:
         head = bytes(buf[:4]).hex()
         raise ValueError(f"CDR: expected the encapsulation 00010000 (XCDR1), got {head!r}")
     r = _Reader(buf, little=bytes(buf[:4]) == CDR_LE)
-    stamp = SimpleNamespace(sec=r.i32(), nanosec=r.u32())
-    header = SimpleNamespace(stamp=stamp, frame_id=r.string())
+    if datatype == TF_MESSAGE:
+        transforms = []
+        for _ in range(r.u32()):
+            header = _header(r)
+            child = r.string()
+            tr = SimpleNamespace(x=r.f64(), y=r.f64(), z=r.f64())
+            rot = SimpleNamespace(x=r.f64(), y=r.f64(), z=r.f64(), w=r.f64())
+            transforms.append(SimpleNamespace(header=header, child_frame_id=child,
+                transform=SimpleNamespace(translation=tr, rotation=rot)))  # fmt: skip
+        return SimpleNamespace(transforms=transforms)
+    header = _header(r)
     if datatype == IMAGE:
         height, width, encoding = r.u32(), r.u32(), r.string()
         is_bigendian, step = r.u8(), r.u32()
@@ -90,7 +102,12 @@ def decode(datatype: str, payload: bytes | memoryview) -> SimpleNamespace:
                                is_bigendian=is_bigendian, step=step, data=r.octets())  # fmt: skip
     if datatype == COMPRESSED:
         return SimpleNamespace(header=header, format=r.string(), data=r.octets())
-    raise ValueError(f"CDR: expected {IMAGE} or {COMPRESSED}, got {datatype!r}")
+    raise ValueError(f"CDR: expected {IMAGE}, {COMPRESSED} or {TF_MESSAGE}, got {datatype!r}")
+
+
+def _header(r: _Reader) -> SimpleNamespace:
+    stamp = SimpleNamespace(sec=r.i32(), nanosec=r.u32())
+    return SimpleNamespace(stamp=stamp, frame_id=r.string())
 
 
 class _Writer:

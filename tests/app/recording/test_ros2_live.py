@@ -124,6 +124,46 @@ def test_a_sensor_stamped_late_is_named(tmp_path) -> None:
     assert 100 < behind_ms < 200, line
 
 
+def test_the_heads_pose_comes_from_tf2(tmp_path) -> None:
+    """A topic map with ``pose: {world: odom, rig: tof_link}``: /tf gives odom -> base_link
+    (0.1 m/s along x, 50 Hz), /tf_static base_link -> tof_link (published once, before the
+    source joins: transient local); the source's head pose at a TOF frame's time is their
+    product: the static rotation and offset, x moving 0.1 m a second between two frames
+    (to one 50 Hz step: each lookup takes the nearest transform); a frame the tf2 tree does
+    not join gives None."""
+    from trifuse.app.devtools.ros2_publisher import BASE_T_RIG
+
+    rig = small_rig()
+    text = TOPIC_MAP + "pose: {world: odom, rig: tof_link}\n"
+    publisher = subprocess.Popen(
+        [sys.executable, "-m", "trifuse.app.devtools.ros2_publisher", "4",
+         "--rig", str(save_rig(tmp_path / "rig.yaml", rig)), "--domain", str(DOMAIN),
+         "--tf", "odom:tof_link"],
+        stdout=subprocess.DEVNULL,
+    )  # fmt: skip
+    time.sleep(0.5)  # the static transform is out before the source exists
+    source = Ros2LiveSource(topic_map_from_yaml(text), rig, domain_id=DOMAIN)
+    tofs = []
+    threading.Thread(
+        target=lambda: [tofs.append(f.stamp_ns) for f in source.frames() if f.sensor == "tof"],
+        daemon=True,
+    ).start()
+    try:
+        publisher.wait(timeout=60)
+        assert len(tofs) > 20
+        a, b = tofs[5], tofs[-5]
+        Ta, Tb = source.head_pose(a), source.head_pose(b)
+        assert source.tf.lookup("odom", "nowhere", a) is None
+    finally:
+        source.close()
+    assert Ta is not None and Tb is not None
+    for T in (Ta, Tb):
+        np.testing.assert_allclose(T[:3, :3], BASE_T_RIG[:3, :3], atol=1e-9)
+        np.testing.assert_allclose(T[1:3, 3], BASE_T_RIG[1:3, 3], atol=1e-9)
+    moved = Tb[0, 3] - Ta[0, 3]
+    assert abs(moved - 0.1 * (b - a) * 1e-9) <= 0.1 / 50 + 1e-9, moved  # nearest: half a step each
+
+
 def test_a_sensor_the_rig_lacks_is_a_line_per_topic_and_the_others_are_read() -> None:
     text = TOPIC_MAP.replace("  tof:\n", "  tof_front:\n")
     source = Ros2LiveSource(topic_map_from_yaml(text), small_rig(), domain_id=DOMAIN)
