@@ -71,6 +71,14 @@ def add_parser(commands: Commands) -> argparse.ArgumentParser:
         help="the DDS domain (default: ROS_DOMAIN_ID, else 0)",
     )
     srv.add_argument(
+        "--ros2-max-mb",
+        type=float,
+        default=None,
+        metavar="MB",
+        help="refuse ROS 2 messages larger than this (default: 64; counted and worded per "
+        "topic in the sensor health)",
+    )
+    srv.add_argument(
         "--ros2-reliable",
         action="store_true",
         help="read the topics with reliable QoS (default: best effort, which also matches "
@@ -299,8 +307,13 @@ def run(args: argparse.Namespace) -> int:
     chosen = [x for x in (args.replay, args.live, args.push or None, args.ros2) if x]
     if len(chosen) > 1:
         raise UsageError(f"{PROG} serve: choose one of --replay, --live, --push, --ros2")
-    if args.ros2 is None and (args.ros2_domain is not None or args.ros2_reliable):
-        raise UsageError(f"{PROG} serve: --ros2-domain and --ros2-reliable are for --ros2")
+    ros2_options = (args.ros2_domain, args.ros2_max_mb, args.ros2_reliable or None)
+    if args.ros2 is None and any(o is not None for o in ros2_options):
+        raise UsageError(f"{PROG} serve: --ros2-domain, --ros2-max-mb and --ros2-reliable "
+                         "are for --ros2")  # fmt: skip
+    if args.ros2_max_mb is not None and not 0 < args.ros2_max_mb <= 1024:
+        raise UsageError(f"{PROG} serve: --ros2-max-mb: expected 0 to 1024 MB, got "
+                         f"{args.ros2_max_mb:g}")  # fmt: skip
     if args.scenario != "inspection" and chosen:
         raise UsageError(f"{PROG} serve: --scenario is for the simulated head only")
     if args.scenario != "calibration" and (args.board_poses, args.hold) != (40, 3.0):
@@ -358,6 +371,7 @@ def run(args: argparse.Namespace) -> int:
                 ros2=args.ros2,
                 ros2_domain=args.ros2_domain,
                 ros2_reliable=args.ros2_reliable,
+                ros2_max_bytes=None if args.ros2_max_mb is None else round(args.ros2_max_mb * 1e6),
             )
             serve(
                 opened,

@@ -115,6 +115,7 @@ def open_source(
     ros2: str | Path | None = None,
     ros2_domain: int | None = None,
     ros2_reliable: bool = False,
+    ros2_max_bytes: int | None = None,
 ) -> OpenedSource:
     """The source named by ``--replay FILE``, ``--live CONFIG`` or ``--push`` (the first
     given), else the simulated head's ``scenario``; with the rig to use (``rig`` if given,
@@ -134,7 +135,8 @@ def open_source(
         live_flag: how the command names ``live`` in the error when ``rig`` is missing.
         ros2: a topic map: the robot's live ROS 2 topics over DDS (app/recording/ros2_live.py;
             needs ``rig``), in domain ``ros2_domain`` (None: ``ROS_DOMAIN_ID``, else 0),
-            reliable QoS with ``ros2_reliable``.
+            reliable QoS with ``ros2_reliable``, messages over ``ros2_max_bytes`` refused
+            (None: the source's default).
 
     Raises:
         ValueError: the recording holds no rig and none is given (the replay is closed
@@ -169,7 +171,8 @@ def open_source(
             raise NeedsRig("--ros2 needs --rig RIG.yaml (topics do not carry the calibration)")
         tmap = load_topic_map(ros2)
         domain = ros2_domain if ros2_domain is not None else int(os.environ.get("ROS_DOMAIN_ID", 0))
-        src = Ros2LiveSource(tmap, rig, domain_id=domain, reliable=ros2_reliable)
+        limit = {} if ros2_max_bytes is None else {"max_message_bytes": ros2_max_bytes}
+        src = Ros2LiveSource(tmap, rig, domain_id=domain, reliable=ros2_reliable, **limit)
         return OpenedSource(src, rig, f"ROS 2 topics of {ros2} (DDS domain {domain})")
     if push:
         from trifuse.app.sources.push.source import PushSource
