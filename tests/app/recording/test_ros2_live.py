@@ -192,3 +192,20 @@ def test_closing_ends_the_frames() -> None:
     time.sleep(0.3)
     source.close()
     assert done.wait(5.0)
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["--ros2-domain", "3"], "--ros2-domain, --ros2-max-mb and --ros2-reliable are for --ros2"),
+        (["--ros2", "t.yaml", "--ros2-max-mb", "0"], "--ros2-max-mb: expected 0 to 1024 MB"),
+        (["--ros2", "t.yaml", "--push"], "choose one of --replay, --live, --push, --ros2"),
+    ],
+)
+def test_serve_refuses_wrong_ros2_options_in_one_line(argv, says, tmp_path, capsys) -> None:
+    from tests.support import run_cli
+
+    workdir = tmp_path / "work"
+    code, out, err = run_cli(["serve", "--port", "0", *argv, "--workdir", str(workdir)], capsys)
+    assert code == 2 and out == "" and len(err.strip().splitlines()) == 1
+    assert says in err and not workdir.exists()
