@@ -152,7 +152,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--domain", type=int, default=0)
     p.add_argument("--bad-left", action="store_true", help="every left colour image too small")
     p.add_argument(
-        "--scene", action="store_true", help="the simulated room's images (default: uniform)"
+        "--scene",
+        action="store_true",
+        help="the simulated room's images (default: uniform; the simulated head's rig only)",
     )
     p.add_argument(
         "--late",
@@ -167,6 +169,8 @@ def main(argv: list[str] | None = None) -> int:
         f"at {TF_HZ:g} Hz; /tf_static base_link -> RIG (:data:`BASE_T_RIG`)",
     )
     args = p.parse_args(argv)
+    if args.scene and args.rig:  # the simulator's TOF model is made for its own head
+        p.error("--scene: the simulated head's own rig only (no --rig)")
     rig = load_rig(args.rig) if args.rig else default_rig()
     bases = scene_images(rig) if args.scene else {}
     late_ns: dict[str, int] = {}
