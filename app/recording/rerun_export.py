@@ -3,8 +3,10 @@
 ``trifuse fuse --rerun OUT.rrd``: every ``every``-th frame set that makes a picture (the
 :data:`fusion.stereo_step.OFFLINE` policy, as ``trifuse fuse``) logged with
 :class:`app.recording.rerun_log.RerunHead`: its sensors' images, the TOF's cloud coloured by
-temperature and the fused pair, under the rig's poses and pinholes. ``trifuse map --rerun
-OUT.rrd``: the thermal map built, the head's path and the rig at its last pose.
+temperature and the fused pair, under the rig's poses and pinholes, and at the end the
+thermal map of those sets' TOF frames (at the recording's head poses, else estimated from
+the TOF clouds) with the head's path. ``trifuse map --rerun OUT.rrd``: the thermal map of
+every TOF frame, the head's path and the rig at its last pose.
 
 The file is written beside its name (a temporary ``.NAME.XXXX.tmp`` that a crash leaves for
 :func:`app.storage.atomic.remove_temporaries`) and linked to it once complete: never
@@ -25,10 +27,13 @@ import numpy as np
 from trifuse.app.recording.offline_sets import pictured_sets
 from trifuse.app.recording.player import MessageReplay
 from trifuse.app.recording.rerun_log import RerunHead, require_rerun
+from trifuse.app.sources.capabilities import head_pose_of
+from trifuse.app.sources.frames import FrameSet
 from trifuse.app.storage.atomic import link_new, make_dirs
 from trifuse.calib.rig import Rig
 from trifuse.fusion.compose import DisplaySettings
 from trifuse.fusion.geometry import tof_sensor_name
+from trifuse.fusion.map_builder import MapBuilder
 from trifuse.fusion.map_view import map_cloud
 from trifuse.fusion.stereo_step import OFFLINE, StereoStep
 from trifuse.fusion.voxel_map import VoxelMap
@@ -76,17 +81,43 @@ def export_rerun(
     with new_rerun_file(path) as stream:
         head = RerunHead(stream, rig, (settings or DisplaySettings()).palette)
         step = StereoStep(rig, settings, OFFLINE)
-        logged = 0
+        builder = MapBuilder(rig)  # the thermal map, at the recording's poses or estimated
+        pose = head_pose_of(source)
+        logged, tof_ns, last_ns = 0, None, 0
         for fs, picture in pictured_sets(source, step, every):
             head.log_frames(fs.frames, step.radiometry)
             head.log_fused(fs.stamp_ns, picture)
-            logged += 1
+            tof = fs.frames.get(builder.tof)
+            if tof is not None and tof.distance_m is not None and tof.stamp_ns != tof_ns:
+                tof_ns = tof.stamp_ns
+                builder.add(tof.stamp_ns * 1e-9, tof.distance_m, _map_images(fs, step),
+                            pose(tof.stamp_ns) if pose else None, tof.image)  # fmt: skip
+            logged, last_ns = logged + 1, fs.stamp_ns
         if not logged:
             raise ValueError(
                 "no frame set could be fused (both eyes' colour and thermal frames after the "
                 "first TOF frame)"
             )
+        m = builder.map
+        if m.path and m.occupied().any():
+            _, T_world_tof = m.path[-1]
+            T_world_rig = T_world_tof @ np.linalg.inv(builder.T_rig_tof)
+            positions = np.array([T[:3, 3] for _, T in m.path])
+            cloud = map_cloud(m, max_points=MAP_POINTS)
+            head.log_map(last_ns, cloud, T_world_rig, positions)
     return logged
+
+
+def _map_images(fs: FrameSet, step: StereoStep) -> dict[str, np.ndarray]:
+    """A set's images as the map takes them: thermal in kelvin, colour RGB."""
+    out = {}
+    for name, f in fs.frames.items():
+        modality = step.rig[name].modality
+        if modality == "thermal":
+            out[name] = step.radiometry[name].apply(f.image)
+        elif modality == "color":
+            out[name] = f.image
+    return out
 
 
 def export_map_rerun(rig: Rig, voxel_map: VoxelMap, path: str | Path) -> int:

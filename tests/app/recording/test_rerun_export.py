@@ -159,3 +159,19 @@ def test_refusals_are_one_line_and_write_nothing(exported, tmp_path, capsys, mon
     assert len(err.strip().splitlines()) == 1
     assert not out_rrd.exists() and not (tmp_path / "c").exists()
     assert not list(Path(tmp_path).glob(".*.tmp"))
+
+
+def test_the_thermal_map_of_the_recording_ends_the_file(exported) -> None:
+    """The recording holds no head pose: the map's poses are estimated from the TOF clouds;
+    the head stood still (three sets of one render), so the rig stays at the world's origin
+    (the first frame's rig frame) and the map's voxels lie at the TOF's distances, coloured."""
+    rows = exported["rows"]
+    [cloud] = rows["/map"]
+    points = np.asarray(cloud["Points3D:positions"], np.float64)
+    distance = np.linalg.norm(points, axis=1)
+    d = exported["fs"].frames["tof"].distance_m
+    assert len(points) > 1000
+    assert np.nanmin(d) - 0.05 < distance.min() and distance.max() < np.nanmax(d) + 0.05
+    pose = next(r for r in rows["/rig"] if r.get("Transform3D:translation"))
+    assert np.linalg.norm(pose["Transform3D:translation"][0]) < 0.01
+    assert len(rows["/map/path"][0]["LineStrips3D:strips"][0]) >= 2
