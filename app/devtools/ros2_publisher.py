@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 
 from trifuse.app.recording.ros2_live import datatype_of, dds_topic
+from trifuse.app.recording.topicmap import topic_map_from_yaml
 from trifuse.app.sources.ros2_cdr import COMPRESSED, IMAGE, TF_MESSAGE, encode
 from trifuse.app.sources.sim.head import default_rig
 from trifuse.app.storage.rigfile import load_rig
@@ -177,17 +178,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.late:
         sensor, ms = args.late.split(":")
         late_ns[sensor] = round(float(ms) * 1e6)
-    topics = {
-        "ccd_left": "/ccd_left/image_raw",
-        "ccd_right": "/ccd_right/image_raw/compressed",
-        "thermal_left": "/thermal_left/image_raw",
-        "thermal_right": "/thermal_right/image_raw",
-        "tof": "/tof/distance",
-    }
+    mapped = topic_map_from_yaml(TOPIC_MAP).topics
+    topics = {s.sensor: t for t, s in mapped.items() if s.kind != "tof_amplitude"}  # paced
     dp = DomainParticipant(args.domain)
     qos = Qos(Policy.Reliability.BestEffort, Policy.History.KeepLast(1))
     writers = {}
-    for topic in [*topics.values(), "/tof/amplitude"]:
+    for topic in mapped:
         t = Topic(dp, dds_topic(topic), IDL_TYPES[datatype_of(topic)])
         writers[topic] = DataWriter(dp, t, qos=qos)
     tf_frames = args.tf.split(":") if args.tf else None

@@ -34,7 +34,6 @@ from trifuse.calib.rig import Rig
 from trifuse.fusion.compose import DisplaySettings
 from trifuse.fusion.geometry import tof_sensor_name
 from trifuse.fusion.map_builder import MapBuilder
-from trifuse.fusion.map_view import map_cloud
 from trifuse.fusion.stereo_step import OFFLINE, StereoStep
 from trifuse.fusion.voxel_map import VoxelMap
 
@@ -98,14 +97,18 @@ def export_rerun(
                 "no frame set could be fused (both eyes' colour and thermal frames after the "
                 "first TOF frame)"
             )
-        m = builder.map
-        if m.path and m.occupied().any():
-            _, T_world_tof = m.path[-1]
-            T_world_rig = T_world_tof @ np.linalg.inv(builder.T_rig_tof)
-            positions = np.array([T[:3, 3] for _, T in m.path])
-            cloud = map_cloud(m, max_points=MAP_POINTS)
-            head.log_map(last_ns, cloud, T_world_rig, positions)
+        if builder.map.path and builder.map.occupied().any():
+            _log_map_at_last_pose(head, builder.map, builder.T_rig_tof, last_ns)
     return logged
+
+
+def _log_map_at_last_pose(
+    head: RerunHead, voxel_map: VoxelMap, T_rig_tof: np.ndarray, stamp_ns: int
+) -> int:
+    """``voxel_map`` with the rig at the head's last pose in it (its path's last
+    ``T_world_tof``); the points logged."""
+    T_world_rig = voxel_map.path[-1][1] @ np.linalg.inv(T_rig_tof)
+    return head.log_map(stamp_ns, voxel_map, T_world_rig, MAP_POINTS)
 
 
 def _map_images(fs: FrameSet, step: StereoStep) -> dict[str, np.ndarray]:
@@ -127,11 +130,7 @@ def export_map_rerun(rig: Rig, voxel_map: VoxelMap, path: str | Path) -> int:
     frame's time; returns the points logged."""
     if not voxel_map.path:
         raise ValueError("the map holds no frame")
-    stamp_s, T_world_tof = voxel_map.path[-1]
-    cloud = map_cloud(voxel_map, max_points=MAP_POINTS)
-    positions = np.array([T[:3, 3] for _, T in voxel_map.path])
-    tof = tof_sensor_name(rig)
-    T_world_rig = T_world_tof @ np.linalg.inv(rig[tof].T_rig_sensor)
+    stamp_ns = round(voxel_map.path[-1][0] * 1e9)
+    T_rig_tof = rig[tof_sensor_name(rig)].T_rig_sensor
     with new_rerun_file(path) as stream:
-        RerunHead(stream, rig).log_map(round(stamp_s * 1e9), cloud, T_world_rig, positions)
-    return len(cloud.points)
+        return _log_map_at_last_pose(RerunHead(stream, rig), voxel_map, T_rig_tof, stamp_ns)

@@ -41,11 +41,12 @@ import numpy as np
 from trifuse.app.sources.frames import Frame
 from trifuse.calib.radiometry import Radiometry
 from trifuse.calib.rig import Rig
-from trifuse.fusion.map_view import MapCloud
+from trifuse.fusion.map_view import map_cloud
 from trifuse.fusion.mapping import MappingOptions, TofGrid
 from trifuse.fusion.palettes import PaletteName, palette_colors
 from trifuse.fusion.span import auto_span
 from trifuse.fusion.stereo import sample_image
+from trifuse.fusion.voxel_map import VoxelMap
 
 TIMELINE = "sensor_time"
 """The rerun timeline of the frames' stamps."""
@@ -180,18 +181,22 @@ class RerunHead:
         t = sample_image(self.rig, self.thermal, self.tof, points, kelvin, np.nan)
         return points, palette_colors(t, span, self.palette)
 
-    def log_map(self, stamp_ns: int, cloud: MapCloud, T_world_rig: np.ndarray,
-                path: np.ndarray) -> None:  # fmt: skip
-        """The thermal map (world frame): its points as shown (``cloud``), the head's path
-        ((P, 3) positions, metres), and the rig placed at ``T_world_rig`` (the root then is
-        the world)."""
+    def log_map(
+        self, stamp_ns: int, voxel_map: VoxelMap, T_world_rig: np.ndarray, max_points: int
+    ) -> int:
+        """The thermal map (world frame): its points as the 3D console shows them (at most
+        ``max_points``), the head's path, and the rig placed at ``T_world_rig`` (the root
+        then is the world); returns the points logged. The caller holds the map still."""
         rr, log = self.rr, self.stream.log
+        cloud = map_cloud(voxel_map, max_points=max_points)
+        path = np.array([T[:3, 3] for _, T in voxel_map.path], dtype=np.float32)
         self._time(stamp_ns)
         T = np.asarray(T_world_rig, dtype=np.float64)
         log("rig", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
         log("map", rr.Points3D(cloud.points, colors=cloud.colors, radii=cloud.cell_m / 2))
         if len(path) > 1:
-            log("map/path", rr.LineStrips3D([np.asarray(path, dtype=np.float32)]))
+            log("map/path", rr.LineStrips3D([path]))
+        return len(cloud.points)
 
     def log_fused(self, stamp_ns: int, picture: np.ndarray | bytes) -> None:
         """The fused side-by-side picture: (H, 2W, 3) uint8 RGB, or its JPEG bytes."""

@@ -308,7 +308,7 @@ class Ros2LiveSource(FrameSource):
     def stats(self) -> dict[str, Any]:
         """``rejected_by_sensor``: sensor -> its topics' refusals, ``since_accepted``,
         ``last_rejected_s`` (``time.monotonic``), ``last_error`` (the newest refusal's topic
-        and reason); ``topics``: topic -> received, refused."""
+        and reason)."""
         out: dict[str, dict[str, Any]] = {}
         for topic, st in self.topic_stats.items():
             if st.refused_s is None:
@@ -319,9 +319,7 @@ class Ros2LiveSource(FrameSource):
             r["since_accepted"] += st.refused_since_used
             if r["last_rejected_s"] is None or st.refused_s > r["last_rejected_s"]:
                 r["last_rejected_s"], r["last_error"] = st.refused_s, st.problem or ""
-        topics = {t: {"received": st.received, "refused": st.refused}
-                  for t, st in self.topic_stats.items()}  # fmt: skip
-        return {"rejected_by_sensor": out, "topics": topics}
+        return {"rejected_by_sensor": out}
 
     def _lag(self, sensor: str, stamp_ns: int) -> None:
         """Note how far ``sensor``'s header stamps lie behind the time they arrive (its

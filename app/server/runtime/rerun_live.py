@@ -23,8 +23,6 @@ import time
 import uuid
 from urllib.parse import urlsplit
 
-import numpy as np
-
 from trifuse.app.errors import describe_error
 from trifuse.app.latest_worker import LatestWorker
 from trifuse.app.recording.rerun_log import RerunHead, require_rerun
@@ -32,7 +30,6 @@ from trifuse.app.server.runtime.map_worker import MapWorker
 from trifuse.app.server.runtime.pipeline import FusionPipeline
 from trifuse.app.server.runtime.stream import FrameHub
 from trifuse.app.sources.frames import FrameSet
-from trifuse.fusion.map_view import map_cloud
 
 DEFAULT_ADDRESS = "rerun+http://127.0.0.1:9876/proxy"
 """A rerun viewer on this machine (``rerun`` listens there by default)."""
@@ -174,12 +171,9 @@ class RerunLive:
         if m is None or now < self._map_s or m.frames == self._map_frames:
             return
         self._map_s = now + MAP_S
-        with m.lock:
+        assert self.head is not None
+        with m.lock:  # the map holds still while its points are taken
             if m.T_world_rig is None or not m.map.path:
                 return
             self._map_frames = m.frames
-            cloud = map_cloud(m.map, max_points=MAP_POINTS)
-            path = np.array([T[:3, 3] for _, T in m.map.path])
-            T_world_rig = m.T_world_rig.copy()
-        assert self.head is not None
-        self.head.log_map(stamp_ns, cloud, T_world_rig, path)
+            self.head.log_map(stamp_ns, m.map, m.T_world_rig, MAP_POINTS)

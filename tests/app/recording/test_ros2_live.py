@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 from collections import defaultdict
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -40,6 +41,15 @@ def loopback_dds(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK_DDS)
 
 
+def _publisher(
+    seconds: float, rig_file: Path, *options: str, stdout: int = subprocess.DEVNULL
+) -> subprocess.Popen:
+    """The ROS 2 publisher stand-in for ``seconds`` on this test's domain (text output)."""
+    command = [sys.executable, "-m", "trifuse.app.devtools.ros2_publisher", str(seconds),
+               "--rig", str(rig_file), "--domain", str(DOMAIN), *options]  # fmt: skip
+    return subprocess.Popen(command, stdout=stdout, text=True)
+
+
 def test_frames_arrive_with_their_stamps_and_units_and_are_fused(tmp_path) -> None:
     rig = small_rig()
     rig_file = save_rig(tmp_path / "rig.yaml", rig)
@@ -50,11 +60,7 @@ def test_frames_arrive_with_their_stamps_and_units_and_are_fused(tmp_path) -> No
     pipeline.set_listeners.append(
         lambda fs: [seen[n].setdefault(f.stamp_ns, f) for n, f in fs.frames.items()]  # type: ignore[func-returns-value]
     )
-    publisher = subprocess.Popen(
-        [sys.executable, "-m", "trifuse.app.devtools.ros2_publisher", str(SECONDS),
-         "--rig", str(rig_file), "--domain", str(DOMAIN)],
-        stdout=subprocess.PIPE, text=True,
-    )  # fmt: skip
+    publisher = _publisher(SECONDS, rig_file, stdout=subprocess.PIPE)
     try:
         with hub.watching():
             pipeline.start()
@@ -110,12 +116,7 @@ def test_a_sensor_stamped_late_is_named(tmp_path) -> None:
     a colour frame), said once in the Source panel's notes; the others are not named."""
     rig = small_rig()
     source = Ros2LiveSource(topic_map_from_yaml(TOPIC_MAP), rig, domain_id=DOMAIN)
-    publisher = subprocess.Popen(
-        [sys.executable, "-m", "trifuse.app.devtools.ros2_publisher", "4",
-         "--rig", str(save_rig(tmp_path / "rig.yaml", rig)), "--domain", str(DOMAIN),
-         "--late", "thermal_left:150"],
-        stdout=subprocess.DEVNULL,
-    )  # fmt: skip
+    publisher = _publisher(4, save_rig(tmp_path / "rig.yaml", rig), "--late", "thermal_left:150")
     threading.Thread(target=lambda: [None for _ in source.frames()], daemon=True).start()
     try:
         publisher.wait(timeout=60)
@@ -138,12 +139,7 @@ def test_the_heads_pose_comes_from_tf2(tmp_path) -> None:
 
     rig = small_rig()
     text = TOPIC_MAP + "pose: {world: odom, rig: tof_link}\n"
-    publisher = subprocess.Popen(
-        [sys.executable, "-m", "trifuse.app.devtools.ros2_publisher", "4",
-         "--rig", str(save_rig(tmp_path / "rig.yaml", rig)), "--domain", str(DOMAIN),
-         "--tf", "odom:tof_link"],
-        stdout=subprocess.DEVNULL,
-    )  # fmt: skip
+    publisher = _publisher(4, save_rig(tmp_path / "rig.yaml", rig), "--tf", "odom:tof_link")
     time.sleep(0.5)  # the static transform is out before the source exists
     source = Ros2LiveSource(topic_map_from_yaml(text), rig, domain_id=DOMAIN)
     tofs = []
