@@ -31,6 +31,7 @@ import pytest
 from tests.browser_support import (
     TEST_BOARD_POSES,
     WAIT_MS,
+    element_shot,
     needs_chromium,
     run_calibration,
     start_console,
@@ -125,7 +126,7 @@ def _check_next_view_guidance(page, tmp_path: Path) -> None:
     page.wait_for_timeout(2000)
     page.screenshot(path=str(tmp_path / "next-pose-panel.png"), full_page=True)
     image = page.get_by_text(re.compile(r"^next view: ")).locator("..")
-    image.screenshot(path=str(tmp_path / "next-pose-image.png"))
+    element_shot(image, path=str(tmp_path / "next-pose-image.png"))  # the panel re-makes it
     subject = re.search(r"next view: (\w+)", page.evaluate("() => document.body.innerText"))
     page.wait_for_function(  # the same outline in the subject's Feeds image
         f"(name) => ({CYAN_PIXELS_JS})(name) > 100", arg=subject.group(1), polling=500
