@@ -294,7 +294,14 @@ def make_viser_router(
             for t in tasks:
                 t.cancel()
             with contextlib.suppress(Exception):
-                await upstream.close()
+                try:
+                    await upstream.close()
+                except asyncio.CancelledError:
+                    # Cancelled while closing (the server stopping, a test client
+                    # leaving): drop the TCP connection, or Viser keeps counting the
+                    # client until its next keepalive ping, 20 s on.
+                    upstream.transport.abort()
+                    raise
             with contextlib.suppress(RuntimeError, WebSocketDisconnect):
                 await client.close()
 
