@@ -8,10 +8,8 @@ the rig again. A wrong address: one line."""
 
 from __future__ import annotations
 
-import signal
 import socket
 import subprocess
-import sys
 import threading
 import time
 from collections import defaultdict
@@ -32,9 +30,12 @@ from trifuse.calib.rig import Rig
 from trifuse.calib.transforms import make_T
 
 pytest.importorskip("rerun", reason="the [rerun] extra (in the test extra)")
+import rerun_cli
 from rerun.chunk import RrdReader
 
-RERUN = Path(sys.executable).with_name("rerun")  # the rerun-sdk's viewer command
+# The rerun-sdk's viewer itself: its ``rerun`` command is a Python wrapper that runs this
+# binary as a child, and a signal sent to the wrapper alone can leave the child listening.
+RERUN = Path(rerun_cli.__file__).with_name("rerun")
 
 
 class PacedSource(ListSource):
@@ -89,7 +90,9 @@ def _entities(path: Path) -> dict[str, list[str]]:
 
 
 def _stop(proc: subprocess.Popen) -> None:
-    proc.send_signal(signal.SIGINT)  # it finishes its file
+    # SIGTERM, not SIGINT: a process started in the background inherits SIGINT ignored
+    # (a busy round launched with ``&`` left every viewer running; the test then waited)
+    proc.terminate()  # it finishes its file
     try:
         proc.wait(timeout=20)
     except subprocess.TimeoutExpired:
