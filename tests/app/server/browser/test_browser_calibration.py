@@ -127,9 +127,12 @@ def _check_next_view_guidance(page, tmp_path: Path) -> None:
     page.screenshot(path=str(tmp_path / "next-pose-panel.png"), full_page=True)
     image = page.get_by_text(re.compile(r"^next view: ")).locator("..")
     element_shot(image, path=str(tmp_path / "next-pose-image.png"))  # the panel re-makes it
-    subject = re.search(r"next view: (\w+)", page.evaluate("() => document.body.innerText"))
-    page.wait_for_function(  # the same outline in the subject's Feeds image
-        f"(name) => ({CYAN_PIXELS_JS})(name) > 100", arg=subject.group(1), polling=500
+    # the same outline in the Feeds image of the sensor the caption names, read together:
+    # the panel re-makes its image (the caption is briefly absent, its subject may change)
+    page.wait_for_function(
+        "() => { const m = /next view: (\\w+)/.exec(document.body.innerText);"
+        f" return m !== null && ({CYAN_PIXELS_JS})(m[1]) > 100; }}",
+        polling=500,
     )
     # the ghost board in the 3D scene, near the head: zoom in on it (for the eye only)
     page.mouse.move(250, 570)
