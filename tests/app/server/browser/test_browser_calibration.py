@@ -85,8 +85,13 @@ def _views_on_disk(workdir: Path) -> list[str]:
     return [v.name for v in load_capture(workdir / "captures").views]
 
 
+VIEWS_LINE = r"^(\d+) views$"
+"""The Calibration folder's count of captured views, a line of its own (the next-view line
+also says "N views so far", and it is recomputed later)."""
+
+
 def _views_shown(page) -> int:
-    m = re.search(r"(\d+) views", page.evaluate("() => document.body.innerText"))
+    m = re.search(VIEWS_LINE, page.evaluate("() => document.body.innerText"), re.MULTILINE)
     return int(m.group(1)) if m else 0
 
 
@@ -153,6 +158,8 @@ def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path)
     proc, console = start_console(args, log_path=log)
     try:
         page = browser.new_page(viewport={"width": 900, "height": 1200})
+        page_log: list[str] = []  # what the page logs, for a failure's message
+        page.on("console", lambda m: page_log.append(m.text[:200]))
         page.goto(console.signin("/console/"))
         page.wait_for_function("() => !document.body.innerText.includes('Connecting...')")
         page.wait_for_function("() => document.body.innerText.includes('Next view:')")
@@ -184,7 +191,7 @@ def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path)
         tick_box(page, page.get_by_label("Auto-capture"), "Auto-capture")
         try:
             page.wait_for_function(
-                f"() => {{ const m = document.body.innerText.match(/(\\d+) views/);"
+                f"() => {{ const m = document.body.innerText.match(/{VIEWS_LINE}/m);"
                 f" return m && +m[1] >= {MIN_VIEWS}; }}",
                 timeout=900000,  # on a loaded machine the board search lags behind
                 polling=2000,
@@ -192,9 +199,20 @@ def test_calibration_session_from_the_browser_survives_a_kill(browser, tmp_path)
         except PlaywrightTimeout:  # why the last pose was not taken, for the next look
             text = page.evaluate("() => document.body.innerText")
             lines = [ln for ln in text.splitlines() if re.search(r"Not taken|uto-captur", ln)]
+            on_disk, shown = len(_views_on_disk(workdir)), _views_shown(page)
+            page.screenshot(path=str(tmp_path / "auto-capture-timeout.png"))
+            # A page that stopped following the console (busy round, session 33: 20 views on
+            # disk, the page showing 15 and view 0017's message for ten minutes) against a
+            # console that stopped counting: the same page loaded afresh.
+            page.reload()
+            page.wait_for_function(
+                "() => !document.body.innerText.includes('Connecting...')", timeout=300000
+            )
+            poll_until(lambda: _views_shown(page) >= on_disk, 120.0, poll_s=1.0)
             pytest.fail(
-                f"auto-capture: {len(_views_on_disk(workdir))} views on disk after 900 s, "
-                f"not {MIN_VIEWS} (the panel counts {_views_shown(page)}); it says: {lines}"
+                f"auto-capture: {on_disk} views on disk after 900 s, not {MIN_VIEWS} (the "
+                f"panel counts {shown}, {_views_shown(page)} once reloaded); it says: {lines}; "
+                f"the page's last messages: {page_log[-15:]}"
             )
         page.get_by_label("Auto-capture").uncheck()
         shown = _views_shown(page)
