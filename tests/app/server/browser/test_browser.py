@@ -229,8 +229,9 @@ def test_viewer_colour_scale_shows_the_palette_and_span_in_each_eye(console, bro
     page = browser.new_page(viewport={"width": 1280, "height": 720})
     try:
         page.goto(console.signin("/"))
-        page.wait_for_function("() => window.trifuseStats && window.trifuseStats.scale")
-        s = page.evaluate(_SCALES)
+        # a picture in palette colours with its scales: one with no span yet (no scale) was
+        # once drawn right after the first scale had shown (session 33's busy round)
+        s = _scales_settled(page, "true", "the first picture with its colour scales")
         meta, (left, right) = s["meta"], s["scales"]
         assert meta["palette"] == fusion["palette"] and meta["span_auto"] is True
         low_c, high_c = (k - 273.15 for k in meta["span_k"])
