@@ -300,7 +300,9 @@ def test_viewer_colour_scale_shows_the_palette_and_span_in_each_eye(console, bro
 # the rows of its picture part that differ from the page's picture and the strip's colours.
 _XR_TEXTURE = """() => {
   const v = document.getElementById('view'), x = window.trifuseXrScales;
-  const sc = window.trifuseStats.scale, strip = x.xrStrip(v.width);
+  const sc = window.trifuseStats.scale;
+  if (!sc) return null;  // a picture without thermal colour: no scale
+  const strip = x.xrStrip(v.width);
   const c = document.createElement('canvas');
   c.width = v.width; c.height = v.height + strip;
   const g = c.getContext('2d');
@@ -314,7 +316,7 @@ _XR_TEXTURE = """() => {
   const s = g.getImageData(0, v.height, v.width, strip).data;
   let bright = 0;
   for (let i = 0; i < s.length; i += 4) bright += s[i] + s[i + 1] + s[i + 2] > 600;
-  return {strip, h: v.height, ends, changed, bright,
+  return {strip, h: v.height, ends, changed, bright, palette: sc.palette,
           ramp: row(v.height + Math.round(strip * 0.25))};
 }"""
 
@@ -375,11 +377,11 @@ def test_viewer_colour_scale_stays_beside_the_picture(console, browser) -> None:
         page.evaluate("() => document.exitFullscreen()")
 
         # WebXR: the strip under the picture, the picture's rows untouched, the ramp legible
-        xr = page.evaluate(_XR_TEXTURE)
+        xr = wait_on_page(page, lambda: page.evaluate(_XR_TEXTURE), "a picture with its scale")
         assert xr["changed"] == 0 and xr["strip"] >= 0.08 * xr["h"], xr["strip"]
         assert xr["bright"] > 2000  # the captions, ticks and the ramp's hot end, in white/yellow
         row = np.array(xr["ramp"]).reshape(-1, 4)[:, :3].astype(int)
-        table = palette(page.evaluate("() => window.trifuseStats.scale.palette")).astype(int)
+        table = palette(xr["palette"]).astype(int)  # the scale the strip was drawn with
         for left, (x0, x1) in zip((0, 1280), xr["ends"], strict=True):
             # each eye's ramp under its half: the palette from cold (left) to hot (right)
             assert left + 60 < x0 < left + 200 and left + 1080 < x1 < left + 1220, (x0, x1)
