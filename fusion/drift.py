@@ -77,8 +77,9 @@ is barely known: a refined rig 0.11 degrees off was seen once, where four gave 0
 PAIR_FLOOR_DEG = 0.02
 """The part of a pair's error that averaging does not remove (1-sigma per axis, degrees):
 the check's systematic error on the simulator, about 0.02 degrees (docs/FINDINGS.md),
-added to every pair's combined covariance. A sensor compared with two others is then known
-to 0.014 degrees at best, and ``drifted`` needs at least 0.21 degrees."""
+added to each measurement's covariance and to every pair's combined one. A sensor compared
+with two others is then known to 0.014 degrees at best, and ``drifted`` needs at least
+0.21 degrees."""
 REFUSE_DEG = 2.0
 """A correction larger than this, degrees, is refused by :func:`refined_rig`: recalibrate."""
 OUTLIER_D = 4.0
@@ -140,8 +141,9 @@ def _psd(a: np.ndarray) -> np.ndarray:
 
 def combine(measurements: list[PairRotation], huber_k: float = 2.0) -> PairEstimate | None:
     """A pair's measurements combined as a random-effects mean: each measurement's covariance
-    is its own plus ``Q``, the spread of the instants' true values that the measurements'
-    own covariances do not explain (the scene, the sensors' sync, a rig that is not rigid),
+    is its own plus :data:`PAIR_FLOOR_DEG`'s, plus ``Q``, the spread of the instants' true
+    values that the measurements' own covariances do not explain (the scene, the sensors'
+    sync, a rig that is not rigid),
     estimated from the scatter of the measurements nearer than :data:`OUTLIER_D` (three or
     more; started from the per-axis median absolute deviation); Huber weights on each
     measurement's Mahalanobis distance. The mean's covariance is the weighted information's
@@ -153,7 +155,10 @@ def combine(measurements: list[PairRotation], huber_k: float = 2.0) -> PairEstim
     if not measurements:
         return None
     th = np.stack([m.theta for m in measurements])
-    C = np.stack([m.cov for m in measurements])
+    # no instant is known better than the check's systematic error: a measurement whose
+    # patches claimed 0.00004 degrees along one direction once pulled a pair's roll by
+    # 0.75 degrees through its bounded Huber weight (BENCHMARKS.md, drift, session 33)
+    C = np.stack([m.cov for m in measurements]) + np.eye(3) * math.radians(PAIR_FLOOR_DEG) ** 2
     n = len(th)
     w = np.ones(n)
     mean = np.median(th, axis=0)
