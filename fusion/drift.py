@@ -24,11 +24,11 @@ notices it on ordinary scenes:
    reason (no TOF depth, a camera missing, too little structure yet, a sensor compared with
    only one other so that which of the two moved cannot be told).
 
-The TOF itself is not checked: the simulated head's 176 x 144 picture against the
-cameras' edges scatters by 0.3-1 degrees from frame to frame, with biases of the same size,
-where a check needs 0.05 degrees (docs/FINDINGS.md); its verdict is ``undecided`` with that reason.
-A turned TOF moves the fusion far less than a turned camera: the TOF only supplies depth,
-and a rotation of the depth changes the parallax correction, not where a camera looks.
+The TOF is compared with the first two colour cameras through its own depth edges
+(:mod:`fusion.drift_tof`: where its mixed pixels put an object's outline against where the
+camera sees it); those measurements join the pairs' as ``delta_tof - delta_camera``. A TOF
+turned 0.3 degrees reads within 0.03 degrees in an instant on the simulator, about the
+optical axis within 0.1.
 
 Only rotations are estimated. A sensor shifted by 2 mm moves its picture by 0.8 thermal
 pixels at 1 m and 0.2 at 4 m (fx 400), a turn of 0.1 degrees by 0.7 pixels at any depth: on
@@ -51,11 +51,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any, Literal
 
+import cv2
 import numpy as np
 
 from trifuse.calib.rig import Rig
 from trifuse.calib.transforms import invert, make_T, rotation_from_rvec
 from trifuse.fusion.drift_align import PairProbe, PairRotation, work_image
+from trifuse.fusion.drift_tof import TofEdgeProbe
 from trifuse.fusion.geometry import tof_sensor_name
 from trifuse.fusion.mapping import MappingOptions, TofGrid
 
@@ -89,11 +91,6 @@ MAX_SPREAD_S = 0.012
 """An instant is measured only when its frames' stamps lie within this many seconds of each
 other (:func:`synchronous`): a head turning at 4 degrees a second turns 0.05 degrees in
 12 ms, which two sensors' frames taken that far apart would read as drift."""
-TOF_NOT_CHECKED = (
-    "the TOF's own rotation is not checked: its picture does not resolve it against the "
-    "cameras' edges (it only supplies depth; a turned TOF moves the fusion far less than a "
-    "turned camera)"
-)
 
 
 def synchronous(frames: Mapping[str, Any], max_spread_s: float = MAX_SPREAD_S) -> bool:
@@ -119,6 +116,20 @@ def camera_pairs(rig: Rig) -> list[tuple[str, str]]:
             seen.add(key)
             out.append((a, b))
     return out
+
+
+def tof_partners(rig: Rig, tof: str | None) -> list[tuple[str, str]]:
+    """The TOF's measurements, (tof, camera): against the first two colour cameras
+    (:mod:`fusion.drift_tof`); none without a TOF."""
+    if tof is None:
+        return []
+    return [(tof, c) for c in rig.by_modality("color")[:2]]
+
+
+def grey(image: np.ndarray) -> np.ndarray:
+    """A colour camera's picture (h, w, 3) RGB or (h, w) as (h, w) uint8/float grey."""
+    a = np.ascontiguousarray(image)
+    return cv2.cvtColor(a, cv2.COLOR_RGB2GRAY) if a.ndim == 3 else a
 
 
 @dataclass(frozen=True)
@@ -357,8 +368,9 @@ class DriftCheck:
     :data:`WINDOW_S` seconds (module docstring).
 
     :meth:`measure` per instant (a frame set with every camera's image and the TOF's
-    distance; about 0.3 s of one core for the simulated head's four pairs); :meth:`report`
-    whenever a verdict is wanted. Not thread-safe: one thread measures and reports.
+    distance and amplitude; about 0.3 s of one core for the simulated head's four pairs and
+    the TOF's two); :meth:`report` whenever a verdict is wanted. Not thread-safe: one thread
+    measures and reports.
     """
 
     def __init__(self, rig: Rig, window_s: float = WINDOW_S) -> None:
@@ -370,7 +382,9 @@ class DriftCheck:
         except (KeyError, ValueError):
             self.tof = None
         self.pairs = camera_pairs(rig)
+        self.tof_pairs = tof_partners(rig, self.tof)
         self._probes: list[PairProbe] | None = None
+        self._tof_probes: list[TofEdgeProbe] = []
         self._grid: TofGrid | None = None
         self._history: deque[tuple[float, list[PairRotation]]] = deque()
         self._problems: deque[str] = deque(maxlen=8)
@@ -382,6 +396,7 @@ class DriftCheck:
             assert self.tof is not None
             self._grid = TofGrid(self.rig, self.tof)
             self._probes = [PairProbe(self.rig, a, b, self._grid) for a, b in self.pairs]
+            self._tof_probes = [TofEdgeProbe(self.rig, a, b) for a, b in self.tof_pairs]
         return self._probes, self._grid
 
     def measure(self, t_s: float, frames: Mapping[str, Any]) -> list[PairRotation]:
@@ -412,6 +427,19 @@ class DriftCheck:
                 if n not in images:
                     images[n] = work_image(self.rig[n], frames[n].image)
             r = probe.measure(images[probe.work], images[probe.other], points)
+            if isinstance(r, str):
+                self._problem(r)
+            else:
+                out.append(r)
+        amplitude = getattr(tof, "image", None)
+        if amplitude is not None and np.shape(amplitude) != np.shape(tof.distance_m):
+            amplitude = None
+        for tp in self._tof_probes:
+            cam = frames.get(tp.other)
+            if cam is None:
+                self._problem(f"no frame of {tp.other} at this instant")
+                continue
+            r = tp.measure(tof.distance_m, amplitude, grey(cam.image))
             if isinstance(r, str):
                 self._problem(r)
             else:
@@ -457,11 +485,8 @@ class DriftCheck:
         sensors: dict[str, SensorCheck] = {}
         for name in self.rig.names:
             s = self.rig[name]
-            if s.modality == "tof":
-                sensors[name] = SensorCheck("undecided", None, None, TOF_NOT_CHECKED)
-                continue
             if name not in rot:
-                if not any(name in pair for pair in self.pairs):
+                if not any(name in pair for pair in self.pairs + self.tof_pairs):
                     why = "not compared: no pair of this rig includes it"
                 elif not self._history:
                     why = problems[-1] if problems else "nothing measured yet"

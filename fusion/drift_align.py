@@ -285,8 +285,9 @@ def align_patches(
 class PairRotation:
     """One measurement of a pair: ``theta`` (3,) radians and its covariance (3, 3) rad^2,
     in the rig frame (``delta_work^rig - delta_other^rig``, module docstring); ``patches``
-    used, ``scale``: the fit's normalised residual (about 1 when the patches' own
-    uncertainties explain their scatter; the covariance includes it when above 1)."""
+    used (the TOF's outline points, :mod:`fusion.drift_tof`), ``scale``: the fit's
+    normalised residual (about 1 when the patches' own uncertainties explain their scatter;
+    the covariance includes it when above 1)."""
 
     work: str
     other: str

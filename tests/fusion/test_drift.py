@@ -10,21 +10,18 @@ tolerances below: the issue's own 0.1 degrees for the refined rig, 0.05 for the 
 
 from __future__ import annotations
 
-import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from tests.drift_support import TIMES_S, render, run, turned
 from trifuse.app.sources.sim.head import default_rig
-from trifuse.app.sources.sim.inspection import InspectionScenario
 from trifuse.calib.rig import Rig
-from trifuse.calib.transforms import rotation_angle_deg, rotation_from_rvec
+from trifuse.calib.transforms import rotation_angle_deg
 from trifuse.fusion.drift import (
     DRIFT_DEG,
     PAIR_FLOOR_DEG,
-    TOF_NOT_CHECKED,
-    DriftCheck,
     DriftReport,
     PairEstimate,
     RefineRefused,
@@ -39,21 +36,6 @@ from trifuse.fusion.drift import (
 )
 from trifuse.fusion.drift_align import PairProbe, PairRotation, work_image
 from trifuse.fusion.mapping import TofGrid
-
-TIMES_S = (1.0, 6.0, 11.0, 16.0, 21.0, 26.0)
-"""Instants over the head's 30 s pan (different views of the room)."""
-
-
-def turned(rig: Rig, name: str, rotation_deg: tuple[float, float, float]) -> Rig:
-    s = rig[name]
-    T = s.T_rig_sensor.copy()
-    T[:3, :3] = T[:3, :3] @ rotation_from_rvec(np.radians(rotation_deg))
-    return rig.with_sensor(dataclasses.replace(s, T_rig_sensor=T))
-
-
-def render(rig: Rig, times: tuple[float, ...]) -> list[tuple[float, dict]]:
-    scenario = InspectionScenario(rig=rig, live=True, seed=5)
-    return [(t, scenario.render(t)[0].frames) for t in times]
 
 
 @pytest.fixture(scope="module")
@@ -71,13 +53,6 @@ def rolled_frames(rig: Rig) -> list[tuple[float, dict]]:
     """thermal_left turned 0.3 degrees about its optical axis (the hardest axis: a roll
     moves the picture's centre not at all)."""
     return render(turned(rig, "thermal_left", (0.0, 0.0, 0.3)), TIMES_S)
-
-
-def run(rig: Rig, frames: list[tuple[float, dict]]) -> DriftReport:
-    check = DriftCheck(rig)
-    for t, fs in frames:
-        check.measure(t, fs)
-    return check.report()
 
 
 # -- one pair, one instant ------------------------------------------------------------------
@@ -111,8 +86,7 @@ def test_a_pair_measures_its_work_cameras_turn_in_the_rig_frame(rig: Rig) -> Non
 def test_the_true_rig_is_ok_everywhere(rig: Rig, true_frames: list) -> None:
     report = run(rig, true_frames)
     assert report.instants == len(TIMES_S)
-    assert report.sensors["tof"] == SensorCheck("undecided", None, None, TOF_NOT_CHECKED)
-    for name in ("ccd_left", "ccd_right", "thermal_left", "thermal_right"):
+    for name in ("tof", "ccd_left", "ccd_right", "thermal_left", "thermal_right"):
         s = report.sensors[name]
         assert s.verdict == "ok", (name, s)
         assert s.angle_deg < 0.05, (name, s)
@@ -127,7 +101,7 @@ def test_a_rolled_thermal_imager_is_drifted_and_refined_within_a_tenth_of_a_degr
     s = report.sensors["thermal_left"]
     assert np.linalg.norm(np.subtract(s.rotation_deg, (0, 0, 0.3))) < 0.1, s
     assert set(s.pairs) == {"ccd_left", "thermal_right"}
-    for name in ("ccd_left", "ccd_right", "thermal_right"):
+    for name in ("tof", "ccd_left", "ccd_right", "thermal_right"):
         assert report.sensors[name].verdict == "ok", report.sensors[name]
     refined = refined_rig(rig, report)
     truth = turned(rig, "thermal_left", (0.0, 0.0, 0.3))

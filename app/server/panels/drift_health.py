@@ -1,7 +1,7 @@
 """The calibration's health at the top of the Calibration panel (issue 34 item 3).
 
 One line, "Calibration health: thermal_left DRIFTED 0.31° (σ 0.01°); others ok" (or "ok:
-every camera within 0.15°", "checking… (3 instants)", why nothing is measured), from the
+every sensor within 0.15°", "checking… (3 instants)", why nothing is measured), from the
 console's drift check (:class:`~app.server.runtime.drift_watch.DriftWatch`); while a camera
 is drifted an alert box under it ("⚠ thermal_left has turned 0.31° against the rig: refine
 or recalibrate": Viser has notifications per browser only, which die on reconnect, so the

@@ -183,7 +183,7 @@ class DriftSensor(BaseModel):
 
     verdict: Literal["ok", "drifted", "undecided"] = Field(
         description="ok: turned less than 0.15°, known to 0.05°; drifted: more than 0.15° by "
-        "4 σ; undecided: not known well enough yet, or not checked (the TOF), with the reason"
+        "4 σ; undecided: not known well enough yet, with the reason"
     )
     rotation_deg: list[float] | None = Field(
         None, description="[x, y, z] rotation vector about the sensor's own axes, degrees"

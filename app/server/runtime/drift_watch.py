@@ -1,9 +1,10 @@
 """Calibration drift of the live head, checked in the background (issue 34 item 3).
 
-Whether each camera still sits where the rig in use says (:mod:`fusion.drift`: each pair of
-cameras compared through the TOF depth, a verdict per sensor over the last 60 s) is checked
-on the live frame sets by :class:`DriftWatch`, at most every :data:`PERIOD_S` and within
-:data:`CPU_SHARE` of a core, while the fusion is wanted (:mod:`app.server.runtime.demand`):
+Whether each sensor still sits where the rig in use says (:mod:`fusion.drift`: each pair of
+cameras compared through the TOF depth, the TOF's depth edges against the colour cameras, a
+verdict per sensor over the last 60 s) is checked on the live frame sets by
+:class:`DriftWatch`, at most every :data:`PERIOD_S` and within :data:`CPU_SHARE` of a core,
+while the fusion is wanted (:mod:`app.server.runtime.demand`):
 
 1. in the fusion thread (a set listener of :class:`~app.server.runtime.pipeline.
    FusionPipeline`), a frame set is taken when a check is due (and none is under way: a
@@ -155,13 +156,13 @@ class RefineResult:
     corrected: dict[str, SensorCheck]
 
 
-def cameras_of(rig: Rig, report: DriftReport) -> dict[str, SensorCheck]:
-    """The report's checks of the rig's cameras (the TOF is never checked: its verdict is
-    always ``undecided``)."""
+def sensors_of(rig: Rig, report: DriftReport) -> dict[str, SensorCheck]:
+    """The report's checks of the rig's sensors the check judges: the cameras (colour and
+    thermal) and the TOF."""
     return {
         n: s
         for n, s in report.sensors.items()
-        if n in rig.sensors and rig[n].modality in ("color", "thermal")
+        if n in rig.sensors and rig[n].modality in ("color", "thermal", "tof")
     }
 
 
@@ -172,44 +173,44 @@ def _sigma(s: SensorCheck) -> str:
 def health_summary(state: DriftState | None, waiting: str | None = None) -> str:
     """The calibration health in one line (without the ``calibration health:`` label the
     panel and the viewer put before it), e.g. ``thermal_left DRIFTED 0.31° (σ 0.01°);
-    others ok``, ``ok: every camera within 0.15° (24 instants)``, ``checking… (3 instants;
+    others ok``, ``ok: every sensor within 0.15° (24 instants)``, ``checking… (3 instants;
     ok: ccd_left)``, or why nothing is measured (``waiting``, when nothing is yet)."""
     if state is None:
         return f"not checked yet: {waiting}" if waiting else "checking… (0 instants)"
     report = state.report
-    cams = cameras_of(state.rig, report)
+    checked = sensors_of(state.rig, report)
     n = report.instants
     instants = f"{n} instant{'s' if n != 1 else ''}"
     by: dict[str, list[str]] = {}
-    for name, s in cams.items():
+    for name, s in checked.items():
         by.setdefault(s.verdict, []).append(name)
     drifted = by.get("drifted", [])
     if drifted:
         head = ", ".join(
-            f"{name} DRIFTED {cams[name].angle_deg or 0.0:.2f}°{_sigma(cams[name])}"
+            f"{name} DRIFTED {checked[name].angle_deg or 0.0:.2f}°{_sigma(checked[name])}"
             for name in drifted
         )
-        others = [name for name in cams if name not in drifted]
+        others = [name for name in checked if name not in drifted]
         if not others:
             return head
-        if all(cams[name].verdict == "ok" for name in others):
+        if all(checked[name].verdict == "ok" for name in others):
             return f"{head}; others ok"
         rest = "; ".join(f"{v}: {', '.join(by[v])}" for v in ("ok", "undecided") if v in by)
         return f"{head}; {rest}"
-    if cams and len(by.get("ok", [])) == len(cams):
-        return f"ok: every camera within {DRIFT_DEG}° ({instants})"
+    if checked and len(by.get("ok", [])) == len(checked):
+        return f"ok: every sensor within {DRIFT_DEG}° ({instants})"
     ok = by.get("ok", [])
     return f"checking… ({instants}{'; ok: ' + ', '.join(ok) if ok else ''})"
 
 
 def alerts(state: DriftState | None) -> list[str]:
-    """One alert per drifted camera, e.g. ``⚠ thermal_left has turned 0.31° against the
+    """One alert per drifted sensor, e.g. ``⚠ thermal_left has turned 0.31° against the
     rig: refine or recalibrate`` (a turn beyond :data:`fusion.drift.REFUSE_DEG` is not
     refined: ``recalibrate with the board``)."""
     if state is None:
         return []
     out = []
-    for name, s in cameras_of(state.rig, state.report).items():
+    for name, s in sensors_of(state.rig, state.report).items():
         if s.verdict != "drifted":
             continue
         angle = s.angle_deg or 0.0

@@ -28,18 +28,16 @@ from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD
 from trifuse.app.workflows.calib_session import CalibrationSession
 from trifuse.calib.rig import Rig
 from trifuse.calib.transforms import make_T, rotation_from_rvec
-from trifuse.fusion.drift import TOF_NOT_CHECKED, DriftReport, SensorCheck
+from trifuse.fusion.drift import DriftReport, SensorCheck
 
 T0_NS = 5_000_000_000
 
 
 def report_of(rig: Rig, drifted: dict[str, tuple[float, float, float]]) -> DriftReport:
-    """Every camera ``ok`` and unturned but ``drifted`` (name -> rotation, degrees)."""
+    """Every sensor ``ok`` and unturned but ``drifted`` (name -> rotation, degrees)."""
     sensors = {}
     for name in rig.names:
-        if rig[name].modality == "tof":
-            sensors[name] = SensorCheck("undecided", None, None, TOF_NOT_CHECKED)
-        elif name in drifted:
+        if name in drifted:
             sensors[name] = SensorCheck("drifted", drifted[name], (0.01,) * 3, "turned")
         else:
             sensors[name] = SensorCheck("ok", (0.0, 0.0, 0.0), (0.01,) * 3, "within 0.15°")
@@ -144,12 +142,12 @@ def test_the_status_reports_the_drift_block(console) -> None:
     assert left["verdict"] == "drifted" and left["rotation_deg"] == [0.0, 0.31, 0.0]
     assert left["angle_deg"] == pytest.approx(0.31) and left["sigma_max_deg"] == 0.01
     assert block["sensors"]["tof"] == {
-        "verdict": "undecided",
-        "rotation_deg": None,
-        "sigma_deg": None,
-        "angle_deg": None,
-        "sigma_max_deg": None,
-        "reason": TOF_NOT_CHECKED,
+        "verdict": "ok",
+        "rotation_deg": [0.0, 0.0, 0.0],
+        "sigma_deg": [0.01, 0.01, 0.01],
+        "angle_deg": 0.0,
+        "sigma_max_deg": 0.01,
+        "reason": "within 0.15°",
         "pairs": [],
     }
     assert block["summary"] == "thermal_left DRIFTED 0.31° (σ 0.01°); others ok"
@@ -214,7 +212,7 @@ def test_refine_saves_the_next_version_and_puts_it_in_use(console) -> None:
     status, body = console.refine()
     assert status == 409 and "has not been checked yet" in body["detail"]
     console.measure(report_of(console.pipeline.rig, {}))
-    assert console.drift()["summary"] == "ok: every camera within 0.15° (5 instants)"
+    assert console.drift()["summary"] == "ok: every sensor within 0.15° (5 instants)"
 
 
 @pytest.mark.slow  # renders 4 instants of the inspection room: 10-30 s

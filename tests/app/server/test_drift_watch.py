@@ -35,7 +35,7 @@ from trifuse.app.sources.sim.scenarios import CALIBRATION_BOARD
 from trifuse.app.workflows.calib_session import CalibrationSession, RigVersion
 from trifuse.calib.rig import Rig
 from trifuse.calib.transforms import make_T, rotation_from_rvec
-from trifuse.fusion.drift import TOF_NOT_CHECKED, DriftReport, RefineRefused, SensorCheck
+from trifuse.fusion.drift import DriftReport, RefineRefused, SensorCheck
 
 T0_NS = 5_000_000_000
 
@@ -55,13 +55,10 @@ def frame_set(rig: Rig, stamp_ns: int, seed: int, spread_ns: int = 0, skip: tupl
 def report_of(
     rig: Rig, verdicts: dict[str, tuple[str, tuple[float, float, float] | None]]
 ) -> DriftReport:
-    """A report with each camera's verdict and rotation (degrees, its own axes); cameras not
-    named are ``ok`` and unturned, the TOF is not checked."""
+    """A report with each sensor's verdict and rotation (degrees, its own axes); sensors not
+    named are ``ok`` and unturned."""
     sensors = {}
     for name in rig.names:
-        if rig[name].modality == "tof":
-            sensors[name] = SensorCheck("undecided", None, None, TOF_NOT_CHECKED)
-            continue
         verdict, rot = verdicts.get(name, ("ok", (0.0, 0.0, 0.0)))
         sigma = None if rot is None else (0.01, 0.01, 0.02)
         sensors[name] = SensorCheck(verdict, rot, sigma, f"{name}: {verdict}", ("ccd_left",))  # type: ignore[arg-type]
@@ -244,7 +241,7 @@ def test_the_status_block_and_its_health_line_and_alerts(fake) -> None:
     assert left["verdict"] == "drifted" and left["rotation_deg"] == [0, 0.31, 0]
     assert left["angle_deg"] == pytest.approx(0.31) and left["sigma_deg"] == [0.01, 0.01, 0.02]
     assert left["sigma_max_deg"] == 0.02 and left["reason"] and left["pairs"] == ["ccd_left"]
-    assert status["sensors"]["tof"]["angle_deg"] is None
+    assert status["sensors"]["tof"]["angle_deg"] == 0.0
     assert status["instants"] == 7 and status["age_s"] == 1.25 and status["measures"] == 1
     assert status["drifted"] == ["thermal_left"] and status["cpu_share"] is None  # one measure
     assert status["summary"] == "thermal_left DRIFTED 0.31° (σ 0.02°); others ok"
@@ -263,14 +260,15 @@ def test_the_health_line_in_words() -> None:
     assert health_summary(None, "the rig has no single TOF") == (
         "not checked yet: the rig has no single TOF"
     )
-    assert line({}) == "ok: every camera within 0.15° (7 instants)"
+    assert line({}) == "ok: every sensor within 0.15° (7 instants)"
     undecided = ("undecided", None)
     assert line({"thermal_left": undecided, "thermal_right": undecided}) == (
-        "checking… (7 instants; ok: ccd_left, ccd_right)"
+        "checking… (7 instants; ok: tof, ccd_left, ccd_right)"
     )
     assert line({n: undecided for n in rig.names}) == "checking… (7 instants)"
     assert line({"thermal_left": ("drifted", (0, 0.3, 0)), "ccd_right": undecided}) == (
-        "thermal_left DRIFTED 0.30° (σ 0.02°); ok: ccd_left, thermal_right; undecided: ccd_right"
+        "thermal_left DRIFTED 0.30° (σ 0.02°); ok: tof, ccd_left, thermal_right; undecided: "
+        "ccd_right"
     )
     far = report_of(rig, {"ccd_left": ("drifted", (2.5, 0, 0))})
     assert alerts(watch_module.DriftState(far, rig, 0.0, 0.1)) == [
@@ -372,7 +370,8 @@ def test_on_a_real_pipeline_the_fusion_thread_hands_sets_to_the_real_check() -> 
         assert status["measures"] >= 3 and status["instants"] == status["measures"]
         assert list(status["sensors"]) == rig.names
         assert all(s["verdict"] in ("ok", "undecided") for s in status["sensors"].values())
-        assert status["sensors"]["tof"]["reason"] == TOF_NOT_CHECKED
+        tof = status["sensors"]["tof"]
+        assert tof["verdict"] == "undecided" and tof["reason"], tof
         assert status["drifted"] == [] and status["alerts"] == []
     finally:
         watch.stop()
