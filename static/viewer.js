@@ -27,6 +27,35 @@
 "use strict";
 const canvas = document.getElementById("view");
 const ctx = canvas.getContext("2d");
+// The canvas's backing store has the size the picture is shown at (CSS px x devicePixelRatio,
+// never more than the picture's own), so the browser scales each frame once, as it draws it,
+// and composites only the pixels shown: a 2560 x 960 store shown at half that had Chromium's
+// software compositor scale 2.5 MP at every frame. `?canvas=full` in the URL (the browser
+// tests' and the link benchmark's comparisons with the console's picture) and a WebXR
+// session (its texture) keep the picture's own size.
+const picture = { width: canvas.width, height: canvas.height };  // the stream's picture (px)
+const fullCanvas = new URLSearchParams(location.search).get("canvas") === "full";
+let xrActive = false;
+
+function canvasSize() {
+  if (fullCanvas || xrActive) return [picture.width, picture.height];
+  const r = window.devicePixelRatio || 1;
+  const w = Math.round(canvas.clientWidth * r), h = Math.round(canvas.clientHeight * r);
+  if (!(w > 0 && h > 0)) return [picture.width, picture.height];  // hidden (MJPEG)
+  return [Math.min(w, picture.width), Math.min(h, picture.height)];
+}
+
+// The backing store at canvasSize(), showing what it showed (scaled) until the next frame.
+function fitCanvas() {
+  const [w, h] = canvasSize();
+  if (canvas.width === w && canvas.height === h) return;
+  const copy = document.createElement("canvas");
+  copy.width = canvas.width; copy.height = canvas.height;
+  copy.getContext("2d").drawImage(canvas, 0, 0);
+  canvas.width = w; canvas.height = h;
+  ctx.drawImage(copy, 0, 0, w, h);
+}
+new ResizeObserver(fitCanvas).observe(canvas);
 const overlay = document.getElementById("overlay");
 const pairBox = document.getElementById("pair");  // the picture and the scales' row under it
 const scaleEls = [...document.querySelectorAll(".scale")];
@@ -132,11 +161,12 @@ function connectJpeg() {
     bytesReceived(ev.data.size);
     const bitmap = await createImageBitmap(ev.data);
     if (conn.stopped) { bitmap.close(); return; }
-    if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
-      canvas.width = bitmap.width; canvas.height = bitmap.height;
+    if (picture.width !== bitmap.width || picture.height !== bitmap.height) {
+      picture.width = bitmap.width; picture.height = bitmap.height;
       pairBox.style.setProperty("--ar", String(bitmap.width / bitmap.height));
+      fitCanvas();
     }
-    ctx.drawImage(bitmap, 0, 0);
+    ctx.drawImage(bitmap, 0, 0, canvas.width, canvas.height);
     ws.send("ack");  // flow control: the server sends the newest frame after this
     bitmap.close();
     stats.codec = "JPEG";
@@ -179,7 +209,7 @@ function connectVideo(preset) {
   };
   const stream = openVideoStream(preset, {
     draw(frame, meta, decodeMs) {
-      // the canvas keeps its size (2560 x 960): a smaller level is scaled up to it
+      // scaled to the canvas (canvasSize): a smaller level as the full picture
       ctx.drawImage(frame, 0, 0, canvas.width, canvas.height);
       stats.codec = "H.264";
       stats.note = null;
@@ -644,6 +674,9 @@ async function setupVr() {
   button.disabled = false;
   button.onclick = async () => {
     const session = await navigator.xr.requestSession("immersive-vr");
+    xrActive = true;  // the texture at the picture's own size
+    fitCanvas();
+    session.addEventListener("end", () => { xrActive = false; fitCanvas(); });
     const glCanvas = document.createElement("canvas");
     const gl = glCanvas.getContext("webgl", { xrCompatible: true });
     session.updateRenderState({ baseLayer: new XRWebGLLayer(session, gl) });

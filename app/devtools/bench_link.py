@@ -170,8 +170,9 @@ def draw_figures(draws: list[list[float]], t0_ms: float, t1_ms: float) -> dict[s
 
 def _quality(page: Any, pictures: dict[int, np.ndarray | None]) -> dict[str, float]:
     """Mean SSIM and PSNR of the page's canvas samples against the server's pictures of the
-    same ``seq`` (a sample at another size is resized to the server's, as a display
-    would); ``quality_samples``: how many were compared."""
+    same ``seq``, at the size the page shows them (its canvas's: the server's picture scaled
+    down to it with ``INTER_AREA``; a larger sample is scaled to the server's size);
+    ``quality_samples``: how many were compared."""
     import cv2
 
     from trifuse.app.devtools.image_quality import psnr, ssim
@@ -184,9 +185,11 @@ def _quality(page: Any, pictures: dict[int, np.ndarray | None]) -> dict[str, flo
         if reference is None or not url:
             continue
         shown = _decode_data_url(url)
-        if shown.shape != reference.shape:
-            size = (reference.shape[1], reference.shape[0])
-            shown = cv2.resize(shown, size, interpolation=cv2.INTER_LINEAR)
+        (h, w), (rh, rw) = shown.shape[:2], reference.shape[:2]
+        if w < rw and h < rh:
+            reference = cv2.resize(reference, (w, h), interpolation=cv2.INTER_AREA)
+        elif (h, w) != (rh, rw):
+            shown = cv2.resize(shown, (rw, rh), interpolation=cv2.INTER_LINEAR)
         ssims.append(ssim(reference, shown))
         psnrs.append(min(psnr(reference, shown), 99.0))
     nan = float("nan")

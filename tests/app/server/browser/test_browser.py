@@ -32,10 +32,11 @@ def test_viewer_shows_moving_fused_frames(console, browser) -> None:
     stats = page.evaluate(
         "() => ({frames: window.trifuseStats.frames,"
         " lat: window.trifuseStats.latencyMs, mode: window.trifuseStats.mode,"
-        " w: document.getElementById('view').width,"
+        " w: document.getElementById('view').width, h: document.getElementById('view').height,"
         " overlay: document.getElementById('overlay').textContent})"
     )
-    assert stats["mode"] == "websocket" and stats["w"] == 2560  # both eyes side by side
+    assert stats["mode"] == "websocket"  # both eyes side by side, at the size shown (8:3)
+    assert abs(stats["w"] * 3 - stats["h"] * 8) <= 8 and 0 < stats["w"] <= 2560, stats
     assert seqs == sorted(set(seqs)) and stats["frames"] >= len(seqs)
     # One figure per frame drawn with its metadata (the newest 120 kept); Date.now() counts
     # whole milliseconds, the publishing stamp is finer: no figure is below -1 ms.
@@ -316,7 +317,7 @@ _XR_TEXTURE = """() => {
   const s = g.getImageData(0, v.height, v.width, strip).data;
   let bright = 0;
   for (let i = 0; i < s.length; i += 4) bright += s[i] + s[i + 1] + s[i + 2] > 600;
-  return {strip, h: v.height, ends, changed, bright, palette: sc.palette,
+  return {strip, w: v.width, h: v.height, ends, changed, bright, palette: sc.palette,
           ramp: row(v.height + Math.round(strip * 0.25))};
 }"""
 
@@ -382,9 +383,11 @@ def test_viewer_colour_scale_stays_beside_the_picture(console, browser) -> None:
         assert xr["bright"] > 2000  # the captions, ticks and the ramp's hot end, in white/yellow
         row = np.array(xr["ramp"]).reshape(-1, 4)[:, :3].astype(int)
         table = palette(xr["palette"]).astype(int)  # the scale the strip was drawn with
-        for left, (x0, x1) in zip((0, 1280), xr["ends"], strict=True):
+        k = xr["w"] / 2560  # the page's canvas, at the size shown (a headset's: 2560 wide)
+        for left, (x0, x1) in zip((0, xr["w"] / 2), xr["ends"], strict=True):
             # each eye's ramp under its half: the palette from cold (left) to hot (right)
-            assert left + 60 < x0 < left + 200 and left + 1080 < x1 < left + 1220, (x0, x1)
+            assert left + 60 * k < x0 < left + 200 * k, (x0, x1, k)
+            assert left + 1080 * k < x1 < left + 1220 * k, (x0, x1, k)
             for frac in (0.01, 0.25, 0.5, 0.75, 0.99):
                 got = row[round(x0 + frac * (x1 - x0))]
                 assert np.abs(got - table[round(frac * 255)]).sum() < 40, (left, frac, got)

@@ -56,6 +56,16 @@ def _stats(page: Any) -> dict[str, Any]:
     return page.evaluate(_STATS)
 
 
+def _shown(page: Any) -> tuple[int, int]:
+    """The size the picture's canvas is shown at, device pixels."""
+    return tuple(
+        page.evaluate(
+            "() => { const c = document.getElementById('view'), r = devicePixelRatio;"
+            " return [Math.round(c.clientWidth * r), Math.round(c.clientHeight * r)]; }"
+        )
+    )
+
+
 def _open(console: Any, browser: Any, query: str = "", init_script: str | None = None) -> Any:
     """A signed-in viewer page at ``/`` + ``query`` (its console errors in ``page.errors``)."""
     page = browser.new_page(viewport={"width": 1280, "height": 540})
@@ -87,7 +97,8 @@ def _wait_codec(page: Any, codec: str, more_frames: int = 3) -> dict[str, Any]:
 
 def test_video_stream_draws_moving_frames_with_its_figures(console, browser) -> None:
     """With WebCodecs the viewer takes the video stream (the console's default preset, auto):
-    decoded frames are drawn into the 2560 x 960 canvas and the picture moves; the overlay
+    decoded frames are drawn into the canvas at the size it is shown at (its backing store
+    follows the window; ``?canvas=full``: 2560 x 960) and the picture moves; the overlay
     names H.264, the received Mbit/s and the console's bitrate target and level, which
     ``trifuseStats`` carries too. A screenshot goes to /tmp/shots/viewer-video.png."""
     page = _open(console, browser)
@@ -96,7 +107,7 @@ def test_video_stream_draws_moving_frames_with_its_figures(console, browser) -> 
     first = page.evaluate(_FINGERPRINT)
     page.wait_for_function(_CHANGED, arg=first)  # the head pans: the picture moves
     s = _wait_codec(page, "H.264", more_frames=30)
-    assert (s["w"], s["h"]) == (2560, 960)  # every level is drawn at the display size
+    assert (s["w"], s["h"]) == _shown(page) and s["w"] < 2560, s  # every level, as shown
     assert s["level"] in LEVEL_SIZES and s["coded"] == LEVEL_SIZES[s["level"]], s
     assert 300_000 <= s["bitrateBps"] <= 8_000_000 and s["mbps"] > 0 and s["fps"] > 0, s
     page.wait_for_function(  # the overlay's next refresh shows the frames counted above
@@ -115,7 +126,19 @@ def test_video_stream_draws_moving_frames_with_its_figures(console, browser) -> 
     assert [v["preset"] for v in status] == ["auto"] and status[0]["frames_sent"] > 0, status
     SHOT.parent.mkdir(parents=True, exist_ok=True)
     page.screenshot(path=str(SHOT))
+    page.set_viewport_size({"width": 1800, "height": 760})  # the backing store follows
+    page.wait_for_function(
+        "([w, h]) => { const c = document.getElementById('view'); return c.width > w"
+        " && c.width === Math.round(c.clientWidth * devicePixelRatio); }",
+        arg=[s["w"], s["h"]],
+    )
+    s = _wait_codec(page, "H.264", more_frames=5)
+    assert (s["w"], s["h"]) == _shown(page) and page.evaluate(_FINGERPRINT) != [0.0] * 864
     assert page.errors == []
+    page.close()
+    page = _open(console, browser, "?canvas=full")
+    s = _wait_codec(page, "H.264")
+    assert (s["w"], s["h"]) == (2560, 960) and page.errors == []
     page.close()
 
 
@@ -154,7 +177,8 @@ def test_stream_select_switches_presets_and_to_jpeg(console, browser) -> None:
         page.select_option("#stream", "1")
         page.wait_for_function("() => window.trifuseStats.level === '1'")
         s = _wait_codec(page, "H.264")
-        assert (s["level"], s["coded"], s["w"], s["h"]) == ("1", "1280x480", 2560, 960)
+        assert (s["level"], s["coded"]) == ("1", "1280x480")
+        assert (s["w"], s["h"]) == _shown(page)  # drawn at the size shown, as every level
         assert len(sockets) == opened  # the preset changed on the open socket
         # the overlay is redrawn twice a second: wait for the redraw after the change
         page.wait_for_function(
