@@ -17,7 +17,12 @@ it a replay dropped to keep real time (``dropped_hz``, the source's ``dropped``)
 (``speed_hz``) against the recording's rate is the replay's speed (a replay that slowed its
 clock would deliver fewer and drop none), and the console's cores
 (user + system CPU of its process tree over the window); with the viewer, the frames it
-drew a second (``trifuseStats.fps``). Medians over the windows.
+drew a second (``trifuseStats.fps``); and the cores each of the console's Python threads
+used (``GET /api/threads``, ``thread_<name>_cores``: the fusion thread, its eye, depth and
+replay-decode workers, the video encoder's ``asyncio`` workers, the server's ``MainThread``,
+the background checks ``drift-check``, ``registration-sigma``, ``thermal-balance``; workers
+of one pool summed; what C libraries' own threads use is in ``cores`` only). Medians over
+the windows.
 
 The replay's cost per frame set (the console's CPU over the frame sets it fused,
 ``replay_set_ms``) is compared with what a set needs, its steps measured alone on the same
@@ -27,6 +32,7 @@ the console ran at (``replay_necessary_ms``): ``replay_cost_ratio`` (issue 32: a
 
 from __future__ import annotations
 
+import re
 import statistics
 import subprocess
 import sys
@@ -72,10 +78,22 @@ def _dropped(status: dict[str, Any]) -> int:
     return int(((status.get("source") or {}).get("dropped") or {}).get(COLOR, 0))
 
 
+def _thread_cpu_s(console: ConsoleProcess) -> dict[str, float]:
+    """CPU seconds so far per thread name (``GET /api/threads``), a pool's workers summed
+    (``fusion-eye_0`` -> ``fusion_eye``)."""
+    out: dict[str, float] = {}
+    for t in console.get("/api/threads"):
+        if t["cpu_s"] is not None:
+            name = re.sub(r"[^a-z0-9]+", "_", re.sub(r"_\d+$", "", t["name"]).lower()).strip("_")
+            out[name] = out.get(name, 0.0) + float(t["cpu_s"])
+    return out
+
+
 def _window(console: ConsoleProcess, page: Any | None) -> dict[str, float]:
     """One window of :data:`WINDOW_S` s, asking the status once a second."""
     fps: list[float] = []
     rates: dict[str, list[float]] = {}
+    threads0 = _thread_cpu_s(console)
     cpu0, t0 = tree_cpu_s(console.pid), time.monotonic()
     first = console.status()
     dropped0, mapped0 = _dropped(first), int(first.get("depth_updates", 0))
@@ -86,6 +104,7 @@ def _window(console: ConsoleProcess, page: Any | None) -> dict[str, float]:
             rates.setdefault(sensor, []).append(float(hz))
         time.sleep(1.0)
     elapsed = time.monotonic() - t0
+    threads = _thread_cpu_s(console)
     last = console.status()
     dropped_hz = (_dropped(last) - dropped0) / elapsed
     color_hz = statistics.median(rates.get(COLOR, [0.0]))
@@ -97,6 +116,7 @@ def _window(console: ConsoleProcess, page: Any | None) -> dict[str, float]:
         "cores": (tree_cpu_s(console.pid) - cpu0) / elapsed,
         "mapped_hz": (int(last.get("depth_updates", 0)) - mapped0) / elapsed,
         **{f"rate_{s}_hz": statistics.median(v) for s, v in rates.items()},
+        **{f"thread_{n}_cores": (v - threads0.get(n, 0.0)) / elapsed for n, v in threads.items()},
     }
     if page is not None:
         out["drawn_fps"] = float(page.evaluate("() => window.trifuseStats.fps"))
@@ -107,7 +127,8 @@ def _phase(console: ConsoleProcess, windows: int, page: Any | None) -> dict[str,
     console.status()  # the demand turns wanted
     time.sleep(SETTLE_S)
     seen = [_window(console, page) for _ in range(windows)]
-    return {k: statistics.median(w[k] for w in seen) for k in seen[0]}
+    keys = dict.fromkeys(k for w in seen for k in w)  # a thread may start in a later window
+    return {k: statistics.median(w.get(k, 0.0) for w in seen) for k in keys}
 
 
 def _source(

@@ -26,6 +26,7 @@ from trifuse.app.server.routers.stream_routes import (
     make_stream_router,
     make_video_router,
 )
+from trifuse.app.server.routers.threads_api import make_threads_router
 from trifuse.app.server.routers.viser_bridge import make_viser_router
 from trifuse.app.server.runtime.drift_watch import DriftWatch
 from trifuse.app.server.runtime.pipeline import FusionPipeline
@@ -97,5 +98,6 @@ def create_app(
         app.include_router(make_measure_router(pipeline))  # /api/regions, ... (measure_api.py)
     # /api/status, /api/source/*, /api/recording/* (source_api.py)
     app.include_router(make_source_router(hub, pipeline, source_control, registration, drift))
+    app.include_router(make_threads_router())  # /api/threads (threads_api.py)
     app.include_router(make_pages_router())  # / (the viewer), /favicon.ico (pages.py)
     return app
