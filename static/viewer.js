@@ -30,9 +30,9 @@ const ctx = canvas.getContext("2d");
 // The canvas's backing store has the size the picture is shown at (CSS px x devicePixelRatio,
 // never more than the picture's own), so the browser scales each frame once, as it draws it,
 // and composites only the pixels shown: a 2560 x 960 store shown at half that had Chromium's
-// software compositor scale 2.5 MP at every frame. `?canvas=full` in the URL (the browser
-// tests' and the link benchmark's comparisons with the console's picture) and a WebXR
-// session (its texture) keep the picture's own size.
+// software compositor scale 2.5 MP at every frame. `?canvas=full` in the URL (a comparison
+// with the console's picture pixel for pixel) and a WebXR session (its texture) keep the
+// picture's own size.
 const picture = { width: canvas.width, height: canvas.height };  // the stream's picture (px)
 const fullCanvas = new URLSearchParams(location.search).get("canvas") === "full";
 let xrActive = false;
