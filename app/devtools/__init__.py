@@ -5,6 +5,6 @@
   stream soak (``trifuse bench --soak``).
 - ``console_process.py``: ``trifuse serve`` in a subprocess (started, awaited, stopped) for
   the benchmarks, the soak and the tests; ``browser_console.py``: its viewer page in
-  headless Chromium; ``stream_clients.py``: clients of its stream; ``procfs.py``: what
-  ``/proc`` says about it.
+  headless Chromium; ``stream_clients.py``: clients of its stream; what ``/proc`` says
+  about it is :mod:`app.procfs` (the console reads its own threads with it too).
 """

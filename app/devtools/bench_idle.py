@@ -17,8 +17,8 @@ from pathlib import Path
 
 from trifuse.app.devtools.benchmark import benchmark, check_repeat
 from trifuse.app.devtools.console_process import ConsoleProcess, prewarm_pose_cache
-from trifuse.app.devtools.procfs import tree_cpu_s
 from trifuse.app.devtools.stream_clients import FastViewer, cancel, wait_first_frames
+from trifuse.app.procfs import tree_cpu_s
 
 TARGET_CORES = 0.05
 """The issue's target for an idle console: 5 % of one core."""
@@ -33,7 +33,7 @@ START_TIMEOUT_S = 120.0
 
 async def _cores(pid: int, windows: int, window_s: float) -> list[float]:
     """Per window of ``window_s`` seconds: CPU seconds of the process tree ``pid``
-    (:func:`app.devtools.procfs.tree_cpu_s`) over wall seconds, i.e. cores used."""
+    (:func:`app.procfs.tree_cpu_s`) over wall seconds, i.e. cores used."""
     cores = []
     for _ in range(windows):
         cpu0, t0 = tree_cpu_s(pid), time.monotonic()
@@ -90,7 +90,7 @@ def idle(repeat: int) -> dict[str, float]:
     - ``after_viewer_cores``: nobody again, :data:`VIEWER_SETTLE_S` after it left.
 
     Cores: user + system CPU seconds of the console process and its descendants (``/proc``:
-    :func:`app.devtools.procfs.tree_cpu_s`) over a window, divided by the window's wall
+    :func:`app.procfs.tree_cpu_s`) over a window, divided by the window's wall
     time; medians over the windows. ``target_cores``: :data:`TARGET_CORES`, so that
     ``idle_cores / target_cores`` is at most 1 when the target is met. ``load_1min``: the
     machine's load average before the first window (others' work shows there).

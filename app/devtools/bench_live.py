@@ -45,7 +45,7 @@ from trifuse.app.devtools.benchmark import benchmark, check_repeat
 from trifuse.app.devtools.browser_console import headless_chromium, require_chromium
 from trifuse.app.devtools.console_process import ConsoleProcess, prewarm_pose_cache
 from trifuse.app.devtools.live_steps import necessary_ms, step_costs
-from trifuse.app.devtools.procfs import tree_cpu_s
+from trifuse.app.procfs import tree_cpu_s
 
 WINDOW_S = 10.0
 """One reading spans this many seconds; ``--repeat`` sets how many windows a phase has."""

@@ -21,9 +21,9 @@ from pathlib import Path
 
 from trifuse.app.devtools.benchmark import benchmark, check_repeat
 from trifuse.app.devtools.console_process import ConsoleProcess, stop_process
-from trifuse.app.devtools.procfs import tree_cpu_s
 from trifuse.app.devtools.ros2_publisher import TOPIC_MAP
 from trifuse.app.devtools.stream_clients import FastViewer, cancel, wait_first_frames
+from trifuse.app.procfs import tree_cpu_s
 
 WINDOW_S = 10.0
 """One reading spans this many seconds; ``--repeat`` sets how many."""

@@ -82,7 +82,6 @@ from pathlib import Path
 from typing import Any
 
 from trifuse.app.devtools.console_process import ConsoleProcess, prewarm_pose_cache
-from trifuse.app.devtools.procfs import sample_process
 from trifuse.app.devtools.soak_report import (
     CRITERIA,
     SLOW_KINDS,
@@ -110,6 +109,7 @@ from trifuse.app.devtools.stream_clients import (
     cancel,
     wait_first_frames,
 )
+from trifuse.app.procfs import sample_process
 
 # -- sampling -----------------------------------------------------------------------------
 

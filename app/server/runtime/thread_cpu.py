@@ -13,7 +13,7 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
-from trifuse.app.devtools.procfs import parse_proc_cpu_s
+from trifuse.app.procfs import parse_proc_cpu_s
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,5 @@
-"""``trifuse bench --soak`` (app/devtools/bench_soak.py, with soak_report.py, procfs.py and
-stream_clients.py): its pure helpers, the command line, and a short run of the whole
+"""``trifuse bench --soak`` (app/devtools/bench_soak.py, with soak_report.py, app/procfs.py
+and stream_clients.py): its pure helpers, the command line, and a short run of the whole
 machinery against a real console (no performance assertions: the figures are for
 BENCHMARKS.md, measured on an idle machine)."""
 
@@ -13,7 +13,6 @@ import pytest
 
 from trifuse.app.cli import main
 from trifuse.app.devtools import bench_soak, soak_report
-from trifuse.app.devtools.procfs import parse_proc_cpu_s, parse_proc_status, sample_process
 from trifuse.app.devtools.soak_report import (
     Phase,
     SoakConfig,
@@ -24,6 +23,7 @@ from trifuse.app.devtools.soak_report import (
     summarize,
 )
 from trifuse.app.devtools.stream_clients import MjpegParts
+from trifuse.app.procfs import parse_proc_cpu_s, parse_proc_status, sample_process
 
 # -- the slope fit --------------------------------------------------------------------------
 

@@ -21,7 +21,7 @@ from ray.cluster_utils import Cluster
 
 from tests.support import ROOT, directory_bytes, poll_until, record_survey_archive
 from trifuse.app.cli import main
-from trifuse.app.devtools.procfs import child_pids
+from trifuse.app.procfs import child_pids
 from trifuse.app.recording import jobs
 from trifuse.app.recording.jobs import RayRunner, plan_fuse_job, run_fuse_job
 from trifuse.fusion.compose import DisplaySettings

@@ -31,7 +31,7 @@ from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory
 
 from tests.support import ROOT, run_cli, synth_frame, wait_until
-from trifuse.app.devtools.procfs import parse_proc_status
+from trifuse.app.procfs import parse_proc_status
 from trifuse.app.recording import RecordingWriter
 from trifuse.app.recording.layout import FUSED_VIDEO_SCHEMA, FUSED_VIDEO_TOPIC, topic_of
 from trifuse.app.recording.video_track import FusedVideoEncoder, nal_types

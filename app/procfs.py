@@ -1,6 +1,7 @@
 """What Linux's ``/proc`` says about a process: memory, threads, file descriptors, CPU time,
-child processes. For the stream soak and the ``idle`` benchmark (psutil is not a
-dependency)."""
+child processes, threads' CPU time. For the stream soak and the benchmarks, and the
+console's ``GET /api/threads`` (psutil is not a dependency). Standard library only: app's
+bottom layer."""
 
 from __future__ import annotations
 
