@@ -36,6 +36,6 @@ def thread_cpu() -> list[ThreadCpu]:
             try:
                 cpu = parse_proc_cpu_s(Path(f"/proc/self/task/{nid}/stat").read_text())
             except (OSError, ValueError):  # ended meanwhile; no /proc here
-                cpu = None
+                pass
         out.append(ThreadCpu(t.name, nid, cpu))
     return out
